@@ -1,0 +1,32 @@
+# Every target sets itself up on a fresh machine: venv, OSMesa, the package with dev extras.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+export PYOPENGL_PLATFORM ?= osmesa
+
+.PHONY: setup demo test net bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || python3 -m venv $(VENV)
+	@ldconfig -p | grep -q libOSMesa || { (apt-get update -qq && apt-get install -y -qq libosmesa6 >/dev/null) || { echo "could not install libosmesa6 (need root and apt)"; exit 1; }; }
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[dev]'
+	@touch $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/vcfusion demo
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+# Rebuild sumo_net/highway.net.xml from the plain-XML sources with the netconvert of the eclipse-sumo wheel.
+net: $(STAMP)
+	$(VENV)/bin/vcfusion build-net
+
+bench: $(STAMP)
+	$(VENV)/bin/vcfusion bench
+
+clean:
+	rm -rf runs .pytest_cache

@@ -1,0 +1,5 @@
+import sys
+
+from vcfusion.cli import main
+
+sys.exit(main())

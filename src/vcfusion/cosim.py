@@ -1,0 +1,341 @@
+"""The co-simulation tick loop.
+
+SUMO advances in steps of `simulation.step_s`. Every V2C period (a tick):
+1. every vehicle's GNSS report goes into the V2C channel; reports that have arrived reach the
+   cloud twin store, which runs its process models over all twins at once;
+2. the ego receives its neighbours' twins (within `v2c.neighbour_range_m`);
+3. tick hooks run (vision, overlay, logging of extra tables);
+4. the ego controller sets the ego's acceleration for the steps until the next tick.
+The ego's speed is integrated here and imposed on SUMO every step (speed mode 0), so the
+ego's motion is exactly what the controller asked for.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import time as wallclock
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Protocol
+
+import numpy as np
+import pandas as pd
+from tqdm import tqdm
+
+from vcfusion.cloud.channel import V2CChannel
+from vcfusion.cloud.twins import ProcessModel, TwinStore, neighbours
+from vcfusion.driver.idm import IDMParams, idm_acceleration
+from vcfusion.records import TwinStates, VehicleStates
+from vcfusion.scenario import Scenario
+from vcfusion.traffic.lanechanges import lane_change_events, read_sumo_lanechanges
+from vcfusion.traffic.network import Road
+from vcfusion.traffic.session import EGO_ID, Collision, SumoSession
+
+
+@dataclass(frozen=True)
+class EgoView:
+    """What the ego knows at a tick: its own state and its radar leader in its lane."""
+
+    speed: float
+    accel: float
+    s: float  # front bumper along the road
+    lane: int
+    leader_id: str | None
+    leader_gap_m: float | None  # bumper to bumper
+    leader_speed: float | None
+
+
+@dataclass
+class Tick:
+    time: float
+    truth: VehicleStates
+    twins: TwinStates
+    ego: EgoView | None
+    neighbours: TwinStates | None
+    # Filled by hooks for the controller and the logs (e.g. guidance from the AR overlay).
+    annotations: dict = field(default_factory=dict)
+
+
+class EgoController(Protocol):
+    def acceleration(self, tick: Tick) -> float: ...
+
+
+class TickHook(Protocol):
+    """Runs every V2C tick; may return rows for a table of the run folder."""
+
+    table: str
+
+    def __call__(self, tick: Tick) -> list[dict] | None: ...
+
+
+class IdmEgoController:
+    """Placeholder driver until the driver model: IDM on the radar leader in the ego's lane."""
+
+    def __init__(self, params: IDMParams):
+        self.params = params
+
+    def acceleration(self, tick: Tick) -> float:
+        ego = tick.ego
+        return idm_acceleration(self.params, ego.speed, ego.leader_gap_m, ego.leader_speed)
+
+
+@dataclass
+class RunResult:
+    scenario: Scenario
+    seed: int
+    tables: dict[str, pd.DataFrame]
+    summary: dict
+    wall_s: float
+
+
+TRAJECTORY_COLUMNS = ["time", "vehicle_id", "x", "y", "z", "heading", "speed", "accel",
+                      "lane", "lateral_offset", "s", "d"]
+
+
+def _truth_rows(truth: VehicleStates, road: Road) -> dict[str, np.ndarray]:
+    s, d = road.to_road_frame(truth.x, truth.y)
+    return {
+        "time": np.full(len(truth), round(truth.time, 6)),
+        "vehicle_id": np.array(truth.ids, dtype=object),
+        "x": truth.x, "y": truth.y, "z": truth.z, "heading": truth.heading,
+        "speed": truth.speed, "accel": truth.accel, "lane": truth.lane,
+        "lateral_offset": truth.lateral_offset, "s": s, "d": d,
+    }
+
+
+def _twin_rows(twins: TwinStates) -> dict[str, np.ndarray]:
+    rows = {
+        "time": np.full(len(twins), round(twins.time, 6)),
+        "vehicle_id": np.array(twins.ids, dtype=object),
+        "measured_time": np.round(twins.measured_time, 6),
+        "x": twins.x, "y": twins.y, "z": twins.z, "heading": twins.heading,
+        "speed": twins.speed, "accel": twins.accel, "lane": twins.lane,
+    }
+    rows.update({k: np.asarray(v) for k, v in twins.outputs.items()})
+    return rows
+
+
+def _concat(chunks: list[dict[str, np.ndarray]], columns: list[str] | None = None) -> pd.DataFrame:
+    if not chunks:
+        return pd.DataFrame(columns=columns or [])
+    keys = list(chunks[0])
+    frame = pd.DataFrame({k: np.concatenate([c[k] for c in chunks]) for k in keys})
+    if "vehicle_id" in frame:
+        frame["vehicle_id"] = frame["vehicle_id"].astype(str)
+    return frame
+
+
+class CoSimulation:
+    def __init__(
+        self,
+        scenario: Scenario,
+        seed: int,
+        controller: EgoController | None = None,
+        process_models: list[tuple[str, ProcessModel]] | None = None,
+        hooks: list[TickHook] | None = None,
+    ):
+        self.scenario = scenario
+        self.seed = seed
+        # One generator per run: placements, V2C loss/jitter/noise all follow from the seed.
+        self.rng = np.random.default_rng(seed)
+        ego_cfg = scenario.ego
+        self.controller = controller or (
+            IdmEgoController(IDMParams(desired_speed_mps=ego_cfg.desired_speed_mps)) if ego_cfg else None)
+        self.process_models = process_models or []
+        self.hooks = hooks or []
+
+    def run(self, progress: bool = False) -> RunResult:
+        sc = self.scenario
+        started = wallclock.perf_counter()
+        with tempfile.TemporaryDirectory(prefix="vcfusion-sumo-") as tmp:
+            lc_file = Path(tmp) / "lanechanges.xml"
+            session = SumoSession(sc, self.seed, lc_file, np.random.default_rng(self.rng.integers(2**63)))
+            try:
+                out = self._loop(session, progress)
+            finally:
+                session.close()
+            sumo_changes = read_sumo_lanechanges(lc_file)
+        road = session.road
+        trajectories = _concat(out["trajectories"], TRAJECTORY_COLUMNS)
+        vehicles = session.vehicle_table()
+        tables = {
+            "vehicles": vehicles,
+            "trajectories": trajectories,
+            "ego": pd.DataFrame(out["ego"]),
+            "twins": _concat(out["twins"]),
+            "lane_changes": lane_change_events(sumo_changes, trajectories, road),
+            "collisions": pd.DataFrame([c.__dict__ for c in out["collisions"]],
+                                       columns=list(Collision.__dataclass_fields__)),
+        }
+        for name, rows in out["hooks"].items():
+            tables[name] = pd.DataFrame(rows)
+        if sc.ego is not None:
+            tables["lane_changes"] = _relate_to_ego(tables["lane_changes"], trajectories, vehicles, sc.ego.lane)
+        summary = summarize(sc, self.seed, tables, out["channel"], out["end_reason"])
+        return RunResult(sc, self.seed, tables, summary, wallclock.perf_counter() - started)
+
+    def _loop(self, session: SumoSession, progress: bool) -> dict:
+        sc = self.scenario
+        dt = sc.simulation.step_s
+        tick_every = sc.steps(sc.v2c.period_s)
+        traj_every = sc.steps(sc.simulation.trajectory_period_s)
+        channel = V2CChannel(sc.v2c, self.rng)
+        store = TwinStore(sc.v2c, session.road)
+        for name, model in self.process_models:
+            store.add_process_model(name, model)
+
+        out = {"trajectories": [], "twins": [], "ego": [], "collisions": [], "hooks": {}, "channel": channel}
+        ego_cfg = sc.ego
+        ego_speed = ego_cfg.speed_mps if ego_cfg else 0.0
+        ego_accel = 0.0
+        end_reason = "max_time"
+        max_steps = int(round(sc.simulation.max_time_s / dt))
+        bar = tqdm(total=max_steps, unit="step", desc=f"{sc.name} seed {self.seed}", disable=not progress,
+                   leave=False, mininterval=0.5)
+        k = int(round(session.time / dt))
+        while k < max_steps:
+            truth = None
+            if k % traj_every == 0 or k % tick_every == 0:
+                truth = session.states()
+            if k % traj_every == 0:
+                out["trajectories"].append(_truth_rows(truth, session.road))
+            if ego_cfg is not None:
+                if not session.ego_present():
+                    end_reason = "ego_left"
+                    break
+                s_front, ego_speed_now, sumo_acc = session.ego_kinematics()
+                if s_front - ego_cfg.depart_pos_m >= ego_cfg.trip_distance_m:
+                    end_reason = "trip_complete"
+                    break
+            if k % tick_every == 0:
+                now = truth.time
+                channel.send(channel.measure(truth))
+                for batch in channel.deliver(now):
+                    store.ingest(batch)
+                store.forget_stale(now)
+                twins = store.snapshot(now)
+                out["twins"].append(_twin_rows(twins))
+                ego_view = self._ego_view(session, truth) if ego_cfg else None
+                near = (neighbours(twins, (truth.x[truth.index_of(EGO_ID)], truth.y[truth.index_of(EGO_ID)]),
+                                   sc.v2c.neighbour_range_m, EGO_ID) if ego_cfg else None)
+                tick = Tick(now, truth, twins, ego_view, near)
+                for hook in self.hooks:
+                    rows = hook(tick)
+                    if rows:
+                        out["hooks"].setdefault(hook.table, []).extend(rows)
+                if ego_cfg is not None:
+                    ego_accel = float(self.controller.acceleration(tick))
+            if ego_cfg is not None:
+                leader = session.leader(EGO_ID)
+                out["ego"].append({
+                    "time": round(session.time, 6), "s": s_front, "speed": ego_speed_now, "accel": sumo_acc,
+                    "command_accel": ego_accel,
+                    "leader_id": leader[0] if leader else "",
+                    "leader_gap_m": leader[1] if leader else np.nan,
+                })
+                ego_speed = max(0.0, ego_speed + ego_accel * dt)
+                session.set_ego_speed(ego_speed)
+            out["collisions"].extend(session.step())
+            k += 1
+            bar.update(1)
+            if not sc.flows and session.time > dt and not _any_vehicles():
+                end_reason = "no_vehicles"
+                break
+        bar.close()
+        out["end_reason"] = end_reason
+        return out
+
+    def _ego_view(self, session: SumoSession, truth: VehicleStates) -> EgoView:
+        i = truth.index_of(EGO_ID)
+        leader = session.leader(EGO_ID)
+        s, _ = session.road.to_road_frame(truth.x[i], truth.y[i])
+        return EgoView(
+            speed=float(truth.speed[i]), accel=float(truth.accel[i]),
+            s=float(s + truth.length[i] / 2), lane=int(truth.lane[i]),
+            leader_id=leader[0] if leader else None,
+            leader_gap_m=leader[1] if leader else None,
+            leader_speed=session.speed_of(leader[0]) if leader else None,
+        )
+
+
+def _any_vehicles() -> bool:
+    import libsumo
+
+    return libsumo.vehicle.getIDCount() > 0
+
+
+def _relate_to_ego(events: pd.DataFrame, trajectories: pd.DataFrame, vehicles: pd.DataFrame,
+                   ego_lane: int) -> pd.DataFrame:
+    """Mark lane changes into the ego's lane and where they happened relative to the ego."""
+    events = events.copy()
+    ego = trajectories[trajectories["vehicle_id"] == EGO_ID].set_index("time")
+    others = trajectories.set_index(["vehicle_id", "time"])
+    length = vehicles.set_index("vehicle_id")["length"]
+    gaps = np.full(len(events), np.nan)
+    for i, ev in enumerate(events.itertuples(index=False)):
+        if ego.empty:
+            break
+        t_near = ego.index[np.argmin(np.abs(ego.index.to_numpy() - ev.mid_time))]
+        if (ev.vehicle_id, t_near) not in others.index:
+            continue
+        row = others.loc[(ev.vehicle_id, t_near)]
+        # Bumper-to-bumper: rear of the changer minus the front of the ego (along the road).
+        gaps[i] = row["s"] - ego.loc[t_near, "s"] - 0.5 * (length[ev.vehicle_id] + length[EGO_ID])
+    events["into_ego_lane"] = (events["to_lane"] == ego_lane) & (events["vehicle_id"] != EGO_ID)
+    events["gap_to_ego_m"] = gaps
+    events["ahead_of_ego"] = gaps > 0
+    return events
+
+
+def summarize(sc: Scenario, seed: int, tables: dict[str, pd.DataFrame], channel: V2CChannel, end_reason: str) -> dict:
+    lc = tables["lane_changes"]
+    traj = tables["trajectories"]
+    summary: dict = {
+        "scenario": sc.name,
+        "seed": seed,
+        "end_reason": end_reason,
+        "simulated_s": float(traj["time"].max()) if len(traj) else 0.0,
+        "vehicles": int(traj["vehicle_id"].nunique()) if len(traj) else 0,
+        "lane_changes": int(len(lc)),
+        "lane_changes_by_target_lane": {int(k): int(v) for k, v in lc["to_lane"].value_counts().sort_index().items()},
+        "lane_changes_by_reason": {str(k): int(v) for k, v in lc["reason"].value_counts().sort_index().items()},
+        "collisions": int(len(tables["collisions"])),
+        "v2c_reports_sent": channel.sent,
+        "v2c_reports_lost": channel.lost,
+    }
+    if sc.ego is not None and "into_ego_lane" in lc:
+        cut = lc[lc["into_ego_lane"] & lc["ahead_of_ego"]]
+        ego = tables["ego"]
+        summary.update({
+            "ego_lane": sc.ego.lane,
+            "cut_ins_ahead_of_ego": int(len(cut)),
+            "cut_ins": [
+                {"vehicle_id": r.vehicle_id, "mid_time": float(r.mid_time), "gap_to_ego_m": round(float(r.gap_to_ego_m), 2)}
+                for r in cut.itertuples(index=False)
+            ],
+            "ego_distance_m": float(ego["s"].iloc[-1] - ego["s"].iloc[0]) if len(ego) else 0.0,
+            "ego_mean_speed_mps": float(ego["speed"].mean()) if len(ego) else 0.0,
+            "ego_min_leader_gap_m": float(np.nanmin(ego["leader_gap_m"])) if ego["leader_gap_m"].notna().any() else None,
+        })
+    return summary
+
+
+def format_summary(summary: dict, wall_s: float | None = None) -> str:
+    lines = [f"scenario {summary['scenario']}, seed {summary['seed']}: "
+             f"{summary['simulated_s']:.1f} s simulated ({summary['end_reason']})"
+             + (f" in {wall_s:.1f} s wall" if wall_s is not None else "")]
+    lines.append(f"  vehicles: {summary['vehicles']}, collisions: {summary['collisions']}")
+    by_lane = ", ".join(f"into lane {k}: {v}" for k, v in summary["lane_changes_by_target_lane"].items()) or "none"
+    lines.append(f"  lane changes: {summary['lane_changes']} ({by_lane})")
+    if summary["lane_changes_by_reason"]:
+        lines.append("  reasons: " + ", ".join(f"{k} {v}" for k, v in summary["lane_changes_by_reason"].items()))
+    if "ego_lane" in summary:
+        lines.append(f"  ego (lane {summary['ego_lane']}): {summary['ego_distance_m']:.0f} m at "
+                     f"{summary['ego_mean_speed_mps']:.1f} m/s mean; cut-ins ahead of the ego: "
+                     f"{summary['cut_ins_ahead_of_ego']}")
+        for c in summary["cut_ins"]:
+            lines.append(f"    {c['vehicle_id']} at t = {c['mid_time']:.2f} s, {c['gap_to_ego_m']:.1f} m ahead")
+    lost = summary["v2c_reports_lost"]
+    lines.append(f"  V2C: {summary['v2c_reports_sent']} reports sent, {lost} lost")
+    return "\n".join(lines)

@@ -1,0 +1,122 @@
+"""Typed records passed between the stages of a tick.
+
+All are struct-of-arrays: one NumPy array per field, one element per vehicle, so a stage
+works on all vehicles at once and can be tested without SUMO by building a record by hand.
+
+Conventions (see docs/architecture.md):
+- world frame is SUMO's (x east, y north, z up), metres;
+- (x, y, z) of a vehicle is the centre of its footprint on the ground, not SUMO's front bumper;
+- heading is the yaw in radians, counter-clockwise from +x (SUMO's angle is converted once,
+  in vcfusion.traffic.session);
+- the GNSS antenna sits on the roof centre: footprint centre raised by the vehicle height
+  (:func:`gnss_antenna_points`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+
+def _take(record, index):
+    values = {}
+    for f in fields(record):
+        v = getattr(record, f.name)
+        if isinstance(v, np.ndarray):
+            values[f.name] = v[index]
+        elif isinstance(v, tuple):
+            values[f.name] = tuple(np.asarray(v, dtype=object)[index].tolist())
+        else:
+            values[f.name] = v
+    return type(record)(**values)
+
+
+@dataclass(frozen=True)
+class VehicleStates:
+    """Ground truth of every vehicle at one instant (from SUMO)."""
+
+    time: float
+    ids: tuple[str, ...]
+    vtype: tuple[str, ...]
+    vclass: tuple[str, ...]
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    heading: np.ndarray
+    speed: np.ndarray
+    accel: np.ndarray
+    lane: np.ndarray  # int16, SUMO lane index (0 = rightmost), -1 if not on the road
+    lateral_offset: np.ndarray  # metres left of the lane centre
+    length: np.ndarray
+    width: np.ndarray
+    height: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def index_of(self, vehicle_id: str) -> int:
+        return self.ids.index(vehicle_id)
+
+    def select(self, index) -> "VehicleStates":
+        return _take(self, index)
+
+
+def gnss_antenna_points(x: np.ndarray, y: np.ndarray, z: np.ndarray, height: np.ndarray) -> np.ndarray:
+    """World positions (N, 3) of the GNSS antenna: the roof centre."""
+    return np.stack([x, y, z + height], axis=-1)
+
+
+@dataclass(frozen=True)
+class GnssReports:
+    """What vehicles send over the V2C uplink, stamped with the time they were measured."""
+
+    measured_time: np.ndarray  # s
+    ids: tuple[str, ...]
+    x: np.ndarray  # GNSS antenna point, with GNSS error
+    y: np.ndarray
+    z: np.ndarray
+    heading: np.ndarray
+    speed: np.ndarray
+    accel: np.ndarray
+    length: np.ndarray
+    width: np.ndarray
+    height: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def select(self, index) -> "GnssReports":
+        return _take(self, index)
+
+
+@dataclass(frozen=True)
+class TwinStates:
+    """The cloud Digital Twins' latest states, as the ego receives them.
+
+    `outputs` holds the columns written by twin process models (e.g. `lc_prob`), aligned
+    with `ids`.
+    """
+
+    time: float  # cloud time of this snapshot
+    ids: tuple[str, ...]
+    measured_time: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    heading: np.ndarray
+    speed: np.ndarray
+    accel: np.ndarray
+    lane: np.ndarray  # map-matched from the GNSS position, -1 off the road
+    length: np.ndarray
+    width: np.ndarray
+    height: np.ndarray
+    outputs: dict
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def select(self, index) -> "TwinStates":
+        sub = _take(self, index)
+        outs = {k: np.asarray(v)[index] for k, v in self.outputs.items()}
+        return TwinStates(**{**{f.name: getattr(sub, f.name) for f in fields(sub)}, "outputs": outs})

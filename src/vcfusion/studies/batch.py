@@ -1,0 +1,111 @@
+"""Batch runs: many seeds of one scenario, one process per simulation.
+
+libsumo holds one simulation per process, so seeds run in worker processes (spawned, so no
+SUMO state is inherited). A seed's run folder is OUT/seed_NNNN; a seed whose folder is
+complete is skipped, so a re-run resumes. A failing seed is recorded in OUT/failures.json
+and the others go on.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import traceback
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+from tqdm import tqdm
+
+from vcfusion.runio import is_complete_run, write_json, write_table
+
+
+def parse_seeds(text: str) -> list[int]:
+    """'0-99', '3', '1,4,7-9' -> sorted unique seeds."""
+    seeds: set[int] = set()
+    try:
+        for part in text.split(","):
+            part = part.strip()
+            if "-" in part:
+                lo, hi = (int(x) for x in part.split("-", 1))
+                if lo > hi or lo < 0:
+                    raise ValueError
+                seeds.update(range(lo, hi + 1))
+            else:
+                seed = int(part)
+                if seed < 0:
+                    raise ValueError
+                seeds.add(seed)
+    except ValueError:
+        raise ValueError(f"--seeds: expected non-negative seeds like '0-99' or '1,4,7-9', got {text!r}") from None
+    return sorted(seeds)
+
+
+def seed_folder(out: Path, seed: int) -> Path:
+    return Path(out) / f"seed_{seed:04d}"
+
+
+@dataclass(frozen=True)
+class SeedOutcome:
+    seed: int
+    ok: bool
+    summary: dict | None
+    error: str | None
+
+
+def _run_seed(scenario_path: str, seed: int, out: str) -> SeedOutcome:
+    # Imported here: the worker is a fresh (spawned) interpreter.
+    from vcfusion.run import execute_run
+    from vcfusion.scenario import load_scenario
+
+    try:
+        scenario = load_scenario(scenario_path)
+        result = execute_run(scenario, seed, seed_folder(Path(out), seed))
+        return SeedOutcome(seed, True, result.summary, None)
+    except Exception as exc:  # isolate the failure of one seed from the others
+        detail = traceback.format_exc(limit=3)
+        return SeedOutcome(seed, False, None, f"{type(exc).__name__}: {exc}\n{detail}")
+
+
+def run_batch(scenario_path: Path, seeds: list[int], out: Path, workers: int = 1, progress: bool = True,
+              task=_run_seed) -> dict:
+    """Run every seed not yet complete; returns {'done', 'skipped', 'failed'}."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    todo = [s for s in seeds if not is_complete_run(seed_folder(out, s))]
+    skipped = len(seeds) - len(todo)
+    outcomes: list[SeedOutcome] = []
+    bar = tqdm(total=len(todo), unit="run", desc=f"batch {Path(scenario_path).stem}", disable=not progress)
+    if todo:
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx) as pool:
+            futures = [pool.submit(task, str(scenario_path), s, str(out)) for s in todo]
+            for fut in as_completed(futures):
+                outcome = fut.result()
+                outcomes.append(outcome)
+                bar.update(1)
+                if not outcome.ok:
+                    bar.write(f"seed {outcome.seed} failed: {outcome.error.splitlines()[0]}")
+    bar.close()
+    failed = sorted((o for o in outcomes if not o.ok), key=lambda o: o.seed)
+    _write_index(out, seeds, failed)
+    return {"done": len(todo) - len(failed), "skipped": skipped, "failed": [(o.seed, o.error) for o in failed]}
+
+
+def _write_index(out: Path, seeds: list[int], failed: list[SeedOutcome]) -> None:
+    """batch_summary.parquet: one row per complete seed of this batch; failures.json: the rest."""
+    import json
+
+    rows = []
+    for s in seeds:
+        folder = seed_folder(out, s)
+        if is_complete_run(folder):
+            summary = json.loads((folder / "summary.json").read_text())
+            rows.append({k: v for k, v in summary.items() if not isinstance(v, (dict, list))})
+    if rows:
+        write_table(out / "batch_summary.parquet", pd.DataFrame(rows).sort_values("seed"))
+    failures_file = out / "failures.json"
+    if failed:
+        write_json(failures_file, {str(o.seed): o.error for o in failed})
+    elif failures_file.exists():
+        failures_file.unlink()

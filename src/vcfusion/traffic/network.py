@@ -1,0 +1,140 @@
+"""The highway network: reproducible build with netconvert, and its road geometry.
+
+The road is one straight edge. :class:`Road` is the geometry every other stage needs (lane
+centres, road edges, the direction of travel) so no stage has to read SUMO files itself.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+REPO_NET_DIR = Path(__file__).resolve().parents[3] / "sumo_net"
+
+
+@dataclass(frozen=True)
+class Road:
+    """A straight multi-lane road. Lane 0 is the rightmost lane (SUMO's convention)."""
+
+    edge_id: str
+    start: tuple[float, float]
+    end: tuple[float, float]
+    num_lanes: int
+    lane_width_m: float
+    speed_limit_mps: float
+
+    @property
+    def length_m(self) -> float:
+        return float(np.hypot(self.end[0] - self.start[0], self.end[1] - self.start[1]))
+
+    @property
+    def direction(self) -> np.ndarray:
+        d = np.array(self.end) - np.array(self.start)
+        return d / np.linalg.norm(d)
+
+    @property
+    def left_normal(self) -> np.ndarray:
+        d = self.direction
+        return np.array([-d[1], d[0]])
+
+    @property
+    def heading_rad(self) -> float:
+        d = self.direction
+        return float(np.arctan2(d[1], d[0]))
+
+    @property
+    def width_m(self) -> float:
+        return self.num_lanes * self.lane_width_m
+
+    def to_road_frame(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World (x, y) to (s, d): s along the road from its start, d left of the right road edge."""
+        rel_x = np.asarray(x) - self.start[0]
+        rel_y = np.asarray(y) - self.start[1]
+        s = rel_x * self.direction[0] + rel_y * self.direction[1]
+        # The edge's reference line (its 'shape') is the left road edge in SUMO's right-hand traffic.
+        d_left = rel_x * self.left_normal[0] + rel_y * self.left_normal[1]
+        return s, d_left + self.width_m
+
+    def to_world(self, s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        s = np.asarray(s, dtype=float)
+        d_left = np.asarray(d, dtype=float) - self.width_m
+        x = self.start[0] + s * self.direction[0] + d_left * self.left_normal[0]
+        y = self.start[1] + s * self.direction[1] + d_left * self.left_normal[1]
+        return x, y
+
+    def lane_centre_d(self, lane: np.ndarray | int) -> np.ndarray:
+        return (np.asarray(lane, dtype=float) + 0.5) * self.lane_width_m
+
+    def lane_of(self, d: np.ndarray) -> np.ndarray:
+        """Map-match a lateral road coordinate to a lane index (-1 when off the road)."""
+        lane = np.floor(np.asarray(d, dtype=float) / self.lane_width_m).astype(np.int16)
+        return np.where((lane >= 0) & (lane < self.num_lanes), lane, -1)
+
+
+def read_road(net_file: str | Path) -> Road:
+    """Read the single straight edge of a SUMO network file."""
+    root = ET.parse(net_file).getroot()
+    edges = [e for e in root.iter("edge") if e.get("function") != "internal"]
+    if len(edges) != 1:
+        raise ValueError(f"{net_file}: expected one straight highway edge, found {len(edges)} edges")
+    edge = edges[0]
+    lanes = sorted(edge.iter("lane"), key=lambda lane: int(lane.get("index")))
+    widths = {float(lane.get("width", 3.2)) for lane in lanes}
+    if len(widths) != 1:
+        raise ValueError(f"{net_file}: expected lanes of equal width, found {sorted(widths)}")
+    width = widths.pop()
+    # Lane shapes are lane centre lines; the leftmost lane's centre is width/2 right of the left edge.
+    left = lanes[-1].get("shape").split()
+    (x0, y0), (x1, y1) = (tuple(map(float, p.split(","))) for p in (left[0], left[-1]))
+    direction = np.array([x1 - x0, y1 - y0]) / np.hypot(x1 - x0, y1 - y0)
+    normal = np.array([-direction[1], direction[0]])
+    start = np.array([x0, y0]) + normal * width / 2
+    end = np.array([x1, y1]) + normal * width / 2
+    return Road(
+        edge_id=edge.get("id"),
+        start=(float(start[0]), float(start[1])),
+        end=(float(end[0]), float(end[1])),
+        num_lanes=len(lanes),
+        lane_width_m=width,
+        speed_limit_mps=float(lanes[0].get("speed")),
+    )
+
+
+def read_vehicle_types(vtype_file: str | Path) -> dict[str, dict[str, str]]:
+    """The <vType> attributes of an additional file, by type id."""
+    root = ET.parse(vtype_file).getroot()
+    return {vt.get("id"): dict(vt.attrib) for vt in root.iter("vType")}
+
+
+def netconvert_binary() -> str:
+    """The netconvert of the eclipse-sumo wheel (falls back to one on PATH)."""
+    here = Path(sys.executable).parent / "netconvert"
+    if here.exists():
+        return str(here)
+    found = shutil.which("netconvert")
+    if found is None:
+        raise RuntimeError("netconvert not found: install the package (it depends on eclipse-sumo)")
+    return found
+
+
+def build_network(net_dir: Path = REPO_NET_DIR, name: str = "highway") -> Path:
+    """Build NAME.net.xml from NAME.nod.xml / .edg.xml / .typ.xml in net_dir."""
+    out = net_dir / f"{name}.net.xml"
+    tmp = net_dir / f"{name}.net.xml.tmp-build"
+    cmd = [
+        netconvert_binary(),
+        "--node-files", str(net_dir / f"{name}.nod.xml"),
+        "--edge-files", str(net_dir / f"{name}.edg.xml"),
+        "--type-files", str(net_dir / f"{name}.typ.xml"),
+        "--no-turnarounds", "true",
+        "--output-file", str(tmp),
+    ]
+    subprocess.run(cmd, check=True, capture_output=True, text=True)
+    tmp.replace(out)
+    return out

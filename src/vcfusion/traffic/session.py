@@ -1,0 +1,304 @@
+"""The libsumo session: start SUMO, place vehicles, step, read states, drive the ego.
+
+This module is the only place that talks to SUMO. It converts SUMO's conventions once:
+SUMO's position is the front-bumper centre and its angle is degrees clockwise from north;
+records carry the footprint centre and a yaw in radians counter-clockwise from +x.
+
+libsumo holds one simulation per process and is not thread-safe: parallel runs are processes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import libsumo
+import numpy as np
+
+from vcfusion.records import VehicleStates
+from vcfusion.scenario import Scenario
+from vcfusion.traffic.network import Road, read_road, read_vehicle_types
+
+EGO_ID = "ego"
+ROUTE_ID = "highway"
+# A stop longer than any run: the accident vehicles never leave.
+ACCIDENT_STOP_S = 1.0e6
+
+
+class RunError(RuntimeError):
+    """A run that cannot proceed for this seed (e.g. an impossible departure)."""
+
+
+@dataclass(frozen=True)
+class Collision:
+    time: float
+    collider: str
+    victim: str
+    kind: str
+    collider_speed: float
+    victim_speed: float
+    lane: str
+    pos: float
+
+
+@dataclass(frozen=True)
+class Placement:
+    vehicle_id: str
+    group: str
+    vtype: str
+    lane: int
+    pos_m: float  # front bumper, along the lane
+    speed_mps: float
+    desired_speed_mps: float | None
+    depart_s: float = 0.0
+
+
+def sumo_angle_to_yaw(angle_deg: np.ndarray) -> np.ndarray:
+    """SUMO angle (deg clockwise from north) to yaw (rad counter-clockwise from +x)."""
+    return np.radians(90.0 - np.asarray(angle_deg, dtype=float))
+
+
+def plan_placements(scenario: Scenario, road: Road, vtypes: dict, rng: np.random.Generator) -> list[Placement]:
+    """Draw the initial vehicles and flow arrivals of one seed."""
+    placements: list[Placement] = []
+    occupied: dict[int, list[tuple[float, float]]] = {}  # lane -> [(rear, front)]
+
+    def length_of(vtype: str) -> float:
+        return float(vtypes[vtype].get("length", 5.0))
+
+    def free(lane: int, front: float, length: float, spacing: float) -> bool:
+        return all(front + spacing <= rear or front - length - spacing >= other_front
+                   for rear, other_front in occupied.get(lane, []))
+
+    def occupy(lane: int, front: float, length: float) -> None:
+        occupied.setdefault(lane, []).append((front - length, front))
+
+    if scenario.accident is not None:
+        acc = scenario.accident
+        for lane in acc.lanes:
+            occupy(lane, acc.pos_m, length_of(acc.vtype))
+    if scenario.ego is not None:
+        occupy(scenario.ego.lane, scenario.ego.depart_pos_m, length_of(scenario.ego.vtype))
+
+    for group in scenario.vehicles:
+        length = length_of(group.vtype)
+        for k in range(group.count):
+            for _attempt in range(200):
+                lane = int(rng.choice(group.lanes))
+                front = float(rng.uniform(*group.pos_m))
+                if free(lane, front, length, group.min_spacing_m):
+                    break
+            else:
+                raise RunError(
+                    f"vehicles.{group.name}: could not place vehicle {k + 1} of {group.count} in lanes "
+                    f"{group.lanes} within {list(group.pos_m)} m with {group.min_spacing_m} m spacing")
+            if front - length < 0 or front > road.length_m:
+                raise RunError(
+                    f"vehicles.{group.name}: vehicle {k + 1} drawn at {front:.1f} m, outside the road "
+                    f"[{length:.1f}, {road.length_m:.1f}] m: impossible departure")
+            occupy(lane, front, length)
+            placements.append(Placement(f"{group.name}{k}", group.name, group.vtype, lane, front,
+                                        group.speed_mps, group.desired_speed_mps))
+
+    for f_idx, flow in enumerate(scenario.flows):
+        rate = flow.vehs_per_hour / 3600.0
+        t = float(rng.exponential(1.0 / rate))
+        n = 0
+        while t < scenario.simulation.max_time_s:
+            lane = int(rng.choice(flow.lanes))
+            placements.append(Placement(f"f{f_idx}.{n}", f"flow{f_idx}", flow.vtype, lane,
+                                        length_of(flow.vtype), flow.speed_mps, None, depart_s=t))
+            n += 1
+            t += float(rng.exponential(1.0 / rate))
+    return placements
+
+
+class SumoSession:
+    """One running SUMO simulation of a scenario."""
+
+    def __init__(self, scenario: Scenario, seed: int, lanechange_file: Path, rng: np.random.Generator):
+        self.scenario = scenario
+        self.seed = seed
+        self.road = read_road(scenario.network)
+        self.vtypes = read_vehicle_types(scenario.vehicle_types)
+        self.step_s = scenario.simulation.step_s
+        for vt in self._vtypes_used():
+            if vt not in self.vtypes:
+                raise RunError(f"vehicle type {vt!r} is not defined in {scenario.vehicle_types}")
+        self._check_lanes()
+        self.placements = plan_placements(scenario, self.road, self.vtypes, rng)
+        self.sumo_args = [
+            "sumo",
+            "--net-file", str(scenario.network),
+            "--additional-files", str(scenario.vehicle_types),
+            "--step-length", repr(self.step_s),
+            "--seed", str(seed),
+            "--lanechange.duration", repr(scenario.simulation.lanechange_duration_s),
+            "--collision.action", "warn",
+            "--collision.check-junctions", "true",
+            "--lanechange-output", str(lanechange_file),
+            "--no-step-log", "true",
+            "--no-warnings", "true",
+            "--duration-log.disable", "true",
+        ]
+        libsumo.start(self.sumo_args)
+        self._open = True
+        self.time = 0.0
+        self._static: dict[str, tuple] = {}
+        try:
+            self._populate()
+        except Exception:
+            self.close()
+            raise
+
+    def _vtypes_used(self) -> set[str]:
+        sc = self.scenario
+        used = {g.vtype for g in sc.vehicles} | {f.vtype for f in sc.flows}
+        if sc.accident is not None:
+            used.add(sc.accident.vtype)
+        if sc.ego is not None:
+            used.add(sc.ego.vtype)
+        return used
+
+    def _check_lanes(self) -> None:
+        sc = self.scenario
+        lanes = [("ego.lane", sc.ego.lane)] if sc.ego else []
+        lanes += [(f"vehicles.{g.name}.lanes", lane) for g in sc.vehicles for lane in g.lanes]
+        lanes += [(f"flows[{i}].lanes", lane) for i, f in enumerate(sc.flows) for lane in f.lanes]
+        lanes += [("accident.lanes", lane) for lane in (sc.accident.lanes if sc.accident else [])]
+        for field, lane in lanes:
+            if lane >= self.road.num_lanes:
+                raise RunError(f"{field}: lane {lane} does not exist (the road has {self.road.num_lanes} lanes)")
+
+    # -- set-up -------------------------------------------------------------------------
+    def _populate(self) -> None:
+        sc = self.scenario
+        libsumo.route.add(ROUTE_ID, [self.road.edge_id])
+        if sc.accident is not None:
+            for i, lane in enumerate(sc.accident.lanes):
+                vid = f"accident{i}"
+                libsumo.vehicle.add(vid, ROUTE_ID, sc.accident.vtype, depart="0", departLane=str(lane),
+                                    departPos=repr(sc.accident.pos_m), departSpeed="0")
+                libsumo.vehicle.setStop(vid, self.road.edge_id, pos=sc.accident.pos_m, laneIndex=lane,
+                                        duration=ACCIDENT_STOP_S, flags=0)
+        if sc.ego is not None:
+            libsumo.vehicle.add(EGO_ID, ROUTE_ID, sc.ego.vtype, depart="0", departLane=str(sc.ego.lane),
+                                departPos=repr(sc.ego.depart_pos_m), departSpeed=repr(sc.ego.speed_mps))
+        for p in self.placements:
+            depart_speed = repr(p.speed_mps) if p.depart_s == 0.0 else "desired"
+            libsumo.vehicle.add(p.vehicle_id, ROUTE_ID, p.vtype, depart=repr(round(p.depart_s, 2)),
+                                departLane=str(p.lane), departPos=repr(p.pos_m), departSpeed=depart_speed)
+            if p.desired_speed_mps is not None:
+                libsumo.vehicle.setMaxSpeed(p.vehicle_id, p.desired_speed_mps)
+        self.step()
+        if sc.ego is not None:
+            if EGO_ID not in libsumo.vehicle.getIDList():
+                raise RunError("the ego could not be inserted at its departure position")
+            # Our code drives the ego: no SUMO safety checks, no SUMO lane changes.
+            libsumo.vehicle.setSpeedMode(EGO_ID, 0)
+            libsumo.vehicle.setLaneChangeMode(EGO_ID, 0)
+        missing = [p.vehicle_id for p in self.placements
+                   if p.depart_s == 0.0 and p.vehicle_id not in libsumo.vehicle.getIDList()]
+        if missing:
+            raise RunError(f"SUMO could not insert {missing} at their departure positions")
+
+    # -- stepping -----------------------------------------------------------------------
+    def step(self) -> list[Collision]:
+        libsumo.simulationStep()
+        self.time = libsumo.simulation.getTime()
+        return [
+            Collision(self.time, c.collider, c.victim, c.type, c.colliderSpeed, c.victimSpeed, c.lane, c.pos)
+            for c in libsumo.simulation.getCollisions()
+        ]
+
+    def set_ego_speed(self, speed_mps: float) -> None:
+        libsumo.vehicle.setSpeed(EGO_ID, max(0.0, speed_mps))
+
+    def ego_present(self) -> bool:
+        return EGO_ID in libsumo.vehicle.getIDList()
+
+    def ego_kinematics(self) -> tuple[float, float, float]:
+        """(front-bumper position along the road, speed, acceleration) of the ego."""
+        v = libsumo.vehicle
+        return v.getLanePosition(EGO_ID), v.getSpeed(EGO_ID), v.getAcceleration(EGO_ID)
+
+    def leader(self, vehicle_id: str, horizon_m: float = 250.0) -> tuple[str, float] | None:
+        """SUMO's leader of a vehicle: (id, bumper-to-bumper gap), or None."""
+        found = libsumo.vehicle.getLeader(vehicle_id, horizon_m)
+        if not found or not found[0]:
+            return None
+        # getLeader's distance excludes the follower's minGap; add it back for the true gap.
+        return found[0], found[1] + libsumo.vehicle.getMinGap(vehicle_id)
+
+    def speed_of(self, vehicle_id: str) -> float:
+        return libsumo.vehicle.getSpeed(vehicle_id)
+
+    def states(self) -> VehicleStates:
+        """Ground truth of every vehicle in the network now."""
+        v = libsumo.vehicle
+        ids = tuple(v.getIDList())
+        n = len(ids)
+        front = np.empty((n, 3))
+        angle = np.empty(n)
+        speed = np.empty(n)
+        accel = np.empty(n)
+        lane = np.empty(n, dtype=np.int16)
+        lat = np.empty(n)
+        for i, vid in enumerate(ids):
+            front[i] = v.getPosition3D(vid)
+            angle[i] = v.getAngle(vid)
+            speed[i] = v.getSpeed(vid)
+            accel[i] = v.getAcceleration(vid)
+            lane[i] = v.getLaneIndex(vid)
+            lat[i] = v.getLateralLanePosition(vid)
+            if vid not in self._static:
+                self._static[vid] = (v.getTypeID(vid), v.getVehicleClass(vid), v.getLength(vid),
+                                     v.getWidth(vid), v.getHeight(vid))
+        static = [self._static[vid] for vid in ids]
+        length = np.array([s[2] for s in static], dtype=float)
+        heading = sumo_angle_to_yaw(angle)
+        # Footprint centre: half a length behind the front bumper along the heading.
+        cx = front[:, 0] - np.cos(heading) * length / 2 if n else front[:, 0]
+        cy = front[:, 1] - np.sin(heading) * length / 2 if n else front[:, 1]
+        return VehicleStates(
+            time=self.time,
+            ids=ids,
+            vtype=tuple(s[0] for s in static),
+            vclass=tuple(s[1] for s in static),
+            x=cx, y=cy, z=front[:, 2].copy(),
+            heading=heading, speed=speed, accel=accel, lane=lane, lateral_offset=lat,
+            length=length,
+            width=np.array([s[3] for s in static], dtype=float),
+            height=np.array([s[4] for s in static], dtype=float),
+        )
+
+    def vehicle_table(self):
+        """Static facts of every vehicle seen in the run: type, class, size and placement group."""
+        import pandas as pd
+
+        groups = {p.vehicle_id: p.group for p in self.placements}
+        groups[EGO_ID] = "ego"
+        rows = [
+            {"vehicle_id": vid, "vtype": s[0], "vclass": s[1], "length": s[2], "width": s[3], "height": s[4],
+             "group": groups.get(vid, "accident" if vid.startswith("accident") else "")}
+            for vid, s in sorted(self._static.items())
+        ]
+        return pd.DataFrame(rows, columns=["vehicle_id", "vtype", "vclass", "length", "width", "height", "group"])
+
+    def close(self) -> None:
+        if self._open:
+            libsumo.close()
+            self._open = False
+
+    def __enter__(self) -> "SumoSession":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def sumo_version() -> str:
+    from importlib.metadata import version
+
+    return version("libsumo")
+
