@@ -120,3 +120,21 @@ class TwinStates:
         sub = _take(self, index)
         outs = {k: np.asarray(v)[index] for k, v in self.outputs.items()}
         return TwinStates(**{**{f.name: getattr(sub, f.name) for f in fields(sub)}, "outputs": outs})
+
+
+GUIDANCE_LEVELS = ("none", "medium", "high")
+
+
+@dataclass(frozen=True)
+class Guidance:
+    """One item of AR guidance shown to the driver at a tick (put in ``Tick.annotations['guidance']``).
+
+    Produced by the vision-cloud fusion stage (the overlay of a neighbour's lane-change
+    probability on its matched box); consumed by the driver model.
+    """
+
+    time: float
+    vehicle_id: str
+    lc_prob: float
+    level: str  # one of GUIDANCE_LEVELS, from configurable probability thresholds
+    box: tuple[float, float, float, float] | None  # matched image box (x1, y1, x2, y2) px; None if unmatched
