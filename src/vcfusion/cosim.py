@@ -134,6 +134,7 @@ class CoSimulation:
         controller: EgoController | None = None,
         process_models: list[tuple[str, ProcessModel]] | None = None,
         hooks: list[TickHook] | None = None,
+        extra_sumo_args: list[str] | None = None,
     ):
         self.scenario = scenario
         self.seed = seed
@@ -144,13 +145,16 @@ class CoSimulation:
             IdmEgoController(IDMParams(desired_speed_mps=ego_cfg.desired_speed_mps)) if ego_cfg else None)
         self.process_models = process_models or []
         self.hooks = hooks or []
+        # Further SUMO options (e.g. --fcd-output for cross-checks, SSM devices).
+        self.extra_sumo_args = extra_sumo_args or []
 
     def run(self, progress: bool = False) -> RunResult:
         sc = self.scenario
         started = wallclock.perf_counter()
         with tempfile.TemporaryDirectory(prefix="vcfusion-sumo-") as tmp:
             lc_file = Path(tmp) / "lanechanges.xml"
-            session = SumoSession(sc, self.seed, lc_file, np.random.default_rng(self.rng.integers(2**63)))
+            session = SumoSession(sc, self.seed, lc_file, np.random.default_rng(self.rng.integers(2**63)),
+                                  self.extra_sumo_args)
             try:
                 out = self._loop(session, progress)
             finally:

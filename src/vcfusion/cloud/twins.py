@@ -85,6 +85,9 @@ class TwinStore:
             del self._history[vid]
             del self._static[vid]
 
+    def __contains__(self, vehicle_id: str) -> bool:
+        return vehicle_id in self._history
+
     def history(self, vehicle_id: str) -> np.ndarray:
         """(k, len(HISTORY_FIELDS)) rows of one twin, oldest first."""
         return self._history[vehicle_id].ordered()

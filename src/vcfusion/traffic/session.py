@@ -116,7 +116,8 @@ def plan_placements(scenario: Scenario, road: Road, vtypes: dict, rng: np.random
 class SumoSession:
     """One running SUMO simulation of a scenario."""
 
-    def __init__(self, scenario: Scenario, seed: int, lanechange_file: Path, rng: np.random.Generator):
+    def __init__(self, scenario: Scenario, seed: int, lanechange_file: Path, rng: np.random.Generator,
+                 extra_sumo_args: list[str] | None = None):
         self.scenario = scenario
         self.seed = seed
         self.road = read_road(scenario.network)
@@ -140,6 +141,7 @@ class SumoSession:
             "--no-step-log", "true",
             "--no-warnings", "true",
             "--duration-log.disable", "true",
+            *(extra_sumo_args or []),
         ]
         libsumo.start(self.sumo_args)
         self._open = True
@@ -205,7 +207,9 @@ class SumoSession:
     # -- stepping -----------------------------------------------------------------------
     def step(self) -> list[Collision]:
         libsumo.simulationStep()
-        self.time = libsumo.simulation.getTime()
+        # SUMO's outputs (fcd, lanechange, collisions) label the state after a step with the time
+        # the step began; getTime() already returns the next one. Stamp like the outputs.
+        self.time = round(libsumo.simulation.getTime() - self.step_s, 9)
         return [
             Collision(self.time, c.collider, c.victim, c.type, c.colliderSpeed, c.victimSpeed, c.lane, c.pos)
             for c in libsumo.simulation.getCollisions()

@@ -1,0 +1,73 @@
+"""The batch runner and the run command on real SUMO, in worker processes."""
+
+import json
+import subprocess
+import sys
+
+import pandas as pd
+import pytest
+
+from conftest import write_scenario
+from vcfusion.studies.batch import parse_seeds, run_batch, seed_folder
+
+
+def test_parse_seeds():
+    assert parse_seeds("0-3") == [0, 1, 2, 3]
+    assert parse_seeds("5,1,2-3") == [1, 2, 3, 5]
+    for bad in ("a", "3-1", "-2", ""):
+        with pytest.raises(ValueError, match="--seeds"):
+            parse_seeds(bad)
+
+
+@pytest.mark.slow
+def test_batch_resumes_and_runs_identically(tmp_path, accident_path):
+    out = tmp_path / "b"
+    first = run_batch(accident_path, list(range(20)), out, workers=2, progress=False)
+    assert first == {"done": 20, "skipped": 0, "failed": []}
+    mtimes = {p: p.stat().st_mtime_ns for p in out.glob("seed_*/*.parquet")}
+    second = run_batch(accident_path, list(range(20)), out, workers=2, progress=False)
+    assert second == {"done": 0, "skipped": 20, "failed": []}
+    assert {p: p.stat().st_mtime_ns for p in out.glob("seed_*/*.parquet")} == mtimes
+    summary = pd.read_parquet(out / "batch_summary.parquet")
+    assert summary.seed.tolist() == list(range(20))
+    # A run in a worker process gives the same bytes as one in a fresh CLI process.
+    cli_out = tmp_path / "cli"
+    subprocess.run([sys.executable, "-m", "vcfusion", "run", str(accident_path), "--seed", "7",
+                    "--out", str(cli_out)], check=True, capture_output=True)
+    for name in ("trajectories", "twins", "ego", "lane_changes", "collisions", "vehicles"):
+        assert (cli_out / f"{name}.parquet").read_bytes() == (seed_folder(out, 7) / f"{name}.parquet").read_bytes()
+
+
+@pytest.mark.slow
+def test_batch_isolates_failing_seeds(tmp_path):
+    # Each seed draws one vehicle in [1950, 2100] m on a 2000 m road: beyond the end it cannot depart.
+    path = write_scenario(tmp_path, """
+name: impossible
+network: NET_DIR/highway.net.xml
+vehicle_types: NET_DIR/vtypes.add.xml
+simulation: {step_s: 0.1, max_time_s: 5}
+vehicles:
+  - {name: far, count: 1, lanes: [0], pos_m: [1950, 2100]}
+""")
+    out = tmp_path / "b"
+    proc = subprocess.run([sys.executable, "-m", "vcfusion", "batch", str(path), "--seeds", "0-9",
+                           "--workers", "2", "--out", str(out)], capture_output=True, text=True)
+    failures = json.loads((out / "failures.json").read_text())
+    assert proc.returncode == 1
+    assert 0 < len(failures) < 10
+    assert all("impossible departure" in msg for msg in failures.values())
+    done = sorted(p.name for p in out.glob("seed_*") if (p / "manifest.json").exists())
+    assert len(done) == 10 - len(failures)
+    assert f"{len(failures)} failed" in proc.stdout
+    assert not list(out.glob("*.tmp-writing"))
+
+
+@pytest.mark.slow
+def test_accident_cut_ins_ahead_of_ego(tmp_path, accident_path):
+    """Acceptance: >= 90 % of seeds 0-49 have a neighbour change into the ego lane ahead of the ego."""
+    out = tmp_path / "b"
+    report = run_batch(accident_path, list(range(50)), out, workers=2, progress=False)
+    assert report["failed"] == []
+    summary = pd.read_parquet(out / "batch_summary.parquet")
+    assert (summary.cut_ins_ahead_of_ego > 0).mean() >= 0.9
+    assert summary.collisions.sum() == 0

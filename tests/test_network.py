@@ -1,0 +1,44 @@
+import numpy as np
+import sumolib
+
+from conftest import REPO
+from vcfusion.traffic.network import build_network, read_road
+
+NET = REPO / "sumo_net" / "highway.net.xml"
+
+
+def test_road_matches_sumolib_lane_shapes():
+    road = read_road(NET)
+    net = sumolib.net.readNet(str(NET))
+    edge = net.getEdge(road.edge_id)
+    assert road.num_lanes == len(edge.getLanes()) == 3
+    assert road.length_m == edge.getLength()
+    for lane in edge.getLanes():
+        (x0, y0), (x1, y1) = lane.getShape()[0], lane.getShape()[-1]
+        s, d = road.to_road_frame(np.array([x0, x1]), np.array([y0, y1]))
+        np.testing.assert_allclose(d, road.lane_centre_d(lane.getIndex()), atol=1e-9)
+        np.testing.assert_allclose(s, [0.0, road.length_m], atol=1e-9)
+        assert road.lane_of(d).tolist() == [lane.getIndex()] * 2
+
+
+def test_road_frame_round_trip():
+    road = read_road(NET)
+    s = np.array([0.0, 10.0, 1999.0])
+    d = np.array([0.2, 5.0, 10.4])
+    x, y = road.to_world(s, d)
+    s2, d2 = road.to_road_frame(x, y)
+    np.testing.assert_allclose(s2, s)
+    np.testing.assert_allclose(d2, d)
+    assert road.lane_of(np.array([-0.1, 10.6])).tolist() == [-1, -1]
+
+
+def test_build_reproduces_committed_network(tmp_path):
+    for suffix in ("nod", "edg", "typ"):
+        (tmp_path / f"highway.{suffix}.xml").write_text((REPO / "sumo_net" / f"highway.{suffix}.xml").read_text())
+    built = build_network(tmp_path)
+
+    def body(path):  # the header comment carries a timestamp and paths
+        text = path.read_text()
+        return text[text.index("<net "):]
+
+    assert body(built) == body(NET)
