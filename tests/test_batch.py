@@ -71,3 +71,23 @@ def test_accident_cut_ins_ahead_of_ego(tmp_path, accident_path):
     summary = pd.read_parquet(out / "batch_summary.parquet")
     assert (summary.cut_ins_ahead_of_ego > 0).mean() >= 0.9
     assert summary.collisions.sum() == 0
+
+
+@pytest.mark.slow
+def test_dask_cluster_gives_the_same_files(tmp_path, accident_path):
+    from distributed import LocalCluster
+
+    from vcfusion.studies.batch import Executor
+
+    seeds = [0, 1, 2, 3]
+    run_batch(accident_path, seeds, tmp_path / "pool", workers=2, progress=False)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None) as cluster:
+        executor = Executor(dask_scheduler=cluster.scheduler_address)
+        report = run_batch(accident_path, seeds, tmp_path / "dask", progress=False, executor=executor)
+        assert report == {"done": 4, "skipped": 0, "failed": []}
+        again = run_batch(accident_path, seeds, tmp_path / "dask", progress=False, executor=executor)
+        assert again["skipped"] == 4 and again["done"] == 0
+    for seed in seeds:
+        for table in (tmp_path / "pool" / f"seed_{seed:04d}").glob("*.parquet"):
+            assert table.read_bytes() == (tmp_path / "dask" / f"seed_{seed:04d}" / table.name).read_bytes()

@@ -37,7 +37,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_batch(args: argparse.Namespace) -> int:
-    from vcfusion.studies.batch import parse_seeds, run_batch
+    from vcfusion.studies.batch import Executor, parse_seeds, run_batch
 
     scenario = load_scenario(args.scenario)  # fail fast, before any worker starts
     try:
@@ -46,8 +46,13 @@ def cmd_batch(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     if args.workers < 1:
         raise UsageError(f"--workers: expected a positive number of processes, got {args.workers}")
+    if args.dask_local is not None and args.dask_local < 1:
+        raise UsageError(f"--dask-local: expected a positive number of worker processes, got {args.dask_local}")
+    if args.scheduler is not None and not args.scheduler.startswith(("tcp://", "tls://", "inproc://", "ucx://")):
+        raise UsageError(f"--scheduler: expected a Dask scheduler address like tcp://HOST:PORT, got {args.scheduler!r}")
     out = Path(args.out) if args.out else Path("runs") / f"{scenario.name}-batch"
-    report = run_batch(Path(args.scenario), seeds, out, workers=args.workers)
+    executor = Executor(workers=args.workers, dask_scheduler=args.scheduler, dask_local=args.dask_local)
+    report = run_batch(Path(args.scenario), seeds, out, executor=executor)
     print(f"batch {scenario.name} -> {out}: {report['done']} run, {report['skipped']} already complete, "
           f"{len(report['failed'])} failed")
     for seed, error in report["failed"]:
@@ -90,6 +95,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", required=True, help="e.g. 0-99 or 1,4,7-9")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", help="batch folder (default: runs/NAME-batch)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--scheduler", help="run the seeds on this Dask scheduler (tcp://HOST:PORT); "
+                                           "its workers must share this file system")
+    where.add_argument("--dask-local", type=int, metavar="N", help="start a local Dask cluster of N worker processes")
     p.set_defaults(func=cmd_batch)
 
     p = sub.add_parser("build-net", help="rebuild sumo_net/highway.net.xml with netconvert")

@@ -1,4 +1,4 @@
-"""Batch runs: many seeds of one scenario, one process per simulation.
+"""Batch runs: many seeds of one scenario, one process per simulation, locally or on Dask.
 
 libsumo holds one simulation per process, so seeds run in worker processes (spawned, so no
 SUMO state is inherited). A seed's run folder is OUT/seed_NNNN; a seed whose folder is
@@ -67,25 +67,73 @@ def _run_seed(scenario_path: str, seed: int, out: str) -> SeedOutcome:
         return SeedOutcome(seed, False, None, f"{type(exc).__name__}: {exc}\n{detail}")
 
 
+@dataclass(frozen=True)
+class Executor:
+    """Where seed jobs run: the local process pool (default) or a Dask cluster.
+
+    `dask_scheduler` is the address of a running Dask scheduler (tcp://HOST:PORT); its workers
+    must see the same file system as this process (the run folders are written by the workers).
+    `dask_local` starts a local Dask cluster of that many single-threaded worker processes.
+    Either way each worker process runs one simulation at a time (libsumo: one per process).
+    """
+
+    workers: int = 1
+    dask_scheduler: str | None = None
+    dask_local: int | None = None
+
+    @property
+    def kind(self) -> str:
+        return "dask" if self.dask_scheduler or self.dask_local else "processes"
+
+
+def _pool_outcomes(executor: Executor, task, jobs: list[tuple]):
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=max(1, executor.workers), mp_context=ctx) as pool:
+        futures = [pool.submit(task, *job) for job in jobs]
+        for fut in as_completed(futures):
+            yield fut.result()
+
+
+def _dask_outcomes(executor: Executor, task, jobs: list[tuple]):
+    from distributed import Client, LocalCluster
+    from distributed import as_completed as dask_as_completed
+
+    cluster = None
+    if executor.dask_scheduler:
+        client = Client(executor.dask_scheduler)
+    else:
+        cluster = LocalCluster(n_workers=executor.dask_local, threads_per_worker=1, processes=True,
+                               host="127.0.0.1", dashboard_address=None)
+        client = Client(cluster)
+    try:
+        # pure=False: a seed job writes files, it is not a cacheable function of its arguments.
+        futures = client.map(task, *zip(*jobs), pure=False)
+        for fut in dask_as_completed(futures):
+            yield fut.result()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
 def run_batch(scenario_path: Path, seeds: list[int], out: Path, workers: int = 1, progress: bool = True,
-              task=_run_seed) -> dict:
+              task=_run_seed, executor: Executor | None = None) -> dict:
     """Run every seed not yet complete; returns {'done', 'skipped', 'failed'}."""
-    out = Path(out)
+    out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
+    executor = executor or Executor(workers=workers)
     todo = [s for s in seeds if not is_complete_run(seed_folder(out, s))]
     skipped = len(seeds) - len(todo)
     outcomes: list[SeedOutcome] = []
     bar = tqdm(total=len(todo), unit="run", desc=f"batch {Path(scenario_path).stem}", disable=not progress)
     if todo:
-        ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx) as pool:
-            futures = [pool.submit(task, str(scenario_path), s, str(out)) for s in todo]
-            for fut in as_completed(futures):
-                outcome = fut.result()
-                outcomes.append(outcome)
-                bar.update(1)
-                if not outcome.ok:
-                    bar.write(f"seed {outcome.seed} failed: {outcome.error.splitlines()[0]}")
+        jobs = [(str(Path(scenario_path).resolve()), s, str(out)) for s in todo]
+        source = _dask_outcomes if executor.kind == "dask" else _pool_outcomes
+        for outcome in source(executor, task, jobs):
+            outcomes.append(outcome)
+            bar.update(1)
+            if not outcome.ok:
+                bar.write(f"seed {outcome.seed} failed: {outcome.error.splitlines()[0]}")
     bar.close()
     failed = sorted((o for o in outcomes if not o.ok), key=lambda o: o.seed)
     _write_index(out, seeds, failed)
