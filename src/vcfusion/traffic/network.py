@@ -11,6 +11,7 @@ import subprocess
 import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -29,26 +30,26 @@ class Road:
     lane_width_m: float
     speed_limit_mps: float
 
-    @property
+    @cached_property
     def length_m(self) -> float:
         return float(np.hypot(self.end[0] - self.start[0], self.end[1] - self.start[1]))
 
-    @property
+    @cached_property
     def direction(self) -> np.ndarray:
         d = np.array(self.end) - np.array(self.start)
         return d / np.linalg.norm(d)
 
-    @property
+    @cached_property
     def left_normal(self) -> np.ndarray:
         d = self.direction
         return np.array([-d[1], d[0]])
 
-    @property
+    @cached_property
     def heading_rad(self) -> float:
         d = self.direction
         return float(np.arctan2(d[1], d[0]))
 
-    @property
+    @cached_property
     def width_m(self) -> float:
         return self.num_lanes * self.lane_width_m
 
