@@ -80,6 +80,19 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    from vcfusion.bench import SECTIONS, run_suite, to_markdown
+
+    sections = [s.strip() for s in args.sections.split(",")] if args.sections else sorted(SECTIONS)
+    unknown = [s for s in sections if s not in SECTIONS]
+    if unknown:
+        raise UsageError(f"--sections: unknown {unknown}; expected some of {sorted(SECTIONS)}")
+    results = run_suite(sections, "quick" if args.quick else "full", Path(args.out))
+    print(to_markdown(results))
+    print(f"written: {Path(args.out) / 'bench.json'}, {Path(args.out) / 'bench.md'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vcfusion", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -104,6 +117,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("build-net", help="rebuild sumo_net/highway.net.xml with netconvert")
     p.add_argument("--net-dir", help="folder with highway.nod/edg/typ.xml (default: the repo's sumo_net)")
     p.set_defaults(func=cmd_build_net)
+
+    p = sub.add_parser("bench", help="benchmark suite: print figures, write bench.json and bench.md")
+    p.add_argument("--sections", help="comma-separated subset, e.g. P1,P4 (default: all)")
+    p.add_argument("--quick", action="store_true", help="small sizes (a smoke run, not figures to report)")
+    p.add_argument("--out", default="runs/bench")
+    p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("demo", help="the main job on the default scenario")
     p.add_argument("--scenario", default="scenarios/accident.yaml")

@@ -1,0 +1,114 @@
+"""Benchmark suite: `vcfusion bench` prints figures and writes bench.json + bench.md.
+
+Each section runs in a fresh interpreter, so its peak memory (max RSS of the process and of
+its worker processes) is its own:
+- P1 traffic-only closed loop of the accident scenario (SUMO + cloud twins + whatever process
+  models and driver the scenario enables, no rendering): simulated seconds per wall second on
+  one core;
+- P4 batch scaling from 1 to 2 worker processes (and on a local Dask cluster): efficiency =
+  speed-up / workers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+ACCIDENT = REPO / "scenarios" / "accident.yaml"
+
+
+def _peak_rss_mb() -> dict[str, float]:
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+    return {"peak_rss_mb": round(own, 1), "peak_rss_children_mb": round(children, 1)}
+
+
+def p1_traffic(seeds: int) -> dict:
+    """Closed loop, one process, seeds one after the other (SUMO start-up included)."""
+    from vcfusion.run import build_cosimulation
+    from vcfusion.scenario import load_scenario
+
+    scenario = load_scenario(ACCIDENT)
+    simulated = 0.0
+    start = time.perf_counter()
+    for seed in range(seeds):
+        result = build_cosimulation(scenario, seed).run()
+        simulated += result.summary["simulated_s"]
+    wall = time.perf_counter() - start
+    return {"name": "P1 traffic closed loop", "runs": seeds, "simulated_s": round(simulated, 2),
+            "wall_s": round(wall, 3), "real_time_factor": round(simulated / wall, 1), "target": ">= 200"}
+
+
+def p4_scaling(seeds: int) -> dict:
+    from vcfusion.studies.batch import Executor, run_batch
+
+    walls = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for label, executor in (("processes_1", Executor(workers=1)), ("processes_2", Executor(workers=2)),
+                                ("dask_1", Executor(dask_local=1)), ("dask_2", Executor(dask_local=2))):
+            start = time.perf_counter()
+            report = run_batch(ACCIDENT, list(range(seeds)), Path(tmp) / label, progress=False, executor=executor)
+            walls[label] = time.perf_counter() - start
+            if report["failed"]:
+                raise RuntimeError(f"benchmark batch {label} failed: {report['failed'][0]}")
+    return {
+        "name": "P4 batch scaling", "runs": seeds,
+        **{f"wall_{k}_s": round(v, 2) for k, v in walls.items()},
+        "efficiency_processes": round(walls["processes_1"] / walls["processes_2"] / 2, 3),
+        "efficiency_dask": round(walls["dask_1"] / walls["dask_2"] / 2, 3),
+        "target": ">= 0.9",
+    }
+
+
+SECTIONS = {"P1": p1_traffic, "P4": p4_scaling}
+SIZES = {"full": {"P1": 20, "P4": 60}, "quick": {"P1": 3, "P4": 6}}
+
+
+def run_section(name: str, size: str) -> dict:
+    """Run one section in a fresh interpreter; returns its figures."""
+    proc = subprocess.run([sys.executable, "-m", "vcfusion.bench", "--section", name, "--size", size],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"benchmark {name} failed:\n{proc.stderr[-2000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def to_markdown(results: list[dict]) -> str:
+    lines = ["| benchmark | figures | peak RSS (MB) |", "|---|---|---|"]
+    for r in results:
+        figures = ", ".join(f"{k} {v}" for k, v in r.items() if k not in ("name", "peak_rss_mb", "peak_rss_children_mb"))
+        lines.append(f"| {r['name']} | {figures} | {r['peak_rss_mb']} (workers {r['peak_rss_children_mb']}) |")
+    return "\n".join(lines) + "\n"
+
+
+def run_suite(sections: list[str], size: str, out: Path) -> list[dict]:
+    from tqdm import tqdm
+
+    results = []
+    for name in tqdm(sections, desc="bench", unit="section"):
+        results.append(run_section(name, size))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bench.json").write_text(json.dumps(results, indent=2) + "\n")
+    (out / "bench.md").write_text(to_markdown(results))
+    return results
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="one benchmark section (internal: use `vcfusion bench`)")
+    parser.add_argument("--section", choices=sorted(SECTIONS), required=True)
+    parser.add_argument("--size", choices=sorted(SIZES), default="full")
+    args = parser.parse_args(argv)
+    figures = SECTIONS[args.section](SIZES[args.size][args.section])
+    print(json.dumps({**figures, **_peak_rss_mb()}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
