@@ -12,8 +12,7 @@ Every V2C tick (0.1 s) the driver:
    cue works in both arms;
 3. **chooses leaders**: every vehicle whose centre is in the ego lane ahead, plus every
    vehicle it has responded to as a prospective leader while that vehicle is still ahead
-   within one lane width of the ego lane centre (and, for guidance, while the item is shown
-   or after it started to move over);
+   displaced toward the ego lane (or, for guidance, while its warning is still shown);
 4. **computes the IDM acceleration** for each leader from the view ``follow_reaction_s`` ago,
    with the gap extrapolated over the delay at the then closing speed (the anticipation of the
    Human Driver Model), and takes the smallest. A prospective leader not yet in the lane only
@@ -147,8 +146,10 @@ class DriverModel:
                 continue
             in_lane = dist < w / 2
             responded = min(self.visual_response.get(vid, math.inf), self.guidance_response.get(vid, math.inf))
-            prospective = (not in_lane and dist < w and responded <= now
-                           and (vid in self.visual_response or vid in shown or dist < w - 0.1))
+            # Responded to, not yet in the lane, and still a candidate: an adjacent-lane car that
+            # is still displaced toward the ego lane, or whose warning is still shown.
+            prospective = (not in_lane and responded <= now
+                           and ((vid in shown and dist < 1.5 * w) or dist < w - 0.1))
             if not (in_lane or prospective):
                 continue
             if vid in past.rear:
