@@ -97,6 +97,24 @@ def cmd_demo(args: argparse.Namespace) -> int:
     result = execute_run(scenario, args.seed, out, progress=sys.stderr.isatty())
     print(format_summary(result.summary, result.wall_s))
     print(f"run folder: {out}")
+    return _demo_guidance_study(args)
+
+
+def _demo_guidance_study(args: argparse.Namespace) -> int:
+    """The demo ends with the guidance study (paper Fig. 8/9) on a few paired trips."""
+    from vcfusion.studies.guidance import StudyError, run_guidance_study
+
+    out = _default_run_dir("guidance-study", args.seed)
+    specs = tuple(args.process_model)
+    print(f"\nguidance study on {args.trips} paired trips (with and without AR guidance):")
+    try:
+        result = run_guidance_study(Path(args.scenario), args.trips, 2, out, Path("renders"),
+                                    first_seed=args.seed, process_model_specs=specs, progress=sys.stderr.isatty())
+    except StudyError as exc:
+        print(f"guidance study skipped: {exc}")
+        return 0
+    print(result["text"])
+    print(f"study folder: {out}; figures: " + ", ".join(str(p) for p in result["figures"]))
     return 0
 
 
@@ -138,6 +156,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="the main job on the default scenario")
     p.add_argument("--scenario", default="scenarios/accident.yaml")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--trips", type=int, default=8, help="paired trips of the closing guidance study")
+    p.add_argument("--process-model", action="append", default=[], metavar="MODULE:FACTORY",
+                   help="extra cloud process model for the guidance study (see `study guidance`)")
     p.set_defaults(func=cmd_demo)
     return parser
 
