@@ -60,6 +60,31 @@ def cmd_batch(args: argparse.Namespace) -> int:
     return 1 if report["failed"] else 0
 
 
+def cmd_study_guidance(args: argparse.Namespace) -> int:
+    from vcfusion.studies.guidance import StudyError, run_guidance_study
+
+    load_scenario(args.scenario)  # fail fast, before any worker starts
+    if args.trips < 2:
+        raise UsageError(f"--trips: expected at least 2 paired trips for a confidence interval, got {args.trips}")
+    if args.workers < 1:
+        raise UsageError(f"--workers: expected a positive number of processes, got {args.workers}")
+    if args.first_seed < 0:
+        raise UsageError(f"--first-seed: expected a non-negative seed, got {args.first_seed}")
+    out = Path(args.out) if args.out else Path("runs") / f"guidance-study-{Path(args.scenario).stem}"
+    try:
+        result = run_guidance_study(Path(args.scenario), args.trips, args.workers, out, Path(args.renders),
+                                    first_seed=args.first_seed, process_model_specs=tuple(args.process_model),
+                                    progress=True)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    except StudyError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(result["text"])
+    print(f"tables: {out}/trips.parquet, {out}/summary.csv; figures: " + ", ".join(str(p) for p in result["figures"]))
+    return 0
+
+
 def cmd_build_net(args: argparse.Namespace) -> int:
     from vcfusion.traffic.network import REPO_NET_DIR, build_network
 
@@ -77,6 +102,24 @@ def cmd_demo(args: argparse.Namespace) -> int:
     result = execute_run(scenario, args.seed, out, progress=sys.stderr.isatty())
     print(format_summary(result.summary, result.wall_s))
     print(f"run folder: {out}")
+    return _demo_guidance_study(args)
+
+
+def _demo_guidance_study(args: argparse.Namespace) -> int:
+    """The demo ends with the guidance study (paper Fig. 8/9) on a few paired trips."""
+    from vcfusion.studies.guidance import StudyError, run_guidance_study
+
+    out = _default_run_dir("guidance-study", args.seed)
+    specs = tuple(args.process_model)
+    print(f"\nguidance study on {args.trips} paired trips (with and without AR guidance):")
+    try:
+        result = run_guidance_study(Path(args.scenario), args.trips, 2, out, Path("renders"),
+                                    first_seed=args.seed, process_model_specs=specs, progress=sys.stderr.isatty())
+    except StudyError as exc:
+        print(f"guidance study skipped: {exc}")
+        return 0
+    print(result["text"])
+    print(f"study folder: {out}; figures: " + ", ".join(str(p) for p in result["figures"]))
     return 0
 
 
@@ -114,6 +157,20 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--dask-local", type=int, metavar="N", help="start a local Dask cluster of N worker processes")
     p.set_defaults(func=cmd_batch)
 
+    p = sub.add_parser("study", help="studies over many paired runs")
+    study = p.add_subparsers(dest="study", required=True)
+    p = study.add_parser("guidance", help="paired trips with and without AR guidance (paper Fig. 8/9)")
+    p.add_argument("scenario")
+    p.add_argument("--trips", type=int, default=200, help="number of paired trips (seeds FIRST..FIRST+N-1)")
+    p.add_argument("--workers", type=int, default=2, help="worker processes (one simulation each)")
+    p.add_argument("--first-seed", type=int, default=0)
+    p.add_argument("--out", help="study folder (default: runs/guidance-study-SCENARIO)")
+    p.add_argument("--renders", default="renders", help="folder for the figures (default: renders)")
+    p.add_argument("--process-model", action="append", default=[], metavar="MODULE:FACTORY",
+                   help="extra cloud twin process model: FACTORY(scenario) returns fn(twins, store) -> "
+                        "{'lc_prob': ...}; repeatable (e.g. a stand-in before the predictor is wired)")
+    p.set_defaults(func=cmd_study_guidance)
+
     p = sub.add_parser("build-net", help="rebuild sumo_net/highway.net.xml with netconvert")
     p.add_argument("--net-dir", help="folder with highway.nod/edg/typ.xml (default: the repo's sumo_net)")
     p.set_defaults(func=cmd_build_net)
@@ -127,6 +184,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="the main job on the default scenario")
     p.add_argument("--scenario", default="scenarios/accident.yaml")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--trips", type=int, default=8, help="paired trips of the closing guidance study")
+    p.add_argument("--process-model", action="append", default=[], metavar="MODULE:FACTORY",
+                   help="extra cloud process model for the guidance study (see `study guidance`)")
     p.set_defaults(func=cmd_demo)
     return parser
 

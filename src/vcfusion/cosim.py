@@ -174,6 +174,9 @@ class CoSimulation:
         }
         for name, rows in out["hooks"].items():
             tables[name] = pd.DataFrame(rows)
+        # A controller that keeps its own log (e.g. the driver model) adds its tables.
+        if hasattr(self.controller, "tables"):
+            tables.update(self.controller.tables())
         if sc.ego is not None:
             tables["lane_changes"] = _relate_to_ego(tables["lane_changes"], trajectories, vehicles, sc.ego.lane)
         summary = summarize(sc, self.seed, tables, out["channel"], out["end_reason"])

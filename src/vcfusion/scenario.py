@@ -65,6 +65,24 @@ class EgoConfig(_Strict):
     trip_distance_m: Positive = 300.0
 
 
+class DriverConfig(_Strict):
+    """The ego's driver model (vcfusion.driver) and the guidance it is shown."""
+
+    # Whether the driver uses the AR guidance in a single run (the guidance study runs both).
+    guidance: bool = True
+    # Levels of the guidance made from the cloud's lc_prob when no AR overlay makes them.
+    guidance_medium_prob: Probability = 0.5
+    guidance_high_prob: Probability = 0.8
+    guidance_view_range_m: Positive = 150.0
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "DriverConfig":
+        if self.guidance_medium_prob > self.guidance_high_prob:
+            raise ValueError(f"driver.guidance_medium_prob: expected <= guidance_high_prob "
+                             f"({self.guidance_high_prob}), got {self.guidance_medium_prob}")
+        return self
+
+
 class VehicleGroup(_Strict):
     """Vehicles placed at t = 0 at random positions (drawn per seed) in the given lanes."""
 
@@ -112,6 +130,7 @@ class Scenario(_Strict):
     v2c: V2CConfig = V2CConfig()
     ar: AROverlayConfig = AROverlayConfig()
     ego: EgoConfig | None = None
+    driver: DriverConfig = DriverConfig()
     vehicles: list[VehicleGroup] = []
     flows: list[Flow] = []
     accident: AccidentConfig | None = None

@@ -1,0 +1,1 @@
+"""Per-trip metrics of the ego: MOVESTAR fuel/emissions, TTC, acceleration, jerk."""

@@ -1,0 +1,151 @@
+"""Safety and comfort metrics of one trip, on the ego's 0.01 s trajectory.
+
+Definitions (the same for both arms of the guidance study):
+
+- **Acceleration** a[i] = (v[i+1] - v[i]) / dt from the logged ego speed (this is exactly the
+  acceleration the driver model applied; SUMO integrates the speed we impose).
+  ``avg_abs_accel_mps2`` = mean |a| over the whole trip, unfiltered.
+- **Jerk**: the acceleration smoothed by a centred moving average over ``jerk_window_s``
+  (default 0.1 s, the control period: the command is piecewise constant over a tick, so the
+  raw 0.01 s difference of a step would read 10x the rate at which the driver moved the
+  pedal), then differentiated: j = diff(a_smooth) / dt. A continuous jerk ramp passes
+  unchanged. ``max_abs_jerk_mps3`` = max |j|.
+- **TTC to the lane-change vehicle** (the paper's "silver vehicle"): the first cut-in ahead of
+  the ego (``lane_changes`` rows with ``into_ego_lane`` and ``ahead_of_ego``, earliest
+  ``mid_time``). From its mid time (the moment its centre enters the ego lane) until the trip
+  ends, at every ego sample while it is ahead of the ego and still in the ego lane:
+  gap = its rear bumper - the ego's front bumper (along the road), closing speed =
+  v_ego - v_target; TTC = gap / closing, defined only where closing > 0 (constant-velocity
+  TTC, as SUMO's SSM device defines it for a following situation). The target's 0.1 s
+  trajectory is interpolated linearly to the ego's sample times.
+  ``avg_ttc_s`` = mean TTC over the samples where it is defined; ``min_ttc_s`` = minimum;
+  ``ttc_samples`` = how many there were (0: the ego never closed on it, TTC undefined -> NaN).
+  Because TTC grows without bound as the closing speed goes to 0, the raw mean is dominated
+  by near-zero closing speeds; ``avg_ttc_clipped_s`` is the mean of min(TTC, ``ttc_clip_s``)
+  (default 20 s) over the same samples (winsorised: no sample is dropped).
+- **TET / TIT** (Minderhoud & Bovy 2001) on that same TTC series: TET = time with
+  TTC < threshold (s); TIT = integral of (threshold - TTC) over that time (s^2).
+- **Collisions**: SUMO collisions involving the ego.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+
+EGO_ID = "ego"
+
+
+def acceleration_from_speed(speed: np.ndarray, dt: float) -> np.ndarray:
+    """Forward difference: a[i] applies over [t_i, t_i + dt]."""
+    v = np.asarray(speed, dtype=float)
+    return np.diff(v) / dt
+
+
+def jerk_from_acceleration(accel: np.ndarray, dt: float, window_s: float = 0.1) -> np.ndarray:
+    """Jerk after a centred moving average of `window_s` (see the module doc)."""
+    a = np.asarray(accel, dtype=float)
+    n = max(1, int(round(window_s / dt)))
+    if a.size < n + 1:
+        return np.zeros(0)
+    smooth = np.convolve(a, np.ones(n) / n, mode="valid") if n > 1 else a
+    return np.diff(smooth) / dt
+
+
+def ttc_series(gap_m: np.ndarray, ego_speed: np.ndarray, target_speed: np.ndarray) -> np.ndarray:
+    """Constant-velocity TTC = gap / closing speed where the ego closes in (else NaN)."""
+    gap = np.asarray(gap_m, dtype=float)
+    closing = np.asarray(ego_speed, dtype=float) - np.asarray(target_speed, dtype=float)
+    ttc = np.full(gap.shape, np.nan)
+    ok = (closing > 0) & (gap > 0)
+    ttc[ok] = gap[ok] / closing[ok]
+    return ttc
+
+
+def exposure(ttc: np.ndarray, dt: float, threshold_s: float) -> tuple[float, float]:
+    """(TET s, TIT s^2) of a TTC series sampled every dt; NaN samples are not exposed."""
+    t = np.asarray(ttc, dtype=float)
+    below = np.isfinite(t) & (t < threshold_s)
+    return float(below.sum() * dt), float(np.sum(threshold_s - t[below]) * dt)
+
+
+def cut_in_target(lane_changes: pd.DataFrame) -> pd.Series | None:
+    """The first lane change into the ego lane ahead of the ego (None if there is none)."""
+    if lane_changes is None or lane_changes.empty or "into_ego_lane" not in lane_changes:
+        return None
+    cut = lane_changes[lane_changes["into_ego_lane"] & lane_changes["ahead_of_ego"]]
+    if cut.empty:
+        return None
+    return cut.sort_values("mid_time").iloc[0]
+
+
+def target_ttc(ego: pd.DataFrame, trajectories: pd.DataFrame, target_id: str, target_length: float,
+               from_time: float, ego_lane: int) -> pd.DataFrame:
+    """Per ego sample from `from_time`: gap, closing speed and TTC to the target."""
+    e = ego[ego["time"] >= from_time - 1e-9]
+    tr = trajectories[trajectories["vehicle_id"] == target_id].sort_values("time")
+    if e.empty or tr.empty:
+        return pd.DataFrame(columns=["time", "gap_m", "closing_mps", "ttc_s"])
+    t = e["time"].to_numpy()
+    inside = (t >= tr["time"].iloc[0] - 1e-9) & (t <= tr["time"].iloc[-1] + 1e-9)
+    rear = np.interp(t, tr["time"], tr["s"]) - target_length / 2.0
+    v_target = np.interp(t, tr["time"], tr["speed"])
+    # The lane at the latest 0.1 s sample not after t (a lane is not interpolated).
+    idx = np.clip(np.searchsorted(tr["time"].to_numpy(), t + 1e-9) - 1, 0, len(tr) - 1)
+    in_lane = tr["lane"].to_numpy()[idx] == ego_lane
+    gap = rear - e["s"].to_numpy()
+    ego_speed = e["speed"].to_numpy()
+    ttc = ttc_series(gap, ego_speed, v_target)
+    valid = inside & in_lane
+    ttc[~valid] = np.nan
+    return pd.DataFrame({"time": t, "gap_m": np.where(valid, gap, np.nan),
+                         "closing_mps": np.where(valid, ego_speed - v_target, np.nan), "ttc_s": ttc})
+
+
+def trip_metrics(tables: dict[str, pd.DataFrame], ego_lane: int, dt: float,
+                 ttc_threshold_s: float = 3.0, jerk_window_s: float = 0.1, ttc_clip_s: float = 20.0) -> dict:
+    """Safety/comfort metrics of one run's tables (see the module doc for the definitions)."""
+    ego = tables["ego"].sort_values("time")
+    speed = ego["speed"].to_numpy()
+    accel = acceleration_from_speed(speed, dt)
+    jerk = jerk_from_acceleration(accel, dt, jerk_window_s)
+    out = {
+        "trip_time_s": float(ego["time"].iloc[-1] - ego["time"].iloc[0] + dt) if len(ego) else 0.0,
+        "ego_distance_m": float(ego["s"].iloc[-1] - ego["s"].iloc[0]) if len(ego) else 0.0,
+        "mean_speed_mps": float(speed.mean()) if speed.size else math.nan,
+        "min_speed_mps": float(speed.min()) if speed.size else math.nan,
+        "avg_abs_accel_mps2": float(np.abs(accel).mean()) if accel.size else math.nan,
+        "max_decel_mps2": float(max(0.0, -accel.min())) if accel.size else math.nan,
+        "max_abs_jerk_mps3": float(np.abs(jerk).max()) if jerk.size else math.nan,
+    }
+    collisions = tables.get("collisions")
+    if collisions is not None and len(collisions):
+        mine = collisions[(collisions["collider"] == EGO_ID) | (collisions["victim"] == EGO_ID)]
+        out["collisions"] = int(len(mine.drop_duplicates(subset=["collider", "victim"])))
+    else:
+        out["collisions"] = 0
+    target = cut_in_target(tables.get("lane_changes"))
+    out.update({"target_id": None, "target_mid_time_s": math.nan, "target_gap_at_mid_m": math.nan,
+                "avg_ttc_s": math.nan, "avg_ttc_clipped_s": math.nan, "min_ttc_s": math.nan, "ttc_samples": 0,
+                "tet_s": 0.0, "tit_s2": 0.0, "min_gap_to_target_m": math.nan})
+    if target is not None:
+        vehicles = tables["vehicles"].set_index("vehicle_id")
+        series = target_ttc(ego, tables["trajectories"], target["vehicle_id"],
+                            float(vehicles.loc[target["vehicle_id"], "length"]), float(target["mid_time"]), ego_lane)
+        ttc = series["ttc_s"].to_numpy()
+        defined = np.isfinite(ttc)
+        tet, tit = exposure(ttc, dt, ttc_threshold_s)
+        out.update({
+            "target_id": str(target["vehicle_id"]),
+            "target_mid_time_s": float(target["mid_time"]),
+            "target_gap_at_mid_m": float(target["gap_to_ego_m"]),
+            "avg_ttc_s": float(ttc[defined].mean()) if defined.any() else math.nan,
+            "avg_ttc_clipped_s": float(np.minimum(ttc[defined], ttc_clip_s).mean()) if defined.any() else math.nan,
+            "min_ttc_s": float(ttc[defined].min()) if defined.any() else math.nan,
+            "ttc_samples": int(defined.sum()),
+            "tet_s": tet, "tit_s2": tit,
+            "min_gap_to_target_m": float(np.nanmin(series["gap_m"])) if series["gap_m"].notna().any() else math.nan,
+        })
+    return out
