@@ -11,7 +11,13 @@ from vcfusion.scenario import Scenario
 
 def build_cosimulation(scenario: Scenario, seed: int) -> CoSimulation:
     """The co-simulation with every stage the scenario enables."""
-    return CoSimulation(scenario, seed)
+    hooks = []
+    if scenario.vision.enabled:
+        # Imported only here: traffic-only runs never load OpenGL.
+        from vcfusion.vision.hook import CameraHook
+
+        hooks.append(CameraHook(scenario, every_ticks=scenario.vision.every_ticks))
+    return CoSimulation(scenario, seed, hooks=hooks)
 
 
 def manifest_for(scenario: Scenario, seed: int) -> dict:
