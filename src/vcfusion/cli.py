@@ -136,6 +136,34 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_render(args: argparse.Namespace) -> int:
+    from vcfusion.studies.batch import parse_seeds
+
+    scenario = load_scenario(args.scenario)
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if args.every < 1:
+        raise UsageError(f"--every: expected a positive number of V2C ticks, got {args.every}")
+    if scenario.ego is None:
+        raise UsageError(f"{args.scenario}: ego: the camera rides on the ego; the scenario has no ego block")
+    out = Path(args.out) if args.out else Path("renders") / f"{scenario.name}-dataset"
+    if out.exists():
+        raise UsageError(f"--out: {out} already exists; choose a new dataset folder")
+    from vcfusion.vision.export import render_dataset
+
+    counts = render_dataset(scenario, seeds, args.every, out, progress=sys.stderr.isatty())
+    print(f"rendered {counts['images']} frames, {counts['annotations']} boxes -> {out}")
+    return 0
+
+
+def cmd_bench_render(args: argparse.Namespace) -> int:
+    from vcfusion.vision.bench import main as bench_main
+
+    return bench_main(["--scenario", args.scenario, "--frames", str(args.frames)])
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vcfusion", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -180,6 +208,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="small sizes (a smoke run, not figures to report)")
     p.add_argument("--out", default="runs/bench")
     p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("render", help="render ego-camera frames of seeds into a COCO dataset")
+    p.add_argument("scenario")
+    p.add_argument("--seeds", required=True, help="e.g. 0-9 or 1,4,7-9")
+    p.add_argument("--every", type=int, default=5, help="render every K-th V2C tick (default 5)")
+    p.add_argument("--out", help="dataset folder to create (default: renders/NAME-dataset)")
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("bench-render", help="time RGB + depth + instance rendering (median ms per frame)")
+    p.add_argument("--scenario", default="scenarios/accident.yaml")
+    p.add_argument("--frames", type=int, default=100)
+    p.set_defaults(func=cmd_bench_render)
 
     p = sub.add_parser("demo", help="the main job on the default scenario")
     p.add_argument("--scenario", default="scenarios/accident.yaml")

@@ -24,6 +24,11 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
 
     process_models = list(extra_process_models or [])
     hooks = []
+    if scenario.vision.enabled:
+        # Imported only here: traffic-only runs never load OpenGL.
+        from vcfusion.vision.hook import CameraHook
+
+        hooks.append(CameraHook(scenario, every_ticks=scenario.vision.every_ticks))
     controller = None
     if scenario.ego is not None:
         road = read_road(scenario.network)

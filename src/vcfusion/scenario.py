@@ -55,6 +55,40 @@ class AROverlayConfig(_Strict):
     period_s: Positive = 0.1
 
 
+class CameraConfig(_Strict):
+    """The ego's forward camera (paper Sec. II-B): mount on the ego and pinhole intrinsics.
+
+    The mount is relative to the ego's footprint centre and heading: `forward_m` along the
+    heading, `lateral_m` to the left, `height_m` above the ground; `pitch_deg` > 0 tilts the
+    optical axis down. Square pixels, principal point at the image centre.
+    """
+
+    height_m: Positive = 1.4
+    forward_m: float = 0.6
+    lateral_m: float = 0.0
+    pitch_deg: Annotated[float, Field(ge=-45.0, le=45.0)] = 3.0
+    hfov_deg: Annotated[float, Field(gt=1.0, lt=170.0)] = 70.0
+    width_px: Annotated[int, Field(ge=16, le=8192)] = 640
+    height_px: Annotated[int, Field(ge=16, le=8192)] = 480
+    # Clip planes of the renderer; depth beyond far_m reads as sky.
+    near_m: Positive = 0.3
+    far_m: Positive = 600.0
+
+    @model_validator(mode="after")
+    def _planes(self) -> "CameraConfig":
+        if self.far_m <= self.near_m:
+            raise ValueError(f"expected far_m > near_m ({self.near_m}), got far_m = {self.far_m}")
+        return self
+
+
+class VisionConfig(_Strict):
+    """Whether the tick loop renders the ego camera (stages 4-6 of a tick)."""
+
+    enabled: bool = False
+    # Render every this many V2C ticks (1 = every tick).
+    every_ticks: Annotated[int, Field(ge=1)] = 1
+
+
 class EgoConfig(_Strict):
     vtype: str = "ego"
     lane: Annotated[int, Field(ge=0)] = 2
@@ -131,6 +165,8 @@ class Scenario(_Strict):
     ar: AROverlayConfig = AROverlayConfig()
     ego: EgoConfig | None = None
     driver: DriverConfig = DriverConfig()
+    camera: CameraConfig = CameraConfig()
+    vision: VisionConfig = VisionConfig()
     vehicles: list[VehicleGroup] = []
     flows: list[Flow] = []
     accident: AccidentConfig | None = None
@@ -148,6 +184,8 @@ class Scenario(_Strict):
             ratio = period / step
             if abs(ratio - round(ratio)) > 1e-6:
                 raise ValueError(f"{name}: expected a whole multiple of simulation.step_s ({step}), got {period}")
+        if self.vision.enabled and self.ego is None:
+            raise ValueError("vision.enabled: the camera rides on the ego; expected an ego block")
         if not self.vehicles and not self.flows and self.ego is None:
             raise ValueError("expected at least one of ego, vehicles, flows")
         return self

@@ -1,0 +1,127 @@
+"""COCO-format detection dataset of rendered frames, with each image's camera and vehicle anchors.
+
+Conventions of the JSON (also written to its ``info``):
+- ``bbox`` is COCO's [x, y, w, h] with pixel c spanning [c, c + 1) (so a mask's leftmost column
+  c_min gives x = c_min); ``segmentation`` is the COCO RLE of the visible mask; ``area`` its pixels;
+- ``camera.K`` / ``camera.T_world_to_camera`` follow OpenCV: world (SUMO x east, y north, z up,
+  metres) -> camera (x right, y down, z forward); (u, v, 1) ~ K (R p + t) with integer (u, v) at
+  pixel centres. ``vehicles[].anchor_uv`` uses this convention: the anchor lies in a box iff
+  x <= u + 0.5 < x + w and y <= v + 0.5 < y + h;
+- ``vehicles`` lists every vehicle whose GNSS antenna point (roof centre) projects into the
+  image in front of the camera, seen or hidden (``visible`` says which);
+- depth PNGs are uint16 camera Z / ``depth_scale_m`` (0 = sky or beyond the far plane);
+  instance PNGs are uint16, value k + 1 for ``instance_vehicle_ids[k]`` of the image, 0 = none.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pycocotools import mask as mask_utils
+
+from vcfusion.records import gnss_antenna_points
+from vcfusion.vision.camera import project_points
+
+# Fixed ids so datasets from different scenarios share categories (SUMO vehicle classes).
+CATEGORIES = ("passenger", "truck", "bus", "coach", "delivery", "trailer", "motorcycle", "emergency", "taxi")
+DEPTH_SCALE_M = 0.01
+
+CONVENTIONS = {
+    "bbox": "COCO [x, y, w, h]; pixel column c spans [c, c+1)",
+    "camera": "OpenCV: world (x east, y north, z up, m) -> camera (x right, y down, z forward); "
+              "(u, v, 1) ~ K (R p + t); integer (u, v) at pixel centres",
+    "anchor_in_bbox": "x <= u + 0.5 < x + w and y <= v + 0.5 < y + h",
+    "gnss_world": "roof centre: footprint centre raised by the vehicle height",
+    "depth_png": f"uint16 camera Z / {DEPTH_SCALE_M} m; 0 = sky or beyond the far plane",
+    "instance_png": "uint16 k + 1 for instance_vehicle_ids[k]; 0 = no vehicle",
+}
+
+
+def category_id(vclass: str) -> int:
+    try:
+        return CATEGORIES.index(vclass) + 1
+    except ValueError:
+        raise ValueError(f"vehicle class {vclass!r} has no COCO category (known: {', '.join(CATEGORIES)})") from None
+
+
+def depth_to_png16(depth: np.ndarray) -> np.ndarray:
+    finite = np.isfinite(depth)
+    scaled = np.where(finite, np.round(np.where(finite, depth, 0.0) / DEPTH_SCALE_M), 0.0)
+    return np.clip(scaled, 0, 65535).astype(np.uint16)
+
+
+def vehicle_anchors(frame, truth, ego_id: str) -> list[dict]:
+    """GNSS anchors of every vehicle (not the ego) whose roof centre projects into the image."""
+    keep = np.array([vid != ego_id for vid in truth.ids])
+    ids = [vid for vid, k in zip(truth.ids, keep) if k]
+    rows = np.flatnonzero(keep)
+    pts = gnss_antenna_points(truth.x[keep], truth.y[keep], truth.z[keep], truth.height[keep])
+    proj = project_points(pts, frame.K, frame.T_world_to_camera, frame.width, frame.height)
+    seen = set(frame.vehicle_ids[k] for k in np.unique(frame.instances) if k >= 0)
+    out = []
+    for j in np.flatnonzero(proj.in_image):
+        out.append({
+            "vehicle_id": ids[j],
+            "gnss_world": [float(v) for v in pts[j]],
+            "anchor_uv": [float(proj.uv[j, 0]), float(proj.uv[j, 1])],
+            "anchor_depth": float(proj.depth[j]),
+            "visible": ids[j] in seen,
+            # The full pose, so the vehicle's 3D box can be rebuilt: footprint centre, yaw, size.
+            "footprint_world": [float(truth.x[rows[j]]), float(truth.y[rows[j]]), float(truth.z[rows[j]])],
+            "yaw": float(truth.heading[rows[j]]),
+            "size": [float(truth.length[rows[j]]), float(truth.width[rows[j]]), float(truth.height[rows[j]])],
+        })
+    return out
+
+
+class CocoBuilder:
+    """Accumulates images and annotations; :meth:`to_dict` gives the COCO JSON object."""
+
+    def __init__(self, description: str):
+        self.images: list[dict] = []
+        self.annotations: list[dict] = []
+        self.info = {"description": description, "conventions": CONVENTIONS, "depth_scale_m": DEPTH_SCALE_M}
+
+    def add(self, frame, boxes, anchors: list[dict], files: dict[str, str], extra: dict | None = None) -> int:
+        image_id = len(self.images) + 1
+        self.images.append({
+            "id": image_id,
+            "file_name": files["rgb"],
+            "depth_file": files["depth"],
+            "instance_file": files["instances"],
+            "width": frame.width,
+            "height": frame.height,
+            "camera": {"K": frame.K.tolist(), "T_world_to_camera": frame.T_world_to_camera.tolist(),
+                       "time": float(frame.time)},
+            "instance_vehicle_ids": list(frame.vehicle_ids),
+            "vehicles": anchors,
+            **(extra or {}),
+        })
+        for j, vid in enumerate(boxes.vehicle_ids):
+            x1, y1, x2, y2 = boxes.box[j]
+            mask = np.asfortranarray((frame.instances == boxes.instance[j]).astype(np.uint8))
+            rle = mask_utils.encode(mask)
+            rle["counts"] = rle["counts"].decode("ascii")
+            self.annotations.append({
+                "id": len(self.annotations) + 1,
+                "image_id": image_id,
+                "category_id": category_id(boxes.vclass[j]),
+                # Pixel-centre edges (c - 0.5) -> COCO's pixel-corner convention (c).
+                "bbox": [float(x1 + 0.5), float(y1 + 0.5), float(x2 - x1), float(y2 - y1)],
+                "area": int(boxes.pixels[j]),
+                "segmentation": rle,
+                "iscrowd": 0,
+                "vehicle_id": vid,
+                "visible_fraction": None if np.isnan(boxes.visible_fraction[j]) else float(boxes.visible_fraction[j]),
+                "truncation": float(boxes.truncation[j]),
+                "median_depth": float(boxes.median_depth[j]),
+            })
+        return image_id
+
+    def to_dict(self) -> dict:
+        return {
+            "info": self.info,
+            "licenses": [],
+            "categories": [{"id": i + 1, "name": name, "supercategory": "vehicle"} for i, name in enumerate(CATEGORIES)],
+            "images": self.images,
+            "annotations": self.annotations,
+        }

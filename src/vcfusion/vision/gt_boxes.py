@@ -1,0 +1,156 @@
+"""Ground-truth 2D boxes of the vehicles in a frame, from its instance map.
+
+For every vehicle with at least one visible pixel:
+- ``box``: the box around its *visible* pixels, (x1, y1, x2, y2) in the camera's pixel
+  convention (integer coordinates at pixel centres), so its edges lie on half-integers and a
+  pixel coordinate (u, v) is inside iff x1 <= u < x2 and y1 <= v < y2;
+- ``visible_fraction``: visible pixels / pixels of the vehicle drawn alone (same pose, nothing
+  in front of it), both counted inside the image; 1 = unoccluded. The vehicle is only redrawn
+  alone when another vehicle nearer the camera overlaps its projected 3D box; otherwise no other
+  object can hide it on this road and the fraction is 1 without a redraw;
+- ``truncation``: fraction of the projected 3D bounding box (length x width x height, clipped
+  at the near plane) that lies outside the image (KITTI's notion; 0 = fully inside);
+- ``median_depth``: median camera Z of its visible pixels (what a depth camera measures).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from vcfusion.records import VehicleStates
+
+# The 12 edges of a box whose corners are indexed by bits (x, y, z) = (i & 1, i >> 1 & 1, i >> 2 & 1).
+_BOX_EDGES = [(a, a | bit) for bit in (1, 2, 4) for a in range(8) if not a & bit]
+
+
+@dataclass(frozen=True)
+class GroundTruthBoxes:
+    """Struct-of-arrays: one row per vehicle seen in a frame."""
+
+    vehicle_ids: tuple[str, ...]
+    vclass: tuple[str, ...]
+    instance: np.ndarray  # (N,) value of the vehicle in Frame.instances
+    box: np.ndarray  # (N, 4) x1, y1, x2, y2 (pixel-centre convention: edges on half-integers)
+    pixels: np.ndarray  # (N,) visible pixels
+    full_pixels: np.ndarray  # (N,) pixels of the vehicle drawn alone (inside the image)
+    visible_fraction: np.ndarray  # (N,)
+    truncation: np.ndarray  # (N,)
+    median_depth: np.ndarray  # (N,) metres
+
+    def __len__(self) -> int:
+        return len(self.vehicle_ids)
+
+
+def box_corners(x: float, y: float, z: float, yaw: float, length: float, width: float, height: float) -> np.ndarray:
+    """(8, 3) world corners of a vehicle's bounding box (footprint centre, yaw)."""
+    bits = np.arange(8)
+    local = np.column_stack([((bits & 1) - 0.5) * length, ((bits >> 1 & 1) - 0.5) * width, (bits >> 2 & 1) * height])
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.column_stack([x + c * local[:, 0] - s * local[:, 1], y + s * local[:, 0] + c * local[:, 1],
+                            z + local[:, 2]])
+
+
+def projected_box_polygon(corners_world: np.ndarray, K: np.ndarray, T: np.ndarray, near: float) -> np.ndarray | None:
+    """Convex hull (M, 2) in pixels of a 3D box clipped at the plane Z = near; None if all behind."""
+    pc = corners_world @ T[:3, :3].T + T[:3, 3]
+    pts = [p for p in pc if p[2] >= near]
+    for a, b in _BOX_EDGES:
+        za, zb = pc[a, 2], pc[b, 2]
+        if (za - near) * (zb - near) < 0:
+            t = (near - za) / (zb - za)
+            pts.append(pc[a] + t * (pc[b] - pc[a]))
+    if len(pts) < 3:
+        return None
+    pts = np.array(pts)
+    uv = (pts @ K.T)[:, :2] / pts[:, 2:3]
+    return cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
+
+
+def _truncation(hull: np.ndarray | None, width: int, height: int) -> float:
+    if hull is None:
+        return 1.0
+    area = cv2.contourArea(hull)
+    if area <= 0:
+        return 0.0
+    image = np.array([[-0.5, -0.5], [width - 0.5, -0.5], [width - 0.5, height - 0.5], [-0.5, height - 0.5]],
+                     dtype=np.float32)
+    inside, _ = cv2.intersectConvexConvex(hull.astype(np.float32), image)
+    # Rounded: the float32 polygon clipping leaves ~1e-8 of noise on boxes fully inside.
+    return round(float(np.clip(1.0 - inside / area, 0.0, 1.0)), 6)
+
+
+def ground_truth_boxes(frame, truth: VehicleStates, renderer=None, near: float = 0.3) -> GroundTruthBoxes:
+    """Boxes of the vehicles seen in `frame` (rendered from `truth`).
+
+    `renderer` (the EgoCameraRenderer that made the frame, still at that state) is needed for the
+    visible fraction of vehicles that may be occluded; without it their fraction is NaN.
+    """
+    inst = frame.instances
+    flat = inst.ravel()
+    seen = flat >= 0
+    counts = np.bincount(flat[seen], minlength=len(frame.vehicle_ids))
+    present = np.flatnonzero(counts)
+    rows, cols = np.divmod(np.flatnonzero(seen), inst.shape[1])
+    labels = flat[seen]
+    order = np.argsort(labels, kind="stable")
+    labels, rows, cols = labels[order], rows[order], cols[order]
+    depths = frame.depth.ravel()[np.flatnonzero(seen)[order]]
+    starts = np.searchsorted(labels, present)
+    ends = np.searchsorted(labels, present, side="right")
+
+    index = {vid: i for i, vid in enumerate(truth.ids)}
+    hulls, near_depth, far_depth = [], [], []
+    for k in present:
+        i = index[frame.vehicle_ids[k]]
+        corners = box_corners(truth.x[i], truth.y[i], truth.z[i], truth.heading[i], truth.length[i], truth.width[i],
+                              truth.height[i])
+        hulls.append(projected_box_polygon(corners, frame.K, frame.T_world_to_camera, near))
+        z = corners @ frame.T_world_to_camera[2, :3] + frame.T_world_to_camera[2, 3]
+        near_depth.append(z.min())
+        far_depth.append(z.max())
+    rects = [None if h is None else (h.min(axis=0), h.max(axis=0)) for h in hulls]
+
+    n = len(present)
+    box = np.zeros((n, 4))
+    full = np.zeros(n, dtype=np.int64)
+    visible_fraction = np.full(n, np.nan)
+    truncation = np.zeros(n)
+    median_depth = np.zeros(n)
+    for j, k in enumerate(present):
+        r, c = rows[starts[j]:ends[j]], cols[starts[j]:ends[j]]
+        box[j] = (c.min() - 0.5, r.min() - 0.5, c.max() + 0.5, r.max() + 0.5)
+        median_depth[j] = float(np.median(depths[starts[j]:ends[j]]))
+        truncation[j] = _truncation(hulls[j], frame.width, frame.height)
+        if _may_be_occluded(j, rects, near_depth, far_depth):
+            if renderer is not None:
+                full[j] = int(renderer.silhouette(frame.vehicle_ids[k]).sum())
+                visible_fraction[j] = min(1.0, counts[k] / full[j]) if full[j] else 0.0
+            else:
+                full[j] = -1
+        else:
+            full[j] = counts[k]
+            visible_fraction[j] = 1.0
+    vids = tuple(frame.vehicle_ids[k] for k in present)
+    return GroundTruthBoxes(
+        vehicle_ids=vids, vclass=tuple(truth.vclass[index[v]] for v in vids), instance=present.astype(np.int32),
+        box=box, pixels=counts[present], full_pixels=full, visible_fraction=visible_fraction,
+        truncation=truncation, median_depth=median_depth)
+
+
+def _may_be_occluded(j: int, rects, near_depth, far_depth) -> bool:
+    if rects[j] is None:
+        return True
+    lo, hi = rects[j]
+    for m, other in enumerate(rects):
+        if m == j:
+            continue
+        if other is None:
+            return True
+        olo, ohi = other
+        overlap = (olo[0] < hi[0]) and (lo[0] < ohi[0]) and (olo[1] < hi[1]) and (lo[1] < ohi[1])
+        if overlap and near_depth[m] < far_depth[j]:
+            return True
+    return False

@@ -1,0 +1,48 @@
+"""The camera stage of the tick loop: render the ego camera every k-th V2C tick.
+
+The rendered :class:`~vcfusion.vision.render.Frame` goes to ``tick.annotations['frame']`` for the
+later stages (detector, matching, overlay); ticks without a render carry no 'frame'. The hook
+logs a small ``camera`` table (time, vehicles seen, render time).
+"""
+
+from __future__ import annotations
+
+import time as wallclock
+from typing import Callable
+
+import numpy as np
+
+from vcfusion.scenario import Scenario
+from vcfusion.traffic.network import read_road
+from vcfusion.traffic.session import EGO_ID
+
+
+class CameraHook:
+    table = "camera"
+
+    def __init__(self, scenario: Scenario, every_ticks: int = 1,
+                 on_frame: Callable | None = None, renderer=None):
+        from vcfusion.vision.render import EgoCameraRenderer  # imports OpenGL: only when a camera is used
+
+        self.renderer = renderer or EgoCameraRenderer(read_road(scenario.network), scenario.camera, EGO_ID)
+        self.every_ticks = every_ticks
+        self.on_frame = on_frame
+        self._ticks = 0
+
+    def __call__(self, tick) -> list[dict] | None:
+        n = self._ticks
+        self._ticks += 1
+        if n % self.every_ticks or EGO_ID not in tick.truth.ids:
+            return None
+        started = wallclock.perf_counter()
+        frame = self.renderer.render(tick.truth)
+        render_ms = 1000.0 * (wallclock.perf_counter() - started)
+        tick.annotations["frame"] = frame
+        if self.on_frame is not None:
+            self.on_frame(frame, tick)
+        seen = np.unique(frame.instances)
+        return [{"time": round(frame.time, 6), "vehicles_seen": int((seen >= 0).sum()),
+                 "render_ms": round(render_ms, 2)}]
+
+    def close(self) -> None:
+        self.renderer.close()

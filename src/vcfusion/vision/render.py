@@ -1,0 +1,213 @@
+"""The ego camera renderer: RGB, metric depth and an instance map per frame (pyrender, offscreen).
+
+Outputs of :meth:`EgoCameraRenderer.render` (a :class:`Frame`):
+- ``rgb``: (H, W, 3) uint8;
+- ``depth``: (H, W) float32, camera Z in metres (OpenCV camera frame, *not* the ray length);
+  **sky (no surface within the far plane) is +inf**;
+- ``instances``: (H, W) int32, the index of the vehicle seen at the pixel into
+  ``Frame.vehicle_ids`` (so ``frame.vehicle_ids[instances[r, c]]`` is a SUMO vehicle id);
+  **-1 where no vehicle is seen** (road, rails, ground, sky).
+
+How (profiled under OSMesa/llvmpipe, where fragment shading dominates): one pass per frame.
+The scene is drawn with a small Lambert shader (``shaders/lambert.*``, in place of pyrender's
+PBR shader) that writes each object's instance code into the alpha channel, so a single
+RGBA + depth read-back gives all three images, pixel-consistent. Where pyrender renders into
+a multisampled framebuffer (EGL on a GPU) alpha codes would be blended at edges, so there a
+second, flat segmentation pass gives the instance map instead.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+import vcfusion.vision  # noqa: F401  (sets PYOPENGL_PLATFORM before pyrender imports OpenGL)
+import pyrender  # noqa: E402
+from OpenGL import GL  # noqa: E402
+from pyrender.constants import RenderFlags  # noqa: E402
+from pyrender.shader_program import ShaderProgram, ShaderProgramCache  # noqa: E402
+
+from vcfusion.records import VehicleStates  # noqa: E402
+from vcfusion.scenario import CameraConfig  # noqa: E402
+from vcfusion.traffic.network import Road  # noqa: E402
+from vcfusion.traffic.session import EGO_ID  # noqa: E402
+from vcfusion.vision.camera import Intrinsics, opengl_camera_pose, world_to_camera  # noqa: E402
+from vcfusion.vision.scene import TrafficScene  # noqa: E402
+
+SHADER_DIR = os.path.join(os.path.dirname(__file__), "shaders")
+_PYRENDER_SHADER_DIR = os.path.join(os.path.dirname(pyrender.__file__), "shaders")
+
+
+class _CameraShaders(ShaderProgramCache):
+    """pyrender's shader cache with its lit mesh shader replaced by ours (others unchanged).
+
+    Programs are cached per renderer (one GL context each). pyrender keys its cache by
+    ``OpenGL.contextdata.getContext()``, which under OSMesa differs from call to call, so it
+    recompiled every shader for every draw call (profiled: half the frame time).
+    """
+
+    _OURS = {"mesh.vert": "lambert.vert", "mesh.frag": "lambert.frag"}
+
+    def get_program(self, vertex_shader, fragment_shader, geometry_shader=None, defines=None):
+        def path(name):
+            if name is None:
+                return None
+            if name in self._OURS:
+                return os.path.join(SHADER_DIR, self._OURS[name])
+            return os.path.join(_PYRENDER_SHADER_DIR, name)
+
+        defines = defines or {}
+        key = (vertex_shader, fragment_shader, geometry_shader, tuple(sorted(defines.items())))
+        program = self._program_cache.get(key)
+        if program is None:
+            program = self._program_cache[key] = ShaderProgram(
+                vertex_shader=path(vertex_shader), fragment_shader=path(fragment_shader),
+                geometry_shader=path(geometry_shader), defines=defines)
+        return program
+
+
+NO_VEHICLE = -1
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One ego-camera frame: images plus the camera that took them (``Tick.annotations['frame']``)."""
+
+    time: float
+    rgb: np.ndarray  # (H, W, 3) uint8
+    depth: np.ndarray  # (H, W) float32 camera Z in metres; +inf = sky
+    instances: np.ndarray  # (H, W) int32 index into vehicle_ids; -1 = no vehicle
+    vehicle_ids: tuple[str, ...]  # the vehicles drawn (all but the ego), instance value k -> vehicle_ids[k]
+    K: np.ndarray  # (3, 3)
+    T_world_to_camera: np.ndarray  # (4, 4), OpenCV camera frame
+
+    @property
+    def width(self) -> int:
+        return int(self.rgb.shape[1])
+
+    @property
+    def height(self) -> int:
+        return int(self.rgb.shape[0])
+
+
+def _seg_colour(code: int) -> np.ndarray:
+    return np.array([code, 0.0, 0.0])
+
+
+class EgoCameraRenderer:
+    """Renders the ego camera of one scenario; the scene is built once and reused for all frames."""
+
+    def __init__(self, road: Road, camera: CameraConfig, ego_id: str = EGO_ID):
+        self.camera = camera
+        self.ego_id = ego_id
+        self.intrinsics = k = Intrinsics.from_fov(camera.hfov_deg, camera.width_px, camera.height_px)
+        self.traffic = TrafficScene(road, skip_ids=(ego_id,))
+        # pyrender's window coordinates put integer values at pixel corners, OpenCV's at pixel
+        # centres: the renderer's principal point is half a pixel further.
+        gl_camera = pyrender.IntrinsicsCamera(fx=k.fx, fy=k.fy, cx=k.cx + 0.5, cy=k.cy + 0.5,
+                                              znear=camera.near_m, zfar=camera.far_m)
+        self.camera_node = self.traffic.scene.add(gl_camera, pose=np.eye(4))
+        self._offscreen = pyrender.OffscreenRenderer(k.width, k.height)
+        # Private pyrender attributes: the GL renderer behind the offscreen wrapper and its platform.
+        self._gl = self._offscreen._renderer
+        self._platform = self._offscreen._platform
+        self._gl._program_cache = _CameraShaders()
+        self._single_pass = not self._platform.supports_framebuffers()
+        # Half-extents of the view frustum per unit depth, for culling vehicles out of view.
+        self._tan_x = (k.width / 2 + 1) / k.fx
+        self._tan_y = (k.height / 2 + 1) / k.fy
+        # code -> index into the frame's vehicle_ids; -1 for code 0 (no vehicle).
+        self._code_lut = np.full(256, -1, dtype=np.int32)
+
+    # -- camera ------------------------------------------------------------------------
+    def extrinsics(self, truth: VehicleStates) -> np.ndarray:
+        i = truth.index_of(self.ego_id)
+        return world_to_camera(float(truth.x[i]), float(truth.y[i]), float(truth.z[i]), float(truth.heading[i]),
+                               self.camera)
+
+    def _in_view(self, centres: np.ndarray, radius: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """Conservative frustum test of bounding spheres (centres (N, 3) in world, radius (N,))."""
+        pc = centres @ T[:3, :3].T + T[:3, 3]
+        z = pc[:, 2]
+        return ((z > -radius) & (z < self.camera.far_m + radius)
+                & (np.abs(pc[:, 0]) <= z * self._tan_x + radius * math.hypot(1.0, self._tan_x))
+                & (np.abs(pc[:, 1]) <= z * self._tan_y + radius * math.hypot(1.0, self._tan_y)))
+
+    # -- rendering ---------------------------------------------------------------------
+    def render(self, truth: VehicleStates, T_world_to_camera: np.ndarray | None = None) -> Frame:
+        """Render what the ego's camera sees in the traffic state `truth`."""
+        T = self.extrinsics(truth) if T_world_to_camera is None else np.asarray(T_world_to_camera, dtype=float)
+        centres = np.column_stack([truth.x, truth.y, truth.z + truth.height / 2])
+        radius = 0.5 * np.sqrt(truth.length ** 2 + truth.width ** 2 + truth.height ** 2)
+        drawn = self.traffic.update(truth, self._in_view(centres, radius, T))
+        spheres = self.traffic.piece_spheres
+        self.traffic.show_road_pieces(self._in_view(spheres[:, :3], spheres[:, 3], T))
+        self.traffic.scene.set_pose(self.camera_node, opengl_camera_pose(T))
+        lut = self._code_lut
+        lut[1:] = -1
+        for index, vid in enumerate(drawn):
+            lut[self.traffic.codes[vid]] = index
+        rgb, codes, depth = self._draw()
+        return Frame(time=float(truth.time), rgb=rgb, depth=depth, instances=lut[codes], vehicle_ids=tuple(drawn),
+                     K=self.intrinsics.K, T_world_to_camera=T)
+
+    def _draw(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rgb uint8, instance codes uint8, depth float32 camera Z with +inf sky) of the current scene."""
+        scene = self.traffic.scene
+        if not self._single_pass:
+            rgb, _ = self._offscreen.render(scene, RenderFlags.NONE)
+            seg_map = {node: _seg_colour(self.traffic.codes[vid]) for vid, node in self.traffic.nodes.items()
+                       if node.mesh.is_visible}
+            seg_map.update({node: _seg_colour(0) for node in self.traffic.static_nodes if node.mesh.is_visible})
+            seg, depth = self._offscreen.render(scene, RenderFlags.SEG, seg_node_map=seg_map)
+            depth = np.where(depth > 0.0, depth, np.float32(np.inf)).astype(np.float32, copy=False)
+            return np.ascontiguousarray(rgb), np.ascontiguousarray(seg[..., 0]), depth
+        w, h = self.intrinsics.width, self.intrinsics.height
+        self._platform.make_current()
+        self._gl.viewport_width, self._gl.viewport_height = w, h
+        self._gl.render(scene, RenderFlags.NONE)
+        GL.glFinish()
+        GL.glReadBuffer(GL.GL_FRONT)
+        rgba = np.frombuffer(GL.glReadPixels(0, 0, w, h, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE), dtype=np.uint8)
+        rgba = rgba.reshape(h, w, 4)[::-1]  # GL rows run bottom-up
+        window_z = np.frombuffer(GL.glReadPixels(0, 0, w, h, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT),
+                                 dtype=np.float32).reshape(h, w)[::-1]
+        return np.ascontiguousarray(rgba[..., :3]), np.ascontiguousarray(rgba[..., 3]), self._linear_depth(window_z)
+
+    def _linear_depth(self, window_z: np.ndarray) -> np.ndarray:
+        """Window depth in [0, 1] (perspective) -> camera Z in metres; the cleared value 1 -> +inf."""
+        n, f = np.float32(self.camera.near_m), np.float32(self.camera.far_m)
+        # z_ndc = 2 d - 1;  Z = 2 n f / (f + n - z_ndc (f - n)) = n f / (f - d (f - n)).
+        # float32 suffices: its rounding (~2 mm at 100 m) is below the 24-bit depth buffer's step.
+        depth = window_z * (f - n)
+        np.subtract(f, depth, out=depth)
+        with np.errstate(divide="ignore"):
+            np.divide(n * f, depth, out=depth)
+        depth[window_z >= 1.0] = np.inf
+        return depth
+
+    def silhouette(self, vehicle_id: str) -> np.ndarray:
+        """Mask of one vehicle drawn alone (nothing occluding it), at the poses of the last render."""
+        static = self.traffic.static_visibility()
+        self.traffic.set_static_visibility([False] * len(static))
+        self.traffic.set_only_vehicle(vehicle_id)
+        try:
+            _, codes, _ = self._draw()
+        finally:
+            self.traffic.set_only_vehicle(None)
+            self.traffic.set_static_visibility(static)
+        return codes == self.traffic.codes[vehicle_id]
+
+    def close(self) -> None:
+        if self._offscreen is not None:
+            self._offscreen.delete()
+            self._offscreen = None
+
+    def __enter__(self) -> "EgoCameraRenderer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,190 @@
+"""Real renders under OSMesa (no GPU, no display): images, projection, depth, boxes, COCO export."""
+
+import json
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vcfusion.records import VehicleStates
+from vcfusion.scenario import CameraConfig, load_scenario
+from vcfusion.traffic.network import read_road
+from vcfusion.vision import meshes
+from vcfusion.vision.camera import project_points
+from vcfusion.vision.gt_boxes import ground_truth_boxes
+from vcfusion.vision.render import EgoCameraRenderer
+
+SCENARIO = Path("scenarios/accident.yaml")
+
+
+def states(rows, time=1.0):
+    """rows: (id, vclass, x, y, yaw, length, width, height)."""
+    cols = list(zip(*rows))
+    n = len(rows)
+    f = lambda k: np.array(cols[k], dtype=float)  # noqa: E731
+    return VehicleStates(time=time, ids=tuple(cols[0]), vtype=tuple(cols[1]), vclass=tuple(cols[1]),
+                         x=f(2), y=f(3), z=np.zeros(n), heading=f(4), speed=np.zeros(n), accel=np.zeros(n),
+                         lane=np.zeros(n, dtype=np.int16), lateral_offset=np.zeros(n),
+                         length=f(5), width=f(6), height=f(7))
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    sc = load_scenario(SCENARIO)
+    with EgoCameraRenderer(read_road(sc.network), CameraConfig(width_px=320, height_px=240)) as r:
+        yield r
+
+
+LANE2, LANE1 = -1.75, -5.25
+SCENE = [
+    ("ego", "passenger", 100.0, LANE2, 0.0, 4.6, 1.8, 1.5),
+    ("lead", "passenger", 125.0, LANE2, 0.0, 4.6, 1.8, 1.5),
+    ("hidden", "passenger", 140.0, LANE2 - 0.9, 0.0, 4.6, 1.8, 1.5),  # right behind 'lead': partly occluded
+    ("truck", "truck", 150.0, LANE1, 0.02, 12.0, 2.5, 3.6),
+    ("behind", "passenger", 80.0, LANE1, 0.0, 4.6, 1.8, 1.5),  # behind the camera
+]
+
+
+def body_and_rear(truth, i, frac=0.35):
+    c, s = math.cos(truth.heading[i]), math.sin(truth.heading[i])
+    z = truth.z[i] + frac * truth.height[i]
+    body = np.array([truth.x[i], truth.y[i], z])
+    rear = body - np.array([c, s, 0.0]) * truth.length[i] / 2
+    return body, rear
+
+
+def test_frame_images_and_id_mapping(renderer):
+    truth = states(SCENE)
+    frame = renderer.render(truth)
+    assert frame.rgb.shape == (240, 320, 3) and frame.rgb.dtype == np.uint8
+    assert frame.depth.dtype == np.float32 and frame.instances.dtype == np.int32
+    assert "ego" not in frame.vehicle_ids and "behind" not in frame.vehicle_ids
+    seen = {frame.vehicle_ids[k] for k in np.unique(frame.instances) if k >= 0}
+    assert seen == {"lead", "hidden", "truck"}
+    assert np.isinf(frame.depth[0]).all() and (frame.instances[0] == -1).all()  # sky row
+    assert np.isfinite(frame.depth[-1]).all() and (frame.instances[-1] == -1).all()  # road row
+    # The sky colour, and a road that is darker than the sky.
+    np.testing.assert_allclose(frame.rgb[0, 0] / 255.0, meshes.SKY, atol=0.02)
+    assert frame.rgb[-1].mean() < frame.rgb[0].mean()
+
+
+def test_projection_lands_in_mask_and_depth_matches(renderer):
+    truth = states(SCENE)
+    frame = renderer.render(truth)
+    for vid in ("lead", "truck"):
+        i = truth.index_of(vid)
+        body, rear = body_and_rear(truth, i)
+        p = project_points(np.array([body, rear]), frame.K, frame.T_world_to_camera, frame.width, frame.height)
+        assert p.in_image.all()
+        rows, cols = p.pixel_index()
+        k = frame.vehicle_ids.index(vid)
+        assert frame.instances[rows[0], cols[0]] == k
+        assert frame.instances[rows[1], cols[1]] == k
+        assert abs(frame.depth[rows[1], cols[1]] - p.depth[1]) < 0.1
+
+
+def test_moving_a_vehicle_moves_its_pixels(renderer):
+    a = renderer.render(states(SCENE))
+    moved = [r if r[0] != "lead" else ("lead", "passenger", 125.0, LANE1, 0.0, 4.6, 1.8, 1.5) for r in SCENE]
+    b = renderer.render(states(moved))
+    ka, kb = a.vehicle_ids.index("lead"), b.vehicle_ids.index("lead")
+    ca = np.argwhere(a.instances == ka)[:, 1].mean()
+    cb = np.argwhere(b.instances == kb)[:, 1].mean()
+    assert cb > ca + 20  # moved right (lane 1 is right of lane 2)
+    # a vehicle that leaves the state disappears from the scene
+    c = renderer.render(states([r for r in SCENE if r[0] != "truck"]))
+    assert "truck" not in c.vehicle_ids and "truck" not in renderer.traffic.nodes
+
+
+def test_ground_truth_boxes(renderer):
+    truth = states(SCENE)
+    frame = renderer.render(truth)
+    boxes = ground_truth_boxes(frame, truth, renderer)
+    by_id = {vid: j for j, vid in enumerate(boxes.vehicle_ids)}
+    lead, hidden, truck = by_id["lead"], by_id["hidden"], by_id["truck"]
+    assert boxes.visible_fraction[lead] == 1.0 and boxes.truncation[lead] == 0.0
+    assert 0.0 < boxes.visible_fraction[hidden] < 0.9  # behind 'lead' in the same lane
+    assert boxes.full_pixels[hidden] > boxes.pixels[hidden]
+    assert boxes.vclass[truck] == "truck"
+    # The box holds exactly the mask's extent.
+    k = frame.vehicle_ids.index("lead")
+    r, c = np.nonzero(frame.instances == k)
+    np.testing.assert_allclose(boxes.box[lead], [c.min() - 0.5, r.min() - 0.5, c.max() + 0.5, r.max() + 0.5])
+    assert boxes.pixels[lead] == len(r)
+    assert abs(boxes.median_depth[lead] - (25.0 - 2.3 - 0.6)) < 0.5  # its rear, 25 m ahead less half lengths and the mount
+
+
+def test_truncation_at_image_border(renderer):
+    near_side = [SCENE[0], ("side", "passenger", 106.0, LANE1, 0.0, 4.6, 1.8, 1.5)]
+    truth = states(near_side)
+    frame = renderer.render(truth)
+    boxes = ground_truth_boxes(frame, truth, renderer)
+    j = boxes.vehicle_ids.index("side")
+    assert 0.2 < boxes.truncation[j] < 1.0
+    assert boxes.box[j][2] == frame.width - 0.5  # touches the right border
+
+
+def test_shader_sky_matches_scene_sky():
+    src = (Path(meshes.__file__).parent / "shaders" / "lambert.frag").read_text()
+    values = [float(v) for v in re.search(r"const vec3 SKY = vec3\(([^)]*)\)", src).group(1).split(",")]
+    np.testing.assert_allclose(values, meshes.SKY)
+
+
+def _short(scenario, seconds, **camera):
+    return scenario.model_copy(update={
+        "simulation": scenario.simulation.model_copy(update={"max_time_s": seconds}),
+        "camera": scenario.camera.model_copy(update=camera)})
+
+
+def test_render_dataset_end_to_end(tmp_path):
+    """Real SUMO run -> frames -> COCO; checked independently from the exported files."""
+    from pycocotools.coco import COCO
+
+    from vcfusion.vision.check import check_dataset
+    from vcfusion.vision.export import render_dataset
+
+    sc = _short(load_scenario("scenarios/overlap.yaml"), 6.0, width_px=320, height_px=240)
+    out = tmp_path / "ds"
+    counts = render_dataset(sc, [0], every=10, out=out, progress=False)
+    assert counts["images"] == 6 and counts["annotations"] > 0
+    assert not list(tmp_path.glob("*.tmp-writing"))
+    stats = check_dataset(out)
+    assert stats["anchor_max_abs_diff_px"] < 1e-6
+    assert stats["unoccluded_vehicles"] >= 5 and stats["body_point_in_mask_rate"] >= 0.99
+    assert stats["rear_depth_checks"] >= 10 and stats["rear_depth_max_abs_err_m"] < 0.1
+    coco = COCO(str(out / "annotations.json"))
+    assert len(coco.getImgIds()) == 6
+    image = coco.loadImgs(coco.getImgIds()[0])[0]
+    assert np.array(image["camera"]["K"]).shape == (3, 3)
+    assert np.array(image["camera"]["T_world_to_camera"]).shape == (4, 4)
+    assert {"pair_near0", "pair_far0"} <= {v["vehicle_id"] for v in image["vehicles"]}
+    ann = coco.loadAnns(coco.getAnnIds(imgIds=[image["id"]]))
+    assert all("vehicle_id" in a for a in ann)
+    # The RLE mask's area is the annotation's area.
+    assert all(int(coco.annToMask(a).sum()) == a["area"] for a in ann)
+    with pytest.raises(FileExistsError):
+        render_dataset(sc, [0], every=10, out=out, progress=False)
+
+
+def test_vision_enabled_run_puts_frames_on_ticks():
+    from vcfusion.cosim import CoSimulation
+    from vcfusion.run import build_cosimulation
+
+    sc = _short(load_scenario(SCENARIO), 1.0, width_px=160, height_px=120)
+    sc = sc.model_copy(update={"vision": sc.vision.model_copy(update={"enabled": True, "every_ticks": 2})})
+    cosim = build_cosimulation(sc, 0)
+    frames = []
+
+    class Grab:
+        table = "grab"
+
+        def __call__(self, tick):
+            if "frame" in tick.annotations:
+                frames.append(tick.annotations["frame"])
+
+    cosim = CoSimulation(sc, 0, hooks=cosim.hooks + [Grab()])
+    result = cosim.run()
+    assert len(frames) == len(result.tables["camera"]) == 5
+    assert frames[0].rgb.shape == (120, 160, 3)
