@@ -100,6 +100,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario", default="scenarios/accident.yaml")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_demo)
+
+    from vcfusion.prediction.commands import add_parsers as add_prediction_parsers
+
+    add_prediction_parsers(sub)  # dataset, train, evaluate, bench-predict
     return parser
 
 
