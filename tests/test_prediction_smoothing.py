@@ -18,6 +18,8 @@ def test_aggressive_clips_at_end_and_keeps_length():
     assert aggressive([0, 1, 0, 0, 0, 0], 2).tolist() == [0, 1, 1, 1, 0, 0]
     assert aggressive([0, 0, 0, 0, 1], 3).tolist() == [0, 0, 0, 0, 1]
     assert aggressive([1, 0, 0], 0).tolist() == [1, 0, 0]
+    assert aggressive([0, 1], 30).tolist() == [0, 1]  # tau_a longer than the track
+    assert aggressive([], 3).tolist() == []
 
 
 def test_conservative_threshold_is_strict_and_first_steps_padded_with_zeros():

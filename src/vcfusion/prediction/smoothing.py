@@ -37,7 +37,7 @@ def aggressive(predictions, tau_a: int) -> np.ndarray:
         raise ValueError(f"tau_a: expected >= 0, got {tau_a}")
     lc = _as_decisions(predictions)
     out = np.zeros_like(lc)
-    for shift in range(int(tau_a) + 1):
+    for shift in range(min(int(tau_a), len(lc) - 1) + 1):
         out[shift:] |= lc[: len(lc) - shift] if shift else lc
     return out
 
