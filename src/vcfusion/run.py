@@ -11,7 +11,13 @@ from vcfusion.scenario import Scenario
 
 def build_cosimulation(scenario: Scenario, seed: int) -> CoSimulation:
     """The co-simulation with every stage the scenario enables."""
-    return CoSimulation(scenario, seed)
+    process_models = []
+    if scenario.prediction.enabled:
+        from vcfusion.prediction.cloud import predictor_for_scenario
+        from vcfusion.traffic.network import read_road
+
+        process_models.append(("lane_change", predictor_for_scenario(scenario, read_road(scenario.network))))
+    return CoSimulation(scenario, seed, process_models=process_models)
 
 
 def manifest_for(scenario: Scenario, seed: int) -> dict:

@@ -58,7 +58,7 @@ def training_rows(info: DatasetInfo, split: str, background: float, rng: np.rand
     return windows
 
 
-def _fit_torch(x_tr, y_tr, x_va, y_va, cfg: TrainConfig, n_features: int):
+def _fit_torch(x_tr, y_tr, x_va, y_va, cfg: TrainConfig, n_features: int, progress: bool = False):
     import torch
 
     torch.manual_seed(cfg.seed)
@@ -76,7 +76,10 @@ def _fit_torch(x_tr, y_tr, x_va, y_va, cfg: TrainConfig, n_features: int):
     gen = torch.Generator().manual_seed(cfg.seed)
     best, best_state, best_epoch, stale = np.inf, None, 0, 0
     history = []
-    for epoch in range(cfg.epochs):
+    from tqdm import tqdm
+
+    bar = tqdm(range(cfg.epochs), desc=f"train {cfg.kind}", unit="epoch", disable=not progress, leave=False)
+    for epoch in bar:
         module.train()
         perm = torch.randperm(len(xt), generator=gen)
         for k in range(0, len(xt), cfg.batch_size):
@@ -89,6 +92,7 @@ def _fit_torch(x_tr, y_tr, x_va, y_va, cfg: TrainConfig, n_features: int):
         with torch.no_grad():
             val = float(loss_fn(module(xv)[:, 0], yv))
         history.append(val)
+        bar.set_postfix(val_loss=f"{val:.4f}")
         if val < best - 1e-5:
             best, best_epoch, stale = val, epoch, 0
             best_state = {k: v.clone() for k, v in module.state_dict().items()}
@@ -172,7 +176,7 @@ def train_model(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = Tru
     std = np.maximum(x_tr.std(axis=0), 1e-6).astype(np.float32)
     x_va = ((va[names].to_numpy(np.float32) - mean) / std).astype(np.float32)
     y_va = (va["window_label"] == 1).to_numpy(np.float32)
-    weights, fit = _fit_torch(((x_tr - mean) / std).astype(np.float32), y_tr, x_va, y_va, cfg, len(names))
+    weights, fit = _fit_torch(((x_tr - mean) / std).astype(np.float32), y_tr, x_va, y_va, cfg, len(names), progress)
     model = LaneChangeModel(tuple(names), mean, std, weights, info.tau, info.tau_g, info.period_s)
     stream, events = stream_with_events(info, "validation", columns=["seed", "vehicle_id", "time", *names])
     prob = model.predict_proba(stream[names].to_numpy(np.float32))
