@@ -76,7 +76,7 @@ def test_cloud_predictor_matches_dataset_path(tmp_path):
     vehicles = pd.read_parquet(tmp_path / "run" / "vehicles.parquet")
     assert {"lc_prob", "lc_decision"} <= set(twins.columns)
     feats = features_from_twins_table(twins, vehicles, read_road(scenario.network), scenario.v2c.period_s)
-    merged = twins.merge(feats, on=["time", "vehicle_id"], validate="one_to_one")
+    merged = twins[["time", "vehicle_id", "lc_prob", "lc_decision"]].merge(feats, on=["time", "vehicle_id"], validate="one_to_one")
     prob = load_model().predict_proba(merged[list(FEATURE_NAMES)].to_numpy())
     np.testing.assert_allclose(prob, merged["lc_prob"].to_numpy(), atol=1e-6)
     assert merged["lc_prob"].std() > 0.01

@@ -10,7 +10,8 @@ def _random_model(rng, names=FEATURE_NAMES, hidden=16):
     shapes = [(hidden, f), (hidden, hidden), (1, hidden)]
     weights = [(rng.normal(0, 0.5, s).astype(np.float32), rng.normal(0, 0.1, s[0]).astype(np.float32)) for s in shapes]
     return LaneChangeModel(tuple(names), rng.normal(0, 1, f), rng.uniform(0.5, 2, f), weights, tau=5.0, tau_g=2.0,
-                           period_s=0.1, threshold=0.7, smoothing="conservative", tau_a_ticks=12, tau_c_ticks=4)
+                           period_s=0.1, threshold=0.7, smoothing="conservative", tau_a_ticks=12, tau_c_ticks=4,
+                           thresholds={"none": 0.9, "aggressive": 0.95, "conservative": 0.7})
 
 
 def test_save_load_roundtrip_and_torch_equals_numpy(tmp_path):
@@ -23,6 +24,7 @@ def test_save_load_roundtrip_and_torch_equals_numpy(tmp_path):
     assert loaded.feature_names == FEATURE_NAMES
     assert (loaded.tau, loaded.tau_g, loaded.threshold, loaded.smoothing, loaded.tau_a_ticks, loaded.tau_c_ticks) == \
         (5.0, 2.0, 0.7, "conservative", 12, 4)
+    assert loaded.threshold_for("aggressive") == 0.95 and loaded.threshold_for("none") == 0.9
     x = rng.normal(0, 3, (500, len(FEATURE_NAMES))).astype(np.float32)
     p_np = loaded.predict_proba(x)
     np.testing.assert_array_equal(p_np, model.predict_proba(x))

@@ -109,9 +109,11 @@ class PredictionConfig(_Strict):
     enabled: bool = True
     # Model file from `vcfusion train`; None = the model shipped in vcfusion/assets.
     model: Path | None = None
-    # Smoothing of the per-tick decisions (paper Algorithms 3 and 4): none | aggressive | conservative.
-    smoothing: Literal["none", "aggressive", "conservative"] = "aggressive"
-    # Probability above which the raw per-tick decision is positive (None = the model file's threshold).
+    # Smoothing of the per-tick decisions (paper Algorithms 3 and 4): none | aggressive | conservative;
+    # None = the model file's default (chosen on validation seeds by `vcfusion train`).
+    smoothing: Literal["none", "aggressive", "conservative"] | None = None
+    # Probability above which the raw per-tick decision is positive (None = the model file's threshold
+    # tuned for that smoothing).
     threshold: Probability | None = None
     # Algorithm 3: a positive lasts tau_a more V2C ticks; Algorithm 4: mean of the last tau_c + 1 ticks.
     # None = the values stored in the model file (tuned on validation seeds by `vcfusion train`).

@@ -30,9 +30,10 @@ class LaneChangePredictor:
                  conservative_threshold: float | None = None):
         self.model = model
         self.extractor = FeatureExtractor(road, period_s)
-        self.threshold = model.threshold if threshold is None else threshold
+        smoothing = smoothing or model.smoothing
+        self.threshold = model.threshold_for(smoothing) if threshold is None else threshold
         self.smoother = StreamingSmoother(
-            smoothing or model.smoothing,
+            smoothing,
             tau_a=model.tau_a_ticks if tau_a_ticks is None else tau_a_ticks,
             tau_c=model.tau_c_ticks if tau_c_ticks is None else tau_c_ticks,
             threshold=model.conservative_threshold if conservative_threshold is None else conservative_threshold)

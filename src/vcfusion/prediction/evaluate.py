@@ -139,13 +139,10 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
     rows, per_event_all, settings = [], {}, {}
     for pname, (pred, _) in predictors.items():
         if pname == "MLP":
-            tuned = {"none": {"threshold": model.threshold if model.smoothing == "none" else
-                              model.info.get("tuning", {}).get("none", {}).get("threshold", model.threshold),
-                              "tau_ticks": 0},
-                     "aggressive": {"threshold": model.info.get("tuning", {}).get("aggressive", {}).get(
-                         "threshold", model.threshold), "tau_ticks": model.tau_a_ticks},
-                     "conservative": {"threshold": model.info.get("tuning", {}).get("conservative", {}).get(
-                         "threshold", model.threshold), "tau_ticks": model.tau_c_ticks}}
+            tuned = {"none": {"threshold": model.threshold_for("none"), "tau_ticks": 0},
+                     "aggressive": {"threshold": model.threshold_for("aggressive"), "tau_ticks": model.tau_a_ticks},
+                     "conservative": {"threshold": model.threshold_for("conservative"),
+                                      "tau_ticks": model.tau_c_ticks}}
         else:
             tuned = tune_decisions(pred.predict_proba(x_val), val_stream, val_events, info.period_s, horizon_s)
         prob = pred.predict_proba(x)
@@ -170,8 +167,7 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
                          **{f"stream_{k}": v for k, v in fs.items()}, **ev})
     table = pd.DataFrame(rows)
     table.to_csv(out / "metrics.csv", index=False)
-    default = ("MLP", "aggressive" if model.smoothing == "aggressive" else
-               "conservative" if model.smoothing == "conservative" else "original")
+    default = ("MLP", {"none": "original"}.get(model.smoothing, model.smoothing))
     _plot(table, per_event_all, default, out / "evaluation.png")
     report = _report(table, info, split, model_path, model, horizon_s, default, rule, events, per_event_all[default])
     (out / "report.md").write_text(report)

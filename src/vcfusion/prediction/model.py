@@ -45,6 +45,11 @@ class LaneChangeModel:
     tau_c_ticks: int = 10
     conservative_threshold: float = 0.5
     info: dict = field(default_factory=dict)
+    # Probability threshold per smoothing (none / aggressive / conservative), tuned with it.
+    thresholds: dict = field(default_factory=dict)
+
+    def threshold_for(self, smoothing: str) -> float:
+        return float(self.thresholds.get(smoothing, self.threshold))
 
     def __post_init__(self):
         self.mean = np.asarray(self.mean, dtype=np.float32)
@@ -109,7 +114,7 @@ def save_model(model: LaneChangeModel, path: str | Path) -> Path:
         "format": MODEL_FORMAT, "feature_names": list(model.feature_names), "tau": model.tau, "tau_g": model.tau_g,
         "period_s": model.period_s, "threshold": model.threshold, "smoothing": model.smoothing,
         "tau_a_ticks": model.tau_a_ticks, "tau_c_ticks": model.tau_c_ticks,
-        "conservative_threshold": model.conservative_threshold, "layers": len(model.weights), "info": model.info,
+        "conservative_threshold": model.conservative_threshold, "thresholds": model.thresholds, "layers": len(model.weights), "info": model.info,
     }
     arrays = {"mean": model.mean, "std": model.std, "meta": np.array(json.dumps(meta, sort_keys=True))}
     for k, (w, b) in enumerate(model.weights):
@@ -145,7 +150,7 @@ def load_model(path: str | Path | None = None, expected_features=None) -> LaneCh
         tau=float(meta["tau"]), tau_g=float(meta["tau_g"]), period_s=float(meta["period_s"]),
         threshold=float(meta["threshold"]), smoothing=meta["smoothing"], tau_a_ticks=int(meta["tau_a_ticks"]),
         tau_c_ticks=int(meta["tau_c_ticks"]), conservative_threshold=float(meta["conservative_threshold"]),
-        info=meta.get("info", {}),
+        info=meta.get("info", {}), thresholds=dict(meta.get("thresholds", {})),
     )
     if len(mean) != len(model.feature_names) or weights[0][0].shape[1] != len(model.feature_names):
         raise ModelFileError(f"{path}: weights do not match its feature list of {len(model.feature_names)} features")

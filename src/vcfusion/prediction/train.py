@@ -26,9 +26,9 @@ from vcfusion.prediction.events import event_scores, smooth_stream, track_bounds
 from vcfusion.prediction.model import LaneChangeModel, build_torch_mlp, save_model
 
 # Run-time settings tried on the validation stream.
-THRESHOLDS = (0.5, 0.6, 0.7, 0.8, 0.9, 0.95)
-TAU_A_TICKS = (0, 5, 10, 20, 30)
-TAU_C_TICKS = (3, 5, 10, 20)
+THRESHOLDS = (0.5, 0.7, 0.8, 0.9, 0.95, 0.97, 0.98, 0.99)
+TAU_A_TICKS = (0, 10, 20, 30, 50)
+TAU_C_TICKS = (5, 10, 20, 30)
 MAX_FALSE_ALARMS_PER_VH = 2.0
 
 
@@ -132,8 +132,8 @@ def tune_decisions(prob: np.ndarray, stream: pd.DataFrame, events: pd.DataFrame,
 
     For each smoothing, among the settings with at most MAX_FALSE_ALARMS_PER_VH false alarms per
     vehicle-hour, the one predicting the most lane changes (ties: larger mean advance); if none
-    meets the bound, the one with the fewest false alarms. The default smoothing is the
-    aggressive one (the paper's choice) unless the conservative one predicts more changes.
+    meets the bound, the one with the fewest false alarms. The default smoothing is then
+    picked by :func:`choose_default`.
     """
     best: dict = {}
     bounds = track_bounds(stream)
@@ -153,6 +153,17 @@ def tune_decisions(prob: np.ndarray, stream: pd.DataFrame, events: pd.DataFrame,
                                                                -c[2]["predicted_share"]))
         best[method] = {"threshold": thr, "tau_ticks": tau, "validation": summary}
     return best
+
+
+def choose_default(tuned: dict) -> str:
+    """The smoothing a model file makes default: among the variants that meet the false-alarm bound
+    on validation, the one predicting most lane changes; if none meets it, the one with the fewest
+    false alarms. Ties go to the aggressive variant (the paper's choice)."""
+    order = ("aggressive", "conservative", "none")
+    ok = [m for m in order if tuned[m]["validation"]["false_alarms_per_vehicle_hour"] <= MAX_FALSE_ALARMS_PER_VH]
+    if ok:
+        return max(ok, key=lambda m: (tuned[m]["validation"]["predicted_share"], -order.index(m)))
+    return min(order, key=lambda m: (tuned[m]["validation"]["false_alarms_per_vehicle_hour"], order.index(m)))
 
 
 def train_model(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = True) -> str:
@@ -181,11 +192,10 @@ def train_model(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = Tru
     stream, events = stream_with_events(info, "validation", columns=["seed", "vehicle_id", "time", *names])
     prob = model.predict_proba(stream[names].to_numpy(np.float32))
     tuned = tune_decisions(prob, stream, events, info.period_s, cfg.horizon_s, model.conservative_threshold)
-    default = "aggressive"
-    if tuned["conservative"]["validation"]["predicted_share"] > tuned["aggressive"]["validation"]["predicted_share"]:
-        default = "conservative"
+    default = choose_default(tuned)
     model.smoothing = default
-    model.threshold = float(tuned[default]["threshold"])
+    model.thresholds = {m: float(t["threshold"]) for m, t in tuned.items()}
+    model.threshold = model.thresholds[default]
     model.tau_a_ticks = int(tuned["aggressive"]["tau_ticks"])
     model.tau_c_ticks = int(tuned["conservative"]["tau_ticks"])
     model.info = {
