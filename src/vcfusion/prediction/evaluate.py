@@ -228,7 +228,7 @@ def _plot(table: pd.DataFrame, per_event: dict, default, path: Path) -> None:
     ev = per_event[default]
     adv = ev.loc[ev["predicted"], "advance_final_s"]
     axes[2].hist(adv, bins=np.arange(0, max(12.0, float(adv.max()) + 0.5 if len(adv) else 12.0), 0.5), color="tab:green")
-    axes[2].set_xlabel("advance time before the end of the lane change (s), final positive run")
+    axes[2].set_xlabel("advance before lane-change end (s), final positive run")
     axes[2].set_ylabel("lane changes")
     axes[2].set_title(f"{default[0]} {default[1]}")
     fig.tight_layout()
