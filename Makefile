@@ -15,11 +15,8 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e '.[dev]'
 	@touch $(STAMP)
 
-# The closing guidance study needs lane-change probabilities in the cloud. Until the predictor is
-# wired into run.build_cosimulation, the demo uses the test-only stand-in (labelled as such in
-# the output); drop --process-model once the predictor is merged.
 demo: $(STAMP)
-	PYTHONPATH=. $(VENV)/bin/vcfusion demo --process-model tests.support.standin_predictor:closed_lane_standin
+	$(VENV)/bin/vcfusion demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q

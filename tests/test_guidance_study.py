@@ -9,17 +9,17 @@ import pytest
 from vcfusion.studies.guidance import StudyError, paired_summary, run_guidance_study
 
 REPO = Path(__file__).resolve().parents[1]
-STANDIN = "tests.support.standin_predictor:closed_lane_standin"
 
 
 @pytest.mark.slow
 def test_study_two_trips_end_to_end(tmp_path):
+    # The shipped lane-change predictor runs in the cloud (scenario default).
     res = run_guidance_study(REPO / "scenarios" / "accident.yaml", trips=2, workers=1, out=tmp_path / "study",
-                             renders=tmp_path / "renders", process_model_specs=(STANDIN,), progress=False)
+                             renders=tmp_path / "renders", progress=False)
     trips = pd.read_parquet(tmp_path / "study" / "trips.parquet")
     assert sorted(trips["arm"]) == ["off", "off", "on", "on"]
     assert set(trips["guidance_source"]) == {"cloud"}
-    assert (trips["process_models"] == STANDIN).all()
+    assert (trips["process_models"] == "lane_change").all()
     # the same driver in both arms of a trip
     for _, pair in trips.groupby("seed"):
         assert pair["driver_cutin_reaction_s"].nunique() == 1
@@ -36,9 +36,11 @@ def test_study_two_trips_end_to_end(tmp_path):
 
 @pytest.mark.slow
 def test_study_without_predictor_says_so(tmp_path):
+    text = (REPO / "scenarios" / "accident.yaml").read_text().replace("../sumo_net", str(REPO / "sumo_net"))
+    scenario = tmp_path / "no_predictor.yaml"
+    scenario.write_text(text + "\nprediction: {enabled: false}\n")
     with pytest.raises(StudyError, match="lc_prob"):
-        run_guidance_study(REPO / "scenarios" / "accident.yaml", trips=2, workers=1, out=tmp_path / "s",
-                           renders=tmp_path / "r", progress=False)
+        run_guidance_study(scenario, trips=2, workers=1, out=tmp_path / "s", renders=tmp_path / "r", progress=False)
     assert not (tmp_path / "s" / "trips.parquet").exists()
 
 

@@ -228,6 +228,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--process-model", action="append", default=[], metavar="MODULE:FACTORY",
                    help="extra cloud process model for the guidance study (see `study guidance`)")
     p.set_defaults(func=cmd_demo)
+
+    from vcfusion.prediction.commands import add_parsers as add_prediction_parsers
+
+    add_prediction_parsers(sub)  # dataset, train, evaluate, bench-predict
     return parser
 
 

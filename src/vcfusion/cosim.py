@@ -325,6 +325,15 @@ def summarize(sc: Scenario, seed: int, tables: dict[str, pd.DataFrame], channel:
             "ego_mean_speed_mps": float(ego["speed"].mean()) if len(ego) else 0.0,
             "ego_min_leader_gap_m": float(np.nanmin(ego["leader_gap_m"])) if ego["leader_gap_m"].notna().any() else None,
         })
+        if "lc_decision" in tables["twins"]:
+            from vcfusion.prediction.cloud import first_flags
+
+            into = lc[lc["into_ego_lane"]]
+            flags = first_flags(tables["twins"], lc, sc.simulation.lanechange_duration_s / 2)
+            keep = set(into["event_id"])
+            summary["lane_change_flags"] = [
+                f | {"ahead_of_ego": bool(into.loc[into["event_id"] == f["event_id"], "ahead_of_ego"].iloc[0])}
+                for f in flags if f["event_id"] in keep]
     return summary
 
 
@@ -343,6 +352,15 @@ def format_summary(summary: dict, wall_s: float | None = None) -> str:
                      f"{summary['cut_ins_ahead_of_ego']}")
         for c in summary["cut_ins"]:
             lines.append(f"    {c['vehicle_id']} at t = {c['mid_time']:.2f} s, {c['gap_to_ego_m']:.1f} m ahead")
+    if "lane_change_flags" in summary:
+        lines.append("  cloud lane-change flags, changes into the ego lane (s before end / before mid):")
+        for f in summary["lane_change_flags"]:
+            if f["final_run_before_end_s"] is None:
+                lines.append(f"    {f['vehicle_id']} (ends t = {f['end_time']:.1f} s): not flagged")
+            else:
+                lines.append(f"    {f['vehicle_id']} (ends t = {f['end_time']:.1f} s): final run from "
+                             f"{f['final_run_before_end_s']:.1f} / {f['final_run_before_mid_s']:.1f} s, first positive "
+                             f"{f['first_before_end_s']:.1f} / {f['first_before_mid_s']:.1f} s")
     lost = summary["v2c_reports_lost"]
     lines.append(f"  V2C: {summary['v2c_reports_sent']} reports sent, {lost} lost")
     return "\n".join(lines)

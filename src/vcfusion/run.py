@@ -22,7 +22,12 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
     from vcfusion.driver.params import draw_driver
     from vcfusion.traffic.network import read_road
 
-    process_models = list(extra_process_models or [])
+    process_models = []
+    if scenario.prediction.enabled:
+        from vcfusion.prediction.cloud import predictor_for_scenario
+
+        process_models.append(("lane_change", predictor_for_scenario(scenario, read_road(scenario.network))))
+    process_models += list(extra_process_models or [])
     hooks = []
     if scenario.vision.enabled:
         # Imported only here: traffic-only runs never load OpenGL.

@@ -8,7 +8,7 @@ Paths inside a scenario (network, vehicle types) are relative to the scenario fi
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -155,6 +155,25 @@ class AccidentConfig(_Strict):
     vtype: str = "truck"
 
 
+class PredictionConfig(_Strict):
+    """The cloud's lane-change predictor (a twin process model, vcfusion.prediction)."""
+
+    enabled: bool = True
+    # Model file from `vcfusion train`; None = the model shipped in vcfusion/assets.
+    model: Path | None = None
+    # Smoothing of the per-tick decisions (paper Algorithms 3 and 4): none | aggressive | conservative;
+    # None = the model file's default (chosen on validation seeds by `vcfusion train`).
+    smoothing: Literal["none", "aggressive", "conservative"] | None = None
+    # Probability above which the raw per-tick decision is positive (None = the model file's threshold
+    # tuned for that smoothing).
+    threshold: Probability | None = None
+    # Algorithm 3: a positive lasts tau_a more V2C ticks; Algorithm 4: mean of the last tau_c + 1 ticks.
+    # None = the values stored in the model file (tuned on validation seeds by `vcfusion train`).
+    tau_a_ticks: Annotated[int, Field(ge=0)] | None = None
+    tau_c_ticks: Annotated[int, Field(ge=0)] | None = None
+    conservative_threshold: Probability = 0.5
+
+
 class Scenario(_Strict):
     name: str
     description: str = ""
@@ -170,6 +189,7 @@ class Scenario(_Strict):
     vehicles: list[VehicleGroup] = []
     flows: list[Flow] = []
     accident: AccidentConfig | None = None
+    prediction: PredictionConfig = PredictionConfig()
     # Where the scenario was read from (set by the loader, not by the file).
     source: Path | None = Field(default=None, exclude=True)
 
@@ -252,5 +272,11 @@ def load_scenario(path: str | Path) -> Scenario:
         if not target.is_file():
             raise ScenarioError(f"{path}: {field}: file not found: {getattr(scenario, field)} (relative to the scenario file)")
         resolved[field] = target
+    pred = scenario.prediction
+    if pred.enabled and pred.model is not None:
+        target = (base / pred.model).resolve()
+        if not target.is_file():
+            raise ScenarioError(f"{path}: prediction.model: file not found: {pred.model} (relative to the scenario file)")
+        resolved["prediction"] = pred.model_copy(update={"model": target})
     return scenario.model_copy(update={**resolved, "source": path})
 

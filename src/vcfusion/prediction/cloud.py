@@ -1,0 +1,103 @@
+"""The cloud's lane-change predictor: a twin process model (paper Fig. 1, Section IV).
+
+Every V2C tick the twin store calls :class:`LaneChangePredictor` with the snapshot of all
+twins; it computes the features of all of them at once, runs the MLP once on the (N, F)
+matrix, thresholds the probabilities and smooths the decisions per twin (streaming Algorithm
+3 or 4). It returns `lc_prob` (float) and `lc_decision` (0/1), which the store attaches to the
+snapshot: they reach the ego in `Tick.neighbours` and are logged in the run's `twins` table.
+
+The per-twin memory the features need (smoothed speed, leaky maximum speed) is kept by the
+predictor's FeatureExtractor from the snapshots themselves, not read from the store's raw
+report history: that way a dataset rebuilt from the logged `twins` table (which holds exactly
+these snapshots) gives the very same features as run time, whatever the channel did.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from vcfusion.prediction.features import FeatureExtractor
+from vcfusion.prediction.model import LaneChangeModel, load_model
+from vcfusion.prediction.smoothing import StreamingSmoother
+from vcfusion.records import TwinStates
+from vcfusion.traffic.network import Road
+
+
+class LaneChangePredictor:
+    def __init__(self, model: LaneChangeModel, road: Road, period_s: float, smoothing: str | None = None,
+                 threshold: float | None = None, tau_a_ticks: int | None = None, tau_c_ticks: int | None = None,
+                 conservative_threshold: float | None = None):
+        self.model = model
+        self.extractor = FeatureExtractor(road, period_s)
+        smoothing = smoothing or model.smoothing
+        self.threshold = model.threshold_for(smoothing) if threshold is None else threshold
+        self.smoother = StreamingSmoother(
+            smoothing,
+            tau_a=model.tau_a_ticks if tau_a_ticks is None else tau_a_ticks,
+            tau_c=model.tau_c_ticks if tau_c_ticks is None else tau_c_ticks,
+            threshold=model.conservative_threshold if conservative_threshold is None else conservative_threshold)
+
+    def __call__(self, twins: TwinStates, store=None) -> dict[str, np.ndarray]:
+        features = self.extractor.from_twins(twins)
+        prob = self.model.predict_proba(features) if len(features) else np.zeros(0, np.float32)
+        decision = self.smoother(twins.ids, (prob > self.threshold).astype(np.int8))
+        return {"lc_prob": prob.astype(np.float64), "lc_decision": decision.astype(np.int8)}
+
+
+def predictor_for_scenario(scenario, road: Road) -> LaneChangePredictor | None:
+    """The predictor a scenario's `prediction:` block asks for (None when disabled)."""
+    from vcfusion.prediction.model import ModelFileError
+    from vcfusion.scenario import ScenarioError
+
+    cfg = scenario.prediction
+    if not cfg.enabled:
+        return None
+    try:
+        model = load_model(cfg.model)
+    except ModelFileError as exc:
+        raise ScenarioError(f"{scenario.source}: prediction.model: {exc}") from None
+    if abs(model.period_s - scenario.v2c.period_s) > 1e-9:
+        raise ScenarioError(f"{scenario.source}: prediction.model: trained for a V2C period of {model.period_s} s, "
+                            f"the scenario's v2c.period_s is {scenario.v2c.period_s} s")
+    return LaneChangePredictor(model, road, scenario.v2c.period_s, cfg.smoothing, cfg.threshold,
+                               cfg.tau_a_ticks, cfg.tau_c_ticks, cfg.conservative_threshold)
+
+
+def first_flags(twins: pd.DataFrame, events: pd.DataFrame, end_after_mid_s: float = 1.5) -> list[dict]:
+    """For each lane change in `events`: when the cloud first flagged it, from the twins table.
+
+    Looks at the vehicle's `lc_decision` at ticks after its previous lane change ended, up to
+    this one's end. `final_run_*`: the first tick of the uninterrupted positive run holding the
+    last positive decision; `first_*`: the first positive at all. Reported as seconds before
+    the change's end and its midpoint (negative = after the midpoint); None when never flagged.
+    """
+    from vcfusion.prediction.labels import event_end_times
+
+    out = []
+    if not len(events) or "lc_decision" not in twins:
+        return out
+    ends = event_end_times(events, end_after_mid_s)
+    tracks = {vid: g.sort_values("time") for vid, g in twins.groupby("vehicle_id", sort=False)}
+    all_events = events.assign(_end=ends)
+    for ev, end in zip(events.itertuples(index=False), ends):
+        row = {"vehicle_id": ev.vehicle_id, "event_id": int(ev.event_id), "mid_time": float(ev.mid_time),
+               "end_time": float(end), "final_run_before_end_s": None, "final_run_before_mid_s": None,
+               "first_before_end_s": None, "first_before_mid_s": None}
+        track = tracks.get(ev.vehicle_id)
+        if track is not None:
+            earlier = all_events[(all_events["vehicle_id"] == ev.vehicle_id) & (all_events["_end"] < end - 1e-9)]
+            prev = float(earlier["_end"].max()) if len(earlier) else -np.inf
+            t = track["time"].to_numpy(float)
+            d = track["lc_decision"].to_numpy()
+            region = np.flatnonzero((t > prev + 1e-9) & (t <= end + 1e-9))
+            pos = region[d[region] == 1]
+            if len(pos):
+                k = pos[-1]
+                while k - 1 >= region[0] and d[k - 1] == 1:
+                    k -= 1
+                for name, tick in (("final_run", t[k]), ("first", t[pos[0]])):
+                    row[f"{name}_before_end_s"] = round(float(end - tick), 2)
+                    row[f"{name}_before_mid_s"] = round(float(ev.mid_time - tick), 2)
+        out.append(row)
+    return out

@@ -1,0 +1,117 @@
+"""Handlers of the `vcfusion dataset | train | evaluate | bench-predict` commands."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def _usage(msg: str):
+    from vcfusion.cli import UsageError
+
+    return UsageError(msg)
+
+
+def cmd_dataset(args: argparse.Namespace) -> int:
+    from vcfusion.prediction.dataset import DatasetError, build_dataset
+    from vcfusion.scenario import load_scenario
+    from vcfusion.studies.batch import parse_seeds
+
+    load_scenario(args.scenario)  # fail fast on a bad file
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError as exc:
+        raise _usage(str(exc)) from None
+    if args.workers < 1:
+        raise _usage(f"--workers: expected a positive number of processes, got {args.workers}")
+    try:
+        report = build_dataset(Path(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g)
+    except DatasetError as exc:
+        raise _usage(str(exc)) from None
+    c = report["counts"]
+    print(f"dataset -> {args.out}: {report['done']} seeds run, {report['skipped']} already complete, "
+          f"{len(report['failed'])} failed")
+    print(f"  {c['seeds']} seeds, {c['lane_changes']} lane changes, {c['samples']} stream samples, "
+          f"{c['window_positive']} positive / {c['window_negative']} negative window samples")
+    print("  splits: " + ", ".join(f"{k} {len(v)} seeds" for k, v in report["splits"].items()))
+    for seed, error in report["failed"]:
+        print(f"  seed {seed}: {error.splitlines()[0]}")
+    return 1 if report["failed"] else 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from vcfusion.prediction.dataset import DatasetError
+    from vcfusion.prediction.train import TrainConfig, train_model
+
+    cfg = TrainConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
+                      background_negatives=args.background_negatives, threads=args.threads)
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise _usage(f"--out: {out} already exists (use --force to replace it)")
+    try:
+        report = train_model(Path(args.dataset), out, cfg)
+    except DatasetError as exc:
+        raise _usage(str(exc)) from None
+    print(report)
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from vcfusion.prediction.dataset import DatasetError
+    from vcfusion.prediction.evaluate import evaluate
+    from vcfusion.prediction.model import ModelFileError
+
+    try:
+        report_path = evaluate(Path(args.model), Path(args.dataset), Path(args.out) if args.out else None,
+                               split=args.split, horizon_s=args.horizon)
+    except (DatasetError, ModelFileError) as exc:
+        raise _usage(str(exc)) from None
+    print(Path(report_path).read_text())
+    print(f"report: {report_path}")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from vcfusion.prediction.bench import run_bench
+
+    print(run_bench(args.twins, args.repeats))
+    return 0
+
+
+def add_parsers(sub) -> None:
+    p = sub.add_parser("dataset", help="simulate seeds and write a labelled lane-change dataset (Parquet)")
+    p.add_argument("scenario", help="scenario YAML file, e.g. scenarios/dense.yaml")
+    p.add_argument("--seeds", required=True, help="e.g. 0-199 or 1,4,7-9")
+    p.add_argument("--out", required=True, help="dataset folder (resumable)")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--tau", type=float, default=5.0, help="time window tau, s (Fig. 5)")
+    p.add_argument("--tau-g", dest="tau_g", type=float, default=2.0, help="gap tau_g, s (Fig. 5)")
+    p.set_defaults(func=cmd_dataset)
+
+    p = sub.add_parser("train", help="train the lane-change MLP on a dataset")
+    p.add_argument("dataset", help="dataset folder from `vcfusion dataset`")
+    p.add_argument("--out", required=True, help="model file to write (.npz)")
+    p.add_argument("--hidden", type=int, default=64, help="units of each of the two hidden layers")
+    p.add_argument("--epochs", type=int, default=60)
+    p.add_argument("--patience", type=int, default=8, help="early stopping: epochs without validation gain")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--background-negatives", dest="background_negatives", type=float, default=0.0,
+                   help="add this many negatives per window sample drawn from ticks outside the windows "
+                        "(0 = the paper's Fig. 5 windows only)")
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    p.add_argument("--force", action="store_true", help="replace an existing --out")
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("evaluate", help="frame- and event-level evaluation of a model on a dataset's test seeds")
+    p.add_argument("model", help="model file from `vcfusion train`")
+    p.add_argument("dataset", help="dataset folder")
+    p.add_argument("--out", help="report folder (default: DATASET/eval-MODELNAME)")
+    p.add_argument("--split", default="test", choices=["train", "validation", "test"])
+    p.add_argument("--horizon", type=float, default=10.0,
+                   help="a lane change counts as predicted by a positive decision at most this many s before its end")
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("bench-predict", help="time the cloud lane-change predictor for N twins in one tick")
+    p.add_argument("--twins", type=int, default=100)
+    p.add_argument("--repeats", type=int, default=2000)
+    p.set_defaults(func=cmd_bench)

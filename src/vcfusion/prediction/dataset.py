@@ -1,0 +1,213 @@
+"""Lane-change datasets: simulate many seeds, compute features and labels, split by seed.
+
+Layout of a dataset folder DIR:
+- DIR/runs/seed_NNNN/  a complete run folder per seed (twins, lane_changes, vehicles, ...)
+  plus `samples.parquet`: one row per twin per V2C tick (the every-tick stream), with the
+  features, the labels of :mod:`vcfusion.prediction.labels` and the ids. Written atomically
+  by the batch runner, so an interrupted build resumes where it stopped.
+- DIR/dataset.json  parameters (scenario, tau, tau_g, feature names, splits by seed) and counts.
+- DIR/README.md     the schema of samples.parquet.
+Training uses the rows with window_label >= 0 (the balanced Fig. 5 windows); evaluation on
+the stream uses every row of the test seeds.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from vcfusion.prediction.features import FEATURE_NAMES, features_from_twins_table
+from vcfusion.prediction.labels import label_samples
+from vcfusion.studies.batch import SeedOutcome, run_batch, seed_folder
+from vcfusion.traffic.network import read_road
+
+DATASET_JSON = "dataset.json"
+SAMPLES = "samples.parquet"
+ID_COLUMNS = ["seed", "time", "vehicle_id", "event_id", "lc_reason", "time_to_lc", "time_since_lc",
+              "window_label", "stream_label"]
+SPLIT_FRACTIONS = (0.7, 0.15, 0.15)  # train, validation, test, in seed order
+
+
+class DatasetError(ValueError):
+    """A dataset folder that cannot be used; the message is for the user."""
+
+
+def build_samples(tables: dict[str, pd.DataFrame], road, period_s: float, seed: int, tau: float, tau_g: float,
+                  end_after_mid_s: float) -> pd.DataFrame:
+    """The every-tick sample table of one run (features from its twins table + labels)."""
+    feats = features_from_twins_table(tables["twins"], tables["vehicles"], road, period_s)
+    events = tables["lane_changes"]
+    labels = label_samples(feats["time"].to_numpy(), feats["vehicle_id"].to_numpy(), events, tau, tau_g,
+                           end_after_mid_s)
+    reason = dict(zip(events["event_id"], events["reason"])) if len(events) else {}
+    out = pd.DataFrame({
+        "seed": np.full(len(feats), seed, dtype=np.int32),
+        "time": feats["time"].to_numpy(),
+        "vehicle_id": feats["vehicle_id"].to_numpy(),
+        "event_id": labels["event_id"].to_numpy(),
+        "lc_reason": [reason.get(e, "") for e in labels["event_id"].to_numpy()],
+        "time_to_lc": labels["time_to_lc"].to_numpy(),
+        "time_since_lc": labels["time_since_lc"].to_numpy(),
+        "window_label": labels["window_label"].to_numpy(),
+        "stream_label": labels["stream_label"].to_numpy(),
+    })
+    for name in FEATURE_NAMES:
+        out[name] = feats[name].to_numpy(dtype=np.float32)
+    return out
+
+
+def _dataset_seed(scenario_path: str, seed: int, out: str, tau: float, tau_g: float) -> SeedOutcome:
+    """Batch-runner task: simulate one seed and write its run folder with samples.parquet."""
+    import traceback
+
+    from vcfusion.run import build_cosimulation, manifest_for
+    from vcfusion.runio import write_run_folder
+    from vcfusion.scenario import load_scenario
+
+    try:
+        scenario = load_scenario(scenario_path)
+        result = build_cosimulation(scenario, seed).run()
+        road = read_road(scenario.network)
+        samples = build_samples(result.tables, road, scenario.v2c.period_s, seed, tau, tau_g,
+                                scenario.simulation.lanechange_duration_s / 2)
+        tables = {k: v for k, v in result.tables.items() if k != "ego"} | {"samples": samples}
+        manifest = manifest_for(scenario, seed) | {"dataset": {"tau": tau, "tau_g": tau_g}}
+        write_run_folder(seed_folder(Path(out), seed), tables, manifest, result.summary)
+        return SeedOutcome(seed, True, result.summary, None)
+    except Exception as exc:  # one failing seed must not stop the others
+        return SeedOutcome(seed, False, None, f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}")
+
+
+def split_seeds(seeds: list[int]) -> dict[str, list[int]]:
+    """Train / validation / test by seed order (runs never shared); each split non-empty from 3 seeds."""
+    seeds = sorted(seeds)
+    n = len(seeds)
+    n_test = max(1, round(n * SPLIT_FRACTIONS[2])) if n >= 3 else 0
+    n_val = max(1, round(n * SPLIT_FRACTIONS[1])) if n >= 3 else 0
+    n_train = n - n_val - n_test
+    return {"train": seeds[:n_train], "validation": seeds[n_train:n_train + n_val],
+            "test": seeds[n_train + n_val:]}
+
+
+@dataclass(frozen=True)
+class DatasetInfo:
+    root: Path
+    tau: float
+    tau_g: float
+    period_s: float
+    feature_names: tuple[str, ...]
+    splits: dict[str, list[int]]
+    meta: dict
+
+    def samples_file(self, seed: int) -> Path:
+        return seed_folder(self.root / "runs", seed) / SAMPLES
+
+    def run_folder(self, seed: int) -> Path:
+        return seed_folder(self.root / "runs", seed)
+
+
+def load_dataset(root: str | Path) -> DatasetInfo:
+    root = Path(root)
+    meta_file = root / DATASET_JSON
+    if not meta_file.is_file():
+        raise DatasetError(f"{root}: not a dataset folder (no {DATASET_JSON}); build one with `vcfusion dataset`")
+    meta = json.loads(meta_file.read_text())
+    if "splits" not in meta:
+        raise DatasetError(f"{meta_file}: the dataset build did not finish (no splits); run `vcfusion dataset` again")
+    return DatasetInfo(root, float(meta["tau"]), float(meta["tau_g"]), float(meta["period_s"]),
+                       tuple(meta["feature_names"]), {k: list(v) for k, v in meta["splits"].items()}, meta)
+
+
+def load_samples(info: DatasetInfo, split: str, window_only: bool = False, columns: list[str] | None = None) -> pd.DataFrame:
+    frames = []
+    for seed in info.splits[split]:
+        f = info.samples_file(seed)
+        if not f.is_file():
+            raise DatasetError(f"{f}: missing samples of seed {seed} (split {split})")
+        df = pd.read_parquet(f, columns=columns)
+        if window_only:
+            df = df[df["window_label"] >= 0]
+        frames.append(df)
+    if not frames:
+        raise DatasetError(f"{info.root}: split {split!r} has no seeds")
+    return pd.concat(frames, ignore_index=True)
+
+
+README = """# Lane-change prediction dataset
+
+Built by `vcfusion dataset` (vcfusion.prediction.dataset). Parameters, feature names and the
+split of seeds into train / validation / test are in `dataset.json`.
+
+`runs/seed_NNNN/` is the complete run folder of one seed (see the run-folder tables:
+`twins.parquet` is what the cloud saw, `lane_changes.parquet` the ground-truth events).
+`runs/seed_NNNN/samples.parquet` has one row per cloud twin per V2C tick:
+
+| column | meaning |
+|---|---|
+| seed | simulation seed (the split unit) |
+| time | cloud time of the snapshot, s |
+| vehicle_id | the twin |
+| event_id | the vehicle's next lane change (`lane_changes.event_id` of the same run), -1 if none |
+| lc_reason | SUMO's reason of that change ('' if none) |
+| time_to_lc | end time of that change minus time, s (NaN if none) |
+| time_since_lc | time since the end of the vehicle's previous change, s (NaN if none) |
+| window_label | Fig. 5 time windows: 1 positive (0 <= time_to_lc < tau), 0 negative (tau + tau_g < time_to_lc <= 2 tau + tau_g), -1 neither (not used in training) |
+| stream_label | every-tick truth: 1 when 0 <= time_to_lc < tau, else 0 |
+| FEATURES... | float32, see vcfusion/prediction/features.py: longitudinal only, no lateral position/speed, heading, steering, blinker or SUMO lane-change state |
+
+Features: {features}
+
+Sentinels: a lane that does not exist gives gap 0 m and speed difference 0 (with
+`right_lane_exists` / `left_lane_exists` = 0); no vehicle within 150 m gives gap 150 m and
+difference 0; no stopped vehicle within 400 m ahead gives `stopped_ahead_*` = 400 m.
+"""
+
+
+def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int, tau: float, tau_g: float,
+                  progress: bool = True) -> dict:
+    """Simulate every seed not yet done (parallel, resumable) and write dataset.json + README.md."""
+    from vcfusion.runio import write_json
+    from vcfusion.scenario import load_scenario
+
+    if tau <= 0 or tau_g < 0:
+        raise DatasetError(f"--tau/--tau-g: expected tau > 0 and tau_g >= 0, got {tau}, {tau_g}")
+    scenario = load_scenario(scenario_path)
+    out = Path(out)
+    meta_file = out / DATASET_JSON
+    params = {"scenario": scenario.name, "scenario_file": str(Path(scenario_path).resolve()),
+              "tau": tau, "tau_g": tau_g, "period_s": scenario.v2c.period_s,
+              "feature_names": list(FEATURE_NAMES)}
+    if meta_file.is_file():
+        old = json.loads(meta_file.read_text())
+        clash = {k: (old.get(k), v) for k, v in params.items() if k != "scenario_file" and old.get(k) != v}
+        if clash:
+            raise DatasetError(f"{meta_file}: the folder holds a dataset with other parameters "
+                               f"({', '.join(f'{k}: {a!r} vs {b!r}' for k, (a, b) in clash.items())}); "
+                               f"choose a new --out")
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = meta_file.with_name(DATASET_JSON + ".tmp-writing")
+    write_json(tmp, params)
+    tmp.replace(meta_file)
+    task = functools.partial(_dataset_seed, tau=tau, tau_g=tau_g)
+    report = run_batch(Path(scenario_path), seeds, out / "runs", workers=workers, progress=progress, task=task)
+    done = [s for s in seeds if (seed_folder(out / "runs", s) / SAMPLES).is_file()]
+    counts = {"seeds": len(done), "samples": 0, "window_positive": 0, "window_negative": 0, "lane_changes": 0}
+    for s in done:
+        lab = pd.read_parquet(seed_folder(out / "runs", s) / SAMPLES, columns=["window_label"])["window_label"]
+        counts["samples"] += int(len(lab))
+        counts["window_positive"] += int((lab == 1).sum())
+        counts["window_negative"] += int((lab == 0).sum())
+        counts["lane_changes"] += int(len(pd.read_parquet(seed_folder(out / "runs", s) / "lane_changes.parquet",
+                                                         columns=["event_id"])))
+    params |= {"splits": split_seeds(done), "counts": counts}
+    write_json(tmp, params)
+    tmp.replace(meta_file)
+    readme_tmp = out / "README.md.tmp-writing"
+    readme_tmp.write_text(README.format(features=", ".join(FEATURE_NAMES)))
+    readme_tmp.replace(out / "README.md")
+    return report | {"counts": counts, "splits": params["splits"]}

@@ -1,0 +1,110 @@
+"""Event-level scoring of decision streams: lane changes predicted, advance time, false alarms.
+
+For each lane change of a vehicle (end E, the previous change of the same vehicle ending at P):
+- it is *predicted* when some decision of that vehicle is positive at a tick t with
+  max(P, E - horizon) < t <= E;
+- advance (final run) = E - the first tick of the uninterrupted positive run that holds the
+  last positive decision in that window (the run may start before the horizon, not before P);
+- advance (first positive) = E - the first positive decision after P at all;
+- `before_mid`: predicted by a positive at or before the manoeuvre's midpoint (the moment its
+  centre crosses the lane line, when the map-matched lane flips).
+A *false alarm* is an uninterrupted positive run [a, b] of a vehicle with no lane change of that
+vehicle ending in [a, b + horizon]. Rates are per vehicle-hour of twin ticks.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from vcfusion.prediction.smoothing import smooth
+
+_EPS = 1e-6
+
+
+def _runs(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Start and end (inclusive) indices of the runs of ones in a 0/1 array."""
+    padded = np.concatenate([[0], d.astype(np.int8), [0]])
+    diff = np.diff(padded)
+    return np.flatnonzero(diff == 1), np.flatnonzero(diff == -1) - 1
+
+
+def track_bounds(stream: pd.DataFrame) -> list[tuple[int, int]]:
+    """(start, stop) row ranges of each (seed, vehicle) track of a stream sorted by seed, vehicle, time."""
+    seeds = stream["seed"].to_numpy()
+    vids = stream["vehicle_id"].to_numpy()
+    change = np.flatnonzero((seeds[1:] != seeds[:-1]) | (vids[1:] != vids[:-1])) + 1
+    starts = np.concatenate([[0], change]).astype(int)
+    stops = np.concatenate([change, [len(seeds)]]).astype(int)
+    return list(zip(starts.tolist(), stops.tolist())) if len(seeds) else []
+
+
+def smooth_stream(bounds: list[tuple[int, int]], decisions: np.ndarray, method: str, tau_a: int, tau_c: int,
+                  threshold: float = 0.5) -> np.ndarray:
+    """Apply a smoothing per vehicle track (bounds from :func:`track_bounds`)."""
+    out = np.empty(len(decisions), dtype=np.int8)
+    for a, b in bounds:
+        out[a:b] = smooth(decisions[a:b], method, tau_a=tau_a, tau_c=tau_c, threshold=threshold)
+    return out
+
+
+def event_scores(stream: pd.DataFrame, decisions: np.ndarray, events: pd.DataFrame, period_s: float,
+                 horizon_s: float, bounds: list[tuple[int, int]] | None = None) -> tuple[dict, pd.DataFrame]:
+    """stream: seed, vehicle_id, time sorted by (seed, vehicle_id, time); events: seed, event_id,
+    vehicle_id, end, mid. Returns (summary, per-event table)."""
+    rows = []
+    false_alarms = 0
+    alarms = 0
+    ev_groups = {k: g.sort_values("end") for k, g in events.groupby(["seed", "vehicle_id"], sort=False)}
+    seeds = stream["seed"].to_numpy()
+    vids = stream["vehicle_id"].to_numpy()
+    times = stream["time"].to_numpy(dtype=float)
+    for a, b in (bounds if bounds is not None else track_bounds(stream)):
+        key = (seeds[a], vids[a])
+        t = times[a:b]
+        d = decisions[a:b].astype(np.int8)
+        g = ev_groups.get(key)
+        ends = g["end"].to_numpy() if g is not None else np.zeros(0)
+        starts, stops = _runs(d)
+        alarms += len(starts)
+        for s0, s1 in zip(starts, stops):
+            if not np.any((ends >= t[s0] - _EPS) & (ends <= t[s1] + horizon_s + _EPS)):
+                false_alarms += 1
+        if g is None:
+            continue
+        prev = -np.inf
+        for ev in g.itertuples(index=False):
+            region = (t > prev + _EPS) & (t <= ev.end + _EPS)
+            window = region & (t > ev.end - horizon_s - _EPS)
+            pos_w = np.flatnonzero(window & (d == 1))
+            row = {"seed": key[0], "vehicle_id": key[1], "event_id": ev.event_id, "end": ev.end,
+                   "observed_s": float(t[region][-1] - t[region][0]) if region.any() else 0.0,
+                   "predicted": len(pos_w) > 0, "before_mid": bool(np.any(window & (d == 1) & (t <= ev.mid + _EPS))),
+                   "advance_final_s": np.nan, "advance_first_s": np.nan}
+            if len(pos_w):
+                k = pos_w[-1]
+                first_region = np.flatnonzero(region)[0]
+                while k - 1 >= first_region and d[k - 1] == 1:
+                    k -= 1
+                row["advance_final_s"] = float(ev.end - t[k])
+                row["advance_first_s"] = float(ev.end - t[np.flatnonzero(region & (d == 1))[0]])
+            rows.append(row)
+            prev = ev.end
+    per_event = pd.DataFrame(rows, columns=["seed", "vehicle_id", "event_id", "end", "observed_s", "predicted",
+                                            "before_mid", "advance_final_s", "advance_first_s"])
+    vehicle_hours = len(stream) * period_s / 3600.0
+    pred = per_event[per_event["predicted"]]
+    summary = {
+        "lane_changes": int(len(per_event)),
+        "predicted_share": float(per_event["predicted"].mean()) if len(per_event) else float("nan"),
+        "predicted_before_mid_share": float(per_event["before_mid"].mean()) if len(per_event) else float("nan"),
+        "advance_final_mean_s": float(pred["advance_final_s"].mean()) if len(pred) else float("nan"),
+        "advance_final_median_s": float(pred["advance_final_s"].median()) if len(pred) else float("nan"),
+        "advance_first_mean_s": float(pred["advance_first_s"].mean()) if len(pred) else float("nan"),
+        "advance_first_median_s": float(pred["advance_first_s"].median()) if len(pred) else float("nan"),
+        "alarms": int(alarms),
+        "false_alarms": int(false_alarms),
+        "vehicle_hours": float(vehicle_hours),
+        "false_alarms_per_vehicle_hour": float(false_alarms / vehicle_hours) if vehicle_hours else float("nan"),
+    }
+    return summary, per_event

@@ -1,0 +1,205 @@
+"""Longitudinal features of every cloud twin, one V2C tick at a time.
+
+The features use only what the cloud knows about each twin: its map-matched lane (from the
+noisy, late GNSS position), its position along the road, speed, acceleration and length, and
+the same facts of the other twins. There is NO lateral position, lateral speed, heading,
+steering, blinker or SUMO lane-change state among them: the paper's long-term prediction
+(Section IV-A) works without lateral cues, and so do we.
+
+One stateful :class:`FeatureExtractor` is used identically at run time (the cloud's process
+model, fed every snapshot) and to build datasets (fed the run's `twins` table, snapshot by
+snapshot, see :func:`features_from_twins_table`): the per-twin memory (smoothed speed, a
+leaky maximum speed) is updated from the snapshots, so both paths see the same numbers.
+
+Neighbours. For each twin and each of its lanes {right, own, left}, the leader is the
+nearest twin in that lane whose centre is ahead (larger s), the follower the nearest behind.
+Gaps are bumper to bumper along the road (negative when side by side in an adjacent lane);
+speed differences are neighbour minus own speed. Sentinels:
+- lane does not exist (own lane is the rightmost/leftmost, or the twin is off the road):
+  gap = 0 m, speed difference = 0, and `right_lane_exists` / `left_lane_exists` = 0;
+- lane exists but no twin within `RANGE_M` (or a gap beyond it): gap = RANGE_M, difference 0.
+`stopped_ahead_*` is the distance from the front bumper to the rear of the nearest stopped
+twin (speed < STOPPED_MPS) ahead in that lane, BLOCK_RANGE_M when none (and 0 for a missing
+lane) — an accident or a queue ahead, derived from the twins only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from vcfusion.traffic.network import Road
+
+RANGE_M = 150.0
+BLOCK_RANGE_M = 400.0
+STOPPED_MPS = 1.0
+DENSITY_RANGE_M = 100.0
+SPEED_EMA_S = 3.0  # time constant of the smoothed speed
+SPEED_MAX_DECAY_MPS2 = 0.05  # the leaky maximum forgets this fast: a slow estimate of the desired speed
+
+SIDES = ("right", "own", "left")
+_LANE_OFFSET = {"right": -1, "own": 0, "left": 1}
+
+FEATURE_NAMES: tuple[str, ...] = (
+    "speed", "accel", "length", "lane", "lanes_to_left",
+    "right_lane_exists", "left_lane_exists",
+    "speed_minus_ema", "speed_below_recent_max",
+    *[f"{kind}_{side}" for side in SIDES for kind in
+      ("gap_lead", "dv_lead", "gap_foll", "dv_foll", "stopped_ahead", "n_ahead")],
+)
+
+_LANE_KEY = 1.0e6  # lane * _LANE_KEY + s sorts twins by lane, then along the road
+
+
+def _neighbour_index(keys_sorted: np.ndarray, query: np.ndarray, lane_of_sorted: np.ndarray,
+                     target_lane: np.ndarray, ahead: bool) -> np.ndarray:
+    """Index (into the sorted arrays) of the nearest twin ahead/behind in target_lane, -1 if none."""
+    if ahead:
+        pos = np.searchsorted(keys_sorted, query, side="right")
+    else:
+        pos = np.searchsorted(keys_sorted, query, side="left") - 1
+    ok = (pos >= 0) & (pos < len(keys_sorted))
+    pos_c = np.clip(pos, 0, max(len(keys_sorted) - 1, 0))
+    if len(keys_sorted):
+        ok &= lane_of_sorted[pos_c] == target_lane
+    return np.where(ok, pos_c, -1)
+
+
+def tick_features(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.ndarray,
+                  length: np.ndarray, num_lanes: int) -> dict[str, np.ndarray]:
+    """The memoryless features of all twins of one tick (vectorised); s is the footprint centre."""
+    n = len(s)
+    lane = np.asarray(lane, dtype=np.int64)
+    on_road = lane >= 0
+    out: dict[str, np.ndarray] = {
+        "speed": speed.astype(float), "accel": accel.astype(float), "length": length.astype(float),
+        "lane": lane.astype(float),
+        "lanes_to_left": np.where(on_road, num_lanes - 1 - lane, 0).astype(float),
+        "right_lane_exists": (on_road & (lane >= 1)).astype(float),
+        "left_lane_exists": (on_road & (lane <= num_lanes - 2)).astype(float),
+    }
+    idx_on = np.flatnonzero(on_road)
+    keys = lane[idx_on] * _LANE_KEY + s[idx_on]
+    order = np.argsort(keys, kind="stable")
+    keys_sorted = keys[order]
+    members = idx_on[order]  # twin index of each sorted position
+    lane_sorted = lane[members]
+    stopped = members[speed[members] < STOPPED_MPS]
+    stopped_keys = lane[stopped] * _LANE_KEY + s[stopped]
+    front = s + length / 2
+    for side in SIDES:
+        target = lane + _LANE_OFFSET[side]
+        exists = on_road & (target >= 0) & (target < num_lanes)
+        query = target * _LANE_KEY + s
+        gap_lead = np.zeros(n)
+        dv_lead = np.zeros(n)
+        gap_foll = np.zeros(n)
+        dv_foll = np.zeros(n)
+        stopped_ahead = np.zeros(n)
+        n_ahead = np.zeros(n)
+        if n:
+            lead = _neighbour_index(keys_sorted, query, lane_sorted, target, ahead=True)
+            foll = _neighbour_index(keys_sorted, query, lane_sorted, target, ahead=False)
+            for pos, gap_out, dv_out, is_lead in ((lead, gap_lead, dv_lead, True), (foll, gap_foll, dv_foll, False)):
+                j = members[np.maximum(pos, 0)] if len(members) else np.zeros(n, dtype=np.int64)
+                if is_lead:
+                    gap = (s[j] - length[j] / 2) - front
+                else:
+                    gap = (s - length / 2) - (s[j] + length[j] / 2)
+                found = exists & (pos >= 0) & (gap <= RANGE_M)
+                gap_out[:] = np.where(found, gap, np.where(exists, RANGE_M, 0.0))
+                dv_out[:] = np.where(found, speed[j] - speed, 0.0)
+            if len(stopped):
+                order_st = np.argsort(stopped_keys, kind="stable")
+                st_sorted = stopped[order_st]
+                pos = _neighbour_index(stopped_keys[order_st], query, lane[st_sorted], target, ahead=True)
+                j = st_sorted[np.maximum(pos, 0)]
+                dist = (s[j] - length[j] / 2) - front
+                found = exists & (pos >= 0) & (dist <= BLOCK_RANGE_M)
+                stopped_ahead[:] = np.where(found, dist, np.where(exists, BLOCK_RANGE_M, 0.0))
+            else:
+                stopped_ahead[:] = np.where(exists, BLOCK_RANGE_M, 0.0)
+            count = (np.searchsorted(keys_sorted, query + DENSITY_RANGE_M, side="right")
+                     - np.searchsorted(keys_sorted, query, side="right"))
+            n_ahead[:] = np.where(exists, count, 0)
+        out[f"gap_lead_{side}"] = gap_lead
+        out[f"dv_lead_{side}"] = dv_lead
+        out[f"gap_foll_{side}"] = gap_foll
+        out[f"dv_foll_{side}"] = dv_foll
+        out[f"stopped_ahead_{side}"] = stopped_ahead
+        out[f"n_ahead_{side}"] = n_ahead
+    return out
+
+
+class FeatureExtractor:
+    """Per-twin feature memory plus :func:`tick_features`; call once per snapshot, in time order."""
+
+    def __init__(self, road: Road, period_s: float):
+        self.road = road
+        self.period_s = period_s
+        self._alpha = 1.0 - np.exp(-period_s / SPEED_EMA_S)
+        self._decay = SPEED_MAX_DECAY_MPS2 * period_s
+        self._ids = np.array([], dtype=str)
+        self._ema = np.zeros(0)
+        self._vmax = np.zeros(0)
+
+    def _carry(self, ids: np.ndarray, fresh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Previous memory aligned to `ids` (new twins start from their current speed)."""
+        ema, vmax = fresh.copy(), fresh.copy()
+        if len(self._ids) and len(ids):
+            order = np.argsort(self._ids)
+            prev_sorted = self._ids[order]
+            pos = np.clip(np.searchsorted(prev_sorted, ids), 0, len(prev_sorted) - 1)
+            known = prev_sorted[pos] == ids
+            src = order[pos[known]]
+            ema[known] = self._ema[src]
+            vmax[known] = self._vmax[src]
+        return ema, vmax
+
+    def __call__(self, ids, x: np.ndarray, y: np.ndarray, lane: np.ndarray, speed: np.ndarray,
+                 accel: np.ndarray, length: np.ndarray) -> np.ndarray:
+        """(N, len(FEATURE_NAMES)) float64 features of the N twins of one snapshot."""
+        ids = np.asarray(ids, dtype=str)
+        speed = np.asarray(speed, dtype=float)
+        s, _ = self.road.to_road_frame(x, y)  # only s is used: the lateral coordinate is dropped here
+        ema_prev, vmax_prev = self._carry(ids, speed)
+        ema = ema_prev + self._alpha * (speed - ema_prev)
+        vmax = np.maximum(speed, vmax_prev - self._decay)
+        self._ids, self._ema, self._vmax = ids, ema, vmax
+        cols = tick_features(np.asarray(s, dtype=float), lane, speed, np.asarray(accel, dtype=float),
+                             np.asarray(length, dtype=float), self.road.num_lanes)
+        cols["speed_minus_ema"] = speed - ema
+        cols["speed_below_recent_max"] = vmax - speed
+        return np.stack([cols[name] for name in FEATURE_NAMES], axis=-1) if len(ids) else np.zeros((0, len(FEATURE_NAMES)))
+
+    def from_twins(self, twins) -> np.ndarray:
+        """Features of a TwinStates snapshot (the run-time path)."""
+        return self(twins.ids, twins.x, twins.y, twins.lane, twins.speed, twins.accel, twins.length)
+
+
+def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road: Road,
+                              period_s: float) -> pd.DataFrame:
+    """Replay a run's `twins` table snapshot by snapshot through a FeatureExtractor.
+
+    Returns time, vehicle_id and one column per feature, in the table's row order per tick.
+    Lengths come from the `vehicles` table (they are what each vehicle reports to the cloud).
+    """
+    length_of = vehicles.set_index("vehicle_id")["length"]
+    twins = twins.sort_values(["time", "vehicle_id"], kind="stable").reset_index(drop=True)
+    length = length_of.reindex(twins["vehicle_id"]).to_numpy(dtype=float)
+    extractor = FeatureExtractor(road, period_s)
+    times = twins["time"].to_numpy()
+    bounds = np.flatnonzero(np.diff(times)) + 1
+    starts = np.concatenate([[0], bounds]) if len(times) else np.zeros(0, dtype=int)
+    ends = np.concatenate([bounds, [len(times)]]) if len(times) else np.zeros(0, dtype=int)
+    ids = twins["vehicle_id"].to_numpy(dtype=str)
+    x, y = twins["x"].to_numpy(float), twins["y"].to_numpy(float)
+    lane = twins["lane"].to_numpy()
+    speed, accel = twins["speed"].to_numpy(float), twins["accel"].to_numpy(float)
+    blocks = [extractor(ids[a:b], x[a:b], y[a:b], lane[a:b], speed[a:b], accel[a:b], length[a:b])
+              for a, b in zip(starts, ends)]
+    values = np.concatenate(blocks) if blocks else np.zeros((0, len(FEATURE_NAMES)))
+    out = pd.DataFrame(values, columns=list(FEATURE_NAMES))
+    out.insert(0, "vehicle_id", twins["vehicle_id"].astype(str).to_numpy())
+    out.insert(0, "time", times)
+    return out

@@ -1,0 +1,158 @@
+"""The lane-change MLP (paper Section IV-B): model file, torch module and NumPy inference.
+
+Three layers (two hidden ReLU layers and a sigmoid output unit), applied to standardised
+features. A model file is one `.npz` (no pickle) holding the layer weights, the feature list
+and its normalisation, the labelling windows tau / tau_g it was trained for, and the
+run-time decision settings (probability threshold, smoothing tau_a / tau_c in V2C ticks).
+
+Run time uses :meth:`LaneChangeModel.predict_proba`, plain NumPy in float32 (no torch import,
+a few microseconds for a tick of 100 twins); it equals the torch module within 1e-6.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+MODEL_FORMAT = "vcfusion-lane-change-mlp/1"
+DEFAULT_MODEL_NAME = "lane_change_mlp.npz"
+
+
+class ModelFileError(ValueError):
+    """A model file that cannot be used here; the message is for the user."""
+
+
+def default_model_path() -> Path:
+    return Path(str(resources.files("vcfusion.assets").joinpath(DEFAULT_MODEL_NAME)))
+
+
+@dataclass
+class LaneChangeModel:
+    feature_names: tuple[str, ...]
+    mean: np.ndarray
+    std: np.ndarray
+    weights: list[tuple[np.ndarray, np.ndarray]]  # (W (out, in), b (out,)) per layer, torch layout
+    tau: float
+    tau_g: float
+    period_s: float
+    threshold: float = 0.5
+    smoothing: str = "aggressive"
+    tau_a_ticks: int = 10
+    tau_c_ticks: int = 10
+    conservative_threshold: float = 0.5
+    info: dict = field(default_factory=dict)
+    # Probability threshold per smoothing (none / aggressive / conservative), tuned with it.
+    thresholds: dict = field(default_factory=dict)
+
+    def threshold_for(self, smoothing: str) -> float:
+        return float(self.thresholds.get(smoothing, self.threshold))
+
+    def __post_init__(self):
+        self.mean = np.asarray(self.mean, dtype=np.float32)
+        self.std = np.asarray(self.std, dtype=np.float32)
+        self.weights = [(np.asarray(w, dtype=np.float32), np.asarray(b, dtype=np.float32)) for w, b in self.weights]
+        self._wt = [(np.ascontiguousarray(w.T), b) for w, b in self.weights]
+        self._inv_std = (1.0 / self.std).astype(np.float32)
+
+    def logits(self, features: np.ndarray) -> np.ndarray:
+        h = (np.asarray(features, dtype=np.float32) - self.mean) * self._inv_std
+        last = len(self._wt) - 1
+        for k, (wt, b) in enumerate(self._wt):
+            h = h @ wt + b
+            if k < last:
+                np.maximum(h, 0.0, out=h)
+        return h[:, 0]
+
+    def predict_proba(self, features: np.ndarray) -> np.ndarray:
+        """P(lane change within tau) per row of features (N, F), float32."""
+        z = self.logits(features)
+        return (1.0 / (1.0 + np.exp(-z))).astype(np.float32)
+
+    def check_features(self, names, source: str = "model") -> None:
+        names = tuple(names)
+        if names != self.feature_names:
+            missing = [n for n in self.feature_names if n not in names]
+            extra = [n for n in names if n not in self.feature_names]
+            detail = []
+            if missing:
+                detail.append(f"the model needs {missing} which the code does not compute")
+            if extra:
+                detail.append(f"the code computes {extra} which the model was not trained on")
+            if not detail:
+                detail.append("same features in a different order")
+            raise ModelFileError(f"{source}: feature list does not match this version of "
+                                 f"vcfusion.prediction.features ({'; '.join(detail)}); retrain with `vcfusion train`")
+
+    def to_torch(self):
+        import torch
+
+        module = build_torch_mlp(len(self.feature_names), self.weights[0][0].shape[0])
+        with torch.no_grad():
+            for layer, (w, b) in zip([m for m in module if isinstance(m, torch.nn.Linear)], self.weights):
+                layer.weight.copy_(torch.from_numpy(w))
+                layer.bias.copy_(torch.from_numpy(b))
+        return module
+
+
+def build_torch_mlp(n_features: int, hidden: int):
+    import torch
+
+    return torch.nn.Sequential(
+        torch.nn.Linear(n_features, hidden), torch.nn.ReLU(),
+        torch.nn.Linear(hidden, hidden), torch.nn.ReLU(),
+        torch.nn.Linear(hidden, 1),
+    )
+
+
+def save_model(model: LaneChangeModel, path: str | Path) -> Path:
+    path = Path(path)
+    meta = {
+        "format": MODEL_FORMAT, "feature_names": list(model.feature_names), "tau": model.tau, "tau_g": model.tau_g,
+        "period_s": model.period_s, "threshold": model.threshold, "smoothing": model.smoothing,
+        "tau_a_ticks": model.tau_a_ticks, "tau_c_ticks": model.tau_c_ticks,
+        "conservative_threshold": model.conservative_threshold, "thresholds": model.thresholds, "layers": len(model.weights), "info": model.info,
+    }
+    arrays = {"mean": model.mean, "std": model.std, "meta": np.array(json.dumps(meta, sort_keys=True))}
+    for k, (w, b) in enumerate(model.weights):
+        arrays[f"w{k}"] = w
+        arrays[f"b{k}"] = b
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp-writing.npz")
+    np.savez(tmp, **arrays)
+    tmp.replace(path)
+    return path
+
+
+def load_model(path: str | Path | None = None, expected_features=None) -> LaneChangeModel:
+    """Read a model file (None = the shipped default); checks it against the current feature list."""
+    from vcfusion.prediction.features import FEATURE_NAMES
+
+    path = Path(path) if path is not None else default_model_path()
+    if not path.is_file():
+        raise ModelFileError(f"{path}: model file not found")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            meta = json.loads(str(data["meta"]))
+            if meta.get("format") != MODEL_FORMAT:
+                raise ModelFileError(f"{path}: format: expected {MODEL_FORMAT!r}, got {meta.get('format')!r}")
+            weights = [(data[f"w{k}"], data[f"b{k}"]) for k in range(int(meta["layers"]))]
+            mean, std = data["mean"], data["std"]
+    except ModelFileError:
+        raise
+    except Exception as exc:
+        raise ModelFileError(f"{path}: not a vcfusion lane-change model file ({type(exc).__name__}: {exc})") from None
+    model = LaneChangeModel(
+        feature_names=tuple(meta["feature_names"]), mean=mean, std=std, weights=weights,
+        tau=float(meta["tau"]), tau_g=float(meta["tau_g"]), period_s=float(meta["period_s"]),
+        threshold=float(meta["threshold"]), smoothing=meta["smoothing"], tau_a_ticks=int(meta["tau_a_ticks"]),
+        tau_c_ticks=int(meta["tau_c_ticks"]), conservative_threshold=float(meta["conservative_threshold"]),
+        info=meta.get("info", {}), thresholds=dict(meta.get("thresholds", {})),
+    )
+    if len(mean) != len(model.feature_names) or weights[0][0].shape[1] != len(model.feature_names):
+        raise ModelFileError(f"{path}: weights do not match its feature list of {len(model.feature_names)} features")
+    model.check_features(FEATURE_NAMES if expected_features is None else expected_features, source=str(path))
+    return model

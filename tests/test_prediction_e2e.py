@@ -1,0 +1,101 @@
+"""End to end on real SUMO: tiny dataset -> quick training -> evaluation; and the cloud predictor
+in the tick loop gives exactly what the dataset path computes from the logged twins table."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from vcfusion.cli import main
+from vcfusion.prediction.features import FEATURE_NAMES, features_from_twins_table
+from vcfusion.prediction.model import load_model
+from vcfusion.prediction.smoothing import smooth
+from vcfusion.run import execute_run
+from vcfusion.scenario import load_scenario
+from vcfusion.traffic.network import read_road
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _short_dense(tmp_path: Path, seconds: float, **prediction) -> Path:
+    raw = yaml.safe_load((REPO / "scenarios" / "dense.yaml").read_text())
+    raw["network"] = str(REPO / "sumo_net" / "highway.net.xml")
+    raw["vehicle_types"] = str(REPO / "sumo_net" / "vtypes.add.xml")
+    raw["simulation"]["max_time_s"] = seconds
+    raw["prediction"] = prediction or {"enabled": False}
+    path = tmp_path / "dense_short.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+@pytest.mark.slow
+def test_dataset_train_evaluate_on_real_sumo(tmp_path, capsys):
+    scenario = _short_dense(tmp_path, 30.0)
+    data = tmp_path / "data"
+    assert main(["dataset", str(scenario), "--seeds", "0-2", "--out", str(data), "--workers", "1",
+                 "--tau", "4", "--tau-g", "2"]) == 0
+    meta = json.loads((data / "dataset.json").read_text())
+    assert meta["splits"] == {"train": [0], "validation": [1], "test": [2]}
+    assert meta["counts"]["window_positive"] > 100 and meta["counts"]["window_negative"] > 100
+    samples = pd.read_parquet(data / "runs" / "seed_0000" / "samples.parquet")
+    for col in ["seed", "time", "vehicle_id", "event_id", "time_to_lc", "window_label", "stream_label", *FEATURE_NAMES]:
+        assert col in samples
+    assert (data / "README.md").read_text().count("window_label") >= 1
+    # labels agree with the run's lane changes: a positive is within tau of its event's end
+    lc = pd.read_parquet(data / "runs" / "seed_0000" / "lane_changes.parquet").set_index("event_id")
+    pos = samples[samples["window_label"] == 1]
+    ends = lc.loc[pos["event_id"], "end_time"].to_numpy()
+    ok = ~np.isnan(ends)
+    assert np.all((ends[ok] - pos["time"].to_numpy()[ok] < 4.0 + 1e-6) & (ends[ok] >= pos["time"].to_numpy()[ok] - 1e-6))
+
+    model_file = tmp_path / "m.npz"
+    assert main(["train", str(data), "--out", str(model_file), "--epochs", "3", "--hidden", "16"]) == 0
+    model = load_model(model_file)
+    assert model.tau == 4.0 and model.tau_g == 2.0 and model.info["fit"]["epochs_run"] <= 3
+    assert main(["evaluate", str(model_file), str(data), "--out", str(tmp_path / "eval")]) == 0
+    report = (tmp_path / "eval" / "report.md").read_text()
+    for needle in ("MLP | aggressive", "MLP | conservative", "logistic regression | original", "gap/speed rule",
+                   "ROC AUC", "false alarms / veh-h"):
+        assert needle in report
+    assert (tmp_path / "eval" / "evaluation.png").stat().st_size > 10_000
+    metrics = pd.read_csv(tmp_path / "eval" / "metrics.csv")
+    assert len(metrics) == 9 and metrics["lane_changes"].iloc[0] > 10
+
+
+@pytest.mark.slow
+def test_cloud_predictor_matches_dataset_path(tmp_path):
+    """lc_prob logged by the tick loop == the model applied to features rebuilt from the twins table."""
+    path = _short_dense(tmp_path, 20.0, enabled=True, smoothing="aggressive", tau_a_ticks=5, threshold=0.5)
+    scenario = load_scenario(path)
+    # noisy channel so that loss/latency/jitter are part of what must match
+    result = execute_run(scenario, 4, tmp_path / "run")
+    twins = pd.read_parquet(tmp_path / "run" / "twins.parquet")
+    vehicles = pd.read_parquet(tmp_path / "run" / "vehicles.parquet")
+    assert {"lc_prob", "lc_decision"} <= set(twins.columns)
+    feats = features_from_twins_table(twins, vehicles, read_road(scenario.network), scenario.v2c.period_s)
+    merged = twins[["time", "vehicle_id", "lc_prob", "lc_decision"]].merge(feats, on=["time", "vehicle_id"], validate="one_to_one")
+    prob = load_model().predict_proba(merged[list(FEATURE_NAMES)].to_numpy())
+    np.testing.assert_allclose(prob, merged["lc_prob"].to_numpy(), atol=1e-6)
+    assert merged["lc_prob"].std() > 0.01
+    for _, g in merged.sort_values("time").groupby("vehicle_id"):
+        expected = smooth((g["lc_prob"].to_numpy() > 0.5).astype(int), "aggressive", tau_a=5)
+        np.testing.assert_array_equal(g["lc_decision"].to_numpy(), expected)
+    assert result.summary["v2c_reports_lost"] > 0
+
+
+@pytest.mark.slow
+def test_accident_run_reports_cloud_flags(tmp_path):
+    scenario = load_scenario(REPO / "scenarios" / "accident.yaml")
+    result = execute_run(scenario, 3, tmp_path / "run")
+    twins = pd.read_parquet(tmp_path / "run" / "twins.parquet")
+    assert twins["lc_prob"].between(0, 1).all() and set(twins["lc_decision"].unique()) <= {0, 1}
+    flags = result.summary["lane_change_flags"]
+    into = result.tables["lane_changes"]
+    assert len(flags) == int(into["into_ego_lane"].sum()) > 0
+    for f in flags:
+        assert {"final_run_before_end_s", "first_before_end_s", "final_run_before_mid_s", "ahead_of_ego"} <= set(f)
+        if f["first_before_end_s"] is not None:
+            assert f["first_before_end_s"] >= f["final_run_before_end_s"] >= 0

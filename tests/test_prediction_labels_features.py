@@ -1,0 +1,103 @@
+import numpy as np
+import pandas as pd
+import pytest
+
+from vcfusion.prediction.features import BLOCK_RANGE_M, FEATURE_NAMES, RANGE_M, FeatureExtractor
+from vcfusion.prediction.labels import label_samples
+from vcfusion.records import TwinStates
+from vcfusion.traffic.network import Road
+
+ROAD = Road("hw", (0.0, 0.0), (2000.0, 0.0), 3, 3.5, 25.0)  # y = 0 is the left edge, lanes downwards
+
+
+def _events(rows):
+    return pd.DataFrame(rows, columns=["event_id", "vehicle_id", "mid_time", "end_time"])
+
+
+def test_fig5_windows_on_a_hand_made_event():
+    # One change of v1 ending at t = 20 s; tau = 3, tau_g = 2 -> positive [17, 20], negative (22..25] before.
+    t = np.round(np.arange(0.0, 25.0, 0.5), 6)
+    ev = _events([(7, "v1", 18.5, 20.0)])
+    lab = label_samples(t, np.full(len(t), "v1"), ev, tau=3.0, tau_g=2.0)
+    by_t = dict(zip(t, lab["window_label"]))
+    assert [by_t[x] for x in (20.0, 19.5, 17.5, 17.0 + 0.5)] == [1, 1, 1, 1]
+    assert by_t[17.0] == -1  # ttl == tau: first tick of the gap (windows are half-open)
+    assert by_t[15.0] == -1 and by_t[16.0] == -1  # the gap tau_g
+    assert by_t[14.5] == 0 and by_t[12.0] == 0 and by_t[11.5] == -1  # negative: 5 < ttl <= 8
+    assert by_t[20.5] == -1 and by_t[24.5] == -1  # after the change: no next change
+    # equal window sizes (the paper balances positives and negatives this way)
+    assert (lab["window_label"] == 1).sum() == (lab["window_label"] == 0).sum() == 6
+    assert lab.loc[t == 19.0, "time_to_lc"].item() == pytest.approx(1.0)
+    assert (lab.loc[t <= 20.0, "event_id"] == 7).all() and (lab.loc[t > 20.0, "event_id"] == -1).all()
+    # stream view: positive exactly on the positive window, everything else negative
+    assert ((lab["stream_label"] == 1) == (lab["window_label"] == 1)).all()
+
+
+def test_next_change_wins_and_other_vehicles_untouched():
+    t = np.round(np.arange(0.0, 30.0, 1.0), 6)
+    ev = _events([(0, "a", 9.0, 10.0), (1, "a", 19.0, 20.0)])
+    vids = np.array(["a"] * len(t) + ["b"] * len(t))
+    lab = label_samples(np.concatenate([t, t]), vids, ev, tau=3.0, tau_g=1.0)
+    a = lab.iloc[: len(t)]
+    # t = 11..13 are 7..9 s before the second change: its negative window (4 < ttl <= 7) -> t = 13..15
+    assert list(a["window_label"].iloc[13:16]) == [0, 0, 0]
+    assert list(a["window_label"].iloc[8:11]) == [1, 1, 1]  # positive of the first change
+    assert a["time_since_lc"].iloc[12] == pytest.approx(2.0)
+    assert (lab.iloc[len(t):]["window_label"] == -1).all()
+
+
+def _twins(lane, s, speed, length=None, ids=None):
+    n = len(lane)
+    length = np.full(n, 4.0) if length is None else np.asarray(length, float)
+    d = (np.asarray(lane) + 0.5) * ROAD.lane_width_m
+    x, y = ROAD.to_world(np.asarray(s, float), d)
+    return TwinStates(time=1.0, ids=tuple(ids or [f"v{i}" for i in range(n)]), measured_time=np.ones(n), x=x, y=y,
+                      z=np.zeros(n), heading=np.zeros(n), speed=np.asarray(speed, float), accel=np.zeros(n),
+                      lane=np.asarray(lane, np.int16), length=length, width=np.full(n, 1.8),
+                      height=np.full(n, 1.5), outputs={})
+
+
+def test_features_leaders_followers_gaps_and_sentinels():
+    # v0 in lane 1 at s=100; v1 ahead in lane 1 (s=130); v2 behind in lane 1 (s=80);
+    # v3 in lane 2 at s=105 (left leader, overlapping), v4 stopped in lane 0 at s=300.
+    tw = _twins(lane=[1, 1, 1, 2, 0], s=[100, 130, 80, 105, 300], speed=[20, 15, 22, 25, 0])
+    f = FeatureExtractor(ROAD, 0.1).from_twins(tw)
+    col = {n: f[:, i] for i, n in enumerate(FEATURE_NAMES)}
+    assert col["gap_lead_own"][0] == pytest.approx(130 - 2 - (100 + 2))  # 26 m bumper to bumper
+    assert col["dv_lead_own"][0] == pytest.approx(-5.0)
+    assert col["gap_foll_own"][0] == pytest.approx((100 - 2) - (80 + 2))  # 16 m
+    assert col["dv_foll_own"][0] == pytest.approx(2.0)
+    assert col["gap_lead_left"][0] == pytest.approx(105 - 2 - 102)  # side by side: 1 m
+    assert col["gap_foll_left"][0] == RANGE_M and col["dv_foll_left"][0] == 0.0  # nobody behind on the left
+    assert col["stopped_ahead_right"][0] == pytest.approx(300 - 2 - 102)
+    assert col["stopped_ahead_own"][0] == BLOCK_RANGE_M
+    assert col["gap_lead_right"][0] == RANGE_M  # 196 m > range: sentinel
+    assert col["n_ahead_own"][0] == 1 and col["n_ahead_left"][0] == 1
+    # lane index relative to the right edge; lanes that do not exist
+    assert col["lane"].tolist() == [1, 1, 1, 2, 0] and col["lanes_to_left"].tolist() == [1, 1, 1, 0, 2]
+    assert col["left_lane_exists"][3] == 0 and col["gap_lead_left"][3] == 0 and col["dv_lead_left"][3] == 0
+    assert col["right_lane_exists"][4] == 0 and col["gap_foll_right"][4] == 0
+    # v3 (lane 2): its right-lane follower is v0 (100 < 105) and leader v1
+    assert col["gap_foll_right"][3] == pytest.approx((105 - 2) - (100 + 2))
+    assert col["gap_lead_right"][3] == pytest.approx(130 - 2 - 107)
+
+
+def test_features_ignore_lateral_position_within_the_lane():
+    """No feature may change when only the lateral position (within the lane) or heading changes."""
+    tw = _twins(lane=[1, 1, 2], s=[100, 130, 90], speed=[20, 15, 25])
+    moved = TwinStates(**{**tw.__dict__, "y": tw.y + np.array([1.2, -1.0, 0.7]), "heading": tw.heading + 0.1})
+    a = FeatureExtractor(ROAD, 0.1).from_twins(tw)
+    b = FeatureExtractor(ROAD, 0.1).from_twins(moved)
+    np.testing.assert_array_equal(a, b)
+    forbidden = ("lateral", "lat_", "steer", "blinker", "heading", "offset", "_d")
+    assert not [n for n in FEATURE_NAMES if any(w in n for w in forbidden)]
+
+
+def test_feature_memory_follows_twin_ids_across_snapshots():
+    ex = FeatureExtractor(ROAD, 0.1)
+    ex.from_twins(_twins([1, 1], [100, 200], [20, 30], ids=["a", "b"]))
+    f = ex.from_twins(_twins([1, 1, 0], [102, 203, 50], [18, 30, 10], ids=["a", "b", "c"]))
+    col = {n: f[:, i] for i, n in enumerate(FEATURE_NAMES)}
+    assert col["speed_below_recent_max"][0] == pytest.approx(20 - 0.05 * 0.1 - 18)
+    assert col["speed_below_recent_max"][1] == 0.0 and col["speed_below_recent_max"][2] == 0.0
+    assert col["speed_minus_ema"][0] < 0 and col["speed_minus_ema"][2] == 0.0

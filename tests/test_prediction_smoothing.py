@@ -1,0 +1,60 @@
+import numpy as np
+import pytest
+
+from vcfusion.prediction.smoothing import StreamingSmoother, aggressive, conservative
+
+# Paper Table I: timesteps 1..8.
+TABLE_I_ORIGINAL = [0, 0, 0, 1, 0, 0, 0, 1]
+TABLE_I_AGGRESSIVE = [0, 0, 0, 1, 1, 1, 1, 1]
+TABLE_I_CONSERVATIVE = [0, 0, 0, 0, 0, 0, 0, 0]
+
+
+def test_table_i_exact():
+    assert aggressive(np.array(TABLE_I_ORIGINAL), tau_a=3).tolist() == TABLE_I_AGGRESSIVE
+    assert conservative(np.array(TABLE_I_ORIGINAL), tau_c=3, threshold=0.5).tolist() == TABLE_I_CONSERVATIVE
+
+
+def test_aggressive_clips_at_end_and_keeps_length():
+    assert aggressive([0, 1, 0, 0, 0, 0], 2).tolist() == [0, 1, 1, 1, 0, 0]
+    assert aggressive([0, 0, 0, 0, 1], 3).tolist() == [0, 0, 0, 0, 1]
+    assert aggressive([1, 0, 0], 0).tolist() == [1, 0, 0]
+    assert aggressive([0, 1], 30).tolist() == [0, 1]  # tau_a longer than the track
+    assert aggressive([], 3).tolist() == []
+
+
+def test_conservative_threshold_is_strict_and_first_steps_padded_with_zeros():
+    # tau_c = 3: window of 4; two positives = 0.5 is not > 0.5; three are.
+    assert conservative([1, 1, 0, 0, 1, 1, 1, 0], 3).tolist() == [0, 0, 0, 0, 0, 0, 1, 1]
+    # first steps: missing history counts as 0 with denominator 4 -> 1,1,1 at start gives 0,0,1 (3/4)
+    assert conservative([1, 1, 1], 3).tolist() == [0, 0, 1]
+    assert conservative([1, 1, 1], 3, threshold=0.4).tolist() == [0, 1, 1]
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="0 or 1"):
+        aggressive([0, 2], 1)
+    with pytest.raises(ValueError, match="1-D"):
+        conservative(np.zeros((2, 2)), 1)
+
+
+@pytest.mark.parametrize("method,kw", [("aggressive", {"tau_a": 3}), ("aggressive", {"tau_a": 0}),
+                                       ("conservative", {"tau_c": 3}), ("conservative", {"tau_c": 5, "threshold": 0.3})])
+def test_streaming_equals_batch(method, kw):
+    rng = np.random.default_rng(0)
+    # three twins that appear and disappear at different ticks
+    spans = {"a": (0, 200), "b": (30, 120), "c": (100, 200)}
+    raw = {vid: (rng.random(hi - lo) < 0.3).astype(np.int8) for vid, (lo, hi) in spans.items()}
+    streamed = {vid: [] for vid in spans}
+    smoother = StreamingSmoother(method, **kw)
+    for t in range(200):
+        ids = [v for v, (lo, hi) in spans.items() if lo <= t < hi]
+        dec = np.array([raw[v][t - spans[v][0]] for v in ids])
+        out = smoother(ids, dec)
+        for v, o in zip(ids, out):
+            streamed[v].append(int(o))
+    for vid in spans:
+        if method == "aggressive":
+            expected = aggressive(raw[vid], kw["tau_a"])
+        else:
+            expected = conservative(raw[vid], kw["tau_c"], kw.get("threshold", 0.5))
+        assert streamed[vid] == expected.tolist()
