@@ -7,10 +7,9 @@ import numpy as np
 import pytest
 
 from vcfusion.cosim import Tick
-from vcfusion.driver.cloud_guidance import guidance_level
 from vcfusion.driver.model import DriverModel
 from vcfusion.driver.params import CarLimits, draw_driver
-from vcfusion.records import Guidance, VehicleStates
+from vcfusion.records import Guidance, VehicleStates, guidance_level
 from vcfusion.traffic.network import read_road
 
 ROAD = read_road(Path(__file__).resolve().parents[1] / "sumo_net" / "highway.net.xml")
@@ -105,3 +104,5 @@ def test_driver_draw_is_seeded_and_within_documented_ranges():
 def test_guidance_levels():
     assert [guidance_level(p, 0.5, 0.8) for p in (0.1, 0.5, 0.79, 0.8, 1.0)] == \
         ["none", "medium", "medium", "high", "high"]
+    # With the cloud's smoothed decision: nothing is highlighted while it predicts no change.
+    assert [guidance_level(0.95, 0.5, 0.8, d) for d in (0, 1)] == ["none", "high"]

@@ -125,6 +125,22 @@ class TwinStates:
 GUIDANCE_LEVELS = ("none", "medium", "high")
 
 
+def guidance_level(prob: float, medium: float, high: float, decision: int | None = None) -> str:
+    """Colour level of a neighbour's guidance.
+
+    `decision` is the cloud's smoothed lane-change decision (`lc_decision`) when the predictor
+    provides one: a vehicle is highlighted only while the cloud predicts a lane change (the
+    paper's Algorithm 3/4 output); its colour then follows the probability thresholds.
+    """
+    if decision is not None and not decision:
+        return "none"
+    if prob >= high:
+        return "high"
+    if prob >= medium:
+        return "medium"
+    return "none"
+
+
 @dataclass(frozen=True)
 class Guidance:
     """One item of AR guidance shown to the driver at a tick (put in ``Tick.annotations['guidance']``).

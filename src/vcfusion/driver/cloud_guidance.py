@@ -3,8 +3,9 @@
 The AR overlay (vision fusion) puts ``Guidance`` items into ``tick.annotations['guidance']``.
 When it is not wired, this hook makes the items straight from the cloud's predictions: every
 neighbour twin whose centre is ahead of the ego's front bumper within ``view_range_m`` gets
-an item with its ``lc_prob`` (from the twins' process-model outputs) and a level from the
-thresholds (``box`` is None: nothing was matched in an image). It runs after the other hooks
+an item with its ``lc_prob`` (from the twins' process-model outputs) and a level from
+``records.guidance_level``: highlighted only while the cloud's smoothed ``lc_decision`` is
+positive, coloured by the probability thresholds (``box`` is None: nothing was matched in an image). It runs after the other hooks
 and never overwrites items the fusion stage made; it records which source was used in
 ``tick.annotations['guidance_source']`` and in the ``guidance`` table:
 ``fusion`` (items from the AR overlay), ``cloud`` (this fallback), or ``none`` (no process
@@ -15,16 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from vcfusion.records import Guidance
+from vcfusion.records import Guidance, guidance_level
 from vcfusion.traffic.network import Road
-
-
-def guidance_level(prob: float, medium: float, high: float) -> str:
-    if prob >= high:
-        return "high"
-    if prob >= medium:
-        return "medium"
-    return "none"
 
 
 class CloudGuidanceFallback:
@@ -61,6 +54,9 @@ class CloudGuidanceFallback:
             return []
         s, _ = self.road.to_road_frame(near.x, near.y)
         prob = np.asarray(near.outputs["lc_prob"], dtype=float)
+        decision = near.outputs.get("lc_decision")
         ahead = (s > tick.ego.s) & (s - tick.ego.s <= self.view_range_m)
-        return [Guidance(tick.time, vid, float(prob[k]), guidance_level(float(prob[k]), self.medium, self.high), None)
+        return [Guidance(tick.time, vid, float(prob[k]),
+                         guidance_level(float(prob[k]), self.medium, self.high,
+                                        None if decision is None else int(decision[k])), None)
                 for k, vid in enumerate(near.ids) if ahead[k] and np.isfinite(prob[k])]
