@@ -89,7 +89,7 @@ def test_cloud_predictor_matches_dataset_path(tmp_path):
 @pytest.mark.slow
 def test_accident_run_reports_cloud_flags(tmp_path):
     scenario = load_scenario(REPO / "scenarios" / "accident.yaml")
-    result = execute_run(scenario, 3, tmp_path / "run")
+    result = execute_run(scenario, 0, tmp_path / "run")
     twins = pd.read_parquet(tmp_path / "run" / "twins.parquet")
     assert twins["lc_prob"].between(0, 1).all() and set(twins["lc_decision"].unique()) <= {0, 1}
     flags = result.summary["lane_change_flags"]
