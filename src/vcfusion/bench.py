@@ -6,7 +6,9 @@ its worker processes) is its own:
   models and driver the scenario enables, no rendering): simulated seconds per wall second on
   one core;
 - P4 batch scaling from 1 to 2 worker processes (and on a local Dask cluster): efficiency =
-  speed-up / workers.
+  speed-up / workers;
+- P5 resident memory along a 1-hour simulated run of dense traffic (flat = no growth beyond
+  the bounded histories; the growing tables are streamed to Parquet).
 """
 
 from __future__ import annotations
@@ -67,8 +69,55 @@ def p4_scaling(seeds: int) -> dict:
     }
 
 
-SECTIONS = {"P1": p1_traffic, "P4": p4_scaling}
-SIZES = {"full": {"P1": 20, "P4": 60}, "quick": {"P1": 3, "P4": 6}}
+def _rss_mb() -> float:
+    import os
+
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+class _RssProbe:
+    """Tick hook sampling the process's resident memory every `every` ticks."""
+
+    table = "rss"
+
+    def __init__(self, every: int):
+        self.every, self.n, self.samples = every, 0, []
+
+    def __call__(self, tick):
+        if self.n % self.every == 0:
+            self.samples.append((tick.time, _rss_mb()))
+        self.n += 1
+        return None
+
+
+def p5_memory(hours: float) -> dict:
+    """Resident memory along a long run of dense traffic (no accident: free flow for an hour)."""
+    import numpy as np
+
+    from vcfusion.run import build_cosimulation
+    from vcfusion.scenario import load_scenario
+
+    sc = load_scenario(REPO / "scenarios" / "dense.yaml")
+    sc = sc.model_copy(update={"accident": None,
+                               "simulation": sc.simulation.model_copy(update={"max_time_s": 3600.0 * hours})})
+    cosim = build_cosimulation(sc, 0)
+    probe = _RssProbe(every=3000)  # every 5 simulated minutes
+    cosim.hooks.append(probe)
+    start = time.perf_counter()
+    result = cosim.run()
+    wall = time.perf_counter() - start
+    t, rss = (np.array(v) for v in zip(*probe.samples))
+    steady = t >= 600.0  # after the road has filled
+    slope = float(np.polyfit(t[steady] / 3600.0, rss[steady], 1)[0]) if steady.sum() >= 2 else float("nan")
+    return {"name": "P5 memory over a long run", "simulated_s": result.summary["simulated_s"],
+            "wall_s": round(wall, 1), "rss_at_10min_mb": round(float(rss[steady][0]), 1),
+            "rss_at_end_of_loop_mb": round(float(rss[-1]), 1), "rss_growth_mb_per_simulated_hour": round(slope, 1),
+            "target": "flat"}
+
+
+SECTIONS = {"P1": p1_traffic, "P4": p4_scaling, "P5": p5_memory}
+SIZES = {"full": {"P1": 20, "P4": 60, "P5": 1.0}, "quick": {"P1": 3, "P4": 6, "P5": 0.3}}
 
 
 def run_section(name: str, size: str) -> dict:

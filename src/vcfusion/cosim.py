@@ -27,6 +27,7 @@ from vcfusion.cloud.channel import V2CChannel
 from vcfusion.cloud.twins import ProcessModel, TwinStore, neighbours
 from vcfusion.driver.idm import IDMParams, idm_acceleration
 from vcfusion.records import TwinStates, VehicleStates
+from vcfusion.runio import RunTables, TableSink
 from vcfusion.scenario import Scenario
 from vcfusion.traffic.lanechanges import lane_change_events, read_sumo_lanechanges
 from vcfusion.traffic.network import Road
@@ -84,13 +85,18 @@ class IdmEgoController:
 class RunResult:
     scenario: Scenario
     seed: int
-    tables: dict[str, pd.DataFrame]
+    tables: RunTables  # name -> DataFrame (streamed tables are read from Parquet on access)
     summary: dict
     wall_s: float
 
 
+STREAMED_TABLES = ("trajectories", "twins", "ego")
+EGO_COLUMNS = ["time", "s", "speed", "accel", "command_accel", "leader_id", "leader_gap_m"]
 TRAJECTORY_COLUMNS = ["time", "vehicle_id", "x", "y", "z", "heading", "speed", "accel",
                       "lane", "lateral_offset", "s", "d"]
+
+
+EMPTY_COLUMNS = {"trajectories": TRAJECTORY_COLUMNS, "ego": EGO_COLUMNS}
 
 
 def _truth_rows(truth: VehicleStates, road: Road) -> dict[str, np.ndarray]:
@@ -114,16 +120,6 @@ def _twin_rows(twins: TwinStates) -> dict[str, np.ndarray]:
     }
     rows.update({k: np.asarray(v) for k, v in twins.outputs.items()})
     return rows
-
-
-def _concat(chunks: list[dict[str, np.ndarray]], columns: list[str] | None = None) -> pd.DataFrame:
-    if not chunks:
-        return pd.DataFrame(columns=columns or [])
-    keys = list(chunks[0])
-    frame = pd.DataFrame({k: np.concatenate([c[k] for c in chunks]) for k in keys})
-    if "vehicle_id" in frame:
-        frame["vehicle_id"] = frame["vehicle_id"].astype(str)
-    return frame
 
 
 class CoSimulation:
@@ -151,38 +147,37 @@ class CoSimulation:
     def run(self, progress: bool = False) -> RunResult:
         sc = self.scenario
         started = wallclock.perf_counter()
-        with tempfile.TemporaryDirectory(prefix="vcfusion-sumo-") as tmp:
-            lc_file = Path(tmp) / "lanechanges.xml"
-            session = SumoSession(sc, self.seed, lc_file, np.random.default_rng(self.rng.integers(2**63)),
-                                  self.extra_sumo_args)
-            try:
-                out = self._loop(session, progress)
-            finally:
-                session.close()
-            sumo_changes = read_sumo_lanechanges(lc_file)
-        road = session.road
-        trajectories = _concat(out["trajectories"], TRAJECTORY_COLUMNS)
+        # Tables that grow with simulated time are streamed to Parquet here (flat memory).
+        workdir = tempfile.TemporaryDirectory(prefix="vcfusion-run-")
+        sinks = {name: TableSink(Path(workdir.name) / f"{name}.parquet") for name in STREAMED_TABLES}
+        sinks.update({hook.table: TableSink(Path(workdir.name) / f"{hook.table}.parquet") for hook in self.hooks})
+        lc_file = Path(workdir.name) / "lanechanges.xml"
+        session = SumoSession(sc, self.seed, lc_file, np.random.default_rng(self.rng.integers(2**63)),
+                              self.extra_sumo_args)
+        try:
+            out = self._loop(session, sinks, progress)
+        finally:
+            session.close()
+        sumo_changes = read_sumo_lanechanges(lc_file)
+        lc_file.unlink(missing_ok=True)
+        files = {name: sink.close() for name, sink in sinks.items()}
+        frames = {name: pd.DataFrame(columns=EMPTY_COLUMNS.get(name, [])) for name, f in files.items() if f is None}
         vehicles = session.vehicle_table()
-        tables = {
-            "vehicles": vehicles,
-            "trajectories": trajectories,
-            "ego": pd.DataFrame(out["ego"]),
-            "twins": _concat(out["twins"]),
-            "lane_changes": lane_change_events(sumo_changes, trajectories, road),
-            "collisions": pd.DataFrame([c.__dict__ for c in out["collisions"]],
-                                       columns=list(Collision.__dataclass_fields__)),
-        }
-        for name, rows in out["hooks"].items():
-            tables[name] = pd.DataFrame(rows)
+        frames["vehicles"] = vehicles
+        frames["collisions"] = pd.DataFrame([c.__dict__ for c in out["collisions"]],
+                                            columns=list(Collision.__dataclass_fields__))
+        tables = RunTables(frames, {k: f for k, f in files.items() if f is not None}, keepalive=workdir)
         # A controller that keeps its own log (e.g. the driver model) adds its tables.
         if hasattr(self.controller, "tables"):
             tables.update(self.controller.tables())
+        lateral = tables.columns("trajectories", ["vehicle_id", "time", "d", "s"])
+        tables["lane_changes"] = lane_change_events(sumo_changes, lateral, session.road)
         if sc.ego is not None:
-            tables["lane_changes"] = _relate_to_ego(tables["lane_changes"], trajectories, vehicles, sc.ego.lane)
-        summary = summarize(sc, self.seed, tables, out["channel"], out["end_reason"])
+            tables["lane_changes"] = _relate_to_ego(tables["lane_changes"], lateral, vehicles, sc.ego.lane)
+        summary = summarize(sc, self.seed, tables, out["channel"], out["end_reason"], lateral)
         return RunResult(sc, self.seed, tables, summary, wallclock.perf_counter() - started)
 
-    def _loop(self, session: SumoSession, progress: bool) -> dict:
+    def _loop(self, session: SumoSession, sinks: dict[str, TableSink], progress: bool) -> dict:
         sc = self.scenario
         dt = sc.simulation.step_s
         tick_every = sc.steps(sc.v2c.period_s)
@@ -192,7 +187,8 @@ class CoSimulation:
         for name, model in self.process_models:
             store.add_process_model(name, model)
 
-        out = {"trajectories": [], "twins": [], "ego": [], "collisions": [], "hooks": {}, "channel": channel}
+        out = {"collisions": [], "channel": channel}
+        ego_rows: list[dict] = []
         ego_cfg = sc.ego
         ego_speed = ego_cfg.speed_mps if ego_cfg else 0.0
         ego_accel = 0.0
@@ -206,7 +202,7 @@ class CoSimulation:
             if k % traj_every == 0 or k % tick_every == 0:
                 truth = session.states()
             if k % traj_every == 0:
-                out["trajectories"].append(_truth_rows(truth, session.road))
+                sinks["trajectories"].append(_truth_rows(truth, session.road))
             if ego_cfg is not None:
                 if not session.ego_present():
                     end_reason = "ego_left"
@@ -222,25 +218,26 @@ class CoSimulation:
                     store.ingest(batch)
                 store.forget_stale(now)
                 twins = store.snapshot(now)
-                out["twins"].append(_twin_rows(twins))
+                sinks["twins"].append(_twin_rows(twins))
                 ego_view = self._ego_view(session, truth) if ego_cfg else None
                 near = (neighbours(twins, (truth.x[truth.index_of(EGO_ID)], truth.y[truth.index_of(EGO_ID)]),
                                    sc.v2c.neighbour_range_m, EGO_ID) if ego_cfg else None)
                 tick = Tick(now, truth, twins, ego_view, near)
                 for hook in self.hooks:
-                    rows = hook(tick)
-                    if rows:
-                        out["hooks"].setdefault(hook.table, []).extend(rows)
+                    sinks[hook.table].append_rows(hook(tick) or [])
                 if ego_cfg is not None:
                     ego_accel = float(self.controller.acceleration(tick))
             if ego_cfg is not None:
                 leader = session.leader(EGO_ID)
-                out["ego"].append({
+                ego_rows.append({
                     "time": round(session.time, 6), "s": s_front, "speed": ego_speed_now, "accel": sumo_acc,
                     "command_accel": ego_accel,
                     "leader_id": leader[0] if leader else "",
                     "leader_gap_m": leader[1] if leader else np.nan,
                 })
+                if len(ego_rows) >= 1000:
+                    sinks["ego"].append_rows(ego_rows)
+                    ego_rows = []
                 ego_speed = max(0.0, ego_speed + ego_accel * dt)
                 session.set_ego_speed(ego_speed)
             out["collisions"].extend(session.step())
@@ -250,6 +247,7 @@ class CoSimulation:
                 end_reason = "no_vehicles"
                 break
         bar.close()
+        sinks["ego"].append_rows(ego_rows)
         out["end_reason"] = end_reason
         return out
 
@@ -295,9 +293,10 @@ def _relate_to_ego(events: pd.DataFrame, trajectories: pd.DataFrame, vehicles: p
     return events
 
 
-def summarize(sc: Scenario, seed: int, tables: dict[str, pd.DataFrame], channel: V2CChannel, end_reason: str) -> dict:
+def summarize(sc: Scenario, seed: int, tables, channel: V2CChannel, end_reason: str,
+              traj: pd.DataFrame) -> dict:
+    """The run summary; `traj` holds at least the vehicle_id and time columns of the trajectories."""
     lc = tables["lane_changes"]
-    traj = tables["trajectories"]
     summary: dict = {
         "scenario": sc.name,
         "seed": seed,

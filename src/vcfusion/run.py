@@ -64,4 +64,5 @@ def execute_run(scenario: Scenario, seed: int, out_dir: Path | None, progress: b
             "guidance_enabled": cosim.controller.guidance_enabled}
     if out_dir is not None:
         write_run_folder(Path(out_dir), result.tables, manifest_for(scenario, seed), result.summary)
+        result.tables.relocate(Path(out_dir))
     return result
