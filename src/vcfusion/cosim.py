@@ -204,10 +204,11 @@ class CoSimulation:
             if k % traj_every == 0:
                 sinks["trajectories"].append(_truth_rows(truth, session.road))
             if ego_cfg is not None:
-                if not session.ego_present():
+                kinematics = session.ego_kinematics()
+                if kinematics is None:
                     end_reason = "ego_left"
                     break
-                s_front, ego_speed_now, sumo_acc = session.ego_kinematics()
+                s_front, ego_speed_now, sumo_acc = kinematics
                 if s_front - ego_cfg.depart_pos_m >= ego_cfg.trip_distance_m:
                     end_reason = "trip_complete"
                     break
@@ -242,10 +243,11 @@ class CoSimulation:
                 session.set_ego_speed(ego_speed)
             out["collisions"].extend(session.step())
             k += 1
-            bar.update(1)
-            if not sc.flows and session.time > dt and not _any_vehicles():
-                end_reason = "no_vehicles"
-                break
+            if k % tick_every == 0:
+                bar.update(tick_every)
+                if not sc.flows and session.vehicle_count() == 0:
+                    end_reason = "no_vehicles"
+                    break
         bar.close()
         sinks["ego"].append_rows(ego_rows)
         out["end_reason"] = end_reason
@@ -264,29 +266,26 @@ class CoSimulation:
         )
 
 
-def _any_vehicles() -> bool:
-    import libsumo
-
-    return libsumo.vehicle.getIDCount() > 0
-
-
 def _relate_to_ego(events: pd.DataFrame, trajectories: pd.DataFrame, vehicles: pd.DataFrame,
                    ego_lane: int) -> pd.DataFrame:
-    """Mark lane changes into the ego's lane and where they happened relative to the ego."""
+    """Mark lane changes into the ego's lane and where they happened relative to the ego.
+
+    `gap_to_ego_m`: bumper to bumper along the road, the changer's rear minus the ego's front,
+    at the trajectory sample nearest the change's midpoint.
+    """
     events = events.copy()
-    ego = trajectories[trajectories["vehicle_id"] == EGO_ID].set_index("time")
-    others = trajectories.set_index(["vehicle_id", "time"])
     length = vehicles.set_index("vehicle_id")["length"]
     gaps = np.full(len(events), np.nan)
-    for i, ev in enumerate(events.itertuples(index=False)):
-        if ego.empty:
-            break
-        t_near = ego.index[np.argmin(np.abs(ego.index.to_numpy() - ev.mid_time))]
-        if (ev.vehicle_id, t_near) not in others.index:
-            continue
-        row = others.loc[(ev.vehicle_id, t_near)]
-        # Bumper-to-bumper: rear of the changer minus the front of the ego (along the road).
-        gaps[i] = row["s"] - ego.loc[t_near, "s"] - 0.5 * (length[ev.vehicle_id] + length[EGO_ID])
+    ego = trajectories[trajectories["vehicle_id"] == EGO_ID]
+    if len(ego) and len(events):
+        ego_t = ego["time"].to_numpy()
+        nearest = ego_t[np.abs(ego_t[None, :] - events["mid_time"].to_numpy()[:, None]).argmin(axis=1)]
+        ego_s = pd.Series(ego["s"].to_numpy(), index=ego_t)
+        s_at = trajectories.set_index(["vehicle_id", "time"])["s"]
+        keys = pd.MultiIndex.from_arrays([events["vehicle_id"].to_numpy(), nearest])
+        changer_s = s_at.reindex(keys).to_numpy()
+        gaps = changer_s - ego_s.loc[nearest].to_numpy() - 0.5 * (
+            length.reindex(events["vehicle_id"]).to_numpy() + length[EGO_ID])
     events["into_ego_lane"] = (events["to_lane"] == ego_lane) & (events["vehicle_id"] != EGO_ID)
     events["gap_to_ego_m"] = gaps
     events["ahead_of_ego"] = gaps > 0
@@ -324,11 +323,15 @@ def summarize(sc: Scenario, seed: int, tables, channel: V2CChannel, end_reason: 
             "ego_mean_speed_mps": float(ego["speed"].mean()) if len(ego) else 0.0,
             "ego_min_leader_gap_m": float(np.nanmin(ego["leader_gap_m"])) if ego["leader_gap_m"].notna().any() else None,
         })
-        if "lc_decision" in tables["twins"]:
+        if "lc_decision" in tables.column_names("twins"):
             from vcfusion.prediction.cloud import first_flags
 
             into = lc[lc["into_ego_lane"]]
-            flags = first_flags(tables["twins"], lc, sc.simulation.lanechange_duration_s / 2)
+            # Only the columns and vehicles the flags need: the twins table is the largest one.
+            twins = tables.columns("twins", ["vehicle_id", "time", "lc_decision"])
+            twins = twins[twins["vehicle_id"].isin(set(into["vehicle_id"]))]
+            flags = first_flags(twins, lc[lc["vehicle_id"].isin(set(into["vehicle_id"]))],
+                                sc.simulation.lanechange_duration_s / 2)
             keep = set(into["event_id"])
             summary["lane_change_flags"] = [
                 f | {"ahead_of_ego": bool(into.loc[into["event_id"] == f["event_id"], "ahead_of_ego"].iloc[0])}

@@ -19,16 +19,26 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 
+_FIELD_NAMES: dict[type, tuple[str, ...]] = {}
+
+
 def _take(record, index):
+    """The same record restricted to `index` (for every per-vehicle field)."""
+    names = _FIELD_NAMES.get(type(record))
+    if names is None:  # dataclasses.fields() is slow on the per-tick path: look it up once
+        names = _FIELD_NAMES[type(record)] = tuple(f.name for f in fields(record))
+    index = np.asarray(index)
+    if index.dtype == bool:
+        index = np.flatnonzero(index)
     values = {}
-    for f in fields(record):
-        v = getattr(record, f.name)
+    for name in names:
+        v = getattr(record, name)
         if isinstance(v, np.ndarray):
-            values[f.name] = v[index]
+            values[name] = v[index]
         elif isinstance(v, tuple):
-            values[f.name] = tuple(np.asarray(v, dtype=object)[index].tolist())
+            values[name] = tuple(v[i] for i in index)
         else:
-            values[f.name] = v
+            values[name] = v
     return type(record)(**values)
 
 
@@ -118,8 +128,9 @@ class TwinStates:
 
     def select(self, index) -> "TwinStates":
         sub = _take(self, index)
-        outs = {k: np.asarray(v)[index] for k, v in self.outputs.items()}
-        return TwinStates(**{**{f.name: getattr(sub, f.name) for f in fields(sub)}, "outputs": outs})
+        # `outputs` is a dict, which _take passes through: restrict its columns too.
+        object.__setattr__(sub, "outputs", {k: np.asarray(v)[index] for k, v in self.outputs.items()})
+        return sub
 
 
 GUIDANCE_LEVELS = ("none", "medium", "high")

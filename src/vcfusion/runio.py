@@ -117,6 +117,11 @@ class RunTables(Mapping):
             return self[name][columns]
         return pd.read_parquet(self._files[name], columns=columns)
 
+    def column_names(self, name: str) -> list[str]:
+        if name in self._frames or name in self._cache:
+            return list(self[name].columns)
+        return pq.read_schema(self._files[name]).names
+
     def __iter__(self):
         return iter(list(self._frames) + [k for k in self._files if k not in self._frames])
 

@@ -56,7 +56,9 @@ class V2CChannel:
             delay = np.maximum(delay + self.rng.normal(0.0, cfg.jitter_s, size=n), 0.0)
         self.sent += n
         self.lost += int(n - keep.sum())
-        if keep.any():
+        if keep.all():
+            self._in_flight.append((to_us(reports.measured_time + delay), reports))
+        elif keep.any():
             idx = np.flatnonzero(keep)
             self._in_flight.append((to_us(reports.measured_time[idx] + delay[idx]), reports.select(idx)))
 

@@ -147,6 +147,7 @@ class SumoSession:
         self._open = True
         self.time = 0.0
         self._static: dict[str, tuple] = {}
+        self._min_gap: dict[str, float] = {}
         try:
             self._populate()
         except Exception:
@@ -221,10 +222,16 @@ class SumoSession:
     def ego_present(self) -> bool:
         return EGO_ID in libsumo.vehicle.getIDList()
 
-    def ego_kinematics(self) -> tuple[float, float, float]:
-        """(front-bumper position along the road, speed, acceleration) of the ego."""
+    def vehicle_count(self) -> int:
+        return libsumo.vehicle.getIDCount()
+
+    def ego_kinematics(self) -> tuple[float, float, float] | None:
+        """(front-bumper position along the road, speed, acceleration) of the ego; None once it left."""
         v = libsumo.vehicle
-        return v.getLanePosition(EGO_ID), v.getSpeed(EGO_ID), v.getAcceleration(EGO_ID)
+        try:
+            return v.getLanePosition(EGO_ID), v.getSpeed(EGO_ID), v.getAcceleration(EGO_ID)
+        except libsumo.TraCIException:
+            return None
 
     def leader(self, vehicle_id: str, horizon_m: float = 250.0) -> tuple[str, float] | None:
         """SUMO's leader of a vehicle: (id, bumper-to-bumper gap), or None."""
@@ -232,7 +239,10 @@ class SumoSession:
         if not found or not found[0]:
             return None
         # getLeader's distance excludes the follower's minGap; add it back for the true gap.
-        return found[0], found[1] + libsumo.vehicle.getMinGap(vehicle_id)
+        min_gap = self._min_gap.get(vehicle_id)
+        if min_gap is None:
+            min_gap = self._min_gap[vehicle_id] = libsumo.vehicle.getMinGap(vehicle_id)
+        return found[0], found[1] + min_gap
 
     def speed_of(self, vehicle_id: str) -> float:
         return libsumo.vehicle.getSpeed(vehicle_id)
