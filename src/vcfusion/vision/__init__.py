@@ -1,0 +1,1 @@
+"""Ego camera vision: rendering, detection, depth evaluation, vision-cloud matching, AR overlay."""
