@@ -100,6 +100,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario", default="scenarios/accident.yaml")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_demo)
+
+    from vcfusion.vision.commands import add_parsers as add_vision_parsers
+
+    add_vision_parsers(sub)
     return parser
 
 

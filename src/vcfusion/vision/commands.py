@@ -1,0 +1,129 @@
+"""Handlers of the vision subcommands of `vcfusion` (the cli only parses arguments)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def _usage(message: str):
+    from vcfusion.cli import UsageError
+
+    return UsageError(message)
+
+
+def parse_size(text: str, option: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise _usage(f"{option}: expected WIDTHxHEIGHT such as 320x240, got {text!r}") from None
+    if w <= 0 or h <= 0 or w % 16 or h % 16:
+        raise _usage(f"{option}: expected positive multiples of 16, got {text!r}")
+    return w, h
+
+
+def cmd_train_detector(args: argparse.Namespace) -> int:
+    from vcfusion.vision.detector_net import DetectorFileError
+    from vcfusion.vision.detector_train import train_detector
+
+    input_wh = parse_size(args.input_size, "--input-size")
+    for name in ("epochs", "batch_size"):
+        if getattr(args, name) < 1:
+            raise _usage(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(args, name)}")
+    try:
+        net, report = train_detector(
+            args.data, args.out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, input_wh=input_wh,
+            val_fraction=args.val_fraction, val_data=args.val, seed=args.seed, threads=args.threads,
+            device=args.device, progress=sys.stderr.isatty(), max_iterations=args.iterations)
+    except DetectorFileError as exc:
+        raise _usage(str(exc)) from None
+    size_mb = Path(args.out).stat().st_size / 2**20
+    print(f"trained {report.iterations} iterations ({report.epochs} epochs) on {report.n_train} images "
+          f"in {report.wall_s:.0f} s; loss {report.first_losses[0]:.3f} -> {report.loss_history[-1]:.3f}")
+    if report.val is not None:
+        print(f"held-out ({report.n_val} images): mAP@0.5 {report.val.map_50:.3f}  mAP@0.5:0.95 {report.val.map_50_95:.3f}")
+    print(f"weights: {args.out} ({size_mb:.1f} MB)")
+    return 0
+
+
+def _make_detector(args):
+    from vcfusion.vision.detector_net import DetectorFileError, OnnxDetector, TorchDetector, default_weights_path
+
+    try:
+        if args.onnx:
+            if not args.classes:
+                raise _usage("--classes: expected the category ids of the ONNX model's score columns, e.g. 1,2")
+            class_ids = [int(c) for c in args.classes.split(",")]
+            return OnnxDetector(args.onnx, parse_size(args.input_size, "--input-size"), class_ids,
+                                scale=args.scale, objectness=args.objectness, letterbox=args.letterbox)
+        return TorchDetector(args.weights or default_weights_path())
+    except DetectorFileError as exc:
+        raise _usage(str(exc)) from None
+
+
+def cmd_eval_detector(args: argparse.Namespace) -> int:
+    from vcfusion.vision.detector_net import DetectorFileError
+    from vcfusion.vision.detector_train import evaluate_detector, load_coco
+
+    detector = _make_detector(args)
+    try:
+        ds = load_coco(args.data)
+        result = evaluate_detector(detector, ds, progress=sys.stderr.isatty())
+    except DetectorFileError as exc:
+        raise _usage(str(exc)) from None
+    print(f"{args.data}: {len(ds)} images  mAP@0.5 {result.map_50:.3f}  mAP@0.5:0.95 {result.map_50_95:.3f}")
+    for cid, name in zip(ds.class_ids, ds.class_names):
+        if cid in result.ap_per_category:
+            print(f"  {name}: AP@0.5:0.95 {result.ap_per_category[cid]:.3f}")
+    return 0
+
+
+def cmd_export_onnx(args: argparse.Namespace) -> int:
+    from vcfusion.vision.detector_net import DetectorFileError, DetectorModel, default_weights_path, export_onnx
+
+    try:
+        net = DetectorModel.load(args.weights or default_weights_path())
+    except DetectorFileError as exc:
+        raise _usage(str(exc)) from None
+    out = export_onnx(net, args.out)
+    w, h = net.input_wh
+    ids = ",".join(str(c) for c in net.class_ids)
+    print(f"wrote {out}: input images (1, 3, {h}, {w}) RGB 0..255, output detections (1, N, 4 + {len(ids.split(','))})")
+    print(f"use it with: vcfusion eval-detector DATA --onnx {out} --input-size {w}x{h} --classes {ids}")
+    return 0
+
+
+def add_parsers(sub) -> None:
+    """The vision subcommands, added to the `vcfusion` parser."""
+    p = sub.add_parser("train-detector", help="train the CNN detector on a COCO dataset folder")
+    p.add_argument("data", help="COCO folder: images + annotations.json")
+    p.add_argument("--out", required=True, help="weights file to write (e.g. src/vcfusion/assets/detector.pt)")
+    p.add_argument("--val", help="held-out COCO folder (e.g. other seeds); default: --val-fraction of DATA")
+    p.add_argument("--val-fraction", type=float, default=0.1)
+    p.add_argument("--epochs", type=int, default=30)
+    p.add_argument("--iterations", type=int, default=None, help="stop after this many iterations")
+    p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--input-size", default="320x240", help="network input WIDTHxHEIGHT (multiples of 16)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    p.set_defaults(func=cmd_train_detector)
+
+    for name, func, helptext in (("eval-detector", cmd_eval_detector, "COCO mAP of a detector on a dataset folder"),):
+        p = sub.add_parser(name, help=helptext)
+        p.add_argument("data", help="COCO folder")
+        p.add_argument("--weights", help="our weights file (default: the shipped detector)")
+        p.add_argument("--onnx", help="an ONNX detector run through OpenCV DNN instead")
+        p.add_argument("--input-size", default="320x240", help="ONNX input WIDTHxHEIGHT")
+        p.add_argument("--classes", help="ONNX: category ids of the score columns, e.g. 1,2")
+        p.add_argument("--scale", type=float, default=1.0, help="ONNX: input scale (1/255 for most YOLO exports)")
+        p.add_argument("--objectness", action="store_true", help="ONNX: output has an objectness column (YOLOv5)")
+        p.add_argument("--letterbox", action="store_true", help="ONNX: letterbox instead of stretch")
+        p.set_defaults(func=func)
+
+    p = sub.add_parser("export-onnx", help="export our detector to ONNX (the layout OnnxDetector reads)")
+    p.add_argument("--weights", help="weights file (default: the shipped detector)")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=cmd_export_onnx)
