@@ -49,20 +49,20 @@ def sampling_areas(boxes: np.ndarray, th: float) -> np.ndarray:
     return np.stack([x1, y1, x2, y2], axis=1)
 
 
-def evaluate_box_depths(
+def sample_box_depths(
     depth: np.ndarray,
     boxes: np.ndarray,
     rng: np.random.Generator,
     params: DepthEvalParams = DepthEvalParams(),
 ) -> np.ndarray:
-    """Distance (m) of each box from the camera, (N,) float64; nan where no valid depth was sampled."""
+    """The sampled depths of Algorithm 1 before averaging, (N, n); nan for sky / invalid pixels."""
     depth = np.asarray(depth)
     if depth.ndim != 2:
         raise ValueError(f"depth: expected a 2-D depth image (H, W), got shape {depth.shape}")
     areas = sampling_areas(boxes, params.th)
     n_boxes = len(areas)
     if n_boxes == 0:
-        return np.zeros(0)
+        return np.zeros((0, params.n))
     height, width = depth.shape
     # All boxes at once: uniform positions in each area, floored to pixel indices inside the image.
     u = rng.random((n_boxes, params.n))
@@ -73,9 +73,25 @@ def evaluate_box_depths(
     rows = np.clip(np.floor(ys).astype(np.int64), 0, height - 1)
     samples = depth[rows, cols].astype(np.float64)
     samples[~(np.isfinite(samples) & (samples > 0))] = np.nan
-    valid = np.isfinite(samples).any(axis=1)
-    out = np.full(n_boxes, np.nan)
+    return samples
+
+
+def reduce_depth_samples(samples: np.ndarray, reducer: Reducer = "mean") -> np.ndarray:
+    """One distance per box from its samples (nan where none is valid)."""
+    samples = np.asarray(samples, dtype=np.float64)
+    out = np.full(len(samples), np.nan)
+    valid = np.isfinite(samples).any(axis=1) if samples.size else np.zeros(len(samples), bool)
     if valid.any():
-        reduce = np.nanmean if params.reducer == "mean" else np.nanmedian
+        reduce = np.nanmean if reducer == "mean" else np.nanmedian
         out[valid] = reduce(samples[valid], axis=1)
     return out
+
+
+def evaluate_box_depths(
+    depth: np.ndarray,
+    boxes: np.ndarray,
+    rng: np.random.Generator,
+    params: DepthEvalParams = DepthEvalParams(),
+) -> np.ndarray:
+    """Algorithm 1: distance (m) of each box from the camera, (N,); nan where no valid depth was sampled."""
+    return reduce_depth_samples(sample_box_depths(depth, boxes, rng, params), params.reducer)

@@ -14,7 +14,7 @@ from typing import Callable, Protocol
 import numpy as np
 
 from vcfusion.records import TwinStates
-from vcfusion.vision.depth_eval import DepthEvalParams, evaluate_box_depths
+from vcfusion.vision.depth_eval import DepthEvalParams, reduce_depth_samples, sample_box_depths
 from vcfusion.vision.detectors import Detections, Detector, OracleDetector
 from vcfusion.vision.matching import (NO_MATCH, CameraView, JointMatcher, match_all_baseline, match_all_paper,
                                       project_twins)
@@ -65,7 +65,8 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
         detector.set_truth(frame.gt_boxes, frame.gt_classes)
     detections = detector.detect(frame.image)
     t1 = wallclock.perf_counter()
-    depths = evaluate_box_depths(frame.depth, detections.boxes, rng, depth_params)
+    samples = sample_box_depths(frame.depth, detections.boxes, rng, depth_params)
+    depths = reduce_depth_samples(samples, depth_params.reducer)  # Algorithm 1
     t2 = wallclock.perf_counter()
     timings["detect"], timings["depth"] = t1 - t0, t2 - t1
     choice = {}
@@ -76,7 +77,7 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
     if "paper" in methods:
         choice["paper"] = match_all_paper(proj, detections.boxes, depths)
     if "joint" in methods:
-        choice["joint"] = (joint or JointMatcher()).match(twins, detections.boxes, depths, frame.camera)
+        choice["joint"] = (joint or JointMatcher()).match(twins, detections.boxes, samples, frame.camera)
     timings["match"] = wallclock.perf_counter() - t2
     return FusionResult(frame.time, twins.ids, detections, depths, choice, proj.in_view, timings)
 

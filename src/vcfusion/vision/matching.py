@@ -29,6 +29,7 @@ Boxes are (N, 4) float arrays x1, y1, x2, y2 in pixels; anchors are (u, v) pixel
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, replace
 from typing import Callable
 
@@ -38,6 +39,7 @@ from scipy.optimize import linear_sum_assignment
 from vcfusion.records import TwinStates
 
 NO_MATCH = -1
+DEPTH_QUANTILES = (0.1, 0.3, 0.5, 0.7, 0.9)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -290,8 +292,20 @@ class JointMatcher:
         """(cost, allowed) over (twins, boxes)."""
         p = self.params
         b = as_boxes(boxes)
-        depths = np.asarray(box_depths, dtype=np.float64).reshape(-1)
+        depths = np.asarray(box_depths, dtype=np.float64)
         n, m = len(proj.anchor), len(b)
+        if depths.ndim == 1:
+            depths = depths[:, None]
+        if depths.shape[0] != m:
+            raise ValueError(f"box_depths: expected one distance (or one row of samples) per box ({m}), "
+                             f"got shape {depths.shape}")
+        # With the raw samples of Algorithm 1 (D, n), a box agrees with a twin if a good share of its
+        # samples does: the depth error is the best over the samples' 10..90% quantiles. A box whose
+        # lower quarter is partly hidden behind a nearer vehicle then still matches its own twin.
+        if depths.shape[1] > 1 and m:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-nan rows (sky) give nan quantiles
+                depths = np.nanquantile(depths, DEPTH_QUANTILES, axis=1).T  # (D, 5)
         iou = box_iou(proj.expected_box, b) if n and m else np.zeros((n, m))
         anchor_dist = np.zeros((n, m))
         inside = np.zeros((n, m), bool)
@@ -301,7 +315,10 @@ class JointMatcher:
             inside[i] = point_in_boxes(proj.anchor[i], b)
         expected = proj.face_z if p.face_offset else proj.anchor_z
         sigma = p.depth_sigma_rel * expected[:, None] + p.depth_sigma_abs_m
-        depth_err = np.abs(depths[None, :] - expected[:, None]) / sigma
+        with np.errstate(invalid="ignore"):
+            err_q = np.abs(depths[None, :, :] - expected[:, None, None]) / sigma[:, :, None]  # (N, D, q)
+        err_q = np.where(np.isfinite(err_q), err_q, np.inf)
+        depth_err = err_q.min(axis=2) if err_q.shape[2] else np.full((n, m), np.inf)
         depth_known = np.isfinite(depth_err)
         # A box without valid depth neither helps nor is excluded: a neutral one-sigma penalty.
         depth_err = np.where(depth_known, depth_err, 1.0)
@@ -312,7 +329,10 @@ class JointMatcher:
         return cost, allowed
 
     def match(self, twins: TwinStates, boxes, box_depths, camera: CameraView) -> np.ndarray:
-        """Box index per twin (NO_MATCH where unassigned), aligned with ``twins.ids``."""
+        """Box index per twin (NO_MATCH where unassigned), aligned with ``twins.ids``.
+
+        ``box_depths``: Algorithm 1's distance per box (D,), or better its raw samples (D, n)
+        (:func:`vcfusion.vision.depth_eval.sample_box_depths`)."""
         if self.params.latency_compensation:
             twins = extrapolate_twins(twins, camera.time, self.params.use_accel)
         proj = project_twins(twins, camera)
