@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from vcfusion.vision.depth_eval import DepthEvalParams
 from vcfusion.vision.fusion import METHODS, CameraFrame, FusionResult, fuse_frame
-from vcfusion.vision.matching import JointMatcher, box_iou
+from vcfusion.vision.matching import JointMatcher, JointMatcherParams, box_iou
 
 IOU_THRESHOLDS = np.round(np.arange(0.5, 0.951, 0.05), 2)
 ROW_COLUMNS = ["seed", "latency_s", "gnss_noise_m", "detector", "time", "vehicle_id", "method", "matched", "iou",
@@ -179,13 +179,13 @@ class _StudyHook:
     table = "identification"
 
     def __init__(self, frame_source, detectors: dict, seed: int, condition: Condition,
-                 depth_params: DepthEvalParams, joint: JointMatcher, min_gt_area_px: float):
+                 depth_params: DepthEvalParams, joint_params: JointMatcherParams, min_gt_area_px: float):
         self.frame_source = frame_source
         self.detectors = detectors
         self.seed = seed
         self.condition = condition
         self.depth_params = depth_params
-        self.joint = joint
+        self.joints = {name: JointMatcher(joint_params) for name in detectors}
         self.min_gt_area_px = min_gt_area_px
         self.rngs = {name: np.random.default_rng([seed, k]) for k, name in enumerate(detectors)}
         self.rows: list[dict] = []
@@ -197,7 +197,7 @@ class _StudyHook:
         if frame is None:
             return None
         for name, det in self.detectors.items():
-            result = fuse_frame(frame, tick.neighbours, det, self.rngs[name], self.depth_params, self.joint)
+            result = fuse_frame(frame, tick.neighbours, det, self.rngs[name], self.depth_params, self.joints[name])
             self.rows.extend(identification_rows(
                 frame, result, self.min_gt_area_px, seed=self.seed, latency_s=self.condition.latency_s,
                 gnss_noise_m=self.condition.gnss_noise_m, detector=name))
@@ -206,7 +206,7 @@ class _StudyHook:
 
 def run_identification_study(scenario, seeds, frame_source_factory, detectors: dict, out_dir,
                              conditions: list[Condition] | None = None, depth_params=DepthEvalParams(),
-                             joint: JointMatcher | None = None, min_gt_area_px: float = 100.0,
+                             joint_params: JointMatcherParams = JointMatcherParams(), min_gt_area_px: float = 100.0,
                              progress: bool = True) -> pd.DataFrame:
     """Run every (seed, condition), collect the rows, write the outputs; returns the rows.
 
@@ -216,13 +216,14 @@ def run_identification_study(scenario, seeds, frame_source_factory, detectors: d
     from vcfusion.cosim import CoSimulation
 
     conditions = conditions or default_conditions()
-    joint = joint or JointMatcher()
     rows: list[dict] = []
     jobs = [(seed, c) for seed in seeds for c in conditions]
     for seed, cond in tqdm(jobs, desc="identification study", unit="run", disable=not progress):
         sc = scenario.model_copy(update={"v2c": scenario.v2c.model_copy(
             update={"latency_s": cond.latency_s, "gnss_noise_std_m": cond.gnss_noise_m})})
-        hook = _StudyHook(frame_source_factory(sc, seed), detectors, seed, cond, depth_params, joint, min_gt_area_px)
+        # a new joint matcher per run and detector: its position filter holds per-run state
+        hook = _StudyHook(frame_source_factory(sc, seed), detectors, seed, cond, depth_params, joint_params,
+                          min_gt_area_px)
         CoSimulation(sc, seed, hooks=[hook]).run()
         rows.extend(hook.rows)
     frame = pd.DataFrame(rows, columns=ROW_COLUMNS)

@@ -264,10 +264,52 @@ def match_all_paper(proj: TwinProjection, boxes, box_depths, fallback_radius_px:
     return out
 
 
+class TwinPositionFilter:
+    """Smooths each twin's GNSS position over its reports (the paper's future work: a location
+    estimate that keeps identification accurate under GNSS error).
+
+    Per twin, a fixed-gain (alpha) filter with the reported motion as the prediction: the last
+    estimate is moved by speed * heading * (time between reports), then pulled towards the new
+    report by ``alpha``. The reported heading includes a lane change's lateral motion, so the
+    prediction follows it; the gain only has to remove the white GNSS error (its std shrinks by
+    sqrt(alpha / (2 - alpha)), 0.38 at alpha 0.25). A twin unseen for ``reset_after_s`` or
+    jumping by more than ``reset_jump_m`` starts again from its report. Only x, y are filtered.
+    """
+
+    def __init__(self, alpha: float = 0.25, reset_after_s: float = 1.0, reset_jump_m: float = 8.0):
+        if not 0.0 < alpha <= 1.0:
+            raise ValueError(f"alpha: expected 0 < alpha <= 1, got {alpha}")
+        self.alpha = alpha
+        self.reset_after_s = reset_after_s
+        self.reset_jump_m = reset_jump_m
+        self._state: dict[str, tuple[float, float, float]] = {}  # id -> (measured_time, x, y)
+
+    def update(self, twins: TwinStates) -> TwinStates:
+        x = np.asarray(twins.x, dtype=np.float64).copy()
+        y = np.asarray(twins.y, dtype=np.float64).copy()
+        for i, vid in enumerate(twins.ids):
+            t = float(twins.measured_time[i])
+            prev = self._state.get(vid)
+            if prev is not None and prev[0] == t:  # the same report again: keep its estimate
+                x[i], y[i] = prev[1], prev[2]
+                continue
+            if prev is not None and 0.0 < t - prev[0] <= self.reset_after_s:
+                dt = t - prev[0]
+                px = prev[1] + twins.speed[i] * dt * np.cos(twins.heading[i])
+                py = prev[2] + twins.speed[i] * dt * np.sin(twins.heading[i])
+                if np.hypot(x[i] - px, y[i] - py) <= self.reset_jump_m:
+                    x[i] = px + self.alpha * (x[i] - px)
+                    y[i] = py + self.alpha * (y[i] - py)
+            self._state[vid] = (t, float(x[i]), float(y[i]))
+        return replace(twins, x=x, y=y)
+
+
 @dataclass(frozen=True)
 class JointMatcherParams:
     latency_compensation: bool = True
     use_accel: bool = False
+    # GNSS position smoothing over the reports (a stateful filter: one matcher per run); None = off
+    smoothing_alpha: float | None = 0.25
     face_offset: bool = True  # compare depth to the visible face, not to the antenna
     w_overlap: float = 1.0  # weight of (1 - IoU(expected box, box))
     w_anchor: float = 0.5  # weight of the anchor's distance outside the box (in box diagonals)
@@ -287,6 +329,7 @@ class JointMatcher:
 
     def __init__(self, params: JointMatcherParams = JointMatcherParams()):
         self.params = params
+        self.filter = TwinPositionFilter(params.smoothing_alpha) if params.smoothing_alpha is not None else None
 
     def cost_matrix(self, proj: TwinProjection, boxes, box_depths) -> tuple[np.ndarray, np.ndarray]:
         """(cost, allowed) over (twins, boxes)."""
@@ -333,6 +376,8 @@ class JointMatcher:
 
         ``box_depths``: Algorithm 1's distance per box (D,), or better its raw samples (D, n)
         (:func:`vcfusion.vision.depth_eval.sample_box_depths`)."""
+        if self.filter is not None:
+            twins = self.filter.update(twins)
         if self.params.latency_compensation:
             twins = extrapolate_twins(twins, camera.time, self.params.use_accel)
         proj = project_twins(twins, camera)
