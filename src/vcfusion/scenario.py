@@ -8,7 +8,7 @@ Paths inside a scenario (network, vehicle types) are relative to the scenario fi
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -53,6 +53,31 @@ class V2CConfig(_Strict):
 
 class AROverlayConfig(_Strict):
     period_s: Positive = 0.1
+    # lane-change probability at or above which a neighbour is flagged yellow (medium) / red (high)
+    medium_threshold: Probability = 0.3
+    high_threshold: Probability = 0.6
+    # write the AR overlay as PNG frames + an mp4 under renders/ (needs fusion.enabled)
+    video: bool = False
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "AROverlayConfig":
+        if self.medium_threshold > self.high_threshold:
+            raise ValueError(f"ar.medium_threshold: expected <= ar.high_threshold ({self.high_threshold}), "
+                             f"got {self.medium_threshold}")
+        return self
+
+
+class FusionConfig(_Strict):
+    """Vision-cloud fusion: detector, depth evaluation (Algorithm 1) and twin-to-box matching."""
+
+    enabled: bool = False
+    detector: Literal["cnn", "oracle"] = "cnn"
+    # weights of the cnn detector (relative to the scenario file); default: the shipped model
+    weights: Path | None = None
+    method: Literal["baseline", "paper", "joint"] = "joint"
+    depth_th: Annotated[float, Field(gt=0.0, le=1.0)] = 0.8
+    depth_samples: Annotated[int, Field(ge=1)] = 30
+    depth_reducer: Literal["mean", "median"] = "mean"
 
 
 class EgoConfig(_Strict):
@@ -111,6 +136,7 @@ class Scenario(_Strict):
     simulation: SimulationConfig = SimulationConfig()
     v2c: V2CConfig = V2CConfig()
     ar: AROverlayConfig = AROverlayConfig()
+    fusion: FusionConfig = FusionConfig()
     ego: EgoConfig | None = None
     vehicles: list[VehicleGroup] = []
     flows: list[Flow] = []
@@ -129,6 +155,10 @@ class Scenario(_Strict):
             ratio = period / step
             if abs(ratio - round(ratio)) > 1e-6:
                 raise ValueError(f"{name}: expected a whole multiple of simulation.step_s ({step}), got {period}")
+        if self.fusion.enabled and self.ego is None:
+            raise ValueError("fusion.enabled: expected an ego (the camera rides on it)")
+        if self.ar.video and not self.fusion.enabled:
+            raise ValueError("ar.video: expected fusion.enabled: true (the overlay needs the fusion stage)")
         if not self.vehicles and not self.flows and self.ego is None:
             raise ValueError("expected at least one of ego, vehicles, flows")
         return self
@@ -195,5 +225,11 @@ def load_scenario(path: str | Path) -> Scenario:
         if not target.is_file():
             raise ScenarioError(f"{path}: {field}: file not found: {getattr(scenario, field)} (relative to the scenario file)")
         resolved[field] = target
+    if scenario.fusion.weights is not None:
+        weights = (base / scenario.fusion.weights).resolve()
+        if not weights.is_file():
+            raise ScenarioError(f"{path}: fusion.weights: file not found: {scenario.fusion.weights} "
+                                "(relative to the scenario file)")
+        resolved["fusion"] = scenario.fusion.model_copy(update={"weights": weights})
     return scenario.model_copy(update={**resolved, "source": path})
 

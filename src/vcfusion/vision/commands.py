@@ -101,7 +101,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", required=True, help="weights file to write (e.g. src/vcfusion/assets/detector.pt)")
     p.add_argument("--val", help="held-out COCO folder (e.g. other seeds); default: --val-fraction of DATA")
     p.add_argument("--val-fraction", type=float, default=0.1)
-    p.add_argument("--epochs", type=int, default=30)
+    p.add_argument("--epochs", type=int, default=20)
     p.add_argument("--iterations", type=int, default=None, help="stop after this many iterations")
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--lr", type=float, default=2e-3)
@@ -127,3 +127,70 @@ def add_parsers(sub) -> None:
     p.add_argument("--weights", help="weights file (default: the shipped detector)")
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_export_onnx)
+
+    add_study_parser(sub)
+
+
+def _float_list(text: str, option: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise _usage(f"{option}: expected comma-separated numbers such as 0,0.1,0.5, got {text!r}") from None
+    if not values or any(v < 0 for v in values):
+        raise _usage(f"{option}: expected non-negative numbers, got {text!r}")
+    return values
+
+
+def cmd_study_identification(args: argparse.Namespace) -> int:
+    from vcfusion.scenario import load_scenario
+    from vcfusion.studies.batch import parse_seeds
+    from vcfusion.vision.detector_net import DetectorFileError, TorchDetector, default_weights_path
+    from vcfusion.vision.detectors import OracleDetector
+    from vcfusion.vision.identification import default_conditions, run_identification_study, summary_lines
+    from vcfusion.vision.stage import depth_params, renderer_frame_source_factory
+
+    scenario = load_scenario(args.scenario)
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError as exc:
+        raise _usage(str(exc)) from None
+    conditions = default_conditions(_float_list(args.latencies, "--latencies"), _float_list(args.noises, "--noises"))
+    detectors = {}
+    for name in (d.strip() for d in args.detectors.split(",")):
+        if name == "oracle":
+            detectors[name] = OracleDetector()
+        elif name == "cnn":
+            try:
+                detectors[name] = TorchDetector(args.weights or default_weights_path())
+            except DetectorFileError as exc:
+                raise _usage(f"--weights: {exc}") from None
+        else:
+            raise _usage(f"--detectors: expected names among oracle, cnn; got {name!r}")
+    factory = renderer_frame_source_factory()
+    out = Path(args.out)
+    rows = run_identification_study(scenario, seeds, factory, detectors, out, conditions,
+                                    depth_params=depth_params(scenario), min_gt_area_px=args.min_area,
+                                    progress=sys.stderr.isatty())
+    n_targets = rows[(rows["latency_s"] == 0) & (rows["gnss_noise_m"] == 0)].groupby(["detector", "method"]).size()
+    print(f"identification study {scenario.name}, seeds {args.seeds}: "
+          f"{int(n_targets.min()) if len(n_targets) else 0} target-frames per detector and method (clean V2C)")
+    for line in summary_lines(rows, 0.7):
+        print(line)
+    print(f"outputs: {out}/identification_*.csv, *.png, identification_rows.parquet")
+    return 0
+
+
+def add_study_parser(sub) -> None:
+    """`vcfusion study identification ...` (other studies add their own subcommands to `study`)."""
+    study = sub.add_parser("study", help="studies over many seeds")
+    ssub = study.add_subparsers(dest="study", required=True)
+    p = ssub.add_parser("identification", help="target identification accuracy (paper Fig. 4) vs latency, noise")
+    p.add_argument("scenario")
+    p.add_argument("--seeds", required=True, help="e.g. 0-19")
+    p.add_argument("--out", default="renders/identification")
+    p.add_argument("--detectors", default="oracle,cnn", help="comma-separated: oracle, cnn")
+    p.add_argument("--weights", help="cnn weights (default: the shipped detector)")
+    p.add_argument("--latencies", default="0,0.1,0.2,0.3,0.5", help="V2C latencies (s), at zero noise")
+    p.add_argument("--noises", default="0,0.5,1,2", help="GNSS noise std (m), at zero latency")
+    p.add_argument("--min-area", type=float, default=100.0, help="smallest ground-truth box (px^2) counted as a target")
+    p.set_defaults(func=cmd_study_identification)

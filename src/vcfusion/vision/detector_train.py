@@ -192,7 +192,7 @@ def _pick_device(device: str) -> str:
 
 
 def train_detector(
-    data, out=None, *, epochs: int = 30, batch_size: int = 16, lr: float = 2e-3,
+    data, out=None, *, epochs: int = 20, batch_size: int = 16, lr: float = 2e-3,
     input_wh: tuple[int, int] = (320, 240), widths: tuple[int, ...] = (16, 32, 64, 128, 64),
     val_fraction: float = 0.1, val_data=None, seed: int = 0, threads: int = 2, device: str = "auto",
     progress: bool = True, max_iterations: int | None = None,

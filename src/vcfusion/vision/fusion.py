@@ -91,7 +91,8 @@ class VisionFusionHook:
 
     def __init__(self, frame_source: FrameSource, detector: Detector, seed: int, method: str = "joint",
                  depth_params: DepthEvalParams = DepthEvalParams(), joint: JointMatcher | None = None,
-                 overlay: OverlayParams = OverlayParams(), recorder: OverlayRecorder | None = None):
+                 overlay: OverlayParams = OverlayParams(), recorder: OverlayRecorder | None = None,
+                 period_s: float | None = None):
         if method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
         self.frame_source = frame_source
@@ -103,10 +104,17 @@ class VisionFusionHook:
         self.overlay = overlay
         self.recorder = recorder
         self.timings: list[dict] = []
+        # run every period_s (the AR update period, ar.period_s); None = every tick
+        self.period_s = period_s
+        self._next_time = -np.inf
 
     def __call__(self, tick) -> list[dict] | None:
         if tick.neighbours is None:
             return None
+        if self.period_s is not None:
+            if tick.time < self._next_time - 1e-9:
+                return None
+            self._next_time = tick.time + self.period_s
         t0 = wallclock.perf_counter()
         frame = self.frame_source(tick)
         if frame is None:
