@@ -83,6 +83,10 @@ def cmd_export_onnx(args: argparse.Namespace) -> int:
     from vcfusion.vision.detector_net import DetectorFileError, DetectorModel, default_weights_path, export_onnx
 
     try:
+        import onnx  # noqa: F401 - torch's exporter needs it
+    except ImportError:
+        raise _usage("export-onnx: needs the onnx package (pip install onnx, or the project's dev extra)") from None
+    try:
         net = DetectorModel.load(args.weights or default_weights_path())
     except DetectorFileError as exc:
         raise _usage(str(exc)) from None
