@@ -12,6 +12,7 @@ from vcfusion.scenario import Scenario
 def build_cosimulation(scenario: Scenario, seed: int, recorder=None) -> CoSimulation:
     """The co-simulation with every stage the scenario enables."""
     hooks = []
+    # (the rendering stage's camera hook goes first: the fusion hook reads its frame)
     if scenario.fusion.enabled:
         from vcfusion.vision.stage import build_fusion_hook
 

@@ -155,8 +155,10 @@ class Scenario(_Strict):
             ratio = period / step
             if abs(ratio - round(ratio)) > 1e-6:
                 raise ValueError(f"{name}: expected a whole multiple of simulation.step_s ({step}), got {period}")
-        if self.fusion.enabled and self.ego is None:
-            raise ValueError("fusion.enabled: expected an ego (the camera rides on it)")
+        if self.fusion.enabled:
+            vision = getattr(self, "vision", None)  # the rendering stage's camera switch
+            if vision is None or not vision.enabled:
+                raise ValueError("fusion.enabled: expected vision.enabled: true (fusion needs the ego camera)")
         if self.ar.video and not self.fusion.enabled:
             raise ValueError("ar.video: expected fusion.enabled: true (the overlay needs the fusion stage)")
         if not self.vehicles and not self.flows and self.ego is None:

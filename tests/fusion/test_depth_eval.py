@@ -12,8 +12,9 @@ def test_sampling_area_is_lower_quarter_of_shrunk_box():
 
 def test_only_the_lower_quarter_of_the_shrunk_box_is_sampled():
     depth = np.full((480, 640), 99.0, np.float32)
-    depth[100:300, 100:200] = 5.0  # the whole box: the sampled area must see only 18.69 below
-    depth[240:280, 110:190] = 18.69
+    depth[100:301, 100:201] = 5.0  # the whole box: the sampled area must see only 18.69 below
+    # pixel-centre convention: the area x 110..190, y 240..280 touches pixels 110..190, 240..280
+    depth[240:281, 110:191] = 18.69
     rng = np.random.default_rng(0)
     d = evaluate_box_depths(depth, [[100, 100, 200, 300]], rng, DepthEvalParams(th=0.8, n=200))
     assert d[0] == pytest.approx(18.69, abs=1e-5)

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from synthetic_coco import make_synthetic_coco
-from vcfusion.vision.detection_metrics import coco_map
 from vcfusion.vision.detector_net import (DetectorFileError, DetectorModel, OnnxDetector, PostParams,
                                           TorchDetector, export_onnx)
 from vcfusion.vision.detector_train import evaluate_detector, load_coco, read_rgb, train_detector

@@ -151,7 +151,7 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
     from vcfusion.vision.detector_net import DetectorFileError, TorchDetector, default_weights_path
     from vcfusion.vision.detectors import OracleDetector
     from vcfusion.vision.identification import default_conditions, run_identification_study, summary_lines
-    from vcfusion.vision.stage import depth_params, renderer_frame_source_factory
+    from vcfusion.vision.stage import RenderedFrameSources, depth_params
 
     scenario = load_scenario(args.scenario)
     try:
@@ -170,11 +170,16 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
                 raise _usage(f"--weights: {exc}") from None
         else:
             raise _usage(f"--detectors: expected names among oracle, cnn; got {name!r}")
-    factory = renderer_frame_source_factory()
+    if scenario.ego is None:
+        raise _usage(f"{args.scenario}: ego: the camera rides on the ego; the scenario has no ego block")
     out = Path(args.out)
-    rows = run_identification_study(scenario, seeds, factory, detectors, out, conditions,
-                                    depth_params=depth_params(scenario), min_gt_area_px=args.min_area,
-                                    progress=sys.stderr.isatty())
+    sources = RenderedFrameSources()
+    try:
+        rows = run_identification_study(scenario, seeds, sources, detectors, out, conditions,
+                                        depth_params=depth_params(scenario), min_gt_area_px=args.min_area,
+                                        progress=sys.stderr.isatty())
+    finally:
+        sources.close()
     n_targets = rows[(rows["latency_s"] == 0) & (rows["gnss_noise_m"] == 0)].groupby(["detector", "method"]).size()
     print(f"identification study {scenario.name}, seeds {args.seeds}: "
           f"{int(n_targets.min()) if len(n_targets) else 0} target-frames per detector and method (clean V2C)")

@@ -8,7 +8,8 @@ For each box:
 3. draw ``n`` pixel positions uniformly in that area (a seeded NumPy Generator) and reduce their
    depths with the mean (the paper) or the median (robust to samples that miss the vehicle).
 
-Depth images are metric camera-Z (float32 metres). Samples that fall on sky or on pixels without
+Box coordinates follow the project's pixel-centre convention (integer coordinates at pixel
+centres; pixel c covers [c - 0.5, c + 0.5)). Depth images are metric camera-Z (float32 metres). Samples that fall on sky or on pixels without
 a depth (``inf``, ``nan`` or ``<= 0``; renderers write 0 or inf for "nothing hit") are ignored.
 A box whose samples are all invalid gets ``nan`` (the matchers treat it as "no depth").
 """
@@ -69,8 +70,9 @@ def sample_box_depths(
     v = rng.random((n_boxes, params.n))
     xs = areas[:, [0]] + u * (areas[:, [2]] - areas[:, [0]])
     ys = areas[:, [1]] + v * (areas[:, [3]] - areas[:, [1]])
-    cols = np.clip(np.floor(xs).astype(np.int64), 0, width - 1)
-    rows = np.clip(np.floor(ys).astype(np.int64), 0, height - 1)
+    # pixel-centre convention (OpenCV, the renderer's boxes): pixel c spans [c - 0.5, c + 0.5)
+    cols = np.clip(np.floor(xs + 0.5).astype(np.int64), 0, width - 1)
+    rows = np.clip(np.floor(ys + 0.5).astype(np.int64), 0, height - 1)
     samples = depth[rows, cols].astype(np.float64)
     samples[~(np.isfinite(samples) & (samples > 0))] = np.nan
     return samples

@@ -139,9 +139,11 @@ def postprocess(dense: np.ndarray, image_hw: tuple[int, int], input_wh: tuple[in
     keep = keep[np.argsort(-score[keep], kind="stable")][: 4 * params.max_detections]
     sx, sy = image_hw[1] / input_wh[0], image_hw[0] / input_wh[1]
     cx, cy, w, h = (dense[keep, k] for k in range(4))
-    boxes = np.stack([(cx - w / 2) * sx, (cy - h / 2) * sy, (cx + w / 2) * sx, (cy + h / 2) * sy], axis=1)
-    boxes[:, [0, 2]] = boxes[:, [0, 2]].clip(0, image_hw[1])
-    boxes[:, [1, 3]] = boxes[:, [1, 3]].clip(0, image_hw[0])
+    # the network works in pixel-edge coordinates (pixel c spans [c, c + 1), exact under resizing);
+    # detections use the project's pixel-centre convention: minus half a pixel
+    boxes = np.stack([(cx - w / 2) * sx, (cy - h / 2) * sy, (cx + w / 2) * sx, (cy + h / 2) * sy], axis=1) - 0.5
+    boxes[:, [0, 2]] = boxes[:, [0, 2]].clip(-0.5, image_hw[1] - 0.5)
+    boxes[:, [1, 3]] = boxes[:, [1, 3]].clip(-0.5, image_hw[0] - 0.5)
     classes = np.asarray(class_ids, dtype=np.int64)[cls[keep]]
     kept = batched_nms(boxes, score[keep], classes, params.nms_iou)[: params.max_detections]
     return Detections.of(boxes[kept], score[keep][kept], classes[kept])
@@ -284,7 +286,7 @@ class OnnxDetector:
         r, px, py = geom
         dense = dense.copy()
         dense[:, 0] = (dense[:, 0] - px) / r
-        dense[:, 1] = (dense[:, 1] - py) / r
+        dense[:, 1] = (dense[:, 1] - py) / r  # pixel-edge coordinates of the image
         dense[:, 2:4] /= r
         ih, iw = image.shape[:2]
         return postprocess(dense, (ih, iw), (iw, ih), self.class_ids, self.params, self.objectness)

@@ -31,7 +31,7 @@ class CocoDataset:
     folder: Path
     images: list[Path]
     image_ids: list[int]
-    boxes: list[np.ndarray]  # per image (G, 4) xyxy px
+    boxes: list[np.ndarray]  # per image (G, 4) xyxy px, pixel-centre convention (COCO x - 0.5)
     classes: list[np.ndarray]  # per image (G,) category ids
     class_ids: list[int]
     class_names: list[str]
@@ -84,6 +84,8 @@ def load_coco(folder) -> CocoDataset:
                                     f"among {class_ids}")
         x, y, w, h = map(float, bbox)
         if w > 0 and h > 0:
+            # COCO's pixel c spans [c, c + 1); our boxes put integer coordinates at pixel centres
+            x, y = x - 0.5, y - 0.5
             per_image.setdefault(int(ann["image_id"]), []).append((x, y, x + w, y + h, int(ann["category_id"])))
     images, ids, boxes, classes = [], [], [], []
     for k, img in enumerate(coco["images"]):
@@ -181,7 +183,7 @@ def _cache(ds: CocoDataset, input_wh, desc: str, progress: bool):
         rgb = read_rgb(path)
         sx, sy = input_wh[0] / rgb.shape[1], input_wh[1] / rgb.shape[0]
         images.append(cv2.resize(rgb, tuple(input_wh), interpolation=cv2.INTER_AREA))
-        boxes.append(b * np.array([sx, sy, sx, sy]))
+        boxes.append((b + 0.5) * np.array([sx, sy, sx, sy]))  # pixel-edge coordinates of the network input
     return np.stack(images), boxes
 
 

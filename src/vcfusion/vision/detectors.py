@@ -6,7 +6,9 @@ Implementations:
 - :class:`vcfusion.vision.detector_net.TorchDetector`: our learned single-stage CNN;
 - :class:`vcfusion.vision.detector_net.OnnxDetector`: a user's ONNX detector through OpenCV DNN.
 
-Images are RGB uint8 (H, W, 3); boxes are float pixels x1, y1, x2, y2 in the image given.
+Images are RGB uint8 (H, W, 3); boxes are float pixels x1, y1, x2, y2 in the image given, in the
+project's pixel-centre convention (OpenCV: integer coordinates at pixel centres, so a box around
+pixels c0..c1 spans c0 - 0.5 .. c1 + 0.5; a COCO bbox [x, y, w, h] is x - 0.5 .. x + w - 0.5).
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time as wallclock
 from dataclasses import dataclass, field
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 
@@ -140,5 +140,3 @@ class VisionFusionHook:
                          "x1": b[0], "y1": b[1], "x2": b[2], "y2": b[3]})
         return rows
 
-
-FrameSourceFactory = Callable[..., FrameSource]

@@ -223,7 +223,8 @@ def project_twins(twins: TwinStates, camera: CameraView, min_z: float = 0.5) -> 
                              np.asarray(twins.width, dtype=np.float64), height)
     uv, cz = camera.project(corners.reshape(-1, 3))
     uv, cz = uv.reshape(n, 8, 2), cz.reshape(n, 8)
-    in_front = (cz > min_z).all(axis=1)
+    in_front = (cz > min_z).all(axis=1) & np.isfinite(uv).all(axis=(1, 2))
+    uv = np.where(in_front[:, None, None], uv, 0.0)  # out-of-view twins get an empty box, never nan
     box = np.concatenate([uv.min(axis=1), uv.max(axis=1)], axis=1)
     box[:, [0, 2]] = np.clip(box[:, [0, 2]], 0, camera.width)
     box[:, [1, 3]] = np.clip(box[:, [1, 3]], 0, camera.height)
@@ -236,8 +237,9 @@ def project_twins(twins: TwinStates, camera: CameraView, min_z: float = 0.5) -> 
     face = ground + sign[:, None] * 0.5 * length[:, None] * direction
     face[:, 2] += 0.25 * height
     _, face_z = camera.project(face)
-    return TwinProjection(np.asarray(anchor, float), np.asarray(anchor_z, float), gnss_range, box,
-                          np.asarray(face_z, float), in_front & overlaps & (anchor_z > min_z))
+    anchor = np.asarray(anchor, float)
+    in_view = in_front & overlaps & (np.asarray(anchor_z) > min_z) & np.isfinite(anchor).all(axis=1)
+    return TwinProjection(anchor, np.asarray(anchor_z, float), gnss_range, box, np.asarray(face_z, float), in_view)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -367,6 +369,7 @@ class JointMatcher:
         depth_err = np.where(depth_known, depth_err, 1.0)
         cost = (p.w_overlap * (1.0 - iou) + p.w_anchor * np.minimum(anchor_dist, 1.0)
                 + p.w_depth * np.minimum(depth_err, p.depth_gate))
+        cost = np.nan_to_num(cost, nan=10.0, posinf=10.0)  # twins out of view (nan anchors) are gated below
         allowed = ((iou >= p.overlap_gate) | inside) & (depth_err <= p.depth_gate)
         allowed &= proj.in_view[:, None]
         return cost, allowed

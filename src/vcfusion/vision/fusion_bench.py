@@ -1,6 +1,6 @@
 """Benchmark of the fusion stages of one vision tick at 640x480 (detect, depth, match, overlay).
 
-    python -m vcfusion.vision.bench [--frames 200] [--weights W] [--threads 2]
+    python -m vcfusion.vision.fusion_bench [--frames 200] [--weights W] [--threads 2]
 
 Prints the median and 90th percentile time per stage. The frame is synthetic (noise image, a depth
 map with ten vehicles, eight twins): the stages' costs depend on the image size, the number of
