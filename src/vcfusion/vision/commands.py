@@ -64,15 +64,15 @@ def _make_detector(args):
 
 def cmd_eval_detector(args: argparse.Namespace) -> int:
     from vcfusion.vision.detector_net import DetectorFileError
-    from vcfusion.vision.detector_train import evaluate_detector, load_coco
+    from vcfusion.vision.detector_train import evaluate_detector, load_coco_many
 
     detector = _make_detector(args)
     try:
-        ds = load_coco(args.data)
+        ds = load_coco_many(args.data)
         result = evaluate_detector(detector, ds, progress=sys.stderr.isatty())
     except DetectorFileError as exc:
         raise _usage(str(exc)) from None
-    print(f"{args.data}: {len(ds)} images  mAP@0.5 {result.map_50:.3f}  mAP@0.5:0.95 {result.map_50_95:.3f}")
+    print(f"{' '.join(args.data)}: {len(ds)} images  mAP@0.5 {result.map_50:.3f}  mAP@0.5:0.95 {result.map_50_95:.3f}")
     for cid, name in zip(ds.class_ids, ds.class_names):
         if cid in result.ap_per_category:
             print(f"  {name}: AP@0.5:0.95 {result.ap_per_category[cid]:.3f}")
@@ -101,9 +101,9 @@ def cmd_export_onnx(args: argparse.Namespace) -> int:
 def add_parsers(sub) -> None:
     """The vision subcommands, added to the `vcfusion` parser."""
     p = sub.add_parser("train-detector", help="train the CNN detector on a COCO dataset folder")
-    p.add_argument("data", help="COCO folder: images + annotations.json")
+    p.add_argument("data", nargs="+", help="COCO folder(s): images + annotations.json (e.g. renders of several scenarios)")
     p.add_argument("--out", required=True, help="weights file to write (e.g. src/vcfusion/assets/detector.pt)")
-    p.add_argument("--val", help="held-out COCO folder (e.g. other seeds); default: --val-fraction of DATA")
+    p.add_argument("--val", nargs="+", help="held-out COCO folder(s) (e.g. other seeds); default: --val-fraction of DATA")
     p.add_argument("--val-fraction", type=float, default=0.1)
     p.add_argument("--epochs", type=int, default=20)
     p.add_argument("--iterations", type=int, default=None, help="stop after this many iterations")
@@ -117,7 +117,7 @@ def add_parsers(sub) -> None:
 
     for name, func, helptext in (("eval-detector", cmd_eval_detector, "COCO mAP of a detector on a dataset folder"),):
         p = sub.add_parser(name, help=helptext)
-        p.add_argument("data", help="COCO folder")
+        p.add_argument("data", nargs="+", help="COCO folder(s)")
         p.add_argument("--weights", help="our weights file (default: the shipped detector)")
         p.add_argument("--onnx", help="an ONNX detector run through OpenCV DNN instead")
         p.add_argument("--input-size", default="320x240", help="ONNX input WIDTHxHEIGHT")
@@ -177,7 +177,7 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
     try:
         rows = run_identification_study(scenario, seeds, sources, detectors, out, conditions,
                                         depth_params=depth_params(scenario), min_gt_area_px=args.min_area,
-                                        progress=sys.stderr.isatty())
+                                        fallback_radius_px=args.anchor_radius, progress=sys.stderr.isatty())
     finally:
         sources.close()
     n_targets = rows[(rows["latency_s"] == 0) & (rows["gnss_noise_m"] == 0)].groupby(["detector", "method"]).size()
@@ -202,4 +202,7 @@ def add_study_parser(sub) -> None:
     p.add_argument("--latencies", default="0,0.1,0.2,0.3,0.5", help="V2C latencies (s), at zero noise")
     p.add_argument("--noises", default="0,0.5,1,2", help="GNSS noise std (m), at zero latency")
     p.add_argument("--min-area", type=float, default=100.0, help="smallest ground-truth box (px^2) counted as a target")
+    p.add_argument("--anchor-radius", type=float, default=None,
+                   help="baseline and paper: with no box containing the anchor, take the nearest box within "
+                        "this many pixels (default: off, the paper's rule)")
     p.set_defaults(func=cmd_study_identification)

@@ -30,7 +30,7 @@ from vcfusion.vision.detector_net import (STRIDE, CenterNetLite, DetectorFileErr
 class CocoDataset:
     folder: Path
     images: list[Path]
-    image_ids: list[int]
+    image_ids: list  # COCO image ids (tuples (folder index, id) when folders are combined)
     boxes: list[np.ndarray]  # per image (G, 4) xyxy px, pixel-centre convention (COCO x - 0.5)
     classes: list[np.ndarray]  # per image (G,) category ids
     class_ids: list[int]
@@ -103,6 +103,23 @@ def load_coco(folder) -> CocoDataset:
     if not images:
         raise DetectorFileError(f"{path}: images: expected at least one image")
     return CocoDataset(folder, images, ids, boxes, classes, class_ids, [str(c.get("name", c["id"])) for c in cats])
+
+
+def load_coco_many(folders) -> CocoDataset:
+    """Several COCO folders (e.g. renders of several scenarios) as one dataset; same categories."""
+    folders = [folders] if isinstance(folders, (str, Path)) else list(folders)
+    parts = [load_coco(f) for f in folders]
+    first = parts[0]
+    for f, part in zip(folders[1:], parts[1:]):
+        if part.class_ids != first.class_ids:
+            raise DetectorFileError(f"{f}: categories: expected the same category ids as {folders[0]} "
+                                    f"({first.class_ids}), got {part.class_ids}")
+    if len(parts) == 1:
+        return first
+    return CocoDataset(first.folder, [p for d in parts for p in d.images],
+                       [(k, i) for k, d in enumerate(parts) for i in d.image_ids],  # ids unique across folders
+                       [b for d in parts for b in d.boxes], [c for d in parts for c in d.classes],
+                       first.class_ids, first.class_names)
 
 
 def read_rgb(path: Path) -> np.ndarray:
@@ -199,7 +216,7 @@ def train_detector(
     val_fraction: float = 0.1, val_data=None, seed: int = 0, threads: int = 2, device: str = "auto",
     progress: bool = True, max_iterations: int | None = None,
 ) -> tuple[DetectorModel, TrainReport]:
-    """Train on the COCO folder ``data``; write the weights atomically to ``out`` if given."""
+    """Train on the COCO folder(s) ``data``; write the weights atomically to ``out`` if given."""
     if input_wh[0] % 16 or input_wh[1] % 16:
         raise ValueError(f"input size: expected width and height multiples of 16, got {input_wh}")
     started = time.perf_counter()
@@ -208,9 +225,9 @@ def train_detector(
     if threads:
         torch.set_num_threads(threads)
     device = _pick_device(device)
-    ds = load_coco(data)
+    ds = load_coco_many(data)
     if val_data is not None:
-        train_ds, val_ds = ds, load_coco(val_data)
+        train_ds, val_ds = ds, load_coco_many(val_data)
         if val_ds.class_ids != ds.class_ids:
             raise DetectorFileError(f"{val_data}: categories: expected the training categories {ds.class_ids}")
     elif val_fraction > 0 and len(ds) >= 5:
@@ -275,7 +292,8 @@ def train_detector(
     val = evaluate_detector(TorchDetector(net), val_ds, progress=progress) if val_ds is not None else None
     report = TrainReport(len(history), step, history, first, val, time.perf_counter() - started,
                          len(train_ds), 0 if val_ds is None else len(val_ds))
-    net.meta = {"train_data": str(Path(data).resolve()), "epochs": report.epochs, "iterations": step,
+    data_list = [data] if isinstance(data, (str, Path)) else list(data)
+    net.meta = {"train_data": [str(Path(d).resolve()) for d in data_list], "epochs": report.epochs, "iterations": step,
                 "seed": seed, "final_loss": history[-1] if history else None, "n_train": report.n_train,
                 "n_val": report.n_val, "val_map_50": None if val is None else val.map_50,
                 "val_map_50_95": None if val is None else val.map_50_95}

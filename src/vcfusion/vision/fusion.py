@@ -57,7 +57,7 @@ class FusionResult:
 
 def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: np.random.Generator,
                depth_params: DepthEvalParams = DepthEvalParams(), joint: JointMatcher | None = None,
-               methods=METHODS) -> FusionResult:
+               methods=METHODS, fallback_radius_px: float | None = None) -> FusionResult:
     """Run every requested matcher on one frame for the given twins."""
     timings = {}
     t0 = wallclock.perf_counter()
@@ -73,9 +73,9 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
     # the paper's matchers use the twins as received (no latency compensation)
     proj = project_twins(twins, frame.camera)
     if "baseline" in methods:
-        choice["baseline"] = match_all_baseline(proj, detections.boxes)
+        choice["baseline"] = match_all_baseline(proj, detections.boxes, fallback_radius_px)
     if "paper" in methods:
-        choice["paper"] = match_all_paper(proj, detections.boxes, depths)
+        choice["paper"] = match_all_paper(proj, detections.boxes, depths, fallback_radius_px)
     if "joint" in methods:
         choice["joint"] = (joint or JointMatcher()).match(twins, detections.boxes, samples, frame.camera)
     timings["match"] = wallclock.perf_counter() - t2

@@ -179,7 +179,8 @@ class _StudyHook:
     table = "identification"
 
     def __init__(self, frame_source, detectors: dict, seed: int, condition: Condition,
-                 depth_params: DepthEvalParams, joint_params: JointMatcherParams, min_gt_area_px: float):
+                 depth_params: DepthEvalParams, joint_params: JointMatcherParams, min_gt_area_px: float,
+                 fallback_radius_px: float | None = None):
         self.frame_source = frame_source
         self.detectors = detectors
         self.seed = seed
@@ -187,6 +188,7 @@ class _StudyHook:
         self.depth_params = depth_params
         self.joints = {name: JointMatcher(joint_params) for name in detectors}
         self.min_gt_area_px = min_gt_area_px
+        self.fallback_radius_px = fallback_radius_px
         self.rngs = {name: np.random.default_rng([seed, k]) for k, name in enumerate(detectors)}
         self.rows: list[dict] = []
 
@@ -197,7 +199,8 @@ class _StudyHook:
         if frame is None:
             return None
         for name, det in self.detectors.items():
-            result = fuse_frame(frame, tick.neighbours, det, self.rngs[name], self.depth_params, self.joints[name])
+            result = fuse_frame(frame, tick.neighbours, det, self.rngs[name], self.depth_params, self.joints[name],
+                                fallback_radius_px=self.fallback_radius_px)
             self.rows.extend(identification_rows(
                 frame, result, self.min_gt_area_px, seed=self.seed, latency_s=self.condition.latency_s,
                 gnss_noise_m=self.condition.gnss_noise_m, detector=name))
@@ -207,7 +210,7 @@ class _StudyHook:
 def run_identification_study(scenario, seeds, frame_source_factory, detectors: dict, out_dir,
                              conditions: list[Condition] | None = None, depth_params=DepthEvalParams(),
                              joint_params: JointMatcherParams = JointMatcherParams(), min_gt_area_px: float = 100.0,
-                             progress: bool = True) -> pd.DataFrame:
+                             fallback_radius_px: float | None = None, progress: bool = True) -> pd.DataFrame:
     """Run every (seed, condition), collect the rows, write the outputs; returns the rows.
 
     ``frame_source_factory(scenario, seed)`` gives the frame source of a run (the renderer);
@@ -223,7 +226,7 @@ def run_identification_study(scenario, seeds, frame_source_factory, detectors: d
             update={"latency_s": cond.latency_s, "gnss_noise_std_m": cond.gnss_noise_m})})
         # a new joint matcher per run and detector: its position filter holds per-run state
         hook = _StudyHook(frame_source_factory(sc, seed), detectors, seed, cond, depth_params, joint_params,
-                          min_gt_area_px)
+                          min_gt_area_px, fallback_radius_px)
         CoSimulation(sc, seed, hooks=[hook]).run()
         rows.extend(hook.rows)
     frame = pd.DataFrame(rows, columns=ROW_COLUMNS)
