@@ -29,7 +29,7 @@ def random_dataset(rng, n_images=12, n_cats=2):
     return gt, det
 
 
-def pycocotools_map(gt, det, n_cats=2):
+def pycocotools_map(gt, det, n_cats=2, min_area=0.0):
     from pycocotools.coco import COCO
     from pycocotools.cocoeval import COCOeval
 
@@ -49,18 +49,21 @@ def pycocotools_map(gt, det, n_cats=2):
                         "categories": [{"id": c} for c in range(1, n_cats + 1)]}
         coco.createIndex()
         ev = COCOeval(coco, coco.loadRes(results), "bbox")
+        if min_area > 0:
+            ev.params.areaRng = [[min_area, 1e10]] * 4  # every summary row uses this range
         ev.evaluate()
         ev.accumulate()
         ev.summarize()
     return ev.stats[1], ev.stats[0]
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_coco_map_equals_pycocotools(seed):
+@pytest.mark.parametrize("seed,min_area", [(0, 0.0), (1, 0.0), (2, 0.0), (3, 1500.0), (4, 3000.0)])
+def test_coco_map_equals_pycocotools(seed, min_area):
+    """Including COCOeval's area range (ignored small ground truth and small unmatched detections)."""
     pytest.importorskip("pycocotools")
     gt, det = random_dataset(np.random.default_rng(seed))
-    ours = coco_map(gt, det)
-    ref50, ref = pycocotools_map(gt, det)
+    ours = coco_map(gt, det, min_area=min_area)
+    ref50, ref = pycocotools_map(gt, det, min_area=min_area)
     assert 0.05 < ours.map_50_95 < 0.95  # a non-trivial case
     assert ours.map_50 == pytest.approx(ref50, abs=1e-9)
     assert ours.map_50_95 == pytest.approx(ref, abs=1e-9)

@@ -35,14 +35,15 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
         net, report = train_detector(
             args.data, args.out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, input_wh=input_wh,
             val_fraction=args.val_fraction, val_data=args.val, seed=args.seed, threads=args.threads,
-            device=args.device, progress=sys.stderr.isatty(), max_iterations=args.iterations)
+            device=args.device, progress=sys.stderr.isatty(), max_iterations=args.iterations,
+            min_train_area=args.min_train_area, eval_min_area=args.min_area)
     except DetectorFileError as exc:
         raise _usage(str(exc)) from None
     size_mb = Path(args.out).stat().st_size / 2**20
     print(f"trained {report.iterations} iterations ({report.epochs} epochs) on {report.n_train} images "
           f"in {report.wall_s:.0f} s; loss {report.first_losses[0]:.3f} -> {report.loss_history[-1]:.3f}")
     if report.val is not None:
-        print(f"held-out ({report.n_val} images): mAP@0.5 {report.val.map_50:.3f}  mAP@0.5:0.95 {report.val.map_50_95:.3f}")
+        print(f"held-out ({report.n_val} images, boxes >= {args.min_area:g} px^2): mAP@0.5 {report.val.map_50:.3f}  mAP@0.5:0.95 {report.val.map_50_95:.3f}")
     print(f"weights: {args.out} ({size_mb:.1f} MB)")
     return 0
 
@@ -69,10 +70,10 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
     detector = _make_detector(args)
     try:
         ds = load_coco_many(args.data)
-        result = evaluate_detector(detector, ds, progress=sys.stderr.isatty())
+        result = evaluate_detector(detector, ds, progress=sys.stderr.isatty(), min_area=args.min_area)
     except DetectorFileError as exc:
         raise _usage(str(exc)) from None
-    print(f"{' '.join(args.data)}: {len(ds)} images  mAP@0.5 {result.map_50:.3f}  mAP@0.5:0.95 {result.map_50_95:.3f}")
+    print(f"{' '.join(args.data)}: {len(ds)} images (boxes >= {args.min_area:g} px^2)  mAP@0.5 {result.map_50:.3f}  mAP@0.5:0.95 {result.map_50_95:.3f}")
     for cid, name in zip(ds.class_ids, ds.class_names):
         if cid in result.ap_per_category:
             print(f"  {name}: AP@0.5:0.95 {result.ap_per_category[cid]:.3f}")
@@ -113,6 +114,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    p.add_argument("--min-train-area", type=float, default=16.0, help="train only on boxes of at least this many px^2")
+    p.add_argument("--min-area", type=float, default=100.0,
+                   help="held-out mAP ignores ground truth below this many px^2 (COCOeval area range)")
     p.set_defaults(func=cmd_train_detector)
 
     for name, func, helptext in (("eval-detector", cmd_eval_detector, "COCO mAP of a detector on a dataset folder"),):
@@ -125,6 +129,8 @@ def add_parsers(sub) -> None:
         p.add_argument("--scale", type=float, default=1.0, help="ONNX: input scale (1/255 for most YOLO exports)")
         p.add_argument("--objectness", action="store_true", help="ONNX: output has an objectness column (YOLOv5)")
         p.add_argument("--letterbox", action="store_true", help="ONNX: letterbox instead of stretch")
+        p.add_argument("--min-area", type=float, default=100.0,
+                       help="ignore ground truth below this many px^2 (COCOeval area range; 0 = all)")
         p.set_defaults(func=func)
 
     p = sub.add_parser("export-onnx", help="export our detector to ONNX (the layout OnnxDetector reads)")

@@ -214,7 +214,8 @@ def train_detector(
     data, out=None, *, epochs: int = 20, batch_size: int = 16, lr: float = 2e-3,
     input_wh: tuple[int, int] = (320, 240), widths: tuple[int, ...] = (16, 32, 64, 128, 64),
     val_fraction: float = 0.1, val_data=None, seed: int = 0, threads: int = 2, device: str = "auto",
-    progress: bool = True, max_iterations: int | None = None,
+    progress: bool = True, max_iterations: int | None = None, min_train_area: float = 16.0,
+    eval_min_area: float = 100.0,
 ) -> tuple[DetectorModel, TrainReport]:
     """Train on the COCO folder(s) ``data``; write the weights atomically to ``out`` if given."""
     if input_wh[0] % 16 or input_wh[1] % 16:
@@ -237,6 +238,11 @@ def train_detector(
     else:
         train_ds, val_ds = ds, None
     cls_index = {c: k for k, c in enumerate(ds.class_ids)}
+    # boxes of a few pixels (far away or nearly hidden vehicles) are not learnable targets
+    keep = [(b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1]) >= min_train_area for b in train_ds.boxes]
+    train_ds = CocoDataset(train_ds.folder, train_ds.images, train_ds.image_ids,
+                           [b[k] for b, k in zip(train_ds.boxes, keep)], [c[k] for c, k in zip(train_ds.classes, keep)],
+                           train_ds.class_ids, train_ds.class_names)
     images, boxes = _cache(train_ds, input_wh, "load train", progress)
     classes = [np.array([cls_index[int(c)] for c in cs], np.int64) for cs in train_ds.classes]
 
@@ -289,12 +295,14 @@ def train_detector(
     bar.close()
     model.eval().cpu()
     net = DetectorModel(model, tuple(input_wh), ds.class_ids, ds.class_names, tuple(widths))
-    val = evaluate_detector(TorchDetector(net), val_ds, progress=progress) if val_ds is not None else None
+    val = (evaluate_detector(TorchDetector(net), val_ds, progress=progress, min_area=eval_min_area)
+           if val_ds is not None else None)
     report = TrainReport(len(history), step, history, first, val, time.perf_counter() - started,
                          len(train_ds), 0 if val_ds is None else len(val_ds))
     data_list = [data] if isinstance(data, (str, Path)) else list(data)
     net.meta = {"train_data": [str(Path(d).resolve()) for d in data_list], "epochs": report.epochs, "iterations": step,
                 "seed": seed, "final_loss": history[-1] if history else None, "n_train": report.n_train,
+                "min_train_area": min_train_area, "eval_min_area": eval_min_area,
                 "n_val": report.n_val, "val_map_50": None if val is None else val.map_50,
                 "val_map_50_95": None if val is None else val.map_50_95}
     if out is not None:
@@ -302,8 +310,9 @@ def train_detector(
     return net, report
 
 
-def evaluate_detector(detector, ds: CocoDataset, progress: bool = False) -> BoxMap:
-    """COCO mAP of a detector on a dataset (score threshold lowered to 0.01 as for COCO evaluation)."""
+def evaluate_detector(detector, ds: CocoDataset, progress: bool = False, min_area: float = 0.0) -> BoxMap:
+    """COCO mAP of a detector on a dataset (score threshold lowered to 0.01 as for COCO evaluation);
+    ground truth smaller than ``min_area`` px^2 is ignored as COCOeval's area range does."""
     if hasattr(detector, "params"):
         saved = detector.params
         detector.params = PostParams(score_threshold=0.01, nms_iou=saved.nms_iou, max_detections=100)
@@ -316,4 +325,4 @@ def evaluate_detector(detector, ds: CocoDataset, progress: bool = False) -> BoxM
     finally:
         if hasattr(detector, "params"):
             detector.params = saved
-    return coco_map(ds.ground_truth(), dets)
+    return coco_map(ds.ground_truth(), dets, min_area=min_area)
