@@ -7,7 +7,7 @@ import sys
 import pandas as pd
 import pytest
 
-from conftest import write_scenario
+from scenario_files import write_scenario
 from vcfusion.studies.batch import parse_seeds, run_batch, seed_folder
 
 

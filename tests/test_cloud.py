@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from conftest import REPO
+from scenario_files import REPO
 from vcfusion.cloud.channel import V2CChannel
 from vcfusion.cloud.twins import TwinStore, neighbours
 from vcfusion.records import VehicleStates

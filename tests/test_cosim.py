@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from conftest import write_scenario
+from scenario_files import write_scenario
 from vcfusion.cosim import CoSimulation
 from vcfusion.records import gnss_antenna_points
 from vcfusion.scenario import load_scenario

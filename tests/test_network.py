@@ -1,7 +1,7 @@
 import numpy as np
 import sumolib
 
-from conftest import REPO
+from scenario_files import REPO
 from vcfusion.traffic.network import build_network, read_road
 
 NET = REPO / "sumo_net" / "highway.net.xml"

@@ -3,7 +3,7 @@ import sys
 
 import pytest
 
-from conftest import write_scenario
+from scenario_files import write_scenario
 from vcfusion.scenario import ScenarioError, load_scenario
 
 BASE = """

@@ -185,8 +185,11 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--dask-local", type=int, metavar="N", help="start a local Dask cluster of N worker processes")
     p.set_defaults(func=cmd_batch)
 
-    p = sub.add_parser("study", help="studies over many paired runs")
+    p = sub.add_parser("study", help="studies over many runs: guidance (Fig. 8/9), identification (Fig. 4)")
     study = p.add_subparsers(dest="study", required=True)
+    from vcfusion.vision.commands import add_study_parser as add_identification_parser
+
+    add_identification_parser(study)
     p = study.add_parser("guidance", help="paired trips with and without AR guidance (paper Fig. 8/9)")
     p.add_argument("scenario")
     p.add_argument("--trips", type=int, default=200, help="number of paired trips (seeds FIRST..FIRST+N-1)")
@@ -232,6 +235,10 @@ def build_parser() -> argparse.ArgumentParser:
     from vcfusion.prediction.commands import add_parsers as add_prediction_parsers
 
     add_prediction_parsers(sub)  # dataset, train, evaluate, bench-predict
+
+    from vcfusion.vision.commands import add_parsers as add_vision_parsers
+
+    add_vision_parsers(sub)
     return parser
 
 

@@ -11,11 +11,13 @@ from vcfusion.scenario import Scenario
 
 
 def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool | None = None,
-                       extra_process_models: list[tuple[str, ProcessModel]] | None = None) -> CoSimulation:
+                       extra_process_models: list[tuple[str, ProcessModel]] | None = None,
+                       recorder=None) -> CoSimulation:
     """The co-simulation with every stage the scenario enables.
 
     `guidance_enabled` overrides `driver.guidance` of the scenario (the guidance study runs
-    both arms of a trip); `extra_process_models` are added to the cloud twins' models.
+    both arms of a trip); `extra_process_models` are added to the cloud twins' models;
+    `recorder` receives the AR overlay frames (video).
     """
     from vcfusion.driver.cloud_guidance import CloudGuidanceFallback
     from vcfusion.driver.model import DriverModel
@@ -34,16 +36,25 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
         from vcfusion.vision.hook import CameraHook
 
         hooks.append(CameraHook(scenario, every_ticks=scenario.vision.every_ticks))
+    if scenario.fusion.enabled:
+        # After the camera hook: fusion reads the frame it puts in the tick's annotations.
+        from vcfusion.vision.stage import build_fusion_hook
+
+        hooks.append(build_fusion_hook(scenario, seed, recorder))
     controller = None
     if scenario.ego is not None:
         road = read_road(scenario.network)
-        cfg = scenario.driver
         # Last hook: fills tick.annotations['guidance'] from the cloud only if no overlay did.
-        hooks.append(CloudGuidanceFallback(road, cfg.guidance_medium_prob, cfg.guidance_high_prob,
-                                           cfg.guidance_view_range_m))
-        enabled = cfg.guidance if guidance_enabled is None else guidance_enabled
+        hooks.append(CloudGuidanceFallback(road, scenario.ar.medium_threshold, scenario.ar.high_threshold,
+                                           scenario.driver.guidance_view_range_m))
+        enabled = scenario.driver.guidance if guidance_enabled is None else guidance_enabled
         controller = DriverModel(draw_driver(seed, scenario.ego.desired_speed_mps), road, scenario.ego.lane, enabled)
     return CoSimulation(scenario, seed, controller=controller, process_models=process_models, hooks=hooks)
+
+
+def video_dir_for(out_dir: Path) -> Path:
+    """Where a run's AR overlay frames and mp4 go: renders/<run folder name>/."""
+    return Path("renders") / Path(out_dir).name
 
 
 def manifest_for(scenario: Scenario, seed: int) -> dict:
@@ -56,13 +67,26 @@ def manifest_for(scenario: Scenario, seed: int) -> dict:
 
 
 def execute_run(scenario: Scenario, seed: int, out_dir: Path | None, progress: bool = False) -> RunResult:
-    """Simulate one seed; write the run folder when out_dir is given."""
-    cosim = build_cosimulation(scenario, seed)
-    result = cosim.run(progress=progress)
-    if cosim.controller is not None and hasattr(cosim.controller, "p"):
-        result.summary["driver"] = cosim.controller.p.to_dict() | {
-            "guidance_enabled": cosim.controller.guidance_enabled}
-    if out_dir is not None:
-        write_run_folder(Path(out_dir), result.tables, manifest_for(scenario, seed), result.summary)
-        result.tables.relocate(Path(out_dir))
+    """Simulate one seed; write the run folder when out_dir is given (and the AR video when the
+    scenario asks for it: renders/<run folder name>/overlay.mp4 + frames/)."""
+    recorder = None
+    if out_dir is not None and scenario.fusion.enabled and scenario.ar.video:
+        from vcfusion.vision.overlay import OverlayRecorder
+
+        recorder = OverlayRecorder(video_dir_for(out_dir), fps=1.0 / scenario.ar.period_s)
+    try:
+        cosim = build_cosimulation(scenario, seed, recorder=recorder)
+        result = cosim.run(progress=progress)
+        if cosim.controller is not None and hasattr(cosim.controller, "p"):
+            result.summary["driver"] = cosim.controller.p.to_dict() | {
+                "guidance_enabled": cosim.controller.guidance_enabled}
+        if out_dir is not None:
+            write_run_folder(Path(out_dir), result.tables, manifest_for(scenario, seed), result.summary)
+            result.tables.relocate(Path(out_dir))
+    except BaseException:
+        if recorder is not None:
+            recorder.abort()
+        raise
+    if recorder is not None:
+        recorder.close()
     return result

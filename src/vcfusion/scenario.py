@@ -53,6 +53,31 @@ class V2CConfig(_Strict):
 
 class AROverlayConfig(_Strict):
     period_s: Positive = 0.1
+    # lane-change probability at or above which a neighbour is flagged yellow (medium) / red (high)
+    medium_threshold: Probability = 0.3
+    high_threshold: Probability = 0.6
+    # write the AR overlay as PNG frames + an mp4 under renders/ (needs fusion.enabled)
+    video: bool = False
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "AROverlayConfig":
+        if self.medium_threshold > self.high_threshold:
+            raise ValueError(f"ar.medium_threshold: expected <= ar.high_threshold ({self.high_threshold}), "
+                             f"got {self.medium_threshold}")
+        return self
+
+
+class FusionConfig(_Strict):
+    """Vision-cloud fusion: detector, depth evaluation (Algorithm 1) and twin-to-box matching."""
+
+    enabled: bool = False
+    detector: Literal["cnn", "oracle"] = "cnn"
+    # weights of the cnn detector (relative to the scenario file); default: the shipped model
+    weights: Path | None = None
+    method: Literal["baseline", "paper", "joint"] = "joint"
+    depth_th: Annotated[float, Field(gt=0.0, le=1.0)] = 0.8
+    depth_samples: Annotated[int, Field(ge=1)] = 30
+    depth_reducer: Literal["mean", "median"] = "mean"
 
 
 class CameraConfig(_Strict):
@@ -104,17 +129,8 @@ class DriverConfig(_Strict):
 
     # Whether the driver uses the AR guidance in a single run (the guidance study runs both).
     guidance: bool = True
-    # Levels of the guidance made from the cloud's lc_prob when no AR overlay makes them.
-    guidance_medium_prob: Probability = 0.5
-    guidance_high_prob: Probability = 0.8
+    # Guidance levels follow ar.medium_threshold / ar.high_threshold (one setting for overlay and driver).
     guidance_view_range_m: Positive = 150.0
-
-    @model_validator(mode="after")
-    def _ordered(self) -> "DriverConfig":
-        if self.guidance_medium_prob > self.guidance_high_prob:
-            raise ValueError(f"driver.guidance_medium_prob: expected <= guidance_high_prob "
-                             f"({self.guidance_high_prob}), got {self.guidance_medium_prob}")
-        return self
 
 
 class VehicleGroup(_Strict):
@@ -182,6 +198,7 @@ class Scenario(_Strict):
     simulation: SimulationConfig = SimulationConfig()
     v2c: V2CConfig = V2CConfig()
     ar: AROverlayConfig = AROverlayConfig()
+    fusion: FusionConfig = FusionConfig()
     ego: EgoConfig | None = None
     driver: DriverConfig = DriverConfig()
     camera: CameraConfig = CameraConfig()
@@ -206,6 +223,11 @@ class Scenario(_Strict):
                 raise ValueError(f"{name}: expected a whole multiple of simulation.step_s ({step}), got {period}")
         if self.vision.enabled and self.ego is None:
             raise ValueError("vision.enabled: the camera rides on the ego; expected an ego block")
+        if self.fusion.enabled:
+            if not self.vision.enabled:
+                raise ValueError("fusion.enabled: expected vision.enabled: true (fusion needs the ego camera)")
+        if self.ar.video and not self.fusion.enabled:
+            raise ValueError("ar.video: expected fusion.enabled: true (the overlay needs the fusion stage)")
         if not self.vehicles and not self.flows and self.ego is None:
             raise ValueError("expected at least one of ego, vehicles, flows")
         return self
@@ -278,5 +300,11 @@ def load_scenario(path: str | Path) -> Scenario:
         if not target.is_file():
             raise ScenarioError(f"{path}: prediction.model: file not found: {pred.model} (relative to the scenario file)")
         resolved["prediction"] = pred.model_copy(update={"model": target})
+    if scenario.fusion.weights is not None:
+        weights = (base / scenario.fusion.weights).resolve()
+        if not weights.is_file():
+            raise ScenarioError(f"{path}: fusion.weights: file not found: {scenario.fusion.weights} "
+                                "(relative to the scenario file)")
+        resolved["fusion"] = scenario.fusion.model_copy(update={"weights": weights})
     return scenario.model_copy(update={**resolved, "source": path})
 

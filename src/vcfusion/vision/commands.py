@@ -1,0 +1,211 @@
+"""Handlers of the vision subcommands of `vcfusion` (the cli only parses arguments)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def _usage(message: str):
+    from vcfusion.cli import UsageError
+
+    return UsageError(message)
+
+
+def parse_size(text: str, option: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise _usage(f"{option}: expected WIDTHxHEIGHT such as 320x240, got {text!r}") from None
+    if w <= 0 or h <= 0 or w % 16 or h % 16:
+        raise _usage(f"{option}: expected positive multiples of 16, got {text!r}")
+    return w, h
+
+
+def cmd_train_detector(args: argparse.Namespace) -> int:
+    from vcfusion.vision.detector_net import DetectorFileError
+    from vcfusion.vision.detector_train import train_detector
+
+    input_wh = parse_size(args.input_size, "--input-size")
+    for name in ("epochs", "batch_size"):
+        if getattr(args, name) < 1:
+            raise _usage(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(args, name)}")
+    try:
+        net, report = train_detector(
+            args.data, args.out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, input_wh=input_wh,
+            val_fraction=args.val_fraction, val_data=args.val, seed=args.seed, threads=args.threads,
+            device=args.device, progress=sys.stderr.isatty(), max_iterations=args.iterations,
+            min_train_area=args.min_train_area, eval_min_area=args.min_area)
+    except DetectorFileError as exc:
+        raise _usage(str(exc)) from None
+    size_mb = Path(args.out).stat().st_size / 2**20
+    print(f"trained {report.iterations} iterations ({report.epochs} epochs) on {report.n_train} images "
+          f"in {report.wall_s:.0f} s; loss {report.first_losses[0]:.3f} -> {report.loss_history[-1]:.3f}")
+    if report.val is not None:
+        print(f"held-out ({report.n_val} images, boxes >= {args.min_area:g} px^2): mAP@0.5 {report.val.map_50:.3f}  mAP@0.5:0.95 {report.val.map_50_95:.3f}")
+    print(f"weights: {args.out} ({size_mb:.1f} MB)")
+    return 0
+
+
+def _make_detector(args):
+    from vcfusion.vision.detector_net import DetectorFileError, OnnxDetector, TorchDetector, default_weights_path
+
+    try:
+        if args.onnx:
+            if not args.classes:
+                raise _usage("--classes: expected the category ids of the ONNX model's score columns, e.g. 1,2")
+            class_ids = [int(c) for c in args.classes.split(",")]
+            return OnnxDetector(args.onnx, parse_size(args.input_size, "--input-size"), class_ids,
+                                scale=args.scale, objectness=args.objectness, letterbox=args.letterbox)
+        return TorchDetector(args.weights or default_weights_path())
+    except DetectorFileError as exc:
+        raise _usage(str(exc)) from None
+
+
+def cmd_eval_detector(args: argparse.Namespace) -> int:
+    from vcfusion.vision.detector_net import DetectorFileError
+    from vcfusion.vision.detector_train import evaluate_detector, load_coco_many
+
+    detector = _make_detector(args)
+    try:
+        ds = load_coco_many(args.data)
+        result = evaluate_detector(detector, ds, progress=sys.stderr.isatty(), min_area=args.min_area)
+    except DetectorFileError as exc:
+        raise _usage(str(exc)) from None
+    print(f"{' '.join(args.data)}: {len(ds)} images (boxes >= {args.min_area:g} px^2)  mAP@0.5 {result.map_50:.3f}  mAP@0.5:0.95 {result.map_50_95:.3f}")
+    for cid, name in zip(ds.class_ids, ds.class_names):
+        if cid in result.ap_per_category:
+            print(f"  {name}: AP@0.5:0.95 {result.ap_per_category[cid]:.3f}")
+    return 0
+
+
+def cmd_export_onnx(args: argparse.Namespace) -> int:
+    from vcfusion.vision.detector_net import DetectorFileError, DetectorModel, default_weights_path, export_onnx
+
+    try:
+        import onnx  # noqa: F401 - torch's exporter needs it
+    except ImportError:
+        raise _usage("export-onnx: needs the onnx package (pip install onnx, or the project's dev extra)") from None
+    try:
+        net = DetectorModel.load(args.weights or default_weights_path())
+    except DetectorFileError as exc:
+        raise _usage(str(exc)) from None
+    out = export_onnx(net, args.out)
+    w, h = net.input_wh
+    ids = ",".join(str(c) for c in net.class_ids)
+    print(f"wrote {out}: input images (1, 3, {h}, {w}) RGB 0..255, output detections (1, N, 4 + {len(ids.split(','))})")
+    print(f"use it with: vcfusion eval-detector DATA --onnx {out} --input-size {w}x{h} --classes {ids}")
+    return 0
+
+
+def add_parsers(sub) -> None:
+    """The vision subcommands, added to the `vcfusion` parser."""
+    p = sub.add_parser("train-detector", help="train the CNN detector on a COCO dataset folder")
+    p.add_argument("data", nargs="+", help="COCO folder(s): images + annotations.json (e.g. renders of several scenarios)")
+    p.add_argument("--out", required=True, help="weights file to write (e.g. src/vcfusion/assets/detector.pt)")
+    p.add_argument("--val", nargs="+", help="held-out COCO folder(s) (e.g. other seeds); default: --val-fraction of DATA")
+    p.add_argument("--val-fraction", type=float, default=0.1)
+    p.add_argument("--epochs", type=int, default=20)
+    p.add_argument("--iterations", type=int, default=None, help="stop after this many iterations")
+    p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--input-size", default="320x240", help="network input WIDTHxHEIGHT (multiples of 16)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    p.add_argument("--min-train-area", type=float, default=16.0, help="train only on boxes of at least this many px^2")
+    p.add_argument("--min-area", type=float, default=100.0,
+                   help="held-out mAP ignores ground truth below this many px^2 (COCOeval area range)")
+    p.set_defaults(func=cmd_train_detector)
+
+    for name, func, helptext in (("eval-detector", cmd_eval_detector, "COCO mAP of a detector on a dataset folder"),):
+        p = sub.add_parser(name, help=helptext)
+        p.add_argument("data", nargs="+", help="COCO folder(s)")
+        p.add_argument("--weights", help="our weights file (default: the shipped detector)")
+        p.add_argument("--onnx", help="an ONNX detector run through OpenCV DNN instead")
+        p.add_argument("--input-size", default="320x240", help="ONNX input WIDTHxHEIGHT")
+        p.add_argument("--classes", help="ONNX: category ids of the score columns, e.g. 1,2")
+        p.add_argument("--scale", type=float, default=1.0, help="ONNX: input scale (1/255 for most YOLO exports)")
+        p.add_argument("--objectness", action="store_true", help="ONNX: output has an objectness column (YOLOv5)")
+        p.add_argument("--letterbox", action="store_true", help="ONNX: letterbox instead of stretch")
+        p.add_argument("--min-area", type=float, default=100.0,
+                       help="ignore ground truth below this many px^2 (COCOeval area range; 0 = all)")
+        p.set_defaults(func=func)
+
+    p = sub.add_parser("export-onnx", help="export our detector to ONNX (the layout OnnxDetector reads)")
+    p.add_argument("--weights", help="weights file (default: the shipped detector)")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=cmd_export_onnx)
+
+
+
+def _float_list(text: str, option: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise _usage(f"{option}: expected comma-separated numbers such as 0,0.1,0.5, got {text!r}") from None
+    if not values or any(v < 0 for v in values):
+        raise _usage(f"{option}: expected non-negative numbers, got {text!r}")
+    return values
+
+
+def cmd_study_identification(args: argparse.Namespace) -> int:
+    from vcfusion.scenario import load_scenario
+    from vcfusion.studies.batch import parse_seeds
+    from vcfusion.vision.detector_net import DetectorFileError, TorchDetector, default_weights_path
+    from vcfusion.vision.detectors import OracleDetector
+    from vcfusion.vision.identification import default_conditions, run_identification_study, summary_lines
+    from vcfusion.vision.stage import RenderedFrameSources, depth_params
+
+    scenario = load_scenario(args.scenario)
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError as exc:
+        raise _usage(str(exc)) from None
+    conditions = default_conditions(_float_list(args.latencies, "--latencies"), _float_list(args.noises, "--noises"))
+    detectors = {}
+    for name in (d.strip() for d in args.detectors.split(",")):
+        if name == "oracle":
+            detectors[name] = OracleDetector()
+        elif name == "cnn":
+            try:
+                detectors[name] = TorchDetector(args.weights or default_weights_path())
+            except DetectorFileError as exc:
+                raise _usage(f"--weights: {exc}") from None
+        else:
+            raise _usage(f"--detectors: expected names among oracle, cnn; got {name!r}")
+    if scenario.ego is None:
+        raise _usage(f"{args.scenario}: ego: the camera rides on the ego; the scenario has no ego block")
+    out = Path(args.out)
+    sources = RenderedFrameSources()
+    try:
+        rows = run_identification_study(scenario, seeds, sources, detectors, out, conditions,
+                                        depth_params=depth_params(scenario), min_gt_area_px=args.min_area,
+                                        fallback_radius_px=args.anchor_radius, progress=sys.stderr.isatty())
+    finally:
+        sources.close()
+    n_targets = rows[(rows["latency_s"] == 0) & (rows["gnss_noise_m"] == 0)].groupby(["detector", "method"]).size()
+    print(f"identification study {scenario.name}, seeds {args.seeds}: "
+          f"{int(n_targets.min()) if len(n_targets) else 0} target-frames per detector and method (clean V2C)")
+    for line in summary_lines(rows, 0.7):
+        print(line)
+    print(f"outputs: {out}/identification_*.csv, *.png, identification_rows.parquet")
+    return 0
+
+
+def add_study_parser(ssub) -> None:
+    """`vcfusion study identification ...`, added to the subcommands of `vcfusion study`."""
+    p = ssub.add_parser("identification", help="target identification accuracy (paper Fig. 4) vs latency, noise")
+    p.add_argument("scenario")
+    p.add_argument("--seeds", required=True, help="e.g. 0-19")
+    p.add_argument("--out", default="renders/identification")
+    p.add_argument("--detectors", default="oracle,cnn", help="comma-separated: oracle, cnn")
+    p.add_argument("--weights", help="cnn weights (default: the shipped detector)")
+    p.add_argument("--latencies", default="0,0.1,0.2,0.3,0.5", help="V2C latencies (s), at zero noise")
+    p.add_argument("--noises", default="0,0.5,1,2", help="GNSS noise std (m), at zero latency")
+    p.add_argument("--min-area", type=float, default=100.0, help="smallest ground-truth box (px^2) counted as a target")
+    p.add_argument("--anchor-radius", type=float, default=None,
+                   help="baseline and paper: with no box containing the anchor, take the nearest box within "
+                        "this many pixels (default: off, the paper's rule)")
+    p.set_defaults(func=cmd_study_identification)

@@ -1,0 +1,297 @@
+"""Our learned single-stage detector (CenterNet-style, anchor-free) and the ONNX loader.
+
+Network (:class:`CenterNetLite`): a small strided CNN (strides 2-16) with a top-down path back to
+stride 4, and three heads at stride 4: a per-class centre heatmap, the box size (log of width and
+height in stride-4 cells) and the sub-cell centre offset. The input normalisation is inside the
+network, so it takes RGB float 0..255 (N, 3, H, W) with H and W multiples of 16.
+
+Dense output (what :func:`export_onnx` writes and :class:`OnnxDetector` expects, "yolo" layout):
+one tensor (1, N, 4 + C): per candidate, box centre x, centre y, width, height in network-input
+pixels, then the C class scores in [0, 1]. Our export keeps only local heatmap peaks (3x3 max, the
+CenterNet decoding) and zeroes the other scores, so a threshold plus NMS finishes the job. A YOLO
+export of the usual kind fits the same loader: (1, 4 + C, N) is transposed, and with
+``objectness=True`` the layout (1, N, 5 + C) with an objectness column before the class scores
+(YOLOv5) is accepted.
+
+Training (:func:`train_detector`, ``vcfusion train-detector DATA --out WEIGHTS``) reads a COCO
+dataset folder (RGB PNGs and a COCO JSON with images, annotations (bbox x, y, w, h; category_id)
+and categories), with focal loss on the heatmap and L1 on sizes and offsets, seeded.
+Weights are a torch file holding the state dict and the metadata needed to rebuild the model.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from vcfusion.vision.detectors import Detections, batched_nms
+
+WEIGHTS_FORMAT = "vcfusion-centernet-v1"
+STRIDE = 4
+MEAN, STD = 114.0, 58.0  # input normalisation (0..255 RGB)
+
+
+class DetectorFileError(ValueError):
+    """A dataset or model file that cannot be used; the message names the file and the problem."""
+
+
+# ---------------------------------------------------------------------------------------------
+# network
+
+
+def _conv(cin, cout, stride=1):
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+
+class CenterNetLite(nn.Module):
+    def __init__(self, num_classes: int, widths: tuple[int, int, int, int] = (16, 32, 64, 128), head: int = 64):
+        super().__init__()
+        w1, w2, w3, w4 = widths
+        self.num_classes = num_classes
+        self.s2 = nn.Sequential(_conv(3, w1, 2), _conv(w1, w1))
+        self.s4 = nn.Sequential(_conv(w1, w2, 2), _conv(w2, w2))
+        self.s8 = nn.Sequential(_conv(w2, w3, 2), _conv(w3, w3))
+        self.s16 = nn.Sequential(_conv(w3, w4, 2), _conv(w4, w4), _conv(w4, w4))
+        self.lat8 = nn.Conv2d(w3, head, 1)
+        self.top16 = nn.Conv2d(w4, head, 1)
+        self.lat4 = nn.Conv2d(w2, head, 1)
+        self.fuse8 = _conv(head, head)
+        self.fuse4 = _conv(head, head)
+        self.hm = nn.Sequential(_conv(head, head), nn.Conv2d(head, num_classes, 1))
+        self.size = nn.Sequential(_conv(head, head), nn.Conv2d(head, 2, 1))
+        self.offset = nn.Sequential(_conv(head, head), nn.Conv2d(head, 2, 1))
+        # start the heatmap near the prior of a rare centre (CenterNet's -2.19 = logit(0.1))
+        nn.init.constant_(self.hm[-1].bias, -2.19)
+
+    def forward(self, x):
+        x = (x - MEAN) / STD
+        f4 = self.s4(self.s2(x))
+        f8 = self.s8(f4)
+        f16 = self.s16(f8)
+        p8 = self.fuse8(self.lat8(f8) + F.interpolate(self.top16(f16), scale_factor=2.0, mode="nearest"))
+        p4 = self.fuse4(self.lat4(f4) + F.interpolate(p8, scale_factor=2.0, mode="nearest"))
+        return self.hm(p4), self.size(p4), self.offset(p4)
+
+
+def decode_dense(hm_logits, log_size, offset) -> torch.Tensor:
+    """(B, N, 4 + C): cx, cy, w, h in input pixels, then peak-only class scores."""
+    b, c, h, w = hm_logits.shape
+    heat = torch.sigmoid(hm_logits)
+    peaks = (F.max_pool2d(heat, 3, 1, 1) == heat).to(heat.dtype)
+    scores = heat * peaks
+    ys = torch.arange(h, dtype=heat.dtype).view(1, h, 1).expand(1, h, w)
+    xs = torch.arange(w, dtype=heat.dtype).view(1, 1, w).expand(1, h, w)
+    cx = (xs + offset[:, 0]) * STRIDE
+    cy = (ys + offset[:, 1]) * STRIDE
+    bw = torch.exp(log_size[:, 0]) * STRIDE
+    bh = torch.exp(log_size[:, 1]) * STRIDE
+    boxes = torch.stack([cx, cy, bw, bh], dim=1)  # (B, 4, h, w)
+    dense = torch.cat([boxes, scores], dim=1).reshape(b, 4 + c, h * w)
+    return dense.transpose(1, 2)
+
+
+class _DenseExport(nn.Module):
+    def __init__(self, model: CenterNetLite):
+        super().__init__()
+        self.model = model
+
+    def forward(self, x):
+        return decode_dense(*self.model(x))
+
+
+# ---------------------------------------------------------------------------------------------
+# shared pre/post-processing
+
+
+@dataclass(frozen=True)
+class PostParams:
+    score_threshold: float = 0.3
+    nms_iou: float = 0.7  # high: overlapping vehicles (Fig. 3) must survive; CenterNet peaks do most of it
+    max_detections: int = 100
+
+
+def preprocess(image: np.ndarray, input_wh: tuple[int, int]) -> np.ndarray:
+    """RGB uint8 (H, W, 3) -> float32 (1, 3, h, w), stretched to the network input size."""
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"image: expected RGB (H, W, 3), got shape {image.shape}")
+    resized = cv2.resize(image, input_wh, interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(resized.transpose(2, 0, 1)[None].astype(np.float32))
+
+
+def postprocess(dense: np.ndarray, image_hw: tuple[int, int], input_wh: tuple[int, int], class_ids,
+                params: PostParams, objectness: bool = False) -> Detections:
+    """Dense (N, 4 + C) or (N, 5 + C) rows (cx, cy, w, h in input px) -> detections in image px."""
+    dense = np.asarray(dense, dtype=np.float32)
+    if objectness:
+        cls_scores = dense[:, 5:] * dense[:, 4:5]
+    else:
+        cls_scores = dense[:, 4:]
+    cls = cls_scores.argmax(axis=1)
+    score = cls_scores[np.arange(len(dense)), cls]
+    keep = np.flatnonzero(score >= params.score_threshold)
+    keep = keep[np.argsort(-score[keep], kind="stable")][: 4 * params.max_detections]
+    sx, sy = image_hw[1] / input_wh[0], image_hw[0] / input_wh[1]
+    cx, cy, w, h = (dense[keep, k] for k in range(4))
+    # the network works in pixel-edge coordinates (pixel c spans [c, c + 1), exact under resizing);
+    # detections use the project's pixel-centre convention: minus half a pixel
+    boxes = np.stack([(cx - w / 2) * sx, (cy - h / 2) * sy, (cx + w / 2) * sx, (cy + h / 2) * sy], axis=1) - 0.5
+    boxes[:, [0, 2]] = boxes[:, [0, 2]].clip(-0.5, image_hw[1] - 0.5)
+    boxes[:, [1, 3]] = boxes[:, [1, 3]].clip(-0.5, image_hw[0] - 0.5)
+    classes = np.asarray(class_ids, dtype=np.int64)[cls[keep]]
+    kept = batched_nms(boxes, score[keep], classes, params.nms_iou)[: params.max_detections]
+    return Detections.of(boxes[kept], score[keep][kept], classes[kept])
+
+
+# ---------------------------------------------------------------------------------------------
+# weights files and detectors
+
+
+@dataclass
+class DetectorModel:
+    model: CenterNetLite
+    input_wh: tuple[int, int]
+    class_ids: list[int]
+    class_names: list[str]
+    widths: tuple[int, ...]
+    meta: dict = field(default_factory=dict)
+
+    def save(self, path: Path) -> None:
+        """Atomic: written next to the target and renamed when complete."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        state = {k: v.detach().cpu() for k, v in self.model.state_dict().items()}
+        torch.save({"format": WEIGHTS_FORMAT, "state_dict": state, "input_wh": list(self.input_wh),
+                    "class_ids": self.class_ids, "class_names": self.class_names, "widths": list(self.widths),
+                    "meta": self.meta}, tmp)
+        os.replace(tmp, path)
+
+    @staticmethod
+    def load(path) -> "DetectorModel":
+        path = Path(path)
+        if not path.is_file():
+            raise DetectorFileError(f"{path}: detector weights not found")
+        try:
+            blob = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # noqa: BLE001 - any unreadable file gets the same message
+            raise DetectorFileError(f"{path}: not a vcfusion detector weights file ({exc.__class__.__name__})") from None
+        if not isinstance(blob, dict) or blob.get("format") != WEIGHTS_FORMAT:
+            raise DetectorFileError(f"{path}: format: expected {WEIGHTS_FORMAT!r}")
+        model = CenterNetLite(len(blob["class_ids"]), tuple(blob["widths"][:4]), blob["widths"][4])
+        model.load_state_dict(blob["state_dict"])
+        model.eval()
+        return DetectorModel(model, tuple(blob["input_wh"]), list(blob["class_ids"]), list(blob["class_names"]),
+                             tuple(blob["widths"]), dict(blob.get("meta", {})))
+
+
+class TorchDetector:
+    """Our CNN in torch (CPU by default)."""
+
+    def __init__(self, weights, params: PostParams = PostParams(), device: str = "cpu"):
+        self.net = weights if isinstance(weights, DetectorModel) else DetectorModel.load(weights)
+        self.net.model.to(device).eval()
+        self.device = device
+        self.params = params
+
+    def dense(self, image: np.ndarray) -> np.ndarray:
+        x = torch.from_numpy(preprocess(image, self.net.input_wh)).to(self.device)
+        with torch.inference_mode():
+            return decode_dense(*self.net.model(x))[0].cpu().numpy()
+
+    def detect(self, image: np.ndarray) -> Detections:
+        return postprocess(self.dense(image), image.shape[:2], self.net.input_wh, self.net.class_ids, self.params)
+
+
+def export_onnx(net: DetectorModel, path, opset: int = 17) -> Path:
+    """Write the model with its dense decoding as ONNX (input 'images' (1, 3, h, w) RGB 0..255,
+    output 'detections' (1, N, 4 + C)); atomic. Needs the ``onnx`` package (dev extra)."""
+    import warnings
+
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    w, h = net.input_wh
+    wrapper = _DenseExport(net.model.cpu().eval()).eval()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        # the TorchScript exporter: its graph (Conv, Resize, MaxPool, Exp, Equal) is what OpenCV DNN reads
+        torch.onnx.export(wrapper, torch.zeros(1, 3, h, w), str(tmp), dynamo=False, opset_version=opset,
+                          input_names=["images"], output_names=["detections"])
+    os.replace(tmp, path)
+    return path
+
+
+class OnnxDetector:
+    """A user's ONNX detector run through OpenCV's DNN module.
+
+    Expected model: input (1, 3, h, w) RGB (``scale`` multiplies 0..255 values first, e.g. 1/255 for
+    most YOLO exports); one output in the "yolo" layout documented at the top of this module.
+    ``class_ids`` maps the score columns to category ids. Images are stretched to (w, h), or
+    letterboxed (grey 114 padding, as Ultralytics exports expect) with ``letterbox=True``.
+    """
+
+    def __init__(self, path, input_wh: tuple[int, int], class_ids, params: PostParams = PostParams(),
+                 scale: float = 1.0, objectness: bool = False, letterbox: bool = False):
+        path = Path(path)
+        if not path.is_file():
+            raise DetectorFileError(f"{path}: ONNX model not found")
+        try:
+            self.net = cv2.dnn.readNetFromONNX(str(path))
+        except cv2.error as exc:
+            raise DetectorFileError(f"{path}: OpenCV DNN cannot read this ONNX model: {str(exc).strip()[:200]}") from None
+        self.path = path
+        self.input_wh = tuple(input_wh)
+        self.class_ids = list(class_ids)
+        self.params = params
+        self.scale = scale
+        self.objectness = objectness
+        self.letterbox = letterbox
+
+    def dense(self, image: np.ndarray) -> tuple[np.ndarray, tuple[float, float, float]]:
+        w, h = self.input_wh
+        if self.letterbox:
+            r = min(w / image.shape[1], h / image.shape[0])
+            nw, nh = round(image.shape[1] * r), round(image.shape[0] * r)
+            canvas = np.full((h, w, 3), 114, np.uint8)
+            px, py = (w - nw) // 2, (h - nh) // 2
+            canvas[py:py + nh, px:px + nw] = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA)
+            blob, geom = canvas.transpose(2, 0, 1)[None].astype(np.float32), (r, px, py)
+        else:
+            blob, geom = preprocess(image, self.input_wh), None
+        self.net.setInput(np.ascontiguousarray(blob * self.scale))
+        out = np.asarray(self.net.forward())
+        if out.ndim == 3:
+            out = out[0]
+        if out.ndim != 2:
+            raise DetectorFileError(f"{self.path}: output: expected (1, N, 4 + C) or (1, 4 + C, N), got {out.shape}")
+        width = 4 + len(self.class_ids) + (1 if self.objectness else 0)
+        if out.shape[1] != width and out.shape[0] == width:
+            out = out.T
+        if out.shape[1] != width:
+            raise DetectorFileError(f"{self.path}: output: expected {width} values per candidate "
+                                    f"(4 box + {'1 objectness + ' if self.objectness else ''}{len(self.class_ids)} classes), "
+                                    f"got shape {out.shape}")
+        return out, geom
+
+    def detect(self, image: np.ndarray) -> Detections:
+        dense, geom = self.dense(image)
+        if geom is None:
+            return postprocess(dense, image.shape[:2], self.input_wh, self.class_ids, self.params, self.objectness)
+        r, px, py = geom
+        dense = dense.copy()
+        dense[:, 0] = (dense[:, 0] - px) / r
+        dense[:, 1] = (dense[:, 1] - py) / r  # pixel-edge coordinates of the image
+        dense[:, 2:4] /= r
+        ih, iw = image.shape[:2]
+        return postprocess(dense, (ih, iw), (iw, ih), self.class_ids, self.params, self.objectness)
+
+
+def default_weights_path() -> Path:
+    """The shipped detector (package data), trained by the command in docs/architecture.md."""
+    return Path(__file__).resolve().parent.parent / "assets" / "detector.pt"

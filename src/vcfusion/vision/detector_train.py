@@ -1,0 +1,328 @@
+"""Training and evaluation of :class:`CenterNetLite` on a COCO-format dataset folder.
+
+A dataset folder holds RGB images (PNG) and one COCO JSON (``annotations.json``, ``coco.json``, or
+the only ``*.json`` in the folder) with ``images`` (id, file_name, width, height),
+``annotations`` (image_id, bbox [x, y, w, h] px, category_id; extra keys such as vehicle_id are
+ignored) and ``categories`` (id, name). Image paths are relative to the folder (or its
+``images/`` subfolder).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from vcfusion.vision.detection_metrics import BoxMap, coco_map
+from vcfusion.vision.detector_net import (STRIDE, CenterNetLite, DetectorFileError, DetectorModel, PostParams,
+                                          TorchDetector)
+
+
+@dataclass
+class CocoDataset:
+    folder: Path
+    images: list[Path]
+    image_ids: list  # COCO image ids (tuples (folder index, id) when folders are combined)
+    boxes: list[np.ndarray]  # per image (G, 4) xyxy px, pixel-centre convention (COCO x - 0.5)
+    classes: list[np.ndarray]  # per image (G,) category ids
+    class_ids: list[int]
+    class_names: list[str]
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def subset(self, index) -> "CocoDataset":
+        index = list(index)
+        return CocoDataset(self.folder, [self.images[i] for i in index], [self.image_ids[i] for i in index],
+                           [self.boxes[i] for i in index], [self.classes[i] for i in index],
+                           self.class_ids, self.class_names)
+
+    def ground_truth(self) -> dict:
+        return {iid: (b, c) for iid, b, c in zip(self.image_ids, self.boxes, self.classes)}
+
+
+def _find_json(folder: Path) -> Path:
+    for name in ("annotations.json", "coco.json"):
+        if (folder / name).is_file():
+            return folder / name
+    found = sorted(folder.glob("*.json"))
+    if len(found) != 1:
+        raise DetectorFileError(f"{folder}: expected annotations.json, coco.json or exactly one *.json COCO file, "
+                                f"found {len(found)} json files")
+    return found[0]
+
+
+def load_coco(folder) -> CocoDataset:
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DetectorFileError(f"{folder}: dataset folder not found")
+    path = _find_json(folder)
+    try:
+        coco = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise DetectorFileError(f"{path}: not valid JSON: {exc}") from None
+    for key in ("images", "annotations", "categories"):
+        if not isinstance(coco.get(key), list):
+            raise DetectorFileError(f"{path}: {key}: expected a list")
+    cats = sorted(coco["categories"], key=lambda c: c["id"])
+    if not cats:
+        raise DetectorFileError(f"{path}: categories: expected at least one category")
+    class_ids = [int(c["id"]) for c in cats]
+    per_image: dict[int, list] = {}
+    for k, ann in enumerate(coco["annotations"]):
+        bbox = ann.get("bbox")
+        if not (isinstance(bbox, list) and len(bbox) == 4) or ann.get("category_id") not in class_ids:
+            raise DetectorFileError(f"{path}: annotations[{k}]: expected bbox [x, y, w, h] and a category_id "
+                                    f"among {class_ids}")
+        x, y, w, h = map(float, bbox)
+        if w > 0 and h > 0:
+            # COCO's pixel c spans [c, c + 1); our boxes put integer coordinates at pixel centres
+            x, y = x - 0.5, y - 0.5
+            per_image.setdefault(int(ann["image_id"]), []).append((x, y, x + w, y + h, int(ann["category_id"])))
+    images, ids, boxes, classes = [], [], [], []
+    for k, img in enumerate(coco["images"]):
+        name = img.get("file_name")
+        if not name or "id" not in img:
+            raise DetectorFileError(f"{path}: images[{k}]: expected id and file_name")
+        file = folder / name if (folder / name).is_file() else folder / "images" / name
+        if not file.is_file():
+            raise DetectorFileError(f"{path}: images[{k}].file_name: image not found: {name}")
+        rows = np.array(per_image.get(int(img["id"]), []), dtype=np.float64).reshape(-1, 5)
+        images.append(file)
+        ids.append(int(img["id"]))
+        boxes.append(rows[:, :4])
+        classes.append(rows[:, 4].astype(np.int64))
+    if not images:
+        raise DetectorFileError(f"{path}: images: expected at least one image")
+    return CocoDataset(folder, images, ids, boxes, classes, class_ids, [str(c.get("name", c["id"])) for c in cats])
+
+
+def load_coco_many(folders) -> CocoDataset:
+    """Several COCO folders (e.g. renders of several scenarios) as one dataset; same categories."""
+    folders = [folders] if isinstance(folders, (str, Path)) else list(folders)
+    parts = [load_coco(f) for f in folders]
+    first = parts[0]
+    for f, part in zip(folders[1:], parts[1:]):
+        if part.class_ids != first.class_ids:
+            raise DetectorFileError(f"{f}: categories: expected the same category ids as {folders[0]} "
+                                    f"({first.class_ids}), got {part.class_ids}")
+    if len(parts) == 1:
+        return first
+    return CocoDataset(first.folder, [p for d in parts for p in d.images],
+                       [(k, i) for k, d in enumerate(parts) for i in d.image_ids],  # ids unique across folders
+                       [b for d in parts for b in d.boxes], [c for d in parts for c in d.classes],
+                       first.class_ids, first.class_names)
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise DetectorFileError(f"{path}: cannot decode image")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+# ---------------------------------------------------------------------------------------------
+# targets and loss
+
+
+def build_targets(boxes_list, class_index_list, out_hw, num_classes):
+    """Heatmaps (elliptical Gaussians, TTFNet-style sigma = 0.54 * size / 6), log sizes, offsets, mask."""
+    b_n = len(boxes_list)
+    h, w = out_hw
+    heat = np.zeros((b_n, num_classes, h, w), np.float32)
+    size = np.zeros((b_n, 2, h, w), np.float32)
+    offset = np.zeros((b_n, 2, h, w), np.float32)
+    mask = np.zeros((b_n, h, w), np.float32)
+    ys, xs = np.mgrid[0:h, 0:w]
+    for b, (boxes, cls) in enumerate(zip(boxes_list, class_index_list)):
+        if len(boxes) == 0:
+            continue
+        order = np.argsort(-(boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1]))  # small boxes win a cell
+        for k in order:
+            x1, y1, x2, y2 = boxes[k] / STRIDE
+            bw, bh = max(x2 - x1, 1e-2), max(y2 - y1, 1e-2)
+            cx, cy = (x1 + x2) / 2, (y1 + y2) / 2
+            ix, iy = min(max(int(cx), 0), w - 1), min(max(int(cy), 0), h - 1)
+            sx, sy = max(0.54 * bw / 6, 0.4), max(0.54 * bh / 6, 0.4)
+            g = np.exp(-((xs - ix) ** 2) / (2 * sx * sx) - ((ys - iy) ** 2) / (2 * sy * sy))
+            heat[b, cls[k]] = np.maximum(heat[b, cls[k]], g)
+            heat[b, cls[k], iy, ix] = 1.0
+            size[b, :, iy, ix] = (math.log(bw), math.log(bh))
+            offset[b, :, iy, ix] = (cx - ix, cy - iy)
+            mask[b, iy, ix] = 1.0
+    return heat, size, offset, mask
+
+
+def detection_loss(outputs, targets) -> tuple[torch.Tensor, dict]:
+    hm_logits, log_size, off = outputs
+    heat, size, offset, mask = targets
+    pred = torch.sigmoid(hm_logits).clamp(1e-4, 1 - 1e-4)
+    pos = heat.eq(1.0).float()
+    n_pos = pos.sum().clamp(min=1.0)
+    focal = -(torch.log(pred) * (1 - pred) ** 2 * pos
+              + torch.log(1 - pred) * pred ** 2 * (1 - heat) ** 4 * (1 - pos)).sum() / n_pos
+    m = mask.unsqueeze(1)
+    n_obj = mask.sum().clamp(min=1.0)
+    size_l1 = (F.l1_loss(log_size, size, reduction="none") * m).sum() / n_obj
+    off_l1 = (F.l1_loss(off, offset, reduction="none") * m).sum() / n_obj
+    total = focal + size_l1 + off_l1
+    return total, {"heatmap": float(focal.detach()), "size": float(size_l1.detach()), "offset": float(off_l1.detach())}
+
+
+# ---------------------------------------------------------------------------------------------
+# training
+
+
+@dataclass
+class TrainReport:
+    epochs: int
+    iterations: int
+    loss_history: list[float]  # mean loss per epoch
+    first_losses: list[float]  # the first iterations' losses (to show the decrease)
+    val: BoxMap | None
+    wall_s: float
+    n_train: int
+    n_val: int
+
+
+def _cache(ds: CocoDataset, input_wh, desc: str, progress: bool):
+    """Images resized to the network input (uint8) and their boxes in input pixels."""
+    images, boxes = [], []
+    for path, b in tqdm(list(zip(ds.images, ds.boxes)), desc=desc, unit="img", disable=not progress, leave=False):
+        rgb = read_rgb(path)
+        sx, sy = input_wh[0] / rgb.shape[1], input_wh[1] / rgb.shape[0]
+        images.append(cv2.resize(rgb, tuple(input_wh), interpolation=cv2.INTER_AREA))
+        boxes.append((b + 0.5) * np.array([sx, sy, sx, sy]))  # pixel-edge coordinates of the network input
+    return np.stack(images), boxes
+
+
+def _pick_device(device: str) -> str:
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return device
+
+
+def train_detector(
+    data, out=None, *, epochs: int = 20, batch_size: int = 16, lr: float = 2e-3,
+    input_wh: tuple[int, int] = (320, 240), widths: tuple[int, ...] = (16, 32, 64, 128, 64),
+    val_fraction: float = 0.1, val_data=None, seed: int = 0, threads: int = 2, device: str = "auto",
+    progress: bool = True, max_iterations: int | None = None, min_train_area: float = 16.0,
+    eval_min_area: float = 100.0,
+) -> tuple[DetectorModel, TrainReport]:
+    """Train on the COCO folder(s) ``data``; write the weights atomically to ``out`` if given."""
+    if input_wh[0] % 16 or input_wh[1] % 16:
+        raise ValueError(f"input size: expected width and height multiples of 16, got {input_wh}")
+    started = time.perf_counter()
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    if threads:
+        torch.set_num_threads(threads)
+    device = _pick_device(device)
+    ds = load_coco_many(data)
+    if val_data is not None:
+        train_ds, val_ds = ds, load_coco_many(val_data)
+        if val_ds.class_ids != ds.class_ids:
+            raise DetectorFileError(f"{val_data}: categories: expected the training categories {ds.class_ids}")
+    elif val_fraction > 0 and len(ds) >= 5:
+        perm = rng.permutation(len(ds))
+        n_val = max(1, int(round(val_fraction * len(ds))))
+        train_ds, val_ds = ds.subset(sorted(perm[n_val:])), ds.subset(sorted(perm[:n_val]))
+    else:
+        train_ds, val_ds = ds, None
+    cls_index = {c: k for k, c in enumerate(ds.class_ids)}
+    # boxes of a few pixels (far away or nearly hidden vehicles) are not learnable targets
+    keep = [(b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1]) >= min_train_area for b in train_ds.boxes]
+    train_ds = CocoDataset(train_ds.folder, train_ds.images, train_ds.image_ids,
+                           [b[k] for b, k in zip(train_ds.boxes, keep)], [c[k] for c, k in zip(train_ds.classes, keep)],
+                           train_ds.class_ids, train_ds.class_names)
+    images, boxes = _cache(train_ds, input_wh, "load train", progress)
+    classes = [np.array([cls_index[int(c)] for c in cs], np.int64) for cs in train_ds.classes]
+
+    model = CenterNetLite(len(ds.class_ids), tuple(widths[:4]), widths[4]).to(device)
+    n = len(images)
+    steps_per_epoch = max(1, math.ceil(n / batch_size))
+    total_steps = epochs * steps_per_epoch if max_iterations is None else min(max_iterations, epochs * steps_per_epoch)
+    opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=total_steps, pct_start=0.15)
+    out_hw = (input_wh[1] // STRIDE, input_wh[0] // STRIDE)
+    history, first, step = [], [], 0
+    bar = tqdm(total=total_steps, desc="train detector", unit="it", disable=not progress)
+    model.train()
+    for _epoch in range(epochs):
+        perm = rng.permutation(n)
+        losses = []
+        for k in range(0, n, batch_size):
+            if step >= total_steps:
+                break
+            idx = perm[k:k + batch_size]
+            batch = images[idx].astype(np.float32)
+            b_boxes = [boxes[i].copy() for i in idx]
+            b_cls = [classes[i] for i in idx]
+            # augmentation: horizontal flip, brightness/contrast
+            flip = rng.random(len(idx)) < 0.5
+            batch[flip] = batch[flip, :, ::-1]
+            for j in np.flatnonzero(flip):
+                b_boxes[j][:, [0, 2]] = input_wh[0] - b_boxes[j][:, [2, 0]]
+            gain = rng.uniform(0.7, 1.3, (len(idx), 1, 1, 1))
+            bias = rng.uniform(-25, 25, (len(idx), 1, 1, 1))
+            batch = np.clip(batch * gain + bias, 0, 255)
+            x = torch.from_numpy(np.ascontiguousarray(batch.transpose(0, 3, 1, 2), dtype=np.float32)).to(device)
+            targets = [torch.from_numpy(t).to(device) for t in build_targets(b_boxes, b_cls, out_hw, len(ds.class_ids))]
+            loss, parts = detection_loss(model(x), targets)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+            opt.step()
+            sched.step()
+            step += 1
+            losses.append(loss.item())
+            if len(first) < 10:
+                first.append(losses[-1])
+            bar.update(1)
+            bar.set_postfix(loss=f"{losses[-1]:.3f}")
+        if losses:
+            history.append(float(np.mean(losses)))
+        if step >= total_steps:
+            break
+    bar.close()
+    model.eval().cpu()
+    net = DetectorModel(model, tuple(input_wh), ds.class_ids, ds.class_names, tuple(widths))
+    val = (evaluate_detector(TorchDetector(net), val_ds, progress=progress, min_area=eval_min_area)
+           if val_ds is not None else None)
+    report = TrainReport(len(history), step, history, first, val, time.perf_counter() - started,
+                         len(train_ds), 0 if val_ds is None else len(val_ds))
+    data_list = [data] if isinstance(data, (str, Path)) else list(data)
+    net.meta = {"train_data": [str(Path(d).resolve()) for d in data_list], "epochs": report.epochs, "iterations": step,
+                "seed": seed, "final_loss": history[-1] if history else None, "n_train": report.n_train,
+                "min_train_area": min_train_area, "eval_min_area": eval_min_area,
+                "n_val": report.n_val, "val_map_50": None if val is None else val.map_50,
+                "val_map_50_95": None if val is None else val.map_50_95}
+    if out is not None:
+        net.save(Path(out))
+    return net, report
+
+
+def evaluate_detector(detector, ds: CocoDataset, progress: bool = False, min_area: float = 0.0) -> BoxMap:
+    """COCO mAP of a detector on a dataset (score threshold lowered to 0.01 as for COCO evaluation);
+    ground truth smaller than ``min_area`` px^2 is ignored as COCOeval's area range does."""
+    if hasattr(detector, "params"):
+        saved = detector.params
+        detector.params = PostParams(score_threshold=0.01, nms_iou=saved.nms_iou, max_detections=100)
+    try:
+        dets = {}
+        for iid, path in tqdm(list(zip(ds.image_ids, ds.images)), desc="evaluate", unit="img",
+                              disable=not progress, leave=False):
+            d = detector.detect(read_rgb(path))
+            dets[iid] = (d.boxes, d.scores, d.classes)
+    finally:
+        if hasattr(detector, "params"):
+            detector.params = saved
+    return coco_map(ds.ground_truth(), dets, min_area=min_area)

@@ -1,0 +1,399 @@
+"""Which detected box belongs to which cloud twin.
+
+Three matchers, from the paper's baseline to its future work:
+
+- :func:`match_baseline` (RGB camera only): the boxes that contain the twin's anchor point (its GNSS
+  antenna projected into the image, eq. 1-3); one -> that box; several -> the box whose centre is
+  nearest the anchor (the paper does not say how its RGB-only baseline breaks ties; the nearest
+  centre is the natural image-only rule); none -> no match.
+- :func:`match_paper` (Algorithm 2, RGB + depth): the same candidates; one -> that box; several -> the
+  box whose depth distance (Algorithm 1) differs least, in absolute value, from the distance the
+  GNSS position gives; none -> no match (the paper is silent; we return ``None``). Candidates without
+  a valid depth (``nan``) are skipped; if no candidate has one, the baseline rule decides.
+  Both take an optional ``fallback_radius_px`` (off by default): with no containing box, the box
+  whose edge is nearest the anchor within that radius is taken.
+- :class:`JointMatcher` (better): all twins in view are assigned to boxes at once (Hungarian,
+  ``scipy.optimize.linear_sum_assignment``) on a cost built from
+  (a) the overlap between the box and the twin's expected box (its 3-D cuboid from the cloud's
+      position, heading, length, width, height, projected into the image),
+  (b) the anchor-to-box distance, and
+  (c) the disagreement between the box's depth and the expected depth of the vehicle face the
+      camera sees (GNSS antenna = roof centre; the depth samples lie on the rear (or front) face,
+      half a vehicle length nearer),
+  with gates on overlap and depth. Before that, each twin's cloud state is extrapolated from the
+  time it was measured to the camera's timestamp (latency compensation, constant velocity along
+  the heading).
+
+Boxes are (N, 4) float arrays x1, y1, x2, y2 in pixels; anchors are (u, v) pixels.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from vcfusion.records import TwinStates
+
+NO_MATCH = -1
+DEPTH_QUANTILES = (0.1, 0.3, 0.5, 0.7, 0.9)
+
+
+# ---------------------------------------------------------------------------------------------
+# box geometry
+
+
+def as_boxes(boxes) -> np.ndarray:
+    b = np.asarray(boxes, dtype=np.float64)
+    if b.size == 0:
+        return np.zeros((0, 4))
+    if b.ndim != 2 or b.shape[1] != 4:
+        raise ValueError(f"boxes: expected an (N, 4) array of x1, y1, x2, y2, got shape {b.shape}")
+    return b
+
+
+def point_in_boxes(point, boxes) -> np.ndarray:
+    """Mask of the boxes that contain the point (edges included)."""
+    b = as_boxes(boxes)
+    u, v = float(point[0]), float(point[1])
+    return (b[:, 0] <= u) & (u <= b[:, 2]) & (b[:, 1] <= v) & (v <= b[:, 3])
+
+
+def point_to_box_distance(point, boxes) -> np.ndarray:
+    """Pixel distance from the point to each box (0 inside)."""
+    b = as_boxes(boxes)
+    u, v = float(point[0]), float(point[1])
+    dx = np.maximum.reduce([b[:, 0] - u, np.zeros(len(b)), u - b[:, 2]])
+    dy = np.maximum.reduce([b[:, 1] - v, np.zeros(len(b)), v - b[:, 3]])
+    return np.hypot(dx, dy)
+
+
+def box_iou(a, b) -> np.ndarray:
+    """Pairwise IoU, (len(a), len(b))."""
+    a, b = as_boxes(a), as_boxes(b)
+    ix1 = np.maximum(a[:, None, 0], b[None, :, 0])
+    iy1 = np.maximum(a[:, None, 1], b[None, :, 1])
+    ix2 = np.minimum(a[:, None, 2], b[None, :, 2])
+    iy2 = np.minimum(a[:, None, 3], b[None, :, 3])
+    inter = np.clip(ix2 - ix1, 0, None) * np.clip(iy2 - iy1, 0, None)
+    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
+    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+    union = area_a[:, None] + area_b[None, :] - inter
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(union > 0, inter / union, 0.0)
+
+
+def _fallback(anchor, boxes: np.ndarray, radius_px: float | None) -> int | None:
+    if radius_px is None or len(boxes) == 0:
+        return None
+    dist = point_to_box_distance(anchor, boxes)
+    best = int(np.argmin(dist))
+    return best if dist[best] <= radius_px else None
+
+
+def _nearest_centre(anchor, boxes: np.ndarray, candidates: np.ndarray) -> int:
+    centres = np.stack([(boxes[candidates, 0] + boxes[candidates, 2]) / 2,
+                        (boxes[candidates, 1] + boxes[candidates, 3]) / 2], axis=1)
+    d = np.hypot(centres[:, 0] - anchor[0], centres[:, 1] - anchor[1])
+    return int(candidates[int(np.argmin(d))])
+
+
+# ---------------------------------------------------------------------------------------------
+# the paper's matchers (one twin at a time)
+
+
+def match_baseline(anchor, boxes, fallback_radius_px: float | None = None) -> int | None:
+    """RGB-only baseline: index of the chosen box, or None."""
+    b = as_boxes(boxes)
+    candidates = np.flatnonzero(point_in_boxes(anchor, b))
+    if len(candidates) == 0:
+        return _fallback(anchor, b, fallback_radius_px)
+    if len(candidates) == 1:
+        return int(candidates[0])
+    return _nearest_centre(anchor, b, candidates)
+
+
+def match_paper(anchor, boxes, box_depths, gnss_distance: float,
+                fallback_radius_px: float | None = None) -> int | None:
+    """Algorithm 2 (distance matching): index of the chosen box, or None.
+
+    ``box_depths`` are the distances of Algorithm 1 (aligned with ``boxes``); ``gnss_distance`` is
+    the twin's distance from the camera given by its GNSS position (``D_g``).
+    """
+    b = as_boxes(boxes)
+    depths = np.asarray(box_depths, dtype=np.float64).reshape(-1)
+    if len(depths) != len(b):
+        raise ValueError(f"box_depths: expected one distance per box ({len(b)}), got {len(depths)}")
+    candidates = np.flatnonzero(point_in_boxes(anchor, b))
+    if len(candidates) == 0:
+        return _fallback(anchor, b, fallback_radius_px)
+    if len(candidates) == 1:
+        return int(candidates[0])
+    diff = np.abs(depths[candidates] - gnss_distance)
+    if not np.isfinite(diff).any():
+        return _nearest_centre(anchor, b, candidates)
+    return int(candidates[int(np.nanargmin(diff))])
+
+
+# ---------------------------------------------------------------------------------------------
+# camera and twin geometry
+
+
+@dataclass(frozen=True)
+class CameraView:
+    """What the matchers need to know of the camera at one frame.
+
+    ``project`` maps world points (N, 3) to pixels (N, 2) and camera-Z depths (N,) (OpenCV camera
+    frame: x right, y down, z forward); the renderer's camera model supplies it.
+    """
+
+    project: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+    position: np.ndarray  # camera centre in the world frame (3,)
+    width: int
+    height: int
+    time: float  # timestamp of the image (s, simulation clock)
+
+
+@dataclass(frozen=True)
+class TwinProjection:
+    """Each twin as the camera would see it (aligned with the twins' ids)."""
+
+    anchor: np.ndarray  # (N, 2) GNSS antenna projected, px
+    anchor_z: np.ndarray  # (N,) camera-Z of the antenna, m
+    gnss_range: np.ndarray  # (N,) Euclidean camera-to-antenna distance, m (the paper's D_g)
+    expected_box: np.ndarray  # (N, 4) projected cuboid, clipped to the image
+    face_z: np.ndarray  # (N,) camera-Z of the face nearest the camera (what depth sees), m
+    in_view: np.ndarray  # (N,) bool: in front of the camera and overlapping the image
+
+
+def extrapolate_twins(twins: TwinStates, to_time: float, use_accel: bool = False) -> TwinStates:
+    """Each twin moved from its ``measured_time`` to ``to_time`` along its heading.
+
+    Constant speed by default (position + speed * heading * dt); with ``use_accel`` the reported
+    acceleration is added (speed not allowed to turn negative).
+    """
+    dt = to_time - np.asarray(twins.measured_time, dtype=np.float64)
+    speed = np.asarray(twins.speed, dtype=np.float64)
+    if use_accel:
+        accel = np.asarray(twins.accel, dtype=np.float64)
+        # stop at zero speed rather than drive backwards
+        t_stop = np.where(accel < 0, np.minimum(dt, -speed / np.where(accel < 0, accel, -1.0)), dt)
+        travel = speed * t_stop + 0.5 * accel * t_stop**2
+    else:
+        travel = speed * dt
+    heading = np.asarray(twins.heading, dtype=np.float64)
+    return replace(
+        twins,
+        x=np.asarray(twins.x) + travel * np.cos(heading),
+        y=np.asarray(twins.y) + travel * np.sin(heading),
+        measured_time=np.full(len(twins), float(to_time)),
+    )
+
+
+def cuboid_corners(x, y, z_ground, heading, length, width, height) -> np.ndarray:
+    """World corners (N, 8, 3) of each vehicle's box; (x, y, z_ground) is the footprint centre."""
+    c, s = np.cos(heading), np.sin(heading)
+    signs = np.array([[sl, sw, sh] for sl in (-0.5, 0.5) for sw in (-0.5, 0.5) for sh in (0.0, 1.0)])
+    dl = signs[None, :, 0] * np.asarray(length)[:, None]
+    dw = signs[None, :, 1] * np.asarray(width)[:, None]
+    dz = signs[None, :, 2] * np.asarray(height)[:, None]
+    cx = np.asarray(x)[:, None] + dl * c[:, None] - dw * s[:, None]
+    cy = np.asarray(y)[:, None] + dl * s[:, None] + dw * c[:, None]
+    cz = np.asarray(z_ground)[:, None] + dz
+    return np.stack([cx, cy, cz], axis=-1)
+
+
+def project_twins(twins: TwinStates, camera: CameraView, min_z: float = 0.5) -> TwinProjection:
+    """Anchors, GNSS distances, expected boxes and expected face depths of the twins."""
+    n = len(twins)
+    antenna = np.stack([twins.x, twins.y, twins.z], axis=1).astype(np.float64)
+    if n == 0:
+        z0 = np.zeros(0)
+        return TwinProjection(np.zeros((0, 2)), z0, z0, np.zeros((0, 4)), z0, np.zeros(0, bool))
+    anchor, anchor_z = camera.project(antenna)
+    gnss_range = np.linalg.norm(antenna - np.asarray(camera.position)[None, :], axis=1)
+    height = np.asarray(twins.height, dtype=np.float64)
+    length = np.asarray(twins.length, dtype=np.float64)
+    heading = np.asarray(twins.heading, dtype=np.float64)
+    ground = antenna - np.stack([np.zeros(n), np.zeros(n), height], axis=1)  # footprint centre
+    corners = cuboid_corners(ground[:, 0], ground[:, 1], ground[:, 2], heading, length,
+                             np.asarray(twins.width, dtype=np.float64), height)
+    uv, cz = camera.project(corners.reshape(-1, 3))
+    uv, cz = uv.reshape(n, 8, 2), cz.reshape(n, 8)
+    in_front = (cz > min_z).all(axis=1) & np.isfinite(uv).all(axis=(1, 2))
+    uv = np.where(in_front[:, None, None], uv, 0.0)  # out-of-view twins get an empty box, never nan
+    box = np.concatenate([uv.min(axis=1), uv.max(axis=1)], axis=1)
+    box[:, [0, 2]] = np.clip(box[:, [0, 2]], 0, camera.width)
+    box[:, [1, 3]] = np.clip(box[:, [1, 3]], 0, camera.height)
+    overlaps = (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
+    # The face the camera sees: the rear if the vehicle drives away from the camera, else the front;
+    # taken a quarter of the height up, where Algorithm 1 samples (lower quarter of the box).
+    direction = np.stack([np.cos(heading), np.sin(heading), np.zeros(n)], axis=1)
+    away = np.einsum("ij,ij->i", direction, ground - np.asarray(camera.position)[None, :]) > 0
+    sign = np.where(away, -1.0, 1.0)
+    face = ground + sign[:, None] * 0.5 * length[:, None] * direction
+    face[:, 2] += 0.25 * height
+    _, face_z = camera.project(face)
+    anchor = np.asarray(anchor, float)
+    in_view = in_front & overlaps & (np.asarray(anchor_z) > min_z) & np.isfinite(anchor).all(axis=1)
+    return TwinProjection(anchor, np.asarray(anchor_z, float), gnss_range, box, np.asarray(face_z, float), in_view)
+
+
+# ---------------------------------------------------------------------------------------------
+# the per-frame drivers for all twins
+
+
+def match_all_baseline(proj: TwinProjection, boxes, fallback_radius_px: float | None = None) -> np.ndarray:
+    """Baseline box index per twin (NO_MATCH where none or out of view)."""
+    out = np.full(len(proj.anchor), NO_MATCH)
+    for i in np.flatnonzero(proj.in_view):
+        j = match_baseline(proj.anchor[i], boxes, fallback_radius_px)
+        out[i] = NO_MATCH if j is None else j
+    return out
+
+
+def match_all_paper(proj: TwinProjection, boxes, box_depths, fallback_radius_px: float | None = None,
+                    gnss_distance: str = "range") -> np.ndarray:
+    """Algorithm 2 box index per twin. ``gnss_distance``: 'range' (Euclidean, the paper's D_g) or 'z'."""
+    dg = proj.gnss_range if gnss_distance == "range" else proj.anchor_z
+    out = np.full(len(proj.anchor), NO_MATCH)
+    for i in np.flatnonzero(proj.in_view):
+        j = match_paper(proj.anchor[i], boxes, box_depths, float(dg[i]), fallback_radius_px)
+        out[i] = NO_MATCH if j is None else j
+    return out
+
+
+class TwinPositionFilter:
+    """Smooths each twin's GNSS position over its reports (the paper's future work: a location
+    estimate that keeps identification accurate under GNSS error).
+
+    Per twin, a fixed-gain (alpha) filter with the reported motion as the prediction: the last
+    estimate is moved by speed * heading * (time between reports), then pulled towards the new
+    report by ``alpha``. The reported heading includes a lane change's lateral motion, so the
+    prediction follows it; the gain only has to remove the white GNSS error (its std shrinks by
+    sqrt(alpha / (2 - alpha)), 0.38 at alpha 0.25). A twin unseen for ``reset_after_s`` or
+    jumping by more than ``reset_jump_m`` starts again from its report. Only x, y are filtered.
+    """
+
+    def __init__(self, alpha: float = 0.25, reset_after_s: float = 1.0, reset_jump_m: float = 8.0):
+        if not 0.0 < alpha <= 1.0:
+            raise ValueError(f"alpha: expected 0 < alpha <= 1, got {alpha}")
+        self.alpha = alpha
+        self.reset_after_s = reset_after_s
+        self.reset_jump_m = reset_jump_m
+        self._state: dict[str, tuple[float, float, float]] = {}  # id -> (measured_time, x, y)
+
+    def update(self, twins: TwinStates) -> TwinStates:
+        x = np.asarray(twins.x, dtype=np.float64).copy()
+        y = np.asarray(twins.y, dtype=np.float64).copy()
+        for i, vid in enumerate(twins.ids):
+            t = float(twins.measured_time[i])
+            prev = self._state.get(vid)
+            if prev is not None and prev[0] == t:  # the same report again: keep its estimate
+                x[i], y[i] = prev[1], prev[2]
+                continue
+            if prev is not None and 0.0 < t - prev[0] <= self.reset_after_s:
+                dt = t - prev[0]
+                px = prev[1] + twins.speed[i] * dt * np.cos(twins.heading[i])
+                py = prev[2] + twins.speed[i] * dt * np.sin(twins.heading[i])
+                if np.hypot(x[i] - px, y[i] - py) <= self.reset_jump_m:
+                    x[i] = px + self.alpha * (x[i] - px)
+                    y[i] = py + self.alpha * (y[i] - py)
+            self._state[vid] = (t, float(x[i]), float(y[i]))
+        return replace(twins, x=x, y=y)
+
+
+@dataclass(frozen=True)
+class JointMatcherParams:
+    latency_compensation: bool = True
+    use_accel: bool = False
+    # GNSS position smoothing over the reports (a stateful filter: one matcher per run); None = off
+    smoothing_alpha: float | None = 0.25
+    face_offset: bool = True  # compare depth to the visible face, not to the antenna
+    w_overlap: float = 1.0  # weight of (1 - IoU(expected box, box))
+    w_anchor: float = 0.5  # weight of the anchor's distance outside the box (in box diagonals)
+    w_depth: float = 1.0  # weight of the depth disagreement (in sigmas, capped at depth_gate)
+    depth_sigma_rel: float = 0.05  # depth disagreement scale: rel * expected depth + abs
+    depth_sigma_abs_m: float = 1.0
+    depth_gate: float = 4.0  # pairs further apart than this many sigmas are not allowed
+    overlap_gate: float = 0.05  # pairs with less IoU and the anchor outside the box are not allowed
+
+    def __post_init__(self):
+        if self.depth_gate <= 0 or self.depth_sigma_abs_m <= 0 or self.depth_sigma_rel < 0:
+            raise ValueError("depth_gate and depth_sigma_abs_m must be > 0, depth_sigma_rel >= 0")
+
+
+class JointMatcher:
+    """Joint (Hungarian) assignment of all twins in view to detected boxes."""
+
+    def __init__(self, params: JointMatcherParams = JointMatcherParams()):
+        self.params = params
+        self.filter = TwinPositionFilter(params.smoothing_alpha) if params.smoothing_alpha is not None else None
+
+    def cost_matrix(self, proj: TwinProjection, boxes, box_depths) -> tuple[np.ndarray, np.ndarray]:
+        """(cost, allowed) over (twins, boxes)."""
+        p = self.params
+        b = as_boxes(boxes)
+        depths = np.asarray(box_depths, dtype=np.float64)
+        n, m = len(proj.anchor), len(b)
+        if depths.ndim == 1:
+            depths = depths[:, None]
+        if depths.shape[0] != m:
+            raise ValueError(f"box_depths: expected one distance (or one row of samples) per box ({m}), "
+                             f"got shape {depths.shape}")
+        # With the raw samples of Algorithm 1 (D, n), a box agrees with a twin if a good share of its
+        # samples does: the depth error is the best over the samples' 10..90% quantiles. A box whose
+        # lower quarter is partly hidden behind a nearer vehicle then still matches its own twin.
+        if depths.shape[1] > 1 and m:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-nan rows (sky) give nan quantiles
+                depths = np.nanquantile(depths, DEPTH_QUANTILES, axis=1).T  # (D, 5)
+        iou = box_iou(proj.expected_box, b) if n and m else np.zeros((n, m))
+        anchor_dist = np.zeros((n, m))
+        inside = np.zeros((n, m), bool)
+        diag = np.hypot(b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]) if m else np.zeros(0)
+        for i in range(n):
+            anchor_dist[i] = point_to_box_distance(proj.anchor[i], b) / np.maximum(diag, 1.0)
+            inside[i] = point_in_boxes(proj.anchor[i], b)
+        expected = proj.face_z if p.face_offset else proj.anchor_z
+        sigma = p.depth_sigma_rel * expected[:, None] + p.depth_sigma_abs_m
+        with np.errstate(invalid="ignore"):
+            err_q = np.abs(depths[None, :, :] - expected[:, None, None]) / sigma[:, :, None]  # (N, D, q)
+        err_q = np.where(np.isfinite(err_q), err_q, np.inf)
+        depth_err = err_q.min(axis=2) if err_q.shape[2] else np.full((n, m), np.inf)
+        depth_known = np.isfinite(depth_err)
+        # A box without valid depth neither helps nor is excluded: a neutral one-sigma penalty.
+        depth_err = np.where(depth_known, depth_err, 1.0)
+        cost = (p.w_overlap * (1.0 - iou) + p.w_anchor * np.minimum(anchor_dist, 1.0)
+                + p.w_depth * np.minimum(depth_err, p.depth_gate))
+        cost = np.nan_to_num(cost, nan=10.0, posinf=10.0)  # twins out of view (nan anchors) are gated below
+        allowed = ((iou >= p.overlap_gate) | inside) & (depth_err <= p.depth_gate)
+        allowed &= proj.in_view[:, None]
+        return cost, allowed
+
+    def match(self, twins: TwinStates, boxes, box_depths, camera: CameraView) -> np.ndarray:
+        """Box index per twin (NO_MATCH where unassigned), aligned with ``twins.ids``.
+
+        ``box_depths``: Algorithm 1's distance per box (D,), or better its raw samples (D, n)
+        (:func:`vcfusion.vision.depth_eval.sample_box_depths`)."""
+        if self.filter is not None:
+            twins = self.filter.update(twins)
+        if self.params.latency_compensation:
+            twins = extrapolate_twins(twins, camera.time, self.params.use_accel)
+        proj = project_twins(twins, camera)
+        return self.assign(proj, boxes, box_depths)
+
+    def assign(self, proj: TwinProjection, boxes, box_depths) -> np.ndarray:
+        cost, allowed = self.cost_matrix(proj, boxes, box_depths)
+        out = np.full(len(proj.anchor), NO_MATCH)
+        if cost.size == 0 or not allowed.any():
+            return out
+        big = 1e6
+        rows, cols = linear_sum_assignment(np.where(allowed, cost, big))
+        for i, j in zip(rows, cols):
+            if allowed[i, j]:
+                out[i] = j
+        return out

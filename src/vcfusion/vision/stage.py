@@ -1,0 +1,118 @@
+"""Wiring of the vision-cloud fusion stage to the renderer and to a scenario's settings.
+
+The ego camera frames come from the rendering stage: in a run, its camera hook (scenario
+``vision.enabled``) puts a rendered ``Frame`` (rgb, depth, instances, vehicle_ids, K,
+T_world_to_camera) in ``tick.annotations['frame']`` before the fusion hook runs;
+:func:`annotation_frame_source` turns it into a :class:`CameraFrame` (ground-truth boxes from the
+instance map, a :class:`CameraView` from K and T). The identification study renders its frames
+itself through :class:`RenderedFrameSources` (one renderer reused over all runs).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vcfusion.scenario import Scenario, ScenarioError
+from vcfusion.vision.depth_eval import DepthEvalParams
+from vcfusion.vision.fusion import CameraFrame
+from vcfusion.vision.matching import CameraView
+from vcfusion.vision.overlay import OverlayParams, OverlayRecorder
+
+
+def camera_view(K: np.ndarray, T_world_to_camera: np.ndarray, width: int, height: int, time: float) -> CameraView:
+    """The matchers' view of a camera given by its intrinsics and OpenCV extrinsics."""
+    from vcfusion.vision.camera import project_points  # the rendering stage's projection (eq. 1-3)
+
+    K = np.asarray(K, dtype=float)
+    T = np.asarray(T_world_to_camera, dtype=float)
+
+    def project(points):
+        p = project_points(points, K, T, width, height)
+        return p.uv, p.depth
+
+    position = -T[:3, :3].T @ T[:3, 3]
+    return CameraView(project=project, position=position, width=int(width), height=int(height), time=float(time))
+
+
+def frame_from_render(frame, truth) -> CameraFrame:
+    """A rendered frame (vcfusion.vision.render.Frame) of the traffic state ``truth`` as a CameraFrame."""
+    from vcfusion.vision.coco import category_id
+    from vcfusion.vision.gt_boxes import ground_truth_boxes
+
+    gt = ground_truth_boxes(frame, truth)
+    return CameraFrame(time=float(frame.time), image=frame.rgb, depth=frame.depth,
+                       camera=camera_view(frame.K, frame.T_world_to_camera, frame.width, frame.height, frame.time),
+                       gt_boxes=np.asarray(gt.box, dtype=float).reshape(-1, 4), gt_ids=tuple(gt.vehicle_ids),
+                       gt_classes=np.array([category_id(c) for c in gt.vclass], dtype=np.int64))
+
+
+def annotation_frame_source(tick) -> CameraFrame | None:
+    """The frame the camera hook rendered at this tick (None at ticks without one)."""
+    frame = tick.annotations.get("frame")
+    if frame is None or isinstance(frame, CameraFrame):
+        return frame
+    return frame_from_render(frame, tick.truth)
+
+
+class RenderedFrameSources:
+    """Frame sources for the study's runs: (scenario, seed) -> (tick -> CameraFrame), all rendered
+    by one renderer (building its scene and GL context once). Call :meth:`close` at the end."""
+
+    def __init__(self):
+        self._renderer = None
+
+    def __call__(self, scenario: Scenario, seed: int):
+        if self._renderer is None:
+            try:
+                from vcfusion.traffic.network import read_road
+                from vcfusion.traffic.session import EGO_ID
+                from vcfusion.vision.render import EgoCameraRenderer
+            except ImportError as exc:
+                raise ScenarioError(f"the ego camera renderer cannot be loaded: {exc}") from None
+            self._renderer = EgoCameraRenderer(read_road(scenario.network), scenario.camera, EGO_ID)
+        renderer = self._renderer
+
+        def source(tick):
+            if tick.ego is None:
+                return None
+            return frame_from_render(renderer.render(tick.truth), tick.truth)
+
+        return source
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+
+def build_detector(scenario: Scenario, seed: int):
+    from vcfusion.vision.detectors import OracleDetector
+
+    cfg = scenario.fusion
+    if cfg.detector == "oracle":
+        return OracleDetector()
+    from vcfusion.vision.detector_net import DetectorFileError, TorchDetector, default_weights_path
+
+    try:
+        return TorchDetector(cfg.weights or default_weights_path())
+    except DetectorFileError as exc:
+        raise ScenarioError(f"{scenario.source}: fusion.weights: {exc}") from None
+
+
+def depth_params(scenario: Scenario) -> DepthEvalParams:
+    f = scenario.fusion
+    return DepthEvalParams(th=f.depth_th, n=f.depth_samples, reducer=f.depth_reducer)
+
+
+def overlay_params(scenario: Scenario) -> OverlayParams:
+    return OverlayParams(medium_threshold=scenario.ar.medium_threshold, high_threshold=scenario.ar.high_threshold)
+
+
+def build_fusion_hook(scenario: Scenario, seed: int, recorder: OverlayRecorder | None = None, frame_source=None):
+    """The tick hook of the fusion stage as the scenario configures it; it must come after the
+    camera hook in the hook list (it reads the frame that hook puts in the tick's annotations)."""
+    from vcfusion.vision.fusion import VisionFusionHook
+
+    return VisionFusionHook(frame_source or annotation_frame_source, build_detector(scenario, seed), seed,
+                            method=scenario.fusion.method, depth_params=depth_params(scenario),
+                            overlay=overlay_params(scenario), recorder=recorder, period_s=scenario.ar.period_s)

@@ -1,0 +1,124 @@
+"""The learned detector's training loop, weights files and ONNX round trip, on a synthetic COCO set
+(coloured rectangles): a unit test of the training code, not of the shipped model."""
+
+import json
+
+import numpy as np
+import pytest
+
+from synthetic_coco import make_synthetic_coco
+from vcfusion.vision.detector_net import (DetectorFileError, DetectorModel, OnnxDetector, PostParams,
+                                          TorchDetector, export_onnx)
+from vcfusion.vision.detector_train import evaluate_detector, load_coco, read_rgb, train_detector
+from vcfusion.vision.matching import box_iou
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    root = tmp_path_factory.mktemp("det")
+    data = make_synthetic_coco(root / "data", n_images=32, size=(96, 64), seed=0)
+    net, report = train_detector(data, root / "w.pt", epochs=100, max_iterations=60, batch_size=8,
+                                 input_wh=(96, 64), widths=(8, 16, 16, 32, 16), val_fraction=0.0, lr=1e-2,
+                                 threads=2, progress=False, seed=0)
+    return root, data, net, report
+
+
+def test_training_decreases_the_loss_and_finds_the_objects(trained):
+    root, data, net, report = trained
+    assert report.iterations == 60
+    assert report.loss_history[-1] < 0.25 * np.mean(report.first_losses[:3])
+    ds = load_coco(data)
+    result = evaluate_detector(TorchDetector(net), ds)
+    assert result.map_50 > 0.8
+    # one image: every ground-truth box found with IoU > 0.5 and the right class
+    det = TorchDetector(net).detect(read_rgb(ds.images[0]))
+    iou = box_iou(ds.boxes[0], det.boxes)
+    best = iou.argmax(axis=1)
+    assert (iou.max(axis=1) > 0.5).all()
+    np.testing.assert_array_equal(det.classes[best], ds.classes[0])
+
+
+def test_weights_file_round_trip_and_size(trained):
+    root, data, net, _ = trained
+    loaded = DetectorModel.load(root / "w.pt")
+    assert loaded.class_ids == [1, 2] and loaded.class_names == ["car", "truck"]
+    assert loaded.meta["iterations"] == 60
+    image = read_rgb(load_coco(data).images[3])
+    np.testing.assert_array_equal(TorchDetector(loaded).dense(image), TorchDetector(net).dense(image))
+    assert (root / "w.pt").stat().st_size < 10 * 2**20
+    assert not list(root.glob("*.tmp"))
+
+
+def test_onnx_through_opencv_equals_torch(trained):
+    pytest.importorskip("onnx")
+    root, data, net, _ = trained
+    path = export_onnx(net, root / "det.onnx")
+    onnx_det = OnnxDetector(path, net.input_wh, net.class_ids)
+    torch_det = TorchDetector(net)
+    for image_path in load_coco(data).images[:4]:
+        image = read_rgb(image_path)
+        ref = torch_det.dense(image)
+        got, _ = onnx_det.dense(image)
+        assert got.shape == ref.shape == ((64 // 4) * (96 // 4), 4 + 2)
+        np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-4)
+        a, b = torch_det.detect(image), onnx_det.detect(image)
+        assert len(a) > 0
+        np.testing.assert_allclose(a.boxes, b.boxes, atol=1e-2)
+        np.testing.assert_array_equal(a.classes, b.classes)
+
+
+class FixedOutputNet:
+    """Stands in for cv2.dnn.Net to feed the loader other exporters' output layouts."""
+
+    def __init__(self, output):
+        self.output = output
+
+    def setInput(self, blob):  # noqa: N802 - OpenCV's name
+        assert blob.shape[:2] == (1, 3)
+
+    def forward(self):
+        return self.output
+
+
+def test_onnx_loader_accepts_transposed_and_objectness_layouts(trained):
+    pytest.importorskip("onnx")
+    root, data, net, _ = trained
+    path = root / "det.onnx"
+    if not path.exists():
+        export_onnx(net, path)
+    det = OnnxDetector(path, net.input_wh, net.class_ids, PostParams(score_threshold=0.2))
+    image = read_rgb(load_coco(data).images[0])
+    dense, _ = det.dense(image)
+    ref = det.detect(image)
+    # a YOLOv8-style (1, 4 + C, N) output gives the same detections
+    det.net = FixedOutputNet(dense.T[None].copy())
+    got = det.detect(image)
+    np.testing.assert_allclose(got.boxes, ref.boxes)
+    # YOLOv5-style (1, N, 5 + C): objectness times class score
+    with_obj = np.concatenate([dense[:, :4], np.full((len(dense), 1), 0.5, np.float32), dense[:, 4:]], axis=1)
+    det_obj = OnnxDetector(path, net.input_wh, net.class_ids, PostParams(score_threshold=0.1), objectness=True)
+    det_obj.net = FixedOutputNet(with_obj[None])
+    got_obj = det_obj.detect(image)
+    np.testing.assert_allclose(np.sort(got_obj.scores), np.sort(ref.scores * 0.5)[-len(got_obj):], rtol=1e-5)
+    # a wrong number of classes is refused with the layout in the message
+    bad = OnnxDetector(path, net.input_wh, [1, 2, 3])
+    with pytest.raises(DetectorFileError, match="values per candidate"):
+        bad.detect(image)
+
+
+def test_bad_files_get_one_clear_error(tmp_path):
+    (tmp_path / "x.pt").write_bytes(b"not a model")
+    with pytest.raises(DetectorFileError, match="x.pt"):
+        DetectorModel.load(tmp_path / "x.pt")
+    with pytest.raises(DetectorFileError, match="ONNX model not found"):
+        OnnxDetector(tmp_path / "none.onnx", (96, 64), [1])
+    data = tmp_path / "d"
+    data.mkdir()
+    (data / "annotations.json").write_text(json.dumps({"images": [{"id": 1, "file_name": "a.png"}],
+                                                       "annotations": [], "categories": [{"id": 1}]}))
+    with pytest.raises(DetectorFileError, match=r"images\[0\].file_name: image not found"):
+        load_coco(data)
+    (data / "annotations.json").write_text(json.dumps({"images": [], "annotations": [{"bbox": [1, 2]}],
+                                                       "categories": [{"id": 1}]}))
+    with pytest.raises(DetectorFileError, match=r"annotations\[0\]"):
+        load_coco(data)
