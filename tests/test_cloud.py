@@ -29,8 +29,8 @@ def test_latency_delivers_exactly_after_delay():
     assert ch.deliver(1.2) == []
     got = ch.deliver(1.3)
     assert len(got) == 1 and np.all(got[0].measured_time == 1.0)
-    np.testing.assert_allclose(got[0].x, states(1.0).x)  # antenna above the footprint centre
-    np.testing.assert_allclose(got[0].z, 1.5)
+    np.testing.assert_allclose(got[0].x, states(1.0).x)  # GNSS point above the footprint centre
+    np.testing.assert_allclose(got[0].z, 0.75)  # body centre: half the 1.5 m height
     assert ch.deliver(5.0) == []
 
 

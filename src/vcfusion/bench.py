@@ -5,6 +5,9 @@ its worker processes) is its own:
 - P1 traffic-only closed loop of the accident scenario (SUMO + cloud twins + whatever process
   models and driver the scenario enables, no rendering): simulated seconds per wall second on
   one core;
+- P2 the full vision tick at 640x480 (render, detect, depth, match, overlay): median ms per
+  tick and per stage, and the real-time factor;
+- P3 labelled dataset samples per second (simulation + features + labels + Parquet);
 - P4 batch scaling from 1 to 2 worker processes (and on a local Dask cluster): efficiency =
   speed-up / workers;
 - P5 resident memory along a 1-hour simulated run of dense traffic (flat = no growth beyond
@@ -116,8 +119,59 @@ def p5_memory(hours: float) -> dict:
             "target": "flat"}
 
 
-SECTIONS = {"P1": p1_traffic, "P4": p4_scaling, "P5": p5_memory}
-SIZES = {"full": {"P1": 20, "P4": 60, "P5": 1.0}, "quick": {"P1": 3, "P4": 6, "P5": 0.3}}
+def p2_vision(seeds: int) -> dict:
+    """The full vision tick in real runs of the accident scenario at 640x480: render, detect
+    (shipped CNN), depth evaluation, matching, overlay drawn and written to an mp4."""
+    import numpy as np
+    import torch
+
+    from vcfusion.run import build_cosimulation
+    from vcfusion.scenario import load_scenario
+    from vcfusion.vision.fusion import VisionFusionHook
+    from vcfusion.vision.overlay import OverlayRecorder
+
+    torch.set_num_threads(2)
+    sc = load_scenario(ACCIDENT)
+    sc = sc.model_copy(update={"vision": sc.vision.model_copy(update={"enabled": True}),
+                               "fusion": sc.fusion.model_copy(update={"enabled": True})})
+    rows, simulated, wall = [], 0.0, 0.0
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in range(seeds):
+            with OverlayRecorder(Path(tmp) / f"v{seed}", fps=10.0) as recorder:
+                cosim = build_cosimulation(sc, seed, recorder=recorder)
+                start = time.perf_counter()
+                result = cosim.run()
+                wall += time.perf_counter() - start
+            simulated += result.summary["simulated_s"]
+            hook = next(h for h in cosim.hooks if isinstance(h, VisionFusionHook))
+            rows += hook.timings[3:]  # the first ticks include building the scene and warming up
+    stages = {k: 1e3 * float(np.median([r[k] for r in rows])) for k in rows[0]}
+    tick_ms = 1e3 * float(np.median([sum(r.values()) for r in rows]))
+    return {"name": "P2 vision tick 640x480", "ticks": len(rows),
+            **{f"{k}_ms": round(v, 2) for k, v in stages.items()},
+            "tick_median_ms": round(tick_ms, 1), "real_time_factor_at_0.1s": round(100.0 / tick_ms, 2),
+            "closed_loop_real_time_factor": round(simulated / wall, 2), "target": "<= 100 ms"}
+
+
+def p3_dataset(seeds: int) -> dict:
+    """Labelled lane-change samples per second: simulate dense traffic, features, labels, write."""
+    import pandas as pd
+
+    from vcfusion.prediction.dataset import build_dataset
+
+    with tempfile.TemporaryDirectory() as tmp:
+        start = time.perf_counter()
+        build_dataset(REPO / "scenarios" / "dense.yaml", list(range(seeds)), Path(tmp) / "d", workers=1,
+                      tau=5.0, tau_g=2.0, progress=False)
+        wall = time.perf_counter() - start
+        samples = sum(len(pd.read_parquet(p, columns=["time"])) for p in Path(tmp).glob("d/seed_*/samples.parquet"))
+    return {"name": "P3 labelled dataset", "runs": seeds, "samples": samples, "wall_s": round(wall, 2),
+            "samples_per_s": round(samples / wall), "note": "one worker process"}
+
+
+SECTIONS = {"P1": p1_traffic, "P2": p2_vision, "P3": p3_dataset, "P4": p4_scaling, "P5": p5_memory}
+SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 60, "P5": 1.0},
+         "quick": {"P1": 3, "P2": 1, "P3": 2, "P4": 6, "P5": 0.3}}
 
 
 def run_section(name: str, size: str) -> dict:

@@ -8,8 +8,10 @@ Conventions (see docs/architecture.md):
 - (x, y, z) of a vehicle is the centre of its footprint on the ground, not SUMO's front bumper;
 - heading is the yaw in radians, counter-clockwise from +x (SUMO's angle is converted once,
   in vcfusion.traffic.session);
-- the GNSS antenna sits on the roof centre: footprint centre raised by the vehicle height
-  (:func:`gnss_antenna_points`).
+- a vehicle's GNSS point is the centre of its body: the footprint centre raised by half the
+  vehicle height (:func:`gnss_antenna_points`), as the paper's simulator reports a vehicle's
+  position. (A roof-top point would project onto the top edge of the vehicle's image box, where
+  the paper's "anchor inside the box" test is ill-conditioned.)
 """
 
 from __future__ import annotations
@@ -72,9 +74,13 @@ class VehicleStates:
         return _take(self, index)
 
 
+# Height of the GNSS point above the ground, as a fraction of the vehicle height.
+GNSS_HEIGHT_FRACTION = 0.5
+
+
 def gnss_antenna_points(x: np.ndarray, y: np.ndarray, z: np.ndarray, height: np.ndarray) -> np.ndarray:
-    """World positions (N, 3) of the GNSS antenna: the roof centre."""
-    return np.stack([x, y, z + height], axis=-1)
+    """World positions (N, 3) of the GNSS point: the centre of the vehicle body."""
+    return np.stack([x, y, z + GNSS_HEIGHT_FRACTION * np.asarray(height)], axis=-1)
 
 
 @dataclass(frozen=True)

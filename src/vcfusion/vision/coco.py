@@ -7,7 +7,7 @@ Conventions of the JSON (also written to its ``info``):
   metres) -> camera (x right, y down, z forward); (u, v, 1) ~ K (R p + t) with integer (u, v) at
   pixel centres. ``vehicles[].anchor_uv`` uses this convention: the anchor lies in a box iff
   x <= u + 0.5 < x + w and y <= v + 0.5 < y + h;
-- ``vehicles`` lists every vehicle whose GNSS antenna point (roof centre) projects into the
+- ``vehicles`` lists every vehicle whose GNSS point (body centre) projects into the
   image in front of the camera, seen or hidden (``visible`` says which);
 - depth PNGs are uint16 camera Z / ``depth_scale_m`` (0 = sky or beyond the far plane);
   instance PNGs are uint16, value k + 1 for ``instance_vehicle_ids[k]`` of the image, 0 = none.
@@ -30,7 +30,7 @@ CONVENTIONS = {
     "camera": "OpenCV: world (x east, y north, z up, m) -> camera (x right, y down, z forward); "
               "(u, v, 1) ~ K (R p + t); integer (u, v) at pixel centres",
     "anchor_in_bbox": "x <= u + 0.5 < x + w and y <= v + 0.5 < y + h",
-    "gnss_world": "roof centre: footprint centre raised by the vehicle height",
+    "gnss_world": "body centre: footprint centre raised by half the vehicle height",
     "depth_png": f"uint16 camera Z / {DEPTH_SCALE_M} m; 0 = sky or beyond the far plane",
     "instance_png": "uint16 k + 1 for instance_vehicle_ids[k]; 0 = no vehicle",
 }
@@ -50,7 +50,7 @@ def depth_to_png16(depth: np.ndarray) -> np.ndarray:
 
 
 def vehicle_anchors(frame, truth, ego_id: str) -> list[dict]:
-    """GNSS anchors of every vehicle (not the ego) whose roof centre projects into the image."""
+    """GNSS anchors of every vehicle (not the ego) whose GNSS point projects into the image."""
     keep = np.array([vid != ego_id for vid in truth.ids])
     ids = [vid for vid, k in zip(truth.ids, keep) if k]
     rows = np.flatnonzero(keep)

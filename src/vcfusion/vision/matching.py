@@ -18,7 +18,7 @@ Three matchers, from the paper's baseline to its future work:
       position, heading, length, width, height, projected into the image),
   (b) the anchor-to-box distance, and
   (c) the disagreement between the box's depth and the expected depth of the vehicle face the
-      camera sees (GNSS antenna = roof centre; the depth samples lie on the rear (or front) face,
+      camera sees (GNSS point = body centre, records.gnss_antenna_points; the depth samples lie on the rear (or front) face,
       half a vehicle length nearer),
   with gates on overlap and depth. Before that, each twin's cloud state is extrapolated from the
   time it was measured to the camera's timestamp (latency compensation, constant velocity along
@@ -36,7 +36,7 @@ from typing import Callable
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from vcfusion.records import TwinStates
+from vcfusion.records import GNSS_HEIGHT_FRACTION, TwinStates
 
 NO_MATCH = -1
 DEPTH_QUANTILES = (0.1, 0.3, 0.5, 0.7, 0.9)
@@ -218,7 +218,7 @@ def project_twins(twins: TwinStates, camera: CameraView, min_z: float = 0.5) -> 
     height = np.asarray(twins.height, dtype=np.float64)
     length = np.asarray(twins.length, dtype=np.float64)
     heading = np.asarray(twins.heading, dtype=np.float64)
-    ground = antenna - np.stack([np.zeros(n), np.zeros(n), height], axis=1)  # footprint centre
+    ground = antenna - np.stack([np.zeros(n), np.zeros(n), GNSS_HEIGHT_FRACTION * height], axis=1)  # footprint centre
     corners = cuboid_corners(ground[:, 0], ground[:, 1], ground[:, 2], heading, length,
                              np.asarray(twins.width, dtype=np.float64), height)
     uv, cz = camera.project(corners.reshape(-1, 3))
