@@ -8,7 +8,8 @@
   positives by n_negative / n_positive in the loss.
 - Adam, mini-batches, early stopping on the validation seeds' window loss (best epoch kept).
 - Seeded (torch, NumPy) and single-threaded by default, so a run is reproducible.
-- Afterwards the run-time decision settings (probability threshold, tau_a, tau_c) are chosen
+- Afterwards the output is calibrated (Platt scaling on the validation seeds' every-tick
+  stream, so `lc_prob` is P(lane change ends within tau) there) and the run-time decision settings (probability threshold, tau_a, tau_c) are chosen
   on the validation seeds' every-tick stream (see :func:`tune_decisions`) and stored in the file.
 """
 
@@ -23,10 +24,11 @@ import pandas as pd
 
 from vcfusion.prediction.dataset import DatasetError, DatasetInfo, load_dataset, load_samples
 from vcfusion.prediction.events import event_scores, smooth_stream, track_bounds
-from vcfusion.prediction.model import LaneChangeModel, build_torch_mlp, save_model
+from vcfusion.prediction.model import LaneChangeModel, build_torch_mlp, fit_platt, save_model
 
 # Run-time settings tried on the validation stream.
-THRESHOLDS = (0.5, 0.7, 0.8, 0.9, 0.95, 0.97, 0.98, 0.99)
+# Calibrated probabilities of a lane change ending within tau (the stream's base rate is ~11%).
+THRESHOLDS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95, 0.97, 0.98, 0.99)
 TAU_A_TICKS = (0, 10, 20, 30, 50)
 TAU_C_TICKS = (5, 10, 20, 30)
 MAX_FALSE_ALARMS_PER_VH = 2.0
@@ -189,8 +191,11 @@ def train_model(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = Tru
     y_va = (va["window_label"] == 1).to_numpy(np.float32)
     weights, fit = _fit_torch(((x_tr - mean) / std).astype(np.float32), y_tr, x_va, y_va, cfg, len(names), progress)
     model = LaneChangeModel(tuple(names), mean, std, weights, info.tau, info.tau_g, info.period_s)
-    stream, events = stream_with_events(info, "validation", columns=["seed", "vehicle_id", "time", *names])
-    prob = model.predict_proba(stream[names].to_numpy(np.float32))
+    stream, events = stream_with_events(info, "validation", columns=["seed", "vehicle_id", "time", "stream_label",
+                                                                     *names])
+    x_stream = stream[names].to_numpy(np.float32)
+    model.calibration = fit_platt(model.logits(x_stream), stream["stream_label"].to_numpy() == 1)
+    prob = model.predict_proba(x_stream)
     tuned = tune_decisions(prob, stream, events, info.period_s, cfg.horizon_s, model.conservative_threshold)
     default = choose_default(tuned)
     model.smoothing = default
@@ -201,7 +206,7 @@ def train_model(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = Tru
     model.info = {
         "dataset": str(Path(dataset).resolve()), "scenario": info.meta.get("scenario"), "kind": cfg.kind,
         "config": asdict(cfg), "fit": fit, "train_samples": int(len(tr)), "train_positives": int(y_tr.sum()),
-        "splits": info.splits, "tuning": tuned,
+        "splits": info.splits, "tuning": tuned, "calibration": list(model.calibration),
         "command": f"vcfusion train {dataset} --out {out.name} --hidden {cfg.hidden} --epochs {cfg.epochs} "
                    f"--patience {cfg.patience} --seed {cfg.seed} --background-negatives {cfg.background_negatives}",
     }
