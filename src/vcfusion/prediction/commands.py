@@ -47,7 +47,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     from vcfusion.prediction.train import TrainConfig, train_model
 
     cfg = TrainConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
-                      background_negatives=args.background_negatives, threads=args.threads)
+                      background_negatives=args.background_negatives, threads=args.threads,
+                      learning_rate=args.learning_rate, weight_decay=args.weight_decay)
     out = Path(args.out)
     if out.exists() and not args.force:
         raise _usage(f"--out: {out} already exists (use --force to replace it)")
@@ -104,6 +105,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--background-negatives", dest="background_negatives", type=float, default=0.0,
                    help="add this many negatives per window sample drawn from ticks outside the windows "
                         "(0 = the paper's Fig. 5 windows only)")
+    p.add_argument("--learning-rate", dest="learning_rate", type=float, default=1e-3, help="Adam learning rate")
+    p.add_argument("--weight-decay", dest="weight_decay", type=float, default=1e-5, help="Adam weight decay (L2)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     p.add_argument("--force", action="store_true", help="replace an existing --out")
     p.set_defaults(func=cmd_train)

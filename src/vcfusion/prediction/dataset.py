@@ -207,6 +207,10 @@ Features: {features}
 Sentinels: a lane that does not exist gives gap 0 m and speed difference 0 (with
 `right_lane_exists` / `left_lane_exists` = 0); no vehicle within 150 m gives gap 150 m and
 difference 0; no stopped vehicle within 400 m ahead gives `stopped_ahead_*` = 400 m.
+`*_trend` / `*_mean`: short-history features (fast 0.5 s minus slow 2 s moving average, and the
+slow average), kept per absolute lane; a side lane that does not exist gives 0 for both.
+After a feature change, `vcfusion dataset ... --refeature` recomputes these files from the
+runs' `twins` tables without simulating again.
 """
 
 

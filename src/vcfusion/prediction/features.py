@@ -117,7 +117,8 @@ def tick_features(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.
     front = s + length / 2
 
     def lead_follow(target: np.ndarray, exists: np.ndarray):
-        """gap / speed difference to the leader and the follower of every twin in lane `target`."""
+        """gap / speed difference to the leader and the follower of every twin in lane `target`
+        (the twin itself is never its own neighbour: equal keys are skipped on both sides)."""
         query = target * _LANE_KEY + s
         res = []
         for ahead in (True, False):
@@ -131,22 +132,21 @@ def tick_features(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.
             res += [np.where(found, gap, np.where(exists, RANGE_M, 0.0)), np.where(found, speed[j] - speed, 0.0)]
         return res
 
-    if per_lane and n:
-        # The same four quantities for every lane of the road by absolute index (see FeatureExtractor).
-        out["_per_lane"] = np.stack([np.stack(lead_follow(np.full(n, k), on_road), axis=-1)
-                                     for k in range(num_lanes)], axis=1)
+    # Leader / follower towards every lane of the road by absolute index, then picked per side.
+    lanes_q = (np.stack([np.stack(lead_follow(np.full(n, k), on_road), axis=-1) for k in range(num_lanes)], axis=1)
+               if n else np.zeros((0, num_lanes, 4)))
+    if per_lane:
+        out["_per_lane"] = lanes_q
+    rows = np.arange(n)
     for side in SIDES:
         target = lane + _LANE_OFFSET[side]
         exists = on_road & (target >= 0) & (target < num_lanes)
         query = target * _LANE_KEY + s
-        gap_lead = np.zeros(n)
-        dv_lead = np.zeros(n)
-        gap_foll = np.zeros(n)
-        dv_foll = np.zeros(n)
+        picked = np.where(exists[:, None], lanes_q[rows, np.clip(target, 0, num_lanes - 1)], 0.0)
+        gap_lead, dv_lead, gap_foll, dv_foll = picked.T
         stopped_ahead = np.zeros(n)
         n_ahead = np.zeros(n)
         if n:
-            gap_lead[:], dv_lead[:], gap_foll[:], dv_foll[:] = lead_follow(target, exists)
             if len(stopped):
                 order_st = np.argsort(stopped_keys, kind="stable")
                 st_sorted = stopped[order_st]
@@ -188,6 +188,9 @@ class FeatureExtractor:
         self._n_hist = 1 + road.num_lanes * len(_LANE_QUANTITIES)  # speed + per-lane quantities
         self._ids = np.array([], dtype=str)
         self._state = np.zeros((0, 2 + 2 * self._n_hist))
+        split = [name.rsplit("_", 1) for name in HISTORY_MEAN_SOURCES]  # e.g. ("gap_lead", "left")
+        self._src_offset = np.array([_LANE_OFFSET[side] for _, side in split])
+        self._src_quantity = np.array([_LANE_QUANTITIES.index(q) for q, _ in split])
 
     def _carry(self, ids: np.ndarray, fresh: np.ndarray) -> np.ndarray:
         """Previous memory aligned to `ids`; rows of new twins are `fresh` (their current values)."""
@@ -227,15 +230,14 @@ class FeatureExtractor:
         cols["speed_minus_ema"] = speed - ema
         cols["speed_below_recent_max"] = vmax - speed
         cols["speed_trend"] = fast[:, 0] - slow[:, 0]
-        rows = np.arange(n)
-        q = len(_LANE_QUANTITIES)
-        for name in HISTORY_TREND_SOURCES[1:]:
-            quantity, side = name.rsplit("_", 1)
-            target = lane + _LANE_OFFSET[side]
-            exists = (lane >= 0) & (target >= 0) & (target < num_lanes)
-            column = 1 + np.clip(target, 0, num_lanes - 1) * q + _LANE_QUANTITIES.index(quantity)
-            cols[f"{name}_trend"] = np.where(exists, fast[rows, column] - slow[rows, column], 0.0)
-            cols[f"{name}_mean"] = np.where(exists, slow[rows, column], 0.0)
+        target = lane[:, None] + self._src_offset[None, :]  # (N, sources) absolute lane of each source
+        exists = (lane[:, None] >= 0) & (target >= 0) & (target < num_lanes)
+        column = 1 + np.clip(target, 0, num_lanes - 1) * len(_LANE_QUANTITIES) + self._src_quantity[None, :]
+        trend = np.where(exists, np.take_along_axis(fast - slow, column, axis=1), 0.0)
+        mean = np.where(exists, np.take_along_axis(slow, column, axis=1), 0.0)
+        for k, name in enumerate(HISTORY_MEAN_SOURCES):
+            cols[f"{name}_trend"] = trend[:, k]
+            cols[f"{name}_mean"] = mean[:, k]
         return np.stack([cols[name] for name in FEATURE_NAMES], axis=-1)
 
     def from_twins(self, twins) -> np.ndarray:
