@@ -72,6 +72,10 @@ FEATURE_NAMES: tuple[str, ...] = (
     *[f"{name}_mean" for name in HISTORY_MEAN_SOURCES],
 )
 
+_N_TICK = FEATURE_NAMES.index("speed_trend")  # features before the history block (filled as blocks)
+assert FEATURE_NAMES[_N_TICK:] == ("speed_trend", *[f"{n}_trend" for n in HISTORY_MEAN_SOURCES],
+                                   *[f"{n}_mean" for n in HISTORY_MEAN_SOURCES])
+
 _LANE_KEY = 1.0e6  # lane * _LANE_KEY + s sorts twins by lane, then along the road
 
 
@@ -83,7 +87,7 @@ def _neighbour_index(keys_sorted: np.ndarray, query: np.ndarray, lane_of_sorted:
     else:
         pos = np.searchsorted(keys_sorted, query, side="left") - 1
     ok = (pos >= 0) & (pos < len(keys_sorted))
-    pos_c = np.clip(pos, 0, max(len(keys_sorted) - 1, 0))
+    pos_c = np.minimum(np.maximum(pos, 0), max(len(keys_sorted) - 1, 0))  # np.clip is slow on small arrays
     if len(keys_sorted):
         ok &= lane_of_sorted[pos_c] == target_lane
     return np.where(ok, pos_c, -1)
@@ -142,7 +146,7 @@ def tick_features(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.
         target = lane + _LANE_OFFSET[side]
         exists = on_road & (target >= 0) & (target < num_lanes)
         query = target * _LANE_KEY + s
-        picked = np.where(exists[:, None], lanes_q[rows, np.clip(target, 0, num_lanes - 1)], 0.0)
+        picked = np.where(exists[:, None], lanes_q[rows, np.minimum(np.maximum(target, 0), num_lanes - 1)], 0.0)
         gap_lead, dv_lead, gap_foll, dv_foll = picked.T
         stopped_ahead = np.zeros(n)
         n_ahead = np.zeros(n)
@@ -198,7 +202,7 @@ class FeatureExtractor:
         if len(self._ids) and len(ids):
             order = np.argsort(self._ids)
             prev_sorted = self._ids[order]
-            pos = np.clip(np.searchsorted(prev_sorted, ids), 0, len(prev_sorted) - 1)
+            pos = np.minimum(np.searchsorted(prev_sorted, ids), len(prev_sorted) - 1)
             known = prev_sorted[pos] == ids
             state[known] = self._state[order[pos[known]]]
         return state
@@ -229,16 +233,17 @@ class FeatureExtractor:
         self._state = np.concatenate([ema[:, None], vmax[:, None], fast, slow], axis=1)
         cols["speed_minus_ema"] = speed - ema
         cols["speed_below_recent_max"] = vmax - speed
-        cols["speed_trend"] = fast[:, 0] - slow[:, 0]
         target = lane[:, None] + self._src_offset[None, :]  # (N, sources) absolute lane of each source
         exists = (lane[:, None] >= 0) & (target >= 0) & (target < num_lanes)
-        column = 1 + np.clip(target, 0, num_lanes - 1) * len(_LANE_QUANTITIES) + self._src_quantity[None, :]
+        column = 1 + np.minimum(np.maximum(target, 0), num_lanes - 1) * len(_LANE_QUANTITIES) + self._src_quantity[None, :]
         trend = np.where(exists, np.take_along_axis(fast - slow, column, axis=1), 0.0)
         mean = np.where(exists, np.take_along_axis(slow, column, axis=1), 0.0)
-        for k, name in enumerate(HISTORY_MEAN_SOURCES):
-            cols[f"{name}_trend"] = trend[:, k]
-            cols[f"{name}_mean"] = mean[:, k]
-        return np.stack([cols[name] for name in FEATURE_NAMES], axis=-1)
+        out = np.empty((n, len(FEATURE_NAMES)))
+        out[:, :_N_TICK] = np.stack([cols[name] for name in FEATURE_NAMES[:_N_TICK]], axis=-1)
+        out[:, _N_TICK] = fast[:, 0] - slow[:, 0]  # speed_trend
+        out[:, _N_TICK + 1:_N_TICK + 1 + len(HISTORY_MEAN_SOURCES)] = trend
+        out[:, _N_TICK + 1 + len(HISTORY_MEAN_SOURCES):] = mean
+        return out
 
     def from_twins(self, twins) -> np.ndarray:
         """Features of a TwinStates snapshot (the run-time path)."""
