@@ -51,10 +51,26 @@ def test_dataset_train_evaluate_on_real_sumo(tmp_path, capsys):
     ok = ~np.isnan(ends)
     assert np.all((ends[ok] - pos["time"].to_numpy()[ok] < 4.0 + 1e-6) & (ends[ok] >= pos["time"].to_numpy()[ok] - 1e-6))
 
+    # a feature change: refused without --refeature; with it, samples recomputed from the twins tables
+    meta["feature_names"] = meta["feature_names"][:-1]
+    (data / "dataset.json").write_text(json.dumps(meta))
+    (data / "runs" / "seed_0001" / "samples.parquet").unlink()
+    capsys.readouterr()
+    assert main(["dataset", str(scenario), "--seeds", "0-2", "--out", str(data), "--workers", "1",
+                 "--tau", "4", "--tau-g", "2"]) == 2
+    assert "--refeature" in capsys.readouterr().err
+    assert main(["dataset", str(scenario), "--seeds", "0-2", "--out", str(data), "--workers", "1",
+                 "--tau", "4", "--tau-g", "2", "--refeature"]) == 0
+    assert "recomputed the features of 3 existing runs" in capsys.readouterr().out
+    assert json.loads((data / "dataset.json").read_text())["feature_names"] == list(FEATURE_NAMES)
+    pd.testing.assert_frame_equal(pd.read_parquet(data / "runs" / "seed_0000" / "samples.parquet"), samples)
+    assert (data / "runs" / "seed_0001" / "samples.parquet").is_file()
+
     model_file = tmp_path / "m.npz"
     assert main(["train", str(data), "--out", str(model_file), "--epochs", "3", "--hidden", "16"]) == 0
     model = load_model(model_file)
     assert model.tau == 4.0 and model.tau_g == 2.0 and model.info["fit"]["epochs_run"] <= 3
+    assert model.calibration != (1.0, 0.0)  # Platt scaling fitted on the validation stream
     assert main(["evaluate", str(model_file), str(data), "--out", str(tmp_path / "eval")]) == 0
     report = (tmp_path / "eval" / "report.md").read_text()
     for needle in ("MLP | aggressive", "MLP | conservative", "logistic regression | original", "gap/speed rule",

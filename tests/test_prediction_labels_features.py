@@ -101,3 +101,47 @@ def test_feature_memory_follows_twin_ids_across_snapshots():
     assert col["speed_below_recent_max"][0] == pytest.approx(20 - 0.05 * 0.1 - 18)
     assert col["speed_below_recent_max"][1] == 0.0 and col["speed_below_recent_max"][2] == 0.0
     assert col["speed_minus_ema"][0] < 0 and col["speed_minus_ema"][2] == 0.0
+
+
+def _col(f):
+    return {n: f[:, i] for i, n in enumerate(FEATURE_NAMES)}
+
+
+def test_history_trends_follow_a_closing_gap():
+    """A leader 2 m/s slower: the own-lane gap shrinks 0.2 m per tick, so its trend (fast - slow EMA)
+    tends to -(HISTORY_SLOW_S - HISTORY_FAST_S) x 2 m/s = -3 m and its mean lags the gap by ~2 s x 2 m/s."""
+    from vcfusion.prediction.features import HISTORY_FAST_S, HISTORY_SLOW_S
+
+    ex = FeatureExtractor(ROAD, 0.1)
+    for k in range(200):  # 20 s
+        f = _col(ex.from_twins(_twins([1, 1], [100 + 20 * 0.1 * k, 160 + 18 * 0.1 * k], [20, 18], ids=["a", "b"])))
+    ramp = -2.0
+    assert f["gap_lead_own_trend"][0] == pytest.approx((HISTORY_SLOW_S - HISTORY_FAST_S) * ramp, rel=0.03)
+    assert f["gap_lead_own_mean"][0] - f["gap_lead_own"][0] == pytest.approx(-HISTORY_SLOW_S * ramp, rel=0.03)
+    assert f["speed_trend"][0] == pytest.approx(0.0, abs=1e-9)  # constant speed
+    assert f["dv_lead_own_trend"][0] == pytest.approx(0.0, abs=1e-9)
+    # first snapshot of a twin: every average starts at the current value
+    g = _col(FeatureExtractor(ROAD, 0.1).from_twins(_twins([1, 1], [100, 160], [20, 18], ids=["a", "b"])))
+    assert g["gap_lead_own_trend"][0] == 0.0 and g["gap_lead_own_mean"][0] == g["gap_lead_own"][0]
+    # missing lanes: trend 0 and mean = the instantaneous sentinel 0
+    assert g["gap_lead_right_trend"].tolist() == [0.0, 0.0] or ROAD.num_lanes < 2
+    h = _col(FeatureExtractor(ROAD, 0.1).from_twins(_twins([0, 2], [100, 160], [20, 18])))
+    assert h["gap_lead_right_mean"][0] == 0.0 and h["gap_foll_left_mean"][1] == 0.0
+
+
+def test_history_is_kept_per_absolute_lane_so_a_lane_flip_leaves_no_trace():
+    """Twin 'a' drives in lane 1 beside a steady lane-2 queue, then its map-matched lane flips to 2.
+    After the flip its own-lane history must be the history of lane 2 it watched as its left lane
+    (so the flip itself adds no jump to the trends), exactly as for a twin that was always there."""
+    ex = FeatureExtractor(ROAD, 0.1)
+    lane_a = [1] * 50 + [2] * 5
+    for k, la in enumerate(lane_a):
+        f = _col(ex.from_twins(_twins([la, 2, 1], [100 + 2.0 * k, 140 + 1.8 * k, 60 + 2.0 * k], [20, 18, 20],
+                                      ids=["a", "lead2", "foll1"])))
+        if k == 49:
+            before = f
+    # before the flip, lane 2 is a's left lane; after, its own lane: same history, continued
+    assert before["gap_lead_left_trend"][0] == pytest.approx(f["gap_lead_own_trend"][0], rel=0.05)
+    assert abs(f["gap_lead_own_mean"][0] - before["gap_lead_left_mean"][0]) < 2.0  # 5 ticks of a -0.2 m ramp
+    # ... and lane 1 (own before) is now its right lane, with the follower it had there
+    assert f["gap_foll_right_mean"][0] == pytest.approx(before["gap_foll_own"][0], abs=0.5)

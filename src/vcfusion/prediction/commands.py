@@ -25,10 +25,13 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     if args.workers < 1:
         raise _usage(f"--workers: expected a positive number of processes, got {args.workers}")
     try:
-        report = build_dataset(Path(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g)
+        report = build_dataset(Path(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g,
+                               refeature=args.refeature)
     except DatasetError as exc:
         raise _usage(str(exc)) from None
     c = report["counts"]
+    if args.refeature:
+        print(f"recomputed the features of {report['refeatured']} existing runs")
     print(f"dataset -> {args.out}: {report['done']} seeds run, {report['skipped']} already complete, "
           f"{len(report['failed'])} failed")
     print(f"  {c['seeds']} seeds, {c['lane_changes']} lane changes, {c['samples']} stream samples, "
@@ -44,7 +47,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     from vcfusion.prediction.train import TrainConfig, train_model
 
     cfg = TrainConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
-                      background_negatives=args.background_negatives, threads=args.threads)
+                      background_negatives=args.background_negatives, threads=args.threads,
+                      learning_rate=args.learning_rate, weight_decay=args.weight_decay)
     out = Path(args.out)
     if out.exists() and not args.force:
         raise _usage(f"--out: {out} already exists (use --force to replace it)")
@@ -86,6 +90,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--tau", type=float, default=5.0, help="time window tau, s (Fig. 5)")
     p.add_argument("--tau-g", dest="tau_g", type=float, default=2.0, help="gap tau_g, s (Fig. 5)")
+    p.add_argument("--refeature", action="store_true",
+                   help="recompute the samples of runs already in --out with this version's features "
+                        "(from their logged twins tables, no simulation) instead of refusing a feature change")
     p.set_defaults(func=cmd_dataset)
 
     p = sub.add_parser("train", help="train the lane-change MLP on a dataset")
@@ -98,6 +105,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--background-negatives", dest="background_negatives", type=float, default=0.0,
                    help="add this many negatives per window sample drawn from ticks outside the windows "
                         "(0 = the paper's Fig. 5 windows only)")
+    p.add_argument("--learning-rate", dest="learning_rate", type=float, default=1e-3, help="Adam learning rate")
+    p.add_argument("--weight-decay", dest="weight_decay", type=float, default=1e-5, help="Adam weight decay (L2)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     p.add_argument("--force", action="store_true", help="replace an existing --out")
     p.set_defaults(func=cmd_train)

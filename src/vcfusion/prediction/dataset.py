@@ -83,6 +83,48 @@ def _dataset_seed(scenario_path: str, seed: int, out: str, tau: float, tau_g: fl
         return SeedOutcome(seed, False, None, f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}")
 
 
+def _refeature_seed(folder: str, scenario_path: str, seed: int, tau: float, tau_g: float) -> int:
+    """Recompute one run folder's samples.parquet from its twins / vehicles / lane_changes tables
+    (no simulation: the twins table holds exactly the snapshots the cloud saw). Atomic."""
+    from vcfusion.runio import write_table
+    from vcfusion.scenario import load_scenario
+
+    scenario = load_scenario(scenario_path)
+    folder = Path(folder)
+    tables = {k: pd.read_parquet(folder / f"{k}.parquet") for k in ("twins", "vehicles", "lane_changes")}
+    samples = build_samples(tables, read_road(scenario.network), scenario.v2c.period_s, seed, tau, tau_g,
+                            scenario.simulation.lanechange_duration_s / 2)
+    tmp = folder / (SAMPLES + ".tmp-writing")
+    write_table(tmp, samples)
+    tmp.replace(folder / SAMPLES)
+    return seed
+
+
+def refeature_runs(scenario_path: Path, seeds: list[int], runs: Path, workers: int, tau: float, tau_g: float,
+                   progress: bool = True) -> list[int]:
+    """Recompute samples.parquet of every complete run folder among `seeds` (parallel); returns the seeds."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tqdm import tqdm
+
+    from vcfusion.runio import is_complete_run
+
+    todo = [s for s in seeds if is_complete_run(seed_folder(runs, s))]
+    args = [(str(seed_folder(runs, s)), str(scenario_path), s, tau, tau_g) for s in todo]
+    bar = tqdm(total=len(todo), desc="features", unit="seed", disable=not progress)
+    if workers <= 1:
+        for a in args:
+            _refeature_seed(*a)
+            bar.update()
+    else:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            for _ in pool.map(_refeature_seed, *zip(*args)):
+                bar.update()
+    bar.close()
+    return todo
+
+
 def split_seeds(seeds: list[int]) -> dict[str, list[int]]:
     """Train / validation / test by seed order (runs never shared); each split non-empty from 3 seeds."""
     seeds = sorted(seeds)
@@ -165,12 +207,20 @@ Features: {features}
 Sentinels: a lane that does not exist gives gap 0 m and speed difference 0 (with
 `right_lane_exists` / `left_lane_exists` = 0); no vehicle within 150 m gives gap 150 m and
 difference 0; no stopped vehicle within 400 m ahead gives `stopped_ahead_*` = 400 m.
+`*_trend` / `*_mean`: short-history features (fast 0.5 s minus slow 2 s moving average, and the
+slow average), kept per absolute lane; a side lane that does not exist gives 0 for both.
+After a feature change, `vcfusion dataset ... --refeature` recomputes these files from the
+runs' `twins` tables without simulating again.
 """
 
 
 def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int, tau: float, tau_g: float,
-                  progress: bool = True) -> dict:
-    """Simulate every seed not yet done (parallel, resumable) and write dataset.json + README.md."""
+                  progress: bool = True, refeature: bool = False) -> dict:
+    """Simulate every seed not yet done (parallel, resumable) and write dataset.json + README.md.
+
+    refeature: first recompute the samples of the runs already in `out` with this version's
+    features (allowed to differ from the folder's; tau / tau_g must not), instead of failing.
+    """
     from vcfusion.runio import write_json
     from vcfusion.scenario import load_scenario
 
@@ -184,15 +234,18 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
               "feature_names": list(FEATURE_NAMES)}
     if meta_file.is_file():
         old = json.loads(meta_file.read_text())
-        clash = {k: (old.get(k), v) for k, v in params.items() if k != "scenario_file" and old.get(k) != v}
+        free = {"scenario_file"} | ({"feature_names"} if refeature else set())
+        clash = {k: (old.get(k), v) for k, v in params.items() if k not in free and old.get(k) != v}
         if clash:
+            hint = " (or --refeature, when only the features differ)" if set(clash) == {"feature_names"} else ""
             raise DatasetError(f"{meta_file}: the folder holds a dataset with other parameters "
                                f"({', '.join(f'{k}: {a!r} vs {b!r}' for k, (a, b) in clash.items())}); "
-                               f"choose a new --out")
+                               f"choose a new --out{hint}")
     out.mkdir(parents=True, exist_ok=True)
     tmp = meta_file.with_name(DATASET_JSON + ".tmp-writing")
     write_json(tmp, params)
     tmp.replace(meta_file)
+    refeatured = refeature_runs(Path(scenario_path), seeds, out / "runs", workers, tau, tau_g, progress) if refeature else []
     task = functools.partial(_dataset_seed, tau=tau, tau_g=tau_g)
     report = run_batch(Path(scenario_path), seeds, out / "runs", workers=workers, progress=progress, task=task)
     done = [s for s in seeds if (seed_folder(out / "runs", s) / SAMPLES).is_file()]
@@ -210,4 +263,4 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
     readme_tmp = out / "README.md.tmp-writing"
     readme_tmp.write_text(README.format(features=", ".join(FEATURE_NAMES)))
     readme_tmp.replace(out / "README.md")
-    return report | {"counts": counts, "splits": params["splits"]}
+    return report | {"counts": counts, "splits": params["splits"], "refeatured": len(refeatured)}

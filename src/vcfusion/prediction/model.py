@@ -6,11 +6,19 @@ and its normalisation, the labelling windows tau / tau_g it was trained for, and
 run-time decision settings (probability threshold, smoothing tau_a / tau_c in V2C ticks).
 
 Run time uses :meth:`LaneChangeModel.predict_proba`, plain NumPy in float32 (no torch import,
-a few microseconds for a tick of 100 twins); it equals the torch module within 1e-6.
+a few microseconds for a tick of 100 twins); it equals the torch module within float32 rounding.
+
+Calibration. The network is trained on class-weighted, window-sampled data, so its raw sigmoid
+is a score, not a probability. `calibration = (a, b)` (Platt scaling, fitted by `vcfusion
+train` on the validation seeds' every-tick stream, see :func:`fit_platt`) maps the network's
+logit z to P(the vehicle's lane change ends within tau s) = sigmoid(a z + b) on the stream a
+deployed model sees; `predict_proba` returns that. A file without it (older files) has
+(1, 0): the raw sigmoid. Decision thresholds in the file refer to the calibrated probability.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 from dataclasses import dataclass, field
 from importlib import resources
@@ -20,6 +28,22 @@ import numpy as np
 
 MODEL_FORMAT = "vcfusion-lane-change-mlp/1"
 DEFAULT_MODEL_NAME = "lane_change_mlp.npz"
+
+
+_BLAS_CONTROLLER = None
+SMALL_BATCH_ROWS = 4096  # up to this many rows (a tick's twins) the MLP runs on one BLAS thread
+
+
+def _one_blas_thread():
+    """Context limiting BLAS to one thread. The per-tick batches are small (~100 x 128): a
+    multi-threaded OpenBLAS gains nothing there, and on a busy machine its thread hand-off
+    made one call take ~16 ms instead of ~50 us (measured with `vcfusion bench-predict`)."""
+    global _BLAS_CONTROLLER
+    if _BLAS_CONTROLLER is None:
+        from threadpoolctl import ThreadpoolController
+
+        _BLAS_CONTROLLER = ThreadpoolController()
+    return _BLAS_CONTROLLER.limit(limits=1, user_api="blas")
 
 
 class ModelFileError(ValueError):
@@ -47,6 +71,8 @@ class LaneChangeModel:
     info: dict = field(default_factory=dict)
     # Probability threshold per smoothing (none / aggressive / conservative), tuned with it.
     thresholds: dict = field(default_factory=dict)
+    # Platt scaling (a, b) of the logit: lc_prob = sigmoid(a * z + b); (1, 0) = uncalibrated.
+    calibration: tuple[float, float] = (1.0, 0.0)
 
     def threshold_for(self, smoothing: str) -> float:
         return float(self.thresholds.get(smoothing, self.threshold))
@@ -61,15 +87,19 @@ class LaneChangeModel:
     def logits(self, features: np.ndarray) -> np.ndarray:
         h = (np.asarray(features, dtype=np.float32) - self.mean) * self._inv_std
         last = len(self._wt) - 1
-        for k, (wt, b) in enumerate(self._wt):
-            h = h @ wt + b
-            if k < last:
-                np.maximum(h, 0.0, out=h)
+        with _one_blas_thread() if len(h) <= SMALL_BATCH_ROWS else contextlib.nullcontext():
+            for k, (wt, b) in enumerate(self._wt):
+                h = h @ wt + b
+                if k < last:
+                    np.maximum(h, 0.0, out=h)
         return h[:, 0]
 
     def predict_proba(self, features: np.ndarray) -> np.ndarray:
-        """P(lane change within tau) per row of features (N, F), float32."""
+        """P(lane change ends within tau) per row of features (N, F), float32 (calibrated, see module doc)."""
+        a, b = self.calibration
         z = self.logits(features)
+        if (a, b) != (1.0, 0.0):
+            z = np.float32(a) * z + np.float32(b)
         return (1.0 / (1.0 + np.exp(-z))).astype(np.float32)
 
     def check_features(self, names, source: str = "model") -> None:
@@ -98,6 +128,39 @@ class LaneChangeModel:
         return module
 
 
+def fit_platt(logits: np.ndarray, labels: np.ndarray, iterations: int = 100) -> tuple[float, float]:
+    """Platt scaling: (a, b) minimising the log loss of sigmoid(a z + b) against 0/1 labels.
+
+    Newton's method with step halving (a plain Newton step from (1, 0) can overshoot badly when
+    the raw scores are far from calibrated, as after class-weighted training)."""
+    z = np.asarray(logits, dtype=np.float64)
+    y = np.asarray(labels, dtype=np.float64)
+    if not (0 < y.sum() < len(y)):
+        raise ValueError("calibration needs both classes among the labels")
+
+    def loss(a: float, b: float) -> float:
+        u = a * z + b  # log(1 + e^u) - y u, computed stably
+        return float(np.mean(np.logaddexp(0.0, u) - y * u))
+
+    a, b = 1.0, 0.0
+    current = loss(a, b)
+    for _ in range(iterations):
+        p = 0.5 * (1.0 + np.tanh(0.5 * (a * z + b)))  # sigmoid without overflow
+        w = np.maximum(p * (1 - p), 1e-12)
+        grad = np.array([np.mean((p - y) * z), np.mean(p - y)])
+        hess = np.array([[np.mean(w * z * z), np.mean(w * z)], [np.mean(w * z), np.mean(w)]]) + 1e-12 * np.eye(2)
+        step = np.linalg.solve(hess, grad)
+        t = 1.0
+        while t > 1e-6 and loss(a - t * step[0], b - t * step[1]) > current:
+            t *= 0.5
+        a, b = a - t * step[0], b - t * step[1]
+        new = loss(a, b)
+        if current - new < 1e-12:
+            break
+        current = new
+    return float(a), float(b)
+
+
 def build_torch_mlp(n_features: int, hidden: int):
     import torch
 
@@ -115,6 +178,7 @@ def save_model(model: LaneChangeModel, path: str | Path) -> Path:
         "period_s": model.period_s, "threshold": model.threshold, "smoothing": model.smoothing,
         "tau_a_ticks": model.tau_a_ticks, "tau_c_ticks": model.tau_c_ticks,
         "conservative_threshold": model.conservative_threshold, "thresholds": model.thresholds, "layers": len(model.weights), "info": model.info,
+        "calibration": [float(c) for c in model.calibration],
     }
     arrays = {"mean": model.mean, "std": model.std, "meta": np.array(json.dumps(meta, sort_keys=True))}
     for k, (w, b) in enumerate(model.weights):
@@ -151,6 +215,7 @@ def load_model(path: str | Path | None = None, expected_features=None) -> LaneCh
         threshold=float(meta["threshold"]), smoothing=meta["smoothing"], tau_a_ticks=int(meta["tau_a_ticks"]),
         tau_c_ticks=int(meta["tau_c_ticks"]), conservative_threshold=float(meta["conservative_threshold"]),
         info=meta.get("info", {}), thresholds=dict(meta.get("thresholds", {})),
+        calibration=tuple(float(c) for c in meta.get("calibration", (1.0, 0.0))),
     )
     if len(mean) != len(model.feature_names) or weights[0][0].shape[1] != len(model.feature_names):
         raise ModelFileError(f"{path}: weights do not match its feature list of {len(model.feature_names)} features")

@@ -8,7 +8,8 @@
   positives by n_negative / n_positive in the loss.
 - Adam, mini-batches, early stopping on the validation seeds' window loss (best epoch kept).
 - Seeded (torch, NumPy) and single-threaded by default, so a run is reproducible.
-- Afterwards the run-time decision settings (probability threshold, tau_a, tau_c) are chosen
+- Afterwards the output is calibrated (Platt scaling on the validation seeds' every-tick
+  stream, so `lc_prob` is P(lane change ends within tau) there) and the run-time decision settings (probability threshold, tau_a, tau_c) are chosen
   on the validation seeds' every-tick stream (see :func:`tune_decisions`) and stored in the file.
 """
 
@@ -23,11 +24,14 @@ import pandas as pd
 
 from vcfusion.prediction.dataset import DatasetError, DatasetInfo, load_dataset, load_samples
 from vcfusion.prediction.events import event_scores, smooth_stream, track_bounds
-from vcfusion.prediction.model import LaneChangeModel, build_torch_mlp, save_model
+from vcfusion.prediction.model import LaneChangeModel, build_torch_mlp, fit_platt, save_model
 
-# Run-time settings tried on the validation stream.
-THRESHOLDS = (0.5, 0.7, 0.8, 0.9, 0.95, 0.97, 0.98, 0.99)
-TAU_A_TICKS = (0, 10, 20, 30, 50)
+# Run-time settings searched on the validation stream. Thresholds are calibrated probabilities
+# of a lane change ending within tau (the stream's base rate is ~11%), on a 0.01 grid.
+THRESHOLDS = tuple(float(t) for t in np.round(np.arange(0.05, 0.995, 0.01), 2)) + (0.995, 0.998, 0.999)
+# Algorithm 3 holds a positive for tau_a more ticks; at most tau: a positive means "the change
+# ends within tau s", so holding it longer would flag vehicles whose predicted change is over.
+TAU_A_TICKS = (0, 10, 20, 30, 40, 50)
 TAU_C_TICKS = (5, 10, 20, 30)
 MAX_FALSE_ALARMS_PER_VH = 2.0
 
@@ -130,24 +134,42 @@ def tune_decisions(prob: np.ndarray, stream: pd.DataFrame, events: pd.DataFrame,
                    horizon_s: float, conservative_threshold: float = 0.5) -> dict:
     """Pick threshold / tau_a / tau_c on a validation stream.
 
-    For each smoothing, among the settings with at most MAX_FALSE_ALARMS_PER_VH false alarms per
-    vehicle-hour, the one predicting the most lane changes (ties: larger mean advance); if none
-    meets the bound, the one with the fewest false alarms. The default smoothing is then
-    picked by :func:`choose_default`.
+    For each smoothing and each tau, the lowest threshold of THRESHOLDS with at most
+    MAX_FALSE_ALARMS_PER_VH false alarms per vehicle-hour (found by bisection: raising the
+    threshold only removes positive decisions, so false alarms fall and the share predicted
+    falls with it); then, over the taus, the setting predicting the most lane changes (ties:
+    larger mean advance). If no setting meets the bound, the one with the fewest false alarms.
+    The default smoothing is then picked by :func:`choose_default`.
     """
     best: dict = {}
     bounds = track_bounds(stream)
     for method, taus in (("none", (0,)), ("aggressive", TAU_A_TICKS), ("conservative", TAU_C_TICKS)):
         candidates = []
-        for thr in THRESHOLDS:
-            raw = (prob > thr).astype(np.int8)
-            for tau in taus:
-                dec = smooth_stream(bounds, raw, method, tau_a=tau, tau_c=tau, threshold=conservative_threshold)
-                summary, _ = event_scores(stream, dec, events, period_s, horizon_s, bounds)
-                candidates.append((thr, tau, summary))
-        ok = [c for c in candidates if c[2]["false_alarms_per_vehicle_hour"] <= MAX_FALSE_ALARMS_PER_VH]
-        if ok:
-            thr, tau, summary = max(ok, key=lambda c: (c[2]["predicted_share"], c[2]["advance_final_mean_s"]))
+        for tau in taus:
+            cache: dict[int, dict] = {}
+
+            def score(i: int) -> dict:
+                if i not in cache:
+                    raw = (prob > THRESHOLDS[i]).astype(np.int8)
+                    dec = smooth_stream(bounds, raw, method, tau_a=tau, tau_c=tau, threshold=conservative_threshold)
+                    cache[i] = event_scores(stream, dec, events, period_s, horizon_s, bounds)[0]
+                return cache[i]
+
+            ok = lambda i: score(i)["false_alarms_per_vehicle_hour"] <= MAX_FALSE_ALARMS_PER_VH  # noqa: E731
+            lo, hi = 0, len(THRESHOLDS) - 1
+            if ok(lo):
+                hi = lo
+            elif ok(hi):
+                while hi - lo > 1:  # invariant: not ok(lo), ok(hi)
+                    mid = (lo + hi) // 2
+                    if ok(mid):
+                        hi = mid
+                    else:
+                        lo = mid
+            candidates += [(THRESHOLDS[i], tau, summary) for i, summary in cache.items()]
+        ok_c = [c for c in candidates if c[2]["false_alarms_per_vehicle_hour"] <= MAX_FALSE_ALARMS_PER_VH]
+        if ok_c:
+            thr, tau, summary = max(ok_c, key=lambda c: (c[2]["predicted_share"], c[2]["advance_final_mean_s"]))
         else:
             thr, tau, summary = min(candidates, key=lambda c: (c[2]["false_alarms_per_vehicle_hour"],
                                                                -c[2]["predicted_share"]))
@@ -189,8 +211,11 @@ def train_model(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = Tru
     y_va = (va["window_label"] == 1).to_numpy(np.float32)
     weights, fit = _fit_torch(((x_tr - mean) / std).astype(np.float32), y_tr, x_va, y_va, cfg, len(names), progress)
     model = LaneChangeModel(tuple(names), mean, std, weights, info.tau, info.tau_g, info.period_s)
-    stream, events = stream_with_events(info, "validation", columns=["seed", "vehicle_id", "time", *names])
-    prob = model.predict_proba(stream[names].to_numpy(np.float32))
+    stream, events = stream_with_events(info, "validation", columns=["seed", "vehicle_id", "time", "stream_label",
+                                                                     *names])
+    x_stream = stream[names].to_numpy(np.float32)
+    model.calibration = fit_platt(model.logits(x_stream), stream["stream_label"].to_numpy() == 1)
+    prob = model.predict_proba(x_stream)
     tuned = tune_decisions(prob, stream, events, info.period_s, cfg.horizon_s, model.conservative_threshold)
     default = choose_default(tuned)
     model.smoothing = default
@@ -201,9 +226,10 @@ def train_model(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = Tru
     model.info = {
         "dataset": str(Path(dataset).resolve()), "scenario": info.meta.get("scenario"), "kind": cfg.kind,
         "config": asdict(cfg), "fit": fit, "train_samples": int(len(tr)), "train_positives": int(y_tr.sum()),
-        "splits": info.splits, "tuning": tuned,
+        "splits": info.splits, "tuning": tuned, "calibration": list(model.calibration),
         "command": f"vcfusion train {dataset} --out {out.name} --hidden {cfg.hidden} --epochs {cfg.epochs} "
-                   f"--patience {cfg.patience} --seed {cfg.seed} --background-negatives {cfg.background_negatives}",
+                   f"--patience {cfg.patience} --seed {cfg.seed} --background-negatives {cfg.background_negatives} "
+                   f"--learning-rate {cfg.learning_rate} --weight-decay {cfg.weight_decay}",
     }
     save_model(model, out)
     lines = [f"trained {cfg.kind} on {len(tr)} samples ({int(y_tr.sum())} positive) of {len(info.splits['train'])} "
