@@ -10,6 +10,7 @@ import json
 import platform
 import shutil
 from collections.abc import Mapping
+from contextlib import contextmanager
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
@@ -151,15 +152,7 @@ def write_run_folder(out_dir: Path, tables: Mapping[str, pd.DataFrame | Path], m
     """
     if isinstance(tables, RunTables):
         tables = tables.sources()
-    out_dir = Path(out_dir)
-    if out_dir.exists():
-        raise FileExistsError(f"{out_dir}: run folder already exists")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir.with_name(out_dir.name + ".tmp-writing")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir()
-    try:
+    with atomic_folder(out_dir, "run folder") as tmp:
         for name, frame in tables.items():
             if isinstance(frame, Path):
                 shutil.move(str(frame), tmp / f"{name}.parquet")
@@ -169,11 +162,26 @@ def write_run_folder(out_dir: Path, tables: Mapping[str, pd.DataFrame | Path], m
             shutil.move(str(src), tmp / name)
         write_json(tmp / SUMMARY, summary)
         write_json(tmp / MANIFEST, manifest)  # last: its presence marks a complete run
-        tmp.rename(out_dir)
+    return Path(out_dir)
+
+
+@contextmanager
+def atomic_folder(out: Path, kind: str = "folder"):
+    """Yield a temporary sibling folder that becomes `out` only if the block completes."""
+    out = Path(out)
+    if out.exists():
+        raise FileExistsError(f"{out}: {kind} already exists")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp-writing")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir()
+    try:
+        yield tmp
+        tmp.rename(out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return out_dir
 
 
 def is_complete_run(folder: Path) -> bool:

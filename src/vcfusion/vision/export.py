@@ -13,7 +13,6 @@ Written into OUT.tmp-writing and renamed when complete.
 from __future__ import annotations
 
 import json
-import shutil
 import sys
 from pathlib import Path
 
@@ -21,7 +20,7 @@ import cv2
 from tqdm import tqdm
 
 from vcfusion.cosim import CoSimulation
-from vcfusion.runio import package_versions, write_json
+from vcfusion.runio import atomic_folder, package_versions, write_json
 from vcfusion.scenario import Scenario
 from vcfusion.traffic.session import EGO_ID
 
@@ -34,50 +33,39 @@ def render_dataset(scenario: Scenario, seeds: list[int], every: int, out: Path, 
 
     if scenario.ego is None:
         raise ValueError(f"{scenario.source}: ego: the camera rides on the ego; expected an ego block")
-    out = Path(out)
-    if out.exists():
-        raise FileExistsError(f"{out}: dataset folder already exists")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp-writing")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    for sub in ("rgb", "depth", "instances"):
-        (tmp / sub).mkdir(parents=True)
     coco = CocoBuilder(f"vcfusion ego-camera frames of scenario {scenario.name}")
     bar = tqdm(total=len(seeds), unit="seed", desc=f"render {scenario.name}", disable=not progress)
     hook = None
     try:
-        for seed in seeds:
-            def save(frame, tick, seed=seed):
-                stem = f"seed{seed:04d}_t{frame.time:07.2f}"
-                files = {kind: f"{kind}/{stem}.png" for kind in ("rgb", "depth", "instances")}
-                cv2.imwrite(str(tmp / files["rgb"]), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
-                cv2.imwrite(str(tmp / files["depth"]), depth_to_png16(frame.depth))
-                cv2.imwrite(str(tmp / files["instances"]), (frame.instances + 1).astype("uint16"))
-                boxes = ground_truth_boxes(frame, tick.truth, hook.renderer, near=scenario.camera.near_m)
-                coco.add(frame, boxes, vehicle_anchors(frame, tick.truth, EGO_ID), files, extra={"seed": seed})
-                bar.set_postfix(frames=len(coco.images), refresh=False)
+        with atomic_folder(Path(out), "dataset folder") as tmp:
+            for sub in ("rgb", "depth", "instances"):
+                (tmp / sub).mkdir()
+            for seed in seeds:
+                def save(frame, tick, seed=seed):
+                    stem = f"seed{seed:04d}_t{frame.time:07.2f}"
+                    files = {kind: f"{kind}/{stem}.png" for kind in ("rgb", "depth", "instances")}
+                    cv2.imwrite(str(tmp / files["rgb"]), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
+                    cv2.imwrite(str(tmp / files["depth"]), depth_to_png16(frame.depth))
+                    cv2.imwrite(str(tmp / files["instances"]), (frame.instances + 1).astype("uint16"))
+                    boxes = ground_truth_boxes(frame, tick.truth, hook.renderer, near=scenario.camera.near_m)
+                    coco.add(frame, boxes, vehicle_anchors(frame, tick.truth, EGO_ID), files, extra={"seed": seed})
+                    bar.set_postfix(frames=len(coco.images), refresh=False)
 
-            if hook is None:
-                hook = CameraHook(scenario, every_ticks=every, on_frame=save)
-            else:  # one renderer (and its scene) for all seeds
-                hook = CameraHook(scenario, every_ticks=every, on_frame=save, renderer=hook.renderer)
-            CoSimulation(scenario, seed, hooks=[hook]).run()
-            bar.update(1)
-        bar.close()
-        data = coco.to_dict()
-        (tmp / "annotations.json").write_text(json.dumps(data))
-        write_json(tmp / "manifest.json", {
-            "scenario": scenario.to_dict() | {"network": scenario.network.name,
-                                              "vehicle_types": scenario.vehicle_types.name},
-            "scenario_file": str(scenario.source) if scenario.source else None,
-            "seeds": seeds, "every_ticks": every, "versions": package_versions(),
-            "images": len(data["images"]), "annotations": len(data["annotations"]),
-        })
-        tmp.rename(out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+                # One renderer (and its scene) for all seeds.
+                hook = CameraHook(scenario, every_ticks=every, on_frame=save,
+                                  **({"renderer": hook.renderer} if hook is not None else {}))
+                CoSimulation(scenario, seed, hooks=[hook]).run()
+                bar.update(1)
+            bar.close()
+            data = coco.to_dict()
+            (tmp / "annotations.json").write_text(json.dumps(data))
+            write_json(tmp / "manifest.json", {
+                "scenario": scenario.to_dict() | {"network": scenario.network.name,
+                                                  "vehicle_types": scenario.vehicle_types.name},
+                "scenario_file": str(scenario.source) if scenario.source else None,
+                "seeds": seeds, "every_ticks": every, "versions": package_versions(),
+                "images": len(data["images"]), "annotations": len(data["annotations"]),
+            })
     finally:
         if hook is not None:
             hook.close()
