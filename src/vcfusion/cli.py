@@ -6,11 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from vcfusion.errors import UsageError
 from vcfusion.scenario import ScenarioError, load_scenario
-
-
-class UsageError(ValueError):
-    """A bad command-line argument; the message is for the user."""
 
 
 def _default_run_dir(name: str, seed: int) -> Path:
@@ -40,10 +37,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
     from vcfusion.studies.batch import Executor, parse_seeds, run_batch
 
     scenario = load_scenario(args.scenario)  # fail fast, before any worker starts
-    try:
-        seeds = parse_seeds(args.seeds)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
+    seeds = parse_seeds(args.seeds)  # UsageError on a bad range
     if args.workers < 1:
         raise UsageError(f"--workers: expected a positive number of processes, got {args.workers}")
     if args.dask_local is not None and args.dask_local < 1:
@@ -140,10 +134,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from vcfusion.studies.batch import parse_seeds
 
     scenario = load_scenario(args.scenario)
-    try:
-        seeds = parse_seeds(args.seeds)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
+    seeds = parse_seeds(args.seeds)  # UsageError on a bad range
     if args.every < 1:
         raise UsageError(f"--every: expected a positive number of V2C ticks, got {args.every}")
     if scenario.ego is None:

@@ -5,11 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-
-def _usage(msg: str):
-    from vcfusion.cli import UsageError
-
-    return UsageError(msg)
+from vcfusion.errors import UsageError
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
@@ -18,17 +14,14 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     from vcfusion.studies.batch import parse_seeds
 
     load_scenario(args.scenario)  # fail fast on a bad file
-    try:
-        seeds = parse_seeds(args.seeds)
-    except ValueError as exc:
-        raise _usage(str(exc)) from None
+    seeds = parse_seeds(args.seeds)  # UsageError on a bad range
     if args.workers < 1:
-        raise _usage(f"--workers: expected a positive number of processes, got {args.workers}")
+        raise UsageError(f"--workers: expected a positive number of processes, got {args.workers}")
     try:
         report = build_dataset(Path(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g,
                                refeature=args.refeature)
     except DatasetError as exc:
-        raise _usage(str(exc)) from None
+        raise UsageError(str(exc)) from None
     c = report["counts"]
     if args.refeature:
         print(f"recomputed the features of {report['refeatured']} existing runs")
@@ -51,11 +44,11 @@ def cmd_train(args: argparse.Namespace) -> int:
                       learning_rate=args.learning_rate, weight_decay=args.weight_decay)
     out = Path(args.out)
     if out.exists() and not args.force:
-        raise _usage(f"--out: {out} already exists (use --force to replace it)")
+        raise UsageError(f"--out: {out} already exists (use --force to replace it)")
     try:
         report = train_model(Path(args.dataset), out, cfg)
     except DatasetError as exc:
-        raise _usage(str(exc)) from None
+        raise UsageError(str(exc)) from None
     print(report)
     return 0
 
@@ -69,7 +62,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         report_path = evaluate(Path(args.model), Path(args.dataset), Path(args.out) if args.out else None,
                                split=args.split, horizon_s=args.horizon)
     except (DatasetError, ModelFileError) as exc:
-        raise _usage(str(exc)) from None
+        raise UsageError(str(exc)) from None
     print(Path(report_path).read_text())
     print(f"report: {report_path}")
     return 0

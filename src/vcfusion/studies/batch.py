@@ -17,6 +17,7 @@ from pathlib import Path
 import pandas as pd
 from tqdm import tqdm
 
+from vcfusion.errors import UsageError
 from vcfusion.runio import is_complete_run, write_json, write_table
 
 
@@ -37,7 +38,7 @@ def parse_seeds(text: str) -> list[int]:
                     raise ValueError
                 seeds.add(seed)
     except ValueError:
-        raise ValueError(f"--seeds: expected non-negative seeds like '0-99' or '1,4,7-9', got {text!r}") from None
+        raise UsageError(f"--seeds: expected non-negative seeds like '0-99' or '1,4,7-9', got {text!r}") from None
     return sorted(seeds)
 
 

@@ -6,20 +6,16 @@ import argparse
 import sys
 from pathlib import Path
 
-
-def _usage(message: str):
-    from vcfusion.cli import UsageError
-
-    return UsageError(message)
+from vcfusion.errors import UsageError
 
 
 def parse_size(text: str, option: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise _usage(f"{option}: expected WIDTHxHEIGHT such as 320x240, got {text!r}") from None
+        raise UsageError(f"{option}: expected WIDTHxHEIGHT such as 320x240, got {text!r}") from None
     if w <= 0 or h <= 0 or w % 16 or h % 16:
-        raise _usage(f"{option}: expected positive multiples of 16, got {text!r}")
+        raise UsageError(f"{option}: expected positive multiples of 16, got {text!r}")
     return w, h
 
 
@@ -30,7 +26,7 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
     input_wh = parse_size(args.input_size, "--input-size")
     for name in ("epochs", "batch_size"):
         if getattr(args, name) < 1:
-            raise _usage(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(args, name)}")
+            raise UsageError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(args, name)}")
     try:
         net, report = train_detector(
             args.data, args.out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, input_wh=input_wh,
@@ -38,7 +34,7 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
             device=args.device, progress=sys.stderr.isatty(), max_iterations=args.iterations,
             min_train_area=args.min_train_area, eval_min_area=args.min_area)
     except DetectorFileError as exc:
-        raise _usage(str(exc)) from None
+        raise UsageError(str(exc)) from None
     size_mb = Path(args.out).stat().st_size / 2**20
     print(f"trained {report.iterations} iterations ({report.epochs} epochs) on {report.n_train} images "
           f"in {report.wall_s:.0f} s; loss {report.first_losses[0]:.3f} -> {report.loss_history[-1]:.3f}")
@@ -54,13 +50,13 @@ def _make_detector(args):
     try:
         if args.onnx:
             if not args.classes:
-                raise _usage("--classes: expected the category ids of the ONNX model's score columns, e.g. 1,2")
+                raise UsageError("--classes: expected the category ids of the ONNX model's score columns, e.g. 1,2")
             class_ids = [int(c) for c in args.classes.split(",")]
             return OnnxDetector(args.onnx, parse_size(args.input_size, "--input-size"), class_ids,
                                 scale=args.scale, objectness=args.objectness, letterbox=args.letterbox)
         return TorchDetector(args.weights or default_weights_path())
     except DetectorFileError as exc:
-        raise _usage(str(exc)) from None
+        raise UsageError(str(exc)) from None
 
 
 def cmd_eval_detector(args: argparse.Namespace) -> int:
@@ -72,7 +68,7 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
         ds = load_coco_many(args.data)
         result = evaluate_detector(detector, ds, progress=sys.stderr.isatty(), min_area=args.min_area)
     except DetectorFileError as exc:
-        raise _usage(str(exc)) from None
+        raise UsageError(str(exc)) from None
     print(f"{' '.join(args.data)}: {len(ds)} images (boxes >= {args.min_area:g} px^2)  mAP@0.5 {result.map_50:.3f}  mAP@0.5:0.95 {result.map_50_95:.3f}")
     for cid, name in zip(ds.class_ids, ds.class_names):
         if cid in result.ap_per_category:
@@ -86,11 +82,11 @@ def cmd_export_onnx(args: argparse.Namespace) -> int:
     try:
         import onnx  # noqa: F401 - torch's exporter needs it
     except ImportError:
-        raise _usage("export-onnx: needs the onnx package (pip install onnx, or the project's dev extra)") from None
+        raise UsageError("export-onnx: needs the onnx package (pip install onnx, or the project's dev extra)") from None
     try:
         net = DetectorModel.load(args.weights or default_weights_path())
     except DetectorFileError as exc:
-        raise _usage(str(exc)) from None
+        raise UsageError(str(exc)) from None
     out = export_onnx(net, args.out)
     w, h = net.input_wh
     ids = ",".join(str(c) for c in net.class_ids)
@@ -144,9 +140,9 @@ def _float_list(text: str, option: str) -> list[float]:
     try:
         values = [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
-        raise _usage(f"{option}: expected comma-separated numbers such as 0,0.1,0.5, got {text!r}") from None
+        raise UsageError(f"{option}: expected comma-separated numbers such as 0,0.1,0.5, got {text!r}") from None
     if not values or any(v < 0 for v in values):
-        raise _usage(f"{option}: expected non-negative numbers, got {text!r}")
+        raise UsageError(f"{option}: expected non-negative numbers, got {text!r}")
     return values
 
 
@@ -159,10 +155,7 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
     from vcfusion.vision.stage import RenderedFrameSources, depth_params
 
     scenario = load_scenario(args.scenario)
-    try:
-        seeds = parse_seeds(args.seeds)
-    except ValueError as exc:
-        raise _usage(str(exc)) from None
+    seeds = parse_seeds(args.seeds)  # UsageError on a bad range
     conditions = default_conditions(_float_list(args.latencies, "--latencies"), _float_list(args.noises, "--noises"))
     detectors = {}
     for name in (d.strip() for d in args.detectors.split(",")):
@@ -172,11 +165,11 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
             try:
                 detectors[name] = TorchDetector(args.weights or default_weights_path())
             except DetectorFileError as exc:
-                raise _usage(f"--weights: {exc}") from None
+                raise UsageError(f"--weights: {exc}") from None
         else:
-            raise _usage(f"--detectors: expected names among oracle, cnn; got {name!r}")
+            raise UsageError(f"--detectors: expected names among oracle, cnn; got {name!r}")
     if scenario.ego is None:
-        raise _usage(f"{args.scenario}: ego: the camera rides on the ego; the scenario has no ego block")
+        raise UsageError(f"{args.scenario}: ego: the camera rides on the ego; the scenario has no ego block")
     out = Path(args.out)
     sources = RenderedFrameSources()
     try:
