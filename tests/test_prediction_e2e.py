@@ -108,6 +108,8 @@ def test_accident_run_reports_cloud_flags(tmp_path):
     result = execute_run(scenario, 0, tmp_path / "run")
     twins = pd.read_parquet(tmp_path / "run" / "twins.parquet")
     assert twins["lc_prob"].between(0, 1).all() and set(twins["lc_decision"].unique()) <= {0, 1}
+    # The driver model's draw reaches the summary of every run, however the run is started.
+    assert result.summary["driver"]["guidance_enabled"] is True
     flags = result.summary["lane_change_flags"]
     into = result.tables["lane_changes"]
     assert len(flags) == int(into["into_ego_lane"].sum()) > 0

@@ -20,17 +20,21 @@ def _default_run_dir(name: str, seed: int) -> Path:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from vcfusion.cosim import format_summary
-    from vcfusion.run import execute_run
-
     scenario = load_scenario(args.scenario)
     out = Path(args.out) if args.out else _default_run_dir(scenario.name, args.seed)
     if out.exists():
         raise UsageError(f"--out: {out} already exists; choose a new run folder")
-    result = execute_run(scenario, args.seed, out, progress=sys.stderr.isatty())
+    _run_and_report(scenario, args.seed, out)
+    return 0
+
+
+def _run_and_report(scenario, seed: int, out: Path) -> None:
+    from vcfusion.cosim import format_summary
+    from vcfusion.run import execute_run
+
+    result = execute_run(scenario, seed, out, progress=sys.stderr.isatty())
     print(format_summary(result.summary, result.wall_s))
     print(f"run folder: {out}")
-    return 0
 
 
 def cmd_batch(args: argparse.Namespace) -> int:
@@ -88,14 +92,8 @@ def cmd_build_net(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from vcfusion.cosim import format_summary
-    from vcfusion.run import execute_run
-
     scenario = load_scenario(args.scenario)
-    out = _default_run_dir(scenario.name, args.seed)
-    result = execute_run(scenario, args.seed, out, progress=sys.stderr.isatty())
-    print(format_summary(result.summary, result.wall_s))
-    print(f"run folder: {out}")
+    _run_and_report(scenario, args.seed, _default_run_dir(scenario.name, args.seed))
     return _demo_guidance_study(args)
 
 

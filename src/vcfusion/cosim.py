@@ -167,7 +167,7 @@ class CoSimulation:
         frames["collisions"] = pd.DataFrame([c.__dict__ for c in out["collisions"]],
                                             columns=list(Collision.__dataclass_fields__))
         tables = RunTables(frames, {k: f for k, f in files.items() if f is not None}, keepalive=workdir)
-        # A controller that keeps its own log (e.g. the driver model) adds its tables.
+        # A controller that keeps its own log (e.g. the driver model) adds its tables and summary.
         if hasattr(self.controller, "tables"):
             tables.update(self.controller.tables())
         lateral = tables.columns("trajectories", ["vehicle_id", "time", "d", "s"])
@@ -175,6 +175,8 @@ class CoSimulation:
         if sc.ego is not None:
             tables["lane_changes"] = _relate_to_ego(tables["lane_changes"], lateral, vehicles, sc.ego.lane)
         summary = summarize(sc, self.seed, tables, out["channel"], out["end_reason"], lateral)
+        if hasattr(self.controller, "summary"):
+            summary["driver"] = self.controller.summary()
         return RunResult(sc, self.seed, tables, summary, wallclock.perf_counter() - started)
 
     def _loop(self, session: SumoSession, sinks: dict[str, TableSink], progress: bool) -> dict:
@@ -212,6 +214,7 @@ class CoSimulation:
                 if s_front - ego_cfg.depart_pos_m >= ego_cfg.trip_distance_m:
                     end_reason = "trip_complete"
                     break
+                leader = session.leader(EGO_ID)
             if k % tick_every == 0:
                 now = truth.time
                 channel.send(channel.measure(truth))
@@ -220,16 +223,17 @@ class CoSimulation:
                 store.forget_stale(now)
                 twins = store.snapshot(now)
                 sinks["twins"].append(_twin_rows(twins))
-                ego_view = self._ego_view(session, truth) if ego_cfg else None
-                near = (neighbours(twins, (truth.x[truth.index_of(EGO_ID)], truth.y[truth.index_of(EGO_ID)]),
-                                   sc.v2c.neighbour_range_m, EGO_ID) if ego_cfg else None)
+                ego_view = near = None
+                if ego_cfg is not None:
+                    i = truth.index_of(EGO_ID)
+                    ego_view = self._ego_view(session, truth, i, leader)
+                    near = neighbours(twins, (truth.x[i], truth.y[i]), sc.v2c.neighbour_range_m, EGO_ID)
                 tick = Tick(now, truth, twins, ego_view, near)
                 for hook in self.hooks:
                     sinks[hook.table].append_rows(hook(tick) or [])
                 if ego_cfg is not None:
                     ego_accel = float(self.controller.acceleration(tick))
             if ego_cfg is not None:
-                leader = session.leader(EGO_ID)
                 ego_rows.append({
                     "time": round(session.time, 6), "s": s_front, "speed": ego_speed_now, "accel": sumo_acc,
                     "command_accel": ego_accel,
@@ -253,9 +257,8 @@ class CoSimulation:
         out["end_reason"] = end_reason
         return out
 
-    def _ego_view(self, session: SumoSession, truth: VehicleStates) -> EgoView:
-        i = truth.index_of(EGO_ID)
-        leader = session.leader(EGO_ID)
+    def _ego_view(self, session: SumoSession, truth: VehicleStates, i: int,
+                  leader: tuple[str, float] | None) -> EgoView:
         s, _ = session.road.to_road_frame(truth.x[i], truth.y[i])
         return EgoView(
             speed=float(truth.speed[i]), accel=float(truth.accel[i]),

@@ -24,11 +24,12 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
     from vcfusion.driver.params import draw_driver
     from vcfusion.traffic.network import read_road
 
+    road = read_road(scenario.network)
     process_models = []
     if scenario.prediction.enabled:
         from vcfusion.prediction.cloud import predictor_for_scenario
 
-        process_models.append(("lane_change", predictor_for_scenario(scenario, read_road(scenario.network))))
+        process_models.append(("lane_change", predictor_for_scenario(scenario, road)))
     process_models += list(extra_process_models or [])
     hooks = []
     if scenario.vision.enabled:
@@ -43,7 +44,6 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
         hooks.append(build_fusion_hook(scenario, seed, recorder))
     controller = None
     if scenario.ego is not None:
-        road = read_road(scenario.network)
         # Last hook: fills tick.annotations['guidance'] from the cloud only if no overlay did.
         hooks.append(CloudGuidanceFallback(road, scenario.ar.medium_threshold, scenario.ar.high_threshold,
                                            scenario.driver.guidance_view_range_m))
@@ -75,11 +75,7 @@ def execute_run(scenario: Scenario, seed: int, out_dir: Path | None, progress: b
 
         recorder = OverlayRecorder(video_dir_for(out_dir), fps=1.0 / scenario.ar.period_s)
     try:
-        cosim = build_cosimulation(scenario, seed, recorder=recorder)
-        result = cosim.run(progress=progress)
-        if cosim.controller is not None and hasattr(cosim.controller, "p"):
-            result.summary["driver"] = cosim.controller.p.to_dict() | {
-                "guidance_enabled": cosim.controller.guidance_enabled}
+        result = build_cosimulation(scenario, seed, recorder=recorder).run(progress=progress)
         if out_dir is not None:
             write_run_folder(Path(out_dir), result.tables, manifest_for(scenario, seed), result.summary)
             result.tables.relocate(Path(out_dir))

@@ -71,6 +71,10 @@ class DriverModel:
         self.events: list[dict] = []
         self.log_rows: list[dict] = []
 
+    def summary(self) -> dict:
+        """The trip's driver draw, for the run summary."""
+        return self.p.to_dict() | {"guidance_enabled": self.guidance_enabled}
+
     def tables(self) -> dict:
         """Run-folder tables: the driver's per-tick decisions and the cues it noticed."""
         import pandas as pd

@@ -219,9 +219,6 @@ class SumoSession:
     def set_ego_speed(self, speed_mps: float) -> None:
         libsumo.vehicle.setSpeed(EGO_ID, max(0.0, speed_mps))
 
-    def ego_present(self) -> bool:
-        return EGO_ID in libsumo.vehicle.getIDList()
-
     def vehicle_count(self) -> int:
         return libsumo.vehicle.getIDCount()
 
