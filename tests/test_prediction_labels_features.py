@@ -2,7 +2,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from vcfusion.prediction.features import BLOCK_RANGE_M, FEATURE_NAMES, RANGE_M, FeatureExtractor
+from vcfusion.prediction.features import (BLOCK_RANGE_M, DENSITY_RANGE_M, FEATURE_NAMES, RANGE_M, SIDES,
+                                         STOPPED_MPS, FeatureExtractor, tick_features)
 from vcfusion.prediction.labels import label_samples
 from vcfusion.records import TwinStates
 from vcfusion.traffic.network import Road
@@ -80,6 +81,53 @@ def test_features_leaders_followers_gaps_and_sentinels():
     # v3 (lane 2): its right-lane follower is v0 (100 < 105) and leader v1
     assert col["gap_foll_right"][3] == pytest.approx((105 - 2) - (100 + 2))
     assert col["gap_lead_right"][3] == pytest.approx(130 - 2 - 107)
+
+
+def _reference_tick_features(s, lane, speed, length, num_lanes):
+    """One twin and one side at a time, straight from the module's definitions (slow, obvious)."""
+    out = {}
+    for side, offset in zip(SIDES, (-1, 0, 1)):
+        cols = {k: [] for k in ("gap_lead", "dv_lead", "gap_foll", "dv_foll", "stopped_ahead", "n_ahead")}
+        for i in range(len(s)):
+            target = lane[i] + offset
+            if lane[i] < 0 or not 0 <= target < num_lanes:
+                for k in cols:
+                    cols[k].append(0.0)
+                continue
+            others = [j for j in range(len(s)) if j != i and lane[j] == target]
+            ahead = [j for j in others if s[j] > s[i]]
+            behind = [j for j in others if s[j] < s[i]]
+            lead = min(ahead, key=lambda j: s[j]) if ahead else None
+            foll = max(behind, key=lambda j: s[j]) if behind else None
+            gl = s[lead] - length[lead] / 2 - (s[i] + length[i] / 2) if lead is not None else np.inf
+            gf = s[i] - length[i] / 2 - (s[foll] + length[foll] / 2) if foll is not None else np.inf
+            cols["gap_lead"].append(gl if gl <= RANGE_M else RANGE_M)
+            cols["dv_lead"].append(speed[lead] - speed[i] if gl <= RANGE_M else 0.0)
+            cols["gap_foll"].append(gf if gf <= RANGE_M else RANGE_M)
+            cols["dv_foll"].append(speed[foll] - speed[i] if gf <= RANGE_M else 0.0)
+            stopped = [j for j in ahead if speed[j] < STOPPED_MPS]
+            st = min(stopped, key=lambda j: s[j]) if stopped else None
+            dist = s[st] - length[st] / 2 - (s[i] + length[i] / 2) if st is not None else np.inf
+            cols["stopped_ahead"].append(dist if dist <= BLOCK_RANGE_M else BLOCK_RANGE_M)
+            cols["n_ahead"].append(float(sum(s[i] < s[j] <= s[i] + DENSITY_RANGE_M for j in others)))
+        out.update({f"{k}_{side}": np.array(v) for k, v in cols.items()})
+    return out
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_tick_features_equal_a_twin_by_twin_reference(seed):
+    """The all-pairs vectorised neighbours agree with a plain per-twin search, including twins off
+    the road, stopped twins, empty lanes and gaps beyond the range."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 40))
+    s = np.round(rng.uniform(0, 600, n), 1)
+    lane = rng.integers(-1, 3, n)
+    speed = np.where(rng.random(n) < 0.2, 0.0, rng.uniform(5, 35, n))
+    length = rng.choice([4.5, 12.0], n)
+    got = tick_features(s, lane, speed, np.zeros(n), length, 3)
+    want = _reference_tick_features(s, lane, speed, length, 3)
+    for name, value in want.items():
+        np.testing.assert_allclose(got[name], value, rtol=0, atol=1e-9, err_msg=name)
 
 
 def test_features_ignore_lateral_position_within_the_lane():

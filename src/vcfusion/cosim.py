@@ -160,13 +160,13 @@ class CoSimulation:
             session.close()
         sumo_changes = read_sumo_lanechanges(lc_file)
         lc_file.unlink(missing_ok=True)
-        files = {name: sink.close() for name, sink in sinks.items()}
-        frames = {name: pd.DataFrame(columns=EMPTY_COLUMNS.get(name, [])) for name, f in files.items() if f is None}
+        stored = {name: sink.close() for name, sink in sinks.items()}
+        frames = {name: pd.DataFrame(columns=EMPTY_COLUMNS.get(name, [])) for name, f in stored.items() if f is None}
         vehicles = session.vehicle_table()
         frames["vehicles"] = vehicles
         frames["collisions"] = pd.DataFrame([c.__dict__ for c in out["collisions"]],
                                             columns=list(Collision.__dataclass_fields__))
-        tables = RunTables(frames, {k: f for k, f in files.items() if f is not None}, keepalive=workdir)
+        tables = RunTables(frames, {k: f for k, f in stored.items() if f is not None}, keepalive=workdir)
         # A controller that keeps its own log (e.g. the driver model) adds its tables and summary.
         if hasattr(self.controller, "tables"):
             tables.update(self.controller.tables())

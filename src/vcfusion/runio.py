@@ -47,7 +47,9 @@ class TableSink:
 
     Rows are buffered as column chunks and flushed every `flush_rows` rows, so a long run's
     memory does not grow with simulated time. Flushing at fixed row counts keeps the bytes of
-    the file a function of its content (runs stay byte-identical).
+    the file a function of its content (runs stay byte-identical). A table that never reaches
+    `flush_rows` never touches the disk: :meth:`close` hands it back in memory, and it is
+    written (with the same bytes as one row group) only if the run folder is.
     """
 
     def __init__(self, path: Path, flush_rows: int = 65_536):
@@ -73,35 +75,40 @@ class TableSink:
         if rows:
             self.append({k: np.array([r[k] for r in rows]) for k in rows[0]})
 
-    def _flush(self) -> None:
-        if not self._chunks:
-            return
+    def _table(self) -> pa.Table:
         names = list(self._chunks[0])
         data = {k: np.concatenate([c[k] for c in self._chunks]) for k in names}
         arrays = {k: pa.array(v.astype(str) if v.dtype == object else v) for k, v in data.items()}
         if self._schema is None:
             self._schema = pa.schema([(k, a.type) for k, a in arrays.items()])
-            self._writer = pq.ParquetWriter(self.path, self._schema, compression="zstd")
-        table = pa.Table.from_arrays([arrays[f.name].cast(f.type) for f in self._schema], schema=self._schema)
-        self._writer.write_table(table)  # one row group per flush
         self._chunks, self._buffered = [], 0
+        return pa.Table.from_arrays([arrays[f.name].cast(f.type) for f in self._schema], schema=self._schema)
 
-    def close(self) -> Path | None:
-        """Flush and close; the file's path, or None when the table stayed empty."""
+    def _flush(self) -> None:
+        if not self._chunks:
+            return
+        table = self._table()
+        if self._writer is None:
+            self._writer = pq.ParquetWriter(self.path, self._schema, compression="zstd")
+        self._writer.write_table(table)  # one row group per flush
+
+    def close(self) -> Path | pa.Table | None:
+        """The table: its Parquet file once it was flushed, else in memory (None when empty)."""
+        if self._writer is None:
+            return self._table() if self._chunks else None
         self._flush()
-        if self._writer is not None:
-            self._writer.close()
-            self._writer = None
-            return self.path
-        return None
+        self._writer.close()
+        self._writer = None
+        return self.path
 
 
 class RunTables(Mapping):
-    """A run's tables by name: small ones in memory, streamed ones read from Parquet on access."""
+    """A run's tables by name: DataFrames, in-memory Arrow tables (converted on access) and
+    streamed ones read from Parquet on access."""
 
-    def __init__(self, frames: dict[str, pd.DataFrame], files: dict[str, Path], keepalive=None):
+    def __init__(self, frames: dict[str, pd.DataFrame], stored: dict[str, Path | pa.Table], keepalive=None):
         self._frames = dict(frames)
-        self._files = dict(files)
+        self._stored = dict(stored)
         self._cache: dict[str, pd.DataFrame] = {}
         self._keepalive = keepalive  # e.g. the TemporaryDirectory holding the files
 
@@ -109,25 +116,28 @@ class RunTables(Mapping):
         if name in self._frames:
             return self._frames[name]
         if name not in self._cache:
-            self._cache[name] = pd.read_parquet(self._files[name])
+            src = self._stored[name]
+            self._cache[name] = src.to_pandas() if isinstance(src, pa.Table) else pd.read_parquet(src)
         return self._cache[name]
 
     def columns(self, name: str, columns: list[str]) -> pd.DataFrame:
         """Some columns of a table, without loading the rest."""
         if name in self._frames or name in self._cache:
             return self[name][columns]
-        return pd.read_parquet(self._files[name], columns=columns)
+        src = self._stored[name]
+        return src.select(columns).to_pandas() if isinstance(src, pa.Table) else pd.read_parquet(src, columns=columns)
 
     def column_names(self, name: str) -> list[str]:
         if name in self._frames or name in self._cache:
             return list(self[name].columns)
-        return pq.read_schema(self._files[name]).names
+        src = self._stored[name]
+        return src.schema.names if isinstance(src, pa.Table) else pq.read_schema(src).names
 
     def __iter__(self):
-        return iter(list(self._frames) + [k for k in self._files if k not in self._frames])
+        return iter(list(self._frames) + [k for k in self._stored if k not in self._frames])
 
     def __len__(self) -> int:
-        return len(set(self._frames) | set(self._files))
+        return len(set(self._frames) | set(self._stored))
 
     def __setitem__(self, name: str, frame: pd.DataFrame) -> None:
         self._frames[name] = frame
@@ -135,13 +145,13 @@ class RunTables(Mapping):
     def update(self, other: dict[str, pd.DataFrame]) -> None:
         self._frames.update(other)
 
-    def sources(self) -> dict[str, pd.DataFrame | Path]:
-        """Each table as a DataFrame or as its already-written Parquet file."""
-        return {**self._files, **self._frames}
+    def sources(self) -> dict[str, pd.DataFrame | pa.Table | Path]:
+        """Each table as a DataFrame, an Arrow table or its already-written Parquet file."""
+        return {**self._stored, **self._frames}
 
     def relocate(self, folder: Path) -> None:
-        """The streamed files were moved into `folder` (same names)."""
-        self._files = {k: Path(folder) / p.name for k, p in self._files.items()}
+        """The tables were written into `folder` (same names): read them from there from now on."""
+        self._stored = {k: Path(folder) / f"{k}.parquet" for k in self._stored if k not in self._frames}
 
 
 def write_run_folder(out_dir: Path, tables: Mapping[str, pd.DataFrame | Path], manifest: dict, summary: dict,
@@ -156,6 +166,8 @@ def write_run_folder(out_dir: Path, tables: Mapping[str, pd.DataFrame | Path], m
         for name, frame in tables.items():
             if isinstance(frame, Path):
                 shutil.move(str(frame), tmp / f"{name}.parquet")
+            elif isinstance(frame, pa.Table):
+                pq.write_table(frame, tmp / f"{name}.parquet", compression="zstd")  # as TableSink writes
             else:
                 write_table(tmp / f"{name}.parquet", frame)
         for name, src in (extra_files or {}).items():

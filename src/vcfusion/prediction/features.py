@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from vcfusion.prediction.memory import TwinMemory
 from vcfusion.traffic.network import Road
 
 RANGE_M = 150.0
@@ -76,21 +77,71 @@ _N_TICK = FEATURE_NAMES.index("speed_trend")  # features before the history bloc
 assert FEATURE_NAMES[_N_TICK:] == ("speed_trend", *[f"{n}_trend" for n in HISTORY_MEAN_SOURCES],
                                    *[f"{n}_mean" for n in HISTORY_MEAN_SOURCES])
 
-_LANE_KEY = 1.0e6  # lane * _LANE_KEY + s sorts twins by lane, then along the road
+_LANE_KEY = 1.0e6  # lane * _LANE_KEY + s orders twins by lane, then along the road
 
 
-def _neighbour_index(keys_sorted: np.ndarray, query: np.ndarray, lane_of_sorted: np.ndarray,
-                     target_lane: np.ndarray, ahead: bool) -> np.ndarray:
-    """Index (into the sorted arrays) of the nearest twin ahead/behind in target_lane, -1 if none."""
-    if ahead:
-        pos = np.searchsorted(keys_sorted, query, side="right")
-    else:
-        pos = np.searchsorted(keys_sorted, query, side="left") - 1
-    ok = (pos >= 0) & (pos < len(keys_sorted))
-    pos_c = np.minimum(np.maximum(pos, 0), max(len(keys_sorted) - 1, 0))  # np.clip is slow on small arrays
-    if len(keys_sorted):
-        ok &= lane_of_sorted[pos_c] == target_lane
-    return np.where(ok, pos_c, -1)
+_SIDE_OFFSETS = np.array([_LANE_OFFSET[side] for side in SIDES])
+_PER_SIDE = ("gap_lead", "dv_lead", "gap_foll", "dv_foll", "stopped_ahead", "n_ahead")
+# value of each per-side feature when the lane exists but holds no such neighbour in range
+_NOT_FOUND = np.array([RANGE_M, 0.0, RANGE_M, 0.0, BLOCK_RANGE_M])
+_N_OWN = FEATURE_NAMES.index("gap_lead_right")  # own-state columns before the per-side block
+_HISTORY_OWN = ("speed_minus_ema", "speed_below_recent_max")  # filled by FeatureExtractor
+
+
+def _tick_matrix(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.ndarray, length: np.ndarray,
+                 num_lanes: int) -> tuple[np.ndarray, np.ndarray]:
+    """(N, _N_TICK) memoryless features in FEATURE_NAMES order (the two history columns of the own
+    block left 0) and (N, num_lanes, 4) gap_lead, dv_lead, gap_foll, dv_foll towards every lane.
+
+    All twin pairs at once, (lanes, N, N) comparisons of the sort keys: a tick holds tens to a few
+    hundred twins, where a handful of dense array operations beats per-lane sorting and searching
+    (this runs for every twin on every V2C tick, so it is written for few NumPy calls).
+    """
+    n = len(s)
+    on_road = lane >= 0
+    own = np.zeros((n, _N_OWN))
+    own[:, 0], own[:, 1], own[:, 2], own[:, 3] = speed, accel, length, lane
+    own[:, 4] = np.where(on_road, num_lanes - 1 - lane, 0)
+    own[:, 5] = on_road & (lane >= 1)
+    own[:, 6] = on_road & (lane <= num_lanes - 2)
+    if n == 0:
+        return np.zeros((0, _N_TICK)), np.zeros((0, num_lanes, 4))
+    lanes = np.arange(num_lanes)
+    keys = lane * _LANE_KEY + s  # off-road twins are never anyone's neighbour (in_lane below)
+    # query[k, i]: twin i's position moved to lane k; its neighbours there have larger/smaller keys
+    query = (lanes[:, None] * _LANE_KEY + s[None, :])[:, :, None]
+    in_lane = ((lane[None, :] == lanes[:, None]) & on_road[None, :])[:, None, :]  # twin j is in lane k
+    ahead = in_lane & (keys > query)  # (lanes, N_i, N_j); equal keys are nobody's neighbour
+    behind = in_lane & (keys < query)
+    # nearest ahead (smallest key; ties: lowest index) of all twins and of the stopped ones
+    ahead_both = np.stack([ahead, ahead & (speed < STOPPED_MPS)])
+    lead_stop = np.argmin(np.where(ahead_both, keys, np.inf), axis=-1)  # (2, lanes, N)
+    has_lead_stop = ahead_both.any(axis=-1)
+    # nearest behind (largest key; ties: highest index, as a stable sort by key orders them)
+    foll = n - 1 - np.argmax(np.where(behind, keys, -np.inf)[..., ::-1], axis=-1)
+    has_foll = behind.any(axis=-1)
+    front = s + length / 2
+    rear = s - length / 2
+    lead, stop = lead_stop
+    gap_lead = rear[lead] - front
+    gap_foll = rear - front[foll]
+    stop_dist = rear[stop] - front
+    found_lead = has_lead_stop[0] & (gap_lead <= RANGE_M)
+    found_foll = has_foll & (gap_foll <= RANGE_M)
+    found = np.stack([found_lead, found_lead, found_foll, found_foll,
+                      has_lead_stop[1] & (stop_dist <= BLOCK_RANGE_M)], axis=-1)
+    value = np.stack([gap_lead, speed[lead] - speed, gap_foll, speed[foll] - speed, stop_dist], axis=-1)
+    per_lane = np.empty((num_lanes, n, len(_PER_SIDE)))  # (lanes, N, per-side features)
+    per_lane[..., :5] = np.where(found, value, _NOT_FOUND)
+    per_lane[..., 5] = (ahead & (keys <= query + DENSITY_RANGE_M)).sum(axis=-1)
+    per_lane = np.where(on_road[None, :, None], per_lane, 0.0)  # a twin off the road has no lanes
+    # own lane and both sides, picked from the absolute lanes; 0 where the lane does not exist
+    target = lane[None, :] + _SIDE_OFFSETS[:, None]  # (sides, N)
+    exists = on_road & (target >= 0) & (target < num_lanes)
+    picked = per_lane[np.minimum(np.maximum(target, 0), num_lanes - 1), np.arange(n)]  # (sides, N, 6)
+    picked = np.where(exists[:, :, None], picked, 0.0)
+    out = np.concatenate([own, picked.transpose(1, 0, 2).reshape(n, -1)], axis=1)
+    return out, per_lane[..., :4].transpose(1, 0, 2)
 
 
 def tick_features(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.ndarray,
@@ -100,83 +151,19 @@ def tick_features(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.
     per_lane: also return `_per_lane`, (N, num_lanes, 4): gap_lead, dv_lead, gap_foll, dv_foll
     of each twin towards every lane of the road by absolute index (own lane included).
     """
-    n = len(s)
-    lane = np.asarray(lane, dtype=np.int64)
-    on_road = lane >= 0
-    out: dict[str, np.ndarray] = {
-        "speed": speed.astype(float), "accel": accel.astype(float), "length": length.astype(float),
-        "lane": lane.astype(float),
-        "lanes_to_left": np.where(on_road, num_lanes - 1 - lane, 0).astype(float),
-        "right_lane_exists": (on_road & (lane >= 1)).astype(float),
-        "left_lane_exists": (on_road & (lane <= num_lanes - 2)).astype(float),
-    }
-    idx_on = np.flatnonzero(on_road)
-    keys = lane[idx_on] * _LANE_KEY + s[idx_on]
-    order = np.argsort(keys, kind="stable")
-    keys_sorted = keys[order]
-    members = idx_on[order]  # twin index of each sorted position
-    lane_sorted = lane[members]
-    stopped = members[speed[members] < STOPPED_MPS]
-    stopped_keys = lane[stopped] * _LANE_KEY + s[stopped]
-    front = s + length / 2
-
-    def lead_follow(target: np.ndarray, exists: np.ndarray):
-        """gap / speed difference to the leader and the follower of every twin in lane `target`
-        (the twin itself is never its own neighbour: equal keys are skipped on both sides)."""
-        query = target * _LANE_KEY + s
-        res = []
-        for ahead in (True, False):
-            pos = _neighbour_index(keys_sorted, query, lane_sorted, target, ahead=ahead)
-            j = members[np.maximum(pos, 0)] if len(members) else np.zeros(n, dtype=np.int64)
-            if ahead:
-                gap = (s[j] - length[j] / 2) - front
-            else:
-                gap = (s - length / 2) - (s[j] + length[j] / 2)
-            found = exists & (pos >= 0) & (gap <= RANGE_M)
-            res += [np.where(found, gap, np.where(exists, RANGE_M, 0.0)), np.where(found, speed[j] - speed, 0.0)]
-        return res
-
-    # Leader / follower towards every lane of the road by absolute index, then picked per side.
-    lanes_q = (np.stack([np.stack(lead_follow(np.full(n, k), on_road), axis=-1) for k in range(num_lanes)], axis=1)
-               if n else np.zeros((0, num_lanes, 4)))
+    matrix, lanes_q = _tick_matrix(np.asarray(s, dtype=float), np.asarray(lane, dtype=np.int64),
+                                   np.asarray(speed, dtype=float), np.asarray(accel, dtype=float),
+                                   np.asarray(length, dtype=float), num_lanes)
+    out = {name: matrix[:, i] for i, name in enumerate(FEATURE_NAMES[:_N_TICK]) if name not in _HISTORY_OWN}
     if per_lane:
         out["_per_lane"] = lanes_q
-    rows = np.arange(n)
-    for side in SIDES:
-        target = lane + _LANE_OFFSET[side]
-        exists = on_road & (target >= 0) & (target < num_lanes)
-        query = target * _LANE_KEY + s
-        picked = np.where(exists[:, None], lanes_q[rows, np.minimum(np.maximum(target, 0), num_lanes - 1)], 0.0)
-        gap_lead, dv_lead, gap_foll, dv_foll = picked.T
-        stopped_ahead = np.zeros(n)
-        n_ahead = np.zeros(n)
-        if n:
-            if len(stopped):
-                order_st = np.argsort(stopped_keys, kind="stable")
-                st_sorted = stopped[order_st]
-                pos = _neighbour_index(stopped_keys[order_st], query, lane[st_sorted], target, ahead=True)
-                j = st_sorted[np.maximum(pos, 0)]
-                dist = (s[j] - length[j] / 2) - front
-                found = exists & (pos >= 0) & (dist <= BLOCK_RANGE_M)
-                stopped_ahead[:] = np.where(found, dist, np.where(exists, BLOCK_RANGE_M, 0.0))
-            else:
-                stopped_ahead[:] = np.where(exists, BLOCK_RANGE_M, 0.0)
-            count = (np.searchsorted(keys_sorted, query + DENSITY_RANGE_M, side="right")
-                     - np.searchsorted(keys_sorted, query, side="right"))
-            n_ahead[:] = np.where(exists, count, 0)
-        out[f"gap_lead_{side}"] = gap_lead
-        out[f"dv_lead_{side}"] = dv_lead
-        out[f"gap_foll_{side}"] = gap_foll
-        out[f"dv_foll_{side}"] = dv_foll
-        out[f"stopped_ahead_{side}"] = stopped_ahead
-        out[f"n_ahead_{side}"] = n_ahead
     return out
 
 
 class FeatureExtractor:
     """Per-twin feature memory plus :func:`tick_features`; call once per snapshot, in time order.
 
-    Memory per twin (one row of `_state`): the speed EMA (SPEED_EMA_S) and leaky maximum speed,
+    Memory per twin (one row of a :class:`TwinMemory`): the speed EMA (SPEED_EMA_S) and leaky maximum speed,
     then the fast and slow EMAs of the speed and of the per-lane quantities (see
     HISTORY_FAST_S). A twin seen for the first time starts every average at its current value
     (zero trend); a twin missing from a snapshot is forgotten.
@@ -190,59 +177,49 @@ class FeatureExtractor:
         self._alpha_fast = 1.0 - np.exp(-period_s / HISTORY_FAST_S)
         self._alpha_slow = 1.0 - np.exp(-period_s / HISTORY_SLOW_S)
         self._n_hist = 1 + road.num_lanes * len(_LANE_QUANTITIES)  # speed + per-lane quantities
-        self._ids = np.array([], dtype=str)
-        self._state = np.zeros((0, 2 + 2 * self._n_hist))
+        self._memory = TwinMemory(2 + 2 * self._n_hist)
+        # one update for the whole memory row: EMA rates per column (the leaky maximum, column 1,
+        # is overwritten after)
+        self._alphas = np.concatenate([[self._alpha, 0.0], np.full(self._n_hist, self._alpha_fast),
+                                       np.full(self._n_hist, self._alpha_slow)])
+        self._col_speed_minus_ema = FEATURE_NAMES.index("speed_minus_ema")
+        self._col_below_max = FEATURE_NAMES.index("speed_below_recent_max")
         split = [name.rsplit("_", 1) for name in HISTORY_MEAN_SOURCES]  # e.g. ("gap_lead", "left")
         self._src_offset = np.array([_LANE_OFFSET[side] for _, side in split])
         self._src_quantity = np.array([_LANE_QUANTITIES.index(q) for q, _ in split])
 
-    def _carry(self, ids: np.ndarray, fresh: np.ndarray) -> np.ndarray:
-        """Previous memory aligned to `ids`; rows of new twins are `fresh` (their current values)."""
-        state = fresh.copy()
-        if len(self._ids) and len(ids):
-            order = np.argsort(self._ids)
-            prev_sorted = self._ids[order]
-            pos = np.minimum(np.searchsorted(prev_sorted, ids), len(prev_sorted) - 1)
-            known = prev_sorted[pos] == ids
-            state[known] = self._state[order[pos[known]]]
-        return state
-
     def __call__(self, ids, x: np.ndarray, y: np.ndarray, lane: np.ndarray, speed: np.ndarray,
                  accel: np.ndarray, length: np.ndarray) -> np.ndarray:
         """(N, len(FEATURE_NAMES)) float64 features of the N twins of one snapshot."""
-        ids = np.asarray(ids, dtype=str)
         if not len(ids):
-            self._ids, self._state = ids, np.zeros((0, self._state.shape[1]))
+            self._memory.keep(ids, np.zeros((0, 2 + 2 * self._n_hist)))
             return np.zeros((0, len(FEATURE_NAMES)))
         n = len(ids)
         num_lanes = self.road.num_lanes
         speed = np.asarray(speed, dtype=float)
         lane = np.asarray(lane, dtype=np.int64)
         s, _ = self.road.to_road_frame(x, y)  # only s is used: the lateral coordinate is dropped here
-        cols = tick_features(np.asarray(s, dtype=float), lane, speed, np.asarray(accel, dtype=float),
-                             np.asarray(length, dtype=float), num_lanes, per_lane=True)
-        current = np.concatenate([speed[:, None], cols.pop("_per_lane").reshape(n, -1)], axis=1)
+        out = np.empty((n, len(FEATURE_NAMES)))
+        out[:, :_N_TICK], lanes_q = _tick_matrix(np.asarray(s, dtype=float), lane, speed,
+                                                 np.asarray(accel, dtype=float), np.asarray(length, dtype=float),
+                                                 num_lanes)
+        current = np.concatenate([speed[:, None], lanes_q.reshape(n, -1)], axis=1)
         fresh = np.concatenate([speed[:, None], speed[:, None], current, current], axis=1)
-        prev = self._carry(ids, fresh)
+        prev = self._memory.carried(ids, fresh)
         h = self._n_hist
-        ema = prev[:, 0] + self._alpha * (speed - prev[:, 0])
-        vmax = np.maximum(speed, prev[:, 1] - self._decay)
-        fast = prev[:, 2:2 + h] + self._alpha_fast * (current - prev[:, 2:2 + h])
-        slow = prev[:, 2 + h:] + self._alpha_slow * (current - prev[:, 2 + h:])
-        self._ids = ids
-        self._state = np.concatenate([ema[:, None], vmax[:, None], fast, slow], axis=1)
-        cols["speed_minus_ema"] = speed - ema
-        cols["speed_below_recent_max"] = vmax - speed
+        state = prev + self._alphas * (fresh - prev)
+        state[:, 1] = np.maximum(speed, prev[:, 1] - self._decay)  # leaky maximum, not an average
+        self._memory.keep(ids, state)
+        ema, vmax, fast, slow = state[:, 0], state[:, 1], state[:, 2:2 + h], state[:, 2 + h:]
+        out[:, self._col_speed_minus_ema] = speed - ema
+        out[:, self._col_below_max] = vmax - speed
         target = lane[:, None] + self._src_offset[None, :]  # (N, sources) absolute lane of each source
         exists = (lane[:, None] >= 0) & (target >= 0) & (target < num_lanes)
         column = 1 + np.minimum(np.maximum(target, 0), num_lanes - 1) * len(_LANE_QUANTITIES) + self._src_quantity[None, :]
-        trend = np.where(exists, np.take_along_axis(fast - slow, column, axis=1), 0.0)
-        mean = np.where(exists, np.take_along_axis(slow, column, axis=1), 0.0)
-        out = np.empty((n, len(FEATURE_NAMES)))
-        out[:, :_N_TICK] = np.stack([cols[name] for name in FEATURE_NAMES[:_N_TICK]], axis=-1)
+        rows = np.arange(n)[:, None]
         out[:, _N_TICK] = fast[:, 0] - slow[:, 0]  # speed_trend
-        out[:, _N_TICK + 1:_N_TICK + 1 + len(HISTORY_MEAN_SOURCES)] = trend
-        out[:, _N_TICK + 1 + len(HISTORY_MEAN_SOURCES):] = mean
+        out[:, _N_TICK + 1:_N_TICK + 1 + len(HISTORY_MEAN_SOURCES)] = np.where(exists, (fast - slow)[rows, column], 0.0)
+        out[:, _N_TICK + 1 + len(HISTORY_MEAN_SOURCES):] = np.where(exists, slow[rows, column], 0.0)
         return out
 
     def from_twins(self, twins) -> np.ndarray:

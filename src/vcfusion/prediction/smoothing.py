@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from vcfusion.prediction.memory import TwinMemory
+
 
 def _as_decisions(predictions) -> np.ndarray:
     arr = np.asarray(predictions)
@@ -76,27 +78,14 @@ class StreamingSmoother:
         if method not in ("none", "aggressive", "conservative"):
             raise ValueError(f"smoothing: expected none, aggressive or conservative, got {method!r}")
         self.method, self.tau_a, self.tau_c, self.threshold = method, int(tau_a), int(tau_c), threshold
-        self._ids = np.array([], dtype=str)
-        self._hold = np.zeros(0, dtype=np.int64)  # aggressive: ticks still positive after this one
-        self._recent = np.zeros((0, self.tau_c + 1), dtype=np.int8)  # conservative: newest last
-
-    def _align(self, ids: np.ndarray):
-        hold = np.zeros(len(ids), dtype=np.int64)
-        recent = np.zeros((len(ids), self.tau_c + 1), dtype=np.int8)
-        if len(self._ids) and len(ids):
-            order = np.argsort(self._ids)
-            prev = self._ids[order]
-            pos = np.clip(np.searchsorted(prev, ids), 0, len(prev) - 1)
-            known = prev[pos] == ids
-            src = order[pos[known]]
-            hold[known] = self._hold[src]
-            recent[known] = self._recent[src]
-        return hold, recent
+        # one row per twin: [ticks still positive after this one (aggressive), the last tau_c + 1
+        # raw decisions, newest last (conservative)]
+        self._memory = TwinMemory(2 + self.tau_c, dtype=np.int64)
 
     def __call__(self, ids, decisions: np.ndarray) -> np.ndarray:
-        ids = np.asarray(ids, dtype=str)
         lc = np.asarray(decisions).astype(np.int8)
-        hold, recent = self._align(ids)
+        state = self._memory.carried(ids, np.zeros((len(lc), 2 + self.tau_c), dtype=np.int64))
+        hold, recent = state[:, 0], state[:, 1:]
         if self.method == "none":
             out = lc.copy()
         elif self.method == "aggressive":
@@ -106,5 +95,5 @@ class StreamingSmoother:
         else:
             recent = np.concatenate([recent[:, 1:], lc[:, None]], axis=1)
             out = (recent.sum(axis=1) / (self.tau_c + 1) > self.threshold).astype(np.int8)
-        self._ids, self._hold, self._recent = ids, hold, recent
+        self._memory.keep(ids, np.concatenate([hold[:, None], recent], axis=1))
         return out
