@@ -284,9 +284,9 @@ def _relate_to_ego(events: pd.DataFrame, trajectories: pd.DataFrame, vehicles: p
         ego_t = ego["time"].to_numpy()
         nearest = ego_t[np.abs(ego_t[None, :] - events["mid_time"].to_numpy()[:, None]).argmin(axis=1)]
         ego_s = pd.Series(ego["s"].to_numpy(), index=ego_t)
-        s_at = trajectories.set_index(["vehicle_id", "time"])["s"]
-        keys = pd.MultiIndex.from_arrays([events["vehicle_id"].to_numpy(), nearest])
-        changer_s = s_at.reindex(keys).to_numpy()
+        changers = trajectories[trajectories["vehicle_id"].isin(set(events["vehicle_id"]))]
+        s_at = {(v, t): s for v, t, s in zip(changers["vehicle_id"], changers["time"], changers["s"])}
+        changer_s = np.array([s_at.get(key, np.nan) for key in zip(events["vehicle_id"], nearest)], dtype=float)
         gaps = changer_s - ego_s.loc[nearest].to_numpy() - 0.5 * (
             length.reindex(events["vehicle_id"]).to_numpy() + length[EGO_ID])
     events["into_ego_lane"] = (events["to_lane"] == ego_lane) & (events["vehicle_id"] != EGO_ID)

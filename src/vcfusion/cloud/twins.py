@@ -27,81 +27,95 @@ class ProcessModel(Protocol):
     def __call__(self, twins: TwinStates, store: "TwinStore") -> dict[str, np.ndarray]: ...
 
 
-class _History:
-    """Fixed-capacity ring buffer of one twin's reports (oldest overwritten)."""
-
-    __slots__ = ("data", "count", "head")
-
-    def __init__(self, capacity: int):
-        self.data = np.full((capacity, len(HISTORY_FIELDS)), np.nan)
-        self.count = 0
-        self.head = 0  # next write position
-
-    def push(self, row: np.ndarray) -> None:
-        self.data[self.head] = row
-        self.head = (self.head + 1) % len(self.data)
-        self.count = min(self.count + 1, len(self.data))
-
-    def latest(self) -> np.ndarray:
-        return self.data[(self.head - 1) % len(self.data)]
-
-    def ordered(self) -> np.ndarray:
-        """Rows oldest to newest."""
-        cap = len(self.data)
-        idx = (self.head - self.count + np.arange(self.count)) % cap
-        return self.data[idx]
-
-
 class TwinStore:
+    """Twins in fixed slots of preallocated arrays: a ring buffer of reports per slot.
+
+    Slots of forgotten twins are reused; the arrays double when full. Every tick touches all
+    twins, so ingest and snapshot are array operations over slots, not Python loops over twins.
+    """
+
     def __init__(self, config: V2CConfig, road: Road):
         self.config = config
         self.road = road
         # Twice the nominal number of reports, so jittered or duplicated arrivals never cut history short.
         self.capacity = 2 * math.ceil(config.history_s / config.period_s) + 1
-        self._history: dict[str, _History] = {}
-        self._static: dict[str, tuple[float, float, float]] = {}
+        self._slot: dict[str, int] = {}  # twin id -> slot
+        self._free: list[int] = []
+        self._data = np.full((0, self.capacity, len(HISTORY_FIELDS)), np.nan)  # (slots, ring, fields)
+        self._head = np.zeros(0, dtype=np.int64)  # next write position per slot
+        self._count = np.zeros(0, dtype=np.int64)
+        self._static = np.zeros((0, len(_STATIC_FIELDS)))
         self.process_models: list[tuple[str, Callable]] = []
         self.received = 0
 
     def add_process_model(self, name: str, model: ProcessModel) -> None:
         self.process_models.append((name, model))
 
+    def _new_slot(self) -> int:
+        if not self._free:
+            old = len(self._head)
+            grow = max(old, 16)
+            self._data = np.concatenate([self._data, np.full((grow, *self._data.shape[1:]), np.nan)])
+            self._head = np.concatenate([self._head, np.zeros(grow, dtype=np.int64)])
+            self._count = np.concatenate([self._count, np.zeros(grow, dtype=np.int64)])
+            self._static = np.concatenate([self._static, np.zeros((grow, len(_STATIC_FIELDS)))])
+            self._free = list(range(old + grow - 1, old - 1, -1))  # lowest slot first
+        return self._free.pop()
+
+    def _latest(self, slots: np.ndarray) -> np.ndarray:
+        return self._data[slots, (self._head[slots] - 1) % self.capacity]
+
     def ingest(self, reports: GnssReports) -> None:
+        if not len(reports):
+            return
         rows = np.stack([getattr(reports, f) for f in HISTORY_FIELDS], axis=-1)
+        slots = np.empty(len(reports), dtype=np.int64)
         for i, vid in enumerate(reports.ids):
-            hist = self._history.get(vid)
-            if hist is None:
-                hist = self._history[vid] = _History(self.capacity)
-                self._static[vid] = (reports.length[i], reports.width[i], reports.height[i])
-            # Out-of-order arrivals (jitter) never replace a newer measurement.
-            if hist.count and rows[i, 0] <= hist.latest()[0]:
-                continue
-            hist.push(rows[i])
-            self.received += 1
+            slot = self._slot.get(vid)
+            if slot is None:
+                slot = self._slot[vid] = self._new_slot()
+                self._head[slot] = self._count[slot] = 0
+                self._static[slot] = (reports.length[i], reports.width[i], reports.height[i])
+            slots[i] = slot
+        # Out-of-order arrivals (jitter) never replace a newer measurement.
+        newer = (self._count[slots] == 0) | (rows[:, 0] > self._latest(slots)[:, 0])
+        slots, rows = slots[newer], rows[newer]
+        head = self._head[slots]
+        self._data[slots, head] = rows
+        self._head[slots] = (head + 1) % self.capacity
+        self._count[slots] = np.minimum(self._count[slots] + 1, self.capacity)
+        self.received += len(slots)
 
     def forget_stale(self, now: float) -> None:
-        limit = now - self.config.twin_timeout_s
-        for vid in [v for v, h in self._history.items() if h.latest()[0] < limit]:
-            del self._history[vid]
-            del self._static[vid]
+        if not self._slot:
+            return
+        ids = list(self._slot)
+        slots = np.fromiter(self._slot.values(), dtype=np.int64, count=len(ids))
+        stale = self._latest(slots)[:, 0] < now - self.config.twin_timeout_s
+        for k in np.flatnonzero(stale):
+            del self._slot[ids[k]]
+            self._free.append(int(slots[k]))
 
     def __contains__(self, vehicle_id: str) -> bool:
-        return vehicle_id in self._history
+        return vehicle_id in self._slot
 
     def history(self, vehicle_id: str) -> np.ndarray:
         """(k, len(HISTORY_FIELDS)) rows of one twin, oldest first."""
-        return self._history[vehicle_id].ordered()
+        slot = self._slot[vehicle_id]
+        count, head = self._count[slot], self._head[slot]
+        return self._data[slot, (head - count + np.arange(count)) % self.capacity]
 
     def snapshot(self, now: float) -> TwinStates:
         """Latest state of every twin, with process-model outputs."""
-        ids = tuple(sorted(self._history))
-        latest = np.array([self._history[v].latest() for v in ids]).reshape(len(ids), len(HISTORY_FIELDS))
-        static = np.array([self._static[v] for v in ids], dtype=float).reshape(len(ids), 3)
-        cols = {f: latest[:, k].copy() for k, f in enumerate(HISTORY_FIELDS)}
+        ids = tuple(sorted(self._slot))
+        slots = np.array([self._slot[v] for v in ids], dtype=np.int64)
+        latest = self._latest(slots)
+        static = self._static[slots]
+        cols = {f: latest[:, k] for k, f in enumerate(HISTORY_FIELDS)}
         _, d = self.road.to_road_frame(cols["x"], cols["y"])
         twins = TwinStates(
             time=now, ids=ids, lane=self.road.lane_of(d), outputs={},
-            **cols, **{f: static[:, k].copy() for k, f in enumerate(_STATIC_FIELDS)},
+            **cols, **{f: static[:, k] for k, f in enumerate(_STATIC_FIELDS)},
         )
         for name, model in self.process_models:
             out = model(twins, self)

@@ -29,8 +29,6 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-import numpy as np
-
 from vcfusion.driver.idm import IDMParams, idm_acceleration
 from vcfusion.driver.params import CarLimits, DriverParams
 from vcfusion.traffic.network import Road
@@ -100,13 +98,10 @@ class DriverModel:
     def _delayed(self, now: float) -> _Seen:
         """The newest memory at least follow_reaction_s old (the oldest if none is)."""
         target = now - self.p.follow_reaction_s + 1e-6
-        chosen = self._memory[0]
-        for m in self._memory:
+        for m in reversed(self._memory):  # time order: the newest old-enough one is near the end
             if m.time <= target:
-                chosen = m
-            else:
-                break
-        return chosen
+                return m
+        return self._memory[0]
 
     def _notice(self, tick, seen: _Seen, lateral: dict) -> None:
         w = self.road.lane_width_m
@@ -167,14 +162,14 @@ class DriverModel:
                 acc = max(acc, -self.p.comfort_decel_mps2)
             if acc < desired:
                 desired, leader, kind, leader_gap = acc, vid, "lane" if in_lane else "prospective", gap
-        desired = float(np.clip(desired, -self.limits.max_decel_mps2, self.limits.max_accel_mps2))
+        desired = min(max(float(desired), -self.limits.max_decel_mps2), self.limits.max_accel_mps2)
         dt = now - self._last_time if self._last_time is not None else 0.0
         self._last_time = now
         if dt > 0:
             step = (desired - self.applied) * min(1.0, dt / self.p.pedal_time_constant_s)
             # Releasing the brake is as quick as pressing it; the throttle side is slower.
             rise = self.limits.max_throttle_jerk_mps3 if self.applied >= 0 else self.limits.max_brake_jerk_mps3
-            step = float(np.clip(step, -self.limits.max_brake_jerk_mps3 * dt, rise * dt))
+            step = min(max(step, -self.limits.max_brake_jerk_mps3 * dt), rise * dt)
             self.applied += step
         self.log_rows.append({"time": round(now, 6), "leader_id": leader, "leader_kind": kind,
                               "perceived_gap_m": leader_gap, "desired_accel": desired,

@@ -77,19 +77,26 @@ def first_flags(twins: pd.DataFrame, events: pd.DataFrame, end_after_mid_s: floa
     out = []
     if not len(events) or "lc_decision" not in twins:
         return out
-    ends = event_end_times(events, end_after_mid_s)
-    tracks = {vid: g.sort_values("time") for vid, g in twins.groupby("vehicle_id", sort=False)}
-    all_events = events.assign(_end=ends)
+    ends = np.asarray(event_end_times(events, end_after_mid_s), dtype=float)
+    # plain arrays per vehicle: this runs at the end of every run, over a handful of events
+    twins = twins.sort_values(["vehicle_id", "time"], kind="stable")
+    vids = twins["vehicle_id"].to_numpy()
+    times, decisions = twins["time"].to_numpy(float), twins["lc_decision"].to_numpy()
+    cuts = np.flatnonzero(vids[1:] != vids[:-1]) + 1
+    starts, stops = np.r_[0, cuts], np.r_[cuts, len(vids)]
+    tracks = {vids[a]: (times[a:b], decisions[a:b]) for a, b in zip(starts, stops) if b > a}
+    event_vids = events["vehicle_id"].to_numpy()
+    ends_of = {vid: ends[event_vids == vid] for vid in set(event_vids)}
     for ev, end in zip(events.itertuples(index=False), ends):
         row = {"vehicle_id": ev.vehicle_id, "event_id": int(ev.event_id), "mid_time": float(ev.mid_time),
                "end_time": float(end), "final_run_before_end_s": None, "final_run_before_mid_s": None,
                "first_before_end_s": None, "first_before_mid_s": None}
         track = tracks.get(ev.vehicle_id)
         if track is not None:
-            earlier = all_events[(all_events["vehicle_id"] == ev.vehicle_id) & (all_events["_end"] < end - 1e-9)]
-            prev = float(earlier["_end"].max()) if len(earlier) else -np.inf
-            t = track["time"].to_numpy(float)
-            d = track["lc_decision"].to_numpy()
+            earlier = ends_of[ev.vehicle_id]
+            earlier = earlier[earlier < end - 1e-9]
+            prev = float(earlier.max()) if len(earlier) else -np.inf
+            t, d = track
             region = np.flatnonzero((t > prev + 1e-9) & (t <= end + 1e-9))
             pos = region[d[region] == 1]
             if len(pos):

@@ -59,13 +59,15 @@ def lane_change_events(sumo_changes: pd.DataFrame, trajectories: pd.DataFrame, r
     events = sumo_changes.sort_values(["mid_time", "vehicle_id"], kind="stable").reset_index(drop=True)
     starts = np.full(len(events), np.nan)
     ends = np.full(len(events), np.nan)
-    by_vehicle = {vid: g for vid, g in trajectories.groupby("vehicle_id", sort=False)}
+    # time and d of each changer only, as plain arrays (runs at the end of every run)
+    changers = trajectories[trajectories["vehicle_id"].isin(set(events["vehicle_id"]))]
+    by_vehicle = {vid: (g["time"].to_numpy(), g["d"].to_numpy())
+                  for vid, g in changers.groupby("vehicle_id", sort=False)}
     for i, ev in enumerate(events.itertuples(index=False)):
         track = by_vehicle.get(ev.vehicle_id)
         if track is None:
             continue
-        t = track["time"].to_numpy()
-        d = track["d"].to_numpy()
+        t, d = track
         in_old = np.abs(d - road.lane_centre_d(ev.from_lane)) <= CENTRED_TOL_M
         in_new = np.abs(d - road.lane_centre_d(ev.to_lane)) <= CENTRED_TOL_M
         before = np.flatnonzero(in_old & (t <= ev.mid_time + 1e-9))

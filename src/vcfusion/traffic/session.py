@@ -245,23 +245,22 @@ class SumoSession:
         return libsumo.vehicle.getSpeed(vehicle_id)
 
     def states(self) -> VehicleStates:
-        """Ground truth of every vehicle in the network now."""
+        """Ground truth of every vehicle in the network now.
+
+        Plain per-vehicle getters, one list per quantity: libsumo subscriptions would gather the
+        values at every SUMO step (+13 us per step for 10 vehicles, measured) while we read them
+        only every V2C tick (10 steps).
+        """
         v = libsumo.vehicle
         ids = tuple(v.getIDList())
         n = len(ids)
-        front = np.empty((n, 3))
-        angle = np.empty(n)
-        speed = np.empty(n)
-        accel = np.empty(n)
-        lane = np.empty(n, dtype=np.int16)
-        lat = np.empty(n)
-        for i, vid in enumerate(ids):
-            front[i] = v.getPosition3D(vid)
-            angle[i] = v.getAngle(vid)
-            speed[i] = v.getSpeed(vid)
-            accel[i] = v.getAcceleration(vid)
-            lane[i] = v.getLaneIndex(vid)
-            lat[i] = v.getLateralLanePosition(vid)
+        front = np.array([v.getPosition3D(vid) for vid in ids], dtype=float).reshape(n, 3)
+        angle = np.array([v.getAngle(vid) for vid in ids], dtype=float)
+        speed = np.array([v.getSpeed(vid) for vid in ids], dtype=float)
+        accel = np.array([v.getAcceleration(vid) for vid in ids], dtype=float)
+        lane = np.array([v.getLaneIndex(vid) for vid in ids], dtype=np.int16)
+        lat = np.array([v.getLateralLanePosition(vid) for vid in ids], dtype=float)
+        for vid in ids:
             if vid not in self._static:
                 self._static[vid] = (v.getTypeID(vid), v.getVehicleClass(vid), v.getLength(vid),
                                      v.getWidth(vid), v.getHeight(vid))
