@@ -80,7 +80,9 @@ GNSS_HEIGHT_FRACTION = 0.5
 
 def gnss_antenna_points(x: np.ndarray, y: np.ndarray, z: np.ndarray, height: np.ndarray) -> np.ndarray:
     """World positions (N, 3) of the GNSS point: the centre of the vehicle body."""
-    return np.stack([x, y, z + GNSS_HEIGHT_FRACTION * np.asarray(height)], axis=-1)
+    out = np.empty((*np.shape(x), 3))
+    out[..., 0], out[..., 1], out[..., 2] = x, y, z + GNSS_HEIGHT_FRACTION * np.asarray(height)
+    return out
 
 
 @dataclass(frozen=True)

@@ -45,6 +45,8 @@ class TwinStore:
         self._head = np.zeros(0, dtype=np.int64)  # next write position per slot
         self._count = np.zeros(0, dtype=np.int64)
         self._static = np.zeros((0, len(_STATIC_FIELDS)))
+        self._newest = np.zeros(0)  # measurement time of each slot's latest report (+inf: free slot)
+        self._id_of: list[str | None] = []  # twin id of each slot
         self.process_models: list[tuple[str, Callable]] = []
         self.received = 0
 
@@ -59,6 +61,8 @@ class TwinStore:
             self._head = np.concatenate([self._head, np.zeros(grow, dtype=np.int64)])
             self._count = np.concatenate([self._count, np.zeros(grow, dtype=np.int64)])
             self._static = np.concatenate([self._static, np.zeros((grow, len(_STATIC_FIELDS)))])
+            self._newest = np.concatenate([self._newest, np.full(grow, np.inf)])
+            self._id_of += [None] * grow
             self._free = list(range(old + grow - 1, old - 1, -1))  # lowest slot first
         return self._free.pop()
 
@@ -68,18 +72,22 @@ class TwinStore:
     def ingest(self, reports: GnssReports) -> None:
         if not len(reports):
             return
-        rows = np.stack([getattr(reports, f) for f in HISTORY_FIELDS], axis=-1)
+        rows = np.empty((len(reports), len(HISTORY_FIELDS)))
+        for k, f in enumerate(HISTORY_FIELDS):
+            rows[:, k] = getattr(reports, f)
         slots = np.empty(len(reports), dtype=np.int64)
         for i, vid in enumerate(reports.ids):
             slot = self._slot.get(vid)
             if slot is None:
                 slot = self._slot[vid] = self._new_slot()
                 self._head[slot] = self._count[slot] = 0
+                self._id_of[slot] = vid
                 self._static[slot] = (reports.length[i], reports.width[i], reports.height[i])
             slots[i] = slot
         # Out-of-order arrivals (jitter) never replace a newer measurement.
-        newer = (self._count[slots] == 0) | (rows[:, 0] > self._latest(slots)[:, 0])
+        newer = (self._count[slots] == 0) | (rows[:, 0] > self._newest[slots])
         slots, rows = slots[newer], rows[newer]
+        self._newest[slots] = rows[:, 0]
         head = self._head[slots]
         self._data[slots, head] = rows
         self._head[slots] = (head + 1) % self.capacity
@@ -87,14 +95,11 @@ class TwinStore:
         self.received += len(slots)
 
     def forget_stale(self, now: float) -> None:
-        if not self._slot:
-            return
-        ids = list(self._slot)
-        slots = np.fromiter(self._slot.values(), dtype=np.int64, count=len(ids))
-        stale = self._latest(slots)[:, 0] < now - self.config.twin_timeout_s
-        for k in np.flatnonzero(stale):
-            del self._slot[ids[k]]
-            self._free.append(int(slots[k]))
+        for slot in np.flatnonzero(self._newest < now - self.config.twin_timeout_s):
+            del self._slot[self._id_of[slot]]
+            self._id_of[slot] = None
+            self._newest[slot] = np.inf
+            self._free.append(int(slot))
 
     def __contains__(self, vehicle_id: str) -> bool:
         return vehicle_id in self._slot

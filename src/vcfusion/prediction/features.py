@@ -82,8 +82,6 @@ _LANE_KEY = 1.0e6  # lane * _LANE_KEY + s orders twins by lane, then along the r
 
 _SIDE_OFFSETS = np.array([_LANE_OFFSET[side] for side in SIDES])
 _PER_SIDE = ("gap_lead", "dv_lead", "gap_foll", "dv_foll", "stopped_ahead", "n_ahead")
-# value of each per-side feature when the lane exists but holds no such neighbour in range
-_NOT_FOUND = np.array([RANGE_M, 0.0, RANGE_M, 0.0, BLOCK_RANGE_M])
 _N_OWN = FEATURE_NAMES.index("gap_lead_right")  # own-state columns before the per-side block
 _HISTORY_OWN = ("speed_minus_ema", "speed_below_recent_max")  # filled by FeatureExtractor
 
@@ -114,25 +112,27 @@ def _tick_matrix(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.n
     ahead = in_lane & (keys > query)  # (lanes, N_i, N_j); equal keys are nobody's neighbour
     behind = in_lane & (keys < query)
     # nearest ahead (smallest key; ties: lowest index) of all twins and of the stopped ones
-    ahead_both = np.stack([ahead, ahead & (speed < STOPPED_MPS)])
-    lead_stop = np.argmin(np.where(ahead_both, keys, np.inf), axis=-1)  # (2, lanes, N)
-    has_lead_stop = ahead_both.any(axis=-1)
+    ahead_both = np.empty((2, *ahead.shape), dtype=bool)
+    ahead_both[0] = ahead
+    np.logical_and(ahead, speed < STOPPED_MPS, out=ahead_both[1])
+    lead, stop = np.argmin(np.where(ahead_both, keys, np.inf), axis=-1)  # (lanes, N) each
+    has_lead, has_stop = ahead_both.any(axis=-1)
     # nearest behind (largest key; ties: highest index, as a stable sort by key orders them)
     foll = n - 1 - np.argmax(np.where(behind, keys, -np.inf)[..., ::-1], axis=-1)
     has_foll = behind.any(axis=-1)
     front = s + length / 2
     rear = s - length / 2
-    lead, stop = lead_stop
     gap_lead = rear[lead] - front
     gap_foll = rear - front[foll]
     stop_dist = rear[stop] - front
-    found_lead = has_lead_stop[0] & (gap_lead <= RANGE_M)
+    found_lead = has_lead & (gap_lead <= RANGE_M)
     found_foll = has_foll & (gap_foll <= RANGE_M)
-    found = np.stack([found_lead, found_lead, found_foll, found_foll,
-                      has_lead_stop[1] & (stop_dist <= BLOCK_RANGE_M)], axis=-1)
-    value = np.stack([gap_lead, speed[lead] - speed, gap_foll, speed[foll] - speed, stop_dist], axis=-1)
     per_lane = np.empty((num_lanes, n, len(_PER_SIDE)))  # (lanes, N, per-side features)
-    per_lane[..., :5] = np.where(found, value, _NOT_FOUND)
+    per_lane[..., 0] = np.where(found_lead, gap_lead, RANGE_M)
+    per_lane[..., 1] = np.where(found_lead, speed[lead] - speed, 0.0)
+    per_lane[..., 2] = np.where(found_foll, gap_foll, RANGE_M)
+    per_lane[..., 3] = np.where(found_foll, speed[foll] - speed, 0.0)
+    per_lane[..., 4] = np.where(has_stop & (stop_dist <= BLOCK_RANGE_M), stop_dist, BLOCK_RANGE_M)
     per_lane[..., 5] = (ahead & (keys <= query + DENSITY_RANGE_M)).sum(axis=-1)
     per_lane = np.where(on_road[None, :, None], per_lane, 0.0)  # a twin off the road has no lanes
     # own lane and both sides, picked from the absolute lanes; 0 where the lane does not exist

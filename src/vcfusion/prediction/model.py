@@ -19,6 +19,7 @@ deployed model sees; `predict_proba` returns that. A file without it (older file
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 from dataclasses import dataclass, field
 from importlib import resources
@@ -204,12 +205,24 @@ def save_model(model: LaneChangeModel, path: str | Path) -> Path:
 
 
 def load_model(path: str | Path | None = None, expected_features=None) -> LaneChangeModel:
-    """Read a model file (None = the shipped default); checks it against the current feature list."""
+    """Read a model file (None = the shipped default); checks it against the current feature list.
+
+    Files are cached by path and modification time: a batch process builds one co-simulation
+    per seed, and reading the file each time cost ~1 ms of a ~200 ms trip. The model is never
+    modified after loading, so sharing it is safe.
+    """
     from vcfusion.prediction.features import FEATURE_NAMES
 
     path = Path(path) if path is not None else default_model_path()
     if not path.is_file():
         raise ModelFileError(f"{path}: model file not found")
+    expected = tuple(FEATURE_NAMES if expected_features is None else expected_features)
+    return _load_model_file(str(path.resolve()), path.stat().st_mtime_ns, expected)
+
+
+@functools.lru_cache(maxsize=8)
+def _load_model_file(name: str, _mtime_ns: int, expected_features: tuple[str, ...]) -> LaneChangeModel:
+    path = Path(name)
     try:
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
@@ -231,5 +244,5 @@ def load_model(path: str | Path | None = None, expected_features=None) -> LaneCh
     )
     if len(mean) != len(model.feature_names) or weights[0][0].shape[1] != len(model.feature_names):
         raise ModelFileError(f"{path}: weights do not match its feature list of {len(model.feature_names)} features")
-    model.check_features(FEATURE_NAMES if expected_features is None else expected_features, source=str(path))
+    model.check_features(expected_features, source=str(path))
     return model

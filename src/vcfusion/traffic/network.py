@@ -53,14 +53,21 @@ class Road:
     def width_m(self) -> float:
         return self.num_lanes * self.lane_width_m
 
+    @cached_property
+    def _frame(self) -> tuple[float, ...]:
+        # plain floats: to_road_frame runs several times per tick, mostly on small arrays
+        return (float(self.start[0]), float(self.start[1]), *map(float, self.direction),
+                *map(float, self.left_normal), float(self.width_m))
+
     def to_road_frame(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World (x, y) to (s, d): s along the road from its start, d left of the right road edge."""
-        rel_x = np.asarray(x) - self.start[0]
-        rel_y = np.asarray(y) - self.start[1]
-        s = rel_x * self.direction[0] + rel_y * self.direction[1]
+        x0, y0, dx, dy, nx, ny, width = self._frame
+        rel_x = np.asarray(x) - x0
+        rel_y = np.asarray(y) - y0
+        s = rel_x * dx + rel_y * dy
         # The edge's reference line (its 'shape') is the left road edge in SUMO's right-hand traffic.
-        d_left = rel_x * self.left_normal[0] + rel_y * self.left_normal[1]
-        return s, d_left + self.width_m
+        d_left = rel_x * nx + rel_y * ny
+        return s, d_left + width
 
     def to_world(self, s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         s = np.asarray(s, dtype=float)
