@@ -87,7 +87,8 @@ class RunResult:
     seed: int
     tables: RunTables  # name -> DataFrame (streamed tables are read from Parquet on access)
     summary: dict
-    wall_s: float
+    wall_s: float  # the whole run: SUMO start-up, tick loop, end-of-run tables and summary
+    loop_wall_s: float = float("nan")  # the tick loop alone
 
 
 STREAMED_TABLES = ("trajectories", "twins", "ego")
@@ -155,7 +156,9 @@ class CoSimulation:
         session = SumoSession(sc, self.seed, lc_file, np.random.default_rng(self.rng.integers(2**63)),
                               self.extra_sumo_args)
         try:
+            loop_started = wallclock.perf_counter()
             out = self._loop(session, sinks, progress)
+            loop_wall = wallclock.perf_counter() - loop_started
         finally:
             session.close()
         sumo_changes = read_sumo_lanechanges(lc_file)
@@ -177,7 +180,7 @@ class CoSimulation:
         summary = summarize(sc, self.seed, tables, out["channel"], out["end_reason"], lateral)
         if hasattr(self.controller, "summary"):
             summary["driver"] = self.controller.summary()
-        return RunResult(sc, self.seed, tables, summary, wallclock.perf_counter() - started)
+        return RunResult(sc, self.seed, tables, summary, wallclock.perf_counter() - started, loop_wall)
 
     def _loop(self, session: SumoSession, sinks: dict[str, TableSink], progress: bool) -> dict:
         sc = self.scenario
