@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -78,3 +80,26 @@ def test_rows_from_a_fused_hand_made_frame():
     assert by[("near", "joint")] == pytest.approx(1.0) and by[("near", "paper")] == pytest.approx(1.0)
     assert set(rows["method"]) == set(METHODS)
     assert (rows["seed"] == 1).all() and (rows["detector"] == "oracle").all()
+
+
+def test_summary_splits_scenarios_and_anchor_cases():
+    rows = hand_rows()
+    clean = rows["latency_s"] == 0
+    # targets v0, v1 in scenario "a" with one anchor box; v2, v3 in "b", ambiguous (two boxes)
+    rows["scenario"] = np.where(rows["vehicle_id"].isin(["v0", "v1"]), "a", "b")
+    rows["n_anchor_boxes"] = np.where(rows["vehicle_id"].isin(["v0", "v1"]), 1, 2)
+    lines = summary_lines(rows)
+    assert any("scenario b (n=2)" in line and "baseline   0.0%" in line and "paper  50.0%" in line for line in lines)
+    assert any("anchor in >=2 boxes (n=2)" in line and "joint 100.0%" in line for line in lines)
+    assert any("anchor in   1 boxes (n=2)" in line and "baseline 100.0%" in line for line in lines)
+    assert clean.sum() == 12
+
+
+def test_study_refuses_two_scenarios_of_one_name(tmp_path):
+    from vcfusion.scenario import load_scenario
+    from vcfusion.vision.identification import run_identification_study
+
+    sc = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "overlap.yaml")
+    with pytest.raises(ValueError, match="distinct scenario names"):
+        run_identification_study([sc, sc], [0], None, {"oracle": OracleDetector()}, tmp_path, progress=False)
+    assert not any(tmp_path.iterdir())
