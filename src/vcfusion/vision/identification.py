@@ -132,7 +132,7 @@ def write_study_outputs(rows: pd.DataFrame, out_dir, threshold: float = 0.7) -> 
                         label=f"{label} [{det}]")
     ax.set_xlabel("IoU threshold")
     ax.set_ylabel("identification accuracy (%)")
-    n_targets = int(clean.groupby("method").size().max()) if len(clean) else 0
+    n_targets = int(clean.groupby(["detector", "method"]).size().max()) if len(clean) else 0  # per detector
     scen = ", ".join(sorted(clean["scenario"].dropna().unique())) if "scenario" in clean else ""
     ax.set_title(f"Target identification (latency 0, noise 0; {n_targets} target-frames)"
                  + (f"\n{scen}" if scen else ""), fontsize=9)
