@@ -74,7 +74,7 @@ class FusionConfig(_Strict):
     detector: Literal["cnn", "oracle"] = "cnn"
     # weights of the cnn detector (relative to the scenario file); default: the shipped model
     weights: Path | None = None
-    method: Literal["baseline", "paper", "joint"] = "joint"
+    method: Literal["baseline", "baseline_centre", "paper", "joint"] = "joint"
     depth_th: Annotated[float, Field(gt=0.0, le=1.0)] = 0.8
     depth_samples: Annotated[int, Field(ge=1)] = 30
     depth_reducer: Literal["mean", "median"] = "mean"

@@ -12,7 +12,7 @@ from cuboid_frames import CuboidFrameSource
 from vcfusion.cosim import CoSimulation
 from vcfusion.scenario import load_scenario
 from vcfusion.vision.detectors import OracleDetector
-from vcfusion.vision.fusion import VisionFusionHook
+from vcfusion.vision.fusion import METHODS, VisionFusionHook
 from vcfusion.vision.identification import Condition, accuracy_at, run_identification_study
 from vcfusion.vision.matching import box_iou
 from vcfusion.vision.overlay import OverlayRecorder
@@ -32,7 +32,7 @@ def test_identification_study_on_sumo_traffic(tmp_path):
     # stale twins (0.5 s at ~17-19 m/s) mislead the paper's matchers; the joint matcher compensates
     assert acc[(0.5, "joint")] >= 0.95 and acc[(0.5, "joint")] > acc[(0.5, "paper")] + 0.2
     assert (tmp_path / "renders" / "identification_accuracy_iou.png").is_file()
-    assert len(pd.read_csv(tmp_path / "renders" / "identification_latency_noise.csv")) == 2 * 3
+    assert len(pd.read_csv(tmp_path / "renders" / "identification_latency_noise.csv")) == 2 * len(METHODS)
 
 
 @pytest.mark.slow

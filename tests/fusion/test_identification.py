@@ -1,10 +1,12 @@
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
 
 from fusion_helpers import make_twins, pinhole_camera, vehicle_box
 from vcfusion.vision.detectors import OracleDetector
-from vcfusion.vision.fusion import CameraFrame, fuse_frame
+from vcfusion.vision.fusion import METHODS, CameraFrame, fuse_frame
 from vcfusion.vision.identification import (accuracy_at, accuracy_vs_iou, default_conditions, identification_rows,
                                             summary_lines, write_study_outputs)
 
@@ -68,9 +70,36 @@ def test_rows_from_a_fused_hand_made_frame():
     twins = make_twins(["near", "far", "gone"], [15.0, 27.0, 60.0], [0.0, 1.8, 0.0])
     result = fuse_frame(frame, twins, OracleDetector(), np.random.default_rng(0))
     rows = pd.DataFrame(identification_rows(frame, result, seed=1, latency_s=0.0, gnss_noise_m=0.0, detector="oracle"))
-    assert len(rows) == 2 * 3  # two visible targets x three methods ("gone" has no ground-truth box)
+    assert len(rows) == 2 * len(METHODS)  # two visible targets x the methods ("gone" has no ground-truth box)
+    # the far car's anchor lies in both boxes (the ambiguous case), the near car's in its own only
+    assert rows.groupby("vehicle_id")["n_anchor_boxes"].unique().map(list).to_dict() == {"near": [1], "far": [2]}
     by = rows.set_index(["vehicle_id", "method"])["iou"]
+    assert by[("far", "baseline")] == 0.0  # the paper's baseline: equal oracle scores, cannot identify
+    assert by[("far", "baseline_centre")] == pytest.approx(1.0)
     assert by[("far", "paper")] == pytest.approx(1.0) and by[("far", "joint")] == pytest.approx(1.0)
     assert by[("near", "joint")] == pytest.approx(1.0) and by[("near", "paper")] == pytest.approx(1.0)
-    assert set(rows["method"]) == {"baseline", "paper", "joint"}
+    assert set(rows["method"]) == set(METHODS)
     assert (rows["seed"] == 1).all() and (rows["detector"] == "oracle").all()
+
+
+def test_summary_splits_scenarios_and_anchor_cases():
+    rows = hand_rows()
+    clean = rows["latency_s"] == 0
+    # targets v0, v1 in scenario "a" with one anchor box; v2, v3 in "b", ambiguous (two boxes)
+    rows["scenario"] = np.where(rows["vehicle_id"].isin(["v0", "v1"]), "a", "b")
+    rows["n_anchor_boxes"] = np.where(rows["vehicle_id"].isin(["v0", "v1"]), 1, 2)
+    lines = summary_lines(rows)
+    assert any("scenario b (n=2)" in line and "baseline   0.0%" in line and "paper  50.0%" in line for line in lines)
+    assert any("anchor in >=2 boxes (n=2)" in line and "joint 100.0%" in line for line in lines)
+    assert any("anchor in   1 boxes (n=2)" in line and "baseline 100.0%" in line for line in lines)
+    assert clean.sum() == 12
+
+
+def test_study_refuses_two_scenarios_of_one_name(tmp_path):
+    from vcfusion.scenario import load_scenario
+    from vcfusion.vision.identification import run_identification_study
+
+    sc = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "overlap.yaml")
+    with pytest.raises(ValueError, match="distinct scenario names"):
+        run_identification_study([sc, sc], [0], None, {"oracle": OracleDetector()}, tmp_path, progress=False)
+    assert not any(tmp_path.iterdir())

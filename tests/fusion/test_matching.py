@@ -5,7 +5,7 @@ from fusion_helpers import make_twins, pinhole_camera, vehicle_box
 from vcfusion.vision.depth_eval import DepthEvalParams, evaluate_box_depths
 from vcfusion.vision.matching import (
     NO_MATCH, JointMatcher, JointMatcherParams, box_iou, extrapolate_twins, match_all_paper,
-    match_baseline, match_paper, project_twins)
+    gnss_distances, match_all_baseline, match_baseline, match_baseline_centre, match_paper, project_twins)
 
 
 def fig3_scene():
@@ -27,10 +27,16 @@ def test_fig3_overlapping_boxes_depth_decides():
     assert d[0] == pytest.approx(8.46, abs=1e-5)
     assert d[1] == pytest.approx(18.69, abs=1e-5)
     overlap_anchor = (425.0, 215.0)
-    # the near vehicle's twin (GNSS 9 m): depth picks its box; the RGB-only rule (nearest box
-    # centre) takes the far box, whose centre is nearer the anchor: the corner case of Fig. 3
+    # the near vehicle's twin (GNSS 9 m): depth picks its box; the nearest-centre RGB rule takes the
+    # far box, whose centre is nearer the anchor: the corner case of Fig. 3
     assert match_paper(overlap_anchor, boxes, d, gnss_distance=9.0) == 0
-    assert match_baseline(overlap_anchor, boxes) == 1
+    assert match_baseline_centre(overlap_anchor, boxes) == 1
+    # the paper's RGB-only baseline "cannot identify" the target: with equal scores no box, else the
+    # detector's most confident box whichever twin is asked for
+    assert match_baseline(overlap_anchor, boxes, scores=[0.9, 0.9]) is None
+    assert match_baseline(overlap_anchor, boxes) is None
+    assert match_baseline(overlap_anchor, boxes, scores=[0.95, 0.6]) == 0
+    assert match_baseline(overlap_anchor, boxes, scores=[0.6, 0.95]) == 1
     # the far vehicle's twin (GNSS 19.5 m) at the same anchor: depth picks the far box
     assert match_paper(overlap_anchor, boxes, d, gnss_distance=19.5) == 1
     # order of the boxes does not matter
@@ -43,6 +49,8 @@ def test_single_containing_box_is_taken_whatever_its_depth():
     boxes = np.array([[0, 0, 100, 100], [200, 200, 300, 300]], float)
     assert match_paper((50, 50), boxes, [500.0, 1.0], gnss_distance=1.0) == 0
     assert match_baseline((250, 250), boxes) == 1
+    assert match_baseline((250, 250), boxes, scores=[0.99, 0.1]) == 1  # scores only break ties
+    assert match_baseline_centre((250, 250), boxes) == 1
 
 
 def test_no_containing_box_gives_no_match_unless_fallback_radius():
@@ -60,8 +68,54 @@ def test_no_containing_box_gives_no_match_unless_fallback_radius():
 def test_paper_matcher_skips_boxes_without_depth():
     boxes = np.array([[0, 0, 100, 100], [20, 20, 80, 80]], float)
     assert match_paper((50, 50), boxes, [np.nan, 40.0], gnss_distance=10.0) == 1
-    # no candidate with depth: the baseline rule (nearest centre; both centred -> first)
-    assert match_paper((60, 50), boxes, [np.nan, np.nan], gnss_distance=10.0) == match_baseline((60, 50), boxes)
+    # no candidate with depth: the baseline rule (most confident; a tie -> no match)
+    assert match_paper((60, 50), boxes, [np.nan, np.nan], gnss_distance=10.0, scores=[0.3, 0.8]) == 1
+    assert match_paper((60, 50), boxes, [np.nan, np.nan], gnss_distance=10.0, scores=[0.5, 0.5]) is None
+
+
+def test_baseline_scores_must_align_with_boxes():
+    boxes = np.array([[0, 0, 100, 100], [20, 20, 80, 80]], float)
+    with pytest.raises(ValueError, match="one detector score per box"):
+        match_baseline((50, 50), boxes, scores=[0.5])
+
+
+def test_paper_compares_depth_with_the_distance_of_the_face_the_camera_sees():
+    """A car 30 m ahead with a truck right in front of it (Fig. 3 kind, same lane): the car hides the
+    truck's lower part, so Algorithm 1 on the truck's box measures mostly the car's rear. Compared
+    with the raw distance of the car's GNSS point (its body centre, 2.3 m behind its rear face) the
+    truck box wins; compared with the distance of the car's rear face (from its GNSS position,
+    heading and length, D_g 'face') the car's box wins."""
+    cam = pinhole_camera()
+    # GNSS point = body centre (z_ground = -height / 2 puts make_twins' z at half the height)
+    twins = make_twins(["car", "truck"], [30.0 + 2.3, 36.0 + 6.0], [0.0, 0.0], length=[4.6, 12.0],
+                       height=[1.5, 3.6], width=[1.8, 2.5], z_ground=[-0.75, -1.8])
+    proj = project_twins(twins, cam)
+    np.testing.assert_allclose(gnss_distances(proj, "face")[0], 30.0 - cam.position[0], atol=0.05)
+    car_box, truck_box = proj.expected_box
+    boxes = np.stack([car_box, truck_box])
+    assert match_baseline(proj.anchor[0], boxes, scores=[0.9, 0.9]) is None  # ambiguous
+    depths = np.array([30.0, 32.0]) - cam.position[0]  # truck box: mostly the car's rear, some road
+    assert match_all_paper(proj, boxes, depths, gnss_distance="face")[0] == 0
+    assert match_all_paper(proj, boxes, depths, gnss_distance="range")[0] == 1
+    assert match_all_paper(proj, boxes, depths)[0] == 0  # 'face' is the default
+    with pytest.raises(ValueError, match="gnss_distance"):
+        gnss_distances(proj, "rear")
+
+
+def test_all_twins_baseline_rules():
+    """The two RGB-only rules over all twins of a frame: 'score' (paper) and 'centre' (ours)."""
+    cam = pinhole_camera()
+    twins = make_twins(["near", "far"], [15.0, 27.0], [0.0, 1.8])
+    proj = project_twins(twins, cam)
+    boxes = proj.expected_box
+    n_in = [int(((boxes[:, 0] <= a[0]) & (a[0] <= boxes[:, 2]) & (boxes[:, 1] <= a[1]) & (a[1] <= boxes[:, 3])).sum())
+            for a in proj.anchor]
+    assert n_in == [1, 2]  # the far car's anchor also lies in the near car's box
+    assert list(match_all_baseline(proj, boxes, scores=[0.9, 0.9])) == [0, NO_MATCH]
+    assert list(match_all_baseline(proj, boxes, scores=[0.9, 0.7])) == [0, 0]
+    assert list(match_all_baseline(proj, boxes, rule="centre")) == [0, 1]
+    with pytest.raises(ValueError, match="rule"):
+        match_all_baseline(proj, boxes, rule="nearest")
 
 
 def test_box_iou_against_hand_values():

@@ -154,7 +154,10 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
     from vcfusion.vision.identification import default_conditions, run_identification_study, summary_lines
     from vcfusion.vision.stage import RenderedFrameSources, depth_params
 
-    scenario = load_scenario(args.scenario)
+    scenarios = [load_scenario(path) for path in args.scenario]
+    names = [sc.name for sc in scenarios]
+    if len(set(names)) != len(names):
+        raise UsageError(f"scenario: expected scenarios with distinct names, got {names}")
     seeds = parse_seeds(args.seeds)  # UsageError on a bad range
     conditions = default_conditions(_float_list(args.latencies, "--latencies"), _float_list(args.noises, "--noises"))
     detectors = {}
@@ -168,18 +171,20 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
                 raise UsageError(f"--weights: {exc}") from None
         else:
             raise UsageError(f"--detectors: expected names among oracle, cnn; got {name!r}")
-    if scenario.ego is None:
-        raise UsageError(f"{args.scenario}: ego: the camera rides on the ego; the scenario has no ego block")
+    for path, scenario in zip(args.scenario, scenarios):
+        if scenario.ego is None:
+            raise UsageError(f"{path}: ego: the camera rides on the ego; the scenario has no ego block")
     out = Path(args.out)
     sources = RenderedFrameSources()
     try:
-        rows = run_identification_study(scenario, seeds, sources, detectors, out, conditions,
-                                        depth_params=depth_params(scenario), min_gt_area_px=args.min_area,
+        # Algorithm 1's th, n, reducer: the first scenario's fusion block (one setting per study)
+        rows = run_identification_study(scenarios, seeds, sources, detectors, out, conditions,
+                                        depth_params=depth_params(scenarios[0]), min_gt_area_px=args.min_area,
                                         fallback_radius_px=args.anchor_radius, progress=sys.stderr.isatty())
     finally:
         sources.close()
     n_targets = rows[(rows["latency_s"] == 0) & (rows["gnss_noise_m"] == 0)].groupby(["detector", "method"]).size()
-    print(f"identification study {scenario.name}, seeds {args.seeds}: "
+    print(f"identification study {', '.join(names)}, seeds {args.seeds}: "
           f"{int(n_targets.min()) if len(n_targets) else 0} target-frames per detector and method (clean V2C)")
     for line in summary_lines(rows, 0.7):
         print(line)
@@ -190,7 +195,7 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
 def add_study_parser(ssub) -> None:
     """`vcfusion study identification ...`, added to the subcommands of `vcfusion study`."""
     p = ssub.add_parser("identification", help="target identification accuracy (paper Fig. 4) vs latency, noise")
-    p.add_argument("scenario")
+    p.add_argument("scenario", nargs="+", help="one or more scenario files (each run with every seed)")
     p.add_argument("--seeds", required=True, help="e.g. 0-19")
     p.add_argument("--out", default="renders/identification")
     p.add_argument("--detectors", default="oracle,cnn", help="comma-separated: oracle, cnn")

@@ -17,10 +17,12 @@ from vcfusion.records import TwinStates
 from vcfusion.vision.depth_eval import DepthEvalParams, reduce_depth_samples, sample_box_depths
 from vcfusion.vision.detectors import Detections, Detector, OracleDetector
 from vcfusion.vision.matching import (NO_MATCH, CameraView, JointMatcher, match_all_baseline, match_all_paper,
-                                      project_twins)
+                                      point_in_boxes, project_twins)
 from vcfusion.vision.overlay import Hud, OverlayParams, OverlayRecorder, draw_overlay, make_guidance
 
-METHODS = ("baseline", "paper", "joint")
+# baseline: the paper's RGB-only rule; baseline_centre: our nearest-box-centre heuristic (RGB only);
+# paper: Algorithm 2 (RGB + depth); joint: the joint matcher (see matching.py)
+METHODS = ("baseline", "baseline_centre", "paper", "joint")
 
 
 @dataclass(frozen=True)
@@ -49,6 +51,8 @@ class FusionResult:
     choice: dict  # method -> (N,) box index per twin, NO_MATCH where none
     in_view: np.ndarray  # (N,) twins projected into the image
     timings_s: dict  # stage -> seconds
+    # (N,) boxes containing each twin's anchor (0 out of view): >= 2 is the ambiguous case of Fig. 3
+    n_anchor_boxes: np.ndarray | None = None
 
     def box_of(self, method: str, i: int):
         j = int(self.choice[method][i])
@@ -73,13 +77,19 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
     # the paper's matchers use the twins as received (no latency compensation)
     proj = project_twins(twins, frame.camera)
     if "baseline" in methods:
-        choice["baseline"] = match_all_baseline(proj, detections.boxes, fallback_radius_px)
+        choice["baseline"] = match_all_baseline(proj, detections.boxes, detections.scores, fallback_radius_px)
+    if "baseline_centre" in methods:
+        choice["baseline_centre"] = match_all_baseline(proj, detections.boxes, None, fallback_radius_px, rule="centre")
     if "paper" in methods:
-        choice["paper"] = match_all_paper(proj, detections.boxes, depths, fallback_radius_px)
+        choice["paper"] = match_all_paper(proj, detections.boxes, depths, fallback_radius_px,
+                                          scores=detections.scores)
     if "joint" in methods:
         choice["joint"] = (joint or JointMatcher()).match(twins, detections.boxes, samples, frame.camera)
     timings["match"] = wallclock.perf_counter() - t2
-    return FusionResult(frame.time, twins.ids, detections, depths, choice, proj.in_view, timings)
+    n_anchor_boxes = np.zeros(len(twins), np.int64)
+    for i in np.flatnonzero(proj.in_view):
+        n_anchor_boxes[i] = int(point_in_boxes(proj.anchor[i], detections.boxes).sum()) if len(detections) else 0
+    return FusionResult(frame.time, twins.ids, detections, depths, choice, proj.in_view, timings, n_anchor_boxes)
 
 
 class VisionFusionHook:

@@ -1,14 +1,18 @@
 """Target identification study (the paper's Fig. 4, extended with latency, GNSS noise, detectors).
 
-For every (frame, visible target twin) and every method (RGB-only baseline, paper fusion =
-Algorithm 2, joint matcher), the box the method chose and its IoU with the target's ground-truth
+For every (frame, visible target twin) and every method (the paper's RGB-only baseline, our
+nearest-centre RGB-only heuristic ``baseline_centre``, paper fusion = Algorithm 2, joint matcher;
+see matching.py), the box the method chose and its IoU with the target's ground-truth
 box (0 when the method chose none). Accuracy at an IoU threshold is the fraction of target-frames
 whose chosen box has at least that IoU. A target is a neighbour twin whose vehicle has a
-ground-truth box in the frame (visible) of at least ``min_gt_area_px``.
+ground-truth box in the frame (visible) of at least ``min_gt_area_px``. Each row also records how
+many detected boxes contain the target's anchor (``n_anchor_boxes``: 0 = none, 1 = the easy case,
+>= 2 = the ambiguous case of Fig. 3 that depth is meant to resolve) and the scenario's name, so a
+study over several scenarios can be read per scenario and per case.
 
-`run_identification_study` runs the scenario for each seed and each V2C condition (latency, GNSS
+`run_identification_study` runs the scenario(s) for each seed and each V2C condition (latency, GNSS
 noise) with a frame source (the renderer), runs every detector on the same frames, and writes:
-- ``identification_rows.parquet``: one row per (seed, condition, detector, frame, target, method);
+- ``identification_rows.parquet``: one row per (scenario, seed, condition, detector, frame, target, method);
 - ``identification_accuracy_iou.csv`` + ``identification_accuracy_iou.png``: accuracy vs IoU
   threshold 0.5..0.95 per method and detector, at zero latency and noise (Fig. 4);
 - ``identification_latency_noise.csv`` + ``identification_latency_noise.png``: accuracy at IoU 0.7
@@ -32,12 +36,12 @@ from vcfusion.vision.fusion import METHODS, CameraFrame, FusionResult, fuse_fram
 from vcfusion.vision.matching import JointMatcher, JointMatcherParams, box_iou
 
 IOU_THRESHOLDS = np.round(np.arange(0.5, 0.951, 0.05), 2)
-ROW_COLUMNS = ["seed", "latency_s", "gnss_noise_m", "detector", "time", "vehicle_id", "method", "matched", "iou",
+ROW_COLUMNS = ["scenario", "seed", "latency_s", "gnss_noise_m", "detector", "time", "vehicle_id", "method", "n_anchor_boxes", "matched", "iou",
                "x1", "y1", "x2", "y2", "gt_x1", "gt_y1", "gt_x2", "gt_y2"]
 
 
 def identification_rows(frame: CameraFrame, result: FusionResult, min_gt_area_px: float = 0.0, **context) -> list[dict]:
-    """Rows for the visible targets of one frame (context: seed, latency_s, gnss_noise_m, detector)."""
+    """Rows for the visible targets of one frame (context: scenario, seed, latency_s, gnss_noise_m, detector)."""
     gt = np.asarray(frame.gt_boxes, dtype=float).reshape(-1, 4)
     gt_index = {vid: k for k, vid in enumerate(frame.gt_ids)}
     rows = []
@@ -55,8 +59,9 @@ def identification_rows(frame: CameraFrame, result: FusionResult, min_gt_area_px
             else:
                 box = tuple(float(v) for v in result.detections.boxes[j])
                 iou = float(box_iou(np.array([box]), g[None])[0, 0])
+            n_cand = -1 if result.n_anchor_boxes is None else int(result.n_anchor_boxes[i])
             rows.append({**context, "time": round(float(frame.time), 6), "vehicle_id": vid, "method": method,
-                         "matched": j >= 0, "iou": iou, "x1": box[0], "y1": box[1], "x2": box[2], "y2": box[3],
+                         "n_anchor_boxes": n_cand, "matched": j >= 0, "iou": iou, "x1": box[0], "y1": box[1], "x2": box[2], "y2": box[3],
                          "gt_x1": g[0], "gt_y1": g[1], "gt_x2": g[2], "gt_y2": g[3]})
     return rows
 
@@ -113,8 +118,9 @@ def write_study_outputs(rows: pd.DataFrame, out_dir, threshold: float = 0.7) -> 
     paths["latency_noise"] = out_dir / "identification_latency_noise.csv"
     _atomic_write(paths["latency_noise"], lambda p: sweep.to_csv(p, index=False, float_format="%.4f"))
 
-    styles = {"baseline": ("tab:blue", "RGB only (baseline)"), "paper": ("tab:orange", "RGB + depth (Alg. 2)"),
-              "joint": ("tab:green", "joint matcher")}
+    styles = {"baseline": ("tab:blue", "RGB only (paper's baseline)"),
+              "baseline_centre": ("tab:purple", "RGB only, nearest centre (ours)"),
+              "paper": ("tab:orange", "RGB + depth (Alg. 2)"), "joint": ("tab:green", "joint matcher")}
     detectors = sorted(curve["detector"].unique()) if len(curve) else []
     fig, ax = plt.subplots(figsize=(6, 4))
     for det, ls in zip(detectors, ("-", "--", ":", "-.")):
@@ -126,8 +132,10 @@ def write_study_outputs(rows: pd.DataFrame, out_dir, threshold: float = 0.7) -> 
                         label=f"{label} [{det}]")
     ax.set_xlabel("IoU threshold")
     ax.set_ylabel("identification accuracy (%)")
-    n_targets = int(clean.groupby("method").size().max()) if len(clean) else 0
-    ax.set_title(f"Target identification (latency 0, noise 0; {n_targets} target-frames)")
+    n_targets = int(clean.groupby(["detector", "method"]).size().max()) if len(clean) else 0  # per detector
+    scen = ", ".join(sorted(clean["scenario"].dropna().unique())) if "scenario" in clean else ""
+    ax.set_title(f"Target identification (latency 0, noise 0; {n_targets} target-frames)"
+                 + (f"\n{scen}" if scen else ""), fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
@@ -180,8 +188,9 @@ class _StudyHook:
 
     def __init__(self, frame_source, detectors: dict, seed: int, condition: Condition,
                  depth_params: DepthEvalParams, joint_params: JointMatcherParams, min_gt_area_px: float,
-                 fallback_radius_px: float | None = None):
+                 fallback_radius_px: float | None = None, scenario_name: str = ""):
         self.frame_source = frame_source
+        self.scenario_name = scenario_name
         self.detectors = detectors
         self.seed = seed
         self.condition = condition
@@ -202,31 +211,36 @@ class _StudyHook:
             result = fuse_frame(frame, tick.neighbours, det, self.rngs[name], self.depth_params, self.joints[name],
                                 fallback_radius_px=self.fallback_radius_px)
             self.rows.extend(identification_rows(
-                frame, result, self.min_gt_area_px, seed=self.seed, latency_s=self.condition.latency_s,
+                frame, result, self.min_gt_area_px, scenario=self.scenario_name, seed=self.seed, latency_s=self.condition.latency_s,
                 gnss_noise_m=self.condition.gnss_noise_m, detector=name))
         return None  # the rows are collected here, not written into the run folder
 
 
-def run_identification_study(scenario, seeds, frame_source_factory, detectors: dict, out_dir,
+def run_identification_study(scenarios, seeds, frame_source_factory, detectors: dict, out_dir,
                              conditions: list[Condition] | None = None, depth_params=DepthEvalParams(),
                              joint_params: JointMatcherParams = JointMatcherParams(), min_gt_area_px: float = 100.0,
                              fallback_radius_px: float | None = None, progress: bool = True) -> pd.DataFrame:
-    """Run every (seed, condition), collect the rows, write the outputs; returns the rows.
+    """Run every (scenario, seed, condition), collect the rows, write the outputs; returns the rows.
 
+    ``scenarios``: one Scenario or a list of them (each run with every seed; their names must differ).
     ``frame_source_factory(scenario, seed)`` gives the frame source of a run (the renderer);
     ``detectors`` maps a name to a detector (e.g. {'oracle': OracleDetector(), 'cnn': TorchDetector(...)}).
     """
     from vcfusion.cosim import CoSimulation
 
     conditions = conditions or default_conditions()
+    scenarios = list(scenarios) if isinstance(scenarios, (list, tuple)) else [scenarios]
+    names = [sc.name for sc in scenarios]
+    if len(set(names)) != len(names):
+        raise ValueError(f"scenarios: expected distinct scenario names, got {names}")
     rows: list[dict] = []
-    jobs = [(seed, c) for seed in seeds for c in conditions]
-    for seed, cond in tqdm(jobs, desc="identification study", unit="run", disable=not progress):
+    jobs = [(scenario, seed, c) for scenario in scenarios for seed in seeds for c in conditions]
+    for scenario, seed, cond in tqdm(jobs, desc="identification study", unit="run", disable=not progress):
         sc = scenario.model_copy(update={"v2c": scenario.v2c.model_copy(
             update={"latency_s": cond.latency_s, "gnss_noise_std_m": cond.gnss_noise_m})})
         # a new joint matcher per run and detector: its position filter holds per-run state
         hook = _StudyHook(frame_source_factory(sc, seed), detectors, seed, cond, depth_params, joint_params,
-                          min_gt_area_px, fallback_radius_px)
+                          min_gt_area_px, fallback_radius_px, scenario.name)
         CoSimulation(sc, seed, hooks=[hook]).run()
         rows.extend(hook.rows)
     frame = pd.DataFrame(rows, columns=ROW_COLUMNS)
@@ -235,10 +249,25 @@ def run_identification_study(scenario, seeds, frame_source_factory, detectors: d
 
 
 def summary_lines(rows: pd.DataFrame, threshold: float = 0.7) -> list[str]:
-    """Human-readable figures: accuracy at the threshold per condition, detector and method."""
+    """Human-readable figures: accuracy at the threshold per condition, detector and method (all
+    scenarios together); then, at zero latency and noise, per scenario and per anchor case (how many
+    boxes contain the anchor: 0, 1, >= 2)."""
+    def fmt(grp):
+        return "  ".join(f"{r.method} {100 * r.accuracy:5.1f}%" for r in grp.itertuples())
+
     acc = accuracy_at(rows, threshold)
     lines = []
     for (det, lat, noise), grp in acc.groupby(["detector", "latency_s", "gnss_noise_m"]):
-        parts = "  ".join(f"{r.method} {100 * r.accuracy:5.1f}%" for r in grp.itertuples())
-        lines.append(f"{det:>8} latency {lat:.2f} s noise {noise:.1f} m (n={int(grp['n'].iloc[0])}): {parts}")
+        lines.append(f"{det:>8} latency {lat:.2f} s noise {noise:.1f} m (n={int(grp['n'].iloc[0])}): {fmt(grp)}")
+    clean = rows[(rows["latency_s"] == 0) & (rows["gnss_noise_m"] == 0)] if "latency_s" in rows else rows
+    if "scenario" in clean and clean["scenario"].nunique() > 1:
+        for (det, scen), grp in accuracy_at(clean, threshold, by=("detector", "scenario", "method")).groupby(
+                ["detector", "scenario"]):
+            lines.append(f"{det:>8} clean, scenario {scen} (n={int(grp['n'].iloc[0])}): {fmt(grp)}")
+    if "n_anchor_boxes" in clean and len(clean):
+        case = clean.assign(anchor_case=clean["n_anchor_boxes"].clip(upper=2).map({0: "0", 1: "1", 2: ">=2"}))
+        case = case[case["n_anchor_boxes"] >= 0]
+        for (det, c), grp in accuracy_at(case, threshold, by=("detector", "anchor_case", "method")).groupby(
+                ["detector", "anchor_case"]):
+            lines.append(f"{det:>8} clean, anchor in {c:>3} boxes (n={int(grp['n'].iloc[0])}): {fmt(grp)}")
     return lines

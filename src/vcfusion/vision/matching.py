@@ -1,16 +1,32 @@
 """Which detected box belongs to which cloud twin.
 
-Three matchers, from the paper's baseline to its future work:
+Four matchers, from the paper's baseline to its future work:
 
-- :func:`match_baseline` (RGB camera only): the boxes that contain the twin's anchor point (its GNSS
-  antenna projected into the image, eq. 1-3); one -> that box; several -> the box whose centre is
-  nearest the anchor (the paper does not say how its RGB-only baseline breaks ties; the nearest
-  centre is the natural image-only rule); none -> no match.
-- :func:`match_paper` (Algorithm 2, RGB + depth): the same candidates; one -> that box; several -> the
-  box whose depth distance (Algorithm 1) differs least, in absolute value, from the distance the
-  GNSS position gives; none -> no match (the paper is silent; we return ``None``). Candidates without
-  a valid depth (``nan``) are skipped; if no candidate has one, the baseline rule decides.
-  Both take an optional ``fallback_radius_px`` (off by default): with no containing box, the box
+- :func:`match_baseline` (RGB camera only, the paper's baseline): the boxes that contain the twin's
+  anchor point (its GNSS point projected into the image, eq. 1-3); one -> that box; none -> no
+  match. The paper picks the target box "if the anchor point is pinpointed exclusively in one
+  detected bounding box"; when the anchor lies in several (Fig. 3) "the system cannot identify
+  which one is the correct target vehicle". All an RGB-only pipeline can then go by is the
+  detector's own output: the most confident of the candidates (what a YOLO-style list sorted by
+  confidence yields first); with an exact tie (e.g. the oracle's scores, all 1.0) nothing singles
+  one out and there is no match. No image geometry is used.
+- :func:`match_baseline_centre` (RGB only, our stronger image-only heuristic, reported as
+  ``baseline_centre``): several candidates -> the box whose centre is nearest the anchor. The paper
+  does not use it; we keep it because on our renders it is hard to beat (the anchor is the body
+  centre, which projects near the centre of its own box), so nothing is hidden.
+- :func:`match_paper` (Algorithm 2, RGB + depth): the same candidates; one -> that box; several ->
+  the box whose depth distance (Algorithm 1) differs least, in absolute value, from the distance
+  the GNSS position gives (``D_g``); none -> no match (the paper is silent; we return ``None``).
+  Candidates without a valid depth (``nan``) are skipped; if no candidate has one, the baseline
+  rule decides. ``D_g`` (:func:`match_all_paper`, ``gnss_distance``) is by default the camera-Z of
+  the face of the twin that the camera sees (its GNSS point moved half its reported length along
+  its heading): Algorithm 1 samples the lower quarter of the box so that it measures "the
+  backside of detected vehicles", in camera-Z (a depth image), so that is what it is compared
+  with. Our GNSS point is the body centre (records.gnss_antenna_points); compared raw
+  (``gnss_distance='range'``, Euclidean distance to the GNSS point) every depth looks half a
+  vehicle length too near and, for a car right in front of a truck, the truck's box (whose lower
+  quarter is the car's rear) wins. ``'range'`` and ``'z'`` (camera-Z of the GNSS point) remain.
+  All take an optional ``fallback_radius_px`` (off by default): with no containing box, the box
   whose edge is nearest the anchor within that radius is taken.
 - :class:`JointMatcher` (better): all twins in view are assigned to boxes at once (Hungarian,
   ``scipy.optimize.linear_sum_assignment``) on a cost built from
@@ -105,8 +121,38 @@ def _nearest_centre(anchor, boxes: np.ndarray, candidates: np.ndarray) -> int:
 # the paper's matchers (one twin at a time)
 
 
-def match_baseline(anchor, boxes, fallback_radius_px: float | None = None) -> int | None:
-    """RGB-only baseline: index of the chosen box, or None."""
+def _most_confident(scores, candidates: np.ndarray) -> int | None:
+    """The candidate with the strictly highest detector score; None on a tie (or without scores)."""
+    if scores is None:
+        return None
+    s = np.asarray(scores, dtype=np.float64).reshape(-1)[candidates]
+    best = np.flatnonzero(s == np.nanmax(s)) if np.isfinite(s).any() else candidates
+    return int(candidates[int(best[0])]) if len(best) == 1 else None
+
+
+def _check_scores(scores, n: int):
+    if scores is not None and len(np.asarray(scores).reshape(-1)) != n:
+        raise ValueError(f"scores: expected one detector score per box ({n}), got {len(np.asarray(scores).reshape(-1))}")
+
+
+def match_baseline(anchor, boxes, scores=None, fallback_radius_px: float | None = None) -> int | None:
+    """The paper's RGB-only baseline: index of the chosen box, or None.
+
+    One box contains the anchor -> it; several -> the one with the strictly highest detector score
+    (``scores``, aligned with ``boxes``), None on a tie or without scores; none -> None (or the
+    fallback)."""
+    b = as_boxes(boxes)
+    _check_scores(scores, len(b))
+    candidates = np.flatnonzero(point_in_boxes(anchor, b))
+    if len(candidates) == 0:
+        return _fallback(anchor, b, fallback_radius_px)
+    if len(candidates) == 1:
+        return int(candidates[0])
+    return _most_confident(scores, candidates)
+
+
+def match_baseline_centre(anchor, boxes, fallback_radius_px: float | None = None) -> int | None:
+    """RGB-only, nearest box centre among the boxes containing the anchor (our heuristic)."""
     b = as_boxes(boxes)
     candidates = np.flatnonzero(point_in_boxes(anchor, b))
     if len(candidates) == 0:
@@ -117,13 +163,15 @@ def match_baseline(anchor, boxes, fallback_radius_px: float | None = None) -> in
 
 
 def match_paper(anchor, boxes, box_depths, gnss_distance: float,
-                fallback_radius_px: float | None = None) -> int | None:
+                fallback_radius_px: float | None = None, scores=None) -> int | None:
     """Algorithm 2 (distance matching): index of the chosen box, or None.
 
     ``box_depths`` are the distances of Algorithm 1 (aligned with ``boxes``); ``gnss_distance`` is
-    the twin's distance from the camera given by its GNSS position (``D_g``).
+    the twin's distance from the camera given by its GNSS position (``D_g``); ``scores`` (the
+    detector's) only serve the baseline rule when no candidate has a depth.
     """
     b = as_boxes(boxes)
+    _check_scores(scores, len(b))
     depths = np.asarray(box_depths, dtype=np.float64).reshape(-1)
     if len(depths) != len(b):
         raise ValueError(f"box_depths: expected one distance per box ({len(b)}), got {len(depths)}")
@@ -134,7 +182,7 @@ def match_paper(anchor, boxes, box_depths, gnss_distance: float,
         return int(candidates[0])
     diff = np.abs(depths[candidates] - gnss_distance)
     if not np.isfinite(diff).any():
-        return _nearest_centre(anchor, b, candidates)
+        return _most_confident(scores, candidates)
     return int(candidates[int(np.nanargmin(diff))])
 
 
@@ -163,9 +211,9 @@ class TwinProjection:
 
     anchor: np.ndarray  # (N, 2) GNSS antenna projected, px
     anchor_z: np.ndarray  # (N,) camera-Z of the antenna, m
-    gnss_range: np.ndarray  # (N,) Euclidean camera-to-antenna distance, m (the paper's D_g)
+    gnss_range: np.ndarray  # (N,) Euclidean camera-to-antenna distance, m (D_g taken raw)
     expected_box: np.ndarray  # (N, 4) projected cuboid, clipped to the image
-    face_z: np.ndarray  # (N,) camera-Z of the face nearest the camera (what depth sees), m
+    face_z: np.ndarray  # (N,) camera-Z of the face nearest the camera (what depth sees; Alg. 2's D_g), m
     in_view: np.ndarray  # (N,) bool: in front of the camera and overlapping the image
 
 
@@ -246,22 +294,42 @@ def project_twins(twins: TwinStates, camera: CameraView, min_z: float = 0.5) -> 
 # the per-frame drivers for all twins
 
 
-def match_all_baseline(proj: TwinProjection, boxes, fallback_radius_px: float | None = None) -> np.ndarray:
-    """Baseline box index per twin (NO_MATCH where none or out of view)."""
+def match_all_baseline(proj: TwinProjection, boxes, scores=None, fallback_radius_px: float | None = None,
+                       rule: str = "score") -> np.ndarray:
+    """Baseline box index per twin (NO_MATCH where none or out of view). ``rule``: 'score' (the
+    paper's baseline, :func:`match_baseline`) or 'centre' (:func:`match_baseline_centre`)."""
+    if rule not in ("score", "centre"):
+        raise ValueError(f"rule: expected 'score' or 'centre', got {rule!r}")
     out = np.full(len(proj.anchor), NO_MATCH)
     for i in np.flatnonzero(proj.in_view):
-        j = match_baseline(proj.anchor[i], boxes, fallback_radius_px)
+        if rule == "score":
+            j = match_baseline(proj.anchor[i], boxes, scores, fallback_radius_px)
+        else:
+            j = match_baseline_centre(proj.anchor[i], boxes, fallback_radius_px)
         out[i] = NO_MATCH if j is None else j
     return out
 
 
+GNSS_DISTANCES = ("face", "range", "z")
+
+
+def gnss_distances(proj: TwinProjection, gnss_distance: str = "face") -> np.ndarray:
+    """``D_g`` per twin: 'face' (camera-Z of the face the camera sees, from the GNSS position,
+    heading and length; what Algorithm 1 measures), 'range' (Euclidean camera-to-GNSS-point
+    distance) or 'z' (camera-Z of the GNSS point)."""
+    if gnss_distance not in GNSS_DISTANCES:
+        raise ValueError(f"gnss_distance: expected one of {GNSS_DISTANCES}, got {gnss_distance!r}")
+    return {"face": proj.face_z, "range": proj.gnss_range, "z": proj.anchor_z}[gnss_distance]
+
+
 def match_all_paper(proj: TwinProjection, boxes, box_depths, fallback_radius_px: float | None = None,
-                    gnss_distance: str = "range") -> np.ndarray:
-    """Algorithm 2 box index per twin. ``gnss_distance``: 'range' (Euclidean, the paper's D_g) or 'z'."""
-    dg = proj.gnss_range if gnss_distance == "range" else proj.anchor_z
+                    gnss_distance: str = "face", scores=None) -> np.ndarray:
+    """Algorithm 2 box index per twin (NO_MATCH where none or out of view); ``D_g`` per
+    :func:`gnss_distances`."""
+    dg = gnss_distances(proj, gnss_distance)
     out = np.full(len(proj.anchor), NO_MATCH)
     for i in np.flatnonzero(proj.in_view):
-        j = match_paper(proj.anchor[i], boxes, box_depths, float(dg[i]), fallback_radius_px)
+        j = match_paper(proj.anchor[i], boxes, box_depths, float(dg[i]), fallback_radius_px, scores)
         out[i] = NO_MATCH if j is None else j
     return out
 

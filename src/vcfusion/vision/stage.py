@@ -56,12 +56,18 @@ def annotation_frame_source(tick) -> CameraFrame | None:
 
 class RenderedFrameSources:
     """Frame sources for the study's runs: (scenario, seed) -> (tick -> CameraFrame), all rendered
-    by one renderer (building its scene and GL context once). Call :meth:`close` at the end."""
+    by one renderer (building its scene and GL context once), rebuilt only when a scenario's road or
+    camera differs from the previous one's. Call :meth:`close` at the end."""
 
     def __init__(self):
         self._renderer = None
+        self._key = None
 
     def __call__(self, scenario: Scenario, seed: int):
+        key = (str(scenario.network), scenario.camera.model_dump_json())
+        if self._renderer is not None and key != self._key:
+            self.close()
+        self._key = key
         if self._renderer is None:
             try:
                 from vcfusion.traffic.network import read_road
