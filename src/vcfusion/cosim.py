@@ -28,6 +28,7 @@ from vcfusion.cloud.twins import ProcessModel, TwinStore, neighbours
 from vcfusion.driver.idm import IDMParams, idm_acceleration
 from vcfusion.records import TwinStates, VehicleStates
 from vcfusion.runio import RunTables, TableSink
+from vcfusion.threads import one_blas_thread
 from vcfusion.scenario import Scenario
 from vcfusion.traffic.lanechanges import lane_change_events, read_sumo_lanechanges
 from vcfusion.traffic.network import Road
@@ -157,7 +158,8 @@ class CoSimulation:
                               self.extra_sumo_args)
         try:
             loop_started = wallclock.perf_counter()
-            out = self._loop(session, sinks, progress)
+            with one_blas_thread():  # small per-tick arrays: BLAS threads only cost hand-offs
+                out = self._loop(session, sinks, progress)
             loop_wall = wallclock.perf_counter() - loop_started
         finally:
             session.close()

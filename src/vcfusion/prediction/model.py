@@ -27,36 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
+from vcfusion.threads import one_blas_thread
+
 MODEL_FORMAT = "vcfusion-lane-change-mlp/1"
 DEFAULT_MODEL_NAME = "lane_change_mlp.npz"
 
 
-_BLAS_LIBS = None
 SMALL_BATCH_ROWS = 4096  # up to this many rows (a tick's twins) the MLP runs on one BLAS thread
-
-
-@contextlib.contextmanager
-def _one_blas_thread():
-    """Context limiting BLAS to one thread. The per-tick batches are small (~100 x 128): a
-    multi-threaded OpenBLAS gains nothing there, and on a busy machine its thread hand-off
-    made one call take ~16 ms instead of ~50 us (measured with `vcfusion bench-predict`).
-    The BLAS libraries are found once; threadpoolctl's own `limit()` context re-inspects
-    them every call (~80 us, more than the network itself)."""
-    global _BLAS_LIBS
-    if _BLAS_LIBS is None:
-        from threadpoolctl import ThreadpoolController
-
-        _BLAS_LIBS = ThreadpoolController().select(user_api="blas").lib_controllers
-    before = [lib.get_num_threads() for lib in _BLAS_LIBS]
-    for lib, n in zip(_BLAS_LIBS, before):
-        if n != 1:
-            lib.set_num_threads(1)
-    try:
-        yield
-    finally:
-        for lib, n in zip(_BLAS_LIBS, before):
-            if n != 1:
-                lib.set_num_threads(n)
 
 
 class ModelFileError(ValueError):
@@ -100,7 +77,7 @@ class LaneChangeModel:
     def logits(self, features: np.ndarray) -> np.ndarray:
         h = (np.asarray(features, dtype=np.float32) - self.mean) * self._inv_std
         last = len(self._wt) - 1
-        with _one_blas_thread() if len(h) <= SMALL_BATCH_ROWS else contextlib.nullcontext():
+        with one_blas_thread() if len(h) <= SMALL_BATCH_ROWS else contextlib.nullcontext():
             for k, (wt, b) in enumerate(self._wt):
                 h = h @ wt + b
                 if k < last:
