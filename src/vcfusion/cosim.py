@@ -324,8 +324,8 @@ def summarize(sc: Scenario, seed: int, tables, channel: V2CChannel, end_reason: 
             "ego_lane": sc.ego.lane,
             "cut_ins_ahead_of_ego": int(len(cut)),
             "cut_ins": [
-                {"vehicle_id": r.vehicle_id, "mid_time": float(r.mid_time), "gap_to_ego_m": round(float(r.gap_to_ego_m), 2)}
-                for r in cut.itertuples(index=False)
+                {"vehicle_id": vid, "mid_time": float(mid), "gap_to_ego_m": round(float(gap), 2)}
+                for vid, mid, gap in zip(cut["vehicle_id"], cut["mid_time"], cut["gap_to_ego_m"])
             ],
             "ego_distance_m": float(ego["s"].iloc[-1] - ego["s"].iloc[0]) if len(ego) else 0.0,
             "ego_mean_speed_mps": float(ego["speed"].mean()) if len(ego) else 0.0,
@@ -340,10 +340,9 @@ def summarize(sc: Scenario, seed: int, tables, channel: V2CChannel, end_reason: 
             twins = twins[twins["vehicle_id"].isin(set(into["vehicle_id"]))]
             flags = first_flags(twins, lc[lc["vehicle_id"].isin(set(into["vehicle_id"]))],
                                 sc.simulation.lanechange_duration_s / 2)
-            keep = set(into["event_id"])
-            summary["lane_change_flags"] = [
-                f | {"ahead_of_ego": bool(into.loc[into["event_id"] == f["event_id"], "ahead_of_ego"].iloc[0])}
-                for f in flags if f["event_id"] in keep]
+            ahead = dict(zip(into["event_id"].tolist(), into["ahead_of_ego"].tolist()))
+            summary["lane_change_flags"] = [f | {"ahead_of_ego": bool(ahead[f["event_id"]])}
+                                            for f in flags if f["event_id"] in ahead]
     return summary
 
 

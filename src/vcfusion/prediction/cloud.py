@@ -87,13 +87,13 @@ def first_flags(twins: pd.DataFrame, events: pd.DataFrame, end_after_mid_s: floa
     tracks = {vids[a]: (times[a:b], decisions[a:b]) for a, b in zip(starts, stops) if b > a}
     event_vids = events["vehicle_id"].to_numpy()
     ends_of = {vid: ends[event_vids == vid] for vid in set(event_vids)}
-    for ev, end in zip(events.itertuples(index=False), ends):
-        row = {"vehicle_id": ev.vehicle_id, "event_id": int(ev.event_id), "mid_time": float(ev.mid_time),
+    for vid, event_id, mid_time, end in zip(event_vids, events["event_id"].to_numpy(), events["mid_time"].to_numpy(), ends):
+        row = {"vehicle_id": vid, "event_id": int(event_id), "mid_time": float(mid_time),
                "end_time": float(end), "final_run_before_end_s": None, "final_run_before_mid_s": None,
                "first_before_end_s": None, "first_before_mid_s": None}
-        track = tracks.get(ev.vehicle_id)
+        track = tracks.get(vid)
         if track is not None:
-            earlier = ends_of[ev.vehicle_id]
+            earlier = ends_of[vid]
             earlier = earlier[earlier < end - 1e-9]
             prev = float(earlier.max()) if len(earlier) else -np.inf
             t, d = track
@@ -105,6 +105,6 @@ def first_flags(twins: pd.DataFrame, events: pd.DataFrame, end_after_mid_s: floa
                     k -= 1
                 for name, tick in (("final_run", t[k]), ("first", t[pos[0]])):
                     row[f"{name}_before_end_s"] = round(float(end - tick), 2)
-                    row[f"{name}_before_mid_s"] = round(float(ev.mid_time - tick), 2)
+                    row[f"{name}_before_mid_s"] = round(float(mid_time - tick), 2)
         out.append(row)
     return out

@@ -63,15 +63,16 @@ def lane_change_events(sumo_changes: pd.DataFrame, trajectories: pd.DataFrame, r
     changers = trajectories[trajectories["vehicle_id"].isin(set(events["vehicle_id"]))]
     by_vehicle = {vid: (g["time"].to_numpy(), g["d"].to_numpy())
                   for vid, g in changers.groupby("vehicle_id", sort=False)}
-    for i, ev in enumerate(events.itertuples(index=False)):
-        track = by_vehicle.get(ev.vehicle_id)
+    columns = (events[c].to_numpy() for c in ("vehicle_id", "from_lane", "to_lane", "mid_time"))
+    for i, (vid, from_lane, to_lane, mid_time) in enumerate(zip(*columns)):
+        track = by_vehicle.get(vid)
         if track is None:
             continue
         t, d = track
-        in_old = np.abs(d - road.lane_centre_d(ev.from_lane)) <= CENTRED_TOL_M
-        in_new = np.abs(d - road.lane_centre_d(ev.to_lane)) <= CENTRED_TOL_M
-        before = np.flatnonzero(in_old & (t <= ev.mid_time + 1e-9))
-        after = np.flatnonzero(in_new & (t >= ev.mid_time - 1e-9))
+        in_old = np.abs(d - road.lane_centre_d(from_lane)) <= CENTRED_TOL_M
+        in_new = np.abs(d - road.lane_centre_d(to_lane)) <= CENTRED_TOL_M
+        before = np.flatnonzero(in_old & (t <= mid_time + 1e-9))
+        after = np.flatnonzero(in_new & (t >= mid_time - 1e-9))
         if len(before):
             starts[i] = t[before[-1]]
         if len(after):
