@@ -176,9 +176,11 @@ class CoSimulation:
         if hasattr(self.controller, "tables"):
             tables.update(self.controller.tables())
         lateral = tables.columns("trajectories", ["vehicle_id", "time", "d", "s"])
-        tables["lane_changes"] = lane_change_events(sumo_changes, lateral, session.road)
+        # the changers' and the ego's rows, selected once for both lane-change steps
+        involved = lateral[lateral["vehicle_id"].isin(set(sumo_changes["vehicle_id"]) | {EGO_ID})]
+        tables["lane_changes"] = lane_change_events(sumo_changes, involved, session.road)
         if sc.ego is not None:
-            tables["lane_changes"] = _relate_to_ego(tables["lane_changes"], lateral, vehicles, sc.ego.lane)
+            tables["lane_changes"] = _relate_to_ego(tables["lane_changes"], involved, vehicles, sc.ego.lane)
         summary = summarize(sc, self.seed, tables, out["channel"], out["end_reason"], lateral)
         if hasattr(self.controller, "summary"):
             summary["driver"] = self.controller.summary()
@@ -279,7 +281,8 @@ def _relate_to_ego(events: pd.DataFrame, trajectories: pd.DataFrame, vehicles: p
     """Mark lane changes into the ego's lane and where they happened relative to the ego.
 
     `gap_to_ego_m`: bumper to bumper along the road, the changer's rear minus the ego's front,
-    at the trajectory sample nearest the change's midpoint.
+    at the trajectory sample nearest the change's midpoint. `trajectories` needs the rows of the
+    ego and of the changers (others are ignored).
     """
     events = events.copy()
     length = vehicles.set_index("vehicle_id")["length"]
@@ -289,8 +292,7 @@ def _relate_to_ego(events: pd.DataFrame, trajectories: pd.DataFrame, vehicles: p
         ego_t = ego["time"].to_numpy()
         nearest = ego_t[np.abs(ego_t[None, :] - events["mid_time"].to_numpy()[:, None]).argmin(axis=1)]
         ego_s = pd.Series(ego["s"].to_numpy(), index=ego_t)
-        changers = trajectories[trajectories["vehicle_id"].isin(set(events["vehicle_id"]))]
-        s_at = {(v, t): s for v, t, s in zip(changers["vehicle_id"], changers["time"], changers["s"])}
+        s_at = {(v, t): s for v, t, s in zip(trajectories["vehicle_id"], trajectories["time"], trajectories["s"])}
         changer_s = np.array([s_at.get(key, np.nan) for key in zip(events["vehicle_id"], nearest)], dtype=float)
         gaps = changer_s - ego_s.loc[nearest].to_numpy() - 0.5 * (
             length.reindex(events["vehicle_id"]).to_numpy() + length[EGO_ID])

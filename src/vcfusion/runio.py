@@ -75,7 +75,8 @@ class TableSink:
         if rows:
             self.append({k: np.array([r[k] for r in rows]) for k in rows[0]})
 
-    def _table(self) -> pa.Table:
+    def _drain(self) -> pa.Table:
+        """The buffered rows as one Arrow table; the buffer is emptied."""
         names = list(self._chunks[0])
         data = {k: np.concatenate([c[k] for c in self._chunks]) for k in names}
         arrays = {k: pa.array(v.astype(str) if v.dtype == object else v) for k, v in data.items()}
@@ -87,7 +88,7 @@ class TableSink:
     def _flush(self) -> None:
         if not self._chunks:
             return
-        table = self._table()
+        table = self._drain()
         if self._writer is None:
             self._writer = pq.ParquetWriter(self.path, self._schema, compression="zstd")
         self._writer.write_table(table)  # one row group per flush
@@ -95,7 +96,7 @@ class TableSink:
     def close(self) -> Path | pa.Table | None:
         """The table: its Parquet file once it was flushed, else in memory (None when empty)."""
         if self._writer is None:
-            return self._table() if self._chunks else None
+            return self._drain() if self._chunks else None
         self._flush()
         self._writer.close()
         self._writer = None

@@ -12,33 +12,26 @@ from __future__ import annotations
 import contextlib
 
 _BLAS_LIBS = None
-_DEPTH = 0
+_DEPTH = 0  # nesting level of one_blas_thread: only the outermost sets and restores the limit
 
 
 @contextlib.contextmanager
 def one_blas_thread():
     global _BLAS_LIBS, _DEPTH
-    if _DEPTH:
-        _DEPTH += 1
-        try:
-            yield
-        finally:
-            _DEPTH -= 1
-        return
     if _BLAS_LIBS is None:
         # found once: threadpoolctl's own limit() context re-inspects the libraries every call
         from threadpoolctl import ThreadpoolController
 
         _BLAS_LIBS = ThreadpoolController().select(user_api="blas").lib_controllers
-    before = [lib.get_num_threads() for lib in _BLAS_LIBS]
+    before = [lib.get_num_threads() for lib in _BLAS_LIBS] if _DEPTH == 0 else []
     for lib, n in zip(_BLAS_LIBS, before):
         if n != 1:
             lib.set_num_threads(1)
-    _DEPTH = 1
+    _DEPTH += 1
     try:
         yield
     finally:
-        _DEPTH = 0
+        _DEPTH -= 1
         for lib, n in zip(_BLAS_LIBS, before):
             if n != 1:
                 lib.set_num_threads(n)

@@ -45,7 +45,9 @@ class TwinStore:
         self._head = np.zeros(0, dtype=np.int64)  # next write position per slot
         self._count = np.zeros(0, dtype=np.int64)
         self._static = np.zeros((0, len(_STATIC_FIELDS)))
-        self._newest = np.zeros(0)  # measurement time of each slot's latest report (+inf: free slot)
+        # measurement time of each slot's latest report (+inf: free slot, never stale), kept beside
+        # the ring buffer because every tick compares against it
+        self._newest = np.zeros(0)
         self._id_of: list[str | None] = []  # twin id of each slot
         self.process_models: list[tuple[str, Callable]] = []
         self.received = 0
@@ -81,11 +83,12 @@ class TwinStore:
             if slot is None:
                 slot = self._slot[vid] = self._new_slot()
                 self._head[slot] = self._count[slot] = 0
+                self._newest[slot] = -np.inf  # any first report is newer
                 self._id_of[slot] = vid
                 self._static[slot] = (reports.length[i], reports.width[i], reports.height[i])
             slots[i] = slot
         # Out-of-order arrivals (jitter) never replace a newer measurement.
-        newer = (self._count[slots] == 0) | (rows[:, 0] > self._newest[slots])
+        newer = rows[:, 0] > self._newest[slots]
         slots, rows = slots[newer], rows[newer]
         self._newest[slots] = rows[:, 0]
         head = self._head[slots]
