@@ -25,6 +25,7 @@ lane) — an accident or a queue ahead, derived from the twins only.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pandas as pd
 
@@ -82,66 +83,120 @@ _LANE_KEY = 1.0e6  # lane * _LANE_KEY + s orders twins by lane, then along the r
 
 _SIDE_OFFSETS = np.array([_LANE_OFFSET[side] for side in SIDES])
 _PER_SIDE = ("gap_lead", "dv_lead", "gap_foll", "dv_foll", "stopped_ahead", "n_ahead")
+_N_FEATURES = len(FEATURE_NAMES)
 _N_OWN = FEATURE_NAMES.index("gap_lead_right")  # own-state columns before the per-side block
 _HISTORY_OWN = ("speed_minus_ema", "speed_below_recent_max")  # filled by FeatureExtractor
 
 
+@numba.njit(cache=True)
 def _tick_matrix(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.ndarray, length: np.ndarray,
                  num_lanes: int) -> tuple[np.ndarray, np.ndarray]:
-    """(N, _N_TICK) memoryless features in FEATURE_NAMES order (the two history columns of the own
-    block left 0) and (N, num_lanes, 4) gap_lead, dv_lead, gap_foll, dv_foll towards every lane.
+    """(N, len(FEATURE_NAMES)) features with the memoryless ones filled (the history columns are
+    left 0 for :func:`_history`) and (N, num_lanes, 4) gap_lead, dv_lead, gap_foll, dv_foll towards every lane.
 
-    All twin pairs at once, (lanes, N, N) comparisons of the sort keys: a tick holds tens to a few
-    hundred twins, where a handful of dense array operations beats per-lane sorting and searching
-    (this runs for every twin on every V2C tick, so it is written for few NumPy calls).
+    Compiled (numba): it runs for every twin on every V2C tick, and on the tens of twins of a tick
+    NumPy's per-call overhead, not arithmetic, was the cost (~40 array calls, ~125 us a tick; this
+    is a few us). Neighbours are searched over all pairs with the sort keys lane * _LANE_KEY + s,
+    so "ahead"/"behind" and ties are decided exactly as by a stable sort of those keys.
     """
-    n = len(s)
-    on_road = lane >= 0
-    own = np.zeros((n, _N_OWN))
-    own[:, 0], own[:, 1], own[:, 2], own[:, 3] = speed, accel, length, lane
-    own[:, 4] = np.where(on_road, num_lanes - 1 - lane, 0)
-    own[:, 5] = on_road & (lane >= 1)
-    own[:, 6] = on_road & (lane <= num_lanes - 2)
-    if n == 0:
-        return np.zeros((0, _N_TICK)), np.zeros((0, num_lanes, 4))
-    lanes = np.arange(num_lanes)
-    keys = lane * _LANE_KEY + s  # off-road twins are never anyone's neighbour (in_lane below)
-    # query[k, i]: twin i's position moved to lane k; its neighbours there have larger/smaller keys
-    query = (lanes[:, None] * _LANE_KEY + s[None, :])[:, :, None]
-    in_lane = ((lane[None, :] == lanes[:, None]) & on_road[None, :])[:, None, :]  # twin j is in lane k
-    ahead = in_lane & (keys > query)  # (lanes, N_i, N_j); equal keys are nobody's neighbour
-    behind = in_lane & (keys < query)
-    # nearest ahead (smallest key; ties: lowest index) of all twins and of the stopped ones
-    ahead_both = np.empty((2, *ahead.shape), dtype=bool)
-    ahead_both[0] = ahead
-    np.logical_and(ahead, speed < STOPPED_MPS, out=ahead_both[1])
-    lead, stop = np.argmin(np.where(ahead_both, keys, np.inf), axis=-1)  # (lanes, N) each
-    has_lead, has_stop = ahead_both.any(axis=-1)
-    # nearest behind (largest key; ties: highest index, as a stable sort by key orders them)
-    foll = n - 1 - np.argmax(np.where(behind, keys, -np.inf)[..., ::-1], axis=-1)
-    has_foll = behind.any(axis=-1)
-    front = s + length / 2
-    rear = s - length / 2
-    gap_lead = rear[lead] - front
-    gap_foll = rear - front[foll]
-    stop_dist = rear[stop] - front
-    found_lead = has_lead & (gap_lead <= RANGE_M)
-    found_foll = has_foll & (gap_foll <= RANGE_M)
-    per_lane = np.empty((num_lanes, n, len(_PER_SIDE)))  # (lanes, N, per-side features)
-    per_lane[..., 0] = np.where(found_lead, gap_lead, RANGE_M)
-    per_lane[..., 1] = np.where(found_lead, speed[lead] - speed, 0.0)
-    per_lane[..., 2] = np.where(found_foll, gap_foll, RANGE_M)
-    per_lane[..., 3] = np.where(found_foll, speed[foll] - speed, 0.0)
-    per_lane[..., 4] = np.where(has_stop & (stop_dist <= BLOCK_RANGE_M), stop_dist, BLOCK_RANGE_M)
-    per_lane[..., 5] = (ahead & (keys <= query + DENSITY_RANGE_M)).sum(axis=-1)
-    per_lane = np.where(on_road[None, :, None], per_lane, 0.0)  # a twin off the road has no lanes
-    # own lane and both sides, picked from the absolute lanes; 0 where the lane does not exist
-    target = lane[None, :] + _SIDE_OFFSETS[:, None]  # (sides, N)
-    exists = on_road & (target >= 0) & (target < num_lanes)
-    picked = per_lane[np.minimum(np.maximum(target, 0), num_lanes - 1), np.arange(n)]  # (sides, N, 6)
-    picked = np.where(exists[:, :, None], picked, 0.0)
-    out = np.concatenate([own, picked.transpose(1, 0, 2).reshape(n, -1)], axis=1)
-    return out, per_lane[..., :4].transpose(1, 0, 2)
+    n = s.shape[0]
+    out = np.zeros((n, _N_FEATURES))
+    lanes_q = np.zeros((n, num_lanes, 4))
+    cell = np.zeros((num_lanes, len(_PER_SIDE)))  # one twin's per-side features towards every lane
+    for i in range(n):
+        li = lane[i]
+        on_road = li >= 0
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3] = speed[i], accel[i], length[i], li
+        if not on_road:  # a twin off the road has no lanes: every per-lane feature stays 0
+            continue
+        out[i, 4] = num_lanes - 1 - li
+        out[i, 5] = li >= 1
+        out[i, 6] = li <= num_lanes - 2
+        front_i = s[i] + length[i] / 2
+        rear_i = s[i] - length[i] / 2
+        for k in range(num_lanes):
+            query = k * _LANE_KEY + s[i]  # twin i moved to lane k
+            lead = stop = foll = -1
+            lead_key = stop_key = np.inf
+            foll_key = -np.inf
+            n_ahead = 0
+            for j in range(n):
+                if lane[j] != k:  # off-road twins (lane -1) are never anyone's neighbour
+                    continue
+                key = lane[j] * _LANE_KEY + s[j]
+                if key > query:  # nearest ahead: smallest key, ties the lowest index
+                    if key < lead_key:
+                        lead, lead_key = j, key
+                    if speed[j] < STOPPED_MPS and key < stop_key:
+                        stop, stop_key = j, key
+                    if key <= query + DENSITY_RANGE_M:
+                        n_ahead += 1
+                elif key < query and key >= foll_key:  # nearest behind: largest key, ties the highest index
+                    foll, foll_key = j, key
+                # equal keys are nobody's neighbour
+            cell[k, 0], cell[k, 1], cell[k, 2], cell[k, 3] = RANGE_M, 0.0, RANGE_M, 0.0
+            cell[k, 4], cell[k, 5] = BLOCK_RANGE_M, n_ahead
+            if lead >= 0:
+                gap = (s[lead] - length[lead] / 2) - front_i
+                if gap <= RANGE_M:
+                    cell[k, 0], cell[k, 1] = gap, speed[lead] - speed[i]
+            if foll >= 0:
+                gap = rear_i - (s[foll] + length[foll] / 2)
+                if gap <= RANGE_M:
+                    cell[k, 2], cell[k, 3] = gap, speed[foll] - speed[i]
+            if stop >= 0:
+                gap = (s[stop] - length[stop] / 2) - front_i
+                if gap <= BLOCK_RANGE_M:
+                    cell[k, 4] = gap
+            for q in range(4):
+                lanes_q[i, k, q] = cell[k, q]
+        # own lane and both sides, picked from the absolute lanes; 0 where the lane does not exist
+        for side in range(3):
+            target = li + _SIDE_OFFSETS[side]
+            if 0 <= target < num_lanes:
+                for q in range(len(_PER_SIDE)):
+                    out[i, _N_OWN + side * len(_PER_SIDE) + q] = cell[target, q]
+    return out, lanes_q
+
+
+@numba.njit(cache=True)
+def _history(out: np.ndarray, lanes_q: np.ndarray, speed: np.ndarray, lane: np.ndarray, previous: np.ndarray,
+             memory: np.ndarray, alphas: np.ndarray, decay: float, src_offset: np.ndarray,
+             src_quantity: np.ndarray, col_speed_minus_ema: int, col_below_max: int) -> np.ndarray:
+    """Update every twin's memory row from this tick and fill the history columns of `out`.
+
+    Memory row: [speed EMA, leaky max speed, fast EMAs (speed, then lane-major per-lane
+    quantities), slow EMAs (same)]; `previous[i]` is twin i's row in `memory`, -1 for a new twin,
+    whose averages start at the current values. Returns the new memory, one row per twin.
+    """
+    n, num_lanes = lanes_q.shape[0], lanes_q.shape[1]
+    h = 1 + num_lanes * 4
+    state = np.empty((n, 2 + 2 * h))
+    fresh = np.empty(2 + 2 * h)
+    for i in range(n):
+        fresh[0] = fresh[1] = fresh[2] = fresh[2 + h] = speed[i]
+        for t in range(num_lanes):
+            for q in range(4):
+                fresh[3 + t * 4 + q] = fresh[3 + h + t * 4 + q] = lanes_q[i, t, q]
+        for c in range(2 + 2 * h):
+            prev = fresh[c] if previous[i] < 0 else memory[previous[i], c]
+            state[i, c] = prev + alphas[c] * (fresh[c] - prev)
+        prev_max = (fresh[1] if previous[i] < 0 else memory[previous[i], 1]) - decay
+        state[i, 1] = speed[i] if speed[i] >= prev_max else prev_max  # leaky maximum, not an average
+        out[i, col_speed_minus_ema] = speed[i] - state[i, 0]
+        out[i, col_below_max] = state[i, 1] - speed[i]
+        out[i, _N_TICK] = state[i, 2] - state[i, 2 + h]  # speed_trend
+        n_src = src_offset.shape[0]
+        for m in range(n_src):
+            target = lane[i] + src_offset[m]
+            if lane[i] >= 0 and 0 <= target < num_lanes:
+                column = 2 + 1 + target * 4 + src_quantity[m]
+                out[i, _N_TICK + 1 + m] = state[i, column] - state[i, column + h]
+                out[i, _N_TICK + 1 + n_src + m] = state[i, column + h]
+            else:
+                out[i, _N_TICK + 1 + m] = 0.0
+                out[i, _N_TICK + 1 + n_src + m] = 0.0
+    return state
 
 
 def tick_features(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.ndarray,
@@ -191,35 +246,16 @@ class FeatureExtractor:
     def __call__(self, ids, x: np.ndarray, y: np.ndarray, lane: np.ndarray, speed: np.ndarray,
                  accel: np.ndarray, length: np.ndarray) -> np.ndarray:
         """(N, len(FEATURE_NAMES)) float64 features of the N twins of one snapshot."""
-        if not len(ids):
-            self._memory.keep(ids, np.zeros((0, 2 + 2 * self._n_hist)))
-            return np.zeros((0, len(FEATURE_NAMES)))
-        n = len(ids)
         num_lanes = self.road.num_lanes
         speed = np.asarray(speed, dtype=float)
         lane = np.asarray(lane, dtype=np.int64)
         s, _ = self.road.to_road_frame(x, y)  # only s is used: the lateral coordinate is dropped here
-        out = np.empty((n, len(FEATURE_NAMES)))
-        out[:, :_N_TICK], lanes_q = _tick_matrix(np.asarray(s, dtype=float), lane, speed,
-                                                 np.asarray(accel, dtype=float), np.asarray(length, dtype=float),
-                                                 num_lanes)
-        current = np.concatenate([speed[:, None], lanes_q.reshape(n, -1)], axis=1)
-        fresh = np.concatenate([speed[:, None], speed[:, None], current, current], axis=1)
-        prev = self._memory.carried(ids, fresh)
-        h = self._n_hist
-        state = prev + self._alphas * (fresh - prev)
-        state[:, 1] = np.maximum(speed, prev[:, 1] - self._decay)  # leaky maximum, not an average
+        out, lanes_q = _tick_matrix(np.asarray(s, dtype=float), lane, speed, np.asarray(accel, dtype=float),
+                                    np.asarray(length, dtype=float), num_lanes)
+        state = _history(out, lanes_q, speed, lane, self._memory.previous_rows(ids), self._memory.state,
+                         self._alphas, self._decay, self._src_offset, self._src_quantity,
+                         self._col_speed_minus_ema, self._col_below_max)
         self._memory.keep(ids, state)
-        ema, vmax, fast, slow = state[:, 0], state[:, 1], state[:, 2:2 + h], state[:, 2 + h:]
-        out[:, self._col_speed_minus_ema] = speed - ema
-        out[:, self._col_below_max] = vmax - speed
-        target = lane[:, None] + self._src_offset[None, :]  # (N, sources) absolute lane of each source
-        exists = (lane[:, None] >= 0) & (target >= 0) & (target < num_lanes)
-        column = 1 + np.minimum(np.maximum(target, 0), num_lanes - 1) * len(_LANE_QUANTITIES) + self._src_quantity[None, :]
-        rows = np.arange(n)[:, None]
-        out[:, _N_TICK] = fast[:, 0] - slow[:, 0]  # speed_trend
-        out[:, _N_TICK + 1:_N_TICK + 1 + len(HISTORY_MEAN_SOURCES)] = np.where(exists, (fast - slow)[rows, column], 0.0)
-        out[:, _N_TICK + 1 + len(HISTORY_MEAN_SOURCES):] = np.where(exists, slow[rows, column], 0.0)
         return out
 
     def from_twins(self, twins) -> np.ndarray:

@@ -18,6 +18,16 @@ class TwinMemory:
         self._row: dict[str, int] = {}
         self._state = np.zeros((0, width), dtype=dtype)
 
+    @property
+    def state(self) -> np.ndarray:
+        """The rows kept at the last tick."""
+        return self._state
+
+    def previous_rows(self, ids) -> np.ndarray:
+        """For each id, its row in :attr:`state`, or -1 for a twin not seen at the last tick."""
+        row = self._row
+        return np.array([row.get(v, -1) for v in ids], dtype=np.int64)
+
     def carried(self, ids, fresh: np.ndarray) -> np.ndarray:
         state = fresh.copy()
         row = self._row
