@@ -112,6 +112,10 @@ def _truth_rows(truth: VehicleStates, road: Road) -> dict[str, np.ndarray]:
     }
 
 
+def _ego_columns(rows: list[tuple]) -> dict[str, np.ndarray]:
+    return {name: np.array(values) for name, values in zip(EGO_COLUMNS, zip(*rows))}
+
+
 def _twin_rows(twins: TwinStates) -> dict[str, np.ndarray]:
     rows = {
         "time": np.full(len(twins), round(twins.time, 6)),
@@ -196,33 +200,37 @@ class CoSimulation:
         for name, model in self.process_models:
             store.add_process_model(name, model)
 
-        out = {"collisions": [], "channel": channel}
-        ego_rows: list[dict] = []
+        out = {"channel": channel}
+        # the ego's 0.01-s rows as plain tuples in EGO_COLUMNS order, converted every 1,000 steps
+        ego_rows: list[tuple] = []
         ego_cfg = sc.ego
         ego_speed = ego_cfg.speed_mps if ego_cfg else 0.0
         ego_accel = 0.0
+        if ego_cfg is not None:
+            trip_end_s = ego_cfg.depart_pos_m + ego_cfg.trip_distance_m
         end_reason = "max_time"
         max_steps = int(round(sc.simulation.max_time_s / dt))
         bar = tqdm(total=max_steps, unit="step", desc=f"{sc.name} seed {self.seed}", disable=not progress,
                    leave=False, mininterval=0.5)
         k = int(round(session.time / dt))
         while k < max_steps:
-            truth = None
-            if k % traj_every == 0 or k % tick_every == 0:
+            is_tick = k % tick_every == 0
+            is_traj = k % traj_every == 0
+            if is_tick or is_traj:
                 truth = session.states()
-            if k % traj_every == 0:
-                sinks["trajectories"].append(_truth_rows(truth, session.road))
+                if is_traj:
+                    sinks["trajectories"].append(_truth_rows(truth, session.road))
             if ego_cfg is not None:
                 kinematics = session.ego_kinematics()
                 if kinematics is None:
                     end_reason = "ego_left"
                     break
                 s_front, ego_speed_now, sumo_acc = kinematics
-                if s_front - ego_cfg.depart_pos_m >= ego_cfg.trip_distance_m:
+                if s_front >= trip_end_s:
                     end_reason = "trip_complete"
                     break
                 leader = session.leader(EGO_ID)
-            if k % tick_every == 0:
+            if is_tick:
                 now = truth.time
                 channel.send(channel.measure(truth))
                 for batch in channel.deliver(now):
@@ -241,18 +249,16 @@ class CoSimulation:
                 if ego_cfg is not None:
                     ego_accel = float(self.controller.acceleration(tick))
             if ego_cfg is not None:
-                ego_rows.append({
-                    "time": round(session.time, 6), "s": s_front, "speed": ego_speed_now, "accel": sumo_acc,
-                    "command_accel": ego_accel,
-                    "leader_id": leader[0] if leader else "",
-                    "leader_gap_m": leader[1] if leader else np.nan,
-                })
+                if leader:
+                    ego_rows.append((round(session.time, 6), s_front, ego_speed_now, sumo_acc, ego_accel, *leader))
+                else:
+                    ego_rows.append((round(session.time, 6), s_front, ego_speed_now, sumo_acc, ego_accel, "", np.nan))
                 if len(ego_rows) >= 1000:
-                    sinks["ego"].append_rows(ego_rows)
+                    sinks["ego"].append(_ego_columns(ego_rows))
                     ego_rows = []
                 ego_speed = max(0.0, ego_speed + ego_accel * dt)
                 session.set_ego_speed(ego_speed)
-            out["collisions"].extend(session.step())
+            session.step()
             k += 1
             if k % tick_every == 0:
                 bar.update(tick_every)
@@ -260,7 +266,9 @@ class CoSimulation:
                     end_reason = "no_vehicles"
                     break
         bar.close()
-        sinks["ego"].append_rows(ego_rows)
+        if ego_rows:
+            sinks["ego"].append(_ego_columns(ego_rows))
+        out["collisions"] = session.collisions
         out["end_reason"] = end_reason
         return out
 

@@ -6,9 +6,9 @@ import numpy as np
 
 
 class TwinMemory:
-    """One row of state per twin. Each tick: :meth:`carried` gives the previous rows aligned to
-    the tick's ids (new twins get their ``fresh`` row), :meth:`keep` stores the updated rows; a
-    twin absent from a tick is forgotten.
+    """One row of state per twin. Each tick: :meth:`previous_rows` finds each twin's row of the
+    last tick in :attr:`state` (-1 for a new twin), the tick's compiled update reads them, and
+    :meth:`keep` stores the updated rows; a twin absent from a tick is forgotten.
 
     A dict lookup per twin: a tick holds tens to hundreds of twins, where this is several times
     cheaper than sorting and searching string arrays.
@@ -27,15 +27,6 @@ class TwinMemory:
         """For each id, its row in :attr:`state`, or -1 for a twin not seen at the last tick."""
         row = self._row
         return np.array([row.get(v, -1) for v in ids], dtype=np.int64)
-
-    def carried(self, ids, fresh: np.ndarray) -> np.ndarray:
-        state = fresh.copy()
-        row = self._row
-        pairs = [(i, row[v]) for i, v in enumerate(ids) if v in row]
-        if pairs:
-            dst, src = np.array(pairs).T
-            state[dst] = self._state[src]
-        return state
 
     def keep(self, ids, state: np.ndarray) -> None:
         self._row = dict(zip(ids, range(len(state))))

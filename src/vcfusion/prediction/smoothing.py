@@ -19,6 +19,7 @@ tick for all twins, equal to the batch functions step by step (tested).
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from vcfusion.prediction.memory import TwinMemory
@@ -66,6 +67,38 @@ def smooth(predictions, method: str, tau_a: int = 0, tau_c: int = 0, threshold: 
     raise ValueError(f"smoothing: expected none, aggressive or conservative, got {method!r}")
 
 
+_METHODS = ("none", "aggressive", "conservative")
+
+
+@numba.njit(cache=True)
+def _stream_step(lc: np.ndarray, previous: np.ndarray, memory: np.ndarray, method: int, tau_a: int,
+                 threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """One tick of every twin: (smoothed decisions, new memory rows). Memory row: [positive steps
+    still owed by earlier positives (aggressive), the last tau_c + 1 raw decisions, newest last
+    (conservative)]; `previous[i]` is twin i's row in `memory`, -1 for a new twin (all zeros).
+    Compiled: on the tens of twins of a tick NumPy's per-call overhead was the cost."""
+    n, width = lc.shape[0], memory.shape[1]
+    out = np.zeros(n, dtype=np.int8)
+    state = np.zeros((n, width), dtype=np.int64)
+    for i in range(n):
+        if previous[i] >= 0:
+            state[i] = memory[previous[i]]
+        if method == 0:
+            out[i] = lc[i]
+        elif method == 1:
+            out[i] = lc[i] == 1 or state[i, 0] > 0
+            state[i, 0] = tau_a if lc[i] == 1 else max(state[i, 0] - 1, 0)
+        else:
+            total = 0
+            for c in range(1, width - 1):
+                state[i, c] = state[i, c + 1]
+                total += state[i, c]
+            state[i, width - 1] = lc[i]
+            total += lc[i]
+            out[i] = total / (width - 1) > threshold
+    return out, state
+
+
 class StreamingSmoother:
     """Online Algorithm 3 / 4 for many twins: feed each tick's raw decisions of all twins.
 
@@ -75,25 +108,14 @@ class StreamingSmoother:
     """
 
     def __init__(self, method: str, tau_a: int = 0, tau_c: int = 0, threshold: float = 0.5):
-        if method not in ("none", "aggressive", "conservative"):
+        if method not in _METHODS:
             raise ValueError(f"smoothing: expected none, aggressive or conservative, got {method!r}")
         self.method, self.tau_a, self.tau_c, self.threshold = method, int(tau_a), int(tau_c), threshold
-        # one row per twin: [ticks still positive after this one (aggressive), the last tau_c + 1
-        # raw decisions, newest last (conservative)]
         self._memory = TwinMemory(2 + self.tau_c, dtype=np.int64)
 
     def __call__(self, ids, decisions: np.ndarray) -> np.ndarray:
         lc = np.asarray(decisions).astype(np.int8)
-        state = self._memory.carried(ids, np.zeros((len(lc), 2 + self.tau_c), dtype=np.int64))
-        hold, recent = state[:, 0], state[:, 1:]
-        if self.method == "none":
-            out = lc.copy()
-        elif self.method == "aggressive":
-            # hold = extra positive steps still owed by earlier positives, before this step
-            out = ((lc == 1) | (hold > 0)).astype(np.int8)
-            hold = np.where(lc == 1, self.tau_a, np.maximum(hold - 1, 0))
-        else:
-            recent = np.concatenate([recent[:, 1:], lc[:, None]], axis=1)
-            out = (recent.sum(axis=1) / (self.tau_c + 1) > self.threshold).astype(np.int8)
-        self._memory.keep(ids, np.concatenate([hold[:, None], recent], axis=1))
+        out, state = _stream_step(lc, self._memory.previous_rows(ids), self._memory.state,
+                                  _METHODS.index(self.method), self.tau_a, float(self.threshold))
+        self._memory.keep(ids, state)
         return out
