@@ -21,13 +21,14 @@ from typing import Callable, Protocol
 
 import numpy as np
 import pandas as pd
+import pyarrow.compute as pc
 from tqdm import tqdm
 
 from vcfusion.cloud.channel import V2CChannel
 from vcfusion.cloud.twins import ProcessModel, TwinStore, neighbours
 from vcfusion.driver.idm import IDMParams, idm_acceleration
 from vcfusion.records import TwinStates, VehicleStates
-from vcfusion.runio import RunTables, TableSink
+from vcfusion.runio import RunTables, TableSink, vehicle_tracks
 from vcfusion.threads import one_blas_thread
 from vcfusion.scenario import Scenario
 from vcfusion.traffic.lanechanges import lane_change_events, read_sumo_lanechanges
@@ -179,13 +180,15 @@ class CoSimulation:
         # A controller that keeps its own log (e.g. the driver model) adds its tables and summary.
         if hasattr(self.controller, "tables"):
             tables.update(self.controller.tables())
-        lateral = tables.columns("trajectories", ["vehicle_id", "time", "d", "s"])
-        # the changers' and the ego's rows, selected once for both lane-change steps
-        involved = lateral[lateral["vehicle_id"].isin(set(sumo_changes["vehicle_id"]) | {EGO_ID})]
-        tables["lane_changes"] = lane_change_events(sumo_changes, involved, session.road)
+        lateral = tables.arrow("trajectories", ["vehicle_id", "time", "d", "s"])
+        # the changers' and the ego's samples as plain arrays, selected once for both lane-change steps
+        tracks = vehicle_tracks(lateral, set(sumo_changes["vehicle_id"]) | {EGO_ID}, ["time", "d", "s"])
+        events = lane_change_events(sumo_changes, {v: (t, d) for v, (t, d, _) in tracks.items()}, session.road)
         if sc.ego is not None:
-            tables["lane_changes"] = _relate_to_ego(tables["lane_changes"], involved, vehicles, sc.ego.lane)
-        summary = summarize(sc, self.seed, tables, out["channel"], out["end_reason"], lateral)
+            lengths = dict(zip(vehicles["vehicle_id"], vehicles["length"]))
+            events = _relate_to_ego(events, {v: (t, s) for v, (t, _, s) in tracks.items()}, lengths, sc.ego.lane)
+        tables["lane_changes"] = pd.DataFrame(events)
+        summary = summarize(sc, self.seed, tables, events, out["channel"], out["end_reason"], lateral)
         if hasattr(self.controller, "summary"):
             summary["driver"] = self.controller.summary()
         return RunResult(sc, self.seed, tables, summary, wallclock.perf_counter() - started, loop_wall)
@@ -284,73 +287,77 @@ class CoSimulation:
         )
 
 
-def _relate_to_ego(events: pd.DataFrame, trajectories: pd.DataFrame, vehicles: pd.DataFrame,
-                   ego_lane: int) -> pd.DataFrame:
+def _relate_to_ego(events: dict[str, np.ndarray], tracks: dict[str, tuple[np.ndarray, np.ndarray]],
+                   lengths: dict[str, float], ego_lane: int) -> dict[str, np.ndarray]:
     """Mark lane changes into the ego's lane and where they happened relative to the ego.
 
     `gap_to_ego_m`: bumper to bumper along the road, the changer's rear minus the ego's front,
-    at the trajectory sample nearest the change's midpoint. `trajectories` needs the rows of the
-    ego and of the changers (others are ignored).
+    at the trajectory sample nearest the change's midpoint. `tracks`: (time, s) of the ego's
+    and the changers' trajectory samples (others are ignored).
     """
-    events = events.copy()
-    length = vehicles.set_index("vehicle_id")["length"]
-    gaps = np.full(len(events), np.nan)
-    ego = trajectories[trajectories["vehicle_id"] == EGO_ID]
-    if len(ego) and len(events):
-        ego_t = ego["time"].to_numpy()
-        nearest = ego_t[np.abs(ego_t[None, :] - events["mid_time"].to_numpy()[:, None]).argmin(axis=1)]
-        ego_s = pd.Series(ego["s"].to_numpy(), index=ego_t)
-        s_at = {(v, t): s for v, t, s in zip(trajectories["vehicle_id"], trajectories["time"], trajectories["s"])}
-        changer_s = np.array([s_at.get(key, np.nan) for key in zip(events["vehicle_id"], nearest)], dtype=float)
-        gaps = changer_s - ego_s.loc[nearest].to_numpy() - 0.5 * (
-            length.reindex(events["vehicle_id"]).to_numpy() + length[EGO_ID])
-    events["into_ego_lane"] = (events["to_lane"] == ego_lane) & (events["vehicle_id"] != EGO_ID)
-    events["gap_to_ego_m"] = gaps
-    events["ahead_of_ego"] = gaps > 0
-    return events
+    vids, mid = events["vehicle_id"], events["mid_time"]
+    gaps = np.full(len(vids), np.nan)
+    ego = tracks.get(EGO_ID)
+    if ego is not None and len(ego[0]) and len(vids):
+        ego_t, ego_s = ego
+        at = np.abs(ego_t[None, :] - mid[:, None]).argmin(axis=1)
+        changer_s = np.full(len(vids), np.nan)
+        for i, (vid, t) in enumerate(zip(vids, ego_t[at])):
+            track = tracks.get(vid)
+            hit = np.flatnonzero(track[0] == t) if track is not None else ()
+            if len(hit):
+                changer_s[i] = track[1][hit[-1]]
+        changer_length = np.array([lengths.get(v, np.nan) for v in vids], dtype=float)
+        gaps = changer_s - ego_s[at] - 0.5 * (changer_length + lengths[EGO_ID])
+    return events | {"into_ego_lane": (events["to_lane"] == ego_lane) & (vids != EGO_ID),
+                     "gap_to_ego_m": gaps, "ahead_of_ego": gaps > 0}
 
 
-def summarize(sc: Scenario, seed: int, tables, channel: V2CChannel, end_reason: str,
-              traj: pd.DataFrame) -> dict:
-    """The run summary; `traj` holds at least the vehicle_id and time columns of the trajectories."""
-    lc = tables["lane_changes"]
+def summarize(sc: Scenario, seed: int, tables, lc: dict[str, np.ndarray], channel: V2CChannel, end_reason: str,
+              traj) -> dict:
+    """The run summary. `lc`: the lane_changes table as columns; `traj`: an Arrow table with at
+    least the vehicle_id and time columns of the trajectories."""
+    to_lanes, per_lane = np.unique(lc["to_lane"], return_counts=True)
+    reasons, per_reason = np.unique(lc["reason"], return_counts=True)
     summary: dict = {
         "scenario": sc.name,
         "seed": seed,
         "end_reason": end_reason,
-        "simulated_s": float(traj["time"].max()) if len(traj) else 0.0,
-        "vehicles": int(traj["vehicle_id"].nunique()) if len(traj) else 0,
-        "lane_changes": int(len(lc)),
-        "lane_changes_by_target_lane": {int(k): int(v) for k, v in lc["to_lane"].value_counts().sort_index().items()},
-        "lane_changes_by_reason": {str(k): int(v) for k, v in lc["reason"].value_counts().sort_index().items()},
+        "simulated_s": float(pc.max(traj["time"]).as_py()) if traj.num_rows else 0.0,
+        "vehicles": int(pc.count_distinct(traj["vehicle_id"]).as_py()) if traj.num_rows else 0,
+        "lane_changes": int(len(lc["event_id"])),
+        "lane_changes_by_target_lane": {int(k): int(v) for k, v in zip(to_lanes, per_lane)},
+        "lane_changes_by_reason": {str(k): int(v) for k, v in zip(reasons, per_reason)},
         "collisions": int(len(tables["collisions"])),
         "v2c_reports_sent": channel.sent,
         "v2c_reports_lost": channel.lost,
     }
     if sc.ego is not None and "into_ego_lane" in lc:
-        cut = lc[lc["into_ego_lane"] & lc["ahead_of_ego"]]
-        ego = tables["ego"]
+        cut = lc["into_ego_lane"] & lc["ahead_of_ego"]
+        ego = tables.arrow("ego", ["s", "speed", "leader_gap_m"])
+        s, speed, gap = (ego.column(c).to_numpy() for c in ("s", "speed", "leader_gap_m"))
         summary.update({
             "ego_lane": sc.ego.lane,
-            "cut_ins_ahead_of_ego": int(len(cut)),
+            "cut_ins_ahead_of_ego": int(cut.sum()),
             "cut_ins": [
-                {"vehicle_id": vid, "mid_time": float(mid), "gap_to_ego_m": round(float(gap), 2)}
-                for vid, mid, gap in zip(cut["vehicle_id"], cut["mid_time"], cut["gap_to_ego_m"])
+                {"vehicle_id": str(vid), "mid_time": float(mid), "gap_to_ego_m": round(float(gap_m), 2)}
+                for vid, mid, gap_m in zip(lc["vehicle_id"][cut], lc["mid_time"][cut], lc["gap_to_ego_m"][cut])
             ],
-            "ego_distance_m": float(ego["s"].iloc[-1] - ego["s"].iloc[0]) if len(ego) else 0.0,
-            "ego_mean_speed_mps": float(ego["speed"].mean()) if len(ego) else 0.0,
-            "ego_min_leader_gap_m": float(np.nanmin(ego["leader_gap_m"])) if ego["leader_gap_m"].notna().any() else None,
+            "ego_distance_m": float(s[-1] - s[0]) if len(s) else 0.0,
+            "ego_mean_speed_mps": float(speed.mean()) if len(speed) else 0.0,
+            "ego_min_leader_gap_m": float(np.nanmin(gap)) if (~np.isnan(gap)).any() else None,
         })
         if "lc_decision" in tables.column_names("twins"):
             from vcfusion.prediction.cloud import first_flags
 
-            into = lc[lc["into_ego_lane"]]
+            into = lc["into_ego_lane"]
+            into_ids = set(lc["vehicle_id"][into])
             # Only the columns and vehicles the flags need: the twins table is the largest one.
-            twins = tables.columns("twins", ["vehicle_id", "time", "lc_decision"])
-            twins = twins[twins["vehicle_id"].isin(set(into["vehicle_id"]))]
-            flags = first_flags(twins, lc[lc["vehicle_id"].isin(set(into["vehicle_id"]))],
-                                sc.simulation.lanechange_duration_s / 2)
-            ahead = dict(zip(into["event_id"].tolist(), into["ahead_of_ego"].tolist()))
+            twins = vehicle_tracks(tables.arrow("twins", ["vehicle_id", "time", "lc_decision"]), into_ids,
+                                   ["time", "lc_decision"])
+            theirs = np.isin(lc["vehicle_id"], list(into_ids))
+            flags = first_flags(twins, {k: v[theirs] for k, v in lc.items()}, sc.simulation.lanechange_duration_s / 2)
+            ahead = dict(zip(lc["event_id"][into].tolist(), lc["ahead_of_ego"][into].tolist()))
             summary["lane_change_flags"] = [f | {"ahead_of_ego": bool(ahead[f["event_id"]])}
                                             for f in flags if f["event_id"] in ahead]
     return summary

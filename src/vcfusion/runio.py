@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 MANIFEST = "manifest.json"
@@ -128,6 +129,13 @@ class RunTables(Mapping):
         src = self._stored[name]
         return src.select(columns).to_pandas() if isinstance(src, pa.Table) else pd.read_parquet(src, columns=columns)
 
+    def arrow(self, name: str, columns: list[str]) -> pa.Table:
+        """Some columns of a table as Arrow (no pandas conversion; e.g. for end-of-run summaries)."""
+        if name in self._frames or name in self._cache:
+            return pa.Table.from_pandas(self[name][columns], preserve_index=False)
+        src = self._stored[name]
+        return src.select(columns) if isinstance(src, pa.Table) else pq.read_table(src, columns=columns)
+
     def column_names(self, name: str) -> list[str]:
         if name in self._frames or name in self._cache:
             return list(self[name].columns)
@@ -153,6 +161,23 @@ class RunTables(Mapping):
     def relocate(self, folder: Path) -> None:
         """The tables were written into `folder` (same names): read them from there from now on."""
         self._stored = {k: Path(folder) / f"{k}.parquet" for k in self._stored if k not in self._frames}
+
+
+def vehicle_tracks(table: pa.Table, vehicle_ids, columns: list[str]) -> dict[str, tuple[np.ndarray, ...]]:
+    """For each of `vehicle_ids` found in `table` (which has a vehicle_id column): the given
+    columns of its rows as NumPy arrays, in table order (time order for the run's tables)."""
+    if not vehicle_ids or table.num_rows == 0:
+        return {}
+    vid_column = table.column("vehicle_id")
+    wanted = pa.array(sorted(vehicle_ids), type=vid_column.type)
+    rows = table.filter(pc.is_in(vid_column, value_set=wanted))
+    vids = rows.column("vehicle_id").to_numpy(zero_copy_only=False)
+    values = [rows.column(c).to_numpy() for c in columns]
+    out = {}
+    for vid in dict.fromkeys(vids):
+        index = np.flatnonzero(vids == vid)
+        out[vid] = tuple(v[index] for v in values)
+    return out
 
 
 def write_run_folder(out_dir: Path, tables: Mapping[str, pd.DataFrame | Path], manifest: dict, summary: dict,

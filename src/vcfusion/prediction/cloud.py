@@ -64,34 +64,30 @@ def predictor_for_scenario(scenario, road: Road) -> LaneChangePredictor | None:
                                cfg.tau_a_ticks, cfg.tau_c_ticks, cfg.conservative_threshold)
 
 
-def first_flags(twins: pd.DataFrame, events: pd.DataFrame, end_after_mid_s: float = 1.5) -> list[dict]:
-    """For each lane change in `events`: when the cloud first flagged it, from the twins table.
+def first_flags(twins: dict[str, tuple[np.ndarray, np.ndarray]], events, end_after_mid_s: float = 1.5) -> list[dict]:
+    """For each lane change in `events` (lane_changes columns): when the cloud first flagged it.
 
-    Looks at the vehicle's `lc_decision` at ticks after its previous lane change ended, up to
-    this one's end. `final_run_*`: the first tick of the uninterrupted positive run holding the
-    last positive decision; `first_*`: the first positive at all. Reported as seconds before
-    the change's end and its midpoint (negative = after the midpoint); None when never flagged.
+    `twins`: per vehicle, the (time, lc_decision) of its rows of the run's twins table, in time
+    order (see :func:`vcfusion.runio.vehicle_tracks`). Looks at the vehicle's `lc_decision` at
+    ticks after its previous lane change ended, up to this one's end. `final_run_*`: the first
+    tick of the uninterrupted positive run holding the last positive decision; `first_*`: the
+    first positive at all. Reported as seconds before the change's end and its midpoint
+    (negative = after the midpoint); None when never flagged.
     """
     from vcfusion.prediction.labels import event_end_times
 
     out = []
-    if not len(events) or "lc_decision" not in twins:
+    event_vids = np.asarray(events["vehicle_id"])
+    if not len(event_vids):
         return out
     ends = np.asarray(event_end_times(events, end_after_mid_s), dtype=float)
-    # plain arrays per vehicle: this runs at the end of every run, over a handful of events
-    twins = twins.sort_values(["vehicle_id", "time"], kind="stable")
-    vids = twins["vehicle_id"].to_numpy()
-    times, decisions = twins["time"].to_numpy(float), twins["lc_decision"].to_numpy()
-    cuts = np.flatnonzero(vids[1:] != vids[:-1]) + 1
-    starts, stops = np.r_[0, cuts], np.r_[cuts, len(vids)]
-    tracks = {vids[a]: (times[a:b], decisions[a:b]) for a, b in zip(starts, stops) if b > a}
-    event_vids = events["vehicle_id"].to_numpy()
     ends_of = {vid: ends[event_vids == vid] for vid in set(event_vids)}
-    for vid, event_id, mid_time, end in zip(event_vids, events["event_id"].to_numpy(), events["mid_time"].to_numpy(), ends):
-        row = {"vehicle_id": vid, "event_id": int(event_id), "mid_time": float(mid_time),
+    for vid, event_id, mid_time, end in zip(event_vids, np.asarray(events["event_id"]),
+                                            np.asarray(events["mid_time"]), ends):
+        row = {"vehicle_id": str(vid), "event_id": int(event_id), "mid_time": float(mid_time),
                "end_time": float(end), "final_run_before_end_s": None, "final_run_before_mid_s": None,
                "first_before_end_s": None, "first_before_mid_s": None}
-        track = tracks.get(vid)
+        track = twins.get(vid)
         if track is not None:
             earlier = ends_of[vid]
             earlier = earlier[earlier < end - 1e-9]

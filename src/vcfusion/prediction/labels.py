@@ -22,9 +22,11 @@ WINDOW_POSITIVE, WINDOW_NEGATIVE, WINDOW_NONE = 1, 0, -1
 _EPS = 1e-6  # times are on a 0.1 s grid; this absorbs float error in E - t
 
 
-def event_end_times(events: pd.DataFrame, end_after_mid_s: float) -> np.ndarray:
-    end = events["end_time"].to_numpy(dtype=float)
-    return np.where(np.isnan(end), events["mid_time"].to_numpy(dtype=float) + end_after_mid_s, end)
+def event_end_times(events, end_after_mid_s: float) -> np.ndarray:
+    """End of each lane change of a lane_changes table (DataFrame or columns); midpoint +
+    end_after_mid_s where the trajectory never showed it centred in its new lane."""
+    end = np.asarray(events["end_time"], dtype=float)
+    return np.where(np.isnan(end), np.asarray(events["mid_time"], dtype=float) + end_after_mid_s, end)
 
 
 def label_samples(time: np.ndarray, vehicle_id: np.ndarray, events: pd.DataFrame, tau: float, tau_g: float,

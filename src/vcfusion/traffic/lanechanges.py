@@ -13,7 +13,6 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from vcfusion.traffic.network import Road
 
@@ -33,39 +32,38 @@ def _gap(value: str | None) -> float:
     return float(value) if value not in (None, "None") else np.nan
 
 
-def read_sumo_lanechanges(path: str | Path) -> pd.DataFrame:
-    """SUMO's lanechange-output as a table (one row per change, at its midpoint)."""
+# SUMO's lanechange-output as read: one row per change, at its midpoint
+SUMO_CHANGE_DTYPES = {
+    "vehicle_id": str, "mid_time": float, "from_lane": np.int64, "to_lane": np.int64, "direction": np.int64,
+    "reason": str, "pos_m": float, "speed_mps": float, "leader_gap_m": float, "follower_gap_m": float,
+}
+
+
+def read_sumo_lanechanges(path: str | Path) -> dict[str, np.ndarray]:
+    """SUMO's lanechange-output as columns (one element per change, at its midpoint)."""
     path = Path(path)
     rows = []
     if path.exists() and path.stat().st_size:
         for c in ET.parse(path).getroot().iter("change"):
-            rows.append({
-                "vehicle_id": c.get("id"),
-                "mid_time": float(c.get("time")),
-                "from_lane": _lane_index(c.get("from")),
-                "to_lane": _lane_index(c.get("to")),
-                "direction": int(c.get("dir")),
-                "reason": c.get("reason"),
-                "pos_m": float(c.get("pos")),
-                "speed_mps": float(c.get("speed")),
-                "leader_gap_m": _gap(c.get("leaderGap")),
-                "follower_gap_m": _gap(c.get("followerGap")),
-            })
-    return pd.DataFrame(rows, columns=[c for c in LANE_CHANGE_COLUMNS if c not in ("event_id", "start_time", "end_time")])
+            rows.append((c.get("id"), float(c.get("time")), _lane_index(c.get("from")), _lane_index(c.get("to")),
+                         int(c.get("dir")), c.get("reason"), float(c.get("pos")), float(c.get("speed")),
+                         _gap(c.get("leaderGap")), _gap(c.get("followerGap"))))
+    values = list(zip(*rows)) if rows else [()] * len(SUMO_CHANGE_DTYPES)
+    return {name: np.array(v, dtype=dtype) for (name, dtype), v in zip(SUMO_CHANGE_DTYPES.items(), values)}
 
 
-def lane_change_events(sumo_changes: pd.DataFrame, trajectories: pd.DataFrame, road: Road) -> pd.DataFrame:
-    """Add start and end times from the lateral trajectory; one row per lane change."""
-    events = sumo_changes.sort_values(["mid_time", "vehicle_id"], kind="stable").reset_index(drop=True)
-    starts = np.full(len(events), np.nan)
-    ends = np.full(len(events), np.nan)
-    # time and d of each changer only, as plain arrays (runs at the end of every run)
-    changers = trajectories[trajectories["vehicle_id"].isin(set(events["vehicle_id"]))]
-    by_vehicle = {vid: (g["time"].to_numpy(), g["d"].to_numpy())
-                  for vid, g in changers.groupby("vehicle_id", sort=False)}
-    columns = (events[c].to_numpy() for c in ("vehicle_id", "from_lane", "to_lane", "mid_time"))
+def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, tuple[np.ndarray, np.ndarray]],
+                       road: Road) -> dict[str, np.ndarray]:
+    """Add start and end times from the lateral trajectory; one element per lane change, in
+    LANE_CHANGE_COLUMNS order, sorted by midpoint then vehicle. `tracks`: (time, d) of each
+    changer's trajectory samples, in time order."""
+    order = np.lexsort((sumo_changes["vehicle_id"], sumo_changes["mid_time"]))  # stable
+    events = {name: values[order] for name, values in sumo_changes.items()}
+    starts = np.full(len(order), np.nan)
+    ends = np.full(len(order), np.nan)
+    columns = (events[c] for c in ("vehicle_id", "from_lane", "to_lane", "mid_time"))
     for i, (vid, from_lane, to_lane, mid_time) in enumerate(zip(*columns)):
-        track = by_vehicle.get(vid)
+        track = tracks.get(vid)
         if track is None:
             continue
         t, d = track
@@ -77,7 +75,5 @@ def lane_change_events(sumo_changes: pd.DataFrame, trajectories: pd.DataFrame, r
             starts[i] = t[before[-1]]
         if len(after):
             ends[i] = t[after[0]]
-    events.insert(0, "event_id", np.arange(len(events), dtype=np.int64))
-    events.insert(2, "start_time", starts)
-    events.insert(4, "end_time", ends)
-    return events[LANE_CHANGE_COLUMNS]
+    events |= {"event_id": np.arange(len(order), dtype=np.int64), "start_time": starts, "end_time": ends}
+    return {name: events[name] for name in LANE_CHANGE_COLUMNS}
