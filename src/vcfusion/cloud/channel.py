@@ -50,21 +50,24 @@ class V2CChannel:
         if n == 0:
             return
         cfg = self.config
-        keep = self.rng.random(n) >= cfg.loss_probability if cfg.loss_probability > 0 else np.ones(n, bool)
-        delay = np.full(n, cfg.latency_s)
-        if cfg.jitter_s > 0:
-            delay = np.maximum(delay + self.rng.normal(0.0, cfg.jitter_s, size=n), 0.0)
         self.sent += n
-        self.lost += int(n - keep.sum())
-        if keep.all():
+        # the common ideal channel (no loss, no jitter) skips the per-report draws
+        keep = self.rng.random(n) >= cfg.loss_probability if cfg.loss_probability > 0 else None
+        delay = cfg.latency_s
+        if cfg.jitter_s > 0:
+            delay = np.maximum(np.full(n, delay) + self.rng.normal(0.0, cfg.jitter_s, size=n), 0.0)
+        if keep is None or keep.all():
             self._in_flight.append((to_us(reports.measured_time + delay), reports))
-        elif keep.any():
+            return
+        self.lost += int(n - keep.sum())
+        if keep.any():
             idx = np.flatnonzero(keep)
-            self._in_flight.append((to_us(reports.measured_time[idx] + delay[idx]), reports.select(idx)))
+            delay = delay[idx] if np.ndim(delay) else delay
+            self._in_flight.append((to_us(reports.measured_time[idx] + delay), reports.select(idx)))
 
     def deliver(self, now: float) -> list[GnssReports]:
         """Reports that have arrived by `now`, in sending order."""
-        now_us = to_us(now)
+        now_us = round(now * _US)  # as to_us, on a plain float
         arrived, still = [], []
         for arrival, batch in self._in_flight:
             done = arrival <= now_us

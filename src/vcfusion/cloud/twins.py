@@ -51,6 +51,7 @@ class TwinStore:
         self._id_of: list[str | None] = []  # twin id of each slot
         self.process_models: list[tuple[str, Callable]] = []
         self.received = 0
+        self._order: tuple[tuple[str, ...], np.ndarray] | None = None  # sorted ids and their slots, until a twin comes or goes
 
     def add_process_model(self, name: str, model: ProcessModel) -> None:
         self.process_models.append((name, model))
@@ -74,14 +75,13 @@ class TwinStore:
     def ingest(self, reports: GnssReports) -> None:
         if not len(reports):
             return
-        rows = np.empty((len(reports), len(HISTORY_FIELDS)))
-        for k, f in enumerate(HISTORY_FIELDS):
-            rows[:, k] = getattr(reports, f)
+        rows = np.array([getattr(reports, f) for f in HISTORY_FIELDS], dtype=float).T
         slots = np.empty(len(reports), dtype=np.int64)
         for i, vid in enumerate(reports.ids):
             slot = self._slot.get(vid)
             if slot is None:
                 slot = self._slot[vid] = self._new_slot()
+                self._order = None
                 self._head[slot] = self._count[slot] = 0
                 self._newest[slot] = -np.inf  # any first report is newer
                 self._id_of[slot] = vid
@@ -89,7 +89,8 @@ class TwinStore:
             slots[i] = slot
         # Out-of-order arrivals (jitter) never replace a newer measurement.
         newer = rows[:, 0] > self._newest[slots]
-        slots, rows = slots[newer], rows[newer]
+        if not newer.all():
+            slots, rows = slots[newer], rows[newer]
         self._newest[slots] = rows[:, 0]
         head = self._head[slots]
         self._data[slots, head] = rows
@@ -100,6 +101,7 @@ class TwinStore:
     def forget_stale(self, now: float) -> None:
         for slot in np.flatnonzero(self._newest < now - self.config.twin_timeout_s):
             del self._slot[self._id_of[slot]]
+            self._order = None
             self._id_of[slot] = None
             self._newest[slot] = np.inf
             self._free.append(int(slot))
@@ -115,8 +117,10 @@ class TwinStore:
 
     def snapshot(self, now: float) -> TwinStates:
         """Latest state of every twin, with process-model outputs."""
-        ids = tuple(sorted(self._slot))
-        slots = np.array([self._slot[v] for v in ids], dtype=np.int64)
+        if self._order is None:
+            ids = tuple(sorted(self._slot))
+            self._order = ids, np.array([self._slot[v] for v in ids], dtype=np.int64)
+        ids, slots = self._order
         latest = self._latest(slots)
         static = self._static[slots]
         cols = {f: latest[:, k] for k, f in enumerate(HISTORY_FIELDS)}
@@ -139,6 +143,7 @@ def neighbours(twins: TwinStates, ego_xy: tuple[float, float], range_m: float, e
     """The twins within range_m (horizontal) of the ego, the ego's own twin excluded."""
     if not len(twins):
         return twins
-    dist = np.hypot(twins.x - ego_xy[0], twins.y - ego_xy[1])
-    keep = (dist <= range_m) & np.array([vid != exclude for vid in twins.ids])
+    keep = np.hypot(twins.x - ego_xy[0], twins.y - ego_xy[1]) <= range_m
+    if exclude in twins.ids:
+        keep[twins.ids.index(exclude)] = False
     return twins.select(np.flatnonzero(keep))

@@ -29,6 +29,8 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+import numpy as np
+
 from vcfusion.driver.idm import IDMParams, idm_acceleration
 from vcfusion.driver.params import CarLimits, DriverParams
 from vcfusion.traffic.network import Road
@@ -58,6 +60,7 @@ class DriverModel:
         self.ego_lane = ego_lane
         self.ego_id = ego_id
         self.guidance_enabled = guidance_enabled
+        self._lane_d = float(road.lane_centre_d(ego_lane))  # the ego lane's centre, d from the right edge
         self.idm = IDMParams(desired_speed_mps=params.desired_speed_mps, time_headway_s=params.time_headway_s,
                              min_gap_m=params.min_gap_m, max_accel_mps2=params.max_accel_mps2,
                              comfort_decel_mps2=params.comfort_decel_mps2, max_decel_mps2=limits.max_decel_mps2)
@@ -78,7 +81,9 @@ class DriverModel:
         import pandas as pd
 
         events = pd.DataFrame(self.events, columns=["time", "vehicle_id", "cue", "level", "lc_prob", "response_time"])
-        return {"driver": pd.DataFrame(self.log_rows), "driver_events": events}
+        rows = self.log_rows  # one dict per tick: built column by column (cheaper than from records)
+        log = pd.DataFrame({k: [r[k] for r in rows] for k in rows[0]}) if rows else pd.DataFrame()
+        return {"driver": log, "driver_events": events}
 
     # -- perception -------------------------------------------------------------------
     def _see(self, tick):
@@ -86,13 +91,14 @@ class DriverModel:
         i = truth.index_of(self.ego_id)
         s, d = self.road.to_road_frame(truth.x, truth.y)
         ego_front = float(s[i] + truth.length[i] / 2)
-        rear = s - truth.length / 2
-        seen = _Seen(tick.time, ego_front, float(truth.speed[i]),
-                     {v: float(rear[k]) for k, v in enumerate(truth.ids) if k != i},
-                     {v: float(truth.speed[k]) for k, v in enumerate(truth.ids) if k != i})
+        # plain dicts of plain floats, everyone but the ego (the loops below run over ~10 vehicles)
+        rear = dict(zip(truth.ids, (s - truth.length / 2).tolist()))
+        speed = dict(zip(truth.ids, truth.speed.tolist()))
+        lateral = dict(zip(truth.ids, np.abs(d - self._lane_d).tolist()))
+        for others in (rear, speed, lateral):
+            del others[self.ego_id]
+        seen = _Seen(tick.time, ego_front, float(truth.speed[i]), rear, speed)
         self._memory.append(seen)
-        lane_d = float(self.road.lane_centre_d(self.ego_lane))
-        lateral = {v: abs(float(d[k]) - lane_d) for k, v in enumerate(truth.ids) if k != i}
         return seen, lateral
 
     def _delayed(self, now: float) -> _Seen:

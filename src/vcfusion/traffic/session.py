@@ -290,12 +290,12 @@ class SumoSession:
 
         groups = {p.vehicle_id: p.group for p in self.placements}
         groups[EGO_ID] = "ego"
-        rows = [
-            {"vehicle_id": vid, "vtype": s[0], "vclass": s[1], "length": s[2], "width": s[3], "height": s[4],
-             "group": groups.get(vid, "accident" if vid.startswith("accident") else "")}
-            for vid, s in sorted(self._static.items())
-        ]
-        return pd.DataFrame(rows, columns=["vehicle_id", "vtype", "vclass", "length", "width", "height", "group"])
+        names = ["vehicle_id", "vtype", "vclass", "length", "width", "height"]
+        rows = [(vid, *s) for vid, s in sorted(self._static.items())]
+        columns = {name: list(values) for name, values in zip(names, zip(*rows))} if rows else {n: [] for n in names}
+        columns["group"] = [groups.get(vid, "accident" if vid.startswith("accident") else "")
+                            for vid in columns["vehicle_id"]]
+        return pd.DataFrame(columns, columns=[*names, "group"])
 
     def close(self) -> None:
         if self._open:
