@@ -16,6 +16,7 @@ Conventions (see docs/architecture.md):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -151,7 +152,7 @@ def guidance_level(prob: float, medium: float, high: float, decision: int | None
     provides one: a vehicle is highlighted only while the cloud predicts a lane change (the
     paper's Algorithm 3/4 output); its colour then follows the probability thresholds.
     """
-    if (decision is not None and not decision) or not np.isfinite(prob):
+    if (decision is not None and not decision) or not math.isfinite(prob):
         return "none"
     if prob >= high:
         return "high"

@@ -55,8 +55,7 @@ class CloudGuidanceFallback:
         s, _ = self.road.to_road_frame(near.x, near.y)
         prob = np.asarray(near.outputs["lc_prob"], dtype=float)
         decision = near.outputs.get("lc_decision")
-        ahead = (s > tick.ego.s) & (s - tick.ego.s <= self.view_range_m)
-        return [Guidance(tick.time, vid, float(prob[k]),
-                         guidance_level(float(prob[k]), self.medium, self.high,
-                                        None if decision is None else int(decision[k])), None)
-                for k, vid in enumerate(near.ids) if ahead[k] and np.isfinite(prob[k])]
+        ahead = (s > tick.ego.s) & (s - tick.ego.s <= self.view_range_m) & np.isfinite(prob)
+        decisions = [None] * len(near) if decision is None else np.asarray(decision).tolist()
+        return [Guidance(tick.time, vid, p, guidance_level(p, self.medium, self.high, dec), None)
+                for vid, p, dec, show in zip(near.ids, prob.tolist(), decisions, ahead.tolist()) if show]

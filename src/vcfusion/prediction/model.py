@@ -75,11 +75,13 @@ class LaneChangeModel:
         self._inv_std = (1.0 / self.std).astype(np.float32)
 
     def logits(self, features: np.ndarray) -> np.ndarray:
-        h = (np.asarray(features, dtype=np.float32) - self.mean) * self._inv_std
+        h = np.asarray(features, dtype=np.float32) - self.mean
+        h *= self._inv_std
         last = len(self._wt) - 1
         with one_blas_thread() if len(h) <= SMALL_BATCH_ROWS else contextlib.nullcontext():
             for k, (wt, b) in enumerate(self._wt):
-                h = h @ wt + b
+                h = h @ wt
+                h += b  # in place: this runs every V2C tick on a few rows, where allocations are the cost
                 if k < last:
                     np.maximum(h, 0.0, out=h)
         return h[:, 0]
@@ -89,8 +91,13 @@ class LaneChangeModel:
         a, b = self.calibration
         z = self.logits(features)
         if (a, b) != (1.0, 0.0):
-            z = np.float32(a) * z + np.float32(b)
-        return (1.0 / (1.0 + np.exp(-z))).astype(np.float32)
+            z = np.float32(a) * z
+            z += np.float32(b)
+        # 1 / (1 + exp(-z)), in place
+        np.negative(z, out=z)
+        np.exp(z, out=z)
+        z += np.float32(1.0)
+        return np.reciprocal(z, out=z)
 
     def check_features(self, names, source: str = "model") -> None:
         names = tuple(names)
