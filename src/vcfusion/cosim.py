@@ -103,7 +103,7 @@ EMPTY_COLUMNS = {"trajectories": TRAJECTORY_COLUMNS, "ego": EGO_COLUMNS}
 
 
 def _truth_rows(truth: VehicleStates, road: Road) -> dict[str, np.ndarray]:
-    s, d = road.to_road_frame(truth.x, truth.y)
+    s, d = truth.road_frame(road)
     return {
         "time": np.full(len(truth), round(truth.time, 6)),
         "vehicle_id": np.array(truth.ids, dtype=object),
@@ -277,7 +277,7 @@ class CoSimulation:
 
     def _ego_view(self, session: SumoSession, truth: VehicleStates, i: int,
                   leader: tuple[str, float] | None) -> EgoView:
-        s, _ = session.road.to_road_frame(truth.x[i], truth.y[i])
+        s = truth.road_frame(session.road)[0][i]
         return EgoView(
             speed=float(truth.speed[i]), accel=float(truth.accel[i]),
             s=float(s + truth.length[i] / 2), lane=int(truth.lane[i]),

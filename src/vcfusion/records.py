@@ -42,7 +42,28 @@ def _take(record, index):
             values[name] = tuple(v[i] for i in index)
         else:
             values[name] = v
-    return type(record)(**values)
+    sub = type(record)(**values)
+    cached = record.__dict__.get(_ROAD_FRAME)
+    if cached is not None:
+        _keep_road_frame(sub, cached[0], cached[1][index], cached[2][index])
+    return sub
+
+
+_ROAD_FRAME = "_road_frame"  # per-record cache: (road, s, d)
+
+
+def _keep_road_frame(record, road, s: np.ndarray, d: np.ndarray) -> None:
+    object.__setattr__(record, _ROAD_FRAME, (road, s, d))
+
+
+def _road_frame(record, road) -> tuple[np.ndarray, np.ndarray]:
+    """(s, d) of every vehicle of a record on `road`, computed once per record: several stages of
+    a tick need them, and the records are immutable (a changed position is a new record)."""
+    cached = record.__dict__.get(_ROAD_FRAME)
+    if cached is None or cached[0] is not road:
+        cached = (road, *road.to_road_frame(record.x, record.y))
+        object.__setattr__(record, _ROAD_FRAME, cached)
+    return cached[1], cached[2]
 
 
 @dataclass(frozen=True)
@@ -73,6 +94,10 @@ class VehicleStates:
 
     def select(self, index) -> "VehicleStates":
         return _take(self, index)
+
+    def road_frame(self, road) -> tuple[np.ndarray, np.ndarray]:
+        """(s, d) of the footprint centres on `road` (see Road.to_road_frame); computed once."""
+        return _road_frame(self, road)
 
 
 # Height of the GNSS point above the ground, as a fraction of the vehicle height.
@@ -140,6 +165,10 @@ class TwinStates:
         # `outputs` is a dict, which _take passes through: restrict its columns too.
         object.__setattr__(sub, "outputs", {k: np.asarray(v)[index] for k, v in self.outputs.items()})
         return sub
+
+    def road_frame(self, road) -> tuple[np.ndarray, np.ndarray]:
+        """(s, d) of the twins' GNSS points on `road` (see Road.to_road_frame); computed once."""
+        return _road_frame(self, road)
 
 
 GUIDANCE_LEVELS = ("none", "medium", "high")

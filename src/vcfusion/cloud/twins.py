@@ -14,7 +14,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from vcfusion.records import GnssReports, TwinStates
+from vcfusion.records import GnssReports, TwinStates, _keep_road_frame
 from vcfusion.scenario import V2CConfig
 from vcfusion.traffic.network import Road
 
@@ -124,11 +124,12 @@ class TwinStore:
         latest = self._latest(slots)
         static = self._static[slots]
         cols = {f: latest[:, k] for k, f in enumerate(HISTORY_FIELDS)}
-        _, d = self.road.to_road_frame(cols["x"], cols["y"])
+        s, d = self.road.to_road_frame(cols["x"], cols["y"])
         twins = TwinStates(
             time=now, ids=ids, lane=self.road.lane_of(d), outputs={},
             **cols, **{f: static[:, k] for k, f in enumerate(_STATIC_FIELDS)},
         )
+        _keep_road_frame(twins, self.road, s, d)  # the process models and the ego's stages reuse them
         for name, model in self.process_models:
             out = model(twins, self)
             for key, value in out.items():

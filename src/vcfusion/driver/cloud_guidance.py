@@ -52,7 +52,7 @@ class CloudGuidanceFallback:
             return None
         if not len(near):
             return []
-        s, _ = self.road.to_road_frame(near.x, near.y)
+        s, _ = near.road_frame(self.road)
         prob = np.asarray(near.outputs["lc_prob"], dtype=float)
         decision = near.outputs.get("lc_decision")
         ahead = (s > tick.ego.s) & (s - tick.ego.s <= self.view_range_m) & np.isfinite(prob)

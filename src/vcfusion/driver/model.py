@@ -89,7 +89,7 @@ class DriverModel:
     def _see(self, tick):
         truth = tick.truth
         i = truth.index_of(self.ego_id)
-        s, d = self.road.to_road_frame(truth.x, truth.y)
+        s, d = truth.road_frame(self.road)
         ego_front = float(s[i] + truth.length[i] / 2)
         # plain dicts of plain floats, everyone but the ego (the loops below run over ~10 vehicles)
         rear = dict(zip(truth.ids, (s - truth.length / 2).tolist()))

@@ -243,13 +243,13 @@ class FeatureExtractor:
         self._src_offset = np.array([_LANE_OFFSET[side] for _, side in split])
         self._src_quantity = np.array([_LANE_QUANTITIES.index(q) for q, _ in split])
 
-    def __call__(self, ids, x: np.ndarray, y: np.ndarray, lane: np.ndarray, speed: np.ndarray,
-                 accel: np.ndarray, length: np.ndarray) -> np.ndarray:
-        """(N, len(FEATURE_NAMES)) float64 features of the N twins of one snapshot."""
+    def __call__(self, ids, s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.ndarray,
+                 length: np.ndarray) -> np.ndarray:
+        """(N, len(FEATURE_NAMES)) float64 features of the N twins of one snapshot; `s` along the
+        road (Road.to_road_frame of the twins' positions: their lateral coordinate is never used)."""
         num_lanes = self.road.num_lanes
         speed = np.asarray(speed, dtype=float)
         lane = np.asarray(lane, dtype=np.int64)
-        s, _ = self.road.to_road_frame(x, y)  # only s is used: the lateral coordinate is dropped here
         out, lanes_q = _tick_matrix(np.asarray(s, dtype=float), lane, speed, np.asarray(accel, dtype=float),
                                     np.asarray(length, dtype=float), num_lanes)
         state = _history(out, lanes_q, speed, lane, self._memory.previous_rows(ids), self._memory.state,
@@ -260,7 +260,7 @@ class FeatureExtractor:
 
     def from_twins(self, twins) -> np.ndarray:
         """Features of a TwinStates snapshot (the run-time path)."""
-        return self(twins.ids, twins.x, twins.y, twins.lane, twins.speed, twins.accel, twins.length)
+        return self(twins.ids, twins.road_frame(self.road)[0], twins.lane, twins.speed, twins.accel, twins.length)
 
 
 def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road: Road,
@@ -279,10 +279,10 @@ def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road:
     starts = np.concatenate([[0], bounds]) if len(times) else np.zeros(0, dtype=int)
     ends = np.concatenate([bounds, [len(times)]]) if len(times) else np.zeros(0, dtype=int)
     ids = twins["vehicle_id"].to_numpy(dtype=str)
-    x, y = twins["x"].to_numpy(float), twins["y"].to_numpy(float)
+    s, _ = road.to_road_frame(twins["x"].to_numpy(float), twins["y"].to_numpy(float))
     lane = twins["lane"].to_numpy()
     speed, accel = twins["speed"].to_numpy(float), twins["accel"].to_numpy(float)
-    blocks = [extractor(ids[a:b], x[a:b], y[a:b], lane[a:b], speed[a:b], accel[a:b], length[a:b])
+    blocks = [extractor(ids[a:b], s[a:b], lane[a:b], speed[a:b], accel[a:b], length[a:b])
               for a, b in zip(starts, ends)]
     values = np.concatenate(blocks) if blocks else np.zeros((0, len(FEATURE_NAMES)))
     out = pd.DataFrame(values, columns=list(FEATURE_NAMES))
