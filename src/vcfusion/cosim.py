@@ -224,15 +224,14 @@ class CoSimulation:
                 if is_traj:
                     sinks["trajectories"].append(_truth_rows(truth, session.road))
             if ego_cfg is not None:
-                kinematics = session.ego_kinematics()
-                if kinematics is None:
+                state = session.ego_state()
+                if state is None:
                     end_reason = "ego_left"
                     break
-                s_front, ego_speed_now, sumo_acc = kinematics
+                s_front, ego_speed_now, sumo_acc, leader = state
                 if s_front >= trip_end_s:
                     end_reason = "trip_complete"
                     break
-                leader = session.leader(EGO_ID)
             if is_tick:
                 now = truth.time
                 channel.send(channel.measure(truth))

@@ -60,7 +60,7 @@ def _road_frame(record, road) -> tuple[np.ndarray, np.ndarray]:
     """(s, d) of every vehicle of a record on `road`, computed once per record: several stages of
     a tick need them, and the records are immutable (a changed position is a new record)."""
     cached = record.__dict__.get(_ROAD_FRAME)
-    if cached is None or cached[0] is not road:
+    if cached is None or not (cached[0] is road or cached[0] == road):  # stages may hold equal Road copies
         cached = (road, *road.to_road_frame(record.x, record.y))
         object.__setattr__(record, _ROAD_FRAME, cached)
     return cached[1], cached[2]

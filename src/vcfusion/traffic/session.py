@@ -148,7 +148,7 @@ class SumoSession:
         self.time = 0.0
         self._static: dict[str, tuple] = {}
         self.collisions: list[Collision] = []  # every collision SUMO reported, in step order
-        self._min_gap: dict[str, float] = {}
+        self._ego_min_gap: float | None = None
         try:
             self._populate()
         except Exception:
@@ -223,24 +223,22 @@ class SumoSession:
     def vehicle_count(self) -> int:
         return libsumo.vehicle.getIDCount()
 
-    def ego_kinematics(self) -> tuple[float, float, float] | None:
-        """(front-bumper position along the road, speed, acceleration) of the ego; None once it left."""
+    def ego_state(self, horizon_m: float = 250.0) -> tuple[float, float, float, tuple[str, float] | None] | None:
+        """The ego now: (front-bumper position along the road, speed, acceleration, leader), where
+        leader is SUMO's (id, bumper-to-bumper gap) within horizon_m or None; None once the ego
+        left. One call per SUMO step (it runs 100 times per simulated second)."""
         v = libsumo.vehicle
         try:
-            return v.getLanePosition(EGO_ID), v.getSpeed(EGO_ID), v.getAcceleration(EGO_ID)
+            pos, speed, accel = v.getLanePosition(EGO_ID), v.getSpeed(EGO_ID), v.getAcceleration(EGO_ID)
         except libsumo.TraCIException:
             return None
-
-    def leader(self, vehicle_id: str, horizon_m: float = 250.0) -> tuple[str, float] | None:
-        """SUMO's leader of a vehicle: (id, bumper-to-bumper gap), or None."""
-        found = libsumo.vehicle.getLeader(vehicle_id, horizon_m)
+        found = v.getLeader(EGO_ID, horizon_m)
         if not found or not found[0]:
-            return None
+            return pos, speed, accel, None
         # getLeader's distance excludes the follower's minGap; add it back for the true gap.
-        min_gap = self._min_gap.get(vehicle_id)
-        if min_gap is None:
-            min_gap = self._min_gap[vehicle_id] = libsumo.vehicle.getMinGap(vehicle_id)
-        return found[0], found[1] + min_gap
+        if self._ego_min_gap is None:
+            self._ego_min_gap = v.getMinGap(EGO_ID)
+        return pos, speed, accel, (found[0], found[1] + self._ego_min_gap)
 
     def speed_of(self, vehicle_id: str) -> float:
         return libsumo.vehicle.getSpeed(vehicle_id)
