@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from scenario_files import write_scenario
+from scenario_files import REPO, write_scenario
 from vcfusion.cosim import CoSimulation
 from vcfusion.records import gnss_antenna_points
 from vcfusion.scenario import load_scenario
@@ -127,3 +127,26 @@ def test_collisions_are_reported(tmp_path):
     col = result.tables["collisions"]
     assert len(col) >= 1 and result.summary["collisions"] == len(col)
     assert col.iloc[0].collider == "ego" and col.iloc[0].victim.startswith("accident")
+
+
+def test_lane_change_events_from_tracks_and_without_changes():
+    """Start/end times from hand-made lateral tracks; no changes give typed empty columns."""
+    from vcfusion.traffic.lanechanges import LANE_CHANGE_COLUMNS, SUMO_CHANGE_DTYPES, lane_change_events
+    from vcfusion.traffic.network import read_road
+
+    road = read_road(REPO / "sumo_net" / "highway.net.xml")
+    t = np.round(np.arange(0.0, 6.0, 0.1), 6)
+    d = np.clip(road.lane_centre_d(1) + (t - 2.0) * road.lane_width_m / 3.0, road.lane_centre_d(1),
+                road.lane_centre_d(2))  # lane 1 -> 2 from t = 2 s to t = 5 s
+    changes = {name: np.array(v, dtype=dtype) for (name, dtype), v in zip(
+        SUMO_CHANGE_DTYPES.items(), [["b", "a"], [3.5, 3.5], [1, 1], [2, 2], [1, 1], ["speedGain"] * 2,
+                                     [100.0, 90.0], [20.0, 20.0], [np.nan, 5.0], [7.0, np.nan]])}
+    ev = lane_change_events(changes, {"a": (t, d)}, road)
+    assert list(ev) == LANE_CHANGE_COLUMNS
+    assert ev["vehicle_id"].tolist() == ["a", "b"] and ev["event_id"].tolist() == [0, 1]  # sorted: mid, then id
+    assert ev["start_time"][0] == pytest.approx(2.0) and ev["end_time"][0] == pytest.approx(5.0)
+    assert np.isnan(ev["start_time"][1]) and np.isnan(ev["end_time"][1])  # no track for b
+    assert ev["leader_gap_m"][0] == 5.0
+    empty = lane_change_events({k: np.array([], dtype=dt) for k, dt in SUMO_CHANGE_DTYPES.items()}, {}, road)
+    frame = pd.DataFrame(empty)
+    assert len(frame) == 0 and frame["from_lane"].dtype == np.int64 and frame["start_time"].dtype == np.float64

@@ -42,3 +42,30 @@ def test_build_reproduces_committed_network(tmp_path):
         return text[text.index("<net "):]
 
     assert body(built) == body(NET)
+
+
+def test_records_keep_their_road_frame_and_selections_carry_it():
+    """VehicleStates/TwinStates.road_frame equals Road.to_road_frame, is computed once per record
+    (also for an equal copy of the road), is carried into selections, and a record with moved
+    positions (dataclasses.replace) gets its own."""
+    from dataclasses import replace
+
+    from vcfusion.records import VehicleStates
+
+    road = read_road(NET)
+    n = 4
+    x, y = road.to_world(np.array([10.0, 50.0, 90.0, 130.0]), np.array([1.6, 4.8, 8.0, 4.8]))
+    truth = VehicleStates(time=0.0, ids=tuple("abcd"), vtype=("car",) * n, vclass=("passenger",) * n, x=x, y=y,
+                          z=np.zeros(n), heading=np.zeros(n), speed=np.ones(n), accel=np.zeros(n),
+                          lane=np.zeros(n, np.int16), lateral_offset=np.zeros(n), length=np.full(n, 4.5),
+                          width=np.full(n, 1.8), height=np.full(n, 1.5))
+    s, d = truth.road_frame(road)
+    want_s, want_d = road.to_road_frame(x, y)
+    np.testing.assert_array_equal(s, want_s)
+    np.testing.assert_array_equal(d, want_d)
+    assert truth.road_frame(read_road(NET))[0] is s  # an equal Road: no recomputation
+    sub = truth.select([3, 1])
+    assert sub.__dict__["_road_frame"][1].tolist() == want_s[[3, 1]].tolist()
+    np.testing.assert_array_equal(sub.road_frame(road)[1], want_d[[3, 1]])
+    moved = replace(truth, x=truth.x + 5.0)
+    np.testing.assert_allclose(moved.road_frame(road)[0] - s, 5.0 * road.direction[0])

@@ -193,3 +193,62 @@ def test_history_is_kept_per_absolute_lane_so_a_lane_flip_leaves_no_trace():
     assert abs(f["gap_lead_own_mean"][0] - before["gap_lead_left_mean"][0]) < 2.0  # 5 ticks of a -0.2 m ramp
     # ... and lane 1 (own before) is now its right lane, with the follower it had there
     assert f["gap_foll_right_mean"][0] == pytest.approx(before["gap_foll_own"][0], abs=0.5)
+
+
+def _reference_history(steps, num_lanes=3, period_s=0.1):
+    """The per-twin memory update written out with NumPy, one twin at a time: speed EMA, leaky
+    maximum, fast/slow EMAs of speed and per-lane quantities; then the history columns."""
+    from vcfusion.prediction.features import (HISTORY_FAST_S, HISTORY_MEAN_SOURCES, HISTORY_SLOW_S,
+                                             SPEED_EMA_S, SPEED_MAX_DECAY_MPS2, _N_TICK)
+
+    a_speed, a_fast, a_slow = (1.0 - np.exp(-period_s / t) for t in (SPEED_EMA_S, HISTORY_FAST_S, HISTORY_SLOW_S))
+    memory, outputs = {}, []
+    for ids, s, lane, speed in steps:
+        per_lane = tick_features(s, lane, speed, np.zeros(len(s)), np.full(len(s), 4.5), num_lanes,
+                                 per_lane=True)["_per_lane"]
+        out = np.zeros((len(ids), len(FEATURE_NAMES) - _N_TICK + 2))
+        new_memory = {}
+        for i, vid in enumerate(ids):
+            current = np.concatenate([[speed[i]], per_lane[i].ravel()])
+            ema, vmax, fast, slow = memory.get(vid, (speed[i], speed[i], current, current))
+            ema = ema + a_speed * (speed[i] - ema)
+            vmax = max(speed[i], vmax - SPEED_MAX_DECAY_MPS2 * period_s)
+            fast = fast + a_fast * (current - fast)
+            slow = slow + a_slow * (current - slow)
+            new_memory[vid] = (ema, vmax, fast, slow)
+            row = [speed[i] - ema, vmax - speed[i], fast[0] - slow[0]]
+            trends, means = [], []
+            for name in HISTORY_MEAN_SOURCES:
+                quantity, side = name.rsplit("_", 1)
+                target = lane[i] + {"right": -1, "own": 0, "left": 1}[side]
+                if lane[i] < 0 or not 0 <= target < num_lanes:
+                    trends.append(0.0)
+                    means.append(0.0)
+                    continue
+                col = 1 + target * 4 + ("gap_lead", "dv_lead", "gap_foll", "dv_foll").index(quantity)
+                trends.append(fast[col] - slow[col])
+                means.append(slow[col])
+            out[i] = row + trends + means
+        memory = new_memory
+        outputs.append(out)
+    return outputs
+
+
+def test_compiled_history_equals_a_twin_by_twin_reference():
+    """Twins come, go and come back (memory restarts), change lanes and leave the road."""
+    from vcfusion.prediction.features import _N_TICK
+
+    rng = np.random.default_rng(7)
+    pool = [f"v{i}" for i in range(12)]
+    steps = []
+    for _ in range(60):
+        ids = tuple(sorted(rng.choice(pool, size=int(rng.integers(1, 10)), replace=False)))
+        n = len(ids)
+        steps.append((ids, rng.uniform(0, 400, n), rng.integers(-1, 3, n), rng.uniform(0, 30, n)))
+    ex = FeatureExtractor(ROAD, 0.1)
+    want = _reference_history(steps)
+    for (ids, s, lane, speed), expected in zip(steps, want):
+        got = ex(ids, s, lane, speed, np.zeros(len(ids)), np.full(len(ids), 4.5))
+        cols = [FEATURE_NAMES.index("speed_minus_ema"), FEATURE_NAMES.index("speed_below_recent_max"),
+                *range(_N_TICK, len(FEATURE_NAMES))]
+        np.testing.assert_allclose(got[:, cols], expected, rtol=0, atol=1e-9)

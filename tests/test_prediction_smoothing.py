@@ -38,7 +38,8 @@ def test_bad_input():
 
 
 @pytest.mark.parametrize("method,kw", [("aggressive", {"tau_a": 3}), ("aggressive", {"tau_a": 0}),
-                                       ("conservative", {"tau_c": 3}), ("conservative", {"tau_c": 5, "threshold": 0.3})])
+                                       ("conservative", {"tau_c": 3}), ("conservative", {"tau_c": 5, "threshold": 0.3}),
+                                       ("conservative", {"tau_c": 0}), ("none", {})])
 def test_streaming_equals_batch(method, kw):
     rng = np.random.default_rng(0)
     # three twins that appear and disappear at different ticks
@@ -53,7 +54,9 @@ def test_streaming_equals_batch(method, kw):
         for v, o in zip(ids, out):
             streamed[v].append(int(o))
     for vid in spans:
-        if method == "aggressive":
+        if method == "none":
+            expected = raw[vid]
+        elif method == "aggressive":
             expected = aggressive(raw[vid], kw["tau_a"])
         else:
             expected = conservative(raw[vid], kw["tau_c"], kw.get("threshold", 0.5))

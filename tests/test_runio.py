@@ -2,7 +2,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from vcfusion.runio import RunTables, TableSink, is_complete_run, write_run_folder
+from vcfusion.runio import RunTables, TableSink, is_complete_run, vehicle_tracks, write_run_folder
 
 
 def test_table_sink_streams_in_row_groups_and_round_trips(tmp_path):
@@ -36,3 +36,41 @@ def test_run_tables_lazy_and_moved_into_run_folder(tmp_path):
     assert tables["big"].x.sum() == 10
     with pytest.raises(FileExistsError):
         write_run_folder(out, tables, {}, {})
+
+
+def test_table_sink_equals_concatenating_the_chunks_across_growth_and_promotion(tmp_path):
+    """Buffers grow past their first size and promote dtypes exactly as np.concatenate would
+    (longer strings later, an int column that becomes float)."""
+    rng = np.random.default_rng(3)
+    chunks = []
+    for k in range(400):  # 400 x 1..12 rows: past the first buffer size
+        n = int(rng.integers(1, 13))
+        chunks.append({"time": np.full(n, round(k * 0.1, 6)),
+                       "vehicle_id": np.array([f"veh{'x' * (k // 100)}{i}" for i in range(n)], dtype=object),
+                       "leader": np.array([("a" * (1 + k % 7)) for _ in range(n)]),
+                       "value": np.arange(n, dtype=np.int64) if k < 200 else rng.normal(size=n),
+                       "lane": rng.integers(0, 3, n).astype(np.int16)})
+    sink = TableSink(tmp_path / "t.parquet")
+    for c in chunks:
+        sink.append(c)
+    got = sink.close().to_pandas()
+    for name in chunks[0]:
+        want = np.concatenate([c[name] for c in chunks])
+        np.testing.assert_array_equal(got[name].to_numpy(), want.astype(str) if want.dtype.kind in "OU" else want)
+    assert got["value"].dtype == np.float64 and got["lane"].dtype == np.int16
+
+
+@pytest.mark.parametrize("stored", ["memory", "parquet"])
+def test_vehicle_tracks_per_vehicle_in_table_order(tmp_path, stored):
+    sink = TableSink(tmp_path / "traj.parquet", flush_rows=4 if stored == "parquet" else 65_536)
+    for t in range(5):
+        ids = ["b", "a", "c"] if t % 2 else ["a", "b"]
+        sink.append({"vehicle_id": np.array(ids, dtype=object), "time": np.full(len(ids), t * 0.1),
+                     "s": np.arange(len(ids)) + 10.0 * t})
+    tables = RunTables({}, {"traj": sink.close()})
+    tracks = vehicle_tracks(tables.arrow("traj", ["vehicle_id", "time", "s"]), {"a", "c", "zzz"}, ["time", "s"])
+    assert sorted(tracks) == ["a", "c"]
+    np.testing.assert_allclose(tracks["a"][0], [0.0, 0.1, 0.2, 0.3, 0.4])
+    np.testing.assert_allclose(tracks["a"][1], [0.0, 11.0, 20.0, 31.0, 40.0])
+    np.testing.assert_allclose(tracks["c"][1], [12.0, 32.0])
+    assert vehicle_tracks(tables.arrow("traj", ["vehicle_id", "time"]), set(), ["time"]) == {}
