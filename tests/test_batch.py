@@ -91,3 +91,29 @@ def test_dask_cluster_gives_the_same_files(tmp_path, accident_path):
     for seed in seeds:
         for table in (tmp_path / "pool" / f"seed_{seed:04d}").glob("*.parquet"):
             assert table.read_bytes() == (tmp_path / "dask" / f"seed_{seed:04d}" / table.name).read_bytes()
+
+
+def _worker_state():
+    import os
+    import sys
+
+    import libsumo
+
+    return os.getpid(), "vcfusion.worker_preload" in sys.modules, libsumo.simulation.isLoaded()
+
+
+def test_workers_start_warm_and_without_a_simulation():
+    """Workers come from the fork server that preloaded the run code and kernels; none inherits
+    a SUMO simulation."""
+    import multiprocessing
+    import os
+    from concurrent.futures import ProcessPoolExecutor
+
+    from vcfusion.workers import worker_context
+
+    with ProcessPoolExecutor(2, mp_context=worker_context()) as pool:
+        states = [f.result() for f in [pool.submit(_worker_state) for _ in range(4)]]
+    assert all(pid != os.getpid() for pid, _, _ in states)
+    if "forkserver" in multiprocessing.get_all_start_methods():  # else spawned fresh
+        assert all(preloaded for _, preloaded, _ in states)
+    assert not any(loaded for _, _, loaded in states)

@@ -25,6 +25,7 @@ from vcfusion.prediction.features import FEATURE_NAMES, features_from_twins_tabl
 from vcfusion.prediction.labels import label_samples
 from vcfusion.studies.batch import SeedOutcome, run_batch, seed_folder
 from vcfusion.traffic.network import read_road
+from vcfusion.workers import worker_context
 
 DATASET_JSON = "dataset.json"
 SAMPLES = "samples.parquet"
@@ -103,7 +104,6 @@ def _refeature_seed(folder: str, scenario_path: str, seed: int, tau: float, tau_
 def refeature_runs(scenario_path: Path, seeds: list[int], runs: Path, workers: int, tau: float, tau_g: float,
                    progress: bool = True) -> list[int]:
     """Recompute samples.parquet of every complete run folder among `seeds` (parallel); returns the seeds."""
-    import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
     from tqdm import tqdm
@@ -118,7 +118,7 @@ def refeature_runs(scenario_path: Path, seeds: list[int], runs: Path, workers: i
             _refeature_seed(*a)
             bar.update()
     else:
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        with ProcessPoolExecutor(workers, mp_context=worker_context()) as pool:
             for _ in pool.map(_refeature_seed, *zip(*args)):
                 bar.update()
     bar.close()

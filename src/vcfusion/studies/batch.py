@@ -1,14 +1,14 @@
 """Batch runs: many seeds of one scenario, one process per simulation, locally or on Dask.
 
-libsumo holds one simulation per process, so seeds run in worker processes (spawned, so no
-SUMO state is inherited). A seed's run folder is OUT/seed_NNNN; a seed whose folder is
+libsumo holds one simulation per process, so seeds run in worker processes (forked from a
+warm fork server or spawned, never inheriting SUMO state: vcfusion.workers). A seed's run
+folder is OUT/seed_NNNN; a seed whose folder is
 complete is skipped, so a re-run resumes. A failing seed is recorded in OUT/failures.json
 and the others go on.
 """
 
 from __future__ import annotations
 
-import multiprocessing
 import traceback
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from vcfusion.errors import UsageError
 from vcfusion.runio import is_complete_run, write_json, write_table
+from vcfusion.workers import worker_context
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -55,7 +56,7 @@ class SeedOutcome:
 
 
 def _run_seed(scenario_path: str, seed: int, out: str) -> SeedOutcome:
-    # Imported here: the worker is a fresh (spawned) interpreter.
+    # Imported here (already loaded in a worker forked from the warm fork server).
     from vcfusion.run import execute_run
     from vcfusion.scenario import load_scenario
 
@@ -88,8 +89,7 @@ class Executor:
 
 
 def _pool_outcomes(executor: Executor, task, jobs: list[tuple]):
-    ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=max(1, executor.workers), mp_context=ctx) as pool:
+    with ProcessPoolExecutor(max_workers=max(1, executor.workers), mp_context=worker_context()) as pool:
         futures = [pool.submit(task, *job) for job in jobs]
         for fut in as_completed(futures):
             yield fut.result()

@@ -12,7 +12,7 @@ The effect of guidance is the paired difference (on - off) per trip; the summary
 mean with a t-based 95% confidence interval, the paired t-test p-value, and the relative
 change of the arm means, next to the paper's values.
 
-libsumo holds one simulation per process: trips run in spawned worker processes, each running
+libsumo holds one simulation per process: trips run in worker processes (vcfusion.workers), each running
 its two arms one after the other.
 """
 
@@ -21,7 +21,6 @@ from __future__ import annotations
 import importlib
 import json
 import math
-import multiprocessing
 import time as wallclock
 import traceback
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -32,6 +31,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from vcfusion.runio import write_json, write_table
+from vcfusion.workers import worker_context
 
 ARMS = ("off", "on")
 
@@ -256,7 +256,7 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
     rows: list[dict] = []
     failed: list[tuple[int, str]] = []
     bar = tqdm(total=len(seeds), unit="trip", desc=f"guidance study {scenario.name}", disable=not progress)
-    ctx = multiprocessing.get_context("spawn")
+    ctx = worker_context()
     with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx) as pool:
         futures = [pool.submit(run_trip, str(scenario_path), s, tuple(process_model_specs)) for s in seeds]
         for fut in as_completed(futures):

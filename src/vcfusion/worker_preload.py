@@ -1,0 +1,17 @@
+"""Imported by the worker fork server (see vcfusion.workers), and only there: importing it loads
+the run code and the compiled per-tick kernels (from numba's cache), so forked workers start warm.
+It starts no SUMO simulation and no thread."""
+
+import numpy as np
+
+import vcfusion.run  # noqa: F401  (the run code and everything it imports)
+from vcfusion.prediction.features import FeatureExtractor
+from vcfusion.prediction.smoothing import StreamingSmoother
+from vcfusion.traffic.network import Road
+
+# One tiny call per kernel and argument type the tick loop uses loads its machine code.
+_road = Road("warm-up", (0.0, 0.0), (100.0, 0.0), 2, 3.5, 25.0)
+_ones = np.ones(2)
+FeatureExtractor(_road, 0.1)(("a", "b"), np.array([10.0, 30.0]), np.array([0, 1], dtype=np.int16), _ones, _ones, _ones)
+for _method in ("none", "aggressive", "conservative"):
+    StreamingSmoother(_method, 2, 2)(("a", "b"), np.array([0, 1], dtype=np.int8))
