@@ -5,8 +5,11 @@ It starts no SUMO simulation and no thread."""
 import numpy as np
 
 import vcfusion.run  # noqa: F401  (the run code and everything it imports)
+from vcfusion.cloud.twins import TwinStore
 from vcfusion.prediction.features import FeatureExtractor
 from vcfusion.prediction.smoothing import StreamingSmoother
+from vcfusion.records import GnssReports
+from vcfusion.scenario import V2CConfig
 from vcfusion.traffic.network import Road
 
 # One tiny call per kernel and argument type the tick loop uses loads its machine code.
@@ -15,3 +18,6 @@ _ones = np.ones(2)
 FeatureExtractor(_road, 0.1)(("a", "b"), np.array([10.0, 30.0]), np.array([0, 1], dtype=np.int16), _ones, _ones, _ones)
 for _method in ("none", "aggressive", "conservative"):
     StreamingSmoother(_method, 2, 2)(("a", "b"), np.array([0, 1], dtype=np.int8))
+_store = TwinStore(V2CConfig(), _road)
+_store.ingest(GnssReports(measured_time=np.zeros(2), ids=("a", "b"), x=_ones, y=_ones, z=_ones, heading=_ones,
+                          speed=_ones, accel=_ones, length=_ones, width=_ones, height=_ones))

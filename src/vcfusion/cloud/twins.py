@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from typing import Callable, Protocol
 
+import numba
 import numpy as np
 
 from vcfusion.records import GnssReports, TwinStates, _keep_road_frame
@@ -25,6 +26,27 @@ _STATIC_FIELDS = ("length", "width", "height")
 
 class ProcessModel(Protocol):
     def __call__(self, twins: TwinStates, store: "TwinStore") -> dict[str, np.ndarray]: ...
+
+
+@numba.njit(cache=True)
+def _store_reports(data: np.ndarray, head: np.ndarray, count: np.ndarray, newest: np.ndarray, slots: np.ndarray,
+                   fields: np.ndarray) -> int:
+    """Write report i (column i of `fields`, HISTORY_FIELDS order) into the ring buffer of slot
+    slots[i] unless its twin already has a newer measurement (out-of-order arrivals under
+    jitter never replace it); returns how many were stored. Compiled: it runs every tick, where
+    a handful of fancy-indexing calls cost more than the copying."""
+    capacity = data.shape[1]
+    stored = 0
+    for i in range(slots.shape[0]):
+        slot = slots[i]
+        if fields[0, i] > newest[slot]:
+            newest[slot] = fields[0, i]
+            for k in range(fields.shape[0]):
+                data[slot, head[slot], k] = fields[k, i]
+            head[slot] = (head[slot] + 1) % capacity
+            count[slot] = min(count[slot] + 1, capacity)
+            stored += 1
+    return stored
 
 
 class TwinStore:
@@ -75,7 +97,7 @@ class TwinStore:
     def ingest(self, reports: GnssReports) -> None:
         if not len(reports):
             return
-        rows = np.array([getattr(reports, f) for f in HISTORY_FIELDS], dtype=float).T
+        fields = np.array([getattr(reports, f) for f in HISTORY_FIELDS], dtype=float)  # (fields, reports)
         slots = np.empty(len(reports), dtype=np.int64)
         for i, vid in enumerate(reports.ids):
             slot = self._slot.get(vid)
@@ -87,16 +109,7 @@ class TwinStore:
                 self._id_of[slot] = vid
                 self._static[slot] = (reports.length[i], reports.width[i], reports.height[i])
             slots[i] = slot
-        # Out-of-order arrivals (jitter) never replace a newer measurement.
-        newer = rows[:, 0] > self._newest[slots]
-        if not newer.all():
-            slots, rows = slots[newer], rows[newer]
-        self._newest[slots] = rows[:, 0]
-        head = self._head[slots]
-        self._data[slots, head] = rows
-        self._head[slots] = (head + 1) % self.capacity
-        self._count[slots] = np.minimum(self._count[slots] + 1, self.capacity)
-        self.received += len(slots)
+        self.received += _store_reports(self._data, self._head, self._count, self._newest, slots, fields)
 
     def forget_stale(self, now: float) -> None:
         for slot in np.flatnonzero(self._newest < now - self.config.twin_timeout_s):

@@ -206,9 +206,8 @@ def tick_features(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.
     per_lane: also return `_per_lane`, (N, num_lanes, 4): gap_lead, dv_lead, gap_foll, dv_foll
     of each twin towards every lane of the road by absolute index (own lane included).
     """
-    matrix, lanes_q = _tick_matrix(np.asarray(s, dtype=float), np.asarray(lane, dtype=np.int64),
-                                   np.asarray(speed, dtype=float), np.asarray(accel, dtype=float),
-                                   np.asarray(length, dtype=float), num_lanes)
+    s, speed, accel, length = (np.ascontiguousarray(v, dtype=float) for v in (s, speed, accel, length))
+    matrix, lanes_q = _tick_matrix(s, np.ascontiguousarray(lane, dtype=np.int64), speed, accel, length, num_lanes)
     out = {name: matrix[:, i] for i, name in enumerate(FEATURE_NAMES[:_N_TICK]) if name not in _HISTORY_OWN}
     if per_lane:
         out["_per_lane"] = lanes_q
@@ -248,10 +247,10 @@ class FeatureExtractor:
         """(N, len(FEATURE_NAMES)) float64 features of the N twins of one snapshot; `s` along the
         road (Road.to_road_frame of the twins' positions: their lateral coordinate is never used)."""
         num_lanes = self.road.num_lanes
-        speed = np.asarray(speed, dtype=float)
-        lane = np.asarray(lane, dtype=np.int64)
-        out, lanes_q = _tick_matrix(np.asarray(s, dtype=float), lane, speed, np.asarray(accel, dtype=float),
-                                    np.asarray(length, dtype=float), num_lanes)
+        # contiguous float64 / int64 in: one compiled signature whatever the caller's views
+        s, speed, accel, length = (np.ascontiguousarray(v, dtype=float) for v in (s, speed, accel, length))
+        lane = np.ascontiguousarray(lane, dtype=np.int64)
+        out, lanes_q = _tick_matrix(s, lane, speed, accel, length, num_lanes)
         state = _history(out, lanes_q, speed, lane, self._memory.previous_rows(ids), self._memory.state,
                          self._alphas, self._decay, self._src_offset, self._src_quantity,
                          self._col_speed_minus_ema, self._col_below_max)
