@@ -147,6 +147,7 @@ class SumoSession:
         self._open = True
         self.time = 0.0
         self._static: dict[str, tuple] = {}
+        self._static_of: tuple[tuple, tuple] = ((None,), ())  # (ids, their static columns) of the last states()
         self.collisions: list[Collision] = []  # every collision SUMO reported, in step order
         self._ego_min_gap: float | None = None
         try:
@@ -260,12 +261,14 @@ class SumoSession:
                          for vid in ids], dtype=float).reshape(n, 8).T.copy()
         front_x, front_y, front_z, angle, speed, accel, lane, lat = cols
         lane = lane.astype(np.int16)
-        for vid in ids:
-            if vid not in self._static:
-                self._static[vid] = (v.getTypeID(vid), v.getVehicleClass(vid), v.getLength(vid),
-                                     v.getWidth(vid), v.getHeight(vid))
-        vtype, vclass, length, width, height = zip(*[self._static[vid] for vid in ids]) if n else ((),) * 5
-        length = np.array(length, dtype=float)
+        if ids != self._static_of[0]:  # the same vehicles as last time: reuse their static arrays
+            for vid in ids:
+                if vid not in self._static:
+                    self._static[vid] = (v.getTypeID(vid), v.getVehicleClass(vid), v.getLength(vid),
+                                         v.getWidth(vid), v.getHeight(vid))
+            vtype, vclass, *sizes = zip(*[self._static[vid] for vid in ids]) if n else ((),) * 5
+            self._static_of = ids, (vtype, vclass, *(np.array(x, dtype=float) for x in sizes))
+        vtype, vclass, length, width, height = self._static_of[1]
         heading = sumo_angle_to_yaw(angle)
         # Footprint centre: half a length behind the front bumper along the heading.
         cx = front_x - np.cos(heading) * length / 2
@@ -277,9 +280,7 @@ class SumoSession:
             vclass=vclass,
             x=cx, y=cy, z=front_z,
             heading=heading, speed=speed, accel=accel, lane=lane, lateral_offset=lat,
-            length=length,
-            width=np.array(width, dtype=float),
-            height=np.array(height, dtype=float),
+            length=length.copy(), width=width.copy(), height=height.copy(),  # records own their arrays
         )
 
     def vehicle_table(self):
