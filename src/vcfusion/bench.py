@@ -36,8 +36,15 @@ def _peak_rss_mb() -> dict[str, float]:
     return {"peak_rss_mb": round(own, 1), "peak_rss_children_mb": round(children, 1)}
 
 
-def p1_traffic(seeds: int) -> dict:
-    """Closed loop, one process, seeds one after the other (SUMO start-up included)."""
+def p1_traffic(seeds: int, repeats: int = 3) -> dict:
+    """Closed loop, one process, seeds one after the other (SUMO start-up included).
+
+    The block of trips is timed `repeats` times: this VM's speed drifts by tens of per cent
+    from minute to minute (other tenants; CPU time drifts with wall time, so it is not steal),
+    so the best block is the code's speed and the median says what a busy minute gives.
+    """
+    import statistics
+
     from vcfusion.run import build_cosimulation
     from vcfusion.scenario import load_scenario
 
@@ -45,16 +52,20 @@ def p1_traffic(seeds: int) -> dict:
         # the last one: on the 2-core machine core 0 ran the same loop ~15 % slower (system work)
         os.sched_setaffinity(0, {max(os.sched_getaffinity(0))})
     scenario = load_scenario(ACCIDENT)
-    build_cosimulation(scenario, seeds).run()  # warm-up: imports, first SUMO start, model file
-    simulated = loop = 0.0
-    start = time.perf_counter()
-    for seed in range(seeds):
-        result = build_cosimulation(scenario, seed).run()
-        simulated += result.summary["simulated_s"]
-        loop += result.loop_wall_s
-    wall = time.perf_counter() - start
-    return {"name": "P1 traffic closed loop", "runs": seeds, "simulated_s": round(simulated, 2),
+    build_cosimulation(scenario, seeds).run()  # warm-up: imports, first SUMO start, model file, kernels
+    blocks = []
+    for _ in range(repeats):
+        simulated = loop = 0.0
+        start = time.perf_counter()
+        for seed in range(seeds):
+            result = build_cosimulation(scenario, seed).run()
+            simulated += result.summary["simulated_s"]
+            loop += result.loop_wall_s
+        blocks.append((simulated, time.perf_counter() - start, loop))
+    simulated, wall, loop = min(blocks, key=lambda b: b[1])
+    return {"name": "P1 traffic closed loop", "runs": seeds, "repeats": repeats, "simulated_s": round(simulated, 2),
             "wall_s": round(wall, 3), "real_time_factor": round(simulated / wall, 1),
+            "real_time_factor_median": round(statistics.median(b[0] / b[1] for b in blocks), 1),
             # the tick loop alone, without each trip's SUMO start-up and end-of-run tables
             "loop_wall_s": round(loop, 3), "loop_real_time_factor": round(simulated / loop, 1),
             "per_trip_overhead_ms": round(1000 * (wall - loop) / seeds, 1), "target": ">= 200"}
