@@ -81,7 +81,9 @@ class TableSink:
             if buffer.dtype != values.dtype or stop > len(buffer):
                 # promote as np.concatenate would (e.g. longer strings, int into float) and/or grow
                 dtype = np.result_type(buffer.dtype, values.dtype)
-                grown = np.empty(max(len(buffer), 2 * stop) if stop > len(buffer) else len(buffer), dtype=dtype)
+                # never beyond one row group: a flush follows as soon as flush_rows are buffered
+                size = max(stop, min(2 * len(buffer), self.flush_rows + n)) if stop > len(buffer) else len(buffer)
+                grown = np.empty(size, dtype=dtype)
                 grown[:start] = buffer[:start]
                 buffer = self._columns[name] = grown
             buffer[start:stop] = values
@@ -189,13 +191,14 @@ def vehicle_tracks(table: pa.Table, vehicle_ids, columns: list[str]) -> dict[str
     vid_column = table.column("vehicle_id")
     wanted = pa.array(sorted(vehicle_ids), type=vid_column.type)
     rows = table.filter(pc.is_in(vid_column, value_set=wanted))
-    vids = rows.column("vehicle_id").to_numpy(zero_copy_only=False)
-    values = [rows.column(c).to_numpy() for c in columns]
-    out = {}
-    for vid in dict.fromkeys(vids):
-        index = np.flatnonzero(vids == vid)
-        out[vid] = tuple(v[index] for v in values)
-    return out
+    # group by vehicle with one stable sort (a per-vehicle scan would be rows x vehicles)
+    encoded = pc.dictionary_encode(rows.column("vehicle_id").combine_chunks())
+    codes = encoded.indices.to_numpy(zero_copy_only=False)
+    order = np.argsort(codes, kind="stable")
+    ends = np.cumsum(np.bincount(codes, minlength=len(encoded.dictionary)))
+    values = [rows.column(c).to_numpy()[order] for c in columns]
+    return {vid: tuple(v[start:end] for v in values)
+            for vid, start, end in zip(encoded.dictionary.to_pylist(), np.r_[0, ends[:-1]], ends)}
 
 
 def write_run_folder(out_dir: Path, tables: Mapping[str, pd.DataFrame | Path], manifest: dict, summary: dict,
