@@ -51,7 +51,7 @@ def run_bench(n_twins: int = 100, repeats: int = 2000) -> str:
     lines = [f"lane-change predictor, {n_twins} twins per tick, median of {repeats} ticks "
              f"(model {default_model_path().name}, {len(model.feature_names)} features, "
              f"hidden {model.weights[0][0].shape[0]}):",
-             f"  features (vectorised)   {t_features:8.1f} us",
+             f"  features (compiled)     {t_features:8.1f} us",
              f"  MLP, NumPy float32      {t_mlp:8.1f} us",
              f"  smoothing ({predictor.smoother.method:12s}) {t_smooth:5.1f} us",
              f"  whole process model     {t_total:8.1f} us per tick"]
