@@ -141,7 +141,7 @@ def test_lane_change_events_from_tracks_and_without_changes():
     changes = {name: np.array(v, dtype=dtype) for (name, dtype), v in zip(
         SUMO_CHANGE_DTYPES.items(), [["b", "a"], [3.5, 3.5], [1, 1], [2, 2], [1, 1], ["speedGain"] * 2,
                                      [100.0, 90.0], [20.0, 20.0], [np.nan, 5.0], [7.0, np.nan]])}
-    ev = lane_change_events(changes, {"a": (t, d)}, road)
+    ev = lane_change_events(changes, {"a": {"time": t, "d": d}}, road)
     assert list(ev) == LANE_CHANGE_COLUMNS
     assert ev["vehicle_id"].tolist() == ["a", "b"] and ev["event_id"].tolist() == [0, 1]  # sorted: mid, then id
     assert ev["start_time"][0] == pytest.approx(2.0) and ev["end_time"][0] == pytest.approx(5.0)

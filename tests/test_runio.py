@@ -29,7 +29,7 @@ def test_run_tables_lazy_and_moved_into_run_folder(tmp_path):
     sink.append({"x": np.arange(5.0)})
     tables = RunTables({"small": pd.DataFrame({"a": [1]})}, {"big": sink.close()})
     assert sorted(tables) == ["big", "small"]
-    assert tables.columns("big", ["x"]).x.tolist() == [0, 1, 2, 3, 4]
+    assert tables.arrow("big", ["x"]).column("x").to_pylist() == [0, 1, 2, 3, 4]
     out = write_run_folder(tmp_path / "run", tables, {"seed": 0}, {})
     tables.relocate(out)
     assert is_complete_run(out) and not (tmp_path / "big.parquet").exists()
@@ -70,7 +70,7 @@ def test_vehicle_tracks_per_vehicle_in_table_order(tmp_path, stored):
     tables = RunTables({}, {"traj": sink.close()})
     tracks = vehicle_tracks(tables.arrow("traj", ["vehicle_id", "time", "s"]), {"a", "c", "zzz"}, ["time", "s"])
     assert sorted(tracks) == ["a", "c"]
-    np.testing.assert_allclose(tracks["a"][0], [0.0, 0.1, 0.2, 0.3, 0.4])
-    np.testing.assert_allclose(tracks["a"][1], [0.0, 11.0, 20.0, 31.0, 40.0])
-    np.testing.assert_allclose(tracks["c"][1], [12.0, 32.0])
+    np.testing.assert_allclose(tracks["a"]["time"], [0.0, 0.1, 0.2, 0.3, 0.4])
+    np.testing.assert_allclose(tracks["a"]["s"], [0.0, 11.0, 20.0, 31.0, 40.0])
+    np.testing.assert_allclose(tracks["c"]["s"], [12.0, 32.0])
     assert vehicle_tracks(tables.arrow("traj", ["vehicle_id", "time"]), set(), ["time"]) == {}

@@ -183,10 +183,10 @@ class CoSimulation:
         lateral = tables.arrow("trajectories", ["vehicle_id", "time", "d", "s"])
         # the changers' and the ego's samples as plain arrays, selected once for both lane-change steps
         tracks = vehicle_tracks(lateral, set(sumo_changes["vehicle_id"]) | {EGO_ID}, ["time", "d", "s"])
-        events = lane_change_events(sumo_changes, {v: (t, d) for v, (t, d, _) in tracks.items()}, session.road)
+        events = lane_change_events(sumo_changes, tracks, session.road)
         if sc.ego is not None:
             lengths = dict(zip(vehicles["vehicle_id"], vehicles["length"]))
-            events = _relate_to_ego(events, {v: (t, s) for v, (t, _, s) in tracks.items()}, lengths, sc.ego.lane)
+            events = _relate_to_ego(events, tracks, lengths, sc.ego.lane)
         tables["lane_changes"] = pd.DataFrame(events)
         summary = summarize(sc, self.seed, tables, events, out["channel"], out["end_reason"], lateral)
         if hasattr(self.controller, "summary"):
@@ -251,10 +251,8 @@ class CoSimulation:
                 if ego_cfg is not None:
                     ego_accel = float(self.controller.acceleration(tick))
             if ego_cfg is not None:
-                if leader:
-                    ego_rows.append((round(session.time, 6), s_front, ego_speed_now, sumo_acc, ego_accel, *leader))
-                else:
-                    ego_rows.append((round(session.time, 6), s_front, ego_speed_now, sumo_acc, ego_accel, "", np.nan))
+                ego_rows.append((round(session.time, 6), s_front, ego_speed_now, sumo_acc, ego_accel,
+                                 *(leader or ("", np.nan))))
                 if len(ego_rows) >= 1000:
                     sinks["ego"].append(_ego_columns(ego_rows))
                     ego_rows = []
@@ -286,26 +284,26 @@ class CoSimulation:
         )
 
 
-def _relate_to_ego(events: dict[str, np.ndarray], tracks: dict[str, tuple[np.ndarray, np.ndarray]],
+def _relate_to_ego(events: dict[str, np.ndarray], tracks: dict[str, dict[str, np.ndarray]],
                    lengths: dict[str, float], ego_lane: int) -> dict[str, np.ndarray]:
     """Mark lane changes into the ego's lane and where they happened relative to the ego.
 
     `gap_to_ego_m`: bumper to bumper along the road, the changer's rear minus the ego's front,
-    at the trajectory sample nearest the change's midpoint. `tracks`: (time, s) of the ego's
-    and the changers' trajectory samples (others are ignored).
+    at the trajectory sample nearest the change's midpoint. `tracks`: time and s of the ego's
+    and the changers' trajectory samples (see runio.vehicle_tracks; others are ignored).
     """
     vids, mid = events["vehicle_id"], events["mid_time"]
     gaps = np.full(len(vids), np.nan)
     ego = tracks.get(EGO_ID)
-    if ego is not None and len(ego[0]) and len(vids):
-        ego_t, ego_s = ego
+    if ego is not None and len(ego["time"]) and len(vids):
+        ego_t, ego_s = ego["time"], ego["s"]
         at = np.abs(ego_t[None, :] - mid[:, None]).argmin(axis=1)
         changer_s = np.full(len(vids), np.nan)
         for i, (vid, t) in enumerate(zip(vids, ego_t[at])):
             track = tracks.get(vid)
-            hit = np.flatnonzero(track[0] == t) if track is not None else ()
+            hit = np.flatnonzero(track["time"] == t) if track is not None else ()
             if len(hit):
-                changer_s[i] = track[1][hit[-1]]
+                changer_s[i] = track["s"][hit[-1]]
         changer_length = np.array([lengths.get(v, np.nan) for v in vids], dtype=float)
         gaps = changer_s - ego_s[at] - 0.5 * (changer_length + lengths[EGO_ID])
     return events | {"into_ego_lane": (events["to_lane"] == ego_lane) & (vids != EGO_ID),

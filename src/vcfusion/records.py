@@ -45,24 +45,26 @@ def _take(record, index):
     sub = type(record)(**values)
     cached = record.__dict__.get(_ROAD_FRAME)
     if cached is not None:
-        _keep_road_frame(sub, cached[0], cached[1][index], cached[2][index])
+        keep_road_frame(sub, cached[0], cached[1][index], cached[2][index])
     return sub
 
 
 _ROAD_FRAME = "_road_frame"  # per-record cache: (road, s, d)
 
 
-def _keep_road_frame(record, road, s: np.ndarray, d: np.ndarray) -> None:
+def keep_road_frame(record, road, s: np.ndarray, d: np.ndarray) -> None:
+    """Hand a record the (s, d) its producer already computed on `road` (see _road_frame)."""
     object.__setattr__(record, _ROAD_FRAME, (road, s, d))
 
 
 def _road_frame(record, road) -> tuple[np.ndarray, np.ndarray]:
     """(s, d) of every vehicle of a record on `road`, computed once per record: several stages of
-    a tick need them, and the records are immutable (a changed position is a new record)."""
+    a tick need them, and the records are immutable (a changed position is a new record). Keyed
+    by the road's value: equal roads (stages each read the network file) share it."""
     cached = record.__dict__.get(_ROAD_FRAME)
-    if cached is None or not (cached[0] is road or cached[0] == road):  # stages may hold equal Road copies
+    if cached is None or cached[0] != road:
         cached = (road, *road.to_road_frame(record.x, record.y))
-        object.__setattr__(record, _ROAD_FRAME, cached)
+        keep_road_frame(record, *cached)
     return cached[1], cached[2]
 
 

@@ -72,25 +72,30 @@ class TableSink:
         if n == 0:
             return
         start, stop = self._buffered, self._buffered + n
-        if not self._columns:
-            self._columns = {k: np.empty(max(self._INITIAL_ROWS, n), dtype=np.asarray(v).dtype)
-                             for k, v in columns.items()}
         for name, values in columns.items():
             values = np.asarray(values)
-            buffer = self._columns[name]
-            if buffer.dtype != values.dtype or stop > len(buffer):
-                # promote as np.concatenate would (e.g. longer strings, int into float) and/or grow
-                dtype = np.result_type(buffer.dtype, values.dtype)
-                # never beyond one row group: a flush follows as soon as flush_rows are buffered
-                size = max(stop, min(2 * len(buffer), self.flush_rows + n)) if stop > len(buffer) else len(buffer)
-                grown = np.empty(size, dtype=dtype)
-                grown[:start] = buffer[:start]
-                buffer = self._columns[name] = grown
+            buffer = self._columns.get(name)
+            if buffer is None and start:
+                raise KeyError(f"{self.path.name}: column {name!r} was not in the earlier rows")
+            if buffer is None or buffer.dtype != values.dtype or stop > len(buffer):
+                buffer = self._columns[name] = self._resized(buffer, values.dtype, start, stop, n)
             buffer[start:stop] = values
         self._buffered = stop
         self.rows += n
         if self._buffered >= self.flush_rows:
             self._flush()
+
+    def _resized(self, buffer: np.ndarray | None, dtype, start: int, stop: int, n: int) -> np.ndarray:
+        """A buffer holding rows [0, start) of `buffer` with room up to `stop`, its dtype promoted
+        as np.concatenate would (longer strings, int into float); it grows by doubling but never
+        beyond one row group (a flush follows as soon as flush_rows are buffered)."""
+        size = len(buffer) if buffer is not None else 0
+        if stop > size:
+            size = max(stop, min(max(2 * size, self._INITIAL_ROWS), self.flush_rows + n))
+        grown = np.empty(size, dtype=dtype if buffer is None else np.result_type(buffer.dtype, dtype))
+        if buffer is not None:
+            grown[:start] = buffer[:start]
+        return grown
 
     def append_rows(self, rows: list[dict]) -> None:
         if rows:
@@ -142,13 +147,6 @@ class RunTables(Mapping):
             self._cache[name] = src.to_pandas() if isinstance(src, pa.Table) else pd.read_parquet(src)
         return self._cache[name]
 
-    def columns(self, name: str, columns: list[str]) -> pd.DataFrame:
-        """Some columns of a table, without loading the rest."""
-        if name in self._frames or name in self._cache:
-            return self[name][columns]
-        src = self._stored[name]
-        return src.select(columns).to_pandas() if isinstance(src, pa.Table) else pd.read_parquet(src, columns=columns)
-
     def arrow(self, name: str, columns: list[str]) -> pa.Table:
         """Some columns of a table as Arrow (no pandas conversion; e.g. for end-of-run summaries)."""
         if name in self._frames or name in self._cache:
@@ -183,9 +181,10 @@ class RunTables(Mapping):
         self._stored = {k: Path(folder) / f"{k}.parquet" for k in self._stored if k not in self._frames}
 
 
-def vehicle_tracks(table: pa.Table, vehicle_ids, columns: list[str]) -> dict[str, tuple[np.ndarray, ...]]:
-    """For each of `vehicle_ids` found in `table` (which has a vehicle_id column): the given
-    columns of its rows as NumPy arrays, in table order (time order for the run's tables)."""
+def vehicle_tracks(table: pa.Table, vehicle_ids, columns: list[str]) -> dict[str, dict[str, np.ndarray]]:
+    """For each of `vehicle_ids` found in `table` (which has a vehicle_id column): its rows'
+    values of `columns` as NumPy arrays by column name, in table order (time order for the run's
+    tables)."""
     if not vehicle_ids or table.num_rows == 0:
         return {}
     vid_column = table.column("vehicle_id")
@@ -196,8 +195,8 @@ def vehicle_tracks(table: pa.Table, vehicle_ids, columns: list[str]) -> dict[str
     codes = encoded.indices.to_numpy(zero_copy_only=False)
     order = np.argsort(codes, kind="stable")
     ends = np.cumsum(np.bincount(codes, minlength=len(encoded.dictionary)))
-    values = [rows.column(c).to_numpy()[order] for c in columns]
-    return {vid: tuple(v[start:end] for v in values)
+    values = {c: rows.column(c).to_numpy()[order] for c in columns}
+    return {vid: {c: v[start:end] for c, v in values.items()}
             for vid, start, end in zip(encoded.dictionary.to_pylist(), np.r_[0, ends[:-1]], ends)}
 
 

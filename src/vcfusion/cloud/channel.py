@@ -56,18 +56,18 @@ class V2CChannel:
         delay = cfg.latency_s
         if cfg.jitter_s > 0:
             delay = np.maximum(np.full(n, delay) + self.rng.normal(0.0, cfg.jitter_s, size=n), 0.0)
+        arrival = to_us(reports.measured_time + delay)
         if keep is None or keep.all():
-            self._in_flight.append((to_us(reports.measured_time + delay), reports))
+            self._in_flight.append((arrival, reports))
             return
         self.lost += int(n - keep.sum())
         if keep.any():
             idx = np.flatnonzero(keep)
-            delay = delay[idx] if np.ndim(delay) else delay
-            self._in_flight.append((to_us(reports.measured_time[idx] + delay), reports.select(idx)))
+            self._in_flight.append((arrival[idx], reports.select(idx)))
 
     def deliver(self, now: float) -> list[GnssReports]:
         """Reports that have arrived by `now`, in sending order."""
-        now_us = round(now * _US)  # as to_us, on a plain float
+        now_us = to_us(now)
         arrived, still = [], []
         for arrival, batch in self._in_flight:
             done = arrival <= now_us

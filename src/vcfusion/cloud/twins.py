@@ -15,7 +15,7 @@ from typing import Callable, Protocol
 import numba
 import numpy as np
 
-from vcfusion.records import GnssReports, TwinStates, _keep_road_frame
+from vcfusion.records import GnssReports, TwinStates, keep_road_frame
 from vcfusion.scenario import V2CConfig
 from vcfusion.traffic.network import Road
 
@@ -142,7 +142,7 @@ class TwinStore:
             time=now, ids=ids, lane=self.road.lane_of(d), outputs={},
             **cols, **{f: static[:, k] for k, f in enumerate(_STATIC_FIELDS)},
         )
-        _keep_road_frame(twins, self.road, s, d)  # the process models and the ego's stages reuse them
+        keep_road_frame(twins, self.road, s, d)  # the process models and the ego's stages reuse them
         for name, model in self.process_models:
             out = model(twins, self)
             for key, value in out.items():

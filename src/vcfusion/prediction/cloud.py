@@ -64,10 +64,10 @@ def predictor_for_scenario(scenario, road: Road) -> LaneChangePredictor | None:
                                cfg.tau_a_ticks, cfg.tau_c_ticks, cfg.conservative_threshold)
 
 
-def first_flags(twins: dict[str, tuple[np.ndarray, np.ndarray]], events, end_after_mid_s: float = 1.5) -> list[dict]:
+def first_flags(twins: dict[str, dict[str, np.ndarray]], events, end_after_mid_s: float = 1.5) -> list[dict]:
     """For each lane change in `events` (lane_changes columns): when the cloud first flagged it.
 
-    `twins`: per vehicle, the (time, lc_decision) of its rows of the run's twins table, in time
+    `twins`: per vehicle, the time and lc_decision of its rows of the run's twins table, in time
     order (see :func:`vcfusion.runio.vehicle_tracks`). Looks at the vehicle's `lc_decision` at
     ticks after its previous lane change ended, up to this one's end. `final_run_*`: the first
     tick of the uninterrupted positive run holding the last positive decision; `first_*`: the
@@ -92,7 +92,7 @@ def first_flags(twins: dict[str, tuple[np.ndarray, np.ndarray]], events, end_aft
             earlier = ends_of[vid]
             earlier = earlier[earlier < end - 1e-9]
             prev = float(earlier.max()) if len(earlier) else -np.inf
-            t, d = track
+            t, d = track["time"], track["lc_decision"]
             region = np.flatnonzero((t > prev + 1e-9) & (t <= end + 1e-9))
             pos = region[d[region] == 1]
             if len(pos):

@@ -173,6 +173,7 @@ def _history(out: np.ndarray, lanes_q: np.ndarray, speed: np.ndarray, lane: np.n
     h = 1 + num_lanes * 4
     state = np.empty((n, 2 + 2 * h))
     fresh = np.empty(2 + 2 * h)
+    n_src = src_offset.shape[0]
     for i in range(n):
         fresh[0] = fresh[1] = fresh[2] = fresh[2 + h] = speed[i]
         for t in range(num_lanes):
@@ -181,12 +182,11 @@ def _history(out: np.ndarray, lanes_q: np.ndarray, speed: np.ndarray, lane: np.n
         for c in range(2 + 2 * h):
             prev = fresh[c] if previous[i] < 0 else memory[previous[i], c]
             state[i, c] = prev + alphas[c] * (fresh[c] - prev)
-        prev_max = (fresh[1] if previous[i] < 0 else memory[previous[i], 1]) - decay
+        prev_max = state[i, 1] - decay  # column 1 has rate 0 above: the previous leaky maximum
         state[i, 1] = speed[i] if speed[i] >= prev_max else prev_max  # leaky maximum, not an average
         out[i, col_speed_minus_ema] = speed[i] - state[i, 0]
         out[i, col_below_max] = state[i, 1] - speed[i]
         out[i, _N_TICK] = state[i, 2] - state[i, 2 + h]  # speed_trend
-        n_src = src_offset.shape[0]
         for m in range(n_src):
             target = lane[i] + src_offset[m]
             if lane[i] >= 0 and 0 <= target < num_lanes:
@@ -199,6 +199,12 @@ def _history(out: np.ndarray, lanes_q: np.ndarray, speed: np.ndarray, lane: np.n
     return state
 
 
+def _kernel_inputs(s, lane, speed, accel, length) -> tuple[np.ndarray, ...]:
+    """Contiguous float64 (lane: int64) arrays: one compiled signature whatever the caller's views."""
+    return (np.ascontiguousarray(s, dtype=float), np.ascontiguousarray(lane, dtype=np.int64),
+            *(np.ascontiguousarray(v, dtype=float) for v in (speed, accel, length)))
+
+
 def tick_features(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.ndarray,
                   length: np.ndarray, num_lanes: int, per_lane: bool = False) -> dict[str, np.ndarray]:
     """The memoryless features of all twins of one tick (vectorised); s is the footprint centre.
@@ -206,8 +212,7 @@ def tick_features(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.
     per_lane: also return `_per_lane`, (N, num_lanes, 4): gap_lead, dv_lead, gap_foll, dv_foll
     of each twin towards every lane of the road by absolute index (own lane included).
     """
-    s, speed, accel, length = (np.ascontiguousarray(v, dtype=float) for v in (s, speed, accel, length))
-    matrix, lanes_q = _tick_matrix(s, np.ascontiguousarray(lane, dtype=np.int64), speed, accel, length, num_lanes)
+    matrix, lanes_q = _tick_matrix(*_kernel_inputs(s, lane, speed, accel, length), num_lanes)
     out = {name: matrix[:, i] for i, name in enumerate(FEATURE_NAMES[:_N_TICK]) if name not in _HISTORY_OWN}
     if per_lane:
         out["_per_lane"] = lanes_q
@@ -246,11 +251,8 @@ class FeatureExtractor:
                  length: np.ndarray) -> np.ndarray:
         """(N, len(FEATURE_NAMES)) float64 features of the N twins of one snapshot; `s` along the
         road (Road.to_road_frame of the twins' positions: their lateral coordinate is never used)."""
-        num_lanes = self.road.num_lanes
-        # contiguous float64 / int64 in: one compiled signature whatever the caller's views
-        s, speed, accel, length = (np.ascontiguousarray(v, dtype=float) for v in (s, speed, accel, length))
-        lane = np.ascontiguousarray(lane, dtype=np.int64)
-        out, lanes_q = _tick_matrix(s, lane, speed, accel, length, num_lanes)
+        s, lane, speed, accel, length = _kernel_inputs(s, lane, speed, accel, length)
+        out, lanes_q = _tick_matrix(s, lane, speed, accel, length, self.road.num_lanes)
         state = _history(out, lanes_q, speed, lane, self._memory.previous_rows(ids), self._memory.state,
                          self._alphas, self._decay, self._src_offset, self._src_quantity,
                          self._col_speed_minus_ema, self._col_below_max)

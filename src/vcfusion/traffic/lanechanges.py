@@ -52,11 +52,11 @@ def read_sumo_lanechanges(path: str | Path) -> dict[str, np.ndarray]:
     return {name: np.array(v, dtype=dtype) for (name, dtype), v in zip(SUMO_CHANGE_DTYPES.items(), values)}
 
 
-def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, tuple[np.ndarray, np.ndarray]],
+def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, dict[str, np.ndarray]],
                        road: Road) -> dict[str, np.ndarray]:
     """Add start and end times from the lateral trajectory; one element per lane change, in
-    LANE_CHANGE_COLUMNS order, sorted by midpoint then vehicle. `tracks`: (time, d) of each
-    changer's trajectory samples, in time order."""
+    LANE_CHANGE_COLUMNS order, sorted by midpoint then vehicle. `tracks`: time and d of each
+    changer's trajectory samples, in time order (see runio.vehicle_tracks)."""
     order = np.lexsort((sumo_changes["vehicle_id"], sumo_changes["mid_time"]))  # stable
     events = {name: values[order] for name, values in sumo_changes.items()}
     starts = np.full(len(order), np.nan)
@@ -66,7 +66,7 @@ def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, tu
         track = tracks.get(vid)
         if track is None:
             continue
-        t, d = track
+        t, d = track["time"], track["d"]
         in_old = np.abs(d - road.lane_centre_d(from_lane)) <= CENTRED_TOL_M
         in_new = np.abs(d - road.lane_centre_d(to_lane)) <= CENTRED_TOL_M
         before = np.flatnonzero(in_old & (t <= mid_time + 1e-9))

@@ -147,7 +147,8 @@ class SumoSession:
         self._open = True
         self.time = 0.0
         self._static: dict[str, tuple] = {}
-        self._static_of: tuple[tuple, tuple] = ((None,), ())  # (ids, their static columns) of the last states()
+        # (ids, their static columns) of the last states(): reused while the same vehicles are there
+        self._static_of: tuple[tuple, tuple] = ((), ((), (), np.zeros(0), np.zeros(0), np.zeros(0)))
         self.collisions: list[Collision] = []  # every collision SUMO reported, in step order
         self._ego_min_gap: float | None = None
         try:
@@ -261,7 +262,7 @@ class SumoSession:
                          for vid in ids], dtype=float).reshape(n, 8).T.copy()
         front_x, front_y, front_z, angle, speed, accel, lane, lat = cols
         lane = lane.astype(np.int16)
-        if ids != self._static_of[0]:  # the same vehicles as last time: reuse their static arrays
+        if ids != self._static_of[0]:
             for vid in ids:
                 if vid not in self._static:
                     self._static[vid] = (v.getTypeID(vid), v.getVehicleClass(vid), v.getLength(vid),
