@@ -172,9 +172,9 @@ def p2_vision(seeds: int) -> dict:
 
     from vcfusion.run import build_cosimulation
     from vcfusion.scenario import load_scenario
-    from vcfusion.vision.fusion import VisionFusionHook
-    from vcfusion.vision.hook import CameraHook
-    from vcfusion.vision.overlay import OverlayRecorder
+    from vcfusion.fusion.fuse import VisionFusionHook
+    from vcfusion.render.hook import CameraHook
+    from vcfusion.fusion.overlay import OverlayRecorder
 
     torch.set_num_threads(2)
     sc = load_scenario(ACCIDENT)

@@ -140,7 +140,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path("renders") / f"{scenario.name}-dataset"
     if out.exists():
         raise UsageError(f"--out: {out} already exists; choose a new dataset folder")
-    from vcfusion.vision.export import render_dataset
+    from vcfusion.render.export import render_dataset
 
     counts = render_dataset(scenario, seeds, args.every, out, progress=sys.stderr.isatty())
     print(f"rendered {counts['images']} frames, {counts['annotations']} boxes -> {out}")
@@ -148,7 +148,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_render(args: argparse.Namespace) -> int:
-    from vcfusion.vision.bench import main as bench_main
+    from vcfusion.render.bench import main as bench_main
 
     return bench_main(["--scenario", args.scenario, "--frames", str(args.frames)])
 
@@ -176,7 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("study", help="studies over many runs: guidance (Fig. 8/9), identification (Fig. 4)")
     study = p.add_subparsers(dest="study", required=True)
-    from vcfusion.vision.commands import add_study_parser as add_identification_parser
+    from vcfusion.studies.identification_cli import add_study_parser as add_identification_parser
 
     add_identification_parser(study)
     p = study.add_parser("guidance", help="paired trips with and without AR guidance (paper Fig. 8/9)")
@@ -225,9 +225,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_prediction_parsers(sub)  # dataset, train, evaluate, bench-predict
 
-    from vcfusion.vision.commands import add_parsers as add_vision_parsers
+    from vcfusion.detection.commands import add_parsers as add_detection_parsers
 
-    add_vision_parsers(sub)
+    add_detection_parsers(sub)
     return parser
 
 

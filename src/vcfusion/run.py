@@ -34,12 +34,12 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
     hooks = []
     if scenario.vision.enabled:
         # Imported only here: traffic-only runs never load OpenGL.
-        from vcfusion.vision.hook import CameraHook
+        from vcfusion.render.hook import CameraHook
 
         hooks.append(CameraHook(scenario, every_ticks=scenario.vision.every_ticks))
     if scenario.fusion.enabled:
         # After the camera hook: fusion reads the frame it puts in the tick's annotations.
-        from vcfusion.vision.stage import build_fusion_hook
+        from vcfusion.fusion.stage import build_fusion_hook
 
         hooks.append(build_fusion_hook(scenario, seed, recorder))
     controller = None
@@ -71,7 +71,7 @@ def execute_run(scenario: Scenario, seed: int, out_dir: Path | None, progress: b
     scenario asks for it: renders/<run folder name>/overlay.mp4 + frames/)."""
     recorder = None
     if out_dir is not None and scenario.fusion.enabled and scenario.ar.video:
-        from vcfusion.vision.overlay import OverlayRecorder
+        from vcfusion.fusion.overlay import OverlayRecorder
 
         recorder = OverlayRecorder(video_dir_for(out_dir), fps=1.0 / scenario.ar.period_s)
     try:

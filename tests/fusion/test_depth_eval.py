@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from vcfusion.vision.depth_eval import DepthEvalParams, evaluate_box_depths, sampling_areas
+from vcfusion.fusion.depth_eval import DepthEvalParams, evaluate_box_depths, sampling_areas
 
 
 def test_sampling_area_is_lower_quarter_of_shrunk_box():

@@ -8,14 +8,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from cuboid_frames import CuboidFrameSource
+from support.cuboid_frames import CuboidFrameSource
 from vcfusion.cosim import CoSimulation
 from vcfusion.scenario import load_scenario
-from vcfusion.vision.detectors import OracleDetector
-from vcfusion.vision.fusion import METHODS, VisionFusionHook
-from vcfusion.vision.identification import Condition, accuracy_at, run_identification_study
-from vcfusion.vision.matching import box_iou
-from vcfusion.vision.overlay import OverlayRecorder
+from vcfusion.detection.detectors import OracleDetector
+from vcfusion.fusion.fuse import METHODS, VisionFusionHook
+from vcfusion.studies.identification import Condition, accuracy_at, run_identification_study
+from vcfusion.fusion.matching import box_iou
+from vcfusion.fusion.overlay import OverlayRecorder
 
 SCENARIO = Path(__file__).resolve().parents[2] / "scenarios" / "accident.yaml"
 

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from fusion_helpers import make_twins, pinhole_camera, vehicle_box
-from vcfusion.vision.depth_eval import DepthEvalParams, evaluate_box_depths
-from vcfusion.vision.matching import (
+from support.fusion_helpers import make_twins, pinhole_camera, vehicle_box
+from vcfusion.fusion.depth_eval import DepthEvalParams, evaluate_box_depths
+from vcfusion.fusion.matching import (
     NO_MATCH, JointMatcher, JointMatcherParams, box_iou, extrapolate_twins, match_all_paper,
     gnss_distances, match_all_baseline, match_baseline, match_baseline_centre, match_paper, project_twins)
 
@@ -204,7 +204,7 @@ def test_latency_compensation_recovers_the_right_boxes():
 
 
 def test_position_filter_shrinks_gnss_noise_and_follows_motion():
-    from vcfusion.vision.matching import TwinPositionFilter
+    from vcfusion.fusion.matching import TwinPositionFilter
 
     rng = np.random.default_rng(0)
     filt = TwinPositionFilter(alpha=0.25)

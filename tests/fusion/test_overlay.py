@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vcfusion.vision.overlay import (RED, YELLOW, Hud, OverlayParams, OverlayRecorder, draw_overlay, guidance_level,
+from vcfusion.fusion.overlay import (RED, YELLOW, Hud, OverlayParams, OverlayRecorder, draw_overlay, guidance_level,
                                      make_guidance)
 
 

@@ -10,11 +10,11 @@ import pandas as pd
 import pytest
 import yaml
 
-from cuboid_frames import CuboidFrameSource
+from support.cuboid_frames import CuboidFrameSource
 from vcfusion.cosim import CoSimulation
 from vcfusion.scenario import Scenario, ScenarioError, load_scenario
-from vcfusion.vision.overlay import OverlayRecorder
-from vcfusion.vision.stage import build_fusion_hook
+from vcfusion.fusion.overlay import OverlayRecorder
+from vcfusion.fusion.stage import build_fusion_hook
 
 ROOT = Path(__file__).resolve().parents[2]
 HAS_CAMERA = "vision" in Scenario.model_fields

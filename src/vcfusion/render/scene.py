@@ -1,7 +1,7 @@
 """The pyrender scene of the highway: built once, then only vehicle poses change per frame.
 
 A vehicle gets a node when its id first appears and loses it when it is gone; meshes are shared
-by vehicles of the same shape and colour (see :func:`vcfusion.vision.meshes.vehicle_mesh`), so
+by vehicles of the same shape and colour (see :func:`vcfusion.render.meshes.vehicle_mesh`), so
 the GPU buffers of a model are uploaded once. The ego itself is not drawn: the camera sits in it.
 """
 
@@ -11,14 +11,14 @@ import math
 
 import numpy as np
 
-import vcfusion.vision  # noqa: F401  (sets PYOPENGL_PLATFORM before pyrender imports OpenGL)
+import vcfusion.render  # noqa: F401  (sets PYOPENGL_PLATFORM before pyrender imports OpenGL)
 import pyrender  # noqa: E402
 import trimesh  # noqa: E402
 
 from vcfusion.records import VehicleStates  # noqa: E402
 from vcfusion.traffic.network import Road  # noqa: E402
 from vcfusion.traffic.session import EGO_ID  # noqa: E402
-from vcfusion.vision.meshes import SKY, ground_mesh, road_extent, road_mesh, vehicle_mesh, vehicle_style  # noqa: E402
+from vcfusion.render.meshes import SKY, ground_mesh, road_extent, road_mesh, vehicle_mesh, vehicle_style  # noqa: E402
 
 # The sun: from the south-west, 50 degrees above the horizon.
 SUN_AZIMUTH_DEG, SUN_ELEVATION_DEG = 225.0, 50.0

@@ -4,10 +4,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from fusion_helpers import make_twins, pinhole_camera, vehicle_box
-from vcfusion.vision.detectors import OracleDetector
-from vcfusion.vision.fusion import METHODS, CameraFrame, fuse_frame
-from vcfusion.vision.identification import (accuracy_at, accuracy_vs_iou, default_conditions, identification_rows,
+from support.fusion_helpers import make_twins, pinhole_camera, vehicle_box
+from vcfusion.detection.detectors import OracleDetector
+from vcfusion.fusion.fuse import METHODS, CameraFrame, fuse_frame
+from vcfusion.studies.identification import (accuracy_at, accuracy_vs_iou, default_conditions, identification_rows,
                                             summary_lines, write_study_outputs)
 
 
@@ -97,7 +97,7 @@ def test_summary_splits_scenarios_and_anchor_cases():
 
 def test_study_refuses_two_scenarios_of_one_name(tmp_path):
     from vcfusion.scenario import load_scenario
-    from vcfusion.vision.identification import run_identification_study
+    from vcfusion.studies.identification import run_identification_study
 
     sc = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "overlap.yaml")
     with pytest.raises(ValueError, match="distinct scenario names"):

@@ -21,8 +21,8 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from vcfusion.vision.detection_metrics import BoxMap, coco_map
-from vcfusion.vision.detector_net import (STRIDE, CenterNetLite, DetectorFileError, DetectorModel, PostParams,
+from vcfusion.detection.detection_metrics import BoxMap, coco_map
+from vcfusion.detection.detector_net import (STRIDE, CenterNetLite, DetectorFileError, DetectorModel, PostParams,
                                           TorchDetector)
 
 

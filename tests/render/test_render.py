@@ -11,10 +11,10 @@ import pytest
 from vcfusion.records import VehicleStates
 from vcfusion.scenario import CameraConfig, load_scenario
 from vcfusion.traffic.network import read_road
-from vcfusion.vision import meshes
-from vcfusion.vision.camera import project_points
-from vcfusion.vision.gt_boxes import ground_truth_boxes
-from vcfusion.vision.render import EgoCameraRenderer
+from vcfusion.render import meshes
+from vcfusion.render.camera import project_points
+from vcfusion.render.gt_boxes import ground_truth_boxes
+from vcfusion.render.renderer import EgoCameraRenderer
 
 SCENARIO = Path("scenarios/accident.yaml")
 
@@ -142,8 +142,8 @@ def test_render_dataset_end_to_end(tmp_path):
     """Real SUMO run -> frames -> COCO; checked independently from the exported files."""
     from pycocotools.coco import COCO
 
-    from vcfusion.vision.check import check_dataset
-    from vcfusion.vision.export import render_dataset
+    from vcfusion.render.check import check_dataset
+    from vcfusion.render.export import render_dataset
 
     sc = _short(load_scenario("scenarios/overlap.yaml"), 6.0, width_px=320, height_px=240)
     out = tmp_path / "ds"

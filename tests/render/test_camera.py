@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from vcfusion.scenario import CameraConfig, ScenarioError, load_scenario
-from vcfusion.vision.camera import (Intrinsics, mount_pose, opengl_camera_pose, paper_intrinsic_matrix,
+from vcfusion.render.camera import (Intrinsics, mount_pose, opengl_camera_pose, paper_intrinsic_matrix,
                                     project_points, world_to_camera)
 
 

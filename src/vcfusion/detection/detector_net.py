@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from vcfusion.vision.detectors import Detections, batched_nms
+from vcfusion.detection.detectors import Detections, batched_nms
 
 WEIGHTS_FORMAT = "vcfusion-centernet-v1"
 STRIDE = 4

@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 
 from vcfusion.traffic.session import EGO_ID
-from vcfusion.vision.fusion import CameraFrame
-from vcfusion.vision.matching import CameraView
+from vcfusion.fusion.fuse import CameraFrame
+from vcfusion.fusion.matching import CameraView
 
 
 class CuboidFrameSource:

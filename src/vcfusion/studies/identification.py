@@ -31,9 +31,9 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-from vcfusion.vision.depth_eval import DepthEvalParams
-from vcfusion.vision.fusion import METHODS, CameraFrame, FusionResult, fuse_frame
-from vcfusion.vision.matching import JointMatcher, JointMatcherParams, box_iou
+from vcfusion.fusion.depth_eval import DepthEvalParams
+from vcfusion.fusion.fuse import METHODS, CameraFrame, FusionResult, fuse_frame
+from vcfusion.fusion.matching import JointMatcher, JointMatcherParams, box_iou
 
 IOU_THRESHOLDS = np.round(np.arange(0.5, 0.951, 0.05), 2)
 ROW_COLUMNS = ["scenario", "seed", "latency_s", "gnss_noise_m", "detector", "time", "vehicle_id", "method", "n_anchor_boxes", "matched", "iou",

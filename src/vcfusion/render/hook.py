@@ -1,6 +1,6 @@
 """The camera stage of the tick loop: render the ego camera every k-th V2C tick.
 
-The rendered :class:`~vcfusion.vision.render.Frame` goes to ``tick.annotations['frame']`` for the
+The rendered :class:`~vcfusion.render.renderer.Frame` goes to ``tick.annotations['frame']`` for the
 later stages (detector, matching, overlay); ticks without a render carry no 'frame'. The hook
 logs a small ``camera`` table (time, vehicles seen, render time).
 """
@@ -22,7 +22,7 @@ class CameraHook:
 
     def __init__(self, scenario: Scenario, every_ticks: int = 1,
                  on_frame: Callable | None = None, renderer=None):
-        from vcfusion.vision.render import EgoCameraRenderer  # imports OpenGL: only when a camera is used
+        from vcfusion.render.renderer import EgoCameraRenderer  # imports OpenGL: only when a camera is used
 
         self.renderer = renderer or EgoCameraRenderer(read_road(scenario.network), scenario.camera, EGO_ID)
         self.every_ticks = every_ticks

@@ -8,7 +8,7 @@ import pytest
 
 from vcfusion.studies.guidance import StudyError, paired_summary, run_guidance_study
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.slow

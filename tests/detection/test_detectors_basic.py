@@ -4,8 +4,8 @@ import io
 import numpy as np
 import pytest
 
-from vcfusion.vision.detection_metrics import coco_map
-from vcfusion.vision.detectors import Detections, OracleDetector, batched_nms, nms
+from vcfusion.detection.detection_metrics import coco_map
+from vcfusion.detection.detectors import Detections, OracleDetector, batched_nms, nms
 
 
 def random_dataset(rng, n_images=12, n_cats=2):

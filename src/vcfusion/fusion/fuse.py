@@ -14,11 +14,11 @@ from typing import Protocol
 import numpy as np
 
 from vcfusion.records import TwinStates
-from vcfusion.vision.depth_eval import DepthEvalParams, reduce_depth_samples, sample_box_depths
-from vcfusion.vision.detectors import Detections, Detector, OracleDetector
-from vcfusion.vision.matching import (NO_MATCH, CameraView, JointMatcher, match_all_baseline, match_all_paper,
+from vcfusion.fusion.depth_eval import DepthEvalParams, reduce_depth_samples, sample_box_depths
+from vcfusion.detection.detectors import Detections, Detector, OracleDetector
+from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, match_all_baseline, match_all_paper,
                                       point_in_boxes, project_twins)
-from vcfusion.vision.overlay import Hud, OverlayParams, OverlayRecorder, draw_overlay, make_guidance
+from vcfusion.fusion.overlay import Hud, OverlayParams, OverlayRecorder, draw_overlay, make_guidance
 
 # baseline: the paper's RGB-only rule; baseline_centre: our nearest-box-centre heuristic (RGB only);
 # paper: Algorithm 2 (RGB + depth); joint: the joint matcher (see matching.py)

@@ -1,4 +1,5 @@
-"""Handlers of the vision subcommands of `vcfusion` (the cli only parses arguments)."""
+"""Handlers of the detector subcommands of `vcfusion` (train-detector, eval-detector, export-onnx);
+the cli only parses arguments."""
 
 from __future__ import annotations
 
@@ -20,8 +21,8 @@ def parse_size(text: str, option: str) -> tuple[int, int]:
 
 
 def cmd_train_detector(args: argparse.Namespace) -> int:
-    from vcfusion.vision.detector_net import DetectorFileError
-    from vcfusion.vision.detector_train import train_detector
+    from vcfusion.detection.detector_net import DetectorFileError
+    from vcfusion.detection.detector_train import train_detector
 
     input_wh = parse_size(args.input_size, "--input-size")
     for name in ("epochs", "batch_size"):
@@ -45,7 +46,7 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
 
 
 def _make_detector(args):
-    from vcfusion.vision.detector_net import DetectorFileError, OnnxDetector, TorchDetector, default_weights_path
+    from vcfusion.detection.detector_net import DetectorFileError, OnnxDetector, TorchDetector, default_weights_path
 
     try:
         if args.onnx:
@@ -60,8 +61,8 @@ def _make_detector(args):
 
 
 def cmd_eval_detector(args: argparse.Namespace) -> int:
-    from vcfusion.vision.detector_net import DetectorFileError
-    from vcfusion.vision.detector_train import evaluate_detector, load_coco_many
+    from vcfusion.detection.detector_net import DetectorFileError
+    from vcfusion.detection.detector_train import evaluate_detector, load_coco_many
 
     detector = _make_detector(args)
     try:
@@ -77,7 +78,7 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
 
 
 def cmd_export_onnx(args: argparse.Namespace) -> int:
-    from vcfusion.vision.detector_net import DetectorFileError, DetectorModel, default_weights_path, export_onnx
+    from vcfusion.detection.detector_net import DetectorFileError, DetectorModel, default_weights_path, export_onnx
 
     try:
         import onnx  # noqa: F401 - torch's exporter needs it
@@ -133,77 +134,3 @@ def add_parsers(sub) -> None:
     p.add_argument("--weights", help="weights file (default: the shipped detector)")
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_export_onnx)
-
-
-
-def _float_list(text: str, option: str) -> list[float]:
-    try:
-        values = [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise UsageError(f"{option}: expected comma-separated numbers such as 0,0.1,0.5, got {text!r}") from None
-    if not values or any(v < 0 for v in values):
-        raise UsageError(f"{option}: expected non-negative numbers, got {text!r}")
-    return values
-
-
-def cmd_study_identification(args: argparse.Namespace) -> int:
-    from vcfusion.scenario import load_scenario
-    from vcfusion.studies.batch import parse_seeds
-    from vcfusion.vision.detector_net import DetectorFileError, TorchDetector, default_weights_path
-    from vcfusion.vision.detectors import OracleDetector
-    from vcfusion.vision.identification import default_conditions, run_identification_study, summary_lines
-    from vcfusion.vision.stage import RenderedFrameSources, depth_params
-
-    scenarios = [load_scenario(path) for path in args.scenario]
-    names = [sc.name for sc in scenarios]
-    if len(set(names)) != len(names):
-        raise UsageError(f"scenario: expected scenarios with distinct names, got {names}")
-    seeds = parse_seeds(args.seeds)  # UsageError on a bad range
-    conditions = default_conditions(_float_list(args.latencies, "--latencies"), _float_list(args.noises, "--noises"))
-    detectors = {}
-    for name in (d.strip() for d in args.detectors.split(",")):
-        if name == "oracle":
-            detectors[name] = OracleDetector()
-        elif name == "cnn":
-            try:
-                detectors[name] = TorchDetector(args.weights or default_weights_path())
-            except DetectorFileError as exc:
-                raise UsageError(f"--weights: {exc}") from None
-        else:
-            raise UsageError(f"--detectors: expected names among oracle, cnn; got {name!r}")
-    for path, scenario in zip(args.scenario, scenarios):
-        if scenario.ego is None:
-            raise UsageError(f"{path}: ego: the camera rides on the ego; the scenario has no ego block")
-    out = Path(args.out)
-    sources = RenderedFrameSources()
-    try:
-        # Algorithm 1's th, n, reducer: the first scenario's fusion block (one setting per study)
-        rows = run_identification_study(scenarios, seeds, sources, detectors, out, conditions,
-                                        depth_params=depth_params(scenarios[0]), min_gt_area_px=args.min_area,
-                                        fallback_radius_px=args.anchor_radius, progress=sys.stderr.isatty())
-    finally:
-        sources.close()
-    n_targets = rows[(rows["latency_s"] == 0) & (rows["gnss_noise_m"] == 0)].groupby(["detector", "method"]).size()
-    print(f"identification study {', '.join(names)}, seeds {args.seeds}: "
-          f"{int(n_targets.min()) if len(n_targets) else 0} target-frames per detector and method (clean V2C)")
-    for line in summary_lines(rows, 0.7):
-        print(line)
-    print(f"outputs: {out}/identification_*.csv, *.png, identification_rows.parquet")
-    return 0
-
-
-def add_study_parser(ssub) -> None:
-    """`vcfusion study identification ...`, added to the subcommands of `vcfusion study`."""
-    p = ssub.add_parser("identification", help="target identification accuracy (paper Fig. 4) vs latency, noise")
-    p.add_argument("scenario", nargs="+", help="one or more scenario files (each run with every seed)")
-    p.add_argument("--seeds", required=True, help="e.g. 0-19")
-    p.add_argument("--out", default="renders/identification")
-    p.add_argument("--detectors", default="oracle,cnn", help="comma-separated: oracle, cnn")
-    p.add_argument("--weights", help="cnn weights (default: the shipped detector)")
-    p.add_argument("--latencies", default="0,0.1,0.2,0.3,0.5", help="V2C latencies (s), at zero noise")
-    p.add_argument("--noises", default="0,0.5,1,2", help="GNSS noise std (m), at zero latency")
-    p.add_argument("--min-area", type=float, default=100.0, help="smallest ground-truth box (px^2) counted as a target")
-    p.add_argument("--anchor-radius", type=float, default=None,
-                   help="baseline and paper: with no box containing the anchor, take the nearest box within "
-                        "this many pixels (default: off, the paper's rule)")
-    p.set_defaults(func=cmd_study_identification)

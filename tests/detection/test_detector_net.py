@@ -6,11 +6,11 @@ import json
 import numpy as np
 import pytest
 
-from synthetic_coco import make_synthetic_coco
-from vcfusion.vision.detector_net import (DetectorFileError, DetectorModel, OnnxDetector, PostParams,
+from support.synthetic_coco import make_synthetic_coco
+from vcfusion.detection.detector_net import (DetectorFileError, DetectorModel, OnnxDetector, PostParams,
                                           TorchDetector, export_onnx)
-from vcfusion.vision.detector_train import evaluate_detector, load_coco, read_rgb, train_detector
-from vcfusion.vision.matching import box_iou
+from vcfusion.detection.detector_train import evaluate_detector, load_coco, read_rgb, train_detector
+from vcfusion.fusion.matching import box_iou
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from vcfusion.records import TwinStates
-from vcfusion.vision.matching import CameraView
+from vcfusion.fusion.matching import CameraView
 
 W, H = 640, 480
 FX = FY = 500.0

@@ -8,7 +8,7 @@ Reads only the exported files (annotations.json, instance and depth PNGs) and Op
 3. where a vehicle's rear centre (at the same height) is its own pixel, the depth image there
    equals the camera Z of that point computed from the exported world pose.
 
-    python -m vcfusion.vision.check DATASET_DIR
+    python -m vcfusion.render.check DATASET_DIR
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ def check_dataset(folder: Path) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m vcfusion.vision.check", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m vcfusion.render.check", description=__doc__.splitlines()[0])
     parser.add_argument("dataset", help="folder written by `vcfusion render`")
     args = parser.parse_args(argv)
     stats = check_dataset(Path(args.dataset))

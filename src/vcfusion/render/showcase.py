@@ -1,6 +1,6 @@
 """Showcase frames for people: RGB beside colourised depth (and box outlines from the instance map).
 
-    python -m vcfusion.vision.showcase [--out renders/showcase]
+    python -m vcfusion.render.showcase [--out renders/showcase]
 
 Renders a few fixed moments of scenarios/accident.yaml and scenarios/overlap.yaml (seed 0).
 """
@@ -39,13 +39,13 @@ def panel(frame, boxes) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m vcfusion.vision.showcase", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m vcfusion.render.showcase", description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="renders/showcase")
     args = parser.parse_args(argv)
     from vcfusion.cosim import CoSimulation
     from vcfusion.scenario import load_scenario
-    from vcfusion.vision.gt_boxes import ground_truth_boxes
-    from vcfusion.vision.hook import CameraHook
+    from vcfusion.render.gt_boxes import ground_truth_boxes
+    from vcfusion.render.hook import CameraHook
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,6 @@
 """Benchmark of the fusion stages of one vision tick at 640x480 (detect, depth, match, overlay).
 
-    python -m vcfusion.vision.fusion_bench [--frames 200] [--weights W] [--threads 2]
+    python -m vcfusion.fusion.bench [--frames 200] [--weights W] [--threads 2]
 
 Prints the median and 90th percentile time per stage. The frame is synthetic (noise image, a depth
 map with ten vehicles, eight twins): the stages' costs depend on the image size, the number of
@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from vcfusion.vision.depth_eval import DepthEvalParams, reduce_depth_samples, sample_box_depths
-from vcfusion.vision.detector_net import CenterNetLite, DetectorModel, TorchDetector, default_weights_path
-from vcfusion.vision.matching import JointMatcher, TwinProjection, match_all_baseline, match_all_paper
-from vcfusion.vision.overlay import Hud, OverlayRecorder, draw_overlay, make_guidance
+from vcfusion.fusion.depth_eval import DepthEvalParams, reduce_depth_samples, sample_box_depths
+from vcfusion.detection.detector_net import CenterNetLite, DetectorModel, TorchDetector, default_weights_path
+from vcfusion.fusion.matching import JointMatcher, TwinProjection, match_all_baseline, match_all_paper
+from vcfusion.fusion.overlay import Hud, OverlayRecorder, draw_overlay, make_guidance
 
 
 def synthetic_scene(rng, width=640, height=480, n_boxes=10, n_twins=8):

@@ -446,7 +446,7 @@ class JointMatcher:
         """Box index per twin (NO_MATCH where unassigned), aligned with ``twins.ids``.
 
         ``box_depths``: Algorithm 1's distance per box (D,), or better its raw samples (D, n)
-        (:func:`vcfusion.vision.depth_eval.sample_box_depths`)."""
+        (:func:`vcfusion.fusion.depth_eval.sample_box_depths`)."""
         if self.filter is not None:
             twins = self.filter.update(twins)
         if self.params.latency_compensation:

@@ -3,8 +3,8 @@
 Implementations:
 - :class:`OracleDetector`: the renderer's ground-truth boxes (for ablations), optionally degraded
   (pixel jitter, missed detections) with a seeded generator;
-- :class:`vcfusion.vision.detector_net.TorchDetector`: our learned single-stage CNN;
-- :class:`vcfusion.vision.detector_net.OnnxDetector`: a user's ONNX detector through OpenCV DNN.
+- :class:`vcfusion.detection.detector_net.TorchDetector`: our learned single-stage CNN;
+- :class:`vcfusion.detection.detector_net.OnnxDetector`: a user's ONNX detector through OpenCV DNN.
 
 Images are RGB uint8 (H, W, 3); boxes are float pixels x1, y1, x2, y2 in the image given, in the
 project's pixel-centre convention (OpenCV: integer coordinates at pixel centres, so a box around

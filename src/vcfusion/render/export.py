@@ -3,7 +3,7 @@
 OUT/
   rgb/seedNNNN_tSSSS.SS.png         RGB
   depth/seedNNNN_tSSSS.SS.png       uint16 camera Z / 0.01 m (0 = sky)
-  instances/seedNNNN_tSSSS.SS.png   uint16 instance map (see vcfusion.vision.coco)
+  instances/seedNNNN_tSSSS.SS.png   uint16 instance map (see vcfusion.render.coco)
   annotations.json                  COCO: images with camera K, T_world_to_camera, time and the
                                     vehicles' GNSS anchors; one annotation per visible vehicle
   manifest.json                     scenario, seeds, every, versions
@@ -27,9 +27,9 @@ from vcfusion.traffic.session import EGO_ID
 
 def render_dataset(scenario: Scenario, seeds: list[int], every: int, out: Path, progress: bool = True) -> dict:
     """Render every `every`-th V2C tick of each seed into a dataset folder; returns counts."""
-    from vcfusion.vision.coco import CocoBuilder, depth_to_png16, vehicle_anchors
-    from vcfusion.vision.gt_boxes import ground_truth_boxes
-    from vcfusion.vision.hook import CameraHook
+    from vcfusion.render.coco import CocoBuilder, depth_to_png16, vehicle_anchors
+    from vcfusion.render.gt_boxes import ground_truth_boxes
+    from vcfusion.render.hook import CameraHook
 
     if scenario.ego is None:
         raise ValueError(f"{scenario.source}: ego: the camera rides on the ego; expected an ego block")

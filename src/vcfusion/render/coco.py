@@ -19,7 +19,7 @@ import numpy as np
 from pycocotools import mask as mask_utils
 
 from vcfusion.records import gnss_antenna_points
-from vcfusion.vision.camera import project_points
+from vcfusion.render.camera import project_points
 
 # Fixed ids so datasets from different scenarios share categories (SUMO vehicle classes).
 CATEGORIES = ("passenger", "truck", "bus", "coach", "delivery", "trailer", "motorcycle", "emergency", "taxi")

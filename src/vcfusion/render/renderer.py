@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-import vcfusion.vision  # noqa: F401  (sets PYOPENGL_PLATFORM before pyrender imports OpenGL)
+import vcfusion.render  # noqa: F401  (sets PYOPENGL_PLATFORM before pyrender imports OpenGL)
 import pyrender  # noqa: E402
 from OpenGL import GL  # noqa: E402
 from pyrender.constants import RenderFlags  # noqa: E402
@@ -34,8 +34,8 @@ from vcfusion.records import VehicleStates  # noqa: E402
 from vcfusion.scenario import CameraConfig  # noqa: E402
 from vcfusion.traffic.network import Road  # noqa: E402
 from vcfusion.traffic.session import EGO_ID  # noqa: E402
-from vcfusion.vision.camera import Intrinsics, opengl_camera_pose, world_to_camera  # noqa: E402
-from vcfusion.vision.scene import TrafficScene  # noqa: E402
+from vcfusion.render.camera import Intrinsics, opengl_camera_pose, world_to_camera  # noqa: E402
+from vcfusion.render.scene import TrafficScene  # noqa: E402
 
 SHADER_DIR = os.path.join(os.path.dirname(__file__), "shaders")
 _PYRENDER_SHADER_DIR = os.path.join(os.path.dirname(pyrender.__file__), "shaders")

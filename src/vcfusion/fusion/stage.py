@@ -13,15 +13,15 @@ from __future__ import annotations
 import numpy as np
 
 from vcfusion.scenario import Scenario, ScenarioError
-from vcfusion.vision.depth_eval import DepthEvalParams
-from vcfusion.vision.fusion import CameraFrame
-from vcfusion.vision.matching import CameraView
-from vcfusion.vision.overlay import OverlayParams, OverlayRecorder
+from vcfusion.fusion.depth_eval import DepthEvalParams
+from vcfusion.fusion.fuse import CameraFrame
+from vcfusion.fusion.matching import CameraView
+from vcfusion.fusion.overlay import OverlayParams, OverlayRecorder
 
 
 def camera_view(K: np.ndarray, T_world_to_camera: np.ndarray, width: int, height: int, time: float) -> CameraView:
     """The matchers' view of a camera given by its intrinsics and OpenCV extrinsics."""
-    from vcfusion.vision.camera import project_points  # the rendering stage's projection (eq. 1-3)
+    from vcfusion.render.camera import project_points  # the rendering stage's projection (eq. 1-3)
 
     K = np.asarray(K, dtype=float)
     T = np.asarray(T_world_to_camera, dtype=float)
@@ -35,9 +35,9 @@ def camera_view(K: np.ndarray, T_world_to_camera: np.ndarray, width: int, height
 
 
 def frame_from_render(frame, truth) -> CameraFrame:
-    """A rendered frame (vcfusion.vision.render.Frame) of the traffic state ``truth`` as a CameraFrame."""
-    from vcfusion.vision.coco import category_id
-    from vcfusion.vision.gt_boxes import ground_truth_boxes
+    """A rendered frame (vcfusion.render.renderer.Frame) of the traffic state ``truth`` as a CameraFrame."""
+    from vcfusion.render.coco import category_id
+    from vcfusion.render.gt_boxes import ground_truth_boxes
 
     gt = ground_truth_boxes(frame, truth)
     return CameraFrame(time=float(frame.time), image=frame.rgb, depth=frame.depth,
@@ -72,7 +72,7 @@ class RenderedFrameSources:
             try:
                 from vcfusion.traffic.network import read_road
                 from vcfusion.traffic.session import EGO_ID
-                from vcfusion.vision.render import EgoCameraRenderer
+                from vcfusion.render.renderer import EgoCameraRenderer
             except ImportError as exc:
                 raise ScenarioError(f"the ego camera renderer cannot be loaded: {exc}") from None
             self._renderer = EgoCameraRenderer(read_road(scenario.network), scenario.camera, EGO_ID)
@@ -92,12 +92,12 @@ class RenderedFrameSources:
 
 
 def build_detector(scenario: Scenario, seed: int):
-    from vcfusion.vision.detectors import OracleDetector
+    from vcfusion.detection.detectors import OracleDetector
 
     cfg = scenario.fusion
     if cfg.detector == "oracle":
         return OracleDetector()
-    from vcfusion.vision.detector_net import DetectorFileError, TorchDetector, default_weights_path
+    from vcfusion.detection.detector_net import DetectorFileError, TorchDetector, default_weights_path
 
     try:
         return TorchDetector(cfg.weights or default_weights_path())
@@ -117,7 +117,7 @@ def overlay_params(scenario: Scenario) -> OverlayParams:
 def build_fusion_hook(scenario: Scenario, seed: int, recorder: OverlayRecorder | None = None, frame_source=None):
     """The tick hook of the fusion stage as the scenario configures it; it must come after the
     camera hook in the hook list (it reads the frame that hook puts in the tick's annotations)."""
-    from vcfusion.vision.fusion import VisionFusionHook
+    from vcfusion.fusion.fuse import VisionFusionHook
 
     return VisionFusionHook(frame_source or annotation_frame_source, build_detector(scenario, seed), seed,
                             method=scenario.fusion.method, depth_params=depth_params(scenario),

@@ -1,6 +1,6 @@
 """Benchmark of the ego camera: median ms per frame for RGB + depth + instances.
 
-    python -m vcfusion.vision.bench [--scenario scenarios/accident.yaml] [--frames 100]
+    python -m vcfusion.render.bench [--scenario scenarios/accident.yaml] [--frames 100]
 
 Simulates one seed of the scenario (traffic only), then renders its states at the scenario's
 camera settings (default 640x480) and prints the median, 10th and 90th percentile per frame.
@@ -17,7 +17,7 @@ import numpy as np
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m vcfusion.vision.bench", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m vcfusion.render.bench", description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", default="scenarios/accident.yaml")
     parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0)
@@ -26,7 +26,7 @@ def main(argv: list[str] | None = None) -> int:
     from vcfusion.cosim import CoSimulation
     from vcfusion.scenario import load_scenario
     from vcfusion.traffic.network import read_road
-    from vcfusion.vision.render import EgoCameraRenderer
+    from vcfusion.render.renderer import EgoCameraRenderer
 
     scenario = load_scenario(args.scenario)
     states = []

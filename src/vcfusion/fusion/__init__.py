@@ -1,0 +1,2 @@
+"""Vision-cloud fusion stage: depth evaluation (Alg. 1), matching twins to boxes (Alg. 2 and the
+joint matcher), the AR overlay and the guidance handed to the driver."""
