@@ -245,7 +245,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         # What Ctrl-C left and how to go on: the command's set_defaults(interrupted=...).
         # The workers were stopped and temporary folders removed on the way up.
-        print(f"interrupted: {getattr(args, 'interrupted', 'nothing half-written was kept')}", file=sys.stderr)
+        hint = getattr(args, "interrupted", None)
+        print("interrupted" + (f": {hint}" if hint else ""), file=sys.stderr)
         return 130
     except (ScenarioError, UsageError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -71,6 +71,23 @@ def test_killed_worker_costs_its_seed_only_and_a_rerun_completes_it(tmp_path):
 
 
 @pytest.mark.slow
+def test_dataset_loses_only_the_seed_whose_worker_died(tmp_path):
+    out = tmp_path / "dataset"
+    proc = _vcfusion("dataset", _tiny(tmp_path, max_time_s=60), "--seeds", "0-3", "--workers", "2", "--out", out)
+    marker = out / "runs" / "running" / "seed_0001.pid"
+    wait_for(marker)
+    os.kill(int(marker.read_text()), signal.SIGKILL)
+    stdout, stderr = proc.communicate(timeout=300)
+    assert proc.returncode == 1, stderr
+    assert "Traceback" not in stderr
+    assert "seed 1: worker process died (signal 9: SIGKILL)" in stdout
+    assert json.loads((out / "runs" / "failures.json").read_text()) == {"1": "worker process died (signal 9: SIGKILL)"}
+    splits = json.loads((out / "dataset.json").read_text())["splits"]
+    assert sorted(sum(splits.values(), [])) == [0, 2, 3]
+    assert _complete(out / "runs") == [0, 2, 3] and _leftovers(out / "runs") == []
+
+
+@pytest.mark.slow
 def test_ctrl_c_during_a_run_leaves_no_folder_and_says_how_to_go_on(tmp_path):
     scratch = tmp_path / "tmp"
     scratch.mkdir()
