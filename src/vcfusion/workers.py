@@ -92,8 +92,13 @@ def _serve(task: Callable, conn, scratch: str) -> None:
                 result = task(*job)
             except Exception as exc:  # the job fails, the worker goes on
                 result = JobFailed(f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}")
-            conn.send(result)
-    except (EOFError, BrokenPipeError):
+            try:
+                conn.send(result)
+            except (EOFError, OSError):
+                raise
+            except Exception as exc:  # a result that cannot be pickled (nothing was sent yet)
+                conn.send(JobFailed(f"the job's result could not be sent back: {type(exc).__name__}: {exc}"))
+    except (EOFError, OSError):
         pass  # the parent closed the pipe or went away: exit quietly
     except KeyboardInterrupt:
         sys.exit(INTERRUPTED_EXIT)  # quietly, and telling the parent why
@@ -103,7 +108,8 @@ class _Worker:
     def __init__(self, ctx, task: Callable):
         self.scratch = tempfile.mkdtemp(prefix="vcfusion-worker-")
         self.conn, child_end = ctx.Pipe()
-        self.process = ctx.Process(target=_serve, args=(task, child_end, self.scratch), daemon=True)
+        # not daemonic, as a concurrent.futures worker: a job may start processes of its own
+        self.process = ctx.Process(target=_serve, args=(task, child_end, self.scratch))
         self.process.start()
         child_end.close()
         self.job: int | None = None  # index of the job it runs
@@ -161,8 +167,9 @@ def _hand_over(w: _Worker, pending: deque, jobs: Sequence[tuple], on_start) -> N
 
 
 def _collect(w: _Worker) -> tuple[int, object] | None:
-    """(job, result) when worker `w` sent one, else None (nothing yet, or the pipe closed)."""
-    if w.job is None or w.pipe_closed or not w.conn.poll():
+    """(job, result) when worker `w` sent one, else None (nothing yet, or the pipe closed: an
+    idle worker sends nothing, so a readable pipe of one means it died)."""
+    if w.pipe_closed or not w.conn.poll():
         return None
     try:
         value = w.conn.recv()
@@ -195,7 +202,10 @@ def _stop(pool: list[_Worker]) -> None:
     with _sigint_ignored():
         for w in pool:
             if w.job is not None and w.process.is_alive():
-                os.kill(w.process.pid, signal.SIGINT)  # its job removes its partial outputs
+                try:
+                    os.kill(w.process.pid, signal.SIGINT)  # its job removes its partial outputs
+                except ProcessLookupError:
+                    pass  # it has just ended
             w.conn.close()  # an idle worker reads the end of its pipe and exits
         deadline = time.monotonic() + STOP_GRACE_S
         for w in pool:

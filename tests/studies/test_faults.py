@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pandas as pd
@@ -95,6 +96,7 @@ def test_ctrl_c_during_a_run_leaves_no_folder_and_says_how_to_go_on(tmp_path):
     proc = _vcfusion("run", _tiny(tmp_path, max_time_s=3000), "--out", out, env=os.environ | {"TMPDIR": str(scratch)})
     while not list(scratch.glob("vcfusion-run-*")):  # the run's tables are being written
         assert proc.poll() is None, proc.communicate()
+        time.sleep(0.01)
     os.kill(proc.pid, signal.SIGINT)
     stdout, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 130

@@ -269,6 +269,13 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
     finally:
         bar.close()
     failed.sort()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    # as a batch's: the failed trips and their causes (the command then exits with 1)
+    if failed:
+        write_json(out / "failures.json", {str(s): e for s, e in failed})
+    else:
+        (out / "failures.json").unlink(missing_ok=True)
     if not rows:
         raise StudyError(f"all {len(seeds)} trips failed; first error: {failed[0][1] if failed else '?'}")
     table = pd.DataFrame(rows).sort_values(["seed", "arm"]).reset_index(drop=True)
@@ -291,8 +298,6 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
         "trips_with_target": int(on["target_id"].notna().sum()),
         "mean_response_gain_s": float(gain.mean()) if len(gain) else math.nan, "response_pairs": int(len(gain)),
     }
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     write_table(out / "trips.parquet", table)
     tmp = out / "trips.csv.tmp"
     table.to_csv(tmp, index=False)
@@ -303,11 +308,6 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
     text = format_summary(summary, info)
     write_json(out / "summary.json", info | {"metrics": json.loads(summary.to_json(orient="records")),
                                              "failed": {str(s): e for s, e in failed}})
-    # as a batch's: the failed trips and their causes (the command then exits with 1)
-    if failed:
-        write_json(out / "failures.json", {str(s): e for s, e in failed})
-    else:
-        (out / "failures.json").unlink(missing_ok=True)
     (out / "summary.txt").write_text(text + "\n")
     figures = plot_figures(table, summary, Path(renders), info["guidance_source"].split(" ")[0])
     return {"info": info, "summary": summary, "text": text, "figures": figures, "trips": table, "failed": failed}
