@@ -284,3 +284,28 @@ def test_end_of_run_steps_keep_to_what_they_declare(tmp_path):
 
     with pytest.raises(WiringError, match="needs table 'driver' at the end of the run, which no earlier stage writes"):
         CoSimulation(sc, 0, controller=IdmController.for_scenario(sc), hooks=[WantsTable({})])
+
+
+def test_process_models_declare_their_end_of_run_step(tmp_path):
+    """The cloud predictor's lane_change_flags come from its own finish, declared like a hook's."""
+    from vcfusion.run import build_cosimulation
+
+    sc = _scenario(tmp_path)
+    cosim = build_cosimulation(sc, 0)
+    (name, predictor), = cosim.process_models
+    assert predictor.finish_summary == ("lane_change_flags",)
+
+    class AlsoFlags:
+        table = "also"
+        finish_summary = ("lane_change_flags",)
+
+        def __call__(self, tick):
+            return None
+
+        def finish(self, tables, summary):
+            pass
+
+    with pytest.raises(WiringError, match=r"summary key 'lane_change_flags' is already written by "
+                                          r"process model lane_change \(LaneChangePredictor\)"):
+        CoSimulation(sc, 0, controller=cosim.controller, process_models=cosim.process_models,
+                     hooks=cosim.hooks + [AlsoFlags()])

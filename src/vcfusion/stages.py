@@ -26,7 +26,7 @@ LOOP_FIELDS = ("time", "truth", "twins")
 EGO_FIELDS = ("ego", "neighbours")
 STAGE_FIELDS = ("frame", "detections", "guidance")
 TICK_FIELDS = LOOP_FIELDS + EGO_FIELDS + STAGE_FIELDS
-# Tables and summary keys of every run (cosim.CoSimulation.run)
+# Tables every run writes before the stages' finish steps (cosim.CoSimulation.run)
 CORE_TABLES = ("trajectories", "twins", "ego", "vehicles", "collisions", "lane_changes")
 
 
@@ -43,9 +43,10 @@ def declared(stage, attribute: str) -> tuple[str, ...]:
     return tuple(getattr(stage, attribute, ()) or ())
 
 
-def check_wiring(process_models: list, hooks: list, controller, has_ego: bool) -> None:
-    """Raise :class:`WiringError` unless every stage's inputs come from the loop or an earlier stage."""
-    stages = [(f"process model {stage_name(m)}", m) for m in process_models]
+def check_wiring(process_models: list[tuple[str, object]], hooks: list, controller, has_ego: bool) -> None:
+    """Raise :class:`WiringError` unless every stage's inputs come from the loop or an earlier stage.
+    `process_models`: (name, model) pairs, as the twin store takes them."""
+    stages = [(f"process model {name} ({stage_name(m)})", m) for name, m in process_models]
     stages += [(f"tick hook {k} ({stage_name(h)})", h) for k, h in enumerate(hooks)]
     if controller is not None:
         stages.append((f"controller {stage_name(controller)}", controller))
