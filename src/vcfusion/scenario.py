@@ -72,13 +72,27 @@ class FusionConfig(_Strict):
     """Vision-cloud fusion: detector, depth evaluation (Algorithm 1) and twin-to-box matching."""
 
     enabled: bool = False
-    detector: Literal["cnn", "oracle"] = "cnn"
-    # weights of the cnn detector (relative to the scenario file); default: the shipped model
+    detector: Literal["cnn", "oracle", "onnx-yolo"] = "cnn"
+    # weights of the cnn detector (relative to the scenario file); default: the shipped model.
+    # onnx-yolo: the user's YOLO exported by Ultralytics to ONNX (required; read by OpenCV DNN)
     weights: Path | None = None
+    # onnx-yolo: the model's input size (width, height) and the COCO classes kept as vehicles
+    yolo_input_px: tuple[Annotated[int, Field(ge=32, le=4096)], Annotated[int, Field(ge=32, le=4096)]] = (640, 640)
+    yolo_classes: Annotated[tuple[str, ...], Field(min_length=1)] = ("car", "bus", "truck")
     method: Literal["baseline", "baseline_centre", "paper", "joint"] = "joint"
     depth_th: Annotated[float, Field(gt=0.0, le=1.0)] = 0.8
     depth_samples: Annotated[int, Field(ge=1)] = 30
     depth_reducer: Literal["mean", "median"] = "mean"
+
+    @model_validator(mode="after")
+    def _yolo(self) -> "FusionConfig":
+        if self.detector == "onnx-yolo":
+            if self.weights is None:
+                raise ValueError("weights: expected the ONNX file of the YOLO model with detector: onnx-yolo")
+            from vcfusion.detection.detectors import coco_column_categories
+
+            coco_column_categories(self.yolo_classes)  # names checked here, with the known ones in the message
+        return self
 
 
 class CameraConfig(_Strict):

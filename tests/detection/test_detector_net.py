@@ -59,6 +59,7 @@ def test_onnx_through_opencv_equals_torch(trained):
         image = read_rgb(image_path)
         ref = torch_det.dense(image)
         got, _ = onnx_det.dense(image)
+        got = got[0]
         assert got.shape == ref.shape == ((64 // 4) * (96 // 4), 4 + 2)
         np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-4)
         a, b = torch_det.detect(image), onnx_det.detect(image)
@@ -89,6 +90,7 @@ def test_onnx_loader_accepts_transposed_and_objectness_layouts(trained):
     det = OnnxDetector(path, net.input_wh, net.class_ids, PostParams(score_threshold=0.2))
     image = read_rgb(load_coco(data).images[0])
     dense, _ = det.dense(image)
+    dense = dense[0]
     ref = det.detect(image)
     # a YOLOv8-style (1, 4 + C, N) output gives the same detections
     det.net = FixedOutputNet(dense.T[None].copy())
@@ -102,7 +104,7 @@ def test_onnx_loader_accepts_transposed_and_objectness_layouts(trained):
     np.testing.assert_allclose(np.sort(got_obj.scores), np.sort(ref.scores * 0.5)[-len(got_obj):], rtol=1e-5)
     # a wrong number of classes is refused with the layout in the message
     bad = OnnxDetector(path, net.input_wh, [1, 2, 3])
-    with pytest.raises(DetectorFileError, match="values per candidate"):
+    with pytest.raises(DetectorFileError, match="class values per candidate"):
         bad.detect(image)
 
 
@@ -122,3 +124,56 @@ def test_bad_files_get_one_clear_error(tmp_path):
                                                        "categories": [{"id": 1}]}))
     with pytest.raises(DetectorFileError, match=r"annotations\[0\]"):
         load_coco(data)
+
+
+def test_ultralytics_layout_through_opencv_equals_the_torch_model(trained, tmp_path):
+    """Our network behind an Ultralytics-layout head (1, 84, N), exported to ONNX and read by
+    OnnxDetector.ultralytics through OpenCV DNN, gives the boxes the torch model gives on the
+    same letterboxed frames (decoded here independently of the package's decoder)."""
+    pytest.importorskip("onnx")
+    import torch
+
+    from support.ultralytics_head import COCO_CAR, COCO_TRUCK, UltralyticsHead, export_ultralytics_layout
+    from vcfusion.detection.detector_net import letterbox
+    from vcfusion.detection.detectors import nms
+
+    root, data, net, _ = trained
+    input_wh = (128, 128)  # 96x64 frames: scale 4/3, 21 rows of padding above, 22 below
+    path = tmp_path / "yolo.onnx"
+    export_ultralytics_layout(net.model, input_wh, path)
+    params = PostParams(score_threshold=0.3, nms_iou=0.7)
+    det = OnnxDetector.ultralytics(path, input_wh, keep=("car", "truck"), params=params)
+    head = UltralyticsHead(net.model).eval()
+    n_boxes = 0
+    for image_path in load_coco(data).images[:4]:
+        image = read_rgb(image_path)
+        canvas, box = letterbox(image, input_wh)
+        assert (box.pad_x, box.pad_y) == (0, 21)
+        with torch.inference_mode():
+            ref = head(torch.from_numpy(canvas.transpose(2, 0, 1)[None].astype(np.float32) / 255.0))[0].numpy().T
+        raw, _ = det.dense(image)
+        assert raw.shape == (1, 84, (128 // 4) ** 2)
+        np.testing.assert_allclose(raw[0].T, ref, rtol=1e-4, atol=1e-4)
+        # the torch model's boxes: best class car or truck, score threshold, NMS per class,
+        # then back through the letterbox into the frame (pixel-centre convention: - 0.5)
+        cls = ref[:, 4:].argmax(axis=1)
+        score = ref[np.arange(len(ref)), 4 + cls]
+        sel = np.flatnonzero(np.isin(cls, [COCO_CAR, COCO_TRUCK]) & (score >= 0.3))
+        cx = (ref[sel, 0] - box.pad_x) / box.sx
+        cy = (ref[sel, 1] - box.pad_y) / box.sy
+        w, h = ref[sel, 2] / box.sx, ref[sel, 3] / box.sy
+        boxes = np.stack([cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2], axis=1) - 0.5
+        boxes[:, [0, 2]] = boxes[:, [0, 2]].clip(-0.5, image.shape[1] - 0.5)
+        boxes[:, [1, 3]] = boxes[:, [1, 3]].clip(-0.5, image.shape[0] - 0.5)
+        expected = []
+        for c, ours in ((COCO_CAR, 1), (COCO_TRUCK, 2)):
+            k = np.flatnonzero(cls[sel] == c)
+            expected += [(ours, *boxes[k[i]]) for i in nms(boxes[k], score[sel][k], 0.7)]
+        got = det.detect(image)
+        assert len(got) == len(expected)
+        n_boxes += len(got)
+        order = np.lexsort((got.boxes[:, 1], got.boxes[:, 0], got.classes))
+        exp = np.array(sorted(expected, key=lambda r: (r[0], r[1], r[2]))).reshape(-1, 5)
+        np.testing.assert_array_equal(got.classes[order], exp[:, 0])
+        np.testing.assert_allclose(got.boxes[order], exp[:, 1:], atol=1e-2)
+    assert n_boxes >= 4  # the trained model finds the rectangles in the letterboxed frames too

@@ -49,11 +49,19 @@ def _make_detector(args):
     from vcfusion.detection.detector_net import DetectorFileError, OnnxDetector, TorchDetector, default_weights_path
 
     try:
+        if args.onnx and args.layout == "ultralytics":
+            keep = tuple(c.strip() for c in args.keep.split(","))
+            try:
+                return OnnxDetector.ultralytics(args.onnx, parse_size(args.input_size or "640x640", "--input-size"), keep)
+            except ValueError as exc:
+                if isinstance(exc, DetectorFileError):
+                    raise
+                raise UsageError(f"--keep: {exc}") from None
         if args.onnx:
             if not args.classes:
                 raise UsageError("--classes: expected the category ids of the ONNX model's score columns, e.g. 1,2")
             class_ids = [int(c) for c in args.classes.split(",")]
-            return OnnxDetector(args.onnx, parse_size(args.input_size, "--input-size"), class_ids,
+            return OnnxDetector(args.onnx, parse_size(args.input_size or "320x240", "--input-size"), class_ids,
                                 scale=args.scale, objectness=args.objectness, letterbox=args.letterbox)
         return TorchDetector(args.weights or default_weights_path())
     except DetectorFileError as exc:
@@ -121,8 +129,13 @@ def add_parsers(sub) -> None:
         p.add_argument("data", nargs="+", help="COCO folder(s)")
         p.add_argument("--weights", help="our weights file (default: the shipped detector)")
         p.add_argument("--onnx", help="an ONNX detector run through OpenCV DNN instead")
-        p.add_argument("--input-size", default="320x240", help="ONNX input WIDTHxHEIGHT")
-        p.add_argument("--classes", help="ONNX: category ids of the score columns, e.g. 1,2")
+        p.add_argument("--layout", choices=("vcfusion", "ultralytics"), default="vcfusion",
+                       help="ONNX output layout: ours (export-onnx) or an Ultralytics YOLO export "
+                            "(letterboxed RGB/255 input, output (1, 4 + 80, N), COCO classes)")
+        p.add_argument("--input-size", default=None,
+                       help="ONNX input WIDTHxHEIGHT (default 320x240 for ours, 640x640 for ultralytics)")
+        p.add_argument("--keep", default="car,bus,truck", help="ultralytics: COCO classes kept as vehicles")
+        p.add_argument("--classes", help="vcfusion layout: category ids of the score columns, e.g. 1,2")
         p.add_argument("--scale", type=float, default=1.0, help="ONNX: input scale (1/255 for most YOLO exports)")
         p.add_argument("--objectness", action="store_true", help="ONNX: output has an objectness column (YOLOv5)")
         p.add_argument("--letterbox", action="store_true", help="ONNX: letterbox instead of stretch")

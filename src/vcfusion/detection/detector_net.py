@@ -9,9 +9,10 @@ Dense output (what :func:`export_onnx` writes and :class:`OnnxDetector` expects,
 one tensor (1, N, 4 + C): per candidate, box centre x, centre y, width, height in network-input
 pixels, then the C class scores in [0, 1]. Our export keeps only local heatmap peaks (3x3 max, the
 CenterNet decoding) and zeroes the other scores, so a threshold plus NMS finishes the job. A YOLO
-export of the usual kind fits the same loader: (1, 4 + C, N) is transposed, and with
-``objectness=True`` the layout (1, N, 5 + C) with an objectness column before the class scores
-(YOLOv5) is accepted.
+export of the usual kind fits the same loader (:func:`decode_yolo_output`): the Ultralytics layout
+(1, 4 + C, N) with a letterboxed RGB / 255 input (:meth:`OnnxDetector.ultralytics`, COCO classes
+car, bus, truck kept), and with ``objectness=True`` (1, N, 5 + C) with an objectness column before
+the class scores (YOLOv5).
 
 Training (:func:`train_detector`, ``vcfusion train-detector DATA --out WEIGHTS``) reads a COCO
 dataset folder (RGB PNGs and a COCO JSON with images, annotations (bbox x, y, w, h; category_id)
@@ -31,7 +32,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from vcfusion.detection.detectors import Detections, batched_nms
+from vcfusion.detection.detectors import (COCO80_NAMES, YOLO_DEFAULT_CLASSES, Detections, batched_nms,  # noqa: F401
+                                          coco_column_categories)
 
 WEIGHTS_FORMAT = "vcfusion-centernet-v1"
 STRIDE = 4
@@ -126,13 +128,10 @@ def preprocess(image: np.ndarray, input_wh: tuple[int, int]) -> np.ndarray:
 
 
 def postprocess(dense: np.ndarray, image_hw: tuple[int, int], input_wh: tuple[int, int], class_ids,
-                params: PostParams, objectness: bool = False) -> Detections:
-    """Dense (N, 4 + C) or (N, 5 + C) rows (cx, cy, w, h in input px) -> detections in image px."""
+                params: PostParams) -> Detections:
+    """Dense (N, 4 + C) rows (cx, cy, w, h in input px, class scores) -> detections in image px."""
     dense = np.asarray(dense, dtype=np.float32)
-    if objectness:
-        cls_scores = dense[:, 5:] * dense[:, 4:5]
-    else:
-        cls_scores = dense[:, 4:]
+    cls_scores = dense[:, 4:]
     cls = cls_scores.argmax(axis=1)
     score = cls_scores[np.arange(len(dense)), cls]
     keep = np.flatnonzero(score >= params.score_threshold)
@@ -227,13 +226,82 @@ def export_onnx(net: DetectorModel, path, opset: int = 17) -> Path:
     return path
 
 
-class OnnxDetector:
-    """A user's ONNX detector run through OpenCV's DNN module.
+@dataclass(frozen=True)
+class Letterbox:
+    """Where an image sits in a letterboxed network input: input = image * (sx, sy) + (pad_x, pad_y)
+    in pixel-edge coordinates."""
 
-    Expected model: input (1, 3, h, w) RGB (``scale`` multiplies 0..255 values first, e.g. 1/255 for
-    most YOLO exports); one output in the "yolo" layout documented at the top of this module.
-    ``class_ids`` maps the score columns to category ids. Images are stretched to (w, h), or
-    letterboxed (grey 114 padding, as Ultralytics exports expect) with ``letterbox=True``.
+    sx: float
+    sy: float
+    pad_x: int
+    pad_y: int
+
+
+def letterbox(image: np.ndarray, input_wh: tuple[int, int]) -> tuple[np.ndarray, Letterbox]:
+    """Ultralytics' letterbox (``LetterBox(auto=False)``): scale to fit keeping the aspect ratio
+    (bilinear), centre, pad with grey 114; the same rounding, so the padding matches theirs."""
+    w, h = input_wh
+    ih, iw = image.shape[:2]
+    r = min(w / iw, h / ih)
+    nw, nh = int(round(iw * r)), int(round(ih * r))
+    dw, dh = (w - nw) / 2, (h - nh) / 2
+    top, left = int(round(dh - 0.1)), int(round(dw - 0.1))
+    canvas = np.full((h, w, 3), 114, np.uint8)
+    resized = image if (nw, nh) == (iw, ih) else cv2.resize(image, (nw, nh), interpolation=cv2.INTER_LINEAR)
+    canvas[top:top + nh, left:left + nw] = resized
+    return canvas, Letterbox(nw / iw, nh / ih, left, top)
+
+
+def decode_yolo_output(out: np.ndarray, columns, image_hw: tuple[int, int], input_wh: tuple[int, int],
+                       params: PostParams = PostParams(), objectness: bool = False,
+                       box: Letterbox | None = None, source: str = "output") -> Detections:
+    """One YOLO-style output -> detections in image pixels.
+
+    ``out``: (1, N, K) or (1, K, N) (or without the batch axis) with K = 4 [+ 1 objectness] + C:
+    box centre x, centre y, width, height in network-input pixels, then the C class scores.
+    ``columns``: category id per class column, -1 for classes to drop. A candidate's class is its
+    best column (as Ultralytics' NMS picks it); candidates whose best class is dropped are dropped.
+    ``box``: the letterbox that made the input (None: the image was stretched to ``input_wh``).
+    """
+    out = np.asarray(out, dtype=np.float32)
+    if out.ndim == 3 and out.shape[0] == 1:
+        out = out[0]
+    width = 4 + len(columns) + (1 if objectness else 0)
+    if out.ndim != 2 or width not in out.shape:
+        raise DetectorFileError(f"{source}: expected (1, N, {width}) or (1, {width}, N) (4 box + "
+                                f"{'1 objectness + ' if objectness else ''}{len(columns)} class values per "
+                                f"candidate), got shape {out.shape}")
+    if out.shape[1] != width:
+        out = out.T  # Ultralytics: (4 + C, N)
+    columns = np.asarray(columns, dtype=np.int64)
+    cls_scores = out[:, 5:] * out[:, 4:5] if objectness else out[:, 4:]
+    best = cls_scores.argmax(axis=1) if len(out) else np.zeros(0, np.int64)
+    wanted = columns[best] >= 0
+    if box is not None:
+        # back to the image's pixel-edge coordinates; then postprocess works at scale 1
+        out = out.copy()
+        out[:, 0] = (out[:, 0] - box.pad_x) / box.sx
+        out[:, 1] = (out[:, 1] - box.pad_y) / box.sy
+        out[:, 2] /= box.sx
+        out[:, 3] /= box.sy
+        input_wh = (image_hw[1], image_hw[0])
+    rows = np.concatenate([out[wanted, :4], cls_scores[wanted] * (columns >= 0)], axis=1)
+    kept = columns.copy()
+    kept[kept < 0] = 0  # never chosen: their scores were zeroed above
+    return postprocess(rows, image_hw, input_wh, kept, params)
+
+
+class OnnxDetector:
+    """An ONNX detector run through OpenCV's DNN module, for two layouts:
+
+    - ours (:func:`export_onnx`): input (1, 3, h, w) RGB 0..255, image stretched to (w, h);
+      output (1, N, 4 + C); ``class_ids`` maps the score columns to category ids;
+    - the common Ultralytics export (:meth:`ultralytics`): input RGB / 255, letterboxed
+      (grey 114); output (1, 4 + 80, N) for COCO-trained models; car, bus, truck kept by default.
+
+    Other exports fit through the options: ``scale`` multiplies the 0..255 input, ``letterbox``
+    pads instead of stretching, ``objectness`` reads (1, N, 5 + C) (YOLOv5). A ``class_ids``
+    entry -1 drops that class. The output's orientation is recognised from its shape.
     """
 
     def __init__(self, path, input_wh: tuple[int, int], class_ids, params: PostParams = PostParams(),
@@ -253,43 +321,32 @@ class OnnxDetector:
         self.objectness = objectness
         self.letterbox = letterbox
 
-    def dense(self, image: np.ndarray) -> tuple[np.ndarray, tuple[float, float, float]]:
-        w, h = self.input_wh
+    @classmethod
+    def ultralytics(cls, path, input_wh: tuple[int, int] = (640, 640), keep=YOLO_DEFAULT_CLASSES,
+                    names=COCO80_NAMES, params: PostParams = PostParams()) -> "OnnxDetector":
+        """A YOLO exported by Ultralytics (``yolo export format=onnx``; v8 and later)."""
+        return cls(path, input_wh, coco_column_categories(keep, names), params, scale=1 / 255, letterbox=True)
+
+    def dense(self, image: np.ndarray) -> tuple[np.ndarray, Letterbox | None]:
+        """The network's raw output for an image and the letterbox used (None: stretched)."""
         if self.letterbox:
-            r = min(w / image.shape[1], h / image.shape[0])
-            nw, nh = round(image.shape[1] * r), round(image.shape[0] * r)
-            canvas = np.full((h, w, 3), 114, np.uint8)
-            px, py = (w - nw) // 2, (h - nh) // 2
-            canvas[py:py + nh, px:px + nw] = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA)
-            blob, geom = canvas.transpose(2, 0, 1)[None].astype(np.float32), (r, px, py)
+            canvas, geom = letterbox(image, self.input_wh)
+            blob = canvas.transpose(2, 0, 1)[None].astype(np.float32)
         else:
             blob, geom = preprocess(image, self.input_wh), None
-        self.net.setInput(np.ascontiguousarray(blob * self.scale))
-        out = np.asarray(self.net.forward())
-        if out.ndim == 3:
-            out = out[0]
-        if out.ndim != 2:
-            raise DetectorFileError(f"{self.path}: output: expected (1, N, 4 + C) or (1, 4 + C, N), got {out.shape}")
-        width = 4 + len(self.class_ids) + (1 if self.objectness else 0)
-        if out.shape[1] != width and out.shape[0] == width:
-            out = out.T
-        if out.shape[1] != width:
-            raise DetectorFileError(f"{self.path}: output: expected {width} values per candidate "
-                                    f"(4 box + {'1 objectness + ' if self.objectness else ''}{len(self.class_ids)} classes), "
-                                    f"got shape {out.shape}")
+        self.net.setInput(np.ascontiguousarray(blob * np.float32(self.scale)))
+        try:
+            out = np.asarray(self.net.forward())
+        except cv2.error as exc:
+            raise DetectorFileError(f"{self.path}: OpenCV DNN failed on a (1, 3, {self.input_wh[1]}, "
+                                    f"{self.input_wh[0]}) input (is that the model's input size?): "
+                                    f"{str(exc).strip()[:200]}") from None
         return out, geom
 
     def detect(self, image: np.ndarray) -> Detections:
-        dense, geom = self.dense(image)
-        if geom is None:
-            return postprocess(dense, image.shape[:2], self.input_wh, self.class_ids, self.params, self.objectness)
-        r, px, py = geom
-        dense = dense.copy()
-        dense[:, 0] = (dense[:, 0] - px) / r
-        dense[:, 1] = (dense[:, 1] - py) / r  # pixel-edge coordinates of the image
-        dense[:, 2:4] /= r
-        ih, iw = image.shape[:2]
-        return postprocess(dense, (ih, iw), (iw, ih), self.class_ids, self.params, self.objectness)
+        out, geom = self.dense(image)
+        return decode_yolo_output(out, self.class_ids, image.shape[:2], self.input_wh, self.params,
+                                  self.objectness, geom, source=f"{self.path}: output")
 
 
 def default_weights_path() -> Path:

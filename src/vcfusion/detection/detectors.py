@@ -81,6 +81,46 @@ def batched_nms(boxes, scores, classes, iou_threshold: float) -> np.ndarray:
     return keep[np.argsort(-np.asarray(scores)[keep], kind="stable")]
 
 
+# The 80 class names of the COCO detection benchmark in the column order of Ultralytics (and
+# most YOLO) exports trained on COCO.
+COCO80_NAMES = (
+    "person", "bicycle", "car", "motorcycle", "airplane", "bus", "train", "truck", "boat", "traffic light",
+    "fire hydrant", "stop sign", "parking meter", "bench", "bird", "cat", "dog", "horse", "sheep", "cow",
+    "elephant", "bear", "zebra", "giraffe", "backpack", "umbrella", "handbag", "tie", "suitcase", "frisbee",
+    "skis", "snowboard", "sports ball", "kite", "baseball bat", "baseball glove", "skateboard", "surfboard",
+    "tennis racket", "bottle", "wine glass", "cup", "fork", "knife", "spoon", "bowl", "banana", "apple",
+    "sandwich", "orange", "broccoli", "carrot", "hot dog", "pizza", "donut", "cake", "chair", "couch",
+    "potted plant", "bed", "dining table", "toilet", "tv", "laptop", "mouse", "remote", "keyboard", "cell phone", "microwave",
+    "oven", "toaster", "sink", "refrigerator", "book", "clock", "vase", "scissors", "teddy bear", "hair drier",
+    "toothbrush")
+assert len(COCO80_NAMES) == 80
+YOLO_DEFAULT_CLASSES = ("car", "bus", "truck")
+# COCO class names whose vcfusion category (vcfusion.render.coco.CATEGORIES) has another name
+_CATEGORY_OF_COCO = {"car": "passenger"}
+
+
+def coco_column_categories(keep=YOLO_DEFAULT_CLASSES, names=COCO80_NAMES) -> list[int]:
+    """Category id per score column of a COCO-trained YOLO: our id for the kept classes, -1 for
+    the others (their candidates are dropped)."""
+    from vcfusion.render.coco import CATEGORIES  # the dataset's fixed category ids
+
+    keep = list(keep)
+    unknown = [k for k in keep if k not in names]
+    if unknown or not keep:
+        raise ValueError(f"classes: expected COCO class names such as car, bus, truck, got {unknown or keep}")
+    columns = []
+    for name in names:
+        if name not in keep:
+            columns.append(-1)
+            continue
+        ours = _CATEGORY_OF_COCO.get(name, name)
+        if ours not in CATEGORIES:
+            raise ValueError(f"classes: COCO class {name!r} has no vcfusion category "
+                             f"(kept classes must be one of car, {', '.join(c for c in CATEGORIES if c != 'passenger')})")
+        columns.append(CATEGORIES.index(ours) + 1)
+    return columns
+
+
 class OracleDetector:
     """Ground-truth boxes as detections (score 1), for ablations of the matchers.
 

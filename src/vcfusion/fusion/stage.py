@@ -98,9 +98,11 @@ def build_detector(scenario: Scenario, seed: int):
     cfg = scenario.fusion
     if cfg.detector == "oracle":
         return OracleDetector()
-    from vcfusion.detection.detector_net import DetectorFileError, TorchDetector, default_weights_path
+    from vcfusion.detection.detector_net import DetectorFileError, OnnxDetector, TorchDetector, default_weights_path
 
     try:
+        if cfg.detector == "onnx-yolo":
+            return OnnxDetector.ultralytics(cfg.weights, tuple(cfg.yolo_input_px), cfg.yolo_classes)
         return TorchDetector(cfg.weights or default_weights_path())
     except DetectorFileError as exc:
         raise ScenarioError(f"{scenario.source}: fusion.weights: {exc}") from None
