@@ -104,6 +104,22 @@ def cmd_export_onnx(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_render_scenes(args: argparse.Namespace) -> int:
+    from vcfusion.detection.scenes import FAMILIES, render_scenes
+    from vcfusion.scenario import load_scenario
+    from vcfusion.studies.batch import parse_seeds
+
+    if args.family not in FAMILIES:
+        raise UsageError(f"--family: expected one of {', '.join(FAMILIES)}, got {args.family!r}")
+    seeds = parse_seeds(args.seeds)
+    scenario = load_scenario(args.scenario)
+    if Path(args.out).exists():
+        raise UsageError(f"--out: {args.out} already exists; choose a new dataset folder")
+    counts = render_scenes(scenario, args.family, seeds, Path(args.out), progress=sys.stderr.isatty())
+    print(f"rendered {counts['images']} {args.family} scenes, {counts['annotations']} boxes -> {args.out}")
+    return 0
+
+
 def add_parsers(sub) -> None:
     """The vision subcommands, added to the `vcfusion` parser."""
     p = sub.add_parser("train-detector", help="train the CNN detector on a COCO dataset folder")
@@ -142,6 +158,14 @@ def add_parsers(sub) -> None:
         p.add_argument("--min-area", type=float, default=100.0,
                        help="ignore ground truth below this many px^2 (COCOeval area range; 0 = all)")
         p.set_defaults(func=func)
+
+    p = sub.add_parser("render-scenes", help="render procedural scenes (no SUMO run) into a COCO dataset folder")
+    p.add_argument("--family", default="train",
+                   help="train (the training sampler) or a held-out family: jam, far_chain, cut_in, truck_occlusion")
+    p.add_argument("--seeds", required=True, help="scene seeds, e.g. 0-1999 (each family has its own scenes per seed)")
+    p.add_argument("--out", required=True, help="dataset folder to create")
+    p.add_argument("--scenario", default="scenarios/overlap.yaml", help="scenario giving the road and the camera")
+    p.set_defaults(func=cmd_render_scenes)
 
     p = sub.add_parser("export-onnx", help="export our detector to ONNX (the layout OnnxDetector reads)")
     p.add_argument("--weights", help="weights file (default: the shipped detector)")
