@@ -70,18 +70,31 @@ def _make_detector(args):
 
 def cmd_eval_detector(args: argparse.Namespace) -> int:
     from vcfusion.detection.detector_net import DetectorFileError
-    from vcfusion.detection.detector_train import evaluate_detector, load_coco_many
+    from vcfusion.detection.detector_train import load_coco_many
+    from vcfusion.detection.family_eval import evaluate_families, format_table
 
     detector = _make_detector(args)
     try:
         ds = load_coco_many(args.data)
-        result = evaluate_detector(detector, ds, progress=sys.stderr.isatty(), min_area=args.min_area)
+        results, _ = evaluate_families(detector, ds, min_area=args.min_area, identification=not args.no_identification,
+                                       progress=sys.stderr.isatty())
     except DetectorFileError as exc:
         raise UsageError(str(exc)) from None
-    print(f"{' '.join(args.data)}: {len(ds)} images (boxes >= {args.min_area:g} px^2)  mAP@0.5 {result.map_50:.3f}  mAP@0.5:0.95 {result.map_50_95:.3f}")
+    if not results:
+        raise UsageError(f"{' '.join(args.data)}: annotations: expected at least one ground-truth box")
+    overall = results[-1]  # 'all' when there are several families
+    print(f"{' '.join(args.data)}: {len(ds)} images (boxes >= {args.min_area:g} px^2)  "
+          f"mAP@0.5 {overall.box_map.map_50:.3f}  mAP@0.5:0.95 {overall.box_map.map_50_95:.3f}")
     for cid, name in zip(ds.class_ids, ds.class_names):
-        if cid in result.ap_per_category:
-            print(f"  {name}: AP@0.5:0.95 {result.ap_per_category[cid]:.3f}")
+        if cid in overall.box_map.ap_per_category:
+            print(f"  {name}: AP@0.5:0.95 {overall.box_map.ap_per_category[cid]:.3f}")
+    print(format_table(results))
+    if args.report:
+        from vcfusion.runio import write_json
+
+        write_json(Path(args.report), {"data": [str(d) for d in args.data], "min_area": args.min_area,
+                                       "families": [r.summary() for r in results]})
+        print(f"report: {args.report}")
     return 0
 
 
@@ -157,6 +170,9 @@ def add_parsers(sub) -> None:
         p.add_argument("--letterbox", action="store_true", help="ONNX: letterbox instead of stretch")
         p.add_argument("--min-area", type=float, default=100.0,
                        help="ignore ground truth below this many px^2 (COCOeval area range; 0 = all)")
+        p.add_argument("--no-identification", action="store_true",
+                       help="skip the joint-matcher identification check (oracle vs detector boxes)")
+        p.add_argument("--report", help="also write the per-family figures to this JSON file")
         p.set_defaults(func=func)
 
     p = sub.add_parser("render-scenes", help="render procedural scenes (no SUMO run) into a COCO dataset folder")

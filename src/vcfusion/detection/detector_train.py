@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -35,15 +35,19 @@ class CocoDataset:
     classes: list[np.ndarray]  # per image (G,) category ids
     class_ids: list[int]
     class_names: list[str]
+    # per image: its COCO image record (camera, vehicles, family, ...) and the vehicle_id of each box
+    # (None where the file has none); empty lists where not loaded
+    records: list[dict] = field(default_factory=list)
+    box_vehicle_ids: list[list] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.images)
 
     def subset(self, index) -> "CocoDataset":
         index = list(index)
-        return CocoDataset(self.folder, [self.images[i] for i in index], [self.image_ids[i] for i in index],
-                           [self.boxes[i] for i in index], [self.classes[i] for i in index],
-                           self.class_ids, self.class_names)
+        pick = lambda items: [items[i] for i in index] if items else []  # noqa: E731
+        return CocoDataset(self.folder, pick(self.images), pick(self.image_ids), pick(self.boxes), pick(self.classes),
+                           self.class_ids, self.class_names, pick(self.records), pick(self.box_vehicle_ids))
 
     def ground_truth(self) -> dict:
         return {iid: (b, c) for iid, b, c in zip(self.image_ids, self.boxes, self.classes)}
@@ -77,6 +81,7 @@ def load_coco(folder) -> CocoDataset:
         raise DetectorFileError(f"{path}: categories: expected at least one category")
     class_ids = [int(c["id"]) for c in cats]
     per_image: dict[int, list] = {}
+    vids: dict[int, list] = {}
     for k, ann in enumerate(coco["annotations"]):
         bbox = ann.get("bbox")
         if not (isinstance(bbox, list) and len(bbox) == 4) or ann.get("category_id") not in class_ids:
@@ -87,6 +92,7 @@ def load_coco(folder) -> CocoDataset:
             # COCO's pixel c spans [c, c + 1); our boxes put integer coordinates at pixel centres
             x, y = x - 0.5, y - 0.5
             per_image.setdefault(int(ann["image_id"]), []).append((x, y, x + w, y + h, int(ann["category_id"])))
+            vids.setdefault(int(ann["image_id"]), []).append(ann.get("vehicle_id"))
     images, ids, boxes, classes = [], [], [], []
     for k, img in enumerate(coco["images"]):
         name = img.get("file_name")
@@ -102,7 +108,8 @@ def load_coco(folder) -> CocoDataset:
         classes.append(rows[:, 4].astype(np.int64))
     if not images:
         raise DetectorFileError(f"{path}: images: expected at least one image")
-    return CocoDataset(folder, images, ids, boxes, classes, class_ids, [str(c.get("name", c["id"])) for c in cats])
+    return CocoDataset(folder, images, ids, boxes, classes, class_ids, [str(c.get("name", c["id"])) for c in cats],
+                       list(coco["images"]), [vids.get(int(img["id"]), []) for img in coco["images"]])
 
 
 def load_coco_many(folders) -> CocoDataset:
@@ -119,7 +126,8 @@ def load_coco_many(folders) -> CocoDataset:
     return CocoDataset(first.folder, [p for d in parts for p in d.images],
                        [(k, i) for k, d in enumerate(parts) for i in d.image_ids],  # ids unique across folders
                        [b for d in parts for b in d.boxes], [c for d in parts for c in d.classes],
-                       first.class_ids, first.class_names)
+                       first.class_ids, first.class_names, [r for d in parts for r in d.records],
+                       [v for d in parts for v in d.box_vehicle_ids])
 
 
 def read_rgb(path: Path) -> np.ndarray:

@@ -425,11 +425,18 @@ def mounted_camera(camera, mount: CameraMount):
 # rendering into a COCO dataset folder
 
 
+def _twin_rows(truth: VehicleStates) -> list[dict]:
+    """Every vehicle but the ego, seen or not, with its pose: the twins of the identification check."""
+    return [{"vehicle_id": vid, "footprint_world": [float(truth.x[i]), float(truth.y[i]), float(truth.z[i])],
+             "yaw": float(truth.heading[i]), "size": [float(truth.length[i]), float(truth.width[i]), float(truth.height[i])],
+             "speed": float(truth.speed[i])} for i, vid in enumerate(truth.ids) if vid != EGO_ID]
+
+
 def render_scenes(scenario, family: str, seeds, out, progress: bool = True) -> dict:
     """Render the scenes ``seeds`` of ``family`` on the scenario's road with its camera (mount jittered
     per scene) into a COCO dataset folder laid out as `vcfusion render` writes it (rgb/, depth/,
-    instances/, annotations.json, manifest.json); each image also records ``family``, ``seed`` and
-    its ``scene`` (the recipe: every placed vehicle, seen or not). Written into OUT.tmp-writing and
+    instances/, annotations.json, manifest.json); each image also records ``family``, ``seed``, its
+    ``scene`` (the recipe) and ``twins`` (every placed vehicle, seen or not, with its world pose). Written into OUT.tmp-writing and
     renamed when complete. Returns counts."""
     import json
     from pathlib import Path
@@ -463,7 +470,7 @@ def render_scenes(scenario, family: str, seeds, out, progress: bool = True) -> d
             cv2.imwrite(str(tmp / files["instances"]), (frame.instances + 1).astype("uint16"))
             boxes = ground_truth_boxes(frame, truth, renderer, near=scenario.camera.near_m)
             coco.add(frame, boxes, vehicle_anchors(frame, truth, EGO_ID), files,
-                     extra={"seed": seed, "family": family, "scene": recipe.to_dict()})
+                     extra={"seed": seed, "family": family, "scene": recipe.to_dict(), "twins": _twin_rows(truth)})
         data = coco.to_dict()
         (tmp / "annotations.json").write_text(json.dumps(data))
         write_json(tmp / "manifest.json", {
