@@ -355,8 +355,10 @@ def _held_out_scene(b: _Builder, family: str) -> None:
         shift = float(rng.choice([-1, 1]) * rng.uniform(0.3, 1.6)) if car_lane == lane else None
         b.vehicle(CAR, car_lane, truck.front_m + float(rng.uniform(1.0, 15.0)),
                   lateral_m=None if shift is None else truck.lateral_m + shift)
-        for _ in range(int(rng.integers(0, 3))):
-            b.vehicle(b.kind(), int(rng.integers(r.num_lanes)), _log_uniform(rng, 10.0, MAX_AHEAD_M))
+        # context only in the other lanes, so that nothing nearer hides the pair
+        others = [k for k in range(r.num_lanes) if k not in (lane, car_lane)]
+        for _ in range(int(rng.integers(0, 3)) if others else 0):
+            b.vehicle(b.kind(), int(rng.choice(others)), _log_uniform(rng, 10.0, MAX_AHEAD_M))
     else:
         raise ValueError(f"family: expected one of {', '.join(FAMILIES)}, got {family!r}")
 
