@@ -18,8 +18,13 @@ ONRAMP = NETS / "onramp.net.xml"
 CURVED_ROUTE = ["c01", "c12", "c23", "c34", "c45"]
 MAIN_ROUTE = ["main_in", "accel", "main_out"]
 RAMP_ROUTE = ["ramp", "accel", "main_out"]
-ROUTES = [(CURVED, CURVED_ROUTE), (ONRAMP, MAIN_ROUTE), (ONRAMP, RAMP_ROUTE)]
-ROUTE_IDS = ["curved", "onramp-main", "onramp-ramp"]
+# imported from the hand-written OpenStreetMap extract by build-net (netconvert's --ramps.guess
+# added the acceleration lane as the edge "11-AddedOnRampEdge")
+OSM = NETS / "osm_example.net.xml"
+OSM_MAIN_ROUTE = ["10", "11-AddedOnRampEdge", "11"]
+OSM_RAMP_ROUTE = ["20", "11-AddedOnRampEdge", "11"]
+ROUTES = [(CURVED, CURVED_ROUTE), (ONRAMP, MAIN_ROUTE), (ONRAMP, RAMP_ROUTE), (OSM, OSM_MAIN_ROUTE), (OSM, OSM_RAMP_ROUTE)]
+ROUTE_IDS = ["curved", "onramp-main", "onramp-ramp", "osm-main", "osm-ramp"]
 
 
 @pytest.fixture(scope="module")
@@ -113,11 +118,13 @@ def test_lane_shapes_are_lines_of_constant_d(frames, net, route):
         lane = sumo.getLane(lane_id)
         xy = np.array(lane.getShape())
         s, d = frame.to_frame(xy[:, 0], xy[:, 1])
-        np.testing.assert_allclose(d, frame.lane_centre_d(track, s), atol=0.02, err_msg=lane_id)
+        # junction lanes begin where their incoming edge ends, which may be off the route (a ramp)
+        tolerance = 0.1 if lane_id.startswith(":") else 0.02
+        np.testing.assert_allclose(d, frame.lane_centre_d(track, s), atol=tolerance, err_msg=lane_id)
         mid = 0.5 * (xy[1:] + xy[:-1])  # a lane's end vertex is where the next piece begins
         assert (frame.lane_of(*frame.to_frame(mid[:, 0], mid[:, 1])) == track).all(), lane_id
-        start = frame.route_position(lane_id, 0.0)
-        assert start - 0.3 <= s.min() and s.max() <= start + lane.getLength() + 0.3, lane_id
+        start, slack = frame.route_position(lane_id, 0.0), 0.5 if lane_id.startswith(":") else 0.3
+        assert start - slack <= s.min() and s.max() <= start + lane.getLength() + slack, lane_id
         checked += 1
     assert checked >= 3 * len(route)
 
@@ -138,13 +145,18 @@ def test_s_is_sumos_route_position_and_continuous_across_edges(frames, net, rout
     try:
         for edge in route:
             length = sumo.getEdge(edge).getLength()
+            middle = 0.5 * (len(sumo.getEdge(edge).getLanes()) - 1)
             for lane in sumo.getEdge(edge).getLanes():
                 pos = np.linspace(0.0, length, 40)
                 xy = np.array([libsumo.simulation.convert2D(edge, float(p), lane.getIndex()) for p in pos])
                 s, d = frame.to_frame(xy[:, 0], xy[:, 1])
-                # SUMO spreads each lane's length over its own shape; lanes of one edge are cut at
-                # junctions a few cm apart: agreement to decimetres, exact on the reference lane
-                np.testing.assert_allclose(s, want[edge] + pos, atol=0.25, err_msg=lane.getID())
+                # SUMO spreads each lane's length over that lane's own shape (the frame: over the
+                # middle of the road), and cuts the lanes of an edge at junctions a few cm apart. On
+                # an edge that is part straight, part curved, lanes beside the middle thus disagree
+                # with each other by up to their offset times the edge's turn
+                turn = np.abs(np.diff(np.unwrap(np.arctan2(*np.diff(np.array(lane.getShape()), axis=0).T[::-1])))).sum()
+                offset = abs(lane.getIndex() - middle) * lane.getWidth()
+                np.testing.assert_allclose(s, want[edge] + pos, atol=0.25 + offset * turn / 2, err_msg=lane.getID())
                 assert (np.diff(s) > 0).all()
                 assert (frame.lane_of(s, d)[:-1] == frame.track_of[lane.getID()]).all()  # the end: next piece
     finally:
@@ -276,6 +288,40 @@ def test_route_errors_name_the_problem():
     with pytest.raises(RouteError, match="not one chain of edges"):
         RoadFrame.from_net(ONRAMP)  # the ramp makes the network branch: a route is needed
     assert RoadFrame.from_net(CURVED).route == tuple(CURVED_ROUTE)  # one chain: its route by default
+
+
+def test_osm_import_keeps_the_motorway_and_its_acceleration_lane(frames):
+    """The OpenStreetMap extract imports as the motorway and its on-ramp only (the residential
+    street is dropped); along the main carriageway the guessed acceleration lane is track 0 and
+    ends, the three motorway lanes run through as tracks 1..3."""
+    sumo = sumolib.net.readNet(str(OSM))
+    assert {e.getID() for e in sumo.getEdges()} == {"10", "11-AddedOnRampEdge", "11", "20"}
+    frame = frame_of(frames, OSM, OSM_MAIN_ROUTE)
+    assert [frame.track_of[f"10_{i}"] for i in range(3)] == [1, 2, 3]
+    assert [frame.track_of[f"11_{i}"] for i in range(3)] == [1, 2, 3]
+    accel_start = frame.edge_start_s["11-AddedOnRampEdge"]
+    accel_end = accel_start + sumo.getEdge("11-AddedOnRampEdge").getLength()
+    assert frame.lane_end_ahead(0, accel_start + 10.0) == pytest.approx(accel_end)
+    assert frame.lane_count(np.array([accel_start - 50.0, accel_start + 50.0, accel_end + 50.0])).tolist() == [3, 4, 3]
+
+
+def test_every_network_builds_reproducibly(tmp_path):
+    """build-net rebuilds each committed network (plain XML and the OSM extract) to the same content."""
+    from vcfusion.traffic.network import build_networks, network_names
+
+    assert network_names(NETS) == ["curved", "highway", "onramp", "osm_example"]
+    for source in NETS.iterdir():
+        if not source.name.endswith(".net.xml"):
+            (tmp_path / source.name).write_text(source.read_text())
+    built = build_networks(tmp_path)
+
+    def body(path):  # the header comment carries a timestamp
+        text = path.read_text()
+        return text[text.index("<net "):]
+
+    assert [p.name for p in built] == [f"{n}.net.xml" for n in network_names(NETS)]
+    for path in built:
+        assert body(path) == body(NETS / path.name), path.name
 
 
 def test_equal_frames_compare_equal(frames):

@@ -132,13 +132,33 @@ def netconvert_binary() -> str:
 
 
 def network_names(net_dir: Path = REPO_NET_DIR) -> list[str]:
-    """The networks whose plain-XML sources are in net_dir (NAME.nod.xml + NAME.edg.xml)."""
-    return sorted(p.name[: -len(".nod.xml")] for p in net_dir.glob("*.nod.xml")
-                  if (net_dir / p.name.replace(".nod.xml", ".edg.xml")).exists())
+    """The networks whose sources are in net_dir: plain XML (NAME.nod.xml + NAME.edg.xml) or an
+    OpenStreetMap extract (NAME.osm.xml)."""
+    plain = {p.name[: -len(".nod.xml")] for p in net_dir.glob("*.nod.xml")
+             if (net_dir / p.name.replace(".nod.xml", ".edg.xml")).exists()}
+    osm = {p.name[: -len(".osm.xml")] for p in net_dir.glob("*.osm.xml")}
+    return sorted(plain | osm)
+
+
+# OpenStreetMap import options that keep a highway usable (see README, "Networks"): only the
+# motorway carriageways and their links; geometry-only nodes merged into curved edges; on-ramps
+# given acceleration lanes; clustered junctions joined; traffic-light and roundabout guessing (for
+# extracts that reach ordinary roads); OSM way ids kept as edge parameters; no U-turns.
+OSM_OPTIONS = (
+    "--keep-edges.by-type", "highway.motorway,highway.motorway_link",
+    "--remove-edges.isolated",
+    "--geometry.remove",
+    "--ramps.guess",
+    "--junctions.join",
+    "--tls.guess-signals",
+    "--roundabouts.guess",
+    "--output.original-names",
+)
 
 
 def build_network(net_dir: Path = REPO_NET_DIR, name: str = "highway") -> Path:
-    """Build NAME.net.xml from NAME.nod.xml / .edg.xml, and .typ.xml / .con.xml where present.
+    """Build NAME.net.xml from NAME.nod.xml / .edg.xml, and .typ.xml / .con.xml where present, or
+    from the OpenStreetMap extract NAME.osm.xml (with OSM_OPTIONS).
 
     netconvert runs inside net_dir on relative names, so the header it writes carries no machine
     paths; a rebuilt network whose content is unchanged keeps the existing file (the header's
@@ -146,10 +166,13 @@ def build_network(net_dir: Path = REPO_NET_DIR, name: str = "highway") -> Path:
     """
     out = net_dir / f"{name}.net.xml"
     tmp = net_dir / f"{name}.net.xml.tmp-build"
-    cmd = [netconvert_binary(), "--node-files", f"{name}.nod.xml", "--edge-files", f"{name}.edg.xml"]
-    for option, suffix in (("--type-files", "typ"), ("--connection-files", "con")):
-        if (net_dir / f"{name}.{suffix}.xml").exists():
-            cmd += [option, f"{name}.{suffix}.xml"]
+    if (net_dir / f"{name}.nod.xml").exists():
+        cmd = [netconvert_binary(), "--node-files", f"{name}.nod.xml", "--edge-files", f"{name}.edg.xml"]
+        for option, suffix in (("--type-files", "typ"), ("--connection-files", "con")):
+            if (net_dir / f"{name}.{suffix}.xml").exists():
+                cmd += [option, f"{name}.{suffix}.xml"]
+    else:
+        cmd = [netconvert_binary(), "--osm-files", f"{name}.osm.xml", *OSM_OPTIONS]
     cmd += ["--no-turnarounds", "true", "--output-file", tmp.name]
     try:
         subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=net_dir)

@@ -292,14 +292,19 @@ class RoadFrame:
         self.max_join_gap_m = 0.0
         for i, p in enumerate(pieces):
             shape = _dedupe(p.anchor.shape)
-            seg_len = np.hypot(*np.diff(shape, axis=0).T)
-            geo = np.concatenate([[0.0], np.cumsum(seg_len)])
-            if geo[-1] < 1e-6:
+            if np.hypot(*(shape[-1] - shape[0])) < 1e-6 and len(shape) == 2:
                 continue  # a junction lane of no extent (its length joins the next segment's s)
-            # SUMO spreads a lane's length over its geometry proportionally
-            s_vertices = p.s0 + geo * (p.length / geo[-1])
+            miters = _miters(shape)
             centre_d = bounds[i, p.anchor_track] + p.widths[p.anchor_track] / 2
-            ref = shape - centre_d * _miters(shape)
+            ref = shape - centre_d * miters
+            # SUMO spreads a lane's length over the lane's own geometry, and an edge's length is
+            # that of its middle: s spreads the length over the middle of the lanes present, so
+            # on a bend the lanes left and right of it are off SUMO's positions by half as much
+            present = sorted(p.widths)
+            middle_d = 0.5 * (bounds[i, present[0]] + bounds[i, present[-1] + 1])
+            middle = shape + (middle_d - centre_d) * miters
+            geo = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(middle, axis=0).T))])
+            s_vertices = p.s0 + geo * (p.length / geo[-1])
             if pts_all:
                 gap = float(np.hypot(*(ref[0] - pts_all[-1][-1])))
                 if gap > _JOIN_TOL_M:
