@@ -8,7 +8,10 @@ A route is a list of edges. Its frame is built from the ``.net.xml`` lane shapes
   line runs where its right edge would be (the lanes' nominal widths);
 - **s**: distance along the route as SUMO counts it (lane lengths, internal lanes included), so a
   vehicle at lane position p on a route edge has s = ``edge_start_s[edge] + p``: continuous across
-  edge boundaries. Along a curved edge s is the edge's lane length spread over its geometry;
+  edge boundaries. Along an edge s spreads SUMO's length over the middle of the road (an edge's
+  length is its middle's); SUMO spreads it over each lane's own shape, so on an edge that is part
+  straight, part curved the lanes beside the middle differ from SUMO's positions by up to their
+  offset times half the edge's turn (0.6 m for 3.5 m and 20 degrees);
 - **d**: metres left of the reference line, along its normal: the same lane is one constant d
   range on every edge it continues through;
 - **tracks**: a lane's index from the right, stable across edges where SUMO's connections say the
@@ -41,6 +44,7 @@ import numpy as np
 # Longest segment the lookup grid stores (longer straight segments are split: the same map).
 _MAX_SEGMENT_M = 25.0
 _CELL_M = 25.0
+_MAX_CELLS = 1_000_000
 # Lateral band around the road whose points are found through the grid; beyond it, a full scan.
 _BAND_M = 15.0
 # Reference lines of consecutive pieces meet within this distance (SUMO's lane ends and the next
@@ -350,9 +354,11 @@ class RoadFrame:
         corners = np.stack([P[:-1] + lo * M[:-1], P[:-1] + hi * M[:-1], P[1:] + lo * M[1:], P[1:] + hi * M[1:]])
         cmin, cmax = corners.min(axis=0), corners.max(axis=0)  # (n_seg, 2)
         origin = cmin.min(axis=0)
-        nx, ny = (np.floor((cmax.max(axis=0) - origin) / _CELL_M).astype(int) + 1)
-        i0 = np.floor((cmin - origin) / _CELL_M).astype(int)
-        i1 = np.floor((cmax - origin) / _CELL_M).astype(int)
+        extent = cmax.max(axis=0) - origin
+        cell = max(_CELL_M, float(np.sqrt(extent[0] * extent[1] / _MAX_CELLS)))  # long routes: coarser
+        nx, ny = (np.floor(extent / cell).astype(int) + 1)
+        i0 = np.floor((cmin - origin) / cell).astype(int)
+        i1 = np.floor((cmax - origin) / cell).astype(int)
         cells, segs = [], []
         for seg in range(len(P) - 1):
             gx, gy = np.meshgrid(np.arange(i0[seg, 0], i1[seg, 0] + 1), np.arange(i0[seg, 1], i1[seg, 1] + 1))
@@ -363,7 +369,7 @@ class RoadFrame:
         self._grid_items = np.ascontiguousarray(segs[order], dtype=np.int64)
         self._grid_start = np.searchsorted(cells[order], np.arange(nx * ny + 1)).astype(np.int64)
         # origin, cell size, cells along x and y, band centre and half-width (see _to_frame)
-        self._grid_f = np.array([origin[0], origin[1], _CELL_M, nx, ny, 0.5 * self.max_width_m,
+        self._grid_f = np.array([origin[0], origin[1], cell, nx, ny, 0.5 * self.max_width_m,
                                  0.5 * self.max_width_m + _BAND_M])
 
     def _build_track_intervals(self) -> None:
@@ -463,8 +469,9 @@ class RoadFrame:
             sel = track == t
             q = np.clip(s[sel], 0.0, self.length_m)  # beyond the ends: the end pieces' lanes
             j = np.searchsorted(spans[:, 0], q, side="right") - 1
-            inside = (j >= 0) & (q <= spans[np.maximum(j, 0), 1])
             end = spans[np.maximum(j, 0), 1]
+            # a lane's end is where the next piece begins (absent there), except the route's end
+            inside = (j >= 0) & ((q < end) | (end >= self.length_m - 1e-9))
             end = np.where(end >= self.length_m - 1e-9, np.inf, end)
             out[sel] = np.where(inside, end, np.nan)
         return out
