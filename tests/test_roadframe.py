@@ -1,5 +1,6 @@
 """The road frame of a route (vcfusion.traffic.roadframe) against the straight Road and SUMO itself."""
 
+import subprocess
 import xml.etree.ElementTree as ET
 
 import libsumo
@@ -329,3 +330,90 @@ def test_equal_frames_compare_equal(frames):
     a = RoadFrame.from_net(CURVED)
     assert a == frame_of(frames, CURVED, CURVED_ROUTE) and hash(a) == hash(frame_of(frames, CURVED, CURVED_ROUTE))
     assert a != frame_of(frames, ONRAMP, MAIN_ROUTE)
+
+
+def _two_edge_network(tmp_path, lanes: tuple[int, int], connections=None, second_shape=None):
+    """A two-edge network built by netconvert (build_network) in tmp_path: edge e1 (x 0..500)
+    then e2 (x 500..1000), lanes of 3.5 m spread right of the edges' shapes."""
+    from vcfusion.traffic.network import build_network
+
+    (tmp_path / "t.nod.xml").write_text(
+        '<nodes><node id="a" x="0" y="0" type="priority"/><node id="b" x="500" y="0" type="priority"/>'
+        '<node id="c" x="1000" y="0" type="priority"/></nodes>')
+    shape = f' shape="{second_shape}"' if second_shape else ""
+    (tmp_path / "t.edg.xml").write_text(
+        f'<edges><edge id="e1" from="a" to="b" numLanes="{lanes[0]}" speed="25" width="3.5"/>'
+        f'<edge id="e2" from="b" to="c" numLanes="{lanes[1]}" speed="25" width="3.5"{shape}/></edges>')
+    if connections is not None:
+        (tmp_path / "t.con.xml").write_text(
+            "<connections>" + "".join(f'<connection from="e1" to="e2" fromLane="{i}" toLane="{j}"/>'
+                                      for i, j in connections) + "</connections>")
+    return build_network(tmp_path, "t")
+
+
+def test_lane_drops_and_merges_follow_sumos_connections(tmp_path):
+    """Which lanes continue is decided by the connections (most agree), ties by the geometry."""
+    # netconvert's own 3 -> 2: the right lane has no successor (it drops), the others shift down
+    (tmp_path / "right").mkdir()
+    frame = RoadFrame.from_net(_two_edge_network(tmp_path / "right", (3, 2)))
+    assert [frame.track_of[f"e1_{i}"] for i in range(3)] == [0, 1, 2]
+    assert [frame.track_of[f"e2_{i}"] for i in range(2)] == [1, 2]
+    assert frame.lane_end_ahead(0, 100.0) == pytest.approx(frame.edge_start_s["e1"] + 496.0)
+    assert np.isinf(frame.lane_end_ahead(np.array([1, 2]), 100.0)).all()
+    # a zipper 2 -> 1 (both lanes feed the one lane): a tie, the lane that lines up continues
+    (tmp_path / "zip").mkdir()
+    frame = RoadFrame.from_net(_two_edge_network(tmp_path / "zip", (2, 1), [(0, 0), (1, 0)]))
+    assert frame.track_of["e2_0"] == frame.track_of["e1_1"] == 1
+    assert frame.lane_spans(0)[:, 1].max() < frame.edge_start_s["e2"]
+    # the left lane ends, merging into the middle one (2 of 3 connections keep their index), with
+    # the second edge's lanes lined up with the first's right two
+    (tmp_path / "left").mkdir()
+    frame = RoadFrame.from_net(_two_edge_network(tmp_path / "left", (3, 2), [(0, 0), (1, 1), (2, 1)],
+                                                 second_shape="500,-3.5 1000,-3.5"))
+    assert [frame.track_of[f"e2_{i}"] for i in range(2)] == [0, 1]
+    assert frame.lane_count(np.array([100.0, 800.0])).tolist() == [3, 2]
+    assert frame.lane_end_ahead(2, 100.0) < frame.edge_start_s["e2"]
+    # lanes that keep their index although the edge narrows: SUMO's junction lanes swerve, the
+    # frame follows them: each lane keeps its track and d range after the junction, and inside it
+    # (S-shaped lanes shifted sideways, not offset along their normals: up to 0.8 m off the lane's
+    # d range in the swerve's middle, still inside the lane)
+    (tmp_path / "swerve").mkdir()
+    net = _two_edge_network(tmp_path / "swerve", (3, 2), [(0, 0), (1, 1)])
+    frame = RoadFrame.from_net(net)
+    assert [frame.track_of[f"e2_{i}"] for i in range(2)] == [0, 1]
+    sumo = sumolib.net.readNet(str(net), withInternal=True)
+    for lane_id in (":b_0_0", ":b_0_1", "e2_0", "e2_1"):
+        xy = np.array(sumo.getLane(lane_id).getShape())
+        xy = np.concatenate([xy, 0.5 * (xy[1:] + xy[:-1])])
+        s, d = frame.to_frame(xy[:, 0], xy[:, 1])
+        track = frame.track_of[lane_id]
+        if lane_id.startswith(":"):
+            assert (frame.lane_of(s, d) == track).all()
+        else:  # 2 cm off at the first vertex, where the miter bisects the swerve's end
+            np.testing.assert_allclose(d, frame.lane_centre_d(track, s), atol=0.03)
+    # without junction lanes (netconvert --no-internal-links) nothing joins the two: refused
+    from vcfusion.traffic.network import netconvert_binary
+
+    subprocess.run([netconvert_binary(), "-n", "t.nod.xml", "-e", "t.edg.xml", "-x", "t.con.xml",
+                    "--no-internal-links", "-o", "flat.net.xml"], cwd=tmp_path / "swerve", check=True,
+                   capture_output=True)
+    with pytest.raises(RouteError, match=r"jumps by \d+\.\d\d m where 'e1' meets 'e2'"):
+        RoadFrame.from_net(tmp_path / "swerve" / "flat.net.xml")
+
+
+def test_records_cache_a_frame_like_a_road(frames):
+    """A RoadFrame can stand where the records take a road: road_frame(frame) is its to_frame,
+    computed once per record."""
+    from vcfusion.records import VehicleStates
+
+    frame = frame_of(frames, CURVED, CURVED_ROUTE)
+    n = 3
+    x, y = frame.to_world(np.array([100.0, 600.0, 1300.0]), np.array([1.75, 5.25, 8.75]))
+    truth = VehicleStates(time=0.0, ids=tuple("abc"), vtype=("car",) * n, vclass=("passenger",) * n, x=x, y=y,
+                          z=np.zeros(n), heading=np.zeros(n), speed=np.ones(n), accel=np.zeros(n),
+                          lane=np.zeros(n, np.int16), lateral_offset=np.zeros(n), length=np.full(n, 4.5),
+                          width=np.full(n, 1.8), height=np.full(n, 1.5))
+    s, d = truth.road_frame(frame)
+    np.testing.assert_allclose(s, [100.0, 600.0, 1300.0], atol=1e-9)
+    np.testing.assert_allclose(d, [1.75, 5.25, 8.75], atol=1e-9)
+    assert truth.road_frame(RoadFrame.from_net(CURVED))[0] is s  # an equal frame: no recomputation

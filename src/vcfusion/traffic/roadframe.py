@@ -392,6 +392,10 @@ class RoadFrame:
         s, d = _to_frame(x, y, self._P, self._M, self._S, self._grid_f, self._grid_start, self._grid_items)
         return s.reshape(shape), d.reshape(shape)
 
+    # the straight Road's name: records cache road_frame(road) through it (vcfusion.records)
+    def to_road_frame(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+        return self.to_frame(x, y)
+
     def locate(self, x, y) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """World (x, y) -> (s, d, track): :meth:`to_frame` and :meth:`lane_of` in one pass (the
         per-tick map matching of every twin)."""
