@@ -281,6 +281,48 @@ def test_fcd_positions_on_the_curved_highway_are_on_their_lanes(tmp_path, frames
     assert along.max() < 2.5
 
 
+def test_merging_ramp_vehicles_in_the_main_line_frame(tmp_path, frames):
+    """A SUMO run on the on-ramp network, main-line and ramp traffic (libsumo, --fcd-output and
+    --lanechange-output), seen in the main line's frame: every position on the main line's lanes
+    maps to its lane's track at its centre; on the ramp, before the merge, a vehicle is on none of
+    the main line's lanes; every ramp vehicle merges (SUMO's reason: strategic) from the
+    acceleration lane, track 0, into track 1, at an s where the frame has both lanes."""
+    frame = frame_of(frames, ONRAMP, MAIN_ROUTE)
+    routes = tmp_path / "r.rou.xml"
+    routes.write_text(
+        '<routes><vType id="car" length="4.6" sigma="0.5"/>'
+        f'<route id="main" edges="{" ".join(MAIN_ROUTE)}"/><route id="ramp" edges="{" ".join(RAMP_ROUTE)}"/>'
+        '<flow id="m" type="car" route="main" begin="0" end="60" vehsPerHour="3600" departLane="random" departSpeed="max"/>'
+        '<flow id="r" type="car" route="ramp" begin="0" end="60" vehsPerHour="900" departLane="0" departSpeed="max"/>'
+        '</routes>')
+    fcd, changes = tmp_path / "fcd.xml", tmp_path / "lc.xml"
+    libsumo.start(["sumo", "-n", str(ONRAMP), "-r", str(routes), "--fcd-output", str(fcd), "--seed", "2",
+                   "--lanechange-output", str(changes), "--no-step-log", "--end", "150"])
+    try:
+        while libsumo.simulation.getTime() < 150:
+            libsumo.simulationStep()
+    finally:
+        libsumo.close()
+    rows = [(float(v.get("x")), float(v.get("y")), v.get("lane"), v.get("id"))
+            for ts in ET.parse(fcd).getroot().iter("timestep") for v in ts.iter("vehicle")]
+    x, y = (np.array([r[k] for r in rows]) for k in range(2))
+    s, d, lane = frame.locate(x, y)
+    on_main = np.array([r[2] in frame.track_of for r in rows])
+    track = np.array([frame.track_of.get(r[2], -1) for r in rows])
+    np.testing.assert_array_equal(lane[on_main], track[on_main])
+    np.testing.assert_allclose(d[on_main], frame.lane_centre_d(track[on_main], s[on_main]), atol=0.02)
+    on_ramp = np.array([r[2] == "ramp_0" for r in rows])
+    assert on_ramp.sum() > 100 and (lane[on_ramp] == -1).all()
+    merges = [c for c in ET.parse(changes).getroot().iter("change") if c.get("from") == "accel_0" and c.get("id").startswith("r.")]
+    ramp_ids = {r[3] for r in rows if r[3].startswith("r.")}
+    assert sorted(c.get("id") for c in merges) == sorted(ramp_ids) and len(ramp_ids) > 10  # each once
+    for c in merges:
+        assert "strategic" in c.get("reason")
+        assert frame.track_of[c.get("from")] == 0 and frame.track_of[c.get("to")] == 1
+        at = frame.route_position(c.get("from"), float(c.get("pos")))
+        assert frame.lane_exists(np.array([0, 1]), at).all()
+
+
 def test_route_errors_name_the_problem():
     with pytest.raises(RouteError, match=r"route\[1\]: unknown edge 'nope'"):
         RoadFrame.from_net(ONRAMP, ["main_in", "nope"])
@@ -376,7 +418,7 @@ def test_lane_drops_and_merges_follow_sumos_connections(tmp_path):
     # lanes that keep their index although the edge narrows: SUMO's junction lanes swerve, the
     # frame follows them: each lane keeps its track and d range after the junction, and inside it
     # (S-shaped lanes shifted sideways, not offset along their normals: up to 0.8 m off the lane's
-    # d range in the swerve's middle, still inside the lane)
+    # centre in the swerve's middle, still inside the lane)
     (tmp_path / "swerve").mkdir()
     net = _two_edge_network(tmp_path / "swerve", (3, 2), [(0, 0), (1, 1)])
     frame = RoadFrame.from_net(net)
