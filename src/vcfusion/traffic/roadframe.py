@@ -26,7 +26,7 @@ Q(t, e) = P_i + t (P_i+1 - P_i) + e (M_i + t (M_i+1 - M_i)) with s linear in t: 
 continuous inverse of itself (world -> (s, d) solves a quadratic in t). Before the route's start
 and after its end the first and last segments extend straight, as the straight road does.
 The conversion runs for every twin on every tick: it is a compiled kernel with a uniform grid over
-the segments (points far from the route fall back to a scan of all segments).
+the segments (points farther than 60 m from the road fall back to a scan of all segments).
 """
 
 from __future__ import annotations
@@ -45,8 +45,12 @@ import numpy as np
 _MAX_SEGMENT_M = 25.0
 _CELL_M = 25.0
 _MAX_CELLS = 1_000_000
-# Lateral band around the road whose points are found through the grid; beyond it, a full scan.
-_BAND_M = 15.0
+# Lateral band around the road whose points are found through the grid (the other carriageway,
+# ramps alongside); beyond it, a scan of all segments.
+_BAND_M = 60.0
+# Within this band the segments' maps do not overlap (curve radii are larger): the first segment
+# whose map holds a point is the one.
+_UNIQUE_BAND_M = 15.0
 # Reference lines of consecutive pieces meet within this distance (SUMO's lane ends and the next
 # piece's starts coincide to its 0.01 m output precision; offsetting bends adds a few cm).
 _JOIN_TOL_M = 0.5
@@ -370,7 +374,7 @@ class RoadFrame:
         self._grid_start = np.searchsorted(cells[order], np.arange(nx * ny + 1)).astype(np.int64)
         # origin, cell size, cells along x and y, band centre and half-width (see _to_frame)
         self._grid_f = np.array([origin[0], origin[1], cell, nx, ny, 0.5 * self.max_width_m,
-                                 0.5 * self.max_width_m + _BAND_M])
+                                 0.5 * self.max_width_m + _UNIQUE_BAND_M])
 
     def _build_track_intervals(self) -> None:
         """Per track, the [start, end) stretches of s where it exists (consecutive pieces merged)."""
@@ -591,7 +595,7 @@ def _to_frame(x, y, P, M, S, grid, grid_start, grid_items):
                 if ok and abs(e - e_mid) < best_cost:
                     best_i, best_t, best_e, best_cost = i, t, e, abs(e - e_mid)
                     if best_cost <= e_half:
-                        break  # inside the road's band the segments' maps tile the plane: the one
+                        break  # near the road the segments' maps tile the plane: this is the one
         if best_i < 0:  # far from the route: every segment
             for i in range(n_seg):
                 ok, t, e = _solve_segment(qx, qy, i, P, M, n_seg)
