@@ -231,6 +231,8 @@ def test_lane_drop_is_a_lane_that_ends(frames):
     assert np.isnan(ends[[0, 4, 5]]).all()
     np.testing.assert_allclose(ends[1:4], accel_end)
     assert np.isinf(main.lane_end_ahead(np.array([1, 2, 3]), 800.0)).all()
+    # ahead of the merge, the acceleration lane is a lane that begins there
+    np.testing.assert_allclose(main.lane_start_ahead(0, np.array([100.0, accel_start + 1.0])), [merge_start, np.inf])
     # a point on the acceleration lane is lane 0; the same d past the drop is off the road
     x, y = main.to_world(np.array([accel_start + 100.0, accel_end + 30.0]), main.lane_centre_d(0, accel_start + 100.0))
     assert main.lane_of(*main.to_frame(x, y)).tolist() == [0, -1]

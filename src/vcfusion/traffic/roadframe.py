@@ -484,6 +484,18 @@ class RoadFrame:
             out[sel] = np.where(inside, end, np.nan)
         return out
 
+    def lane_start_ahead(self, track, s) -> np.ndarray:
+        """s where the track next begins ahead of s (an acceleration lane, a lane added at a
+        widening); inf where it does not begin again before the route's end."""
+        track, s = np.broadcast_arrays(np.asarray(track, dtype=np.int64), np.asarray(s, dtype=np.float64))
+        out = np.full(s.shape, np.inf)
+        for t in np.unique(track):
+            if 0 <= t < self.num_tracks:
+                starts = np.append(self._intervals[t][:, 0], np.inf)
+                sel = track == t
+                out[sel] = starts[np.searchsorted(starts, s[sel], side="right")]
+        return out
+
     def lane_spans(self, track: int) -> np.ndarray:
         """(k, 2) [start, end) stretches of s where a track exists."""
         return self._intervals[track].copy()
