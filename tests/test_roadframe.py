@@ -325,7 +325,7 @@ def test_merging_ramp_vehicles_in_the_main_line_frame(tmp_path, frames):
         assert frame.lane_exists(np.array([0, 1]), at).all()
 
 
-def test_route_errors_name_the_problem():
+def test_route_errors_name_the_problem(tmp_path):
     with pytest.raises(RouteError, match=r"route\[1\]: unknown edge 'nope'"):
         RoadFrame.from_net(ONRAMP, ["main_in", "nope"])
     with pytest.raises(RouteError, match="'main_in' and 'main_out' do not connect"):
@@ -333,6 +333,13 @@ def test_route_errors_name_the_problem():
     with pytest.raises(RouteError, match="not one chain of edges"):
         RoadFrame.from_net(ONRAMP)  # the ramp makes the network branch: a route is needed
     assert RoadFrame.from_net(CURVED).route == tuple(CURVED_ROUTE)  # one chain: its route by default
+    from vcfusion.traffic.network import netconvert_binary
+
+    subprocess.run([netconvert_binary(), "-n", str(NETS / "highway.nod.xml"), "-e", str(NETS / "highway.edg.xml"),
+                    "-t", str(NETS / "highway.typ.xml"), "--lefthand", "-o", str(tmp_path / "lh.net.xml")],
+                   check=True, capture_output=True)
+    with pytest.raises(RouteError, match="left-hand-traffic network"):
+        RoadFrame.from_net(tmp_path / "lh.net.xml")
 
 
 def test_osm_import_keeps_the_motorway_and_its_acceleration_lane(frames):

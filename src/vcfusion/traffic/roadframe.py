@@ -85,6 +85,10 @@ class _Net:
 
     def __init__(self, net_file: Path):
         root = ET.parse(net_file).getroot()
+        if root.get("lefthand") in ("1", "true"):
+            # there lane 0 is the leftmost lane: tracks and d would run the wrong way
+            raise RouteError(f"{net_file}: a left-hand-traffic network (lefthand=\"{root.get('lefthand')}\"); "
+                             "the road frame supports right-hand traffic only")
         self.lanes: dict[str, _Lane] = {}
         self.edge_lanes: dict[str, list[_Lane]] = {}
         self.internal_edges: set[str] = set()
