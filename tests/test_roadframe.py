@@ -326,9 +326,10 @@ def test_merging_ramp_vehicles_in_the_main_line_frame(tmp_path, frames):
 
 
 def test_route_errors_name_the_problem(tmp_path):
-    with pytest.raises(RouteError, match=r"route\[1\]: unknown edge 'nope'"):
+    with pytest.raises(RouteError, match=r"onramp.net.xml: route\[1\]: unknown edge 'nope'") as err:
         RoadFrame.from_net(ONRAMP, ["main_in", "nope"])
-    with pytest.raises(RouteError, match="'main_in' and 'main_out' do not connect"):
+    assert (err.value.where, err.value.detail) == ("route[1]", "unknown edge 'nope'")  # for a scenario's own field
+    with pytest.raises(RouteError, match=r"route\[1\]: edges 'main_in' and 'main_out' do not connect"):
         RoadFrame.from_net(ONRAMP, ["main_in", "main_out"])
     with pytest.raises(RouteError, match="not one chain of edges"):
         RoadFrame.from_net(ONRAMP)  # the ramp makes the network branch: a route is needed

@@ -57,7 +57,14 @@ _JOIN_TOL_M = 0.5
 
 
 class RouteError(ValueError):
-    """A route the network cannot carry (unknown edge, edges that do not connect)."""
+    """A route the network cannot carry (unknown edge, edges that do not connect).
+
+    `where` names the part of the route ("route[2]", "route"; "" for the network as a whole) and
+    `detail` what is wrong, so a scenario's validation can name its own field instead."""
+
+    def __init__(self, net_file, where: str, detail: str):
+        super().__init__(f"{net_file}: {where}: {detail}" if where else f"{net_file}: {detail}")
+        self.net_file, self.where, self.detail = Path(net_file), where, detail
 
 
 @dataclass(frozen=True)
@@ -87,7 +94,7 @@ class _Net:
         root = ET.parse(net_file).getroot()
         if root.get("lefthand") in ("1", "true"):
             # there lane 0 is the leftmost lane: tracks and d would run the wrong way
-            raise RouteError(f"{net_file}: a left-hand-traffic network (lefthand=\"{root.get('lefthand')}\"); "
+            raise RouteError(net_file, "", f"a left-hand-traffic network (lefthand=\"{root.get('lefthand')}\"); "
                              "the road frame supports right-hand traffic only")
         self.lanes: dict[str, _Lane] = {}
         self.edge_lanes: dict[str, list[_Lane]] = {}
@@ -205,10 +212,10 @@ class RoadFrame:
     # ------------------------------------------------------------------ construction
     def _build(self, net: _Net) -> None:
         if not self.route:
-            raise RouteError(f"{self.net_file}: route: expected at least one edge")
+            raise RouteError(self.net_file, "route", "expected at least one edge")
         for k, edge in enumerate(self.route):
             if edge not in net.edge_lanes or edge in net.internal_edges:
-                raise RouteError(f"{self.net_file}: route[{k}]: unknown edge {edge!r}")
+                raise RouteError(self.net_file, f"route[{k}]", f"unknown edge {edge!r}")
         shift = self._track_shifts(net)
         low = min(shift[k] for k in range(len(self.route)))
         shift = [v - low for v in shift]  # the rightmost lane the route ever has is track 0
@@ -256,8 +263,8 @@ class RoadFrame:
             a, b = self.route[k], self.route[k + 1]
             conns = net.between.get((a, b), [])
             if not conns:
-                raise RouteError(f"{self.net_file}: route[{k}]..route[{k + 1}]: edges {a!r} and {b!r} "
-                                 "do not connect (no lane of the first continues onto the second)")
+                raise RouteError(self.net_file, f"route[{k + 1}]", f"edges {a!r} and {b!r} do not connect "
+                                 "(no lane of the first continues onto the second)")
             votes = Counter(c.from_lane - c.to_lane for c in conns)
 
             def gap(delta: int) -> float:
@@ -321,7 +328,7 @@ class RoadFrame:
                 gap = float(np.hypot(*(ref[0] - pts_all[-1][-1])))
                 if gap > _JOIN_TOL_M:
                     raise RouteError(
-                        f"{self.net_file}: route: the lane geometry jumps by {gap:.2f} m where "
+                        self.net_file, "route", f"the lane geometry jumps by {gap:.2f} m where "
                         f"{pieces[i - 1].edge_id!r} meets {p.edge_id!r}; the road frame cannot follow it")
                 self.max_join_gap_m = max(self.max_join_gap_m, gap)
                 pts_all[-1][-1] = 0.5 * (pts_all[-1][-1] + ref[0])  # both pieces end at the midpoint
@@ -339,7 +346,7 @@ class RoadFrame:
                 keep[-1] = j  # the route ends exactly at its last point
         pts, svals = pts[keep], svals[keep]
         if len(pts) < 2:
-            raise RouteError(f"{self.net_file}: route: the route has no extent")
+            raise RouteError(self.net_file, "route", "the route has no extent")
         miters = _miters(pts)
         # split long segments (same bilinear map) so the grid's cells list few segments each
         P, M, S = [pts[:1]], [miters[:1]], [svals[:1]]
@@ -524,16 +531,16 @@ def default_route(net_file: str | Path) -> tuple[str, ...]:
             pred[c.to_edge].add(c.from_edge)
     starts = [e for e in edges if not pred[e]]
     if len(starts) != 1 or any(len(v) > 1 for v in succ.values()):
-        raise RouteError(f"{net_file}: the network is not one chain of edges (starts {sorted(starts)}): "
+        raise RouteError(net_file, "route", f"the network is not one chain of edges (starts {sorted(starts)}): "
                          "give the route (list of edges)")
     route = [starts[0]]
     while succ[route[-1]]:
         nxt = next(iter(succ[route[-1]]))
         if nxt in route:
-            raise RouteError(f"{net_file}: the network's edges form a loop: give the route")
+            raise RouteError(net_file, "route", "the network's edges form a loop: give the route")
         route.append(nxt)
     if len(route) != len(edges):
-        raise RouteError(f"{net_file}: the network is not one chain of edges: give the route")
+        raise RouteError(net_file, "route", "the network is not one chain of edges: give the route")
     return tuple(route)
 
 
