@@ -186,6 +186,21 @@ def test_s_is_sumos_route_position_and_continuous_across_edges(frames, net, rout
     assert paths >= len(route) - 1
 
 
+@pytest.mark.parametrize(("net", "route"), ROUTES, ids=ROUTE_IDS)
+def test_sumo_lane_position_inverts_route_position(frames, net, route):
+    """Placing a vehicle at (track, s) gives the SUMO lane and position whose s it is."""
+    frame = frame_of(frames, net, route)
+    for edge in route:
+        for lane_id in [lid for lid in frame.track_of if lid.rsplit("_", 1)[0] == edge]:
+            for pos in (0.0, 10.0, 55.5):
+                s = float(frame.route_position(lane_id, pos))
+                assert frame.sumo_lane_position(frame.track_of[lane_id], s) == (lane_id, pytest.approx(pos))
+    with pytest.raises(ValueError, match="inside junction lane"):
+        frame.sumo_lane_position(frame.track_of[f"{route[1]}_0"], frame.edge_start_s[route[1]] - 0.05)
+    with pytest.raises(ValueError, match="does not exist"):
+        frame.sumo_lane_position(frame.num_tracks, 1.0)
+
+
 def test_tracks_stable_across_edges_from_sumos_connections(frames):
     """A lane that continues keeps its track: every SUMO connection between consecutive route
     edges joins lanes of one track, except where a lane ends or joins; the main line keeps its

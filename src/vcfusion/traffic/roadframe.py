@@ -511,6 +511,22 @@ class RoadFrame:
         """(k, 2) [start, end) stretches of s where a track exists."""
         return self._intervals[track].copy()
 
+    def sumo_lane_position(self, track: int, s: float) -> tuple[str, float]:
+        """SUMO's (lane id, lane position) of a track at s on a route edge: where to insert a
+        vehicle placed at s. ValueError where the track is absent at s or s is in a junction."""
+        if not 0.0 <= s <= self.length_m:
+            raise ValueError(f"s = {s:.2f} m is off the route (0 to {self.length_m:.2f} m)")
+        k = int(self._piece_of(s))
+        piece = self._pieces[k]
+        if piece.edge_id.startswith(":"):
+            raise ValueError(f"s = {s:.2f} m is inside junction lane {piece.anchor.lane_id!r}: "
+                             "place vehicles on the route's edges")
+        if not (0 <= track < self.num_tracks and self._present[k, track]):
+            raise ValueError(f"track {track} does not exist at s = {s:.2f} m on edge {piece.edge_id!r} "
+                             f"(its tracks there: {sorted(piece.widths)})")
+        # an edge piece's anchor is its lane 0
+        return f"{piece.edge_id}_{track - piece.anchor_track}", min(s - piece.s0, piece.length)
+
     def route_position(self, lane_id: str, pos_m) -> np.ndarray:
         """s of SUMO's lane position `pos_m` on a lane of the route (edges and junction lanes)."""
         edge = lane_id.rsplit("_", 1)[0]
