@@ -39,6 +39,13 @@ def cmd_train(args: argparse.Namespace) -> int:
     from vcfusion.prediction.dataset import DatasetError
     from vcfusion.prediction.train import TrainConfig, train_model
 
+    for option in ("hidden", "epochs", "patience", "threads"):
+        if getattr(args, option) < 1:
+            raise UsageError(f"--{option}: expected a positive number, got {getattr(args, option)}")
+    if args.learning_rate <= 0 or args.weight_decay < 0 or args.background_negatives < 0:
+        raise UsageError("--learning-rate / --weight-decay / --background-negatives: expected a positive rate and "
+                         f"non-negative others, got {args.learning_rate}, {args.weight_decay}, "
+                         f"{args.background_negatives}")
     cfg = TrainConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
                       background_negatives=args.background_negatives, threads=args.threads,
                       learning_rate=args.learning_rate, weight_decay=args.weight_decay)
@@ -58,6 +65,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from vcfusion.prediction.evaluate import evaluate
     from vcfusion.prediction.model import ModelFileError
 
+    if not args.horizon > 0:
+        raise UsageError(f"--horizon: expected a positive number of seconds, got {args.horizon}")
     try:
         report_path = evaluate(Path(args.model), Path(args.dataset), Path(args.out) if args.out else None,
                                split=args.split, horizon_s=args.horizon)

@@ -227,7 +227,7 @@ def _load_model_file(name: str, _mtime_ns: int, expected_features: tuple[str, ..
     except ModelFileError:
         raise
     except Exception as exc:
-        raise ModelFileError(f"{path}: not a vcfusion lane-change model file ({type(exc).__name__}: {exc}); "
+        raise ModelFileError(f"{path}: not a vcfusion lane-change model file ({type(exc).__name__}); "
                              "expected a .npz written by `vcfusion train`") from None
     weights, mean, std = _checked_arrays(path, meta, arrays)
     model = LaneChangeModel(
@@ -270,7 +270,7 @@ def _checked_arrays(path: Path, meta: dict, arrays: dict) -> tuple[list, np.ndar
         a = arrays[name]
         ok = a.ndim == len(shape) and all(want is None or got == want for got, want in zip(a.shape, shape))
         if not ok or not np.issubdtype(a.dtype, np.floating):
-            want = tuple("any" if w is None else w for w in shape)
+            want = "(" + ", ".join("any" if w is None else str(w) for w in shape) + ("," * (len(shape) == 1)) + ")"
             raise ModelFileError(f"{path}: {name}: expected a float array of shape {want}, "
                                  f"got {a.dtype} {a.shape}")
         return a

@@ -126,7 +126,9 @@ def _lane_attr(net_file, lane: ET.Element, name: str, convert, expected: str):
                                f"got {value!r}") from None
 
 
-def _shape_points(text: str) -> np.ndarray:
+def _shape_points(text: str | None) -> np.ndarray:
+    if not text:
+        raise ValueError
     points = np.array([[float(c) for c in p.split(",")[:2]] for p in text.split()], dtype=float)
     if points.ndim != 2 or len(points) < 2 or points.shape[1] != 2:
         raise ValueError
