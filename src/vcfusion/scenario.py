@@ -450,7 +450,9 @@ def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
     uses: list[tuple[tuple, str, list[int], list[float]]] = []  # (loc, vtype, lanes, positions along the road)
     if scenario.ego is not None:
         uses.append((("ego",), scenario.ego.vtype, [scenario.ego.lane], [scenario.ego.depart_pos_m]))
-    uses += [(("vehicles", i), g.vtype, g.lanes, [g.pos_m[1]]) for i, g in enumerate(scenario.vehicles)]
+    # a range partly beyond the road is left to the seeds (a draw outside is an impossible departure
+    # of that seed, RunError); one wholly beyond it can never run
+    uses += [(("vehicles", i), g.vtype, g.lanes, [g.pos_m[0]]) for i, g in enumerate(scenario.vehicles)]
     uses += [(("flows", i), f.vtype, f.lanes, []) for i, f in enumerate(scenario.flows)]
     if scenario.accident is not None:
         uses.append((("accident",), scenario.accident.vtype, scenario.accident.lanes, [scenario.accident.pos_m]))
