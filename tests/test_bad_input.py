@@ -257,6 +257,12 @@ CASES = [
          ("--out", "afile is a file; expected a folder path")),
     Case("train epochs", lambda t: ["train", str(dataset(t)), "--out", "out.npz", "--epochs", "0"],
          ("--epochs", "expected a positive number", "got 0")),
+    Case("model output under a file", lambda t: ((t / "afile").write_text("x"),
+                                                 ["train", str(dataset(t)), "--out", "afile/m.npz"])[1],
+         ("--out", "afile is a file; expected a folder path")),
+    Case("dataset output under a file", lambda t: ((t / "afile").write_text("x"),
+                                                   ["dataset", scenario(t, BASE), "--seeds", "0", "--out", "afile/d"])[1],
+         ("--out", "afile is a file; expected a folder path")),
     Case("render every", lambda t: ["render", scenario(t, BASE), "--seeds", "0", "--every", "0", "--out", "out"],
          ("--every", "expected a positive number of V2C ticks")),
 ]

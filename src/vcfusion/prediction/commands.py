@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from vcfusion.cli import check_folder_path
 from vcfusion.errors import UsageError
 
 
@@ -15,6 +16,7 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 
     load_scenario(args.scenario)  # fail fast on a bad file
     seeds = parse_seeds(args.seeds)  # UsageError on a bad range
+    check_folder_path(Path(args.out))
     if args.workers < 1:
         raise UsageError(f"--workers: expected a positive number of processes, got {args.workers}")
     try:
@@ -52,6 +54,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not args.force:
         raise UsageError(f"--out: {out} already exists (use --force to replace it)")
+    check_folder_path(out.parent)
     try:
         report = train_model(Path(args.dataset), out, cfg)
     except DatasetError as exc:
@@ -67,6 +70,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     if not args.horizon > 0:
         raise UsageError(f"--horizon: expected a positive number of seconds, got {args.horizon}")
+    if args.out:
+        check_folder_path(Path(args.out))
     try:
         report_path = evaluate(Path(args.model), Path(args.dataset), Path(args.out) if args.out else None,
                                split=args.split, horizon_s=args.horizon)
