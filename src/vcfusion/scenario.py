@@ -12,22 +12,18 @@ lists included, replaces the base's); a base may extend another. Paths inside a 
 
 from __future__ import annotations
 
-from pathlib import Path
 import typing
+from pathlib import Path
 from typing import Annotated, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from vcfusion.errors import ScenarioError  # re-exported: the loader's error
-
-__all__ = ["Scenario", "ScenarioError", "load_scenario"]
+from vcfusion.errors import ScenarioError  # the loader's error; importable from here as before
 
 NonNegative = Annotated[float, Field(ge=0.0)]
 Positive = Annotated[float, Field(gt=0.0)]
 Probability = Annotated[float, Field(ge=0.0, le=1.0)]
-
-
 
 
 class _Strict(BaseModel):
@@ -281,10 +277,10 @@ def _read_mapping(path: Path) -> dict:
 def read_chain(path: Path) -> list[tuple[Path, dict]]:
     """The file and the files it extends, as (path, fields without `extends`), the given file first."""
     chain: list[tuple[Path, dict]] = []
-    seen: dict[Path, Path] = {}
+    seen: set[Path] = set()
     current = path
     while True:
-        seen[current.resolve()] = current
+        seen.add(current.resolve())
         raw = _read_mapping(current)
         base = raw.pop("extends", None)
         chain.append((current, raw))
