@@ -151,6 +151,8 @@ CASES = [
     # scenario YAML: syntax, shape, types, ranges, unknown keys, periods, the road it names
     Case("yaml syntax", lambda t: run(t, "name: t\nsimulation: {step_s: 0.01\n"),
          ("s.yaml", "line 3", "not valid YAML")),
+    Case("yaml key given twice", lambda t: run(t, BASE + "v2c: {latency_s: 0.1}\nv2c: {jitter_s: 0.1}\n"),
+         ("s.yaml", "line 8, column 1", "key 'v2c' given twice")),
     Case("yaml not a mapping", lambda t: run(t, "- name: t\n"),
          ("s.yaml", "expected a mapping of scenario fields", "got a list")),
     Case("yaml empty", lambda t: run(t, ""), ("s.yaml", "expected a mapping", "got an empty file")),
@@ -225,7 +227,13 @@ CASES = [
         weights_file(t, lambda b: b["state_dict"].update({"s8.0.0.weight": b["state_dict"]["s8.0.0.weight"][:, :8]})),
         ["eval-detector", "coco", "--weights", "bad.pt"])[1],
          ("bad.pt", "state_dict.s8.0.0.weight: expected shape (64, 32, 3, 3)", "(64, 8, 3, 3)")),
+    Case("onnx without class ids", lambda t: ["eval-detector", "coco", "--onnx", "m.onnx", "--classes", "1,car"],
+         ("--classes", "expected the category ids", "'1,car'")),
     # dataset folders
+    Case("COCO folder missing", lambda t: ["eval-detector", "nope"], ("nope", "dataset folder not found")),
+    Case("COCO annotations corrupt", lambda t: ((t / "coco").mkdir(), (t / "coco" / "annotations.json").write_text("{"),
+                                                ["eval-detector", "coco"])[2],
+         ("annotations.json", "not valid JSON")),
     Case("dataset folder missing", lambda t: ["train", "nope", "--out", "out.npz"],
          ("nope", "not a dataset folder", "vcfusion dataset")),
     Case("dataset.json corrupt", lambda t: train_on(t, lambda r: (r / "dataset.json").write_text('{"tau": 5,')),

@@ -1,4 +1,5 @@
-"""Handlers of the `vcfusion dataset | train | evaluate | bench-predict` commands."""
+"""Handlers of the `vcfusion dataset | train | evaluate | bench-predict` commands. A bad dataset or
+model file raises DatasetError / ModelFileError (InputError: the CLI prints it and exits with 2)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from vcfusion.errors import UsageError
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
-    from vcfusion.prediction.dataset import DatasetError, build_dataset
+    from vcfusion.prediction.dataset import build_dataset
     from vcfusion.scenario import load_scenario
     from vcfusion.studies.batch import parse_seeds
 
@@ -19,11 +20,8 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     check_folder_path(Path(args.out))
     if args.workers < 1:
         raise UsageError(f"--workers: expected a positive number of processes, got {args.workers}")
-    try:
-        report = build_dataset(Path(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g,
-                               refeature=args.refeature)
-    except DatasetError as exc:
-        raise UsageError(str(exc)) from None
+    report = build_dataset(Path(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g,
+                           refeature=args.refeature)
     c = report["counts"]
     if args.refeature:
         print(f"recomputed the features of {report['refeatured']} existing runs")
@@ -38,7 +36,6 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from vcfusion.prediction.dataset import DatasetError
     from vcfusion.prediction.train import TrainConfig, train_model
 
     for option in ("hidden", "epochs", "patience", "threads"):
@@ -55,28 +52,20 @@ def cmd_train(args: argparse.Namespace) -> int:
     if out.exists() and not args.force:
         raise UsageError(f"--out: {out} already exists (use --force to replace it)")
     check_folder_path(out.parent)
-    try:
-        report = train_model(Path(args.dataset), out, cfg)
-    except DatasetError as exc:
-        raise UsageError(str(exc)) from None
+    report = train_model(Path(args.dataset), out, cfg)
     print(report)
     return 0
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from vcfusion.prediction.dataset import DatasetError
     from vcfusion.prediction.evaluate import evaluate
-    from vcfusion.prediction.model import ModelFileError
 
     if not args.horizon > 0:
         raise UsageError(f"--horizon: expected a positive number of seconds, got {args.horizon}")
     if args.out:
         check_folder_path(Path(args.out))
-    try:
-        report_path = evaluate(Path(args.model), Path(args.dataset), Path(args.out) if args.out else None,
-                               split=args.split, horizon_s=args.horizon)
-    except (DatasetError, ModelFileError) as exc:
-        raise UsageError(str(exc)) from None
+    report_path = evaluate(Path(args.model), Path(args.dataset), Path(args.out) if args.out else None,
+                           split=args.split, horizon_s=args.horizon)
     print(Path(report_path).read_text())
     print(f"report: {report_path}")
     return 0
