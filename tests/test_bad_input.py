@@ -300,6 +300,15 @@ def test_bad_input_is_refused_in_one_line(case, tmp_path, monkeypatch, capsys):
     assert tree(tmp_path) == before  # nothing written: no output folder, no temporary left behind
 
 
+def test_several_problems_in_one_scenario_give_one_line_each(tmp_path, capsys):
+    path = write_scenario(tmp_path, BASE + "v2c: {latency_s: -1, jitter_s: x}\ncolour: red\n")
+    assert main(["run", str(path), "--out", str(tmp_path / "out")]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 3 and all(line.startswith(f"error: {path}: ") for line in lines)
+    assert {line.split(": ")[2] for line in lines} == {"v2c.latency_s", "v2c.jitter_s", "colour"}
+    assert not (tmp_path / "out").exists()
+
+
 def test_the_valid_inputs_the_cases_start_from_are_valid(tmp_path):
     sc = load_scenario(write_scenario(tmp_path, BASE))
     assert sc.ego.lane == 2 and sc.vehicles[0].vtype == "car"

@@ -261,7 +261,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except InputError as exc:  # scenario, model, dataset and command-line values (vcfusion.errors)
-        print(f"error: {exc}", file=sys.stderr)
+        for line in str(exc).splitlines():  # one line per problem (a scenario file may have several)
+            print(f"error: {line}", file=sys.stderr)
         return 2
     except FileExistsError as exc:
         print(f"error: {exc}", file=sys.stderr)
