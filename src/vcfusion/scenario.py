@@ -252,9 +252,10 @@ class Scenario(_Strict):
 PATH_FIELDS = (("network",), ("vehicle_types",), ("prediction", "model"), ("fusion", "weights"))
 
 
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """YAML's safe loader, refusing a key given twice in one mapping (YAML would keep the last
-    silently, so a second `v2c:` block would drop the first)."""
+class _UniqueKeyLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
+    """YAML's safe loader (libyaml's parser where installed: a batch loads its scenario once per
+    seed), refusing a key given twice in one mapping (YAML would keep the last silently, so a
+    second `v2c:` block would drop the first)."""
 
     def construct_mapping(self, node, deep=False):
         seen = set()
