@@ -167,6 +167,8 @@ CASES = [
          ("s.yaml", "v2c.latency: unknown key", "latency_s")),
     Case("period not a multiple of the step", lambda t: run(t, BASE + "v2c: {period_s: 0.015}\n"),
          ("s.yaml", "v2c.period_s", "whole multiple of simulation.step_s")),
+    Case("AR period not a multiple of the V2C period", lambda t: run(t, BASE + "ar: {period_s: 0.15}\n" + FUSION.replace("WEIGHTS", "null")),
+         ("s.yaml", "ar.period_s", "whole multiple of v2c.period_s (0.1)", "got 0.15")),
     Case("lane not on the road", lambda t: run(t, BASE.replace("lane: 2", "lane: 5")),
          ("s.yaml", "ego.lane", "0 to 2", "got 5")),
     Case("position beyond the road", lambda t: run(t, BASE + "accident: {pos_m: 5000, lanes: [0]}\n"),

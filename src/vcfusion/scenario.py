@@ -227,6 +227,12 @@ class Scenario(_Strict):
             ratio = period / step
             if abs(ratio - round(ratio)) > 1e-6:
                 raise ValueError(f"{name}: expected a whole multiple of simulation.step_s ({step}), got {period}")
+        # the AR stage (fusion) runs on V2C ticks: another period would skip ticks unevenly (and
+        # the video's frame rate, 1 / ar.period_s, would not match its frames)
+        ratio = self.ar.period_s / self.v2c.period_s
+        if self.fusion.enabled and (ratio < 1 - 1e-6 or abs(ratio - round(ratio)) > 1e-6):
+            raise ValueError(f"ar.period_s: expected a whole multiple of v2c.period_s ({self.v2c.period_s}), "
+                             f"got {self.ar.period_s}")
         if self.vision.enabled and self.ego is None:
             raise ValueError("vision.enabled: the camera rides on the ego; expected an ego block")
         if self.fusion.enabled:
