@@ -192,6 +192,9 @@ class _Timed:
 
     def __init__(self, hook):
         self.hook, self.table, self.seconds = hook, hook.table, []
+        # the wrapped stage's declarations (vcfusion.stages), so the run's wiring check sees them
+        for attribute in ("needs", "provides", "fills"):
+            setattr(self, attribute, getattr(hook, attribute, ()))
 
     def __call__(self, tick):
         start = time.perf_counter()

@@ -33,6 +33,10 @@ def check_folder_path(out: Path, option: str = "--out") -> Path:
             raise UsageError(f"{option}: {part} is a file; expected a folder path")
     return out
 
+# What Ctrl-C leaves of a resumable batch of seeds (batch, dataset), for the user.
+INTERRUPTED_BATCH = ("complete seeds are kept, partial ones removed; run the same command again to resume "
+                     "(complete seeds are skipped)")
+
 
 def _default_run_dir(name: str, seed: int) -> Path:
     base = Path("runs") / f"{name}-seed{seed}"
@@ -104,7 +108,9 @@ def cmd_study_guidance(args: argparse.Namespace) -> int:
         return 1
     print(result["text"])
     print(f"tables: {out}/trips.parquet, {out}/summary.csv; figures: " + ", ".join(str(p) for p in result["figures"]))
-    return 0
+    for seed, error in result["failed"]:  # also in OUT/failures.json
+        print(f"  trip {seed} failed: {error.splitlines()[0]}")
+    return 1 if result["failed"] else 0
 
 
 def cmd_build_net(args: argparse.Namespace) -> int:
@@ -186,7 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenario", help="scenario YAML file")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", help="run folder to create (default: runs/NAME-seedN)")
-    p.set_defaults(func=cmd_run)
+    p.set_defaults(func=cmd_run, interrupted="no run folder was written; run the same command again to redo the run")
 
     p = sub.add_parser("batch", help="run many seeds in parallel processes (resumable)")
     p.add_argument("scenario")
@@ -197,7 +203,7 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--scheduler", help="run the seeds on this Dask scheduler (tcp://HOST:PORT); "
                                            "its workers must share this file system")
     where.add_argument("--dask-local", type=int, metavar="N", help="start a local Dask cluster of N worker processes")
-    p.set_defaults(func=cmd_batch)
+    p.set_defaults(func=cmd_batch, interrupted=INTERRUPTED_BATCH)
 
     p = sub.add_parser("study", help="studies over many runs: guidance (Fig. 8/9), identification (Fig. 4)")
     study = p.add_subparsers(dest="study", required=True)
@@ -214,7 +220,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--process-model", action="append", default=[], metavar="MODULE:FACTORY",
                    help="extra cloud twin process model: FACTORY(scenario) returns fn(twins, store) -> "
                         "{'lc_prob': ...}; repeatable (e.g. a stand-in before the predictor is wired)")
-    p.set_defaults(func=cmd_study_guidance)
+    p.set_defaults(func=cmd_study_guidance,
+                   interrupted="the study wrote nothing; run the same command again (its trips start over)")
 
     p = sub.add_parser("build-net", help="rebuild sumo_net/highway.net.xml with netconvert")
     p.add_argument("--net-dir", help="folder with highway.nod/edg/typ.xml (default: the repo's sumo_net)")
@@ -260,6 +267,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
+    except KeyboardInterrupt:
+        # What Ctrl-C left and how to go on: the command's set_defaults(interrupted=...).
+        # The workers were stopped and temporary folders removed on the way up.
+        hint = getattr(args, "interrupted", None)
+        print("interrupted" + (f": {hint}" if hint else ""), file=sys.stderr)
+        return 130
     except InputError as exc:  # scenario, model, dataset and command-line values (vcfusion.errors)
         for line in str(exc).splitlines():  # one line per problem (a scenario file may have several)
             print(f"error: {line}", file=sys.stderr)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from vcfusion.cloud.twins import ProcessModel
 from vcfusion.cosim import CoSimulation, RunResult
+from vcfusion.guidance import GuidancePolicy
 from vcfusion.runio import package_versions, write_run_folder
 from vcfusion.scenario import Scenario
 
@@ -21,9 +22,6 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
     both arms of a trip); `extra_process_models` are added to the cloud twins' models;
     `recorder` receives the AR overlay frames (video).
     """
-    from vcfusion.driver.cloud_guidance import CloudGuidanceFallback
-    from vcfusion.driver.model import DriverModel
-    from vcfusion.driver.params import draw_driver
     from vcfusion.traffic.network import read_road
 
     road = read_road(scenario.network)
@@ -34,23 +32,30 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
         process_models.append(("lane_change", predictor_for_scenario(scenario, road)))
     process_models += list(extra_process_models or [])
     hooks = []
+    controller = None
+    # One guidance policy (thresholds, "ahead", lanes, ego id) for the overlay, the cloud guidance
+    # and the driver (vcfusion.guidance).
+    policy = GuidancePolicy.from_scenario(scenario, road) if scenario.ego is not None else None
     if scenario.vision.enabled:
         # Imported only here: traffic-only runs never load OpenGL.
         from vcfusion.render.hook import CameraHook
 
         hooks.append(CameraHook(scenario, every_ticks=scenario.vision.every_ticks))
     if scenario.fusion.enabled:
-        # After the camera hook: fusion reads the frame it puts in the tick's annotations.
         from vcfusion.fusion.stage import build_fusion_hook
 
-        hooks.append(build_fusion_hook(scenario, seed, recorder))
-    controller = None
+        hooks.append(build_fusion_hook(scenario, seed, policy, recorder))
     if scenario.ego is not None:
-        # Last hook: fills tick.annotations['guidance'] from the cloud only if no overlay did.
-        hooks.append(CloudGuidanceFallback(road, scenario.ar.medium_threshold, scenario.ar.high_threshold,
-                                           scenario.driver.guidance_view_range_m))
+        from vcfusion.driver.cloud_guidance import CloudGuidanceFallback
+        from vcfusion.driver.model import DriverModel
+        from vcfusion.driver.params import draw_driver
+
+        hooks.append(CloudGuidanceFallback(road, policy))
         enabled = scenario.driver.guidance if guidance_enabled is None else guidance_enabled
-        controller = DriverModel(draw_driver(seed, scenario.ego.desired_speed_mps), road, scenario.ego.lane, enabled)
+        controller = DriverModel(draw_driver(seed, scenario.ego.desired_speed_mps), road, policy, enabled)
+    # The order above is what the stages declare they need (checked here, see vcfusion.stages):
+    # camera -> fusion (reads tick.frame) -> cloud guidance (fills tick.guidance where fusion made
+    # none) -> driver (reads tick.guidance).
     return CoSimulation(scenario, seed, controller=controller, process_models=process_models, hooks=hooks)
 
 

@@ -227,6 +227,15 @@ def write_run_folder(out_dir: Path, tables: Mapping[str, pd.DataFrame | Path], m
     return Path(out_dir)
 
 
+def _partial(out: Path) -> Path:
+    return Path(out).with_name(Path(out).name + ".tmp-writing")
+
+
+def discard_partial_folder(out: Path) -> None:
+    """Remove what a writer of `out` killed before it completed (SIGKILL) left behind."""
+    shutil.rmtree(_partial(out), ignore_errors=True)
+
+
 @contextmanager
 def atomic_folder(out: Path, kind: str = "folder"):
     """Yield a temporary sibling folder that becomes `out` only if the block completes."""
@@ -234,7 +243,7 @@ def atomic_folder(out: Path, kind: str = "folder"):
     if out.exists():
         raise FileExistsError(f"{out}: {kind} already exists")
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp-writing")
+    tmp = _partial(out)
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir()

@@ -57,7 +57,8 @@ class V2CConfig(_Strict):
 
 class AROverlayConfig(_Strict):
     period_s: Positive = 0.1
-    # lane-change probability at or above which a neighbour is flagged yellow (medium) / red (high)
+    # calibrated lane-change probability at or above which a flagged neighbour is yellow (medium) /
+    # red (high), for the overlay, the cloud guidance and the driver alike; why 0.3 / 0.6: vcfusion.guidance
     medium_threshold: Probability = 0.3
     high_threshold: Probability = 0.6
     # write the AR overlay as PNG frames + an mp4 into the run folder (needs fusion.enabled)
@@ -133,7 +134,8 @@ class DriverConfig(_Strict):
 
     # Whether the driver uses the AR guidance in a single run (the guidance study runs both).
     guidance: bool = True
-    # Guidance levels follow ar.medium_threshold / ar.high_threshold (one setting for overlay and driver).
+    # Guidance items are made for neighbours ahead within this range; levels follow ar.medium_threshold /
+    # ar.high_threshold (one GuidancePolicy per run, vcfusion.guidance).
     guidance_view_range_m: Positive = 150.0
 
 

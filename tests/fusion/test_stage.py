@@ -1,5 +1,5 @@
 """The fusion stage wired from a scenario: checks of the scenario blocks, the fusion hook fed by
-a camera hook through tick annotations, and (once the rendering stage is present) `vcfusion run`
+a camera hook through `tick.frame`, and (once the rendering stage is present) `vcfusion run`
 with real renders writing the fusion table and the AR video."""
 
 import json
@@ -13,6 +13,9 @@ import yaml
 
 from support.cuboid_frames import CuboidFrameSource
 from vcfusion.cosim import CoSimulation
+from vcfusion.driver.idm import IdmController
+from vcfusion.guidance import GuidancePolicy
+from vcfusion.traffic.network import read_road
 from vcfusion.scenario import Scenario, ScenarioError, load_scenario
 from vcfusion.fusion.overlay import OverlayRecorder
 from vcfusion.fusion.stage import build_fusion_hook
@@ -47,23 +50,24 @@ def test_scenario_checks_the_fusion_blocks(tmp_path):
 
 
 class FakeCameraHook:
-    """Stands in for the rendering stage's camera hook: puts a frame into the tick's annotations."""
+    """Stands in for the rendering stage's camera hook: sets the tick's frame."""
 
     table = "camera"
+    provides = ("frame",)
 
     def __init__(self):
         self.source = CuboidFrameSource()
 
     def __call__(self, tick):
-        tick.annotations["frame"] = self.source(tick)
+        tick.frame = self.source(tick)
 
 
 @pytest.mark.slow
 def test_fusion_hook_reads_the_camera_hooks_frame(tmp_path):
     sc = load_scenario(scenario_file(tmp_path, fusion={"detector": "oracle"}, ar={"period_s": 0.2}))
     with OverlayRecorder(tmp_path / "video") as rec:
-        fusion = build_fusion_hook(sc, 1, rec)
-        result = CoSimulation(sc, 1, hooks=[FakeCameraHook(), fusion]).run()
+        fusion = build_fusion_hook(sc, 1, GuidancePolicy.from_scenario(sc, read_road(sc.network)), rec)
+        result = CoSimulation(sc, 1, controller=IdmController.for_scenario(sc), hooks=[FakeCameraHook(), fusion]).run()
     table = result.tables["fusion"]
     assert table["matched"].mean() > 0.9
     # the AR period (0.2 s) halves the V2C tick rate (0.1 s)

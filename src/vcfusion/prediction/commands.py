@@ -79,6 +79,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub) -> None:
+    from vcfusion.cli import INTERRUPTED_BATCH  # (called by the cli's build_parser)
+
     p = sub.add_parser("dataset", help="simulate seeds and write a labelled lane-change dataset (Parquet)")
     p.add_argument("scenario", help="scenario YAML file, e.g. scenarios/dense.yaml")
     p.add_argument("--seeds", required=True, help="e.g. 0-199 or 1,4,7-9")
@@ -89,7 +91,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--refeature", action="store_true",
                    help="recompute the samples of runs already in --out with this version's features "
                         "(from their logged twins tables, no simulation) instead of refusing a feature change")
-    p.set_defaults(func=cmd_dataset)
+    p.set_defaults(func=cmd_dataset, interrupted=INTERRUPTED_BATCH)
 
     p = sub.add_parser("train", help="train the lane-change MLP on a dataset")
     p.add_argument("dataset", help="dataset folder from `vcfusion dataset`")

@@ -26,7 +26,7 @@ from vcfusion.prediction.features import FEATURE_NAMES, features_from_twins_tabl
 from vcfusion.prediction.labels import label_samples
 from vcfusion.studies.batch import SeedOutcome, run_batch, seed_folder
 from vcfusion.traffic.network import read_road
-from vcfusion.workers import worker_context
+from vcfusion.workers import JobFailed, run_jobs
 
 DATASET_JSON = "dataset.json"
 SAMPLES = "samples.parquet"
@@ -103,27 +103,28 @@ def _refeature_seed(folder: str, scenario_path: str, seed: int, tau: float, tau_
 
 
 def refeature_runs(scenario_path: Path, seeds: list[int], runs: Path, workers: int, tau: float, tau_g: float,
-                   progress: bool = True) -> list[int]:
-    """Recompute samples.parquet of every complete run folder among `seeds` (parallel); returns the seeds."""
-    from concurrent.futures import ProcessPoolExecutor
+                   progress: bool = True) -> tuple[list[int], list[tuple[int, str]]]:
+    """Recompute samples.parquet of every complete run folder among `seeds` (parallel).
 
+    Returns the seeds recomputed and the (seed, cause) of those that failed (their worker died
+    or the recomputation raised): their samples are of the old features and must not be used.
+    """
     from tqdm import tqdm
 
     from vcfusion.runio import is_complete_run
 
     todo = [s for s in seeds if is_complete_run(seed_folder(runs, s))]
     args = [(str(seed_folder(runs, s)), str(scenario_path), s, tau, tau_g) for s in todo]
-    bar = tqdm(total=len(todo), desc="features", unit="seed", disable=not progress)
-    if workers <= 1:
-        for a in args:
-            _refeature_seed(*a)
+    done, failed = [], []
+    with tqdm(total=len(todo), desc="features", unit="seed", disable=not progress) as bar:
+        for index, result in run_jobs(_refeature_seed, args, workers):
+            if isinstance(result, JobFailed):
+                failed.append((todo[index], result.cause))
+                bar.write(f"features of seed {todo[index]} failed: {result.cause.splitlines()[0]}")
+            else:
+                done.append(todo[index])
             bar.update()
-    else:
-        with ProcessPoolExecutor(workers, mp_context=worker_context()) as pool:
-            for _ in pool.map(_refeature_seed, *zip(*args)):
-                bar.update()
-    bar.close()
-    return todo
+    return sorted(done), sorted(failed)
 
 
 def split_seeds(seeds: list[int]) -> dict[str, list[int]]:
@@ -295,10 +296,14 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
     tmp = meta_file.with_name(DATASET_JSON + ".tmp-writing")
     write_json(tmp, params)
     tmp.replace(meta_file)
-    refeatured = refeature_runs(Path(scenario_path), seeds, out / "runs", workers, tau, tau_g, progress) if refeature else []
+    refeatured, stale = [], []
+    if refeature:
+        refeatured, stale = refeature_runs(Path(scenario_path), seeds, out / "runs", workers, tau, tau_g, progress)
     task = functools.partial(_dataset_seed, tau=tau, tau_g=tau_g)
     report = run_batch(Path(scenario_path), seeds, out / "runs", workers=workers, progress=progress, task=task)
-    done = [s for s in seeds if (seed_folder(out / "runs", s) / SAMPLES).is_file()]
+    report["failed"] = sorted(report["failed"] + stale)  # a seed with old features is left out
+    stale_seeds = {s for s, _ in stale}
+    done = [s for s in seeds if (seed_folder(out / "runs", s) / SAMPLES).is_file() and s not in stale_seeds]
     counts = {"seeds": len(done), "samples": 0, "window_positive": 0, "window_negative": 0, "lane_changes": 0}
     for s in done:
         lab = pd.read_parquet(seed_folder(out / "runs", s) / SAMPLES, columns=["window_label"])["window_label"]

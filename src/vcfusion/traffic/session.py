@@ -15,11 +15,10 @@ from pathlib import Path
 import libsumo
 import numpy as np
 
-from vcfusion.records import VehicleStates
+from vcfusion.records import EGO_ID, VehicleStates
 from vcfusion.scenario import Scenario
 from vcfusion.traffic.network import Road, read_road, read_vehicle_types
 
-EGO_ID = "ego"
 ROUTE_ID = "highway"
 # A stop longer than any run: the accident vehicles never leave.
 ACCIDENT_STOP_S = 1.0e6
