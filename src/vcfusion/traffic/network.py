@@ -265,7 +265,9 @@ def build_network(net_dir: Path = REPO_NET_DIR, name: str = "highway") -> Path:
 
 def build_networks(net_dir: Path = REPO_NET_DIR) -> list[Path]:
     """Build every network of net_dir (see network_names)."""
+    if not net_dir.is_dir():
+        raise RuntimeError(f"{net_dir}: folder not found")
     names = network_names(net_dir)
     if not names:
-        raise RuntimeError(f"{net_dir}: no NAME.nod.xml + NAME.edg.xml to build")
+        raise RuntimeError(f"{net_dir}: nothing to build (expected NAME.nod.xml + NAME.edg.xml, or NAME.osm.xml)")
     return [build_network(net_dir, name) for name in names]
