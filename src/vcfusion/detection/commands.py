@@ -1,5 +1,6 @@
 """Handlers of the detector subcommands of `vcfusion` (train-detector, eval-detector, export-onnx);
-the cli only parses arguments."""
+the cli only parses arguments. A bad weights file or dataset folder raises DetectorFileError
+(InputError: the CLI prints it and exits with 2)."""
 
 from __future__ import annotations
 
@@ -21,21 +22,17 @@ def parse_size(text: str, option: str) -> tuple[int, int]:
 
 
 def cmd_train_detector(args: argparse.Namespace) -> int:
-    from vcfusion.detection.detector_net import DetectorFileError
     from vcfusion.detection.detector_train import train_detector
 
     input_wh = parse_size(args.input_size, "--input-size")
     for name in ("epochs", "batch_size"):
         if getattr(args, name) < 1:
             raise UsageError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(args, name)}")
-    try:
-        net, report = train_detector(
-            args.data, args.out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, input_wh=input_wh,
-            val_fraction=args.val_fraction, val_data=args.val, seed=args.seed, threads=args.threads,
-            device=args.device, progress=sys.stderr.isatty(), max_iterations=args.iterations,
-            min_train_area=args.min_train_area, eval_min_area=args.min_area)
-    except DetectorFileError as exc:
-        raise UsageError(str(exc)) from None
+    net, report = train_detector(
+        args.data, args.out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, input_wh=input_wh,
+        val_fraction=args.val_fraction, val_data=args.val, seed=args.seed, threads=args.threads,
+        device=args.device, progress=sys.stderr.isatty(), max_iterations=args.iterations,
+        min_train_area=args.min_train_area, eval_min_area=args.min_area)
     size_mb = Path(args.out).stat().st_size / 2**20
     print(f"trained {report.iterations} iterations ({report.epochs} epochs) on {report.n_train} images "
           f"in {report.wall_s:.0f} s; loss {report.first_losses[0]:.3f} -> {report.loss_history[-1]:.3f}")
@@ -48,38 +45,33 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
 def _make_detector(args):
     from vcfusion.detection.detector_net import DetectorFileError, OnnxDetector, TorchDetector, default_weights_path
 
-    try:
-        if args.onnx and args.layout == "ultralytics":
-            keep = tuple(c.strip() for c in args.keep.split(","))
-            try:
-                return OnnxDetector.ultralytics(args.onnx, parse_size(args.input_size or "640x640", "--input-size"), keep)
-            except ValueError as exc:
-                if isinstance(exc, DetectorFileError):
-                    raise
-                raise UsageError(f"--keep: {exc}") from None
-        if args.onnx:
-            if not args.classes:
-                raise UsageError("--classes: expected the category ids of the ONNX model's score columns, e.g. 1,2")
-            class_ids = [int(c) for c in args.classes.split(",")]
-            return OnnxDetector(args.onnx, parse_size(args.input_size or "320x240", "--input-size"), class_ids,
-                                scale=args.scale, objectness=args.objectness, letterbox=args.letterbox)
-        return TorchDetector(args.weights or default_weights_path())
-    except DetectorFileError as exc:
-        raise UsageError(str(exc)) from None
+    if args.onnx and args.layout == "ultralytics":
+        keep = tuple(c.strip() for c in args.keep.split(","))
+        try:
+            return OnnxDetector.ultralytics(args.onnx, parse_size(args.input_size or "640x640", "--input-size"), keep)
+        except ValueError as exc:
+            if isinstance(exc, DetectorFileError):
+                raise
+            raise UsageError(f"--keep: {exc}") from None
+    if args.onnx:
+        try:
+            class_ids = [int(c) for c in (args.classes or "").split(",")]
+        except ValueError:
+            raise UsageError("--classes: expected the category ids of the ONNX model's score columns, e.g. 1,2, "
+                             f"got {args.classes!r}") from None
+        return OnnxDetector(args.onnx, parse_size(args.input_size or "320x240", "--input-size"), class_ids,
+                            scale=args.scale, objectness=args.objectness, letterbox=args.letterbox)
+    return TorchDetector(args.weights or default_weights_path())
 
 
 def cmd_eval_detector(args: argparse.Namespace) -> int:
-    from vcfusion.detection.detector_net import DetectorFileError
     from vcfusion.detection.detector_train import load_coco_many
     from vcfusion.detection.family_eval import evaluate_families, format_table
 
     detector = _make_detector(args)
-    try:
-        ds = load_coco_many(args.data)
-        results, _ = evaluate_families(detector, ds, min_area=args.min_area, identification=not args.no_identification,
-                                       progress=sys.stderr.isatty())
-    except DetectorFileError as exc:
-        raise UsageError(str(exc)) from None
+    ds = load_coco_many(args.data)
+    results, _ = evaluate_families(detector, ds, min_area=args.min_area, identification=not args.no_identification,
+                                   progress=sys.stderr.isatty())
     if not results:
         raise UsageError(f"{' '.join(args.data)}: annotations: expected at least one ground-truth box")
     overall = results[-1]  # 'all' when there are several families
@@ -99,16 +91,13 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
 
 
 def cmd_export_onnx(args: argparse.Namespace) -> int:
-    from vcfusion.detection.detector_net import DetectorFileError, DetectorModel, default_weights_path, export_onnx
+    from vcfusion.detection.detector_net import DetectorModel, default_weights_path, export_onnx
 
     try:
         import onnx  # noqa: F401 - torch's exporter needs it
     except ImportError:
         raise UsageError("export-onnx: needs the onnx package (pip install onnx, or the project's dev extra)") from None
-    try:
-        net = DetectorModel.load(args.weights or default_weights_path())
-    except DetectorFileError as exc:
-        raise UsageError(str(exc)) from None
+    net = DetectorModel.load(args.weights or default_weights_path())
     out = export_onnx(net, args.out)
     w, h = net.input_wh
     ids = ",".join(str(c) for c in net.class_ids)
