@@ -252,3 +252,26 @@ def test_joint_matcher_with_noisy_gnss_is_steadied_by_the_filter():
         else:
             smoothed.match(tw, boxes, depths, cam_t)
     assert right_s >= 95 * 0.8 and right_s > right_r + 10
+
+
+def test_joint_matcher_matches_a_far_vehicle_whose_lower_part_a_nearer_one_hides():
+    """A far truck (rear 74 m) seen above and beside a nearer car (rear 37.75 m): Algorithm 1's
+    lower quarter of the truck's box lies on the car, so the box's depth is the car's. The nearer
+    twin explains that depth: the truck keeps its box (before: gated out by the 7.7-sigma depth
+    disagreement). Without the nearer twin nothing explains it and the gate holds."""
+    cam = pinhole_camera()
+    # make_twins puts the GNSS point at z_ground + height; the body centre is half that up
+    twins = make_twins(["near", "far"], [40.0, 80.0], [0.0, 0.3], length=[4.5, 12.0], width=[1.8, 2.5],
+                       height=[1.5, 3.6], z_ground=[-0.75, -1.8])
+    near_box = vehicle_box(cam, 40.0, 0.0)
+    far_box = vehicle_box(cam, 80.0, 0.3, length=12.0, width=2.5, height=3.6)
+    lower = far_box.copy()
+    lower[1] = far_box[3] - 0.25 * (far_box[3] - far_box[1])
+    assert near_box[0] <= lower[0] and lower[2] <= near_box[2] and near_box[1] <= lower[1]  # the car covers it
+    samples = np.array([np.full(30, 40.0 - 2.25), np.full(30, 40.0 - 2.25)])  # both boxes measure the car
+    boxes = np.stack([near_box, far_box])
+    assert [int(g) for g in JointMatcher().match(twins, boxes, samples, cam)] == [0, 1]
+    alone = twins.select([1])
+    assert list(JointMatcher().match(alone, far_box[None], samples[1:], cam)) == [NO_MATCH]
+    # the near twin's own box is never explained away: with only that box the far twin gets nothing
+    assert [int(g) for g in JointMatcher().match(twins, near_box[None], samples[:1], cam)] == [0, NO_MATCH]

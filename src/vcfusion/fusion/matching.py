@@ -435,12 +435,39 @@ class JointMatcher:
         depth_known = np.isfinite(depth_err)
         # A box without valid depth neither helps nor is excluded: a neutral one-sigma penalty.
         depth_err = np.where(depth_known, depth_err, 1.0)
+        # A box whose sampled lower quarter lies on a clearly nearer twin (inside its expected box,
+        # at its depth) measured that twin, not the vehicles behind it: for those its depth cannot
+        # confirm a match but does not exclude one either (e.g. a far car whose lower part a nearer
+        # one hides): allowed at the largest depth penalty, so any twin whose depth does agree wins.
+        if n > 1 and m:
+            depth_err = np.where(self._depth_of_nearer_twin(proj, b, depth_err, sigma),
+                                 np.minimum(depth_err, p.depth_gate), depth_err)
         cost = (p.w_overlap * (1.0 - iou) + p.w_anchor * np.minimum(anchor_dist, 1.0)
                 + p.w_depth * np.minimum(depth_err, p.depth_gate))
         cost = np.nan_to_num(cost, nan=10.0, posinf=10.0)  # twins out of view (nan anchors) are gated below
         allowed = ((iou >= p.overlap_gate) | inside) & (depth_err <= p.depth_gate)
         allowed &= proj.in_view[:, None]
         return cost, allowed
+
+    def _depth_of_nearer_twin(self, proj: TwinProjection, boxes: np.ndarray, depth_err: np.ndarray,
+                              sigma: np.ndarray) -> np.ndarray:
+        """(N, D) mask: box j's depth agrees with a twin k that is nearer than twin i by more than
+        i's depth gate and whose expected box holds >= 80 % of box j's lower quarter, while box j is
+        not k's own box (IoU with k's expected box < 0.5: else a far twin would take the box of a
+        near one)."""
+        gate = self.params.depth_gate
+        lower = boxes.copy()
+        lower[:, 1] = boxes[:, 3] - 0.25 * (boxes[:, 3] - boxes[:, 1])
+        area = np.maximum((lower[:, 2] - lower[:, 0]) * (lower[:, 3] - lower[:, 1]), 1e-9)
+        e = proj.expected_box
+        ix = np.clip(np.minimum(e[:, None, 2], lower[None, :, 2]) - np.maximum(e[:, None, 0], lower[None, :, 0]), 0, None)
+        iy = np.clip(np.minimum(e[:, None, 3], lower[None, :, 3]) - np.maximum(e[:, None, 1], lower[None, :, 1]), 0, None)
+        # (K, D): twin k covers box j's sampled area and box j's depth is twin k's
+        explains = ((ix * iy / area[None, :] >= 0.8) & (depth_err <= gate) & proj.in_view[:, None]
+                    & (box_iou(e, boxes) < 0.5))
+        expected = proj.face_z if self.params.face_offset else proj.anchor_z
+        nearer = expected[None, :] < (expected[:, None] - gate * sigma)  # (I, K): k clearly nearer than i
+        return (nearer.astype(np.int64) @ explains.astype(np.int64)) > 0
 
     def match(self, twins: TwinStates, boxes, box_depths, camera: CameraView) -> np.ndarray:
         """Box index per twin (NO_MATCH where unassigned), aligned with ``twins.ids``.
