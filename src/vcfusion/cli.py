@@ -153,6 +153,45 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_drive(args: argparse.Namespace) -> int:
+    if args.calibrate:
+        from vcfusion.hitl.drive import calibrate
+
+        if not args.axis_map:
+            raise UsageError("--calibrate: give --axis-map FILE to write the axis map to")
+        axis_map = calibrate(Path(args.axis_map), headless=args.headless)
+        print(f"axis map of {axis_map.device!r} -> {args.axis_map}: steer axis {axis_map.steer.axis}, "
+              f"throttle axis {axis_map.throttle.axis}, brake axis {axis_map.brake.axis}")
+        return 0
+    if not args.scenario:
+        raise UsageError("drive: give a SCENARIO file (or --calibrate)")
+    from vcfusion.cosim import format_summary
+    from vcfusion.hitl.drive import drive
+
+    scenario = load_scenario(args.scenario)
+    if args.speed not in ("1", "max"):
+        raise UsageError(f"--speed: expected 1 or max, got {args.speed!r}")
+    if args.fps <= 0:
+        raise UsageError(f"--fps: expected a positive frame rate, got {args.fps}")
+    out = Path(args.out) if args.out else _default_run_dir(f"{scenario.name}-{args.participant or 'drive'}", args.seed)
+    from vcfusion.hitl.driver import DriveAborted
+
+    try:
+        result = drive(scenario, args.seed, input_spec=args.input, guidance_on=args.guidance == "on",
+                       speed=None if args.speed == "max" else 1.0, out_dir=out, participant=args.participant,
+                       axis_map_file=Path(args.axis_map) if args.axis_map else None, record_video=args.record_video,
+                       window=not args.no_window, headless=args.headless, display_fps=args.fps)
+    except DriveAborted as exc:
+        print(f"{exc}: the trip was not written", file=sys.stderr)
+        return 130
+    print(format_summary(result.summary, result.wall_s))
+    rt = result.summary["realtime"]
+    print(f"  display: {rt['frames_shown']} frames shown, {rt['dropped_frames']} dropped, median "
+          f"{rt['display_fps_median'] or 0:.1f} frames/s; max lag {rt['max_lag_s'] or 0:.3f} s")
+    print(f"run folder: {out}")
+    return 0
+
+
 def cmd_bench_render(args: argparse.Namespace) -> int:
     from vcfusion.render.bench import main as bench_main
 
@@ -214,6 +253,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--every", type=int, default=5, help="render every K-th V2C tick (default 5)")
     p.add_argument("--out", help="dataset folder to create (default: renders/NAME-dataset)")
     p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("drive", help="drive the ego yourself (keyboard, wheel, game pad) or replay a drive")
+    p.add_argument("scenario", nargs="?", help="scenario YAML file (not needed with --calibrate)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--guidance", choices=("on", "off"), default="on", help="show the AR guidance (default on)")
+    p.add_argument("--input", default="keyboard", help="keyboard, joystick or replay:FILE (CSV / Parquet)")
+    p.add_argument("--speed", default="1", help="1 (real time) or max (replay only)")
+    p.add_argument("--participant", default="", help="participant id, stored with the trip")
+    p.add_argument("--out", help="run folder to create (default: runs/SCENARIO-PARTICIPANT-seedN)")
+    p.add_argument("--axis-map", help="axis-map JSON of the wheel (written by --calibrate)")
+    p.add_argument("--calibrate", action="store_true", help="calibrate the wheel / pedals into --axis-map FILE")
+    p.add_argument("--record-video", action="store_true", help="also write the driver's view as mp4 "
+                                                               "(renders/RUN FOLDER NAME/drive.mp4)")
+    p.add_argument("--fps", type=float, default=30.0, help="display frames per simulated second (default 30)")
+    p.add_argument("--headless", action="store_true", help="SDL dummy video/audio drivers (no screen)")
+    p.add_argument("--no-window", action="store_true", help="no display at all (replays: tables only)")
+    p.set_defaults(func=cmd_drive, interrupted="the trip was not written")
 
     p = sub.add_parser("bench-render", help="time RGB + depth + instance rendering (median ms per frame)")
     p.add_argument("--scenario", default="scenarios/accident.yaml")

@@ -18,7 +18,7 @@ import tempfile
 import time as wallclock
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
 import numpy as np
 import pandas as pd
@@ -74,9 +74,35 @@ class Tick:
 
 
 class EgoController(Protocol):
-    """Sets the ego's acceleration every tick; may declare `needs` and `finish` (vcfusion.stages)."""
+    """Sets the ego's acceleration every tick; may declare `needs` and `finish` (vcfusion.stages).
+
+    A controller may also have ``step(EgoStep) -> EgoCommand``, called every SUMO step after the
+    tick's stages: a person at the wheel (vcfusion.hitl) acts between ticks, and steers."""
 
     def acceleration(self, tick: Tick) -> float: ...
+
+
+@dataclass(frozen=True)
+class EgoStep:
+    """What a per-step ego controller sees before each SUMO step."""
+
+    time: float
+    s_front: float  # front bumper along the road
+    speed: float
+    states: Callable[[], VehicleStates]  # the ground truth now, read on demand (e.g. a display frame)
+
+
+@dataclass(frozen=True)
+class EgoCommand:
+    """A per-step controller's command for the next step: the acceleration, and optionally where the
+    ego's front bumper centre is across the road (`d`, m left of the right road edge) and its yaw
+    relative to the road (rad, left positive). With `d` set the ego is placed (SUMO moveToXY,
+    keepRoute=2: it stays on its edge, in the lane under its centre, and SUMO's followers and
+    collision check see it there); without, it keeps its lane as SUMO drives it."""
+
+    accel: float
+    d: float | None = None
+    yaw: float = 0.0
 
 
 class TickHook(Protocol):
@@ -228,6 +254,8 @@ class CoSimulation:
         ego_cfg = sc.ego
         ego_speed = ego_cfg.speed_mps if ego_cfg else 0.0
         ego_accel = 0.0
+        stepper = getattr(self.controller, "step", None)  # a per-step controller (a person driving)
+        command = None
         if ego_cfg is not None:
             trip_end_s = ego_cfg.depart_pos_m + ego_cfg.trip_distance_m
         end_reason = "max_time"
@@ -269,6 +297,9 @@ class CoSimulation:
                     sinks[hook.table].append_rows(hook(tick) or [])
                 if ego_cfg is not None:
                     ego_accel = float(self.controller.acceleration(tick))
+            if stepper is not None:
+                command = stepper(EgoStep(session.time, s_front, ego_speed_now, session.states))
+                ego_accel = float(command.accel)
             if ego_cfg is not None:
                 ego_rows.append((round(session.time, 6), s_front, ego_speed_now, sumo_acc, ego_accel,
                                  *(leader or ("", np.nan))))
@@ -277,6 +308,9 @@ class CoSimulation:
                     ego_rows = []
                 ego_speed = max(0.0, ego_speed + ego_accel * dt)
                 session.set_ego_speed(ego_speed)
+                if command is not None and command.d is not None:
+                    # SUMO moves its vehicles s += v dt with the new speed; the placed ego does the same
+                    session.place_ego(s_front + ego_speed * dt * np.cos(command.yaw), command.d, command.yaw)
             session.step()
             k += 1
             if k % tick_every == 0:

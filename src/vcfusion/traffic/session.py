@@ -221,6 +221,15 @@ class SumoSession:
     def set_ego_speed(self, speed_mps: float) -> None:
         libsumo.vehicle.setSpeed(EGO_ID, max(0.0, speed_mps))
 
+    def place_ego(self, s_front: float, d: float, yaw: float) -> None:
+        """Put the ego's front bumper centre at road position (`s_front`, `d`) (d: m left of the
+        right road edge), yawed `yaw` rad (left positive) from the road, for the next step.
+        keepRoute=2: the ego stays on its edge, in the lane under its front bumper, so SUMO's
+        followers and lane changers see it there and its collision check includes it."""
+        x, y = self.road.to_world(s_front, d)
+        angle = 90.0 - np.degrees(self.road.heading_rad + yaw)
+        libsumo.vehicle.moveToXY(EGO_ID, "", -1, float(x), float(y), angle=float(angle), keepRoute=2)
+
     def vehicle_count(self) -> int:
         return libsumo.vehicle.getIDCount()
 

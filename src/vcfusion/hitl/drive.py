@@ -1,0 +1,152 @@
+"""One trip driven by a person (`vcfusion drive`), and the wheel calibration (`--calibrate`).
+
+The trip is the scenario's ordinary run (build_cosimulation: camera, fusion, cloud guidance),
+with the driver model replaced by a HumanDriver; it lands in an ordinary run folder with two
+more tables (inputs, frames) and the summary's `realtime` and `hitl` blocks, so every metric and
+study that reads run folders reads human trips too.
+"""
+
+from __future__ import annotations
+
+import time as wallclock
+from pathlib import Path
+
+from vcfusion.errors import UsageError
+from vcfusion.scenario import Scenario
+
+INSTRUCTIONS = [
+    "vcfusion: drive the ego car",
+    "",
+    "Keyboard: Up / W throttle, Down / S brake, Left / A and Right / D steer,",
+    "Q / E change lane left / right.  Wheel: steer and pedals (paddles change lane).",
+    "Drive to the end of the trip. Highlighted cars may change into your lane",
+    "(yellow: maybe, red: likely) when guidance is on.",
+    "",
+    "Press Enter, Space or a wheel button to start; Escape ends the trip.",
+]
+
+
+def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, speed: float | None,
+          out_dir: Path | None, participant: str = "", axis_map_file: Path | None = None,
+          record_video: bool = False, window: bool = True, headless: bool = False,
+          display_fps: float = 30.0, start_screen_s: float | None = None):
+    """Drive one trip; returns the RunResult (run folder written when out_dir is given).
+    `start_screen_s`: how long the instruction screen waits at most (None: until a key press;
+    replays skip it)."""
+    from vcfusion.hitl.driver import HumanDriver
+    from vcfusion.hitl.inputs import ReplayInput, open_input
+    from vcfusion.hitl.sdl import init_sdl
+    from vcfusion.hitl.vehicle import VehicleModel
+    from vcfusion.records import EGO_ID
+    from vcfusion.run import build_cosimulation, manifest_for, video_dir_for
+    from vcfusion.runio import write_run_folder
+    from vcfusion.traffic.network import read_road, read_vehicle_types
+
+    if scenario.ego is None:
+        raise UsageError(f"{scenario.source}: ego: a person drives the ego; the scenario has no ego block")
+    replay = input_spec.startswith("replay:")
+    if speed is None and not replay:
+        raise UsageError("--speed max: only for replay:FILE inputs (a person drives in real time)")
+    if out_dir is not None and Path(out_dir).exists():
+        raise UsageError(f"--out: {out_dir} already exists; choose a new run folder")
+    if record_video and (not window or out_dir is None):
+        raise UsageError("--record-video: needs the window and a run folder")
+    pygame = init_sdl(headless) if (window or not replay) else None
+    device = open_input(input_spec, axis_map_file)
+
+    cosim = build_cosimulation(scenario, seed, guidance_enabled=guidance_on)
+    road = read_road(scenario.network)
+    ego = scenario.ego
+    width = float(read_vehicle_types(scenario.vehicle_types)[ego.vtype].get("width", 1.8))
+    vehicle = VehicleModel(road, ego.speed_mps, float(road.lane_centre_d(ego.lane)), width)
+    renderer = win = video = None
+    owns_renderer = False
+    if window:
+        from vcfusion.hitl.display import Window
+
+        camera_hook = next((h for h in cosim.hooks if h.table == "camera"), None)
+        if camera_hook is not None:
+            renderer = camera_hook.renderer  # one OpenGL context for the vision tick and the display
+        else:
+            from vcfusion.render.renderer import EgoCameraRenderer
+
+            renderer, owns_renderer = EgoCameraRenderer(road, scenario.camera, EGO_ID), True
+        win = Window(pygame, (scenario.camera.width_px, scenario.camera.height_px),
+                     f"vcfusion drive: {scenario.name} seed {seed}")
+        if record_video:
+            from vcfusion.fusion.overlay import OverlayRecorder
+
+            video = OverlayRecorder(video_dir_for(Path(out_dir)), fps=display_fps, write_png=False,
+                                    video_name="drive.mp4")
+    info = {"participant": participant, "input": device.name, "seed": seed,
+            "axis_map": device.map.model_dump() if hasattr(device, "map") else None}
+    cosim.controller = HumanDriver(device, vehicle, scenario.simulation.step_s, ego.depart_pos_m + ego.trip_distance_m,
+                                   guidance_on=guidance_on, speed=speed, display_fps=display_fps, pygame=pygame,
+                                   window=win, renderer=renderer, video=video, info=info)
+    try:
+        if win is not None and not replay:
+            from vcfusion.hitl.driver import forward_axes
+
+            win.wait_for_start(INSTRUCTIONS + [f"guidance: {'on' if guidance_on else 'off'}"],
+                               forward_axes(pygame, device), start_screen_s)
+        result = cosim.run()
+        if out_dir is not None:
+            manifest = manifest_for(scenario, seed) | {"hitl": info | {"guidance": guidance_on}}
+            write_run_folder(Path(out_dir), result.tables, manifest, result.summary)
+            result.tables.relocate(Path(out_dir))
+    except BaseException:
+        if video is not None:
+            video.abort()
+        raise
+    finally:
+        if owns_renderer:
+            renderer.close()
+        if win is not None:
+            win.close()
+    if video is not None:
+        video.close()
+    return result
+
+
+def calibrate(out_path: Path, *, headless: bool = False, phase_s: float = 4.0, joystick_index: int = 0,
+              size: tuple[int, int] = (800, 450)):
+    """Ask the person to hold each control in turn and write the axis map to `out_path`.
+
+    Phases (each `phase_s`; the reading is the median of its last second): wheel full left, full
+    right, throttle floored, brake floored, then everything released. The rest reading comes last
+    because SDL reports an axis that sent nothing yet as 0: after each pedal was pressed once, the
+    released pedals report their true rest value."""
+    import numpy as np
+
+    from vcfusion.hitl.calibration import axis_map_from_phases
+    from vcfusion.hitl.display import Window, text_screen
+    from vcfusion.hitl.sdl import init_sdl
+
+    pygame = init_sdl(headless)
+    pygame.event.pump()
+    if pygame.joystick.get_count() <= joystick_index:
+        raise UsageError("--calibrate: SDL sees no joystick or wheel; is it plugged in?")
+    js = pygame.joystick.Joystick(joystick_index)
+    js.init()
+    win = Window(pygame, size, "vcfusion drive --calibrate")
+    prompts = {"steer_left": "Turn the wheel fully LEFT and hold it", "steer_right": "Turn the wheel fully RIGHT and hold it",
+               "throttle": "Floor the THROTTLE pedal and hold it", "brake": "Press the BRAKE pedal fully and hold it",
+               "rest": "Centre the wheel; feet off all pedals"}
+    readings: dict[str, list[float]] = {}
+    try:
+        for phase, prompt in prompts.items():
+            samples = []
+            started = wallclock.perf_counter()
+            while (elapsed := wallclock.perf_counter() - started) < phase_s:
+                pygame.event.pump()
+                win.show(text_screen(size, [js.get_name(), "", prompt, f"{phase_s - elapsed:.0f}"]))
+                if elapsed >= phase_s - 1.0:
+                    samples.append([js.get_axis(i) for i in range(js.get_numaxes())])
+                wallclock.sleep(0.02)
+            readings[phase] = [float(v) for v in np.median(np.array(samples), axis=0)]
+    finally:
+        win.close()
+    rest = readings.pop("rest")
+    axis_map = axis_map_from_phases(rest, readings, device=js.get_name())
+    axis_map.save(Path(out_path))
+    return axis_map
