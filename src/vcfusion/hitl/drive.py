@@ -29,10 +29,11 @@ INSTRUCTIONS = [
 def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, speed: float | None,
           out_dir: Path | None, participant: str = "", axis_map_file: Path | None = None,
           record_video: bool = False, window: bool = True, headless: bool = False,
-          display_fps: float = 30.0, start_screen_s: float | None = None):
+          display_fps: float = 30.0, start_screen_s: float | None = None, on_start=None):
     """Drive one trip; returns the RunResult (run folder written when out_dir is given).
     `start_screen_s`: how long the instruction screen waits at most (None: until a key press;
-    replays skip it)."""
+    replays skip it); `on_start`: called when the trip's clock starts (other recorders of a study,
+    e.g. an eye tracker, start with it)."""
     from vcfusion.hitl.driver import HumanDriver
     from vcfusion.hitl.inputs import ReplayInput, open_input
     from vcfusion.hitl.sdl import init_sdl
@@ -82,7 +83,8 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
             "axis_map": device.map.model_dump() if hasattr(device, "map") else None}
     cosim.controller = HumanDriver(device, vehicle, scenario.simulation.step_s, ego.depart_pos_m + ego.trip_distance_m,
                                    guidance_on=guidance_on, speed=speed, display_fps=display_fps, pygame=pygame,
-                                   window=win, renderer=renderer, video=video, info=info)
+                                   window=win, renderer=renderer, video=video, info=info,
+                                   on_start=on_start)
     try:
         if win is not None and not replay:
             from vcfusion.hitl.driver import forward_axes

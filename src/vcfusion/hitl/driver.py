@@ -38,7 +38,7 @@ class HumanDriver:
 
     def __init__(self, device, vehicle: VehicleModel, dt: float, trip_end_s: float, *, guidance_on: bool,
                  speed: float | None = 1.0, display_fps: float = 30.0, pygame=None, window=None, renderer=None,
-                 video=None, info: dict | None = None):
+                 video=None, info: dict | None = None, on_start=None):
         self.device = device
         self.vehicle = vehicle
         self.dt = dt
@@ -51,6 +51,7 @@ class HumanDriver:
         self.renderer = renderer
         self.video = video
         self.info = info or {}
+        self.on_start = on_start  # called once when the trip's clock starts (e.g. to start other recorders)
         # the overlay shows the tick's guidance; the HUD works without it
         self.needs = ("ego", "guidance") if guidance_on else ("ego",)
         self._guidance = ()
@@ -73,6 +74,8 @@ class HumanDriver:
         now = wallclock.perf_counter()
         if self._wall0 is None:
             self._wall0, self._sim0, self._next_frame = now, st.time, st.time
+            if self.on_start is not None:
+                self.on_start()
         lag = 0.0
         if self.speed is not None:
             due = self._wall0 + (st.time - self._sim0) / self.speed
