@@ -89,6 +89,27 @@ def cmd_study_guidance(args: argparse.Namespace) -> int:
     return 1 if result["failed"] else 0
 
 
+def cmd_study_hitl(args: argparse.Namespace) -> int:
+    from vcfusion.hitl.driver import DriveAborted
+    from vcfusion.hitl.study import run_hitl_study
+
+    if args.speed not in ("1", "max"):
+        raise UsageError(f"--speed: expected 1 or max, got {args.speed!r}")
+    out = Path(args.out) if args.out else Path("runs") / f"hitl-{args.participant}"
+    try:
+        protocol = run_hitl_study(Path(args.scenario), args.participant, args.trips, out, input_spec=args.input,
+                                  axis_map_file=Path(args.axis_map) if args.axis_map else None,
+                                  first_seed=args.first_seed, practice_seed=args.practice_seed, order=args.order,
+                                  ssq=args.ssq, headless=args.headless,
+                                  speed=None if args.speed == "max" else 1.0)
+    except DriveAborted as exc:
+        print(f"{exc}: finished trips are kept in {out}; run the same command again to go on", file=sys.stderr)
+        return 130
+    print(f"participant {protocol['participant']} ({protocol['order']}): practice + {len(protocol['trips'])} trips "
+          f"-> {out} (protocol.json" + (", ssq.json)" if protocol["ssq"] else ")"))
+    return 0
+
+
 def cmd_build_net(args: argparse.Namespace) -> int:
     from vcfusion.traffic.network import REPO_NET_DIR, build_network
 
@@ -236,6 +257,22 @@ def build_parser() -> argparse.ArgumentParser:
                         "{'lc_prob': ...}; repeatable (e.g. a stand-in before the predictor is wired)")
     p.set_defaults(func=cmd_study_guidance,
                    interrupted="the study wrote nothing; run the same command again (its trips start over)")
+
+    p = study.add_parser("hitl", help="a participant drives: practice, counterbalanced trips with / without "
+                                      "guidance, optional SSQ (vcfusion drive for each trip)")
+    p.add_argument("scenario")
+    p.add_argument("--participant", required=True)
+    p.add_argument("--trips", type=int, default=4, help="paired trips: each seed driven with and without guidance")
+    p.add_argument("--first-seed", type=int, default=0)
+    p.add_argument("--practice-seed", type=int, default=1000)
+    p.add_argument("--order", choices=("on-first", "off-first"), help="default: alternates between participants")
+    p.add_argument("--ssq", action="store_true", help="simulator sickness questionnaire before and after")
+    p.add_argument("--input", default="keyboard", help="keyboard, joystick or replay:FILE")
+    p.add_argument("--axis-map", help="axis-map JSON of the wheel (vcfusion drive --calibrate)")
+    p.add_argument("--speed", default="1", help="1 (real time) or max (replay inputs only)")
+    p.add_argument("--headless", action="store_true", help="SDL dummy video/audio drivers (no screen)")
+    p.add_argument("--out", help="session folder (default: runs/hitl-PARTICIPANT)")
+    p.set_defaults(func=cmd_study_hitl, interrupted="finished trips are kept; run the same command again to go on")
 
     p = sub.add_parser("build-net", help="rebuild sumo_net/highway.net.xml with netconvert")
     p.add_argument("--net-dir", help="folder with highway.nod/edg/typ.xml (default: the repo's sumo_net)")

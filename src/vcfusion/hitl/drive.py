@@ -29,11 +29,12 @@ INSTRUCTIONS = [
 def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, speed: float | None,
           out_dir: Path | None, participant: str = "", axis_map_file: Path | None = None,
           record_video: bool = False, window: bool = True, headless: bool = False,
-          display_fps: float = 30.0, start_screen_s: float | None = None, on_start=None):
+          display_fps: float = 30.0, start_screen_s: float | None = None, on_start=None, shared_window=None):
     """Drive one trip; returns the RunResult (run folder written when out_dir is given).
     `start_screen_s`: how long the instruction screen waits at most (None: until a key press;
     replays skip it); `on_start`: called when the trip's clock starts (other recorders of a study,
-    e.g. an eye tracker, start with it)."""
+    e.g. an eye tracker, start with it); `shared_window`: a Window to draw in and leave open (a
+    study session keeps one window for all its screens and trips)."""
     from vcfusion.hitl.driver import HumanDriver
     from vcfusion.hitl.inputs import ReplayInput, open_input
     from vcfusion.hitl.sdl import init_sdl
@@ -72,8 +73,8 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
             from vcfusion.render.renderer import EgoCameraRenderer
 
             renderer, owns_renderer = EgoCameraRenderer(road, scenario.camera, EGO_ID), True
-        win = Window(pygame, (scenario.camera.width_px, scenario.camera.height_px),
-                     f"vcfusion drive: {scenario.name} seed {seed}")
+        win = shared_window or Window(pygame, (scenario.camera.width_px, scenario.camera.height_px),
+                                      f"vcfusion drive: {scenario.name} seed {seed}")
         if record_video:
             from vcfusion.fusion.overlay import OverlayRecorder
 
@@ -103,7 +104,7 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
     finally:
         if owns_renderer:
             renderer.close()
-        if win is not None:
+        if win is not None and win is not shared_window:
             win.close()
     if video is not None:
         video.close()
