@@ -201,7 +201,8 @@ def cmd_drive(args: argparse.Namespace) -> int:
         result = drive(scenario, args.seed, input_spec=args.input, guidance_on=args.guidance == "on",
                        speed=None if args.speed == "max" else 1.0, out_dir=out, participant=args.participant,
                        axis_map_file=Path(args.axis_map) if args.axis_map else None, record_video=args.record_video,
-                       window=not args.no_window, headless=args.headless, display_fps=args.fps)
+                       window=not args.no_window, headless=args.headless, display_fps=args.fps,
+                       start_screen_s=0.0 if args.headless else None)  # headless: nobody to press a key
     except DriveAborted as exc:
         print(f"{exc}: the trip was not written", file=sys.stderr)
         return 130

@@ -99,3 +99,36 @@ def test_replay_files_are_checked_and_sampled_and_held(tmp_path):
     path.write_text("time_s,throttle,brake,steer\n0.0,1.5,0,0\n")
     with pytest.raises(UsageError, match=r"r.csv: column 'throttle', row 1"):
         ReplayInput(path)
+
+
+def test_calibrate_reads_a_virtual_wheel_held_in_each_position(sdl, tmp_path):
+    from vcfusion.hitl.drive import calibrate
+
+    js = VirtualJoystick(axes=4, buttons=2)
+    # what the person does in each phase: wheel on axis 0, throttle axis 2, brake axis 3 (pedals
+    # +1 released, -1 floored, as Logitech pedals)
+    positions = {"steer_left": {0: -1.0}, "steer_right": {0: 1.0}, "throttle": {0: 0.0, 2: -1.0},
+                 "brake": {2: 1.0, 3: -1.0}, "rest": {3: 1.0}}
+    try:
+        axis_map = calibrate(tmp_path / "wheel.json", headless=True, phase_s=0.6, size=(160, 120),
+                             on_phase=lambda phase: [js.set_axis(a, v) for a, v in positions[phase].items()])
+    finally:
+        js.detach()
+    assert (axis_map.steer.axis, axis_map.throttle.axis, axis_map.brake.axis) == (0, 2, 3)
+    assert not axis_map.steer.inverted and axis_map.throttle.inverted and axis_map.brake.inverted
+    assert (axis_map.throttle.min, axis_map.throttle.max) == pytest.approx((-1.0, 1.0), abs=1e-3)
+    assert load_axis_map(tmp_path / "wheel.json") == axis_map
+
+
+def test_drive_refuses_bad_input_with_exit_2(tmp_path, capsys):
+    from scenario_files import SCENARIOS
+
+    from vcfusion.cli import main
+
+    assert main(["drive", str(SCENARIOS / "accident.yaml"), "--speed", "max", "--headless"]) == 2
+    assert "--speed max: only for replay" in capsys.readouterr().err
+    (tmp_path / "in.csv").write_text("time_s,throttle,brake\n0,0,0\n")
+    assert main(["drive", str(SCENARIOS / "accident.yaml"), "--input", f"replay:{tmp_path / 'in.csv'}",
+                 "--out", str(tmp_path / "run"), "--no-window"]) == 2
+    assert "missing column 'steer'" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()

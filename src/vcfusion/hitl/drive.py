@@ -112,13 +112,13 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
 
 
 def calibrate(out_path: Path, *, headless: bool = False, phase_s: float = 4.0, joystick_index: int = 0,
-              size: tuple[int, int] = (800, 450)):
+              size: tuple[int, int] = (800, 450), on_phase=None):
     """Ask the person to hold each control in turn and write the axis map to `out_path`.
 
-    Phases (each `phase_s`; the reading is the median of its last second): wheel full left, full
+    Phases (each `phase_s`; the reading is the median of its second half): wheel full left, full
     right, throttle floored, brake floored, then everything released. The rest reading comes last
     because SDL reports an axis that sent nothing yet as 0: after each pedal was pressed once, the
-    released pedals report their true rest value."""
+    released pedals report their true rest value. `on_phase(name)` is called as each phase starts."""
     import numpy as np
 
     from vcfusion.hitl.calibration import axis_map_from_phases
@@ -139,11 +139,13 @@ def calibrate(out_path: Path, *, headless: bool = False, phase_s: float = 4.0, j
     try:
         for phase, prompt in prompts.items():
             samples = []
+            if on_phase is not None:
+                on_phase(phase)
             started = wallclock.perf_counter()
             while (elapsed := wallclock.perf_counter() - started) < phase_s:
                 pygame.event.pump()
                 win.show(text_screen(size, [js.get_name(), "", prompt, f"{phase_s - elapsed:.0f}"]))
-                if elapsed >= phase_s - 1.0:
+                if elapsed >= phase_s / 2:
                     samples.append([js.get_axis(i) for i in range(js.get_numaxes())])
                 wallclock.sleep(0.02)
             readings[phase] = [float(v) for v in np.median(np.array(samples), axis=0)]
