@@ -331,8 +331,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="run folder to create (default: runs/SCENARIO-PARTICIPANT-seedN)")
     p.add_argument("--axis-map", help="axis-map JSON of the wheel (written by --calibrate)")
     p.add_argument("--calibrate", action="store_true", help="calibrate the wheel / pedals into --axis-map FILE")
-    p.add_argument("--record-video", action="store_true", help="also write the driver's view as mp4 "
-                                                               "(renders/RUN FOLDER NAME/drive.mp4)")
+    p.add_argument("--record-video", action="store_true", help="also write the driver's view as drive.mp4 "
+                                                               "in the run folder")
     p.add_argument("--fps", type=float, default=30.0, help="display frames per simulated second (default 30)")
     p.add_argument("--headless", action="store_true", help="SDL dummy video/audio drivers (no screen)")
     p.add_argument("--no-window", action="store_true", help="no display at all (replays: tables only)")

@@ -154,9 +154,15 @@ def test_a_keyboard_drive_recorded_and_replayed_gives_the_same_trip(tmp_path, sd
     assert len(frames) == rt["frames_due"] and frames.sim_time.is_monotonic_increasing
 
     replay = "replay:" + str(tmp_path / "live" / "inputs.parquet")
-    drive(sc, tmp_path / "replay1", input_spec=replay, speed=None)
+    drive(sc, tmp_path / "replay1", input_spec=replay, speed=None, record_video=True)
     drive(sc, tmp_path / "replay2", input_spec=replay, speed=None, window=False)
     same_tables(tmp_path / "live", tmp_path / "replay1")
+    import cv2
+
+    video = cv2.VideoCapture(str(tmp_path / "replay1" / "drive.mp4"))
+    shown = pd.read_parquet(tmp_path / "replay1" / "frames.parquet").shown.sum()
+    assert int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == shown > 0  # every displayed frame, none dropped at max
+    assert not list(tmp_path.glob(".*video*"))  # the staging folder is gone
     same_tables(tmp_path / "replay1", tmp_path / "replay2")
     ego = ego_trace(tmp_path / "live")
     assert ego.lane.iloc[-1] == 2  # the Q key changed lanes to the left

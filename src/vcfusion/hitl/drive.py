@@ -8,6 +8,7 @@ study that reads run folders reads human trips too.
 
 from __future__ import annotations
 
+import shutil
 import time as wallclock
 from pathlib import Path
 
@@ -40,7 +41,7 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
     from vcfusion.hitl.sdl import init_sdl
     from vcfusion.hitl.vehicle import VehicleModel
     from vcfusion.records import EGO_ID
-    from vcfusion.run import build_cosimulation, manifest_for, video_dir_for
+    from vcfusion.run import build_cosimulation, manifest_for
     from vcfusion.runio import write_run_folder
     from vcfusion.traffic.network import read_road, read_vehicle_types
 
@@ -61,7 +62,7 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
     ego = scenario.ego
     width = float(read_vehicle_types(scenario.vehicle_types)[ego.vtype].get("width", 1.8))
     vehicle = VehicleModel(road, ego.speed_mps, float(road.lane_centre_d(ego.lane)), width)
-    renderer = win = video = None
+    renderer = win = video = staging = None
     owns_renderer = False
     if window:
         from vcfusion.hitl.display import Window
@@ -76,10 +77,14 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
         win = shared_window or Window(pygame, (scenario.camera.width_px, scenario.camera.height_px),
                                       f"vcfusion drive: {scenario.name} seed {seed}")
         if record_video:
+            import tempfile
+
             from vcfusion.fusion.overlay import OverlayRecorder
 
-            video = OverlayRecorder(video_dir_for(Path(out_dir)), fps=display_fps, write_png=False,
-                                    video_name="drive.mp4")
+            # staged beside the run folder (same file system) and moved into it with the tables
+            Path(out_dir).parent.mkdir(parents=True, exist_ok=True)
+            staging = Path(tempfile.mkdtemp(prefix=f".{Path(out_dir).name}.video-", dir=Path(out_dir).parent))
+            video = OverlayRecorder(staging / "video", fps=display_fps, write_png=False, video_name="drive.mp4")
     info = {"participant": participant, "input": device.name, "seed": seed,
             "axis_map": device.map.model_dump() if hasattr(device, "map") else None}
     cosim.controller = HumanDriver(device, vehicle, scenario.simulation.step_s, ego.depart_pos_m + ego.trip_distance_m,
@@ -94,20 +99,22 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
                                forward_axes(pygame, device), start_screen_s)
         result = cosim.run()
         if out_dir is not None:
+            extra = {}
+            if video is not None:
+                extra = {"drive.mp4": video.close() / "drive.mp4"}
+                video = None
             manifest = manifest_for(scenario, seed) | {"hitl": info | {"guidance": guidance_on}}
-            write_run_folder(Path(out_dir), result.tables, manifest, result.summary)
+            write_run_folder(Path(out_dir), result.tables, manifest, result.summary, extra_files=extra)
             result.tables.relocate(Path(out_dir))
-    except BaseException:
+    finally:
         if video is not None:
             video.abort()
-        raise
-    finally:
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
         if owns_renderer:
             renderer.close()
         if win is not None and win is not shared_window:
             win.close()
-    if video is not None:
-        video.close()
     return result
 
 
