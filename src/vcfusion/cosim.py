@@ -231,7 +231,8 @@ class CoSimulation:
         events = lane_change_events(sumo_changes, tracks, session.road)
         if sc.ego is not None:
             lengths = dict(zip(vehicles["vehicle_id"], vehicles["length"]))
-            events = relate_to_ego(events, tracks, lengths, sc.ego.lane)
+            events = relate_to_ego(events, tracks, lengths, _ego_lane_at(tracks, events["mid_time"], session.road,
+                                                                         sc.ego.lane))
         tables["lane_changes"] = pd.DataFrame(events)
         summary = summarize(sc, self.seed, tables, events, out["channel"], out["end_reason"], lateral)
         for stage in self.stages():
@@ -335,6 +336,16 @@ class CoSimulation:
             leader_gap_m=leader[1] if leader else None,
             leader_speed=session.speed_of(leader[0]) if leader else None,
         )
+
+
+def _ego_lane_at(tracks: dict, times: np.ndarray, road: Road, start_lane: int) -> np.ndarray:
+    """The ego's lane at each of `times` (its nearest trajectory sample): a person may change
+    lanes (vcfusion.hitl), so "into the ego's lane" means the lane it drives in then."""
+    ego = tracks.get(EGO_ID)
+    if ego is None or not len(ego["time"]) or not len(times):
+        return np.full(len(times), start_lane)
+    at = np.abs(ego["time"][None, :] - np.asarray(times)[:, None]).argmin(axis=1)
+    return road.lane_of(ego["d"][at])
 
 
 def _finish(stage, tables: RunTables, summary: dict) -> None:

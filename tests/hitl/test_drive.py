@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pandas as pd
 import pytest
-from scenario_files import write_scenario
+from scenario_files import SCENARIOS, write_scenario
 
 from vcfusion.scenario import load_scenario
 
@@ -166,3 +166,21 @@ def test_a_keyboard_drive_recorded_and_replayed_gives_the_same_trip(tmp_path, sd
     same_tables(tmp_path / "replay1", tmp_path / "replay2")
     ego = ego_trace(tmp_path / "live")
     assert ego.lane.iloc[-1] == 2  # the Q key changed lanes to the left
+
+
+@pytest.mark.slow
+def test_cut_ins_are_judged_against_the_lane_the_person_drives_in(tmp_path):
+    # accident scenario: the ego starts in lane 2, the person moves to lane 1 at once and drives
+    # slowly; the changers merging from the closed lane 0 into lane 1 now cut into the ego's lane
+    sc = load_scenario(SCENARIOS / "accident.yaml")
+    sc = sc.model_copy(update={"simulation": sc.simulation.model_copy(update={"max_time_s": 14.0})})
+    (tmp_path / "in.csv").write_text("time_s,throttle,brake,steer,lane_change\n0,0,0.15,0,0\n0.2,0,0.15,0,-1\n")
+    result = drive(sc, tmp_path / "run", seed=1, input_spec="replay:" + str(tmp_path / "in.csv"), speed=None,
+                   window=False)
+    lc = pd.read_parquet(tmp_path / "run" / "lane_changes.parquet")
+    ego = ego_trace(tmp_path / "run")
+    lane_at_mid = ego.lane.reindex(lc.mid_time.round(1).to_numpy()).to_numpy()
+    assert (lc.into_ego_lane == (lc.to_lane.to_numpy() == lane_at_mid)).all()
+    into_lane_1 = lc[lc.into_ego_lane]
+    assert len(into_lane_1) >= 2 and (into_lane_1.to_lane == 1).all()  # lane 2 was the start lane
+    assert result.summary["cut_ins_ahead_of_ego"] == int((lc.into_ego_lane & lc.ahead_of_ego).sum())

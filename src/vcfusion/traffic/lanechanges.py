@@ -81,8 +81,9 @@ def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, di
 
 
 def relate_to_ego(events: dict[str, np.ndarray], tracks: dict[str, dict[str, np.ndarray]],
-                  lengths: dict[str, float], ego_lane: int) -> dict[str, np.ndarray]:
+                  lengths: dict[str, float], ego_lane: int | np.ndarray) -> dict[str, np.ndarray]:
     """Mark lane changes into the ego's lane and where they happened relative to the ego.
+    `ego_lane`: the ego's lane, or per event the ego's lane at the change's midpoint.
 
     `gap_to_ego_m`: bumper to bumper along the road, the changer's rear minus the ego's front,
     at the trajectory sample nearest the change's midpoint. `tracks`: time and s of the ego's
