@@ -32,7 +32,8 @@ from vcfusion.runio import RunTables, TableSink, vehicle_tracks
 from vcfusion.scenario import Scenario
 from vcfusion.stages import WiringError, check_wiring, declared, stage_name
 from vcfusion.threads import one_blas_thread
-from vcfusion.traffic.lanechanges import lane_change_events, read_sumo_lanechanges, relate_to_ego
+from vcfusion.traffic.lanechanges import (ego_lane_changes, lane_change_events, merge_changes, read_sumo_lanechanges,
+                                          relate_to_ego)
 from vcfusion.traffic.network import Road
 from vcfusion.traffic.session import Collision, SumoSession
 
@@ -228,9 +229,13 @@ class CoSimulation:
         lateral = tables.arrow("trajectories", ["vehicle_id", "time", "d", "s"])
         # the changers' and the ego's samples as plain arrays, selected once for both lane-change steps
         tracks = vehicle_tracks(lateral, set(sumo_changes["vehicle_id"]) | {EGO_ID}, ["time", "d", "s"])
-        events = lane_change_events(sumo_changes, tracks, session.road)
         if sc.ego is not None:
             lengths = dict(zip(vehicles["vehicle_id"], vehicles["length"]))
+            # a person steers the ego across lanes; SUMO does not report those changes
+            sumo_changes = merge_changes(sumo_changes, ego_lane_changes(tracks.get(EGO_ID), session.road,
+                                                                        lengths[EGO_ID]))
+        events = lane_change_events(sumo_changes, tracks, session.road)
+        if sc.ego is not None:
             events = relate_to_ego(events, tracks, lengths, _ego_lane_at(tracks, events["mid_time"], session.road,
                                                                          sc.ego.lane))
         tables["lane_changes"] = pd.DataFrame(events)

@@ -179,6 +179,15 @@ def test_cut_ins_are_judged_against_the_lane_the_person_drives_in(tmp_path):
                    window=False)
     lc = pd.read_parquet(tmp_path / "run" / "lane_changes.parquet")
     ego = ego_trace(tmp_path / "run")
+    # the person's own lane change is a row too (SUMO does not report a vehicle it is told to place)
+    own = lc[lc.vehicle_id == "ego"]
+    assert len(own) == 1 and own.reason.iloc[0] == "person"
+    assert (own.from_lane.iloc[0], own.to_lane.iloc[0], own.direction.iloc[0]) == (2, 1, -1)
+    # midpoint as SUMO defines it: the centre line enters the new lane (SUMO's own lane index of
+    # the placed ego follows its front bumper, which crosses earlier)
+    assert own.mid_time.iloc[0] == ego.index[ego.d < 7.0][0] >= ego.index[ego.lane == 1][0]
+    assert own.start_time.iloc[0] < own.mid_time.iloc[0] < own.end_time.iloc[0]  # centred before and after
+    lc = lc[lc.vehicle_id != "ego"]
     lane_at_mid = ego.lane.reindex(lc.mid_time.round(1).to_numpy()).to_numpy()
     assert (lc.into_ego_lane == (lc.to_lane.to_numpy() == lane_at_mid)).all()
     into_lane_1 = lc[lc.into_ego_lane]

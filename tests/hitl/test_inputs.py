@@ -132,3 +132,22 @@ def test_drive_refuses_bad_input_with_exit_2(tmp_path, capsys):
                  "--out", str(tmp_path / "run"), "--no-window"]) == 2
     assert "missing column 'steer'" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+def test_the_window_shows_the_image_as_given(sdl):
+    import numpy as np
+
+    from vcfusion.hitl.display import HudInfo, Window, compose
+
+    image = np.zeros((60, 80, 3), np.uint8)
+    image[:, :40] = (200, 30, 10)  # left half red-ish, a white square at the bottom right
+    image[50:58, 70:78] = 255
+    window = Window(sdl, (80, 60))
+    try:
+        window.show(image)
+        shown = sdl.surfarray.array3d(window.surface).transpose(1, 0, 2)  # (w, h, 3) -> (h, w, 3)
+        assert (shown == image).all()
+        hud = compose(image, [], HudInfo(1.0, 10.0, 100.0, False))
+        assert (hud[:, 40:][hud[:, 40:].sum(axis=2) > 0].shape[0]) > 64  # HUD text drawn over the black half
+    finally:
+        window.close()
