@@ -1,6 +1,10 @@
 """`vcfusion drive` end to end on real SUMO, real SDL (dummy video driver) and the real renderer:
 a virtual joystick and posted key events drive the ego; replays reproduce trips exactly."""
 
+import os
+import shutil
+import subprocess
+import sys
 import threading
 import time
 
@@ -193,3 +197,27 @@ def test_cut_ins_are_judged_against_the_lane_the_person_drives_in(tmp_path):
     into_lane_1 = lc[lc.into_ego_lane]
     assert len(into_lane_1) >= 2 and (into_lane_1.to_lane == 1).all()  # lane 2 was the start lane
     assert result.summary["cut_ins_ahead_of_ego"] == int((lc.into_ego_lane & lc.ahead_of_ego).sum())
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("Xvfb") is None, reason="needs Xvfb (Debian package xvfb) for a real X11 window")
+def test_a_drive_in_a_real_x11_window(tmp_path):
+    # SDL's X11 driver, unlike the dummy one, has an OpenGL framebuffer path that crashed in
+    # display.flip after the camera's OSMesa render (sdl.SDL_HINTS)
+    path = write_scenario(tmp_path, SCENARIO.replace("MAX_TIME", "1.5").replace("VEHICLES", FAR_AHEAD))
+    (tmp_path / "in.csv").write_text("time_s,throttle,brake,steer\n0,0.5,0,0.2\n")
+    # -displayfd: Xvfb picks a free display number and writes it when it is ready
+    xvfb = subprocess.Popen(["Xvfb", "-displayfd", "1", "-screen", "0", "320x240x24"], stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True)
+    try:
+        display = ":" + xvfb.stdout.readline().strip()
+        env = os.environ | {"DISPLAY": display, "SDL_VIDEODRIVER": "x11"}
+        proc = subprocess.run([sys.executable, "-m", "vcfusion", "drive", str(path), "--input",
+                               f"replay:{tmp_path / 'in.csv'}", "--speed", "max", "--out", str(tmp_path / "run")],
+                              env=env, capture_output=True, text=True, timeout=300)
+    finally:
+        xvfb.terminate()
+        xvfb.wait()
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    frames = pd.read_parquet(tmp_path / "run" / "frames.parquet")
+    assert frames.shown.all() and len(frames) >= 40  # 1.5 s at 30 frames/s

@@ -151,3 +151,21 @@ def test_the_window_shows_the_image_as_given(sdl):
         assert (hud[:, 40:][hud[:, 40:].sum(axis=2) > 0].shape[0]) > 64  # HUD text drawn over the black half
     finally:
         window.close()
+
+
+def test_keys_pressed_with_the_start_key_reach_the_drive(sdl):
+    from vcfusion.hitl.display import Window
+    from vcfusion.hitl.inputs import KeyboardInput
+
+    window = Window(sdl, (160, 120))
+    try:
+        sdl.event.clear()
+        for key in (sdl.K_RETURN, sdl.K_UP):
+            sdl.event.post(sdl.event.Event(sdl.KEYDOWN, key=key, mod=0, unicode="", scancode=0))
+        window.wait_for_start(["start"], lambda event: None, timeout_s=1.0)
+        keyboard = KeyboardInput()
+        for event in sdl.event.get():
+            keyboard.handle(event)
+        assert keyboard.sample(0.0, 0.1)[0].throttle > 0  # Up, pressed right after Enter, is held
+    finally:
+        window.close()

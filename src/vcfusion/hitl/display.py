@@ -100,12 +100,15 @@ class Window:
         self.show(text_screen(self.size, lines))
         started = time.perf_counter()
         while timeout_s is None or time.perf_counter() - started < timeout_s:
-            for event in self.pg.event.get():
+            events = self.pg.event.get()
+            for k, event in enumerate(events):
                 handle_event(event)
                 if event.type == self.pg.QUIT or (event.type == self.pg.KEYDOWN and event.key == self.pg.K_ESCAPE):
                     raise DriveAborted("the driver closed the window")
                 if (event.type == self.pg.KEYDOWN and event.key in (self.pg.K_RETURN, self.pg.K_SPACE)) \
                         or event.type == self.pg.JOYBUTTONDOWN:
+                    for later in events[k + 1:]:  # what came after the start (a key already held) is the drive's
+                        self.pg.event.post(later)
                     return
             time.sleep(0.01)
 

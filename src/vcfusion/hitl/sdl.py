@@ -16,7 +16,11 @@ from pathlib import Path
 
 # SDL_JOYSTICK_ALLOW_BACKGROUND_EVENTS: without it SDL drops joystick events while the window is
 # not focused (and the virtual joystick sends nothing under the dummy driver, which has no focus).
-SDL_HINTS = {"SDL_JOYSTICK_ALLOW_BACKGROUND_EVENTS": "1"}
+# SDL_FRAMEBUFFER_ACCELERATION=0: the window's pixels go to the screen in software (X11 XShm),
+# never through an OpenGL context of SDL's: the camera renders with OSMesa (PYOPENGL_PLATFORM=osmesa),
+# which shares Mesa's GL dispatch with libGL, and SDL's GL framebuffer then crashed in display.flip
+# after the first render (seen under Xvfb; the dummy driver has no GL and did not show it).
+SDL_HINTS = {"SDL_JOYSTICK_ALLOW_BACKGROUND_EVENTS": "1", "SDL_FRAMEBUFFER_ACCELERATION": "0"}
 SDL_JOYSTICK_TYPE_WHEEL = 2
 AXIS_MAX = 32767
 
