@@ -197,6 +197,10 @@ def test_cut_ins_are_judged_against_the_lane_the_person_drives_in(tmp_path):
     into_lane_1 = lc[lc.into_ego_lane]
     assert len(into_lane_1) >= 2 and (into_lane_1.to_lane == 1).all()  # lane 2 was the start lane
     assert result.summary["cut_ins_ahead_of_ego"] == int((lc.into_ego_lane & lc.ahead_of_ego).sum())
+    # SUMO's changers respect the placed ego: none merged into its lane overlapping it (gap =
+    # changer's rear - ego's front; overlap: between -(both lengths) and 0), and nothing collided
+    overlap = (into_lane_1.gap_to_ego_m < 0) & (into_lane_1.gap_to_ego_m > -(4.6 + 4.6))
+    assert not overlap.any() and result.summary["collisions"] == 0
 
 
 @pytest.mark.slow
