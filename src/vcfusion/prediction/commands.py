@@ -13,6 +13,15 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     from vcfusion.scenario import load_scenario
     from vcfusion.studies.batch import parse_seeds
 
+    sources = [name for name, given in (("SCENARIO", args.scenario), ("--from-ngsim", args.from_ngsim),
+                                        ("--from-highd", args.from_highd)) if given]
+    if len(sources) != 1:
+        raise UsageError("dataset: expected exactly one of SCENARIO (simulate seeds), --from-ngsim FILE or "
+                         f"--from-highd PATH, got {' and '.join(sources) if sources else 'none'}")
+    if args.scenario is None:
+        return _import_recordings(args)
+    if args.seeds is None:
+        raise UsageError("--seeds: required with a SCENARIO, e.g. --seeds 0-199")
     load_scenario(args.scenario)  # fail fast on a bad file
     seeds = parse_seeds(args.seeds)  # UsageError on a bad range
     if args.workers < 1:
@@ -33,6 +42,46 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     for seed, error in report["failed"]:
         print(f"  seed {seed}: {error.splitlines()[0]}")
     return 1 if report["failed"] else 0
+
+
+def _import_recordings(args: argparse.Namespace) -> int:
+    """`vcfusion dataset --from-ngsim FILE... | --from-highd PATH --out DIR`."""
+    from vcfusion.prediction.sources.trajectories import RealDataError, import_recordings
+
+    if args.refeature:
+        raise UsageError("--refeature: only for simulated datasets (import the recordings again instead)")
+    try:
+        if args.from_ngsim:
+            from vcfusion.prediction.sources.ngsim import parse_main_lanes, read_ngsim
+
+            lanes = parse_main_lanes(args.main_lanes)
+            recordings = [read_ngsim(f, lanes) for f in args.from_ngsim]
+            source = {"format": "ngsim", "files": [str(f) for f in args.from_ngsim], "main_lanes": list(lanes)}
+        else:
+            from vcfusion.prediction.sources.highd import read_highd_path
+
+            recordings = read_highd_path(args.from_highd)
+            source = {"format": "highd", "path": str(args.from_highd)}
+        report = import_recordings(recordings, Path(args.out), args.tau, args.tau_g, args.chunk, source)
+    except RealDataError as exc:
+        raise UsageError(str(exc)) from None
+    c = report["counts"]
+    print(f"dataset -> {args.out}: {len(report['recordings'])} recordings (driving directions) imported as "
+          f"{c['seeds']} seeds of {args.chunk:g} s")
+    for rec in report["recordings"]:
+        q = rec["quality"]
+        print(f"  {rec['name']}: {q['twins']} twins of {q['vehicles']} vehicles, {q['lane_changes']} lane changes "
+              f"({q['lane_changes_end_unseen']} without a seen end); repaired: {q['duplicate_samples']} duplicate "
+              f"samples, {q['tracks_split_at_gaps']} tracks split at gaps, {q['gaps_interpolated']} gaps "
+              f"interpolated, {q['lane_flicker_removed']} lane flickers; {q['samples_off_main_lanes']} samples off "
+              f"the main lanes, {q['lateral_unknown_samples']} without lateral position")
+        for key, value in rec.get("quality_reader", {}).items():
+            if value:
+                print(f"    {key}: {value}")
+    print(f"  {c['lane_changes']} lane changes, {c['samples']} stream samples, "
+          f"{c['window_positive']} positive / {c['window_negative']} negative window samples")
+    print("  splits: " + ", ".join(f"{k} {len(v)} seeds" for k, v in report["splits"].items()))
+    return 0
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -76,10 +125,20 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub) -> None:
-    p = sub.add_parser("dataset", help="simulate seeds and write a labelled lane-change dataset (Parquet)")
-    p.add_argument("scenario", help="scenario YAML file, e.g. scenarios/dense.yaml")
-    p.add_argument("--seeds", required=True, help="e.g. 0-199 or 1,4,7-9")
-    p.add_argument("--out", required=True, help="dataset folder (resumable)")
+    p = sub.add_parser("dataset", help="simulate seeds (or import NGSIM / highD recordings) and write a labelled "
+                                       "lane-change dataset (Parquet)")
+    p.add_argument("scenario", nargs="?", help="scenario YAML file, e.g. scenarios/dense.yaml")
+    p.add_argument("--seeds", help="e.g. 0-199 or 1,4,7-9 (with a SCENARIO)")
+    p.add_argument("--out", required=True, help="dataset folder (resumable for a SCENARIO; new for an import)")
+    p.add_argument("--from-ngsim", dest="from_ngsim", nargs="+", metavar="FILE",
+                   help="import NGSIM trajectory files (18 columns, .csv / .txt, optionally .gz) instead of simulating")
+    p.add_argument("--from-highd", dest="from_highd", metavar="PATH",
+                   help="import highD recordings: a folder (every XX_tracks.csv) or one XX_tracks.csv")
+    p.add_argument("--main-lanes", dest="main_lanes", default="1-5",
+                   help="NGSIM Lane_IDs of the main lanes (1 = leftmost); others (ramps, auxiliary) are off the "
+                        "road. US-101: 1-5, I-80: 1-6")
+    p.add_argument("--chunk", type=float, default=300.0,
+                   help="imports: seconds of a recording per seed (the unit of the train/validation/test split)")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--tau", type=float, default=5.0, help="time window tau, s (Fig. 5)")
     p.add_argument("--tau-g", dest="tau_g", type=float, default=2.0, help="gap tau_g, s (Fig. 5)")
@@ -108,7 +167,8 @@ def add_parsers(sub) -> None:
     p.add_argument("model", help="model file from `vcfusion train`")
     p.add_argument("dataset", help="dataset folder")
     p.add_argument("--out", help="report folder (default: DATASET/eval-MODELNAME)")
-    p.add_argument("--split", default="test", choices=["train", "validation", "test"])
+    p.add_argument("--split", default="test", choices=["all", "train", "validation", "test"],
+                   help="seeds to score (all: every seed, i.e. every vehicle of an imported dataset)")
     p.add_argument("--horizon", type=float, default=10.0,
                    help="a lane change counts as predicted by a positive decision at most this many s before its end")
     p.set_defaults(func=cmd_evaluate)

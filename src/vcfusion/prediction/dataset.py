@@ -161,8 +161,10 @@ def load_dataset(root: str | Path) -> DatasetInfo:
     meta = json.loads(meta_file.read_text())
     if "splits" not in meta:
         raise DatasetError(f"{meta_file}: the dataset build did not finish (no splits); run `vcfusion dataset` again")
+    splits = {k: list(v) for k, v in meta["splits"].items()}
+    splits["all"] = sorted(s for v in splits.values() for s in v)  # every seed (every vehicle of an import)
     return DatasetInfo(root, float(meta["tau"]), float(meta["tau_g"]), float(meta["period_s"]),
-                       tuple(meta["feature_names"]), {k: list(v) for k, v in meta["splits"].items()}, meta)
+                       tuple(meta["feature_names"]), splits, meta)
 
 
 def load_samples(info: DatasetInfo, split: str, window_only: bool = False, columns: list[str] | None = None) -> pd.DataFrame:

@@ -226,7 +226,7 @@ def train_model(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = Tru
     model.info = {
         "dataset": str(Path(dataset).resolve()), "scenario": info.meta.get("scenario"), "kind": cfg.kind,
         "config": asdict(cfg), "fit": fit, "train_samples": int(len(tr)), "train_positives": int(y_tr.sum()),
-        "splits": info.splits, "tuning": tuned, "calibration": list(model.calibration),
+        "splits": {k: v for k, v in info.splits.items() if k != "all"}, "tuning": tuned, "calibration": list(model.calibration),
         "command": f"vcfusion train {dataset} --out {out.name} --hidden {cfg.hidden} --epochs {cfg.epochs} "
                    f"--patience {cfg.patience} --seed {cfg.seed} --background-negatives {cfg.background_negatives} "
                    f"--learning-rate {cfg.learning_rate} --weight-decay {cfg.weight_decay}",
