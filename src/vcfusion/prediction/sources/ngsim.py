@@ -99,8 +99,11 @@ def read_ngsim_table(path: Path) -> pd.DataFrame:
     for c in NGSIM_COLUMNS:
         if c not in table.columns:
             continue
-        values = pd.to_numeric(table[c], errors="coerce")
-        bad = values.isna() & table[c].notna() & (table[c].astype(str).str.strip() != "")
+        if pd.api.types.is_numeric_dtype(table[c]):  # read as numbers (empty fields: NaN)
+            values, bad = table[c], pd.Series(False, index=table.index)
+        else:
+            values = pd.to_numeric(table[c], errors="coerce")
+            bad = values.isna() & table[c].notna() & (table[c].astype(str).str.strip() != "")
         if c in REQUIRED:
             bad |= values.isna()
         if bad.any():

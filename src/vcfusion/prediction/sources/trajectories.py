@@ -73,7 +73,8 @@ def straight_road(name: str, num_lanes: int, lane_width_m: float, length_m: floa
 
 
 def size_defaults(vclass: np.ndarray, length: np.ndarray, width: np.ndarray, height: np.ndarray) -> dict:
-    """Replace missing / zero / negative sizes by the class defaults (CLASS_SIZE_M); counts in 'filled'."""
+    """Replace missing / zero / negative sizes by the class defaults (CLASS_SIZE_M); counts of the
+    filled lengths and widths in 'filled' (heights are not recorded by NGSIM or highD)."""
     out = {}
     filled = {}
     for k, (name, values) in enumerate((("length", length), ("width", width), ("height", height))):
@@ -82,7 +83,8 @@ def size_defaults(vclass: np.ndarray, length: np.ndarray, width: np.ndarray, hei
         default = np.array([CLASS_SIZE_M.get(c, CLASS_SIZE_M["passenger"])[k] for c in vclass])
         v[bad] = default[bad]
         out[name] = v
-        filled[name] = int(bad.sum())
+        if name != "height":  # never recorded: always the class default
+            filled[name] = int(bad.sum())
     out["filled"] = filled
     return out
 
@@ -205,8 +207,7 @@ def twin_tracks(rec: Recording, period_s: float = PERIOD_S) -> tuple[pd.DataFram
             if np.isnan(accel).any():  # not recorded: from the speed
                 accel = np.gradient(vals["speed"], period_s) if len(tg) > 1 else np.zeros(len(tg))
             d = vals["d"]
-            twins.append(pd.DataFrame({"time": tg, "vehicle_id": twin_id, "measured_time": tg, "s": vals["s"],
-                                       "d": d, "speed": vals["speed"], "accel": accel, "lane": lane.astype(np.int16)}))
+            twins.append((twin_id, tg, vals["s"], d, vals["speed"], accel, lane))
             vehicles.append({"vehicle_id": twin_id, "source_id": str(vid[a]), "vclass": str(cols["vclass"][held[0]]),
                              **{c: float(np.median(cols[c][held].astype(float))) for c in ("length", "width", "height")}})
             for ev in lane_changes_of_track(tg, lane, d, period_s):
@@ -214,17 +215,18 @@ def twin_tracks(rec: Recording, period_s: float = PERIOD_S) -> tuple[pd.DataFram
                 events.append({"vehicle_id": twin_id, **ev, "pos_m": float(vals["s"][i]),
                                "speed_mps": float(vals["speed"][i])})
     road = rec.road
-    tw = pd.concat(twins, ignore_index=True) if twins else pd.DataFrame(
-        columns=["time", "vehicle_id", "measured_time", "s", "d", "speed", "accel", "lane"])
-    d_known = tw["d"].notna().to_numpy()
-    d_filled = np.where(d_known, tw["d"].to_numpy(float), road.lane_centre_d(tw["lane"].to_numpy()))
+    # one table at the end (a DataFrame per twin costs more than the rest of the import)
+    ids = np.repeat(np.array([p[0] for p in twins], dtype=object), [len(p[1]) for p in twins]) if twins \
+        else np.zeros(0, dtype=object)
+    time, s, d, speed, accel, lane = (np.concatenate([p[k] for p in twins]) if twins else np.zeros(0)
+                                      for k in range(1, 7))
+    d_known = ~np.isnan(d)
+    d_filled = np.where(d_known, d, road.lane_centre_d(lane))
     twins_table = pd.DataFrame({
-        "time": tw["time"].to_numpy(float), "vehicle_id": tw["vehicle_id"].astype(str).to_numpy(),
-        "measured_time": tw["measured_time"].to_numpy(float), "x": tw["s"].to_numpy(float),
+        "time": time, "vehicle_id": ids.astype(str), "measured_time": time, "x": s,
         # unknown lateral position: the lane centre (the lane is what the features use)
-        "y": d_filled - road.width_m, "z": np.zeros(len(tw)), "heading": np.full(len(tw), np.nan),
-        "speed": tw["speed"].to_numpy(float), "accel": tw["accel"].to_numpy(float),
-        "lane": tw["lane"].to_numpy(np.int16), "d_known": d_known,
+        "y": d_filled - road.width_m, "z": np.zeros(len(time)), "heading": np.full(len(time), np.nan),
+        "speed": speed, "accel": accel, "lane": lane.astype(np.int16), "d_known": d_known,
     }).sort_values(["time", "vehicle_id"], kind="stable").reset_index(drop=True)
     veh = pd.DataFrame(vehicles, columns=["vehicle_id", "source_id", "vclass", "length", "width", "height"])
     veh.insert(1, "vtype", [f"{rec.source.get('format', 'recorded')}-{c}" for c in veh["vclass"]])
