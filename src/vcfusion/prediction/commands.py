@@ -28,7 +28,7 @@ def cmd_dataset(args: argparse.Namespace) -> int:
         raise UsageError(f"--workers: expected a positive number of processes, got {args.workers}")
     try:
         report = build_dataset(Path(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g,
-                               refeature=args.refeature)
+                               refeature=args.refeature, privileged=args.privileged)
     except DatasetError as exc:
         raise UsageError(str(exc)) from None
     c = report["counts"]
@@ -48,8 +48,9 @@ def _import_recordings(args: argparse.Namespace) -> int:
     """`vcfusion dataset --from-ngsim FILE... | --from-highd PATH --out DIR`."""
     from vcfusion.prediction.sources.trajectories import RealDataError, import_recordings
 
-    if args.refeature:
-        raise UsageError("--refeature: only for simulated datasets (import the recordings again instead)")
+    if args.refeature or args.privileged:
+        raise UsageError(f"{'--refeature' if args.refeature else '--privileged'}: only for simulated datasets "
+                         f"(a recording has no SUMO state; import it again after a feature change)")
     try:
         if args.from_ngsim:
             from vcfusion.prediction.sources.ngsim import parse_main_lanes, read_ngsim
@@ -90,7 +91,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     cfg = TrainConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
                       background_negatives=args.background_negatives, threads=args.threads,
-                      learning_rate=args.learning_rate, weight_decay=args.weight_decay)
+                      learning_rate=args.learning_rate, weight_decay=args.weight_decay, privileged=args.privileged)
     out = Path(args.out)
     if out.exists() and not args.force:
         raise UsageError(f"--out: {out} already exists (use --force to replace it)")
@@ -145,6 +146,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--refeature", action="store_true",
                    help="recompute the samples of runs already in --out with this version's features "
                         "(from their logged twins tables, no simulation) instead of refusing a feature change")
+    p.add_argument("--privileged", action="store_true",
+                   help="also log SUMO's own lane-change state every tick (table lc_state) and add it to the "
+                        "samples as sumo_* columns, for the privileged ceiling (`vcfusion train --privileged`)")
     p.set_defaults(func=cmd_dataset)
 
     p = sub.add_parser("train", help="train the lane-change MLP on a dataset")
@@ -161,6 +165,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--weight-decay", dest="weight_decay", type=float, default=1e-5, help="Adam weight decay (L2)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     p.add_argument("--force", action="store_true", help="replace an existing --out")
+    p.add_argument("--privileged", action="store_true",
+                   help="the privileged ceiling: also feed SUMO's lane-change state (a dataset built with "
+                        "--privileged); such a model cannot run in the cloud")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("evaluate", help="frame- and event-level evaluation of a model on a dataset's test seeds")

@@ -28,7 +28,8 @@ from scipy.stats import rankdata
 
 from vcfusion.prediction.dataset import DatasetError, load_dataset, load_samples
 from vcfusion.prediction.events import event_scores, smooth_stream, track_bounds
-from vcfusion.prediction.model import LaneChangeModel, load_model
+from vcfusion.prediction.model import LaneChangeModel, load_model, model_feature_names
+from vcfusion.prediction.privileged import SumoWantsRule
 from vcfusion.prediction.train import TrainConfig, _fit_torch, stream_with_events, training_rows, tune_decisions
 
 VARIANTS = ("original", "aggressive", "conservative")
@@ -105,16 +106,21 @@ def _fmt(v: float, pct: bool = False) -> str:
 def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: str = "test",
              horizon_s: float = 10.0, seed: int = 0) -> Path:
     info = load_dataset(dataset)
-    model = load_model(model_path, expected_features=info.feature_names)
+    names = list(info.feature_names)  # what the cloud can observe: the baselines' inputs
+    privileged = list(info.meta.get("privileged_names", []))  # SUMO's state, in a --privileged dataset
+    # a ceiling model (`vcfusion train --privileged`) also takes the privileged columns
+    ceiling = bool(privileged) and set(privileged) <= set(model_feature_names(model_path))
+    model_names = names + privileged if ceiling else names
+    model = load_model(model_path, expected_features=model_names)
+    model_label = "MLP + SUMO state (privileged)" if ceiling else "MLP"
     if not info.splits.get(split):
         raise DatasetError(f"{dataset}: split {split!r} is empty")
-    names = list(info.feature_names)
     out = Path(out) if out else Path(dataset) / f"eval-{Path(model_path).stem}"
     out.mkdir(parents=True, exist_ok=True)
 
     # Baselines, fitted on the dataset's training seeds and tuned on its validation seeds (an
     # imported recording too short for those splits is scored with the model alone).
-    predictors: dict = {"MLP": model}
+    predictors: dict = {model_label: (model, model_names)}
     rule = None
     fitted = bool(info.splits.get("train")) and bool(info.splits.get("validation"))
     if fitted:
@@ -130,32 +136,34 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
                           len(names))
         logistic = LaneChangeModel(tuple(names), mean, std, w, info.tau, info.tau_g, info.period_s)
         rule = RuleBaseline(names).fit(x_tr, y_tr)
-        predictors |= {"logistic regression": logistic, "gap/speed rule": rule}
-        val_stream, val_events = stream_with_events(info, "validation", columns=["seed", "vehicle_id", "time", *names])
-        x_val = val_stream[names].to_numpy(np.float32)
+        predictors |= {"logistic regression": (logistic, names), "gap/speed rule": (rule, names)}
+        if privileged:  # the ceiling's simplest form: flag a vehicle while SUMO wants to change lanes
+            predictors["SUMO wants to change (privileged)"] = (SumoWantsRule(privileged), privileged)
+        val_stream, val_events = stream_with_events(info, "validation",
+                                                    columns=["seed", "vehicle_id", "time", *names, *privileged])
     baselines = {"fitted": fitted,
                  "scored_on_their_training_seeds": fitted and split in ("train", "all"),
                  "note": ("logistic regression and gap/speed rule fitted on the train seeds, tuned on the "
                           "validation seeds" if fitted else
                           "no baselines: the dataset has no train and validation seeds (fewer than 3 seeds)")}
     stream, events = stream_with_events(info, split, columns=["seed", "vehicle_id", "time", "window_label",
-                                                               "stream_label", *names])
+                                                               "stream_label", *names, *privileged])
     bounds = track_bounds(stream)
-    x = stream[names].to_numpy(np.float32)
     in_window = stream["window_label"].to_numpy() >= 0
     y_window = stream["window_label"].to_numpy()[in_window] == 1
     y_stream = stream["stream_label"].to_numpy() == 1
 
     rows, per_event_all, settings = [], {}, {}
-    for pname, pred in predictors.items():
-        if pname == "MLP":
+    for pname, (pred, inputs) in predictors.items():
+        if pred is model:
             tuned = {"none": {"threshold": model.threshold_for("none"), "tau_ticks": 0},
                      "aggressive": {"threshold": model.threshold_for("aggressive"), "tau_ticks": model.tau_a_ticks},
                      "conservative": {"threshold": model.threshold_for("conservative"),
                                       "tau_ticks": model.tau_c_ticks}}
         else:
-            tuned = tune_decisions(pred.predict_proba(x_val), val_stream, val_events, info.period_s, horizon_s)
-        prob = pred.predict_proba(x)
+            tuned = tune_decisions(pred.predict_proba(val_stream[inputs].to_numpy(np.float32)), val_stream,
+                                   val_events, info.period_s, horizon_s)
+        prob = pred.predict_proba(stream[inputs].to_numpy(np.float32))
         settings[pname] = {k: {"threshold": v["threshold"], "tau_ticks": v["tau_ticks"]} for k, v in tuned.items()}
         for variant in VARIANTS:
             t = tuned[_METHOD[variant]]
@@ -177,7 +185,7 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
                          **{f"stream_{k}": v for k, v in fs.items()}, **ev})
     table = pd.DataFrame(rows)
     table.to_csv(out / "metrics.csv", index=False)
-    default = ("MLP", {"none": "original"}.get(model.smoothing, model.smoothing))
+    default = (model_label, {"none": "original"}.get(model.smoothing, model.smoothing))
     _plot(table, per_event_all, default, out / "evaluation.png")
     report = _report(table, info, split, model_path, model, horizon_s, default, rule, events, per_event_all[default],
                      baselines)
