@@ -98,7 +98,7 @@ def _tables(out: Path, name: str) -> pd.DataFrame:
 
 def test_ngsim_lane_change_times_and_gaps(ngsim_dataset):
     _, _, out = ngsim_dataset
-    meta = json.loads((out / "dataset.json").read_text())
+    meta = json.loads((out / "dataset.json").read_text(), parse_constant=pytest.fail)  # strict JSON: no NaN
     lc = _tables(out, "lane_changes").set_index("vehicle_id")
     assert sorted(lc.index) == ["1", "3"]  # no event from flicker, id reuse, the aux lane or the gap
     one = lc.loc["1"]
@@ -181,6 +181,7 @@ def test_ngsim_headerless_gz_and_missing_columns(ngsim_dataset, tmp_path):
 @pytest.mark.parametrize("mutate, needle", [
     (lambda df: df.drop(columns=["Lane_ID"]), "Lane_ID"),
     (lambda df: df.assign(v_Vel=df["v_Vel"].astype(object).where(df.index != 3, "fast")), "v_Vel: expected a number"),
+    (lambda df: df.assign(Location="us-101", Direction=np.where(df.index % 2, 2, 4)), "Direction: the file mixes"),
 ])
 def test_ngsim_bad_files_exit_2_and_write_nothing(tmp_path, capsys, mutate, needle):
     bad = tmp_path / "bad.csv"

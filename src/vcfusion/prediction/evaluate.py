@@ -14,6 +14,14 @@ paper's balanced set) and on the full every-tick stream. Scores for ROC AUC: the
 (original), its running max over tau_a + 1 ticks (aggressive), the running mean of the raw
 decisions over tau_c + 1 ticks (conservative), matching how each variant decides.
 Event level: see vcfusion.prediction.events.
+
+`split`: train / validation / test, or all (every seed: for an imported recording, every vehicle).
+Baselines need train and validation seeds; a dataset without them (a short recording) is scored
+with the model alone, and the report says so. A model trained with SUMO's state
+(`vcfusion train --privileged`) is scored as the ceiling, and on a `--privileged` dataset the rule
+"SUMO wants to change lanes" joins the baselines (vcfusion.prediction.privileged).
+Outputs: report.md, evaluation.png, metrics.csv (one row per predictor x variant), settings.json
+and evaluation.json (:func:`evaluation_summary`).
 """
 
 from __future__ import annotations

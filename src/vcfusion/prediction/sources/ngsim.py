@@ -91,9 +91,10 @@ def read_ngsim_table(path: Path) -> pd.DataFrame:
     if missing:
         raise RealDataError(f"{path}: column(s) {', '.join(missing)} missing; expected NGSIM's columns "
                             f"{', '.join(NGSIM_COLUMNS)} (at least {', '.join(REQUIRED)})")
-    if "Location" in table.columns and table["Location"].nunique() > 1:
-        raise RealDataError(f"{path}: Location: the file mixes {sorted(map(str, table['Location'].unique()))}; "
-                            f"import one location (and one direction of travel) at a time")
+    for column in ("Location", "Direction"):  # columns of the combined release (all sites in one file)
+        if column in table.columns and table[column].nunique() > 1:
+            raise RealDataError(f"{path}: {column}: the file mixes {sorted(map(str, table[column].unique()))}; "
+                                f"import one location and one direction of travel at a time")
     if not len(table):
         raise RealDataError(f"{path}: no rows")
     for c in NGSIM_COLUMNS:

@@ -249,7 +249,8 @@ def twin_tracks(rec: Recording, period_s: float = PERIOD_S) -> tuple[pd.DataFram
 
 
 def _road_dict(road: Road) -> dict:
-    return asdict(road)
+    """The road's fields for JSON (an unknown speed limit as null, not NaN)."""
+    return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in asdict(road).items()}
 
 
 def import_recordings(recordings: list[Recording], out: Path, tau: float, tau_g: float, chunk_s: float = CHUNK_S,
