@@ -1,15 +1,17 @@
-"""Handlers of the `vcfusion dataset | train | evaluate | bench-predict` commands."""
+"""Handlers of the `vcfusion dataset | train | evaluate | bench-predict` commands. A bad dataset or
+model file raises DatasetError / ModelFileError (InputError: the CLI prints it and exits with 2)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from vcfusion.cli import check_folder_path
 from vcfusion.errors import UsageError
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
-    from vcfusion.prediction.dataset import DatasetError, build_dataset
+    from vcfusion.prediction.dataset import build_dataset
     from vcfusion.scenario import load_scenario
     from vcfusion.studies.batch import parse_seeds
 
@@ -19,18 +21,17 @@ def cmd_dataset(args: argparse.Namespace) -> int:
         raise UsageError("dataset: expected exactly one of SCENARIO (simulate seeds), --from-ngsim FILE or "
                          f"--from-highd PATH, got {' and '.join(sources) if sources else 'none'}")
     if args.scenario is None:
+        args.interrupted = "an import writes its folder only when complete; nothing was written, run it again"
         return _import_recordings(args)
     if args.seeds is None:
         raise UsageError("--seeds: required with a SCENARIO, e.g. --seeds 0-199")
     load_scenario(args.scenario)  # fail fast on a bad file
     seeds = parse_seeds(args.seeds)  # UsageError on a bad range
+    check_folder_path(Path(args.out))
     if args.workers < 1:
         raise UsageError(f"--workers: expected a positive number of processes, got {args.workers}")
-    try:
-        report = build_dataset(Path(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g,
-                               refeature=args.refeature, privileged=args.privileged)
-    except DatasetError as exc:
-        raise UsageError(str(exc)) from None
+    report = build_dataset(Path(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g,
+                           refeature=args.refeature, privileged=args.privileged)
     c = report["counts"]
     if args.refeature:
         print(f"recomputed the features of {report['refeatured']} existing runs")
@@ -46,26 +47,25 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 
 def _import_recordings(args: argparse.Namespace) -> int:
     """`vcfusion dataset --from-ngsim FILE... | --from-highd PATH --out DIR`."""
-    from vcfusion.prediction.sources.trajectories import RealDataError, import_recordings
+    from vcfusion.prediction.sources.trajectories import import_recordings
 
     if args.refeature or args.privileged:
         raise UsageError(f"{'--refeature' if args.refeature else '--privileged'}: only for simulated datasets "
                          f"(a recording has no SUMO state; import it again after a feature change)")
-    try:
-        if args.from_ngsim:
-            from vcfusion.prediction.sources.ngsim import parse_main_lanes, read_ngsim
+    check_folder_path(Path(args.out))
+    # a bad file raises RealDataError (an InputError: the CLI prints it and exits with 2)
+    if args.from_ngsim:
+        from vcfusion.prediction.sources.ngsim import parse_main_lanes, read_ngsim
 
-            lanes = parse_main_lanes(args.main_lanes)
-            recordings = [read_ngsim(f, lanes) for f in args.from_ngsim]
-            source = {"format": "ngsim", "files": [str(f) for f in args.from_ngsim], "main_lanes": list(lanes)}
-        else:
-            from vcfusion.prediction.sources.highd import read_highd_path
+        lanes = parse_main_lanes(args.main_lanes)
+        recordings = [read_ngsim(f, lanes) for f in args.from_ngsim]
+        source = {"format": "ngsim", "files": [str(f) for f in args.from_ngsim], "main_lanes": list(lanes)}
+    else:
+        from vcfusion.prediction.sources.highd import read_highd_path
 
-            recordings = read_highd_path(args.from_highd)
-            source = {"format": "highd", "path": str(args.from_highd)}
-        report = import_recordings(recordings, Path(args.out), args.tau, args.tau_g, args.chunk, source)
-    except RealDataError as exc:
-        raise UsageError(str(exc)) from None
+        recordings = read_highd_path(args.from_highd)
+        source = {"format": "highd", "path": str(args.from_highd)}
+    report = import_recordings(recordings, Path(args.out), args.tau, args.tau_g, args.chunk, source)
     c = report["counts"]
     print(f"dataset -> {args.out}: {len(report['recordings'])} recordings (driving directions) imported as "
           f"{c['seeds']} seeds of {args.chunk:g} s")
@@ -86,33 +86,36 @@ def _import_recordings(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from vcfusion.prediction.dataset import DatasetError
     from vcfusion.prediction.train import TrainConfig, train_model
 
+    for option in ("hidden", "epochs", "patience", "threads"):
+        if getattr(args, option) < 1:
+            raise UsageError(f"--{option}: expected a positive number, got {getattr(args, option)}")
+    if args.learning_rate <= 0 or args.weight_decay < 0 or args.background_negatives < 0:
+        raise UsageError("--learning-rate / --weight-decay / --background-negatives: expected a positive rate and "
+                         f"non-negative others, got {args.learning_rate}, {args.weight_decay}, "
+                         f"{args.background_negatives}")
     cfg = TrainConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
                       background_negatives=args.background_negatives, threads=args.threads,
                       learning_rate=args.learning_rate, weight_decay=args.weight_decay, privileged=args.privileged)
     out = Path(args.out)
     if out.exists() and not args.force:
         raise UsageError(f"--out: {out} already exists (use --force to replace it)")
-    try:
-        report = train_model(Path(args.dataset), out, cfg)
-    except DatasetError as exc:
-        raise UsageError(str(exc)) from None
+    check_folder_path(out.parent)
+    report = train_model(Path(args.dataset), out, cfg)
     print(report)
     return 0
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from vcfusion.prediction.dataset import DatasetError
     from vcfusion.prediction.evaluate import evaluate
-    from vcfusion.prediction.model import ModelFileError
 
-    try:
-        report_path = evaluate(Path(args.model), Path(args.dataset), Path(args.out) if args.out else None,
-                               split=args.split, horizon_s=args.horizon)
-    except (DatasetError, ModelFileError) as exc:
-        raise UsageError(str(exc)) from None
+    if not args.horizon > 0:
+        raise UsageError(f"--horizon: expected a positive number of seconds, got {args.horizon}")
+    if args.out:
+        check_folder_path(Path(args.out))
+    report_path = evaluate(Path(args.model), Path(args.dataset), Path(args.out) if args.out else None,
+                           split=args.split, horizon_s=args.horizon)
     print(Path(report_path).read_text())
     print(f"report: {report_path}")
     return 0
@@ -126,6 +129,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub) -> None:
+    from vcfusion.cli import INTERRUPTED_BATCH  # (called by the cli's build_parser)
+
     p = sub.add_parser("dataset", help="simulate seeds (or import NGSIM / highD recordings) and write a labelled "
                                        "lane-change dataset (Parquet)")
     p.add_argument("scenario", nargs="?", help="scenario YAML file, e.g. scenarios/dense.yaml")
@@ -149,7 +154,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--privileged", action="store_true",
                    help="also log SUMO's own lane-change state every tick (table lc_state) and add it to the "
                         "samples as sumo_* columns, for the privileged ceiling (`vcfusion train --privileged`)")
-    p.set_defaults(func=cmd_dataset)
+    p.set_defaults(func=cmd_dataset, interrupted=INTERRUPTED_BATCH)
 
     p = sub.add_parser("train", help="train the lane-change MLP on a dataset")
     p.add_argument("dataset", help="dataset folder from `vcfusion dataset`")

@@ -65,6 +65,7 @@ class LaneChangeStateHook:
     """
 
     table = LC_STATE_TABLE
+    needs = ("truth",)  # vcfusion.stages: it reads the tick's ground truth (the vehicle ids)
 
     def __call__(self, tick) -> list[dict]:
         import libsumo
