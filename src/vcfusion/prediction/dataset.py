@@ -163,6 +163,12 @@ class DatasetInfo:
     splits: dict[str, list[int]]
     meta: dict
 
+    def seeds(self, split: str) -> list[int]:
+        """The seeds of a split; 'all' = every seed (for an imported recording: every vehicle)."""
+        if split == "all":
+            return sorted({s for seeds in self.splits.values() for s in seeds})
+        return list(self.splits.get(split, []))
+
     def samples_file(self, seed: int) -> Path:
         return seed_folder(self.root / "runs", seed) / SAMPLES
 
@@ -209,7 +215,6 @@ def load_dataset(root: str | Path) -> DatasetInfo:
     for split, seeds in info.splits.items():
         for seed in seeds:
             _check_samples_file(info.samples_file(seed), seed, split, needed)
-    info.splits["all"] = sorted(s for v in splits.values() for s in v)  # every seed (every vehicle of an import)
     return info
 
 
@@ -231,7 +236,7 @@ def _check_samples_file(f: Path, seed: int, split: str, needed: set[str]) -> Non
 
 def load_samples(info: DatasetInfo, split: str, window_only: bool = False, columns: list[str] | None = None) -> pd.DataFrame:
     frames = []
-    for seed in info.splits[split]:
+    for seed in info.seeds(split):
         f = info.samples_file(seed)
         if not f.is_file():
             raise DatasetError(f"{f}: missing samples of seed {seed} (split {split})")

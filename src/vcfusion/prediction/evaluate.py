@@ -121,7 +121,7 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
     model_names = names + privileged if ceiling else names
     model = load_model(model_path, expected_features=model_names)
     model_label = "MLP + SUMO state (privileged)" if ceiling else "MLP"
-    if not info.splits.get(split):
+    if not info.seeds(split):
         raise DatasetError(f"{dataset}: split {split!r} is empty")
     out = Path(out) if out else Path(dataset) / f"eval-{Path(model_path).stem}"
 
@@ -238,7 +238,7 @@ def evaluation_summary(table: pd.DataFrame, info, split: str, model_path, horizo
                for reason, g in by_reason.groupby("reason")]
     return {
         "model": str(model_path), "dataset": str(info.root), "source": info.meta.get("scenario"),
-        "split": split, "seeds": [int(s) for s in info.splits[split]],
+        "split": split, "seeds": [int(s) for s in info.seeds(split)],
         "vehicles": int(stream[["seed", "vehicle_id"]].drop_duplicates().shape[0]),
         "lane_changes": int(len(events)), "vehicle_hours": _plain(len(stream) * info.period_s / 3600.0),
         "tau_s": info.tau, "tau_g_s": info.tau_g, "horizon_s": horizon_s,
@@ -247,7 +247,7 @@ def evaluation_summary(table: pd.DataFrame, info, split: str, model_path, horizo
 
 
 def _report(table, info, split, model_path, model, horizon_s, default, rule, events, per_event, baselines) -> str:
-    seeds = info.splits[split]
+    seeds = info.seeds(split)
     lines = [f"# Lane-change prediction: evaluation of `{Path(model_path).name}`", "",
              f"Dataset `{info.root}` ({info.meta.get('scenario')}), {split} split: {len(seeds)} seeds "
              f"({seeds[0]}..{seeds[-1]}), {len(events)} lane changes. tau = {info.tau} s, tau_g = {info.tau_g} s; "

@@ -118,7 +118,7 @@ def stream_with_events(info: DatasetInfo, split: str, columns: list[str] | None 
     stream = load_samples(info, split, columns=columns)
     stream = stream.sort_values(["seed", "vehicle_id", "time"], kind="stable").reset_index(drop=True)
     frames = []
-    for seed in info.splits[split]:
+    for seed in info.seeds(split):
         ev = pd.read_parquet(info.run_folder(seed) / "lane_changes.parquet")
         if len(ev):
             half = float(info.meta.get("lanechange_end_after_mid_s", 1.5))
@@ -232,7 +232,7 @@ def train_model(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = Tru
     model.info = {
         "dataset": str(Path(dataset).resolve()), "scenario": info.meta.get("scenario"), "kind": cfg.kind,
         "config": asdict(cfg), "fit": fit, "train_samples": int(len(tr)), "train_positives": int(y_tr.sum()),
-        "splits": {k: v for k, v in info.splits.items() if k != "all"}, "tuning": tuned, "calibration": list(model.calibration),
+        "splits": info.splits, "tuning": tuned, "calibration": list(model.calibration),
         "command": f"vcfusion train {dataset} --out {out.name} --hidden {cfg.hidden} --epochs {cfg.epochs} "
                    f"--patience {cfg.patience} --seed {cfg.seed} --background-negatives {cfg.background_negatives} "
                    f"--learning-rate {cfg.learning_rate} --weight-decay {cfg.weight_decay}"
