@@ -114,10 +114,14 @@ def cmd_study_guidance(args: argparse.Namespace) -> int:
 
 
 def cmd_build_net(args: argparse.Namespace) -> int:
-    from vcfusion.traffic.network import REPO_NET_DIR, build_network
+    from vcfusion.traffic.network import REPO_NET_DIR, build_networks
 
-    out = build_network(Path(args.net_dir) if args.net_dir else REPO_NET_DIR)
-    print(f"built {out}")
+    try:
+        built = build_networks(Path(args.net_dir) if args.net_dir else REPO_NET_DIR)
+    except RuntimeError as exc:
+        raise UsageError(str(exc)) from None
+    for out in built:
+        print(f"built {out}")
     return 0
 
 
@@ -223,8 +227,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_study_guidance,
                    interrupted="the study wrote nothing; run the same command again (its trips start over)")
 
-    p = sub.add_parser("build-net", help="rebuild sumo_net/highway.net.xml with netconvert")
-    p.add_argument("--net-dir", help="folder with highway.nod/edg/typ.xml (default: the repo's sumo_net)")
+    p = sub.add_parser("build-net", help="rebuild every sumo_net/NAME.net.xml with netconvert")
+    p.add_argument("--net-dir", help="folder with NAME.nod/edg.xml (+ .typ/.con.xml) (default: the repo's sumo_net)")
     p.set_defaults(func=cmd_build_net)
 
     p = sub.add_parser("bench", help="benchmark suite: print figures, write bench.json and bench.md")

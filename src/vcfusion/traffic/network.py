@@ -203,18 +203,71 @@ def netconvert_binary() -> str:
     return found
 
 
+def network_names(net_dir: Path = REPO_NET_DIR) -> list[str]:
+    """The networks whose sources are in net_dir: plain XML (NAME.nod.xml + NAME.edg.xml) or an
+    OpenStreetMap extract (NAME.osm.xml)."""
+    plain = {p.name[: -len(".nod.xml")] for p in net_dir.glob("*.nod.xml")
+             if (net_dir / p.name.replace(".nod.xml", ".edg.xml")).exists()}
+    osm = {p.name[: -len(".osm.xml")] for p in net_dir.glob("*.osm.xml")}
+    return sorted(plain | osm)
+
+
+# OpenStreetMap import options that keep a highway usable (see README, "Networks"): only the
+# motorway carriageways and their links; geometry-only nodes merged into curved edges; on-ramps
+# given acceleration lanes; clustered junctions joined; traffic-light and roundabout guessing (for
+# extracts that reach ordinary roads); OSM way ids kept as edge parameters; no U-turns.
+OSM_OPTIONS = (
+    "--keep-edges.by-type", "highway.motorway,highway.motorway_link",
+    "--remove-edges.isolated",
+    "--geometry.remove",
+    "--ramps.guess",
+    "--junctions.join",
+    "--tls.guess-signals",
+    "--roundabouts.guess",
+    "--output.original-names",
+)
+
+
 def build_network(net_dir: Path = REPO_NET_DIR, name: str = "highway") -> Path:
-    """Build NAME.net.xml from NAME.nod.xml / .edg.xml / .typ.xml in net_dir."""
+    """Build NAME.net.xml from NAME.nod.xml / .edg.xml, and .typ.xml / .con.xml where present, or
+    from the OpenStreetMap extract NAME.osm.xml (with OSM_OPTIONS).
+
+    netconvert runs inside net_dir on relative names, so the header it writes carries no machine
+    paths; a rebuilt network whose content is unchanged keeps the existing file (the header's
+    timestamp alone would otherwise change it).
+    """
     out = net_dir / f"{name}.net.xml"
     tmp = net_dir / f"{name}.net.xml.tmp-build"
-    cmd = [
-        netconvert_binary(),
-        "--node-files", str(net_dir / f"{name}.nod.xml"),
-        "--edge-files", str(net_dir / f"{name}.edg.xml"),
-        "--type-files", str(net_dir / f"{name}.typ.xml"),
-        "--no-turnarounds", "true",
-        "--output-file", str(tmp),
-    ]
-    subprocess.run(cmd, check=True, capture_output=True, text=True)
-    tmp.replace(out)
+    if (net_dir / f"{name}.nod.xml").exists():
+        cmd = [netconvert_binary(), "--node-files", f"{name}.nod.xml", "--edge-files", f"{name}.edg.xml"]
+        for option, suffix in (("--type-files", "typ"), ("--connection-files", "con")):
+            if (net_dir / f"{name}.{suffix}.xml").exists():
+                cmd += [option, f"{name}.{suffix}.xml"]
+    else:
+        cmd = [netconvert_binary(), "--osm-files", f"{name}.osm.xml", *OSM_OPTIONS]
+    cmd += ["--no-turnarounds", "true", "--output-file", tmp.name]
+    try:
+        subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=net_dir)
+    except subprocess.CalledProcessError as exc:
+        tmp.unlink(missing_ok=True)
+        raise RuntimeError(f"netconvert failed on {net_dir / name}.*.xml:\n{exc.stderr.strip()}") from None
+
+    def body(path: Path) -> str:  # the header comment carries a timestamp
+        text = path.read_text()
+        return text[text.index("<net "):]
+
+    if out.exists() and body(out) == body(tmp):
+        tmp.unlink()
+    else:
+        tmp.replace(out)
     return out
+
+
+def build_networks(net_dir: Path = REPO_NET_DIR) -> list[Path]:
+    """Build every network of net_dir (see network_names)."""
+    if not net_dir.is_dir():
+        raise RuntimeError(f"{net_dir}: folder not found")
+    names = network_names(net_dir)
+    if not names:
+        raise RuntimeError(f"{net_dir}: nothing to build (expected NAME.nod.xml + NAME.edg.xml, or NAME.osm.xml)")
+    return [build_network(net_dir, name) for name in names]
