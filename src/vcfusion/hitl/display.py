@@ -4,7 +4,10 @@ Every displayed frame is a fresh render of the ego camera at that SUMO step. The
 content (which vehicle, its level and probability) changes only at fusion ticks (0.1 s); its
 boxes follow their vehicles in between: each shown item's box is re-projected every frame as
 that vehicle's extent in the frame's instance map (the render stands in for the AR display's
-tracker; a vehicle hidden at that moment shows no box).
+tracker; a vehicle hidden at that moment shows no box). In a scenario without the fusion stage
+the guidance comes from the cloud (source `cloud`, no boxes); its items are boxed the same way,
+standing for the twin projected into the view, so guidance on / off differ on screen in every
+scenario.
 """
 
 from __future__ import annotations
@@ -29,15 +32,18 @@ class HudInfo:
     lag_s: float = 0.0
 
 
-def reprojected(items: tuple[Guidance, ...], vehicle_ids: tuple[str, ...], instances: np.ndarray) -> list[Guidance]:
+def reprojected(items: tuple[Guidance, ...], vehicle_ids: tuple[str, ...], instances: np.ndarray,
+                box_unmatched: bool = False) -> list[Guidance]:
     """The guidance items with their boxes moved to where their vehicles are in this frame
-    (`instances`: the render's instance map); items whose vehicle is not visible are left out;
-    unmatched items (no box at the fusion tick) stay unmatched."""
+    (`instances`: the render's instance map); items whose vehicle is not visible are left out.
+    Items without a box (fusion did not match the twin to a detection) are left out too, unless
+    `box_unmatched`: cloud guidance (no camera in the loop) has no boxes, and its display stands
+    for projecting the twin into the view."""
     index = {vid: k for k, vid in enumerate(vehicle_ids)}
     out = []
     for g in items:
         k = index.get(g.vehicle_id)
-        if g.box is None or k is None:
+        if k is None or (g.box is None and not box_unmatched):
             continue
         rows, cols = np.nonzero(instances == k)
         if rows.size == 0:

@@ -63,6 +63,7 @@ class HumanDriver:
         # the overlay shows the tick's guidance; the HUD works without it
         self.needs = ("ego", "guidance") if guidance_on else ("ego",)
         self._guidance = ()
+        self._guidance_source = "none"
         self._wall0: float | None = None
         self._sim0 = 0.0
         self._next_frame = 0.0
@@ -78,6 +79,7 @@ class HumanDriver:
     def acceleration(self, tick) -> float:
         if tick.guidance is not None:
             self._guidance = tick.guidance.items
+            self._guidance_source = tick.guidance.source
         # the camera stage's render of this tick (when it has one) is also this step's display frame
         self._tick_frame = tick.frame if hasattr(tick.frame, "instances") else None
         return self.vehicle.state.accel
@@ -137,7 +139,8 @@ class HumanDriver:
         tick_frame = self._tick_frame
         frame = tick_frame if tick_frame is not None and abs(tick_frame.time - st.time) < 1e-9 \
             else self.renderer.render(st.states())
-        items = reprojected(self._guidance, frame.vehicle_ids, frame.instances) if self.guidance_on else []
+        items = reprojected(self._guidance, frame.vehicle_ids, frame.instances,
+                            box_unmatched=self._guidance_source == "cloud") if self.guidance_on else []
         hud = HudInfo(st.time, st.speed, self.trip_end_s - st.s_front, self.guidance_on, lag)
         image = compose(frame.rgb, items, hud)
         if self.window is not None:
