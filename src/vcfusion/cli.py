@@ -55,6 +55,9 @@ def cmd_batch(args: argparse.Namespace) -> int:
           f"{len(report['failed'])} failed")
     for seed, error in report["failed"]:
         print(f"  seed {seed}: {error.splitlines()[0]}")
+    from vcfusion.metrics.commands import print_batch_metrics
+
+    print_batch_metrics(out)
     return 1 if report["failed"] else 0
 
 
@@ -228,6 +231,10 @@ def build_parser() -> argparse.ArgumentParser:
     from vcfusion.detection.commands import add_parsers as add_detection_parsers
 
     add_detection_parsers(sub)
+
+    from vcfusion.metrics.commands import add_parsers as add_metrics_parsers
+
+    add_metrics_parsers(sub)  # metrics, report
     return parser
 
 

@@ -27,6 +27,8 @@ from tqdm import tqdm
 from vcfusion.cloud.channel import V2CChannel
 from vcfusion.cloud.twins import ProcessModel, TwinStore, neighbours
 from vcfusion.driver.idm import IDMParams, idm_acceleration
+from vcfusion.metrics.run_metrics import add_run_metrics
+from vcfusion.metrics.sumo_emissions import sumo_emission_args
 from vcfusion.records import TwinStates, VehicleStates
 from vcfusion.runio import RunTables, TableSink, vehicle_tracks
 from vcfusion.threads import one_blas_thread
@@ -159,8 +161,9 @@ class CoSimulation:
         sinks = {name: TableSink(Path(workdir.name) / f"{name}.parquet") for name in STREAMED_TABLES}
         sinks.update({hook.table: TableSink(Path(workdir.name) / f"{hook.table}.parquet") for hook in self.hooks})
         lc_file = Path(workdir.name) / "lanechanges.xml"
+        tripinfo = Path(workdir.name) / "tripinfo.xml"  # SUMO's emission totals (metrics)
         session = SumoSession(sc, self.seed, lc_file, np.random.default_rng(self.rng.integers(2**63)),
-                              self.extra_sumo_args)
+                              self.extra_sumo_args + (sumo_emission_args(tripinfo) if sc.metrics.enabled else []))
         try:
             loop_started = wallclock.perf_counter()
             with one_blas_thread():  # small per-tick arrays: BLAS threads only cost hand-offs
@@ -191,6 +194,8 @@ class CoSimulation:
         summary = summarize(sc, self.seed, tables, events, out["channel"], out["end_reason"], lateral)
         if hasattr(self.controller, "summary"):
             summary["driver"] = self.controller.summary()
+        if sc.metrics.enabled:  # per-vehicle safety, comfort and emissions (vcfusion.metrics)
+            summary["metrics"] = add_run_metrics(sc, tables, tripinfo, session.emission_classes)
         return RunResult(sc, self.seed, tables, summary, wallclock.perf_counter() - started, loop_wall)
 
     def _loop(self, session: SumoSession, sinks: dict[str, TableSink], progress: bool) -> dict:

@@ -152,6 +152,8 @@ class SumoSession:
         self.collisions: list[Collision] = []  # every collision SUMO reported, in step order
         self._ego_min_gap: float | None = None
         try:
+            # SUMO's emission model of each vehicle type (HBEFA/PHEMlight; SUMO's default where the type names none)
+            self.emission_classes = {vt: libsumo.vehicletype.getEmissionClass(vt) for vt in self.vtypes}
             self._populate()
         except Exception:
             self.close()
