@@ -185,7 +185,7 @@ def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajecto
         lane = piece.column("lane").to_numpy()
         s = piece.column("s").to_numpy()
         speed = piece.column("speed").to_numpy()
-        columns = _follow(time, lane, s, speed, code, np.asarray(lengths), cfg.leader_range_m)
+        columns = follow_measures(time, lane, s, speed, code, np.asarray(lengths), cfg.leader_range_m)
         order = np.argsort(code, kind="stable")
         bounds = np.flatnonzero(np.diff(code[order])) + 1
         for rows in np.split(order, bounds):
@@ -216,7 +216,7 @@ def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajecto
     return RunMetrics(frame, conflict_frame, histograms)
 
 
-def _follow(time, lane, s, speed, code, lengths, leader_range_m) -> dict[str, np.ndarray]:
+def follow_measures(time, lane, s, speed, code, lengths, leader_range_m) -> dict[str, np.ndarray]:
     """Per row: gap, TTC, DRAC and time headway to its leader, and the leader's code (-1: none)."""
     lead = leaders(time, lane, s)
     has = lead >= 0
