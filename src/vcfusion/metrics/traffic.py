@@ -190,9 +190,15 @@ def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajecto
         bounds = np.flatnonzero(np.diff(code[order])) + 1
         for rows in np.split(order, bounds):
             c = int(code[rows[0]])
-            if buffers.last_time.get(c, -math.inf) < time[rows[0]] - _GONE_AFTER_S and c in buffers.chunks:
-                finish(c)  # back after a long absence (teleport): a new segment
-            buffers.add(c, {k: v[rows] for k, v in columns.items()})
+            # back after a long absence (a teleport): the stretch so far is finished, a new one begins
+            before = buffers.last_time.get(c, time[rows[0]])
+            breaks = np.flatnonzero(np.diff(np.r_[before, time[rows]]) > _GONE_AFTER_S)
+            for part in np.split(rows, breaks):
+                if not len(part):  # the break came before this piece's first row
+                    continue
+                if c in buffers.chunks and buffers.last_time[c] < time[part[0]] - _GONE_AFTER_S:
+                    finish(c)
+                buffers.add(c, {k: v[part] for k, v in columns.items()})
         now = float(time[-1])
         for c in [c for c, last in buffers.last_time.items() if last < now - _GONE_AFTER_S]:
             finish(c)
