@@ -16,6 +16,7 @@ import math
 import tempfile
 import time as wallclock
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Callable, Protocol
 
@@ -28,7 +29,7 @@ from vcfusion.cloud.channel import V2CChannel
 from vcfusion.cloud.twins import ProcessModel, TwinStore, neighbours
 from vcfusion.driver.idm import IDMParams, idm_acceleration
 from vcfusion.metrics.run_metrics import add_run_metrics
-from vcfusion.metrics.sumo_emissions import sumo_emission_args
+from vcfusion.metrics.traffic import sumo_model_rates
 from vcfusion.records import TwinStates, VehicleStates
 from vcfusion.runio import RunTables, TableSink, vehicle_tracks
 from vcfusion.threads import one_blas_thread
@@ -163,7 +164,8 @@ class CoSimulation:
         lc_file = Path(workdir.name) / "lanechanges.xml"
         tripinfo = Path(workdir.name) / "tripinfo.xml"  # SUMO's emission totals (metrics)
         session = SumoSession(sc, self.seed, lc_file, np.random.default_rng(self.rng.integers(2**63)),
-                              self.extra_sumo_args + (sumo_emission_args(tripinfo) if sc.metrics.enabled else []))
+                              self.extra_sumo_args, (tripinfo, partial(sumo_model_rates, sc.metrics))
+                              if sc.metrics.enabled else None)
         try:
             loop_started = wallclock.perf_counter()
             with one_blas_thread():  # small per-tick arrays: BLAS threads only cost hand-offs

@@ -214,6 +214,11 @@ class MetricsConfig(_Strict):
     # MOVESTAR source type (1 light-duty passenger car, 2 light-duty truck) by SUMO vType id or vClass
     # (the vType id wins); vehicles of other types (trucks, buses) get SUMO's emission model only.
     movestar: dict[str, Literal[1, 2]] = {"passenger": 1}
+    # The vehicles SUMO's own emission model rates (HBEFA/PHEMlight, the class their vType sets):
+    # "others" = those without a MOVESTAR type (trucks, buses: every vehicle gets one model), "all"
+    # (the cars too, a second opinion; SUMO then rates every vehicle every step, which costs the run
+    # ~20-30 %), "none".
+    sumo_emissions: Literal["others", "all", "none"] = "others"
     # Vehicles of these placement groups (vehicles.parquet `group`) keep their rows and still lead
     # others, but are left out of the traffic-wide figures (the parked accident vehicles are obstacles).
     exclude_groups: list[str] = ["accident"]

@@ -59,13 +59,16 @@ def test_batch_columns_table_rethreshold_and_report(tmp_path, accident_path, cap
     out = tmp_path / "b"
     assert main(["batch", str(accident_path), "--seeds", "0-2", "--workers", "2", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "metrics over the seeds" in printed and "MOVESTAR fuel, light-duty" in printed
+    assert "metrics over the seeds" in printed and "fuel, all rated vehicles" in printed
     batch = pd.read_parquet(out / "batch_summary.parquet")
     assert batch["seed"].tolist() == [0, 1, 2]
     summary = json.loads((seed_folder(out, 1) / "summary.json").read_text())
     assert batch.loc[1, "traffic_conflicts"] == summary["metrics"]["traffic"]["conflicts"]
     assert batch.loc[1, "ego_max_abs_jerk_mps3"] == pytest.approx(summary["metrics"]["ego"]["max_abs_jerk_mps3"])
-    assert batch["traffic_sumo_co2_g_per_km"].notna().all()
+    assert batch["traffic_fuel_g_per_km"].notna().all()
+    # by default SUMO's model rates only what MOVESTAR does not: here the (parked) accident trucks
+    sumo = pd.read_parquet(seed_folder(out, 0) / "sumo_emissions.parquet")
+    assert sumo.dropna(subset=["co2_g"])["vehicle_id"].str.startswith("accident").all()
     # a higher TTC threshold from a scenario file: more time below it, never fewer conflicts
     text = accident_path.read_text().replace("network: ../sumo_net", "network: NET_DIR").replace(
         "vehicle_types: ../sumo_net", "vehicle_types: NET_DIR") + "\nmetrics:\n  ttc_threshold_s: 4.0\n"
@@ -77,7 +80,7 @@ def test_batch_columns_table_rethreshold_and_report(tmp_path, accident_path, cap
     assert json.loads((seed_folder(out, 0) / "summary.json").read_text())["metrics"]["settings"]["ttc_threshold_s"] == 4.0
     assert main(["report", str(out)]) == 0
     report = (out / "report" / "report.md").read_text()
-    assert "| MOVESTAR fuel, light-duty | g/km | 3 |" in report and "passenger" in report
+    assert "| fuel, all rated vehicles | g/km | 3 |" in report and "passenger" in report
     for png in ("ttc_headway_distributions.png", "fuel_co2_by_class.png", "conflicts_by_position.png",
                 "ego_time_series.png"):
         assert (out / "report" / png).stat().st_size > 5000, png

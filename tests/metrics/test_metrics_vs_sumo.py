@@ -32,7 +32,8 @@ def dense_run(tmp_path_factory):
     sc = load_scenario(SCENARIOS / "dense.yaml")
     sc = sc.model_copy(update={
         "simulation": sc.simulation.model_copy(update={"max_time_s": 60.0}),
-        "metrics": sc.metrics.model_copy(update={"ttc_threshold_s": THRESHOLD_S})})
+        # SUMO's model on every vehicle, so that its totals can be checked on cars and trucks
+        "metrics": sc.metrics.model_copy(update={"ttc_threshold_s": THRESHOLD_S, "sumo_emissions": "all"})})
     cosim = build_cosimulation(sc, 0)
     ssm, emission = tmp / "ssm.xml", tmp / "emission.xml"
     cosim.extra_sumo_args = [
@@ -195,3 +196,23 @@ def test_movestar_totals_equal_movestar_on_whole_second_speeds(dense_run):
             assert row["movestar_fuel_g_per_km"] == pytest.approx(em["per_km"]["Fuel"], rel=1e-12)
         checked += 1
     assert checked > 50
+
+
+@pytest.mark.slow
+def test_by_default_sumo_rates_the_vehicles_movestar_does_not():
+    sc = load_scenario(SCENARIOS / "dense.yaml")
+    sc = sc.model_copy(update={"simulation": sc.simulation.model_copy(update={"max_time_s": 15.0})})
+    result = build_cosimulation(sc, 1).run()
+    m = result.tables["metrics"].set_index("vehicle_id")
+    trucks, cars = m[m["vclass"] == "truck"], m[m["vclass"] == "passenger"]
+    assert len(trucks) >= 4 and len(cars) > 30
+    assert trucks["sumo_co2_g"].notna().all() and trucks["movestar_fuel_g"].isna().all()
+    assert cars["sumo_co2_g"].isna().all() and (cars["movestar_seconds"] > 0).all()
+    rated = set(result.tables["sumo_emissions"].query("co2_g > 0 or fuel_g > 0")["vehicle_id"])
+    assert rated == set(trucks.index)
+    traffic = result.summary["metrics"]["traffic"]
+    counted_trucks = trucks[trucks["counted"]]
+    grams = cars["movestar_fuel_g"].sum() + counted_trucks["sumo_fuel_g"].sum()
+    km = cars["movestar_distance_m"].sum() / 1000 + counted_trucks["distance_m"].sum() / 1000
+    assert traffic["fuel_g_per_km"] == pytest.approx(grams / km)
+    assert traffic["sumo_fuel_g_per_km"] > traffic["movestar_fuel_g_per_km"]  # trucks burn more per km

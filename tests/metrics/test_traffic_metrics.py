@@ -49,7 +49,7 @@ def test_closing_in_on_a_slower_leader():
               "L": (t, np.zeros(26), 34.0 + 10.0 * t, np.full(26, 10.0))}
     threshold = 1.55  # clear of the sample values (TTC 1.5 at t = 1.5 is below it)
     result = _metrics(tracks, MetricsConfig(ttc_threshold_s=threshold))
-    m = result.vehicles.set_index("vehicle_id")
+    m = result.vehicles.to_pandas().set_index("vehicle_id")
     f = m.loc["F"]
     assert f["ttc_samples"] == 26
     assert f["min_ttc_s"] == pytest.approx(0.5)
@@ -65,7 +65,7 @@ def test_closing_in_on_a_slower_leader():
     assert f["distance_m"] == pytest.approx(50.0) and f["travel_time_s"] == pytest.approx(2.6)
     assert f["mean_abs_accel_mps2"] == pytest.approx(0.0) and f["max_abs_jerk_mps3"] == pytest.approx(0.0)
     assert m.loc["L", "ttc_samples"] == 0 and np.isnan(m.loc["L", "min_ttc_s"]) and m.loc["L", "conflicts"] == 0
-    c = result.conflicts.iloc[0]
+    c = result.conflicts.to_pandas().iloc[0]
     assert (c["vehicle_id"], c["leader_id"]) == ("F", "L") and len(result.conflicts) == 1
     assert c["start_time"] == pytest.approx(1.5) and c["end_time"] == pytest.approx(2.6)
     assert c["min_ttc_s"] == pytest.approx(0.5) and c["s_start"] == pytest.approx(30.0)
@@ -77,7 +77,7 @@ def test_time_headway_at_equal_speeds_and_the_leader_range():
               "L": (t, np.ones(50), 34.0 + 20.0 * t, np.full(50, 20.0)),
               "far": (t, np.ones(50), 334.0 + 20.0 * t, np.full(50, 20.0)),  # 296 m ahead of L: beyond 250 m
               "other_lane": (t, np.zeros(50), 10.0 + 20.0 * t, np.full(50, 25.0))}
-    m = _metrics(tracks).vehicles.set_index("vehicle_id")
+    m = _metrics(tracks).vehicles.to_pandas().set_index("vehicle_id")
     assert m.loc["F", "min_time_headway_s"] == pytest.approx(30.0 / 20.0)
     assert m.loc["F", "ttc_samples"] == 0 and m.loc["F", "tet_s"] == 0.0
     assert np.isnan(m.loc["L", "min_time_headway_s"])  # its next vehicle ahead is out of range
@@ -89,7 +89,7 @@ def test_jerk_of_a_constant_jerk_ramp_and_its_filter():
     t = _times(60)
     tracks = {"V": (t, np.zeros(60), 10.0 * t + j * t ** 3 / 6, 10.0 + 0.5 * j * t ** 2)}
     for window in (0.1, 0.3):
-        m = _metrics(tracks, MetricsConfig(jerk_window_s=window)).vehicles.iloc[0]
+        m = _metrics(tracks, MetricsConfig(jerk_window_s=window)).vehicles.to_pandas().iloc[0]
         assert m["max_abs_jerk_mps3"] == pytest.approx(j, rel=1e-9)
         # forward differences: a_i = j (t_i + dt / 2)
         assert m["mean_abs_accel_mps2"] == pytest.approx(np.mean(j * (t[:-1] + DT / 2)), rel=1e-9)
@@ -126,10 +126,10 @@ def test_streaming_in_small_pieces_gives_the_same_table(tmp_path, monkeypatch):
     pq.write_table(_trajectories(tracks), path, row_group_size=37)
     monkeypatch.setattr(traffic, "BATCH_ROWS", 13)  # time slices cut across many record batches
     pieces = compute_run_metrics(cfg, DT, DT, path, _vehicles(tracks), None, None, None)
-    pd.testing.assert_frame_equal(whole.vehicles, pieces.vehicles)
-    pd.testing.assert_frame_equal(whole.conflicts, pieces.conflicts)
-    pd.testing.assert_frame_equal(whole.histograms, pieces.histograms)
-    assert whole.vehicles["ttc_samples"].sum() > 100 and len(whole.conflicts) > 0
+    pd.testing.assert_frame_equal(whole.vehicles.to_pandas(), pieces.vehicles.to_pandas())
+    pd.testing.assert_frame_equal(whole.conflicts.to_pandas(), pieces.conflicts.to_pandas())
+    pd.testing.assert_frame_equal(whole.histograms.to_pandas(), pieces.histograms.to_pandas())
+    assert whole.vehicles.to_pandas()["ttc_samples"].sum() > 100 and len(whole.conflicts) > 0
 
 
 @pytest.mark.parametrize("batch_rows", [65_536, 50, 1])
@@ -139,7 +139,7 @@ def test_a_vehicle_that_comes_back_after_a_long_absence_keeps_one_row(monkeypatc
     t1, t2 = _times(100), np.round(_times(100) + 110.0, 6)
     tracks = {"V": (np.r_[t1, t2], np.zeros(200), np.r_[15 * t1, 2000 + 15 * (t2 - 110)], np.full(200, 15.0)),
               "W": (np.round(np.arange(1200) * DT, 6), np.ones(1200), np.arange(1200) * 1.0, np.full(1200, 10.0))}
-    m = _metrics(tracks).vehicles.set_index("vehicle_id")
+    m = _metrics(tracks).vehicles.to_pandas().set_index("vehicle_id")
     assert m.loc["V", "samples"] == 200
     assert m.loc["V", "travel_time_s"] == pytest.approx(20.0)
     assert m.loc["V", "distance_m"] == pytest.approx(2 * 15 * 9.9)
@@ -156,7 +156,7 @@ def test_movestar_and_sumo_model_by_type_and_class():
     sumo = pd.DataFrame({"vehicle_id": ["car", "truck"], "emission_class": ["HBEFA4/PC", "HBEFA4/HGV"],
                          "co_g": 1.0, "co2_g": 200.0, "hc_g": 0.1, "nox_g": 0.5, "pmx_g": 0.01, "fuel_g": 60.0,
                          "electricity_wh": 0.0})
-    m = compute_run_metrics(cfg, DT, DT, _trajectories(tracks), vehicles, None, None, sumo).vehicles.set_index("vehicle_id")
+    m = compute_run_metrics(cfg, DT, DT, _trajectories(tracks), vehicles, None, None, sumo).vehicles.to_pandas().set_index("vehicle_id")
     assert m["movestar_type"].to_dict() == {"car": 1, "truck": 0, "van": 2}
     assert m.loc["car", "movestar_seconds"] == 4 and np.isnan(m.loc["truck", "movestar_fuel_g"])
     assert m.loc["car", "movestar_fuel_g"] != m.loc["van", "movestar_fuel_g"]
@@ -166,12 +166,11 @@ def test_movestar_and_sumo_model_by_type_and_class():
 
 
 def test_histogram_percentiles_and_a_json_safe_summary():
-    hist = pd.DataFrame({"measure": "ttc_s", "bin_low": [0.0, 1.0, 2.0], "bin_high": [1.0, 2.0, np.inf],
-                         "count": [10, 30, 60]})
-    assert histogram_percentile(hist, "ttc_s", 5) == pytest.approx(0.5)
-    assert histogram_percentile(hist, "ttc_s", 25) == pytest.approx(1.5)
-    assert histogram_percentile(hist, "ttc_s", 50) is None  # in the open last bin
-    assert histogram_percentile(hist.assign(count=0), "ttc_s", 5) is None
+    edges, counts = np.array([0.0, 1.0, 2.0]), np.array([10, 30, 60])  # the last bin: >= 2
+    assert histogram_percentile(edges, counts, 5) == pytest.approx(0.5)
+    assert histogram_percentile(edges, counts, 25) == pytest.approx(1.5)
+    assert histogram_percentile(edges, counts, 50) is None  # in the open last bin
+    assert histogram_percentile(edges, np.zeros(3), 5) is None
     t = _times(30)
     tracks = {"ego": (t, np.zeros(30), 20 * t, np.full(30, 20.0)),
               "accident0": (t, np.zeros(30), np.full(30, 40.0), np.zeros(30))}

@@ -20,12 +20,15 @@ BATCH_ROWS = [
     ("traffic_max_drac_mps2", "maximum DRAC", "m/s^2"),
     ("traffic_min_time_headway_s", "minimum time headway", "s"),
     ("traffic_collisions", "collisions (vehicle pairs)", ""),
-    ("traffic_movestar_fuel_g_per_km", "MOVESTAR fuel, light-duty", "g/km"),
-    ("traffic_movestar_co2_g_per_km", "MOVESTAR CO2, light-duty", "g/km"),
-    ("traffic_movestar_nox_g_per_km", "MOVESTAR NOx, light-duty", "g/km"),
-    ("traffic_sumo_fuel_g_per_km", "SUMO fuel, all classes", "g/km"),
-    ("traffic_sumo_co2_g_per_km", "SUMO CO2, all classes", "g/km"),
-    ("traffic_sumo_nox_g_per_km", "SUMO NOx, all classes", "g/km"),
+    ("traffic_fuel_g_per_km", "fuel, all rated vehicles", "g/km"),
+    ("traffic_co2_g_per_km", "CO2, all rated vehicles", "g/km"),
+    ("traffic_nox_g_per_km", "NOx, all rated vehicles", "g/km"),
+    ("traffic_movestar_fuel_g_per_km", "MOVESTAR fuel (its light-duty types)", "g/km"),
+    ("traffic_movestar_co2_g_per_km", "MOVESTAR CO2", "g/km"),
+    ("traffic_movestar_nox_g_per_km", "MOVESTAR NOx", "g/km"),
+    ("traffic_sumo_fuel_g_per_km", "SUMO model fuel (the vehicles it rates)", "g/km"),
+    ("traffic_sumo_co2_g_per_km", "SUMO model CO2", "g/km"),
+    ("traffic_sumo_nox_g_per_km", "SUMO model NOx", "g/km"),
     ("ego_min_ttc_s", "ego: minimum TTC to its leader", "s"),
     ("ego_tet_s", "ego: TET", "s"),
     ("ego_min_time_headway_s", "ego: minimum time headway", "s"),
@@ -47,6 +50,8 @@ def seed_statistics(batch: pd.DataFrame) -> pd.DataFrame:
             continue
         x = pd.to_numeric(batch[col], errors="coerce").dropna().to_numpy(dtype=float)
         n = len(x)
+        if n == 0:  # e.g. SUMO's model on the ego when MOVESTAR rates it
+            continue
         mean = float(x.mean()) if n else math.nan
         half = float(stats.t.ppf(0.975, n - 1) * x.std(ddof=1) / math.sqrt(n)) if n >= 2 else math.nan
         low, high = (np.percentile(x, [2.5, 97.5]) if n else (math.nan, math.nan))

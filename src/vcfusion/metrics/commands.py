@@ -43,17 +43,17 @@ def _settings(folder: Path, scenario_file: str | None):
 def recompute_folder(folder: Path, scenario_file: str | None = None) -> bool:
     """Rewrite a run folder's metric tables and the metrics block of its summary.json from its
     tables; returns whether SUMO's emission totals were there."""
-    from vcfusion.metrics.run_metrics import folder_metrics, write_summary_metrics
-    from vcfusion.runio import write_table
+    import pyarrow.parquet as pq
+
+    from vcfusion.metrics.run_metrics import METRIC_TABLES, folder_metrics, write_summary_metrics
 
     cfg, simulation = _settings(folder, scenario_file)
     result, block, has_sumo = folder_metrics(folder, cfg, simulation)
     written = []
     try:  # every table first to a temporary name: a failure leaves the folder as it was
-        for name, frame in (("metrics", result.vehicles), ("conflicts", result.conflicts),
-                            ("metric_histograms", result.histograms)):
+        for name, table in zip(METRIC_TABLES, (result.vehicles, result.conflicts, result.histograms)):
             tmp = folder / f"{name}.parquet.tmp"
-            write_table(tmp, frame)
+            pq.write_table(table, tmp, compression="zstd")  # as the run folder writer writes Arrow tables
             written.append((tmp, folder / f"{name}.parquet"))
     except BaseException:
         for tmp, _ in written:

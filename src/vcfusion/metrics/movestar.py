@@ -96,6 +96,9 @@ def _parse_rates(text: str) -> dict[int, np.ndarray]:
 
 
 RATES = {vt: _parse_rates(t) for vt, t in _RATES_TEXT.items()}
+# the same rates as one array per vehicle type, row = OpMode number (rows of unused numbers are NaN)
+_RATE_ROWS = {vt: np.array([rates.get(m, np.full(7, np.nan)) for m in range(max(rates) + 1)])
+              for vt, rates in RATES.items()}
 
 
 def _check_vehicle_type(vehicle_type) -> int:
@@ -133,33 +136,26 @@ def vsp(v: np.ndarray, a: np.ndarray, vehicle_type: int = 1) -> np.ndarray:
     return (A * v + B * v**2 + C * v**3 + M * a * v) / f
 
 
-def _band(value: float, edges: Sequence[float], modes: Sequence[int]) -> int:
-    for edge, mode in zip(edges, modes):
-        if value < edge:
-            return mode
-    return modes[-1]
+_LOW_SPEED = ((0, 3, 6, 9, 12), (11, 12, 13, 14, 15, 16))  # 1 <= mph < 25: VSP edges, modes
+_MID_SPEED = ((0, 3, 6, 9, 12, 18, 24, 30), (21, 22, 23, 24, 25, 27, 28, 29, 30))  # 25 <= mph < 50
+_HIGH_SPEED = ((6, 12, 18, 24, 30), (33, 35, 37, 38, 39, 40))  # mph >= 50
+
+
+def _band(power: np.ndarray, band: tuple) -> np.ndarray:
+    """The mode of the first VSP edge above each value (the last mode above all edges)."""
+    edges, modes = band
+    return np.asarray(modes)[np.searchsorted(edges, power, side="right")]
 
 
 def operating_modes(v: np.ndarray, a: np.ndarray, power: np.ndarray) -> list[int]:
-    """OpMode of every second (spec step 4: the first matching rule wins)."""
+    """OpMode of every second (spec step 4: the first matching rule wins), all seconds at once."""
     k = MPS_TO_MPH
-    modes = []
-    for i in range(v.size):
-        mph = v[i] * k
-        if a[i] * k <= -2:
-            mode = 0
-        elif i >= 2 and a[i - 2] * k < -1 and a[i - 1] * k < -1:
-            mode = 0
-        elif mph < 1:
-            mode = 1
-        elif mph < 25:
-            mode = _band(power[i], (0, 3, 6, 9, 12), (11, 12, 13, 14, 15, 16))
-        elif mph < 50:
-            mode = _band(power[i], (0, 3, 6, 9, 12, 18, 24, 30), (21, 22, 23, 24, 25, 27, 28, 29, 30))
-        else:
-            mode = _band(power[i], (6, 12, 18, 24, 30), (33, 35, 37, 38, 39, 40))
-        modes.append(mode)
-    return modes
+    mph, accel = v * k, a * k
+    braked = np.zeros(v.size, dtype=bool)  # the two seconds before both below -1 mph/s
+    braked[2:] = (accel[:-2] < -1) & (accel[1:-1] < -1)
+    modes = np.select([(accel <= -2) | braked, mph < 1, mph < 25, mph < 50],
+                      [0, 1, _band(power, _LOW_SPEED), _band(power, _MID_SPEED)], _band(power, _HIGH_SPEED))
+    return modes.tolist()
 
 
 def movestar(speeds_mps: Sequence[float], vehicle_type: int = 1) -> dict:
@@ -173,8 +169,7 @@ def movestar(speeds_mps: Sequence[float], vehicle_type: int = 1) -> dict:
     a = accelerations(v)
     power = vsp(v, a, vehicle_type)
     modes = operating_modes(v, a, power)
-    table = RATES[vehicle_type]
-    sums = np.sum([table[m] for m in modes], axis=0) / 3600.0
+    sums = _RATE_ROWS[vehicle_type][modes].sum(axis=0) / 3600.0
     totals = {name: float(x) for name, x in zip(POLLUTANTS, sums)}
     totals["Fuel"] = totals["CO2"] * 12.0 / 44.0 * 13.78 / 12.0
     td = float(v.sum())

@@ -20,8 +20,8 @@ import pyarrow.parquet as pq
 
 from vcfusion.metrics.sumo_emissions import read_tripinfo_emissions
 from vcfusion.runio import write_json
-from vcfusion.metrics.traffic import (EGO_ID, MOVESTAR_KEYS, SUMO_KEYS, RunMetrics, compute_run_metrics,
-                                      histogram_percentile)
+from vcfusion.metrics.traffic import (EGO_ID, HEADWAY_EDGES, MOVESTAR_KEYS, SUMO_KEYS, TTC_EDGES, RunMetrics,
+                                      compute_run_metrics, histogram_percentile)
 
 METRIC_TABLES = ("metrics", "conflicts", "metric_histograms")
 EGO_KEYS = {  # summary key -> metrics.parquet column
@@ -47,7 +47,8 @@ def add_run_metrics(scenario, tables, tripinfo_file: Path, emission_classes: dic
         trajectories = pa.Table.from_pandas(trajectories, preserve_index=False)
     result = compute_run_metrics(scenario.metrics, sim.trajectory_period_s, sim.step_s, trajectories,
                                  tables["vehicles"], ego, tables.get("lane_changes"), tables["sumo_emissions"])
-    tables.update({"metrics": result.vehicles, "conflicts": result.conflicts, "metric_histograms": result.histograms})
+    for name, table in zip(METRIC_TABLES, (result.vehicles, result.conflicts, result.histograms)):
+        tables.add_arrow(name, table)
     return summary_block(scenario.metrics, result, tables["collisions"], sumo_available=True)
 
 
@@ -87,52 +88,65 @@ def _ratio(num: float, den: float) -> float | None:
 
 def summary_block(cfg, result: RunMetrics, collisions: pd.DataFrame | None, sumo_available: bool) -> dict:
     """summary.json's `metrics`: the ego, the traffic (counted vehicles) and the settings used."""
-    v = result.vehicles
-    pairs = 0
-    ego_collisions = 0
+    col = result.columns
+    pairs = ego_collisions = 0
     if collisions is not None and len(collisions):
-        distinct = collisions.drop_duplicates(subset=["collider", "victim"])
+        distinct = set(zip(collisions["collider"].tolist(), collisions["victim"].tolist()))
         pairs = len(distinct)
-        ego_collisions = int(((distinct["collider"] == EGO_ID) | (distinct["victim"] == EGO_ID)).sum())
+        ego_collisions = sum(EGO_ID in pair for pair in distinct)
     block: dict = {"settings": {"ttc_threshold_s": cfg.ttc_threshold_s, "jerk_window_s": cfg.jerk_window_s,
                                 "leader_range_m": cfg.leader_range_m, "movestar": dict(cfg.movestar),
                                 "exclude_groups": list(cfg.exclude_groups),
-                                "sumo_emissions": "run" if sumo_available else "missing: the run folder has no "
-                                "sumo_emissions.parquet (written before SUMO's emissions were recorded)"}}
-    if len(v) and EGO_ID in set(v["vehicle_id"]):
-        ego = v[v["vehicle_id"] == EGO_ID].iloc[0]
-        block["ego"] = {k: _clean(ego[col]) for k, col in EGO_KEYS.items()} | {
-            "lane_changes": int(ego["lane_changes"]), "collisions": ego_collisions}
-    counted = v[v["counted"]] if len(v) else v
-    km = float(counted["distance_m"].sum()) / 1000.0 if len(v) else 0.0
-    traffic: dict = {"vehicles": int(len(counted)), "vehicle_km": km,
-                     "vehicle_h": float(counted["travel_time_s"].sum()) / 3600.0 if len(v) else 0.0}
-    if len(v):
-        light = counted[counted["movestar_type"] > 0]
-        mkm = float(light["movestar_distance_m"].sum()) / 1000.0
-        traffic["movestar_vehicle_km"] = mkm
-        for k in MOVESTAR_KEYS.values():
-            traffic[f"movestar_{k}_per_km"] = _ratio(float(light[f"movestar_{k}"].sum(min_count=1)), mkm)
-        with_sumo = counted[counted["sumo_co2_g"].notna()]
-        skm = float(with_sumo["distance_m"].sum()) / 1000.0
-        for k in SUMO_KEYS:
-            traffic[f"sumo_{k}_g_per_km"] = _ratio(float(with_sumo[f"sumo_{k}_g"].sum(min_count=1)), skm) \
-                if sumo_available else None
-        traffic.update({
-            "conflicts": int(counted["conflicts"].sum()),
-            "conflicts_per_vehicle_km": _ratio(float(counted["conflicts"].sum()), km),
-            "tet_s": float(counted["tet_s"].sum()), "tit_s2": float(counted["tit_s2"].sum()),
-            "min_ttc_s": _clean(counted["min_ttc_s"].min()),
-            "max_drac_mps2": _clean(counted["max_drac_mps2"].max()),
-            "min_time_headway_s": _clean(counted["min_time_headway_s"].min()),
-        })
-    h = result.histograms
+                                "sumo_emissions": cfg.sumo_emissions if sumo_available else "missing: the run folder "
+                                "has no sumo_emissions.parquet (written before SUMO's emissions were recorded)"}}
+    ids = col["vehicle_id"].tolist()
+    if EGO_ID in ids:
+        i = ids.index(EGO_ID)
+        block["ego"] = {k: _clean(col[c][i]) for k, c in EGO_KEYS.items()} | {
+            "lane_changes": int(col["lane_changes"][i]), "collisions": ego_collisions}
+    counted = col["counted"].astype(bool)
+    km = float(col["distance_m"][counted].sum()) / 1000.0
+    traffic: dict = {"vehicles": int(counted.sum()), "vehicle_km": km,
+                     "vehicle_h": float(col["travel_time_s"][counted].sum()) / 3600.0}
+    light = counted & (col["movestar_type"] > 0)
+    mkm = float(col["movestar_distance_m"][light].sum()) / 1000.0
+    traffic["movestar_vehicle_km"] = mkm
+    for k in MOVESTAR_KEYS.values():
+        traffic[f"movestar_{k}_per_km"] = _ratio(_sum(col[f"movestar_{k}"][light]), mkm)
+    with_sumo = counted & np.isfinite(col["sumo_co2_g"].astype(float))
+    skm = float(col["distance_m"][with_sumo].sum()) / 1000.0
+    traffic["sumo_vehicle_km"] = skm
+    for k in SUMO_KEYS:
+        traffic[f"sumo_{k}_g_per_km"] = _ratio(_sum(col[f"sumo_{k}_g"][with_sumo]), skm)
+    # the whole traffic: each vehicle by MOVESTAR where it has a MOVESTAR type, else by SUMO's model
+    by_sumo = with_sumo & ~light
+    traffic["rated_vehicle_km"] = mkm + float(col["distance_m"][by_sumo].sum()) / 1000.0
+    for k in ("fuel", "co2", "co", "hc", "nox"):
+        grams = _sum(col[f"movestar_{k}_g"][light]) if light.any() else 0.0
+        grams += _sum(col[f"sumo_{k}_g"][by_sumo]) if by_sumo.any() else 0.0
+        traffic[f"{k}_g_per_km"] = _ratio(grams, traffic["rated_vehicle_km"])
+    conflicts = int(col["conflicts"][counted].sum())
+    traffic.update({
+        "conflicts": conflicts, "conflicts_per_vehicle_km": _ratio(float(conflicts), km),
+        "tet_s": float(col["tet_s"][counted].sum()), "tit_s2": float(col["tit_s2"][counted].sum()),
+        "min_ttc_s": _extreme(col["min_ttc_s"][counted], np.min), "max_drac_mps2": _extreme(col["max_drac_mps2"][counted], np.max),
+        "min_time_headway_s": _extreme(col["min_time_headway_s"][counted], np.min),
+    })
     for q in (1, 5, 15, 50):
-        traffic[f"ttc_p{q:02d}_s"] = histogram_percentile(h, "ttc_s", q)
-    traffic["time_headway_p05_s"] = histogram_percentile(h, "time_headway_s", 5)
+        traffic[f"ttc_p{q:02d}_s"] = histogram_percentile(TTC_EDGES, result.ttc_counts, q)
+    traffic["time_headway_p05_s"] = histogram_percentile(HEADWAY_EDGES, result.headway_counts, 5)
     traffic["collisions"] = pairs
     block["traffic"] = {k: _clean(x) for k, x in traffic.items()}
     return block
+
+
+def _sum(x: np.ndarray) -> float:
+    return float(np.sum(x)) if len(x) else math.nan
+
+
+def _extreme(x: np.ndarray, fn) -> float:
+    x = x[np.isfinite(x)]
+    return float(fn(x)) if len(x) else math.nan
 
 
 def batch_row(summary: dict) -> dict:

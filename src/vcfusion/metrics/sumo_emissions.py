@@ -1,6 +1,7 @@
 """SUMO's own emission model (HBEFA / PHEMlight, as the vehicle types configure it), per vehicle.
 
-Every vehicle carries SUMO's emissions device; its trip totals come from SUMO's tripinfo output
+The vehicles the scenario's `metrics.sumo_emissions` names (default: those MOVESTAR does not rate)
+carry SUMO's emissions device (SumoSession); their trip totals come from SUMO's tripinfo output
 (`--tripinfo-output.write-unfinished`: vehicles still on the road when the run ends are
 included). SUMO's device adds each step after the insertion step at the step's mean speed over
 the time the vehicle moved; SUMO's per-step `--emission-output` rates the speed at the step's
@@ -23,12 +24,6 @@ POLLUTANT_COLUMNS = {"CO_abs": "co_g", "CO2_abs": "co2_g", "HC_abs": "hc_g", "NO
                      "PMx_abs": "pmx_g", "fuel_abs": "fuel_g"}
 COLUMNS = ["vehicle_id", "vtype", "emission_class", "depart_s", "duration_s", "route_length_m",
            *POLLUTANT_COLUMNS.values(), "electricity_wh"]
-
-
-def sumo_emission_args(tripinfo_file: Path) -> list[str]:
-    """SUMO options giving every vehicle the emissions device and writing the trip totals."""
-    return ["--device.emissions.probability", "1", "--tripinfo-output", str(tripinfo_file),
-            "--tripinfo-output.write-unfinished", "true"]
 
 
 def read_tripinfo_emissions(tripinfo_file: Path, emission_classes: dict[str, str]) -> pd.DataFrame:

@@ -39,7 +39,9 @@ been absent for `_GONE_AFTER_S`, so memory follows the vehicles on the road, not
 from __future__ import annotations
 
 import math
+from collections import Counter
 from dataclasses import dataclass
+from types import SimpleNamespace
 from pathlib import Path
 
 import numpy as np
@@ -66,17 +68,34 @@ MOVESTAR_KEYS = {"CO": "co_g", "HC": "hc_g", "NOx": "nox_g", "PM2.5": "pm25_g", 
 SUMO_KEYS = ("co", "co2", "hc", "nox", "pmx", "fuel")
 
 
+CONFLICT_SCHEMA = {"vehicle_id": pa.string(), "leader_id": pa.string(), "start_time": pa.float64(),
+                   "end_time": pa.float64(), "duration_s": pa.float64(), "min_ttc_s": pa.float64(),
+                   "s_start": pa.float64(), "lane": pa.int64()}
+
+
 @dataclass
 class RunMetrics:
-    vehicles: pd.DataFrame  # metrics.parquet: one row per vehicle
-    conflicts: pd.DataFrame  # conflicts.parquet: one row per conflict episode
-    histograms: pd.DataFrame  # metric_histograms.parquet: TTC and headway counts (counted vehicles)
+    """The tables are Arrow (built from arrays without pandas: they are made at the end of every run)."""
+
+    vehicles: pa.Table  # metrics.parquet: one row per vehicle
+    conflicts: pa.Table  # conflicts.parquet: one row per conflict episode
+    histograms: pa.Table  # metric_histograms.parquet: TTC and headway counts (counted vehicles)
+    columns: dict[str, np.ndarray]  # the vehicles' columns as arrays (what the summary reads)
+    ttc_counts: np.ndarray  # the same counts, per TTC_EDGES bin (the last: beyond the last edge)
+    headway_counts: np.ndarray  # per HEADWAY_EDGES bin
 
 
 def movestar_type(cfg, vtype: str, vclass: str) -> int | None:
     """The MOVESTAR source type of a vehicle type (None: SUMO's model only). A vehicle whose
     speed limit the scenario sets runs on a copy of its type named 'TYPE@VEHICLE' (SUMO)."""
     return cfg.movestar.get(vtype.split("@")[0], cfg.movestar.get(vclass))
+
+
+def sumo_model_rates(cfg, vtype: str, vclass: str) -> bool:
+    """Whether SUMO's emission model rates vehicles of this type (metrics.sumo_emissions)."""
+    if cfg.sumo_emissions == "others":
+        return movestar_type(cfg, vtype, vclass) is None
+    return cfg.sumo_emissions == "all"
 
 
 def ego_movestar_type(scenario, vehicles: pd.DataFrame) -> int:
@@ -147,15 +166,14 @@ def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajecto
                         sumo_emissions: pd.DataFrame | None) -> RunMetrics:
     """The per-vehicle table, the conflict episodes and the distributions of one run (streamed)."""
     dt = trajectory_period_s
-    info = vehicles.set_index("vehicle_id")
-    length_of = info["length"].astype(float).to_dict()
+    info = _VehicleFacts(vehicles)
     codes: dict[str, int] = {}
     ids: list[str] = []
     lengths: list[float] = []
     buffers = _Buffers()
     segments: dict[int, list[dict]] = {}
     conflicts: list[dict] = []
-    excluded = set(info.index[info["group"].isin(cfg.exclude_groups)]) if len(info) else set()
+    excluded = {vid for vid, group in info.group.items() if group in set(cfg.exclude_groups)}
     ttc_counts = np.zeros(len(TTC_EDGES), dtype=np.int64)  # last bin: >= the last edge
     headway_counts = np.zeros(len(HEADWAY_EDGES), dtype=np.int64)
 
@@ -163,7 +181,7 @@ def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajecto
         series = buffers.pop(code)
         vid = ids[code]
         segment, episodes = _segment(series, dt, cfg.ttc_threshold_s, cfg.jerk_window_s)
-        segment.update(_movestar(series["time"], series["speed"], movestar_type(cfg, *_type_of(info, vid))))
+        segment.update(_movestar(series["time"], series["speed"], movestar_type(cfg, *info.types(vid))))
         segments.setdefault(code, []).append(segment)
         for e in episodes:
             conflicts.append({"vehicle_id": vid, "leader_id": ids[e.pop("leader")], **e})
@@ -178,7 +196,7 @@ def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajecto
             if vid not in codes:
                 codes[vid] = len(ids)
                 ids.append(vid)
-                lengths.append(length_of.get(vid, math.nan))
+                lengths.append(info.length.get(vid, math.nan))
         local = np.array([codes[v] for v in encoded.dictionary.to_pylist()], dtype=np.int64)
         code = local[encoded.indices.to_numpy(zero_copy_only=False)]
         time = piece.column("time").to_numpy()
@@ -205,21 +223,29 @@ def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajecto
     for c in list(buffers.chunks):
         finish(c)
 
-    rows = [_vehicle_row(cfg, ids[c], segs, info, dt) for c, segs in segments.items()]
-    frame = pd.DataFrame(rows)
-    if len(frame):
-        frame["counted"] = ~frame["vehicle_id"].isin(excluded)
-        frame["lane_changes"] = _lane_changes(frame["vehicle_id"], lane_changes)
-        if ego is not None and ego.num_rows and EGO_ID in set(frame["vehicle_id"]):
-            _ego_from_own_log(cfg, frame, ego, step_s, info)
-        frame = _with_sumo(frame, sumo_emissions)
-        frame = frame.sort_values("vehicle_id", kind="stable").reset_index(drop=True)
-    conflict_frame = pd.DataFrame(conflicts, columns=["vehicle_id", "leader_id", "start_time", "end_time",
-                                                      "duration_s", "min_ttc_s", "s_start", "lane"])
-    conflict_frame = conflict_frame.sort_values(["start_time", "vehicle_id"], kind="stable").reset_index(drop=True)
-    histograms = pd.concat([_histogram_frame("ttc_s", TTC_EDGES, ttc_counts),
-                            _histogram_frame("time_headway_s", HEADWAY_EDGES, headway_counts)], ignore_index=True)
-    return RunMetrics(frame, conflict_frame, histograms)
+    rows = sorted((_vehicle_row(cfg, ids[c], segs, info) for c, segs in segments.items()),
+                  key=lambda r: r["vehicle_id"])
+    if ego is not None and ego.num_rows:
+        for row in rows:
+            if row["vehicle_id"] == EGO_ID:
+                row.update(_ego_from_own_log(cfg, ego, step_s, info))
+    columns = {k: np.array([r[k] for r in rows]) for k in (rows[0] if rows else _EMPTY_ROW)}
+    vids = [r["vehicle_id"] for r in rows]
+    columns["counted"] = np.array([v not in excluded for v in vids], dtype=bool)
+    columns["lane_changes"] = _lane_changes(vids, lane_changes)
+    columns.update(_sumo_columns(vids, columns["distance_m"], sumo_emissions))
+    mkm = np.where(columns["movestar_distance_m"] > 0, columns["movestar_distance_m"], np.nan) / 1000.0
+    for k in MOVESTAR_KEYS.values():
+        columns[f"movestar_{k}_per_km"] = columns[f"movestar_{k}"] / mkm
+    conflicts.sort(key=lambda c: (c["start_time"], c["vehicle_id"]))
+    conflict_table = pa.table({name: pa.array([c[name] for c in conflicts], type=kind)
+                               for name, kind in CONFLICT_SCHEMA.items()})
+    histograms = pa.table({
+        "measure": ["ttc_s"] * len(TTC_EDGES) + ["time_headway_s"] * len(HEADWAY_EDGES),
+        "bin_low": np.r_[TTC_EDGES, HEADWAY_EDGES],
+        "bin_high": np.r_[TTC_EDGES[1:], np.inf, HEADWAY_EDGES[1:], np.inf],
+        "count": np.r_[ttc_counts, headway_counts]})
+    return RunMetrics(pa.table(columns), conflict_table, histograms, columns, ttc_counts, headway_counts)
 
 
 def follow_measures(time, lane, s, speed, code, lengths, leader_range_m) -> dict[str, np.ndarray]:
@@ -255,13 +281,13 @@ def conflict_episodes(ttc: np.ndarray, leader: np.ndarray, threshold_s: float) -
 
 
 def _nanmin(x: np.ndarray) -> float:
-    x = x[np.isfinite(x)]
-    return float(x.min()) if x.size else math.nan
+    found = float(np.fmin.reduce(np.asarray(x, dtype=float), initial=math.inf))  # fmin skips NaN
+    return found if found != math.inf else math.nan
 
 
 def _nanmax(x: np.ndarray) -> float:
-    x = x[np.isfinite(x)]
-    return float(x.max()) if x.size else math.nan
+    found = float(np.fmax.reduce(np.asarray(x, dtype=float), initial=-math.inf))
+    return found if found != -math.inf else math.nan
 
 
 def _segment(series: dict[str, np.ndarray], dt: float, threshold: float, jerk_window_s: float) -> tuple[dict, list[dict]]:
@@ -301,13 +327,26 @@ def _movestar(time: np.ndarray, speed: np.ndarray, vehicle_type: int | None) -> 
     return out
 
 
-def _vehicle_row(cfg, vid: str, segs: list[dict], info: pd.DataFrame, dt: float) -> dict:
-    known = vid in info.index
-    vtype, vclass = _type_of(info, vid)
+class _VehicleFacts:
+    """vehicles.parquet as plain dicts by vehicle id."""
+
+    def __init__(self, vehicles: pd.DataFrame):
+        ids = vehicles["vehicle_id"].tolist()
+        self.vtype = {v: str(x) for v, x in zip(ids, vehicles["vtype"].tolist())}
+        self.vclass = {v: str(x) for v, x in zip(ids, vehicles["vclass"].tolist())}
+        self.group = {v: str(x) for v, x in zip(ids, vehicles["group"].tolist())}
+        self.length = {v: float(x) for v, x in zip(ids, vehicles["length"].tolist())}
+
+    def types(self, vid: str) -> tuple[str, str]:
+        return self.vtype.get(vid, ""), self.vclass.get(vid, "")
+
+
+def _vehicle_row(cfg, vid: str, segs: list[dict], info: _VehicleFacts) -> dict:
+    vtype, vclass = info.types(vid)
     samples = sum(g["samples"] for g in segs)
     accel_samples = sum(g["accel_samples"] for g in segs)
     mst = movestar_type(cfg, vtype, vclass)
-    row = {"vehicle_id": vid, "vtype": vtype, "vclass": vclass, "group": str(info.at[vid, "group"]) if known else "",
+    row = {"vehicle_id": vid, "vtype": vtype, "vclass": vclass, "group": info.group.get(vid, ""),
            "first_time_s": segs[0]["first_time"], "samples": samples,
            "travel_time_s": sum(g["travel_time_s"] for g in segs), "distance_m": sum(g["distance_m"] for g in segs),
            "mean_speed_mps": sum(g["speed_sum"] for g in segs) / samples,
@@ -321,55 +360,53 @@ def _vehicle_row(cfg, vid: str, segs: list[dict], info: pd.DataFrame, dt: float)
            "min_time_headway_s": _nanmin(np.array([g["min_time_headway_s"] for g in segs])),
            "min_gap_m": _nanmin(np.array([g["min_gap_m"] for g in segs])),
            "conflicts": sum(g["conflicts"] for g in segs), "movestar_type": mst or 0}
-    row.update({k: sum(g[k] for g in segs) for k in (*(f"movestar_{k}" for k in MOVESTAR_KEYS.values()),
-                                                     "movestar_distance_m", "movestar_seconds")})
+    row.update({k: sum(g[k] for g in segs) for k in _MOVESTAR_TOTALS})
     return row
 
 
-def _type_of(info: pd.DataFrame, vid: str) -> tuple[str, str]:
-    if vid not in info.index:
-        return "", ""
-    return str(info.at[vid, "vtype"]), str(info.at[vid, "vclass"])
+_MOVESTAR_TOTALS = (*(f"movestar_{k}" for k in MOVESTAR_KEYS.values()), "movestar_distance_m", "movestar_seconds")
+# the row of a vehicle with one sample: its keys are the columns of a run without any vehicle
+_EMPTY_ROW = _vehicle_row(SimpleNamespace(movestar={}), "", [dict.fromkeys(
+    ("first_time", "samples", "travel_time_s", "distance_m", "speed_sum", "abs_accel_sum", "accel_samples",
+     "max_decel_mps2", "max_abs_jerk_mps3", "ttc_samples", "min_ttc_s", "tet_s", "tit_s2", "max_drac_mps2",
+     "min_time_headway_s", "min_gap_m", "conflicts", *_MOVESTAR_TOTALS), 1)],
+    _VehicleFacts(pd.DataFrame(columns=["vehicle_id", "vtype", "vclass", "group", "length"])))
 
 
-def _ego_from_own_log(cfg, frame: pd.DataFrame, ego: pa.Table, step_s: float, info: pd.DataFrame) -> None:
+def _ego_from_own_log(cfg, ego: pa.Table, step_s: float, info: _VehicleFacts) -> dict:
     """The ego's travel, comfort and MOVESTAR figures from its own log every SUMO step: the same
     numbers the guidance study reports for the trip (its safety figures stay those of the 0.1 s
     trajectory, like every vehicle's)."""
     t, s, v = (ego.column(c).to_numpy() for c in ("time", "s", "speed"))
     kin = kinematics(t, s, v, step_s, cfg.jerk_window_s)
-    i = frame.index[frame["vehicle_id"] == EGO_ID][0]
-    frame.loc[i, ["samples", "travel_time_s", "distance_m", "mean_speed_mps", "mean_abs_accel_mps2", "max_decel_mps2",
-                  "max_abs_jerk_mps3"]] = [len(t), kin["trip_time_s"], kin["ego_distance_m"], kin["mean_speed_mps"],
-                                           kin["avg_abs_accel_mps2"], kin["max_decel_mps2"], kin["max_abs_jerk_mps3"]]
-    mst = movestar_type(cfg, str(info.at[EGO_ID, "vtype"]), str(info.at[EGO_ID, "vclass"]))
-    for k, value in _movestar(t, v, mst).items():
-        frame.loc[i, k] = value
+    return {"samples": len(t), "travel_time_s": kin["trip_time_s"], "distance_m": kin["ego_distance_m"],
+            "mean_speed_mps": kin["mean_speed_mps"], "mean_abs_accel_mps2": kin["avg_abs_accel_mps2"],
+            "max_decel_mps2": kin["max_decel_mps2"], "max_abs_jerk_mps3": kin["max_abs_jerk_mps3"],
+            **_movestar(t, v, movestar_type(cfg, *info.types(EGO_ID)))}
 
 
-def _lane_changes(vehicle_ids: pd.Series, lane_changes: pd.DataFrame | None) -> np.ndarray:
+def _lane_changes(vids: list[str], lane_changes: pd.DataFrame | None) -> np.ndarray:
     if lane_changes is None or "vehicle_id" not in lane_changes or not len(lane_changes):
-        return np.zeros(len(vehicle_ids), dtype=np.int64)
-    made = lane_changes["vehicle_id"].value_counts()
-    return vehicle_ids.map(made).fillna(0).astype(np.int64).to_numpy()
+        return np.zeros(len(vids), dtype=np.int64)
+    made = Counter(lane_changes["vehicle_id"].tolist())
+    return np.array([made.get(v, 0) for v in vids], dtype=np.int64)
 
 
-def _with_sumo(frame: pd.DataFrame, sumo: pd.DataFrame | None) -> pd.DataFrame:
+def _sumo_columns(vids: list[str], distance_m: np.ndarray, sumo: pd.DataFrame | None) -> dict[str, np.ndarray]:
     """SUMO's emission totals and per km (NaN and no class where the run folder has none)."""
-    columns = ["emission_class", *(f"{k}_g" for k in SUMO_KEYS), "electricity_wh"]
-    if sumo is None:
-        sumo = pd.DataFrame(columns=["vehicle_id", *columns])
-    got = sumo.set_index("vehicle_id")[columns].add_prefix("sumo_")
-    out = frame.join(got, on="vehicle_id")
-    out["sumo_emission_class"] = out["sumo_emission_class"].fillna("").astype(str)
-    km = out["distance_m"].where(out["distance_m"] > 0) / 1000.0
+    names = [f"{k}_g" for k in SUMO_KEYS] + ["electricity_wh"]
+    found: dict[str, tuple] = {}
+    if sumo is not None and len(sumo):
+        values = zip(sumo["emission_class"].tolist(), *(sumo[c].tolist() for c in names))
+        found = dict(zip(sumo["vehicle_id"].tolist(), values))
+    blank = ("",) + (math.nan,) * len(names)
+    got = [found.get(v, blank) for v in vids]
+    out = {"sumo_emission_class": np.array([g[0] for g in got], dtype=object)}
+    for i, name in enumerate(names, start=1):
+        out[f"sumo_{name}"] = np.array([g[i] for g in got], dtype=float)
+    km = np.where(distance_m > 0, distance_m, np.nan) / 1000.0
     for k in SUMO_KEYS:
-        out[f"sumo_{k}_g"] = out[f"sumo_{k}_g"].astype(float)
         out[f"sumo_{k}_g_per_km"] = out[f"sumo_{k}_g"] / km
-    out["sumo_electricity_wh"] = out["sumo_electricity_wh"].astype(float)
-    mkm = out["movestar_distance_m"].where(out["movestar_distance_m"] > 0) / 1000.0
-    for k in MOVESTAR_KEYS.values():
-        out[f"movestar_{k}_per_km"] = out[f"movestar_{k}"] / mkm
     return out
 
 
@@ -380,24 +417,19 @@ def _count(values: np.ndarray, edges: np.ndarray, counts: np.ndarray) -> None:
         counts += np.bincount(bins, minlength=len(edges))
 
 
-def _histogram_frame(measure: str, edges: np.ndarray, counts: np.ndarray) -> pd.DataFrame:
-    return pd.DataFrame({"measure": measure, "bin_low": edges, "bin_high": np.r_[edges[1:], np.inf],
-                         "count": counts})
-
-
-def histogram_percentile(hist: pd.DataFrame, measure: str, q: float) -> float | None:
-    """The q-th percentile (0-100) of a stored distribution, linear within its bin (resolution:
-    the bin width); None when it lies in the open last bin or there are no samples."""
-    h = hist[hist["measure"] == measure]
-    counts = h["count"].to_numpy(dtype=float)
+def histogram_percentile(edges: np.ndarray, counts: np.ndarray, q: float) -> float | None:
+    """The q-th percentile (0-100) of a distribution counted in bins [edges[i], edges[i+1]) (the
+    last bin open: beyond the last edge), linear within its bin (resolution: the bin width);
+    None when it lies in the open last bin or there are no samples."""
+    counts = np.asarray(counts, dtype=float)
     total = counts.sum()
     if total == 0:
         return None
     target = q / 100.0 * total
     cum = np.cumsum(counts)
     i = int(np.searchsorted(cum, target, side="left"))
-    low, high = float(h["bin_low"].iloc[i]), float(h["bin_high"].iloc[i])
-    if not math.isfinite(high):
+    if i >= len(edges) - 1:
         return None
+    low, high = float(edges[i]), float(edges[i + 1])
     before = cum[i - 1] if i else 0.0
     return low + (high - low) * (target - before) / counts[i] if counts[i] else low

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import libsumo
 import numpy as np
@@ -117,7 +118,10 @@ class SumoSession:
     """One running SUMO simulation of a scenario."""
 
     def __init__(self, scenario: Scenario, seed: int, lanechange_file: Path, rng: np.random.Generator,
-                 extra_sumo_args: list[str] | None = None):
+                 extra_sumo_args: list[str] | None = None,
+                 emissions: tuple[Path, Callable[[str, str], bool]] | None = None):
+        """`emissions`: (tripinfo file, rated(vtype, vclass)): SUMO's emissions device on the vehicles
+        whose type `rated` names, their trip totals written to the tripinfo file (the metrics)."""
         self.scenario = scenario
         self.seed = seed
         self.road = read_road(scenario.network)
@@ -128,6 +132,7 @@ class SumoSession:
                 raise RunError(f"vehicle type {vt!r} is not defined in {scenario.vehicle_types}")
         self._check_lanes()
         self.placements = plan_placements(scenario, self.road, self.vtypes, rng)
+        self._emission_types: list[str] = []
         self.sumo_args = [
             "sumo",
             "--net-file", str(scenario.network),
@@ -141,6 +146,7 @@ class SumoSession:
             "--no-step-log", "true",
             "--no-warnings", "true",
             "--duration-log.disable", "true",
+            *(self._emission_args(*emissions) if emissions else []),
             *(extra_sumo_args or []),
         ]
         libsumo.start(self.sumo_args)
@@ -158,6 +164,14 @@ class SumoSession:
         except Exception:
             self.close()
             raise
+
+    def _emission_args(self, tripinfo: Path, rated: Callable[[str, str], bool]) -> list[str]:
+        # The device goes on the rated types only (_populate): it rates its vehicles every step, which
+        # costs more than the rest of the metrics when every vehicle has it. Not by
+        # --device.emissions.explicit: libsumo keeps the first run's list for the process's later runs.
+        self._emission_types = sorted(vt for vt in self._vtypes_used()
+                                      if rated(vt, self.vtypes[vt].get("vClass", "passenger")))
+        return ["--tripinfo-output", str(tripinfo), "--tripinfo-output.write-unfinished", "true"]
 
     def _vtypes_used(self) -> set[str]:
         sc = self.scenario
@@ -181,6 +195,8 @@ class SumoSession:
     # -- set-up -------------------------------------------------------------------------
     def _populate(self) -> None:
         sc = self.scenario
+        for vt in self._emission_types:  # before any vehicle of the type is built
+            libsumo.vehicletype.setParameter(vt, "has.emissions.device", "true")
         libsumo.route.add(ROUTE_ID, [self.road.edge_id])
         if sc.accident is not None:
             for i, lane in enumerate(sc.accident.lanes):
