@@ -184,3 +184,16 @@ def test_histogram_percentiles_and_a_json_safe_summary():
     assert block["traffic"]["collisions"] == 1 and block["ego"]["collisions"] == 1
     assert block["ego"]["conflicts"] == 1 and block["traffic"]["sumo_co2_g_per_km"] is None
     assert block["settings"]["sumo_emissions"].startswith("missing")
+
+
+def test_movestar_of_many_trips_at_once_is_movestar_of_each():
+    from vcfusion.metrics.movestar import OUTPUT_KEYS, movestar, movestar_trips
+
+    rng = np.random.default_rng(5)
+    trips = [np.clip(np.cumsum(rng.normal(0, 1.5, n)) + rng.uniform(0, 30), 0, None) for n in (1, 2, 3, 40, 200)]
+    types = np.array([1, 2, 1, 2, 1])
+    totals, distance = movestar_trips(np.concatenate(trips), np.cumsum([0] + [len(x) for x in trips[:-1]]), types)
+    for i, (v, vt) in enumerate(zip(trips, types)):
+        one = movestar(v, int(vt))
+        assert totals[i].tolist() == [one["totals"][k] for k in OUTPUT_KEYS]  # bitwise: one implementation
+        assert distance[i] == one["TD_m"]

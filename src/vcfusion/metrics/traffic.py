@@ -41,7 +41,6 @@ from __future__ import annotations
 import math
 from collections import Counter
 from dataclasses import dataclass
-from types import SimpleNamespace
 from pathlib import Path
 
 import numpy as np
@@ -50,8 +49,8 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from vcfusion.metrics.movestar import trip_emissions
-from vcfusion.metrics.safety import exposure, kinematics
+from vcfusion.metrics.movestar import OUTPUT_KEYS, movestar_trips, trip_emissions
+from vcfusion.metrics.safety import kinematics
 
 EGO_ID = "ego"
 BATCH_ROWS = 65_536
@@ -131,10 +130,15 @@ def _time_slices(source, columns: list[str]):
 
 
 def leaders(time: np.ndarray, lane: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """Row index of each row's leader (nearest ahead by s in the same lane at the same time), -1 if none."""
-    order = np.lexsort((s, lane, time))
+    """Row index of each row's leader (nearest ahead by s in the same lane at the same time), -1 if
+    none; the rows in time order (as a run's tables are)."""
+    if len(time) == 0:
+        return np.zeros(0, dtype=np.int64)
+    # one integer key per (time, lane): two sort keys instead of three
+    group = np.cumsum(np.r_[0, time[1:] != time[:-1]]) * 65536 + lane.astype(np.int64)
+    order = np.lexsort((s, group))
     follower, ahead = order[:-1], order[1:]
-    same = (time[ahead] == time[follower]) & (lane[ahead] == lane[follower])
+    same = group[ahead] == group[follower]
     found = np.full(len(time), -1, dtype=np.int64)
     found[follower[same]] = ahead[same]
     return found
@@ -171,24 +175,25 @@ def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajecto
     ids: list[str] = []
     lengths: list[float] = []
     buffers = _Buffers()
-    segments: dict[int, list[dict]] = {}
+    stretches: list[tuple[np.ndarray, dict[str, np.ndarray]]] = []  # (vehicle codes, their figures)
     conflicts: list[dict] = []
     excluded = {vid for vid, group in info.group.items() if group in set(cfg.exclude_groups)}
     ttc_counts = np.zeros(len(TTC_EDGES), dtype=np.int64)  # last bin: >= the last edge
     headway_counts = np.zeros(len(HEADWAY_EDGES), dtype=np.int64)
 
-    def finish(code: int) -> None:
-        series = buffers.pop(code)
-        vid = ids[code]
-        segment, episodes = _segment(series, dt, cfg.ttc_threshold_s, cfg.jerk_window_s)
-        segment.update(_movestar(series["time"], series["speed"], movestar_type(cfg, *info.types(vid))))
-        segments.setdefault(code, []).append(segment)
+    def finish(done: list[int]) -> None:
+        """Turn the buffered stretches of these vehicles into their figures, all at once."""
+        if not done:
+            return
+        series = [buffers.pop(c) for c in done]
+        vids = [ids[c] for c in done]
+        figures, episodes, counted_rows = _stretches(series, dt, cfg, [movestar_type(cfg, *info.types(v)) for v in vids],
+                                                     [v not in excluded for v in vids])
+        stretches.append((np.array(done, dtype=np.int64), figures))
         for e in episodes:
-            conflicts.append({"vehicle_id": vid, "leader_id": ids[e.pop("leader")], **e})
-        if vid not in excluded:
-            for values, edges, counts in ((series["ttc"], TTC_EDGES, ttc_counts),
-                                          (series["headway"], HEADWAY_EDGES, headway_counts)):
-                _count(values, edges, counts)
+            conflicts.append({"vehicle_id": vids[e.pop("stretch")], "leader_id": ids[e.pop("leader")], **e})
+        _count(counted_rows["ttc"], TTC_EDGES, ttc_counts)
+        _count(counted_rows["headway"], HEADWAY_EDGES, headway_counts)
 
     for piece in _time_slices(trajectories, TRAJECTORY_COLUMNS):
         encoded = pc.dictionary_encode(piece.column("vehicle_id").combine_chunks())
@@ -215,22 +220,18 @@ def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajecto
                 if not len(part):  # the break came before this piece's first row
                     continue
                 if c in buffers.chunks and buffers.last_time[c] < time[part[0]] - _GONE_AFTER_S:
-                    finish(c)
+                    finish([c])
                 buffers.add(c, {k: v[part] for k, v in columns.items()})
         now = float(time[-1])
-        for c in [c for c, last in buffers.last_time.items() if last < now - _GONE_AFTER_S]:
-            finish(c)
-    for c in list(buffers.chunks):
-        finish(c)
+        finish([c for c, last in buffers.last_time.items() if last < now - _GONE_AFTER_S])
+    finish(list(buffers.chunks))
 
-    rows = sorted((_vehicle_row(cfg, ids[c], segs, info) for c, segs in segments.items()),
-                  key=lambda r: r["vehicle_id"])
-    if ego is not None and ego.num_rows:
-        for row in rows:
-            if row["vehicle_id"] == EGO_ID:
-                row.update(_ego_from_own_log(cfg, ego, step_s, info))
-    columns = {k: np.array([r[k] for r in rows]) for k in (rows[0] if rows else _EMPTY_ROW)}
-    vids = [r["vehicle_id"] for r in rows]
+    columns = _per_vehicle(cfg, stretches, ids, info)
+    vids = columns["vehicle_id"].tolist()
+    if ego is not None and ego.num_rows and EGO_ID in vids:
+        i = vids.index(EGO_ID)
+        for k, value in _ego_from_own_log(cfg, ego, step_s, info).items():
+            columns[k][i] = value
     columns["counted"] = np.array([v not in excluded for v in vids], dtype=bool)
     columns["lane_changes"] = _lane_changes(vids, lane_changes)
     columns.update(_sumo_columns(vids, columns["distance_m"], sumo_emissions))
@@ -280,38 +281,105 @@ def conflict_episodes(ttc: np.ndarray, leader: np.ndarray, threshold_s: float) -
     return list(zip(starts.tolist(), ends.tolist()))
 
 
-def _nanmin(x: np.ndarray) -> float:
-    found = float(np.fmin.reduce(np.asarray(x, dtype=float), initial=math.inf))  # fmin skips NaN
-    return found if found != math.inf else math.nan
+def _stretches(series: list[dict[str, np.ndarray]], dt: float, cfg, movestar_types: list[int | None],
+               counted: list[bool]) -> tuple[dict[str, np.ndarray], list[dict], dict[str, np.ndarray]]:
+    """Additive and extreme figures of many vehicles' continuous stretches of samples at once (per
+    vehicle the definitions of safety.kinematics, safety.exposure, conflict_episodes and
+    movestar.trip_emissions, on the stretches concatenated), their conflict episodes, and the TTC
+    and headway samples of the counted vehicles (for the distributions)."""
+    n = np.array([len(x["time"]) for x in series])
+    m, total = len(series), int(n.sum())
+    starts = np.r_[0, np.cumsum(n)[:-1]]
+    ends = starts + n - 1
+    col = {k: np.concatenate([x[k] for x in series]) for k in _Buffers.COLUMNS}
+    t, s, v, ttc = col["time"], col["s"], col["speed"], col["ttc"]
+    seg = np.repeat(np.arange(m), n)
+    # kinematics: a = forward difference (sample i to i + 1 of the same stretch)
+    a = np.diff(v) / dt
+    a_ok = seg[:-1] == seg[1:]
+    a_seg = seg[:-1][a_ok]
+    abs_accel_sum = np.bincount(a_seg, weights=np.abs(a[a_ok]), minlength=m)
+    min_a = np.full(m, np.inf)
+    np.minimum.at(min_a, a_seg, a[a_ok])
+    accel_samples = np.maximum(n - 1, 0)
+    max_decel = np.where(accel_samples > 0, np.maximum(0.0, -min_a), np.nan)
+    # jerk after the moving average over w accelerations: valid where its w + 1 accelerations
+    # (w + 2 samples) are of one stretch
+    w = max(1, int(round(cfg.jerk_window_s / dt)))
+    smooth = sum(a[k:len(a) - w + 1 + k] for k in range(w)) / w if w > 1 else a
+    jerk = np.diff(smooth) / dt
+    j_ok = seg[:len(jerk)] == seg[w + 1:w + 1 + len(jerk)]
+    max_jerk = np.full(m, -np.inf)
+    np.maximum.at(max_jerk, seg[:len(jerk)][j_ok], np.abs(jerk[j_ok]))
+    max_jerk[np.isinf(max_jerk)] = np.nan
+    # safety against the leader
+    threshold = cfg.ttc_threshold_s
+    below = np.isfinite(ttc) & (ttc < threshold)
+    episodes, per_stretch = _episodes(col, seg, below, dt)
+    figures = {
+        "first_time": t[starts], "samples": n, "travel_time_s": t[ends] - t[starts] + dt,
+        "distance_m": s[ends] - s[starts], "speed_sum": np.add.reduceat(v, starts),
+        "abs_accel_sum": abs_accel_sum, "accel_samples": accel_samples, "max_decel_mps2": max_decel,
+        "max_abs_jerk_mps3": max_jerk,
+        "ttc_samples": np.bincount(seg, weights=np.isfinite(ttc), minlength=m).astype(np.int64),
+        "min_ttc_s": np.fmin.reduceat(ttc, starts),
+        "tet_s": np.bincount(seg, weights=below, minlength=m) * dt,
+        "tit_s2": np.bincount(seg, weights=np.where(below, threshold - ttc, 0.0), minlength=m) * dt,
+        "max_drac_mps2": np.fmax.reduceat(col["drac"], starts),
+        "min_time_headway_s": np.fmin.reduceat(col["headway"], starts),
+        "min_gap_m": np.fmin.reduceat(col["gap"], starts), "conflicts": per_stretch,
+        **_movestar_stretches(t, v, seg, starts, ends, dt, movestar_types)}
+    keep = np.repeat(np.asarray(counted, dtype=bool), n)
+    return figures, episodes, {"ttc": ttc[keep], "headway": col["headway"][keep]}
 
 
-def _nanmax(x: np.ndarray) -> float:
-    found = float(np.fmax.reduce(np.asarray(x, dtype=float), initial=-math.inf))
-    return found if found != -math.inf else math.nan
+def _episodes(col: dict[str, np.ndarray], seg: np.ndarray, below: np.ndarray, dt: float) -> tuple[list[dict], np.ndarray]:
+    """Conflict episodes (conflict_episodes, per stretch) and their number per stretch."""
+    ttc, leader = col["ttc"], col["leader"]
+    continues = np.zeros(len(ttc), dtype=bool)
+    continues[1:] = below[1:] & below[:-1] & (leader[1:] == leader[:-1]) & (seg[1:] == seg[:-1])
+    first = np.flatnonzero(below & ~continues)
+    stop = np.flatnonzero(below & ~np.r_[continues[1:], False]) + 1
+    lowest = np.minimum.reduceat(np.r_[ttc, np.inf], np.c_[first, stop].ravel())[::2] if len(first) else []
+    episodes = [{"stretch": int(seg[a]), "leader": int(leader[a]), "start_time": float(col["time"][a]),
+                 "end_time": float(col["time"][b - 1] + dt), "duration_s": float((b - a) * dt),
+                 "min_ttc_s": float(low), "s_start": float(col["s"][a]), "lane": int(col["lane"][a])}
+                for a, b, low in zip(first, stop, lowest)]
+    return episodes, np.bincount(seg[first], minlength=seg[-1] + 1 if len(seg) else 0).astype(np.int64)
 
 
-def _segment(series: dict[str, np.ndarray], dt: float, threshold: float, jerk_window_s: float) -> tuple[dict, list[dict]]:
-    """Additive and extreme figures of one vehicle's continuous stretch of samples."""
-    t, s, v, ttc = series["time"], series["s"], series["speed"], series["ttc"]
-    kin = kinematics(t, s, v, dt, jerk_window_s)
-    tet, tit = exposure(ttc, dt, threshold)
-    episodes = []
-    for a, b in conflict_episodes(ttc, series["leader"], threshold):
-        episodes.append({"leader": int(series["leader"][a]), "start_time": float(t[a]), "end_time": float(t[b - 1] + dt),
-                         "duration_s": float((b - a) * dt), "min_ttc_s": float(np.min(ttc[a:b])),
-                         "s_start": float(s[a]), "lane": int(series["lane"][a])})
-    seg = {"first_time": float(t[0]), "samples": len(t), "travel_time_s": kin["trip_time_s"],
-           "distance_m": kin["ego_distance_m"], "speed_sum": float(v.sum()),
-           "abs_accel_sum": kin["avg_abs_accel_mps2"] * (len(v) - 1) if len(v) > 1 else 0.0,
-           "accel_samples": max(0, len(v) - 1), "max_decel_mps2": kin["max_decel_mps2"],
-           "max_abs_jerk_mps3": kin["max_abs_jerk_mps3"],
-           "ttc_samples": int(np.isfinite(ttc).sum()), "min_ttc_s": _nanmin(ttc), "tet_s": tet, "tit_s2": tit,
-           "max_drac_mps2": _nanmax(series["drac"]), "min_time_headway_s": _nanmin(series["headway"]),
-           "min_gap_m": _nanmin(series["gap"]), "conflicts": len(episodes)}
-    return seg, episodes
+def _movestar_stretches(t, v, seg, starts, ends, dt, movestar_types: list[int | None]) -> dict[str, np.ndarray]:
+    """MOVESTAR totals of the stretches that have a type: movestar.trip_emissions on each (whole-
+    second means of the speed from its first sample, a partial last second dropped), all at once."""
+    m = len(starts)
+    out = {f"movestar_{k}": np.full(m, np.nan) for k in MOVESTAR_KEYS.values()}
+    out["movestar_distance_m"] = np.full(m, np.nan)
+    out["movestar_seconds"] = np.zeros(m, dtype=np.int64)
+    types = np.array([x or 0 for x in movestar_types])
+    sec = np.floor(t - t[starts][seg] + 1e-6).astype(np.int64)  # as resample_to_1hz
+    nsec = sec[ends] + 1
+    bucket = np.r_[0, np.cumsum(nsec)[:-1]][seg] + sec
+    counts = np.bincount(bucket, minlength=int(nsec.sum()))
+    sums = np.bincount(bucket, weights=v, minlength=int(nsec.sum()))
+    owner = np.repeat(np.arange(m), nsec)
+    keep = (counts >= int(round(1.0 / dt))) & (types[owner] > 0)
+    if not keep.any():
+        return out
+    trips = owner[keep]
+    first = np.flatnonzero(np.r_[True, trips[1:] != trips[:-1]])
+    rated = trips[first]
+    totals, distance = movestar_trips(sums[keep] / counts[keep], first, types[rated])
+    by_key = dict(zip(OUTPUT_KEYS, totals.T))
+    by_key["PM2.5"] = by_key.pop("PM2.5_Ele") + by_key.pop("PM2.5_Org")
+    for key, name in MOVESTAR_KEYS.items():
+        out[f"movestar_{name}"][rated] = by_key[key]
+    out["movestar_distance_m"][rated] = distance
+    out["movestar_seconds"][rated] = np.diff(np.r_[first, len(trips)])
+    return out
 
 
 def _movestar(time: np.ndarray, speed: np.ndarray, vehicle_type: int | None) -> dict:
+    """MOVESTAR of one vehicle's log (the ego's, every SUMO step)."""
     out = {f"movestar_{k}": math.nan for k in MOVESTAR_KEYS.values()}
     out["movestar_distance_m"], out["movestar_seconds"] = math.nan, 0
     if vehicle_type is None:
@@ -341,36 +409,64 @@ class _VehicleFacts:
         return self.vtype.get(vid, ""), self.vclass.get(vid, "")
 
 
-def _vehicle_row(cfg, vid: str, segs: list[dict], info: _VehicleFacts) -> dict:
-    vtype, vclass = info.types(vid)
-    samples = sum(g["samples"] for g in segs)
-    accel_samples = sum(g["accel_samples"] for g in segs)
-    mst = movestar_type(cfg, vtype, vclass)
-    row = {"vehicle_id": vid, "vtype": vtype, "vclass": vclass, "group": info.group.get(vid, ""),
-           "first_time_s": segs[0]["first_time"], "samples": samples,
-           "travel_time_s": sum(g["travel_time_s"] for g in segs), "distance_m": sum(g["distance_m"] for g in segs),
-           "mean_speed_mps": sum(g["speed_sum"] for g in segs) / samples,
-           "mean_abs_accel_mps2": sum(g["abs_accel_sum"] for g in segs) / accel_samples if accel_samples else math.nan,
-           "max_decel_mps2": _nanmax(np.array([g["max_decel_mps2"] for g in segs])),
-           "max_abs_jerk_mps3": _nanmax(np.array([g["max_abs_jerk_mps3"] for g in segs])),
-           "ttc_samples": sum(g["ttc_samples"] for g in segs),
-           "min_ttc_s": _nanmin(np.array([g["min_ttc_s"] for g in segs])),
-           "tet_s": sum(g["tet_s"] for g in segs), "tit_s2": sum(g["tit_s2"] for g in segs),
-           "max_drac_mps2": _nanmax(np.array([g["max_drac_mps2"] for g in segs])),
-           "min_time_headway_s": _nanmin(np.array([g["min_time_headway_s"] for g in segs])),
-           "min_gap_m": _nanmin(np.array([g["min_gap_m"] for g in segs])),
-           "conflicts": sum(g["conflicts"] for g in segs), "movestar_type": mst or 0}
-    row.update({k: sum(g[k] for g in segs) for k in _MOVESTAR_TOTALS})
-    return row
+# how the figures of a vehicle's stretches combine (a vehicle back after a SUMO teleport has two)
+_SUMMED = ("samples", "travel_time_s", "distance_m", "speed_sum", "abs_accel_sum", "accel_samples", "ttc_samples",
+           "tet_s", "tit_s2", "conflicts", *(f"movestar_{k}" for k in MOVESTAR_KEYS.values()),
+           "movestar_distance_m", "movestar_seconds")
+_LOWEST = ("first_time", "min_ttc_s", "min_time_headway_s", "min_gap_m")
+_HIGHEST = ("max_decel_mps2", "max_abs_jerk_mps3", "max_drac_mps2")
+# the metrics table's columns before those added per vehicle (counted, lane changes, SUMO, per km)
+_OWN_COLUMNS = ("vehicle_id", "vtype", "vclass", "group", "first_time_s", "samples", "travel_time_s", "distance_m",
+                "mean_speed_mps", "mean_abs_accel_mps2", "max_decel_mps2", "max_abs_jerk_mps3", "ttc_samples",
+                "min_ttc_s", "tet_s", "tit_s2", "max_drac_mps2", "min_time_headway_s", "min_gap_m", "conflicts",
+                "movestar_type", *(f"movestar_{k}" for k in MOVESTAR_KEYS.values()), "movestar_distance_m",
+                "movestar_seconds")
 
 
-_MOVESTAR_TOTALS = (*(f"movestar_{k}" for k in MOVESTAR_KEYS.values()), "movestar_distance_m", "movestar_seconds")
-# the row of a vehicle with one sample: its keys are the columns of a run without any vehicle
-_EMPTY_ROW = _vehicle_row(SimpleNamespace(movestar={}), "", [dict.fromkeys(
-    ("first_time", "samples", "travel_time_s", "distance_m", "speed_sum", "abs_accel_sum", "accel_samples",
-     "max_decel_mps2", "max_abs_jerk_mps3", "ttc_samples", "min_ttc_s", "tet_s", "tit_s2", "max_drac_mps2",
-     "min_time_headway_s", "min_gap_m", "conflicts", *_MOVESTAR_TOTALS), 1)],
-    _VehicleFacts(pd.DataFrame(columns=["vehicle_id", "vtype", "vclass", "group", "length"])))
+def _per_vehicle(cfg, stretches: list[tuple[np.ndarray, dict[str, np.ndarray]]], ids: list[str],
+                 info: _VehicleFacts) -> dict[str, np.ndarray]:
+    """One row per vehicle (sorted by id) from the figures of its stretches."""
+    if not stretches:
+        return {k: np.array([], dtype=object if k in ("vehicle_id", "vtype", "vclass", "group") else float)
+                for k in _OWN_COLUMNS}
+    codes = np.concatenate([c for c, _ in stretches])
+    fig = {k: np.concatenate([f[k] for _, f in stretches]) for k in stretches[0][1]}
+    vehicles, row = np.unique(codes, return_inverse=True)
+    if len(vehicles) < len(codes):  # several stretches of a vehicle: combine them
+        m = len(vehicles)
+        combined = {k: np.bincount(row, weights=fig[k], minlength=m).astype(fig[k].dtype) for k in _SUMMED}
+        for keys, fn, start in ((_LOWEST, np.fmin, np.inf), (_HIGHEST, np.fmax, -np.inf)):
+            for k in keys:
+                out = np.full(m, start)
+                fn.at(out, row, fig[k])
+                combined[k] = np.where(np.isinf(out), np.nan, out)
+        fig = combined
+    else:
+        fig = {k: x[np.argsort(row)] for k, x in fig.items()}
+    vids = [ids[c] for c in vehicles]
+    order = np.argsort(np.array(vids, dtype=object), kind="stable")
+    fig = {k: x[order] for k, x in fig.items()}
+    vids = [vids[i] for i in order]
+    types = [info.types(v) for v in vids]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        columns = {"vehicle_id": np.array(vids, dtype=object), "vtype": np.array([x[0] for x in types], dtype=object),
+                   "vclass": np.array([x[1] for x in types], dtype=object),
+                   "group": np.array([info.group.get(v, "") for v in vids], dtype=object),
+                   "first_time_s": fig["first_time"], "samples": fig["samples"].astype(np.int64),
+                   "travel_time_s": fig["travel_time_s"], "distance_m": fig["distance_m"],
+                   "mean_speed_mps": fig["speed_sum"] / fig["samples"],
+                   "mean_abs_accel_mps2": np.where(fig["accel_samples"] > 0,
+                                                   fig["abs_accel_sum"] / fig["accel_samples"], np.nan)}
+    columns.update({k: fig[k] for k in ("max_decel_mps2", "max_abs_jerk_mps3")})
+    columns["ttc_samples"] = fig["ttc_samples"].astype(np.int64)
+    columns.update({k: fig[k] for k in ("min_ttc_s", "tet_s", "tit_s2", "max_drac_mps2", "min_time_headway_s",
+                                        "min_gap_m")})
+    columns["conflicts"] = fig["conflicts"].astype(np.int64)
+    columns["movestar_type"] = np.array([movestar_type(cfg, *x) or 0 for x in types], dtype=np.int64)
+    columns.update({f"movestar_{k}": fig[f"movestar_{k}"] for k in MOVESTAR_KEYS.values()})
+    columns["movestar_distance_m"] = fig["movestar_distance_m"]
+    columns["movestar_seconds"] = fig["movestar_seconds"].astype(np.int64)
+    return columns
 
 
 def _ego_from_own_log(cfg, ego: pa.Table, step_s: float, info: _VehicleFacts) -> dict:
