@@ -49,7 +49,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from vcfusion.metrics.movestar import OUTPUT_KEYS, movestar_trips, trip_emissions
+from vcfusion.metrics.movestar import KM_PER_MILE, METERS_PER_MILE, OUTPUT_KEYS, movestar_trips, trip_emissions
 from vcfusion.metrics.safety import kinematics
 
 EGO_ID = "ego"
@@ -235,9 +235,10 @@ def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajecto
     columns["counted"] = np.array([v not in excluded for v in vids], dtype=bool)
     columns["lane_changes"] = _lane_changes(vids, lane_changes)
     columns.update(_sumo_columns(vids, columns["distance_m"], sumo_emissions))
-    mkm = np.where(columns["movestar_distance_m"] > 0, columns["movestar_distance_m"], np.nan) / 1000.0
+    # per km as movestar() computes it (per mile on its own distance, then per km)
+    td = np.where(columns["movestar_distance_m"] > 0, columns["movestar_distance_m"], np.nan)
     for k in MOVESTAR_KEYS.values():
-        columns[f"movestar_{k}_per_km"] = columns[f"movestar_{k}"] / mkm
+        columns[f"movestar_{k}_per_km"] = columns[f"movestar_{k}"] * METERS_PER_MILE / td / KM_PER_MILE
     conflicts.sort(key=lambda c: (c["start_time"], c["vehicle_id"]))
     conflict_table = pa.table({name: pa.array([c[name] for c in conflicts], type=kind)
                                for name, kind in CONFLICT_SCHEMA.items()})
