@@ -197,3 +197,23 @@ def test_movestar_of_many_trips_at_once_is_movestar_of_each():
         one = movestar(v, int(vt))
         assert totals[i].tolist() == [one["totals"][k] for k in OUTPUT_KEYS]  # bitwise: one implementation
         assert distance[i] == one["TD_m"]
+
+
+def test_a_bad_metrics_block_is_refused_naming_each_field(tmp_path):
+    from scenario_files import write_scenario
+    from vcfusion.scenario import ScenarioError, load_scenario
+
+    path = write_scenario(tmp_path, """
+name: bad
+network: NET_DIR/highway.net.xml
+vehicle_types: NET_DIR/vtypes.add.xml
+vehicles: [{name: a, count: 1, lanes: [0], pos_m: [10, 20]}]
+metrics: {ttc_threshold_s: -1, movestar: {passenger: 3}, sumo_emissions: some, colour: red}
+""")
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(path)
+    text = str(err.value)
+    for expected in ("metrics.ttc_threshold_s: Input should be greater than 0", "metrics.movestar.passenger: Input "
+                     "should be 1 or 2", "metrics.sumo_emissions: Input should be 'others', 'all' or 'none'",
+                     "metrics.colour: unknown key"):
+        assert expected in text
