@@ -32,8 +32,12 @@ def _run_and_report(scenario, seed: int, out: Path) -> None:
     from vcfusion.cosim import format_summary
     from vcfusion.run import execute_run
 
+    from vcfusion.metrics.run_metrics import format_run_metrics
+
     result = execute_run(scenario, seed, out, progress=sys.stderr.isatty())
     print(format_summary(result.summary, result.wall_s))
+    if "metrics" in result.summary:
+        print(format_run_metrics(result.summary))
     print(f"run folder: {out}")
 
 

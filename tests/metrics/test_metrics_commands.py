@@ -8,9 +8,7 @@ import pytest
 
 from scenario_files import write_scenario
 from vcfusion.cli import main
-from vcfusion.run import execute_run
-from vcfusion.scenario import load_scenario
-from vcfusion.studies.batch import run_batch, seed_folder
+from vcfusion.studies.batch import seed_folder
 
 METRIC_FILES = ("metrics.parquet", "conflicts.parquet", "metric_histograms.parquet")
 
@@ -32,8 +30,10 @@ def _make_old(folder, keep_sumo=True):
 @pytest.mark.slow
 def test_metrics_of_an_old_run_folder_equal_the_run_that_wrote_it(tmp_path, accident_path, capsys):
     run = tmp_path / "run"
-    execute_run(load_scenario(accident_path), 3, run)
+    assert main(["run", str(accident_path), "--seed", "3", "--out", str(run)]) == 0
+    printed = capsys.readouterr().out
     written = json.loads((run / "summary.json").read_text())["metrics"]
+    assert f"metrics ({written['traffic']['vehicles']} vehicles" in printed and "ego: min TTC" in printed
     old, bare = tmp_path / "old", tmp_path / "bare"
     shutil.copytree(run, old)
     shutil.copytree(run, bare)
@@ -90,3 +90,8 @@ def test_metrics_refuses_what_is_not_a_run_or_batch_folder(tmp_path, capsys):
     assert main(["metrics", str(tmp_path)]) == 2
     assert f"{tmp_path}: expected a run folder" in capsys.readouterr().err
     assert main(["report", str(tmp_path / "missing")]) == 2
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "manifest.json").write_text("{}")
+    assert main(["metrics", str(broken)]) == 2
+    assert "trajectories.parquet is missing" in capsys.readouterr().err

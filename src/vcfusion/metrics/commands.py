@@ -47,6 +47,9 @@ def recompute_folder(folder: Path, scenario_file: str | None = None) -> bool:
 
     from vcfusion.metrics.run_metrics import METRIC_TABLES, folder_metrics, write_summary_metrics
 
+    for name in ("trajectories.parquet", "vehicles.parquet", "summary.json"):
+        if not (folder / name).is_file():
+            raise UsageError(f"{folder}: {name} is missing; expected a complete run folder")
     cfg, simulation = _settings(folder, scenario_file)
     result, block, has_sumo = folder_metrics(folder, cfg, simulation)
     written = []

@@ -165,3 +165,27 @@ def write_summary_metrics(folder: Path, block: dict) -> None:
     tmp = path.with_suffix(".json.tmp")
     write_json(tmp, summary)
     tmp.replace(path)
+
+
+def format_run_metrics(summary: dict) -> str:
+    """The metrics block as lines under the run summary ('' when the run has none)."""
+    block = summary.get("metrics")
+    if not block:
+        return ""
+
+    def f(value, fmt=".3g"):
+        return "n/a" if value is None else format(value, fmt)
+
+    tr = block["traffic"]
+    threshold = block["settings"]["ttc_threshold_s"]
+    lines = [f"  metrics ({tr['vehicles']} vehicles, {tr['vehicle_km']:.2f} vehicle-km): "
+             f"{tr['conflicts']} conflicts (TTC < {threshold:g} s), min TTC {f(tr['min_ttc_s'])} s, "
+             f"TTC 5th percentile {f(tr['ttc_p05_s'])} s, min time headway {f(tr['min_time_headway_s'])} s",
+             f"    fuel {f(tr['fuel_g_per_km'])} g/km, CO2 {f(tr['co2_g_per_km'])} g/km, NOx {f(tr['nox_g_per_km'])} g/km "
+             f"(MOVESTAR light-duty, SUMO's model for the rest)"]
+    ego = block.get("ego")
+    if ego:
+        lines.append(f"    ego: min TTC {f(ego['min_ttc_s'])} s, TET {f(ego['tet_s'])} s, mean |a| "
+                     f"{f(ego['mean_abs_accel_mps2'])} m/s^2, max |jerk| {f(ego['max_abs_jerk_mps3'])} m/s^3, "
+                     f"fuel {f(ego['movestar_fuel_g_per_km'])} g/km")
+    return "\n".join(lines)
