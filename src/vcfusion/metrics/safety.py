@@ -37,7 +37,7 @@ import math
 import numpy as np
 import pandas as pd
 
-EGO_ID = "ego"
+from vcfusion.records import EGO_ID
 
 
 def acceleration_from_speed(speed: np.ndarray, dt: float) -> np.ndarray:

@@ -51,8 +51,8 @@ import pyarrow.parquet as pq
 
 from vcfusion.metrics.movestar import KM_PER_MILE, METERS_PER_MILE, OUTPUT_KEYS, movestar_trips, trip_emissions
 from vcfusion.metrics.safety import kinematics
+from vcfusion.records import EGO_ID
 
-EGO_ID = "ego"
 BATCH_ROWS = 65_536
 # A vehicle missing from the trajectories this long has left (a SUMO teleport can bring it back:
 # its later samples are a second segment, combined into the same row).

@@ -1,27 +1,27 @@
-"""Handlers of the `vcfusion dataset | train | evaluate | bench-predict` commands."""
+"""Handlers of the `vcfusion dataset | train | evaluate | bench-predict` commands. A bad dataset or
+model file raises DatasetError / ModelFileError (InputError: the CLI prints it and exits with 2)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from vcfusion.cli import check_folder_path
 from vcfusion.errors import UsageError
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
-    from vcfusion.prediction.dataset import DatasetError, build_dataset
+    from vcfusion.prediction.dataset import build_dataset
     from vcfusion.scenario import load_scenario
     from vcfusion.studies.batch import parse_seeds
 
     load_scenario(args.scenario)  # fail fast on a bad file
     seeds = parse_seeds(args.seeds)  # UsageError on a bad range
+    check_folder_path(Path(args.out))
     if args.workers < 1:
         raise UsageError(f"--workers: expected a positive number of processes, got {args.workers}")
-    try:
-        report = build_dataset(Path(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g,
-                               refeature=args.refeature)
-    except DatasetError as exc:
-        raise UsageError(str(exc)) from None
+    report = build_dataset(Path(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g,
+                           refeature=args.refeature)
     c = report["counts"]
     if args.refeature:
         print(f"recomputed the features of {report['refeatured']} existing runs")
@@ -36,33 +36,36 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from vcfusion.prediction.dataset import DatasetError
     from vcfusion.prediction.train import TrainConfig, train_model
 
+    for option in ("hidden", "epochs", "patience", "threads"):
+        if getattr(args, option) < 1:
+            raise UsageError(f"--{option}: expected a positive number, got {getattr(args, option)}")
+    if args.learning_rate <= 0 or args.weight_decay < 0 or args.background_negatives < 0:
+        raise UsageError("--learning-rate / --weight-decay / --background-negatives: expected a positive rate and "
+                         f"non-negative others, got {args.learning_rate}, {args.weight_decay}, "
+                         f"{args.background_negatives}")
     cfg = TrainConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
                       background_negatives=args.background_negatives, threads=args.threads,
                       learning_rate=args.learning_rate, weight_decay=args.weight_decay)
     out = Path(args.out)
     if out.exists() and not args.force:
         raise UsageError(f"--out: {out} already exists (use --force to replace it)")
-    try:
-        report = train_model(Path(args.dataset), out, cfg)
-    except DatasetError as exc:
-        raise UsageError(str(exc)) from None
+    check_folder_path(out.parent)
+    report = train_model(Path(args.dataset), out, cfg)
     print(report)
     return 0
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from vcfusion.prediction.dataset import DatasetError
     from vcfusion.prediction.evaluate import evaluate
-    from vcfusion.prediction.model import ModelFileError
 
-    try:
-        report_path = evaluate(Path(args.model), Path(args.dataset), Path(args.out) if args.out else None,
-                               split=args.split, horizon_s=args.horizon)
-    except (DatasetError, ModelFileError) as exc:
-        raise UsageError(str(exc)) from None
+    if not args.horizon > 0:
+        raise UsageError(f"--horizon: expected a positive number of seconds, got {args.horizon}")
+    if args.out:
+        check_folder_path(Path(args.out))
+    report_path = evaluate(Path(args.model), Path(args.dataset), Path(args.out) if args.out else None,
+                           split=args.split, horizon_s=args.horizon)
     print(Path(report_path).read_text())
     print(f"report: {report_path}")
     return 0
@@ -76,6 +79,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub) -> None:
+    from vcfusion.cli import INTERRUPTED_BATCH  # (called by the cli's build_parser)
+
     p = sub.add_parser("dataset", help="simulate seeds and write a labelled lane-change dataset (Parquet)")
     p.add_argument("scenario", help="scenario YAML file, e.g. scenarios/dense.yaml")
     p.add_argument("--seeds", required=True, help="e.g. 0-199 or 1,4,7-9")
@@ -86,7 +91,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--refeature", action="store_true",
                    help="recompute the samples of runs already in --out with this version's features "
                         "(from their logged twins tables, no simulation) instead of refusing a feature change")
-    p.set_defaults(func=cmd_dataset)
+    p.set_defaults(func=cmd_dataset, interrupted=INTERRUPTED_BATCH)
 
     p = sub.add_parser("train", help="train the lane-change MLP on a dataset")
     p.add_argument("dataset", help="dataset folder from `vcfusion dataset`")

@@ -110,7 +110,6 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
         raise DatasetError(f"{dataset}: split {split!r} is empty")
     names = list(info.feature_names)
     out = Path(out) if out else Path(dataset) / f"eval-{Path(model_path).stem}"
-    out.mkdir(parents=True, exist_ok=True)
 
     # Baselines, fitted on the same training seeds.
     rng = np.random.default_rng(seed)
@@ -166,6 +165,7 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
                          "tau_ticks": t["tau_ticks"], **{f"window_{k}": v for k, v in fw.items()},
                          **{f"stream_{k}": v for k, v in fs.items()}, **ev})
     table = pd.DataFrame(rows)
+    out.mkdir(parents=True, exist_ok=True)  # only now: a bad input leaves nothing behind
     table.to_csv(out / "metrics.csv", index=False)
     default = ("MLP", {"none": "original"}.get(model.smoothing, model.smoothing))
     _plot(table, per_event_all, default, out / "evaluation.png")

@@ -23,7 +23,6 @@ import json
 import math
 import time as wallclock
 import traceback
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +30,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from vcfusion.runio import write_json, write_table
-from vcfusion.workers import worker_context
+from vcfusion.workers import JobFailed, run_jobs
 
 ARMS = ("off", "on")
 
@@ -259,18 +258,27 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
     rows: list[dict] = []
     failed: list[tuple[int, str]] = []
     bar = tqdm(total=len(seeds), unit="trip", desc=f"guidance study {scenario.name}", disable=not progress)
-    ctx = worker_context()
-    with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx) as pool:
-        futures = [pool.submit(run_trip, str(scenario_path), s, tuple(process_model_specs)) for s in seeds]
-        for fut in as_completed(futures):
-            seed, result, error = fut.result()
+    jobs = [(str(scenario_path), s, tuple(process_model_specs)) for s in seeds]
+    try:
+        for index, outcome in run_jobs(run_trip, jobs, workers):
+            # a JobFailed: the trip's worker process died (its other trips go on in a new one)
+            seed, result, error = (seeds[index], None, outcome.cause) if isinstance(outcome, JobFailed) else outcome
             if error:
                 failed.append((seed, error))
                 bar.write(f"trip {seed} failed: {error.splitlines()[0]}")
             else:
                 rows.extend(result)
             bar.update(1)
-    bar.close()
+    finally:
+        bar.close()
+    failed.sort()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    # as a batch's: the failed trips and their causes (the command then exits with 1)
+    if failed:
+        write_json(out / "failures.json", {str(s): e for s, e in failed})
+    else:
+        (out / "failures.json").unlink(missing_ok=True)
     if not rows:
         raise StudyError(f"all {len(seeds)} trips failed; first error: {failed[0][1] if failed else '?'}")
     table = pd.DataFrame(rows).sort_values(["seed", "arm"]).reset_index(drop=True)
@@ -293,8 +301,6 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
         "trips_with_target": int(on["target_id"].notna().sum()),
         "mean_response_gain_s": float(gain.mean()) if len(gain) else math.nan, "response_pairs": int(len(gain)),
     }
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     write_table(out / "trips.parquet", table)
     tmp = out / "trips.csv.tmp"
     table.to_csv(tmp, index=False)
@@ -307,4 +313,4 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
                                              "failed": {str(s): e for s, e in failed}})
     (out / "summary.txt").write_text(text + "\n")
     figures = plot_figures(table, summary, Path(renders), info["guidance_source"].split(" ")[0])
-    return {"info": info, "summary": summary, "text": text, "figures": figures, "trips": table}
+    return {"info": info, "summary": summary, "text": text, "figures": figures, "trips": table, "failed": failed}

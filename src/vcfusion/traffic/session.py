@@ -16,11 +16,10 @@ from typing import Callable
 import libsumo
 import numpy as np
 
-from vcfusion.records import VehicleStates
+from vcfusion.records import EGO_ID, VehicleStates
 from vcfusion.scenario import Scenario
 from vcfusion.traffic.network import Road, read_road, read_vehicle_types
 
-EGO_ID = "ego"
 ROUTE_ID = "highway"
 # A stop longer than any run: the accident vehicles never leave.
 ACCIDENT_STOP_S = 1.0e6
@@ -127,10 +126,7 @@ class SumoSession:
         self.road = read_road(scenario.network)
         self.vtypes = read_vehicle_types(scenario.vehicle_types)
         self.step_s = scenario.simulation.step_s
-        for vt in self._vtypes_used():
-            if vt not in self.vtypes:
-                raise RunError(f"vehicle type {vt!r} is not defined in {scenario.vehicle_types}")
-        self._check_lanes()
+        # (load_scenario checked the vehicle types, lanes and positions against these files)
         self.placements = plan_placements(scenario, self.road, self.vtypes, rng)
         self._emission_types: list[str] = []
         self.sumo_args = [
@@ -169,28 +165,12 @@ class SumoSession:
         # The device goes on the rated types only (_populate): it rates its vehicles every step, which
         # costs more than the rest of the metrics when every vehicle has it. Not by
         # --device.emissions.explicit: libsumo keeps the first run's list for the process's later runs.
-        self._emission_types = sorted(vt for vt in self._vtypes_used()
-                                      if rated(vt, self.vtypes[vt].get("vClass", "passenger")))
-        return ["--tripinfo-output", str(tripinfo), "--tripinfo-output.write-unfinished", "true"]
-
-    def _vtypes_used(self) -> set[str]:
         sc = self.scenario
         used = {g.vtype for g in sc.vehicles} | {f.vtype for f in sc.flows}
-        if sc.accident is not None:
-            used.add(sc.accident.vtype)
-        if sc.ego is not None:
-            used.add(sc.ego.vtype)
-        return used
-
-    def _check_lanes(self) -> None:
-        sc = self.scenario
-        lanes = [("ego.lane", sc.ego.lane)] if sc.ego else []
-        lanes += [(f"vehicles.{g.name}.lanes", lane) for g in sc.vehicles for lane in g.lanes]
-        lanes += [(f"flows[{i}].lanes", lane) for i, f in enumerate(sc.flows) for lane in f.lanes]
-        lanes += [("accident.lanes", lane) for lane in (sc.accident.lanes if sc.accident else [])]
-        for field, lane in lanes:
-            if lane >= self.road.num_lanes:
-                raise RunError(f"{field}: lane {lane} does not exist (the road has {self.road.num_lanes} lanes)")
+        used |= {sc.accident.vtype} if sc.accident else set()
+        used |= {sc.ego.vtype} if sc.ego else set()
+        self._emission_types = sorted(vt for vt in used if rated(vt, self.vtypes[vt].get("vClass", "passenger")))
+        return ["--tripinfo-output", str(tripinfo), "--tripinfo-output.write-unfinished", "true"]
 
     # -- set-up -------------------------------------------------------------------------
     def _populate(self) -> None:
