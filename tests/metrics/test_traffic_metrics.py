@@ -173,14 +173,18 @@ def test_histogram_percentiles_and_a_json_safe_summary():
     assert histogram_percentile(edges, np.zeros(3), 5) is None
     t = _times(30)
     tracks = {"ego": (t, np.zeros(30), 20 * t, np.full(30, 20.0)),
-              "accident0": (t, np.zeros(30), np.full(30, 40.0), np.zeros(30))}
-    vehicles = pd.concat([_vehicles(["ego"], group="ego"), _vehicles(["accident0"], vclass="truck", group="accident")])
+              "accident0": (t, np.zeros(30), np.full(30, 40.0), np.zeros(30)),
+              "brief": (t[-5:], np.ones(5), 20 * t[-5:], np.full(5, 20.0))}  # half a second: no MOVESTAR rating
+    vehicles = pd.concat([_vehicles(["ego", "brief"], group="ego"),
+                          _vehicles(["accident0"], vclass="truck", group="accident")])
     cfg = MetricsConfig()
     result = _metrics(tracks, cfg, vehicles)
     collisions = pd.DataFrame({"collider": ["ego", "ego"], "victim": ["accident0", "accident0"]})
     block = summary_block(cfg, result, collisions, sumo_available=False)
     json.dumps(block, allow_nan=False)
-    assert block["traffic"]["vehicles"] == 1  # the accident group is left out of the traffic figures
+    assert block["traffic"]["vehicles"] == 2  # the accident group is left out of the traffic figures
+    ego_row = result.vehicles.to_pandas().set_index("vehicle_id").loc["ego"]
+    assert block["traffic"]["fuel_g_per_km"] == pytest.approx(ego_row["movestar_fuel_g_per_km"])
     assert block["traffic"]["collisions"] == 1 and block["ego"]["collisions"] == 1
     assert block["ego"]["conflicts"] == 1 and block["traffic"]["sumo_co2_g_per_km"] is None
     assert block["settings"]["sumo_emissions"].startswith("missing")

@@ -83,6 +83,7 @@ def write_report(batch: Path, folders: list[Path], out: Path) -> Path:
     summary_path = batch / "batch_summary.parquet"
     batch_summary = pd.read_parquet(summary_path) if summary_path.is_file() else pd.DataFrame()
     figures = {}
+    threshold = _settings(folders[0]).get("ttc_threshold_s")
 
     # TTC and time headway distributions (all seeds, counted vehicles)
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
@@ -95,6 +96,9 @@ def write_report(batch: Path, folders: list[Path], out: Path) -> Path:
         coarse = shown.groupby(np.floor(shown["bin_low"] / width + 1e-9) * width)["count"].sum()
         if total:
             ax.bar(coarse.index, coarse.to_numpy() / total / width, width=width, align="edge", color="#4477aa")
+        if measure == "ttc_s" and threshold is not None:
+            ax.axvline(threshold, color="#ee6677", lw=1, label=f"conflict threshold {threshold:g} s")
+            ax.legend(fontsize=8)
         ax.set_xlabel(label)
         ax.set_ylabel("density (of all samples) [1/s]")
         beyond = 100.0 * h.loc[h["bin_high"] > upto, "count"].sum() / total if total else 0.0
@@ -126,13 +130,16 @@ def write_report(batch: Path, folders: list[Path], out: Path) -> Path:
     figures["conflicts"] = _save(fig, out / "conflicts_by_position.png")
 
     # the ego over time
-    ego_folders = [f for f in folders if (f / "ego.parquet").is_file()][:MAX_EGO_TRACES]
-    if ego_folders:
+    ego_logs = []
+    for folder in (f for f in folders if (f / "ego.parquet").is_file()):  # a run without an ego has an empty log
+        e = pq.read_table(folder / "ego.parquet", columns=["time", "speed", "leader_gap_m"]).to_pandas()
+        if len(e):
+            ego_logs.append(e)
+        if len(ego_logs) == MAX_EGO_TRACES:
+            break
+    if ego_logs:
         fig, axes = plt.subplots(3, 1, figsize=(10, 7), sharex=True)
-        for folder in ego_folders:
-            e = pq.read_table(folder / "ego.parquet", columns=["time", "speed", "leader_gap_m"]).to_pandas()
-            if e.empty:
-                continue
+        for e in ego_logs:
             accel = np.r_[np.diff(e["speed"]) / np.diff(e["time"]), np.nan] if len(e) > 1 else np.full(len(e), np.nan)
             axes[0].plot(e["time"], e["speed"], lw=0.7, alpha=0.7)
             axes[1].plot(e["time"], accel, lw=0.5, alpha=0.6)
@@ -141,12 +148,12 @@ def write_report(batch: Path, folders: list[Path], out: Path) -> Path:
         axes[1].set_ylabel("acceleration [m/s^2]")
         axes[2].set_ylabel("gap to leader [m]")
         axes[2].set_xlabel("time [s]")
-        axes[0].set_title(f"the ego in {len(ego_folders)} runs", fontsize=9)
+        axes[0].set_title(f"the ego in {len(ego_logs)} runs", fontsize=9)
         fig.tight_layout()
         figures["ego"] = _save(fig, out / "ego_time_series.png")
 
     stats = seed_statistics(batch_summary) if len(batch_summary) else pd.DataFrame()
-    settings = _settings_line(folders[0])
+    settings = _settings_line(_settings(folders[0]))
     lines = [f"# Metrics report: {batch.name}", "",
              f"{len(folders)} runs; {int(metrics['counted'].sum())} counted vehicle trips, "
              f"{metrics.loc[metrics['counted'], 'distance_m'].sum() / 1000.0:.1f} vehicle-km. {settings}", ""]
@@ -166,10 +173,13 @@ def write_report(batch: Path, folders: list[Path], out: Path) -> Path:
     return path
 
 
-def _settings_line(folder: Path) -> str:
+def _settings(folder: Path) -> dict:
     import json
 
-    block = json.loads((folder / "summary.json").read_text()).get("metrics", {}).get("settings", {})
+    return json.loads((folder / "summary.json").read_text()).get("metrics", {}).get("settings", {})
+
+
+def _settings_line(block: dict) -> str:
     if not block:
         return ""
     return (f"TTC threshold {block['ttc_threshold_s']} s (conflicts, TET/TIT), jerk window {block['jerk_window_s']} s, "

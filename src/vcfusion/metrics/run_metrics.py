@@ -108,7 +108,8 @@ def summary_block(cfg, result: RunMetrics, collisions: pd.DataFrame | None, sumo
     km = float(col["distance_m"][counted].sum()) / 1000.0
     traffic: dict = {"vehicles": int(counted.sum()), "vehicle_km": km,
                      "vehicle_h": float(col["travel_time_s"][counted].sum()) / 3600.0}
-    light = counted & (col["movestar_type"] > 0)
+    # MOVESTAR rates whole seconds: a vehicle on the road for less than one has no rating (no km either)
+    light = counted & (col["movestar_type"] > 0) & (col["movestar_seconds"] > 0)
     mkm = float(col["movestar_distance_m"][light].sum()) / 1000.0
     traffic["movestar_vehicle_km"] = mkm
     for k in MOVESTAR_KEYS.values():
