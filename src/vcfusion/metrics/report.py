@@ -125,7 +125,8 @@ def write_report(batch: Path, folders: list[Path], out: Path) -> Path:
         ax.hist(conflicts["s_start"], bins=np.arange(0.0, conflicts["s_start"].max() + 50.0, 50.0), color="#ee6677")
     ax.set_xlabel("position along the road where the conflict began, s [m] (50 m bins)")
     ax.set_ylabel("conflicts (all seeds)")
-    ax.set_title(f"{len(conflicts)} conflicts over {len(folders)} runs", fontsize=9)
+    ax.set_title(f"{len(conflicts)} conflicts (TTC < {threshold:g} s) over {len(folders)} runs"
+                 if threshold is not None else f"{len(conflicts)} conflicts over {len(folders)} runs", fontsize=9)
     fig.tight_layout()
     figures["conflicts"] = _save(fig, out / "conflicts_by_position.png")
 
