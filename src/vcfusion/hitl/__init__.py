@@ -8,5 +8,6 @@ sdl.py        pygame / SDL set-up (hints) and SDL's virtual joystick (tests, ben
 display.py    the window: camera render + AR overlay re-projected every frame, HUD, screens, video
 driver.py     HumanDriver: the ego controller that paces the loop to the wall clock, reads the
               device every step, shows frames and records inputs / frames
-drive.py      one trip: wire the run, drive it, write the run folder
+drive.py      one trip: wire the run, drive it, write the run folder; the wheel calibration
+study.py      a participant's session: practice, counterbalanced paired trips, pause screens, SSQ
 """
