@@ -33,7 +33,7 @@ from vcfusion.scenario import Scenario
 from vcfusion.stages import WiringError, check_wiring, declared, stage_name
 from vcfusion.threads import one_blas_thread
 from vcfusion.traffic.lanechanges import lane_change_events, read_sumo_lanechanges, relate_to_ego
-from vcfusion.traffic.network import Road
+from vcfusion.traffic.roadframe import RoadFrame
 from vcfusion.traffic.session import Collision, SumoSession
 
 if TYPE_CHECKING:  # the camera and detector types only: traffic-only runs never import OpenGL or torch
@@ -107,7 +107,7 @@ TRAJECTORY_COLUMNS = ["time", "vehicle_id", "x", "y", "z", "heading", "speed", "
 EMPTY_COLUMNS = {"trajectories": TRAJECTORY_COLUMNS, "ego": EGO_COLUMNS}
 
 
-def _truth_rows(truth: VehicleStates, road: Road) -> dict[str, np.ndarray]:
+def _truth_rows(truth: VehicleStates, road: RoadFrame) -> dict[str, np.ndarray]:
     s, d = truth.road_frame(road)
     return {
         "time": np.full(len(truth), round(truth.time, 6)),
@@ -190,7 +190,7 @@ class CoSimulation:
             loop_wall = wallclock.perf_counter() - loop_started
         finally:
             session.close()
-        sumo_changes = read_sumo_lanechanges(lc_file)
+        sumo_changes = read_sumo_lanechanges(lc_file, session.road)
         lc_file.unlink(missing_ok=True)
         stored = {name: sink.close() for name, sink in sinks.items()}
         frames = {name: pd.DataFrame(columns=EMPTY_COLUMNS.get(name, [])) for name, f in stored.items() if f is None}

@@ -5,6 +5,11 @@ lane (the manoeuvre's midpoint), with the reason. With continuous lane changing 
 manoeuvre starts earlier and ends later: start is the last sample before the midpoint at
 which the vehicle was still centred in its old lane, end the first sample after it at which
 it is centred in the new one (to `CENTRED_TOL_M`), at the trajectory's sampling period.
+
+Lanes are tracks of the scenario's route (index from the right, stable across edges): SUMO's
+lane ids map to them with the road frame's `track_of`, so a ramp vehicle's merge from the
+acceleration lane is track 0 -> 1 whatever SUMO's index on that edge; a change on an edge off the
+route has lanes -1 (and no start or end).
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from vcfusion.records import EGO_ID
-from vcfusion.traffic.network import Road
+from vcfusion.traffic.roadframe import RoadFrame
 
 CENTRED_TOL_M = 0.05
 
@@ -40,13 +45,19 @@ SUMO_CHANGE_DTYPES = {
 }
 
 
-def read_sumo_lanechanges(path: str | Path) -> dict[str, np.ndarray]:
-    """SUMO's lanechange-output as columns (one element per change, at its midpoint)."""
+def read_sumo_lanechanges(path: str | Path, road: RoadFrame | None = None) -> dict[str, np.ndarray]:
+    """SUMO's lanechange-output as columns (one element per change, at its midpoint); lanes are
+    the tracks of `road`'s route (-1 off it), or SUMO's lane indices without a road."""
     path = Path(path)
+    if road is None:
+        lane_of = _lane_index
+    else:
+        track_of = road.track_of
+        lane_of = lambda lane_id: track_of.get(lane_id, -1)  # noqa: E731
     rows = []
     if path.exists() and path.stat().st_size:
         for c in ET.parse(path).getroot().iter("change"):
-            rows.append((c.get("id"), float(c.get("time")), _lane_index(c.get("from")), _lane_index(c.get("to")),
+            rows.append((c.get("id"), float(c.get("time")), lane_of(c.get("from")), lane_of(c.get("to")),
                          int(c.get("dir")), c.get("reason"), float(c.get("pos")), float(c.get("speed")),
                          _gap(c.get("leaderGap")), _gap(c.get("followerGap"))))
     values = list(zip(*rows)) if rows else [()] * len(SUMO_CHANGE_DTYPES)
@@ -54,10 +65,11 @@ def read_sumo_lanechanges(path: str | Path) -> dict[str, np.ndarray]:
 
 
 def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, dict[str, np.ndarray]],
-                       road: Road) -> dict[str, np.ndarray]:
+                       road: RoadFrame) -> dict[str, np.ndarray]:
     """Add start and end times from the lateral trajectory; one element per lane change, in
-    LANE_CHANGE_COLUMNS order, sorted by midpoint then vehicle. `tracks`: time and d of each
-    changer's trajectory samples, in time order (see runio.vehicle_tracks)."""
+    LANE_CHANGE_COLUMNS order, sorted by midpoint then vehicle. `tracks`: time, d and s of each
+    changer's trajectory samples, in time order (see runio.vehicle_tracks); lane centres are
+    taken at each sample's s (a lane's d range may change along the route)."""
     order = np.lexsort((sumo_changes["vehicle_id"], sumo_changes["mid_time"]))  # stable
     events = {name: values[order] for name, values in sumo_changes.items()}
     starts = np.full(len(order), np.nan)
@@ -65,11 +77,12 @@ def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, di
     columns = (events[c] for c in ("vehicle_id", "from_lane", "to_lane", "mid_time"))
     for i, (vid, from_lane, to_lane, mid_time) in enumerate(zip(*columns)):
         track = tracks.get(vid)
-        if track is None:
+        if track is None or from_lane < 0 or to_lane < 0:
             continue
         t, d = track["time"], track["d"]
-        in_old = np.abs(d - road.lane_centre_d(from_lane)) <= CENTRED_TOL_M
-        in_new = np.abs(d - road.lane_centre_d(to_lane)) <= CENTRED_TOL_M
+        s = track["s"] if "s" in track else 0.0
+        in_old = np.abs(d - road.lane_centre_d(from_lane, s)) <= CENTRED_TOL_M
+        in_new = np.abs(d - road.lane_centre_d(to_lane, s)) <= CENTRED_TOL_M
         before = np.flatnonzero(in_old & (t <= mid_time + 1e-9))
         after = np.flatnonzero(in_new & (t >= mid_time - 1e-9))
         if len(before):
