@@ -302,8 +302,9 @@ def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road:
                               period_s: float) -> pd.DataFrame:
     """Replay a run's `twins` table snapshot by snapshot through a FeatureExtractor.
 
-    Returns time, vehicle_id and one column per feature, in the table's row order per tick.
-    Lengths come from the `vehicles` table (they are what each vehicle reports to the cloud).
+    Returns time, vehicle_id, one column per feature and `lane_end_ahead_m` (not a model input,
+    see :func:`lane_end_ahead_m`), in the table's row order per tick. Lengths come from the
+    `vehicles` table (they are what each vehicle reports to the cloud).
     """
     length_of = vehicles.set_index("vehicle_id")["length"]
     twins = twins.sort_values(["time", "vehicle_id"], kind="stable").reset_index(drop=True)
@@ -323,4 +324,5 @@ def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road:
     out = pd.DataFrame(values, columns=list(FEATURE_NAMES))
     out.insert(0, "vehicle_id", twins["vehicle_id"].astype(str).to_numpy())
     out.insert(0, "time", times)
+    out["lane_end_ahead_m"] = lane_end_ahead_m(road, s, lane)
     return out

@@ -120,7 +120,10 @@ class Road(RoadFrame):
         """Map-match to a lane index (-1 when off the road); s plays no part on a straight edge."""
         lane = np.floor(np.asarray(d, dtype=float) / self.lane_width_m).astype(np.int16)
         lane = np.where((lane >= 0) & (lane < self.num_tracks), lane, -1)
-        return np.broadcast_to(lane, np.broadcast(lane, np.asarray(s)).shape).copy() if np.ndim(s) else lane
+        shape = np.shape(s)
+        if shape != lane.shape:
+            lane = np.broadcast_to(lane, np.broadcast_shapes(shape, lane.shape)).copy()
+        return lane
 
     def lane_bounds(self, track, s=0.0) -> tuple[np.ndarray, np.ndarray]:
         t = np.asarray(track, dtype=float) + 0.0 * np.asarray(s, dtype=float)
