@@ -198,6 +198,12 @@ CASES = [
          ("s.yaml", "vehicles[0].route[2]:", "unknown edge 'x'")),
     Case("lane absent where placed", lambda t: run(t, ONRAMP.replace("lanes: [1]", "lanes: [0]")),
          ("s.yaml", "vehicles[0].lanes:", "lane 0 does not exist between 80 and 120 m", "lanes there: [1, 2, 3]")),
+    Case("ego lane ends before the trip's end", lambda t: run(t, ONRAMP.replace(
+        "ego: {lane: 2, depart_pos_m: 50", "ego: {lane: 0, depart_pos_m: 720")),
+         ("s.yaml", "ego.lane:", "lane 0 ends at 946 m", "before the trip's end (1020 m)")),
+    Case("ego route numbering its lanes otherwise", lambda t: run(t, ONRAMP.replace(
+        "ego: {lane: 2,", "ego: {route: [main_out], lane: 0,")),
+         ("s.yaml", "ego.route:", "SUMO lane main_out_0", "lane 1 of the scenario's route")),
     Case("accident edge off the route", lambda t: run(t, ONRAMP + "accident: {edge: ramp, pos_m: 10, lanes: [0]}\n"),
          ("s.yaml", "accident.edge:", "expected an edge of the route", "'ramp'")),
     Case("vision on a curved network", lambda t: run(t, BASE.replace("highway.net.xml", "curved.net.xml")
@@ -331,6 +337,9 @@ def test_several_problems_in_one_scenario_give_one_line_each(tmp_path, capsys):
 def test_the_valid_inputs_the_cases_start_from_are_valid(tmp_path):
     sc = load_scenario(write_scenario(tmp_path, BASE))
     assert sc.ego.lane == 2 and sc.vehicles[0].vtype == "car"
+    onramp = load_scenario(write_scenario(tmp_path, ONRAMP, "onramp.yaml"))
+    assert onramp.route == ["main_in", "accel", "main_out"]
+    load_scenario(write_scenario(tmp_path, BASE.replace("highway.net.xml", "curved.net.xml"), "curved.yaml"))
     model_file(tmp_path, lambda a, m: None)
     weights_file(tmp_path, lambda b: None)
     (tmp_path / "sub").mkdir()

@@ -477,6 +477,29 @@ def _route_error(origins: _Origins, loc: tuple, exc) -> ScenarioError:
     return ScenarioError(f"{origins.label(loc + ('route',))}: {field}: {exc.detail} (network {exc.net_file.name})")
 
 
+def _check_ego_lane(scenario: Scenario, road, origins: _Origins) -> None:
+    """The ego keeps its lane for the whole trip (the driver model does not change lanes), and
+    its lane is the guidance's and the metrics' ego lane, a track of the scenario's route: the
+    lane must run to the trip's end, and an own route must number it as the scenario's does."""
+    from vcfusion.traffic.network import read_road
+    from vcfusion.traffic.session import sumo_place
+
+    ego = scenario.ego
+    frame = read_road(scenario.network, ego.route) if ego.route is not None else road
+    lane_id = "{0[0]}_{1}".format(*sumo_place(frame, ego.lane, ego.depart_pos_m))
+    if road.track_of.get(lane_id) != ego.lane:
+        raise ScenarioError(f"{origins.label(('ego', 'route'))}: ego.route: the ego departs in SUMO lane {lane_id}, "
+                            f"which is lane {road.track_of.get(lane_id, 'none')} of the scenario's route "
+                            f"{list(road.route)}, not {ego.lane}; expected an ego route on which the ego's lane "
+                            "has the scenario's index (e.g. a part of the scenario's route)")
+    end = float(frame.lane_end_ahead(ego.lane, ego.depart_pos_m))
+    trip_end = ego.depart_pos_m + ego.trip_distance_m
+    if end < trip_end:
+        raise ScenarioError(f"{origins.label(('ego', 'lane'))}: ego.lane: lane {ego.lane} ends at {end:g} m along the "
+                            f"ego's route, before the trip's end ({trip_end:g} m); the ego keeps its lane: expected "
+                            "a lane that runs to the trip's end")
+
+
 def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
     """Read the files the scenario names and check the scenario against them (routes, lanes,
     positions, vehicle types), so a bad one stops the command before anything is written."""
@@ -555,6 +578,8 @@ def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
                 raise ScenarioError(f"{origins.label(loc + (field,))}: {where}.{field}: lane {lane} does not exist "
                                     f"{at} along {on} (lanes there: {present.tolist()}); expected a lane "
                                     "present there (lanes are indexed from the right)")
+    if scenario.ego is not None:
+        _check_ego_lane(scenario, road, origins)
     if scenario.prediction.enabled:
         from vcfusion.prediction.model import ModelFileError, load_model
 

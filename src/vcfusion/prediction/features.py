@@ -212,6 +212,8 @@ def _lanes_present(road, s: np.ndarray) -> np.ndarray:
     """(N, num_lanes) uint8: the lanes present at each s (all of them on a lane count)."""
     if isinstance(road, (int, np.integer)):
         return np.ones((len(s), int(road)), dtype=np.uint8)
+    if road.all_lanes_everywhere:  # the per-tick path on the straight road: no lookup
+        return np.ones((len(s), road.num_tracks), dtype=np.uint8)
     return np.ascontiguousarray(road.lanes_present(s), dtype=np.uint8)
 
 

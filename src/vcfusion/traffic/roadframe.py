@@ -505,6 +505,11 @@ class RoadFrame:
         """(..., num_tracks) bool: which tracks exist at each s."""
         return self._present[self._piece_of(s)]
 
+    @cached_property
+    def all_lanes_everywhere(self) -> bool:
+        """Every track exists at every s (no lane begins or ends along the route)."""
+        return bool(self._present.all())
+
     def lane_count(self, s) -> np.ndarray:
         return self._present[self._piece_of(s)].sum(axis=-1)
 
