@@ -481,8 +481,7 @@ def _check_ego_lane(scenario: Scenario, road, origins: _Origins) -> None:
     """The ego keeps its lane for the whole trip (the driver model does not change lanes), and
     its lane is the guidance's and the metrics' ego lane, a track of the scenario's route: the
     lane must run to the trip's end, and an own route must number it as the scenario's does."""
-    from vcfusion.traffic.network import read_road
-    from vcfusion.traffic.session import sumo_place
+    from vcfusion.traffic.network import read_road, sumo_place
 
     ego = scenario.ego
     frame = read_road(scenario.network, ego.route) if ego.route is not None else road

@@ -254,6 +254,19 @@ def read_road(net_file: str | Path, route: list[str] | tuple[str, ...] | None = 
     return frame
 
 
+def sumo_place(frame: RoadFrame, track: int, front: float) -> tuple[tuple[str, ...], int, float] | None:
+    """(route edges from the insertion edge, SUMO lane index, lane position) of a front bumper at
+    `front` along the frame's route in `track`; None where the track is absent there (or in a
+    junction). A front beyond the route's ends keeps its lane position (the caller refuses it)."""
+    try:
+        lane_id, _ = frame.sumo_lane_position(track, min(max(front, 0.0), frame.length_m))
+    except ValueError:
+        return None
+    edge, index = lane_id.rsplit("_", 1)
+    k = frame.route.index(edge)
+    return frame.route[k:], int(index), front - frame.edge_start_s[edge]
+
+
 def read_vehicle_types(vtype_file: str | Path) -> dict[str, dict[str, str]]:
     """The <vType> attributes of an additional file, by type id (NetworkFileError when unreadable)."""
     root = _parse_xml(vtype_file, "SUMO additional file with <vType> elements", ("additional", "routes"))

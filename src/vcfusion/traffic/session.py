@@ -17,7 +17,7 @@ import numpy as np
 
 from vcfusion.records import EGO_ID, VehicleStates
 from vcfusion.scenario import Scenario
-from vcfusion.traffic.network import read_road, read_vehicle_types
+from vcfusion.traffic.network import read_road, read_vehicle_types, sumo_place
 from vcfusion.traffic.roadframe import RoadFrame
 
 # A stop longer than any run: the accident vehicles never leave.
@@ -67,19 +67,6 @@ def frame_of(scenario: Scenario, road: RoadFrame, route: list[str] | None) -> Ro
     if route is None or tuple(route) == road.route:
         return road
     return read_road(scenario.network, route)
-
-
-def sumo_place(frame: RoadFrame, track: int, front: float) -> tuple[tuple[str, ...], int, float] | None:
-    """(route edges from the insertion edge, SUMO lane index, lane position) of a front bumper at
-    `front` along the frame's route in `track`; None where the track is absent there (or in a
-    junction). A front beyond the route's ends keeps its lane position (the caller refuses it)."""
-    try:
-        lane_id, _ = frame.sumo_lane_position(track, min(max(front, 0.0), frame.length_m))
-    except ValueError:
-        return None
-    edge, index = lane_id.rsplit("_", 1)
-    k = frame.route.index(edge)
-    return frame.route[k:], int(index), front - frame.edge_start_s[edge]
 
 
 def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.random.Generator) -> list[Placement]:
