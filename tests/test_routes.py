@@ -47,6 +47,11 @@ def test_placements_follow_each_route():
         assert frame.route[frame.route.index(p.edges[0]):] == p.edges
     assert {p.edges[0] for p in placements if p.group == "ramp_cars"} == {"ramp"}
     assert {p.edges[0] for p in placements if p.group == "main"} >= {"main_in", "accel", "main_out"}
+    # spacing holds along each lane of the route across its edges (fronts 45 m + a length apart)
+    at_start = [p for p in placements if p.depart_s == 0.0 and p.group == "main"]
+    for lane in (1, 2, 3):
+        fronts = np.sort([p.pos_m for p in at_start if p.lane == lane])
+        assert (np.diff(fronts) >= 45.0 + 4.6 - 1e-9).all()
 
     # a group in the acceleration lane (track 0) drawn over a range mostly without it
     group = scenario.vehicles[0].model_copy(update={"lanes": [0], "count": 3, "pos_m": (100.0, 1500.0)})
@@ -106,7 +111,8 @@ def test_onramp_merges_detected_labelled_and_predicted(onramp_run):
         after = own[own["time"] > ev.mid_time + 0.15]["lane"].to_numpy()
         assert before[-1] == 0 and after[0] == 1, ev
         assert ev.start_time < ev.mid_time < ev.end_time, ev
-    assert (merges["pos_m"] < 250.0).all()  # on the acceleration lane, before it ends
+    # on the acceleration lane (pos_m along the route), before it ends
+    assert merges["pos_m"].between(road.edge_start_s["accel"], road.edge_start_s["main_out"]).all()
 
     # the dataset labels them
     samples = build_samples(tables, road, scenario.v2c.period_s, 0, 4.0, 2.0,

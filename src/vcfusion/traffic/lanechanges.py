@@ -46,19 +46,27 @@ SUMO_CHANGE_DTYPES = {
 
 
 def read_sumo_lanechanges(path: str | Path, road: RoadFrame | None = None) -> dict[str, np.ndarray]:
-    """SUMO's lanechange-output as columns (one element per change, at its midpoint); lanes are
-    the tracks of `road`'s route (-1 off it), or SUMO's lane indices without a road."""
+    """SUMO's lanechange-output as columns (one element per change, at its midpoint). With a
+    road frame, lanes are the tracks of its route and pos_m the position along it (-1 and NaN on
+    lanes off the route); without one, SUMO's lane indices and lane positions."""
     path = Path(path)
     if road is None:
-        lane_of = _lane_index
+        lane_of, pos_of = _lane_index, lambda lane_id, pos: pos
     else:
-        track_of = road.track_of
-        lane_of = lambda lane_id: track_of.get(lane_id, -1)  # noqa: E731
+        track_of, edge_start = road.track_of, road.edge_start_s
+
+        def lane_of(lane_id: str) -> int:
+            return track_of.get(lane_id, -1)
+
+        def pos_of(lane_id: str, pos: float) -> float:
+            start = edge_start.get(lane_id.rsplit("_", 1)[0])
+            return start + pos if start is not None else np.nan
     rows = []
     if path.exists() and path.stat().st_size:
         for c in ET.parse(path).getroot().iter("change"):
             rows.append((c.get("id"), float(c.get("time")), lane_of(c.get("from")), lane_of(c.get("to")),
-                         int(c.get("dir")), c.get("reason"), float(c.get("pos")), float(c.get("speed")),
+                         int(c.get("dir")), c.get("reason"), pos_of(c.get("from"), float(c.get("pos"))),
+                         float(c.get("speed")),
                          _gap(c.get("leaderGap")), _gap(c.get("followerGap"))))
     values = list(zip(*rows)) if rows else [()] * len(SUMO_CHANGE_DTYPES)
     return {name: np.array(v, dtype=dtype) for (name, dtype), v in zip(SUMO_CHANGE_DTYPES.items(), values)}

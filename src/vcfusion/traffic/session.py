@@ -74,19 +74,29 @@ def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.r
     drawn position (an acceleration lane, a lane drop) is drawn again, like one too close to
     another vehicle."""
     placements: list[Placement] = []
-    # SUMO lane id -> [(rear, front)] lane positions: routes that share an edge share its lanes
-    occupied: dict[str, list[tuple[float, float]]] = {}
+    # lane -> [(rear, front)]: a track of the scenario's route with positions along it (so spacing
+    # holds across its edges, whatever route a vehicle follows), or a SUMO lane off that route with
+    # lane positions
+    occupied: dict[tuple, list[tuple[float, float]]] = {}
 
     def length_of(vtype: str) -> float:
         return float(vtypes[vtype].get("length", 5.0))
 
-    def free(lane: str, front: float, length: float, spacing: float) -> bool:
+    def slot(place) -> tuple[tuple, float]:
+        edges, index, pos = place
+        track = road.track_of.get(f"{edges[0]}_{index}")
+        if track is None:
+            return ("lane", f"{edges[0]}_{index}"), pos
+        return ("track", track), road.edge_start_s[edges[0]] + pos
+
+    def free(place, length: float, spacing: float) -> bool:
+        lane, front = slot(place)
         return all(front + spacing <= rear or front - length - spacing >= other_front
                    for rear, other_front in occupied.get(lane, []))
 
     def occupy(place, length: float) -> None:
-        edges, index, front = place
-        occupied.setdefault(f"{edges[0]}_{index}", []).append((front - length, front))
+        lane, front = slot(place)
+        occupied.setdefault(lane, []).append((front - length, front))
 
     if scenario.accident is not None:
         acc = scenario.accident
@@ -105,7 +115,7 @@ def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.r
                 lane = int(rng.choice(group.lanes))
                 front = float(rng.uniform(*group.pos_m))
                 place = sumo_place(frame, lane, front)
-                if place is not None and free(f"{place[0][0]}_{place[1]}", place[2], length, group.min_spacing_m):
+                if place is not None and free(place, length, group.min_spacing_m):
                     break
             else:
                 raise RunError(
