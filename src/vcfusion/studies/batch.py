@@ -105,7 +105,10 @@ def _pool_outcomes(executor: Executor, task, jobs: list[tuple], out: Path):
 
     def started(index: int, pid: int) -> None:
         running.mkdir(exist_ok=True)
-        (running / f"seed_{jobs[index][1]:04d}.pid").write_text(f"{pid}\n")
+        # written under another name and renamed: a reader never sees an empty pid file
+        pid_file = running / f"seed_{jobs[index][1]:04d}.pid"
+        pid_file.with_suffix(".pid-writing").write_text(f"{pid}\n")
+        pid_file.with_suffix(".pid-writing").replace(pid_file)
 
     try:
         for index, result in run_jobs(task, jobs, executor.workers, on_start=started):

@@ -12,6 +12,7 @@ import shutil
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
@@ -23,6 +24,7 @@ from vcfusion.traffic.roadframe import RoadFrame, RouteError, _Lane, _Piece
 REPO_NET_DIR = Path(__file__).resolve().parents[3] / "sumo_net"
 
 
+@dataclass(init=False, eq=False, repr=False)
 class Road(RoadFrame):
     """The road frame of one straight edge of parallel lanes of equal width. Lane 0 is the
     rightmost lane (SUMO's convention), and a lane is its track.
@@ -30,7 +32,15 @@ class Road(RoadFrame):
     Its conversions are closed-form: the general frame's map on such an edge to 1e-9 m (tested),
     in the arithmetic the straight-road runs were recorded with, so their tables stay
     byte-identical; the lane structure (tracks, SUMO lane positions) is the general frame's.
+    Its defining values are dataclass fields (`dataclasses.asdict(road)`, as before).
     """
+
+    edge_id: str  # (the route's one edge: RoadFrame.edge_id)
+    start: tuple[float, float]  # the left road edge's ends (SUMO's edge shape)
+    end: tuple[float, float]
+    num_lanes: int  # (RoadFrame.num_lanes)
+    lane_width_m: float
+    speed_limit_mps: float
 
     def __init__(self, edge_id: str, start: tuple[float, float], end: tuple[float, float], num_lanes: int,
                  lane_width_m: float, speed_limit_mps: float, net_file: str | Path | None = None):
