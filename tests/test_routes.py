@@ -122,7 +122,9 @@ def test_onramp_merges_detected_labelled_and_predicted(onramp_run):
         assert (own["window_label"] == 1).sum() > 0 and (own["lc_reason"] == ev.reason).all()
     in_accel = samples[samples["vehicle_id"].isin(ramp_ids) & (samples["lane"] == 0)]
     assert len(in_accel) and (in_accel["right_lane_exists"] == 0).all() and (in_accel["left_lane_exists"] == 1).all()
-    assert (in_accel["lane_end_ahead_m"] < 260.0).all()
+    twin_s = road.to_frame(*(tables["twins"].set_index(["time", "vehicle_id"]).loc[
+        list(zip(in_accel["time"], in_accel["vehicle_id"])), ["x", "y"]].to_numpy().T))[0]
+    assert (lane_end_ahead_m(road, twin_s, in_accel["lane"].to_numpy()) < 260.0).all()
 
     # the predictor ran on them at run time (lc_prob in the twins table) and gives what the
     # model gives on the features rebuilt from that table

@@ -60,8 +60,6 @@ def build_samples(tables: dict[str, pd.DataFrame], road, period_s: float, seed: 
     })
     for name in FEATURE_NAMES:
         out[name] = feats[name].to_numpy(dtype=np.float32)
-    # not a model input (the shipped model was trained without it): kept for the next training
-    out["lane_end_ahead_m"] = feats["lane_end_ahead_m"].to_numpy(dtype=np.float32)
     return out
 
 

@@ -221,8 +221,9 @@ def lane_end_ahead_m(road, s: np.ndarray, lane: np.ndarray) -> np.ndarray:
     """Distance from s to where the twin's own lane ends ahead (a lane drop, the end of an
     acceleration lane), BLOCK_RANGE_M when it does not end within that, 0 off the road.
 
-    Not among FEATURE_NAMES: the shipped model was trained without it (a new input needs a
-    retrained model); datasets carry it as an extra column for the next training."""
+    Not among FEATURE_NAMES, nor in the datasets' samples: the shipped model was trained on a
+    fixed input list, and the samples' layout is that list; adding it means a new feature list,
+    datasets rebuilt (`vcfusion dataset --refeature`) and a retrained model."""
     s = np.asarray(s, dtype=float)
     lane = np.asarray(lane, dtype=np.int64)
     end = road.lane_end_ahead(np.maximum(lane, 0), s)
@@ -304,9 +305,8 @@ def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road:
                               period_s: float) -> pd.DataFrame:
     """Replay a run's `twins` table snapshot by snapshot through a FeatureExtractor.
 
-    Returns time, vehicle_id, one column per feature and `lane_end_ahead_m` (not a model input,
-    see :func:`lane_end_ahead_m`), in the table's row order per tick. Lengths come from the
-    `vehicles` table (they are what each vehicle reports to the cloud).
+    Returns time, vehicle_id and one column per feature, in the table's row order per tick.
+    Lengths come from the `vehicles` table (they are what each vehicle reports to the cloud).
     """
     length_of = vehicles.set_index("vehicle_id")["length"]
     twins = twins.sort_values(["time", "vehicle_id"], kind="stable").reset_index(drop=True)
@@ -326,5 +326,4 @@ def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road:
     out = pd.DataFrame(values, columns=list(FEATURE_NAMES))
     out.insert(0, "vehicle_id", twins["vehicle_id"].astype(str).to_numpy())
     out.insert(0, "time", times)
-    out["lane_end_ahead_m"] = lane_end_ahead_m(road, s, lane)
     return out
