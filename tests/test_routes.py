@@ -177,3 +177,22 @@ def test_curved_run_end_to_end():
     twins = tables["twins"][["time", "vehicle_id", "lane"]].merge(
         traj[["time", "vehicle_id", "lane"]], on=["time", "vehicle_id"], suffixes=("_twin", "_sumo"))
     assert (twins["lane_twin"] == twins["lane_sumo"]).mean() > 0.93
+
+
+def test_lane_features_count_the_lanes_present():
+    """On the on-ramp's main route: before the merge the main line's right lane (track 1) is lane 0
+    with no lane to its right; beside the acceleration lane it is lane 1, whose right neighbour
+    (track 0) is seen; on the straight road the same numbers as the lane count gives."""
+    from vcfusion.prediction.features import tick_features
+
+    road = read_road(REPO / "sumo_net" / "onramp.net.xml", ["main_in", "accel", "main_out"])
+    s = np.array([300.0, 800.0, 850.0])
+    f = tick_features(s, np.array([1, 1, 0]), np.full(3, 20.0), np.zeros(3), np.full(3, 4.6), road)
+    assert f["lane"].tolist() == [0, 1, 0] and f["lanes_to_left"].tolist() == [2, 2, 3]
+    assert f["right_lane_exists"].tolist() == [0, 1, 0] and f["left_lane_exists"].tolist() == [1, 1, 1]
+    assert f["gap_lead_right"][0] == 0.0  # no right lane: the sentinel
+    assert f["gap_lead_right"][1] == pytest.approx(850.0 - 2.3 - (800.0 + 2.3))
+    straight = Road("hw", (0.0, 0.0), (2000.0, 0.0), 3, 3.5, 25.0)
+    a = tick_features(s, np.array([0, 1, 2]), np.full(3, 20.0), np.zeros(3), np.full(3, 4.6), straight)
+    b = tick_features(s, np.array([0, 1, 2]), np.full(3, 20.0), np.zeros(3), np.full(3, 4.6), 3)
+    assert all(np.array_equal(a[k], b[k]) for k in b)

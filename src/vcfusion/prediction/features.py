@@ -18,8 +18,9 @@ speed differences are neighbour minus own speed. Sentinels:
 - lane does not exist (own lane is the rightmost/leftmost, or the twin is off the road, or the
   lane is absent at the twin's s: before an acceleration lane begins, after a lane drop):
   gap = 0 m, speed difference = 0, and `right_lane_exists` / `left_lane_exists` = 0;
-Lanes are the road frame's tracks (index from the right, stable across edges);
-`lanes_to_left` counts the lanes present at the twin's s left of its own.
+Lanes are the road frame's tracks (index from the right, stable across edges); the features
+`lane` and `lanes_to_left` count the lanes present at the twin's s right and left of its own
+(on a road whose lanes never change, the lane index and the lanes beyond it).
 - lane exists but no twin within `RANGE_M` (or a gap beyond it): gap = RANGE_M, difference 0.
 `stopped_ahead_*` is the distance from the front bumper to the rear of the nearest stopped
 twin (speed < STOPPED_MPS) ahead in that lane, BLOCK_RANGE_M when none (and 0 for a missing
@@ -114,9 +115,15 @@ def _tick_matrix(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.n
         out[i, 0], out[i, 1], out[i, 2], out[i, 3] = speed[i], accel[i], length[i], li
         if not on_road:  # a twin off the road has no lanes: every per-lane feature stays 0
             continue
+        # `lane` counts the lanes present right of the own one (the track where every lane is
+        # everywhere): a main line's rightmost lane is lane 0 where no acceleration lane is beside it
+        to_right = 0
+        for k in range(li):
+            to_right += present[i, k]
         to_left = 0
         for k in range(li + 1, num_lanes):
             to_left += present[i, k]
+        out[i, 3] = to_right
         out[i, 4] = to_left
         out[i, 5] = 1.0 if li >= 1 and present[i, li - 1] != 0 else 0.0
         out[i, 6] = 1.0 if li <= num_lanes - 2 and present[i, li + 1] != 0 else 0.0
