@@ -59,8 +59,12 @@ def _run_and_report(scenario, seed: int, out: Path) -> None:
     from vcfusion.cosim import format_summary
     from vcfusion.run import execute_run
 
+    from vcfusion.metrics.run_metrics import format_run_metrics
+
     result = execute_run(scenario, seed, out, progress=sys.stderr.isatty())
     print(format_summary(result.summary, result.wall_s))
+    if "metrics" in result.summary:
+        print(format_run_metrics(result.summary))
     print(f"run folder: {out}")
 
 
@@ -82,6 +86,9 @@ def cmd_batch(args: argparse.Namespace) -> int:
           f"{len(report['failed'])} failed")
     for seed, error in report["failed"]:
         print(f"  seed {seed}: {error.splitlines()[0]}")
+    from vcfusion.metrics.commands import print_batch_metrics
+
+    print_batch_metrics(out)
     return 1 if report["failed"] else 0
 
 
@@ -264,6 +271,10 @@ def build_parser() -> argparse.ArgumentParser:
     from vcfusion.detection.commands import add_parsers as add_detection_parsers
 
     add_detection_parsers(sub)
+
+    from vcfusion.metrics.commands import add_parsers as add_metrics_parsers
+
+    add_metrics_parsers(sub)  # metrics, report
     return parser
 
 

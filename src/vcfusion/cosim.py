@@ -17,6 +17,7 @@ from __future__ import annotations
 import tempfile
 import time as wallclock
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
@@ -27,6 +28,8 @@ from tqdm import tqdm
 
 from vcfusion.cloud.channel import V2CChannel
 from vcfusion.cloud.twins import ProcessModel, TwinStore, neighbours
+from vcfusion.metrics.run_metrics import add_run_metrics
+from vcfusion.metrics.traffic import sumo_model_rates
 from vcfusion.records import EGO_ID, GuidanceSet, TwinStates, VehicleStates
 from vcfusion.runio import RunTables, TableSink, vehicle_tracks
 from vcfusion.scenario import Scenario
@@ -181,8 +184,10 @@ class CoSimulation:
         sinks = {name: TableSink(Path(workdir.name) / f"{name}.parquet") for name in STREAMED_TABLES}
         sinks.update({hook.table: TableSink(Path(workdir.name) / f"{hook.table}.parquet") for hook in self.hooks})
         lc_file = Path(workdir.name) / "lanechanges.xml"
+        tripinfo = Path(workdir.name) / "tripinfo.xml"  # SUMO's emission totals (metrics)
         session = SumoSession(sc, self.seed, lc_file, np.random.default_rng(self.rng.integers(2**63)),
-                              self.extra_sumo_args)
+                              self.extra_sumo_args, (tripinfo, partial(sumo_model_rates, sc.metrics))
+                              if sc.metrics.enabled else None)
         try:
             loop_started = wallclock.perf_counter()
             with one_blas_thread():  # small per-tick arrays: BLAS threads only cost hand-offs
@@ -210,6 +215,8 @@ class CoSimulation:
         summary = summarize(sc, self.seed, tables, events, out["channel"], out["end_reason"], lateral)
         for stage in self.stages():
             _finish(stage, tables, summary)
+        if sc.metrics.enabled:  # per-vehicle safety, comfort and emissions (vcfusion.metrics)
+            summary["metrics"] = add_run_metrics(sc, tables, tripinfo, session.emission_classes)
         return RunResult(sc, self.seed, tables, summary, wallclock.perf_counter() - started, loop_wall)
 
     def _loop(self, session: SumoSession, sinks: dict[str, TableSink], progress: bool) -> dict:
