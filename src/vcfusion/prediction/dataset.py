@@ -63,8 +63,10 @@ def build_samples(tables: dict[str, pd.DataFrame], road, period_s: float, seed: 
     return out
 
 
-def _dataset_seed(scenario_path: str, seed: int, out: str, tau: float, tau_g: float) -> SeedOutcome:
-    """Batch-runner task: simulate one seed and write its run folder with samples.parquet."""
+def _dataset_seed(scenario_path: str, seed: int, out: str, tau: float, tau_g: float,
+                  privileged: bool = False) -> SeedOutcome:
+    """Batch-runner task: simulate one seed and write its run folder with samples.parquet
+    (privileged: also log SUMO's lane-change state, table `lc_state`, and join it to the samples)."""
     import traceback
 
     from vcfusion.run import build_cosimulation, manifest_for
@@ -73,10 +75,19 @@ def _dataset_seed(scenario_path: str, seed: int, out: str, tau: float, tau_g: fl
 
     try:
         scenario = load_scenario(scenario_path)
-        result = build_cosimulation(scenario, seed).run()
-        road = read_road(scenario.network)
+        cosim = build_cosimulation(scenario, seed)
+        if privileged:
+            from vcfusion.prediction.privileged import LaneChangeStateHook
+
+            cosim.hooks.append(LaneChangeStateHook())
+        result = cosim.run()
+        road = read_road(scenario.network, scenario.route)
         samples = build_samples(result.tables, road, scenario.v2c.period_s, seed, tau, tau_g,
                                 scenario.simulation.lanechange_duration_s / 2)
+        if privileged:
+            from vcfusion.prediction.privileged import LC_STATE_TABLE, add_privileged
+
+            samples = add_privileged(samples, result.tables[LC_STATE_TABLE])
         tables = {k: v for k, v in result.tables.items() if k != "ego"} | {"samples": samples}
         manifest = manifest_for(scenario, seed) | {"dataset": {"tau": tau, "tau_g": tau_g}}
         write_run_folder(seed_folder(Path(out), seed), tables, manifest, result.summary)
@@ -94,8 +105,13 @@ def _refeature_seed(folder: str, scenario_path: str, seed: int, tau: float, tau_
     scenario = load_scenario(scenario_path)
     folder = Path(folder)
     tables = {k: pd.read_parquet(folder / f"{k}.parquet") for k in ("twins", "vehicles", "lane_changes")}
-    samples = build_samples(tables, read_road(scenario.network), scenario.v2c.period_s, seed, tau, tau_g,
+    road = read_road(scenario.network, scenario.route)
+    samples = build_samples(tables, road, scenario.v2c.period_s, seed, tau, tau_g,
                             scenario.simulation.lanechange_duration_s / 2)
+    from vcfusion.prediction.privileged import LC_STATE_TABLE, add_privileged
+
+    if (folder / f"{LC_STATE_TABLE}.parquet").is_file():  # a privileged dataset keeps its SUMO columns
+        samples = add_privileged(samples, pd.read_parquet(folder / f"{LC_STATE_TABLE}.parquet"))
     tmp = folder / (SAMPLES + ".tmp-writing")
     write_table(tmp, samples)
     tmp.replace(folder / SAMPLES)
@@ -147,6 +163,12 @@ class DatasetInfo:
     feature_names: tuple[str, ...]
     splits: dict[str, list[int]]
     meta: dict
+
+    def seeds(self, split: str) -> list[int]:
+        """The seeds of a split; 'all' = every seed (for an imported recording: every vehicle)."""
+        if split == "all":
+            return sorted({s for seeds in self.splits.values() for s in seeds})
+        return list(self.splits.get(split, []))
 
     def samples_file(self, seed: int) -> Path:
         return seed_folder(self.root / "runs", seed) / SAMPLES
@@ -215,7 +237,7 @@ def _check_samples_file(f: Path, seed: int, split: str, needed: set[str]) -> Non
 
 def load_samples(info: DatasetInfo, split: str, window_only: bool = False, columns: list[str] | None = None) -> pd.DataFrame:
     frames = []
-    for seed in info.splits[split]:
+    for seed in info.seeds(split):
         f = info.samples_file(seed)
         if not f.is_file():
             raise DatasetError(f"{f}: missing samples of seed {seed} (split {split})")
@@ -266,11 +288,13 @@ runs' `twins` tables without simulating again.
 
 
 def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int, tau: float, tau_g: float,
-                  progress: bool = True, refeature: bool = False) -> dict:
+                  progress: bool = True, refeature: bool = False, privileged: bool = False) -> dict:
     """Simulate every seed not yet done (parallel, resumable) and write dataset.json + README.md.
 
     refeature: first recompute the samples of the runs already in `out` with this version's
     features (allowed to differ from the folder's; tau / tau_g must not), instead of failing.
+    privileged: log SUMO's lane-change state every tick and add the privileged columns to the
+    samples (vcfusion.prediction.privileged; for the ceiling, never a run-time input).
     """
     from vcfusion.runio import write_json
     from vcfusion.scenario import load_scenario
@@ -283,10 +307,15 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
     params = {"scenario": scenario.name, "scenario_file": str(Path(scenario_path).resolve()),
               "tau": tau, "tau_g": tau_g, "period_s": scenario.v2c.period_s,
               "feature_names": list(FEATURE_NAMES)}
+    if privileged:  # only then: datasets built before keep comparing equal
+        from vcfusion.prediction.privileged import PRIVILEGED_NAMES
+
+        params["privileged_names"] = list(PRIVILEGED_NAMES)
     if meta_file.is_file():
         old = read_dataset_json(meta_file)
         free = {"scenario_file"} | ({"feature_names"} if refeature else set())
-        clash = {k: (old.get(k), v) for k, v in params.items() if k not in free and old.get(k) != v}
+        keys = [*params, *({"privileged_names"} - set(params))]  # a privileged folder stays privileged
+        clash = {k: (old.get(k), params.get(k)) for k in keys if k not in free and old.get(k) != params.get(k)}
         if clash:
             hint = " (or --refeature, when only the features differ)" if set(clash) == {"feature_names"} else ""
             raise DatasetError(f"{meta_file}: the folder holds a dataset with other parameters "
@@ -299,7 +328,7 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
     refeatured, stale = [], []
     if refeature:
         refeatured, stale = refeature_runs(Path(scenario_path), seeds, out / "runs", workers, tau, tau_g, progress)
-    task = functools.partial(_dataset_seed, tau=tau, tau_g=tau_g)
+    task = functools.partial(_dataset_seed, tau=tau, tau_g=tau_g, privileged=privileged)
     report = run_batch(Path(scenario_path), seeds, out / "runs", workers=workers, progress=progress, task=task)
     report["failed"] = sorted(report["failed"] + stale)  # a seed with old features is left out
     stale_seeds = {s for s, _ in stale}

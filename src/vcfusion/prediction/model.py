@@ -189,6 +189,18 @@ def save_model(model: LaneChangeModel, path: str | Path) -> Path:
     return path
 
 
+def model_feature_names(path: str | Path) -> tuple[str, ...]:
+    """The input features a model file was trained on (read without checking them)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelFileError(f"{path}: model file not found")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return tuple(json.loads(str(data["meta"]))["feature_names"])
+    except Exception as exc:
+        raise ModelFileError(f"{path}: not a vcfusion lane-change model file ({type(exc).__name__}: {exc})") from None
+
+
 def load_model(path: str | Path | None = None, expected_features=None) -> LaneChangeModel:
     """Read a model file (None = the shipped default); checks it against the current feature list.
 

@@ -39,8 +39,8 @@ SAFETY_METRICS = [
     ("avg_ttc_s", "average TTC to the lane-change vehicle", "s", None, None, 30.31),
     ("avg_ttc_clipped_s", "average TTC, clipped at 20 s", "s", None, None, None),
     ("min_ttc_s", "minimum TTC to the lane-change vehicle", "s", None, None, None),
-    ("tet_s", "TET (TTC < 3 s)", "s", None, None, None),
-    ("tit_s2", "TIT (TTC < 3 s)", "s^2", None, None, None),
+    ("tet_s", "TET (TTC < metrics.ttc_threshold_s)", "s", None, None, None),
+    ("tit_s2", "TIT (TTC < metrics.ttc_threshold_s)", "s^2", None, None, None),
     ("avg_abs_accel_mps2", "average |acceleration|", "m/s^2", 2.57, 2.07, None),
     ("max_abs_jerk_mps3", "maximum |jerk|", "m/s^3", 40.14, 35.91, None),
     ("max_decel_mps2", "maximum deceleration", "m/s^2", None, None, None),
@@ -81,6 +81,7 @@ def run_arm(scenario, seed: int, guidance: bool, process_model_specs: tuple[str,
     """One arm of one trip: metrics row (no run folder is written)."""
     from vcfusion.metrics.movestar import trip_emissions
     from vcfusion.metrics.safety import trip_metrics
+    from vcfusion.metrics.traffic import ego_movestar_type
     from vcfusion.run import build_cosimulation
 
     extra = [load_process_model(s, scenario) for s in process_model_specs]
@@ -90,9 +91,11 @@ def run_arm(scenario, seed: int, guidance: bool, process_model_specs: tuple[str,
     dt = scenario.simulation.step_s
     row = {"seed": seed, "arm": "on" if guidance else "off", "end_reason": result.summary["end_reason"],
            "cut_ins_ahead_of_ego": result.summary.get("cut_ins_ahead_of_ego", 0)}
-    row.update(trip_metrics(tables, scenario.ego.lane, dt))
+    m = scenario.metrics  # the same thresholds and definitions as the runs' metrics tables
+    row.update(trip_metrics(tables, scenario.ego.lane, dt, m.ttc_threshold_s, m.jerk_window_s, m.ttc_clip_s))
+    row["ttc_threshold_s"] = m.ttc_threshold_s
     ego = tables["ego"]
-    em = trip_emissions(ego["time"].to_numpy(), ego["speed"].to_numpy())
+    em = trip_emissions(ego["time"].to_numpy(), ego["speed"].to_numpy(), ego_movestar_type(scenario, tables["vehicles"]))
     pk = em["per_km"]
     row.update({
         "fuel_g_per_km": pk["Fuel"], "co_g_per_km": pk["CO"], "hc_g_per_km": pk["HC"], "nox_g_per_km": pk["NOx"],
