@@ -89,7 +89,7 @@ def test_scene_states_place_the_vehicles_on_the_road():
     for k, v in enumerate(r.vehicles, start=1):
         assert s[k] - cam_s == pytest.approx(v.ahead_m)
         assert d[k] == pytest.approx((v.lane + 0.5) * road.lane_width_m + v.lateral_m)
-        assert road.lane_of(d[k] - v.lateral_m) == v.lane
+        assert road.lane_of(s[k], d[k] - v.lateral_m) == v.lane
 
 
 @pytest.mark.slow
@@ -124,3 +124,16 @@ def test_unknown_family_is_refused():
     with pytest.raises(ValueError, match="family: expected one of train, jam"):
         sample_scene("rain", 0)
     assert FAMILIES[0] == "train"
+
+
+def test_render_scenes_refuses_a_road_it_cannot_place_scenes_on(tmp_path):
+    from scenario_files import write_scenario
+    from vcfusion.detection.scenes import render_scenes
+    from vcfusion.errors import InputError
+    from vcfusion.scenario import load_scenario
+
+    path = write_scenario(tmp_path, "name: c\nnetwork: NET_DIR/curved.net.xml\nvehicle_types: NET_DIR/vtypes.add.xml\n"
+                                    "ego: {lane: 1, depart_pos_m: 50, speed_mps: 19}\n")
+    with pytest.raises(InputError, match="network: procedural scenes need a straight road"):
+        render_scenes(load_scenario(path), "train", [0], tmp_path / "out", progress=False)
+    assert not (tmp_path / "out").exists()

@@ -47,6 +47,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from vcfusion.errors import InputError
 from vcfusion.records import EGO_ID, VehicleStates
 
 CAR, TRUCK = "passenger", "truck"
@@ -55,6 +56,7 @@ TRUCK_SIZE = ((7.0, 16.5), (2.4, 2.6), (3.0, 4.0))
 EGO_SIZE = (4.6, 1.8, 1.5)
 MIN_AHEAD_M, MAX_AHEAD_M = 3.0, 150.0
 CAMERA_FORWARD_M = 0.6
+EGO_S_RANGE_M = (300.0, 1500.0)  # ego position along the road
 FOOTPRINT_MARGIN_M = 0.3
 
 # held-out recipes' thresholds (shared by the generators and the predicates)
@@ -375,7 +377,7 @@ def sample_scene(family: str, seed: int, num_lanes: int = 3, lane_width_m: float
         ego_lane = int(rng.integers(num_lanes))
         if family == "cut_in" and num_lanes < 2:
             raise ValueError("family cut_in: expected a road of at least 2 lanes")
-        recipe = SceneRecipe(family, seed, num_lanes, lane_width_m, ego_lane, float(rng.uniform(300.0, 1500.0)), mount)
+        recipe = SceneRecipe(family, seed, num_lanes, lane_width_m, ego_lane, float(rng.uniform(*EGO_S_RANGE_M)), mount)
         b = _Builder(rng, recipe, prefix=f"{family[:2]}{seed}_")
         if family == "train":
             names = list(PATTERN_WEIGHTS)
@@ -410,7 +412,7 @@ def scene_states(recipe: SceneRecipe, road, time: float = 0.0) -> VehicleStates:
     return VehicleStates(
         time=float(time), ids=(EGO_ID, *(v.vehicle_id for v in vs)), vtype=("ego", *(v.vclass for v in vs)),
         vclass=(CAR, *(v.vclass for v in vs)), x=np.asarray(x, float), y=np.asarray(y, float), z=np.zeros(n),
-        heading=road.heading_rad + np.array([0.0] + [v.yaw_rad for v in vs]),
+        heading=np.asarray(road.heading(s, d), float) + np.array([0.0] + [v.yaw_rad for v in vs]),
         speed=np.array([10.0] + [v.speed for v in vs]), accel=np.zeros(n),
         lane=np.array([recipe.ego_lane] + [v.lane for v in vs], np.int16),
         lateral_offset=np.array([0.0] + [v.lateral_m for v in vs]), length=lengths,
@@ -453,7 +455,11 @@ def render_scenes(scenario, family: str, seeds, out, progress: bool = True) -> d
     from vcfusion.runio import atomic_folder, package_versions, write_json
     from vcfusion.traffic.network import read_road
 
-    road = read_road(scenario.network)
+    road = read_road(scenario.network)  # the road the camera stage draws (as its hook reads it)
+    if not road.is_straight or road.length_m < EGO_S_RANGE_M[1] + MAX_AHEAD_M + 10.0:
+        raise InputError(f"{scenario.source}: network: procedural scenes need a straight road of at least "
+                         f"{EGO_S_RANGE_M[1] + MAX_AHEAD_M + 10.0:.0f} m (ego positions up to {EGO_S_RANGE_M[1]:.0f} m, "
+                         f"vehicles up to {MAX_AHEAD_M:.0f} m ahead), got {road!r}")
     seeds = list(seeds)
     coco = CocoBuilder(f"vcfusion procedural scenes, family {family}, road of scenario {scenario.name}")
     with atomic_folder(Path(out), "dataset folder") as tmp, EgoCameraRenderer(road, scenario.camera) as renderer:
