@@ -133,6 +133,9 @@ class DriverConfig(_Strict):
     # Guidance items are made for neighbours ahead within this range; levels follow ar.medium_threshold /
     # ar.high_threshold (one GuidancePolicy per run, vcfusion.guidance).
     guidance_view_range_m: Positive = 150.0
+    # The driver's forward field of view (degrees); default: the camera's hfov_deg (the AR shows
+    # the camera's view). See vcfusion.driver.perception.
+    field_of_view_deg: Annotated[float, Field(gt=1.0, lt=180.0)] | None = None
 
 
 class VehicleGroup(_Strict):
