@@ -40,7 +40,11 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
         # Imported only here: traffic-only runs never load OpenGL.
         from vcfusion.render.hook import CameraHook
 
-        hooks.append(CameraHook(scenario, every_ticks=scenario.vision.every_ticks, renderer=renderer))
+        when = None
+        if scenario.vision.only_when_warning and policy is not None:
+            def when(tick, policy=policy):
+                return policy.any_warning(tick.neighbours)
+        hooks.append(CameraHook(scenario, every_ticks=scenario.vision.every_ticks, renderer=renderer, when=when))
     if scenario.fusion.enabled:
         from vcfusion.fusion.stage import build_fusion_hook
 

@@ -113,6 +113,10 @@ class VisionConfig(_Strict):
     enabled: bool = False
     # Render every this many V2C ticks (1 = every tick).
     every_ticks: Annotated[int, Field(ge=1)] = 1
+    # Render and fuse only at ticks where a neighbour twin carries a warning (the overlay then has
+    # something to warn about; at other ticks it would draw no warning, so the driver is shown the
+    # same warnings). The guidance study's camera arms use it (speed); the video needs it off.
+    only_when_warning: bool = False
 
 
 class EgoConfig(_Strict):

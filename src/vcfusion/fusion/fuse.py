@@ -128,7 +128,7 @@ class VisionFusionHook:
     def __init__(self, frame_source: FrameSource | None, detector: Detector, seed: int, policy: GuidancePolicy,
                  method: str = "joint", depth_params: DepthEvalParams = DepthEvalParams(),
                  joint: JointMatcher | None = None, recorder: OverlayRecorder | None = None,
-                 period_s: float | None = None):
+                 period_s: float | None = None, only_when_warning: bool = False):
         if method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
         if frame_source is None:
@@ -151,6 +151,8 @@ class VisionFusionHook:
         self.period_s = period_s
         self._next_time = -np.inf
         self._shown: GuidanceSet | None = None  # the overlay on the screen
+        # fuse only where a neighbour carries a warning (the camera stage renders only there too)
+        self.only_when_warning = only_when_warning
 
     def __call__(self, tick) -> list[dict] | None:
         if tick.neighbours is None:
@@ -161,6 +163,10 @@ class VisionFusionHook:
                 tick.guidance = self._shown
                 return None
             self._next_time = tick.time + self.period_s
+        if self.only_when_warning and not self.policy.any_warning(tick.neighbours):
+            # nothing to warn about: the overlay draws no warning (no frame was rendered for it)
+            tick.guidance = self._shown = GuidanceSet((), "fusion")
+            return None
         t0 = wallclock.perf_counter()
         frame = self.frame_source(tick)
         if frame is None:

@@ -121,4 +121,5 @@ def build_fusion_hook(scenario: Scenario, seed: int, policy: GuidancePolicy, rec
 
     return VisionFusionHook(frame_source, detector or build_detector(scenario, seed), seed, policy,
                             method=scenario.fusion.method, depth_params=depth_params(scenario),
-                            recorder=recorder, period_s=scenario.ar.period_s)
+                            recorder=recorder, period_s=scenario.ar.period_s,
+                            only_when_warning=scenario.vision.only_when_warning)
