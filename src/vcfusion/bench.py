@@ -259,9 +259,34 @@ def p3_dataset(seeds: int) -> dict:
             "samples_per_s": round(samples / wall), "note": "one worker process"}
 
 
-SECTIONS = {"P1": p1_traffic, "P2": p2_vision, "P3": p3_dataset, "P4": p4_scaling, "P5": p5_memory}
-SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 240, "P5": 1.0},
-         "quick": {"P1": 3, "P2": 1, "P3": 2, "P4": 6, "P5": 0.3}}
+def p6_guidance_study(trips: int) -> dict:
+    """The default guidance study (arms none,fusion: the fusion arm renders, runs the shipped CNN,
+    matches and draws the overlay) on `trips` paired trips with 2 workers, extrapolated to the
+    200 trips of the paper's figure (linearly: workers load renderer and detector once)."""
+    import tempfile
+
+    import pandas as pd
+
+    from vcfusion.studies.guidance import run_guidance_study
+
+    with tempfile.TemporaryDirectory(prefix="vcfusion-bench-p6-") as tmp:
+        started = time.perf_counter()
+        run_guidance_study(ACCIDENT, trips, 2, Path(tmp) / "study", Path(tmp) / "renders", progress=False,
+                           arms=("none", "fusion"))
+        wall = time.perf_counter() - started
+        table = pd.read_parquet(Path(tmp) / "study" / "trips.parquet")
+    per_arm = table.groupby("arm")["arm_wall_s"].mean()
+    return {"name": f"P6 guidance study none,fusion, {trips} paired trips, 2 workers",
+            "wall_s": round(wall, 1), "per_trip_s": round(wall / trips, 2),
+            "projected_200_trips_min": round(wall / trips * 200 / 60, 1),
+            "none_arm_s": round(float(per_arm.get("none", float("nan"))), 2),
+            "fusion_arm_s": round(float(per_arm.get("fusion", float("nan"))), 2)}
+
+
+SECTIONS = {"P1": p1_traffic, "P2": p2_vision, "P3": p3_dataset, "P4": p4_scaling, "P5": p5_memory,
+            "P6": p6_guidance_study}
+SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 240, "P5": 1.0, "P6": 20},
+         "quick": {"P1": 3, "P2": 1, "P3": 2, "P4": 6, "P5": 0.3, "P6": 4}}
 
 
 def run_section(name: str, size: str) -> dict:

@@ -393,7 +393,7 @@ def plot_figures(summary: pd.DataFrame, renders: Path) -> list[Path]:
     arms = [REFERENCE_ARM] + list(summary["arm"].unique())
     for name, cols, title in (("guidance_fig8_safety_comfort.png", FIG8, "Safety and comfort (cf. paper Fig. 8)"),
                               ("guidance_fig9_fuel_emissions.png", FIG9, "Fuel and emissions (cf. paper Fig. 9)")):
-        fig, axes = plt.subplots(1, len(cols), figsize=((0.6 + 0.6 * len(arms)) * len(cols), 3.8))
+        fig, axes = plt.subplots(1, len(cols), figsize=((0.6 + 0.6 * len(arms)) * len(cols), 4.4))
         for ax, col in zip(np.atleast_1d(axes), cols):
             part = summary[summary["metric"] == col].set_index("arm")
             first = part.iloc[0]
@@ -405,8 +405,7 @@ def plot_figures(summary: pd.DataFrame, renders: Path) -> list[Path]:
                      f"{part.loc[a, 'ci95_high']:+.3g}]" for a in arms[1:]]
             if _given(first["paper_rel_change_pct"]):
                 notes.append(f"paper {first['paper_rel_change_pct']:+.1f}%")
-            ax.text(0.5, 0.02, "\n".join(notes), transform=ax.transAxes, ha="center", va="bottom", fontsize=6,
-                    bbox={"facecolor": "white", "alpha": 0.8, "lw": 0})
+            ax.set_xlabel("diff to " + REFERENCE_ARM + " [95% CI]\n" + "\n".join(notes), fontsize=6)
             ax.tick_params(labelsize=7)
         fig.suptitle(f"{title}: paired differences to '{REFERENCE_ARM}' (95% CI)", fontsize=9)
         fig.tight_layout()
