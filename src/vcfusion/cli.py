@@ -6,8 +6,32 @@ import argparse
 import sys
 from pathlib import Path
 
-from vcfusion.errors import UsageError
-from vcfusion.scenario import ScenarioError, load_scenario
+from vcfusion.errors import InputError, UsageError
+from vcfusion.scenario import load_scenario
+
+
+def check_seed(seed: int, option: str = "--seed") -> int:
+    from vcfusion.studies.batch import MAX_SEED
+
+    if not 0 <= seed <= MAX_SEED:
+        raise UsageError(f"{option}: expected a seed from 0 to {MAX_SEED}, got {seed}")
+    return seed
+
+
+def check_new_folder(out: Path, option: str = "--out") -> Path:
+    """A folder the command will create: it must not exist, and no part of its path may be a file."""
+    if out.exists():
+        raise UsageError(f"{option}: {out} already exists; choose a new folder")
+    check_folder_path(out, option)
+    return out
+
+
+def check_folder_path(out: Path, option: str = "--out") -> Path:
+    """A folder the command creates or reuses: neither it nor a parent may be a file."""
+    for part in (out, *out.parents):
+        if part.exists() and not part.is_dir():
+            raise UsageError(f"{option}: {part} is a file; expected a folder path")
+    return out
 
 # What Ctrl-C leaves of a resumable batch of seeds (batch, dataset), for the user.
 INTERRUPTED_BATCH = ("complete seeds are kept, partial ones removed; run the same command again to resume "
@@ -25,9 +49,8 @@ def _default_run_dir(name: str, seed: int) -> Path:
 
 def cmd_run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
-    out = Path(args.out) if args.out else _default_run_dir(scenario.name, args.seed)
-    if out.exists():
-        raise UsageError(f"--out: {out} already exists; choose a new run folder")
+    check_seed(args.seed)
+    out = check_new_folder(Path(args.out) if args.out else _default_run_dir(scenario.name, args.seed))
     _run_and_report(scenario, args.seed, out)
     return 0
 
@@ -52,7 +75,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
         raise UsageError(f"--dask-local: expected a positive number of worker processes, got {args.dask_local}")
     if args.scheduler is not None and not args.scheduler.startswith(("tcp://", "tls://", "inproc://", "ucx://")):
         raise UsageError(f"--scheduler: expected a Dask scheduler address like tcp://HOST:PORT, got {args.scheduler!r}")
-    out = Path(args.out) if args.out else Path("runs") / f"{scenario.name}-batch"
+    out = check_folder_path(Path(args.out) if args.out else Path("runs") / f"{scenario.name}-batch")
     executor = Executor(workers=args.workers, dask_scheduler=args.scheduler, dask_local=args.dask_local)
     report = run_batch(Path(args.scenario), seeds, out, executor=executor)
     print(f"batch {scenario.name} -> {out}: {report['done']} run, {report['skipped']} already complete, "
@@ -70,9 +93,10 @@ def cmd_study_guidance(args: argparse.Namespace) -> int:
         raise UsageError(f"--trips: expected at least 2 paired trips for a confidence interval, got {args.trips}")
     if args.workers < 1:
         raise UsageError(f"--workers: expected a positive number of processes, got {args.workers}")
-    if args.first_seed < 0:
-        raise UsageError(f"--first-seed: expected a non-negative seed, got {args.first_seed}")
-    out = Path(args.out) if args.out else Path("runs") / f"guidance-study-{Path(args.scenario).stem}"
+    check_seed(args.first_seed, "--first-seed")
+    check_seed(args.first_seed + args.trips - 1, "--first-seed + --trips - 1")
+    out = check_folder_path(Path(args.out) if args.out else Path("runs") / f"guidance-study-{Path(args.scenario).stem}")
+    check_folder_path(Path(args.renders), "--renders")
     try:
         arms = parse_arms(args.arms)
         result = run_guidance_study(Path(args.scenario), args.trips, args.workers, out, Path(args.renders),
@@ -91,15 +115,22 @@ def cmd_study_guidance(args: argparse.Namespace) -> int:
 
 
 def cmd_build_net(args: argparse.Namespace) -> int:
-    from vcfusion.traffic.network import REPO_NET_DIR, build_network
+    from vcfusion.traffic.network import REPO_NET_DIR, build_networks
 
-    out = build_network(Path(args.net_dir) if args.net_dir else REPO_NET_DIR)
-    print(f"built {out}")
+    try:
+        built = build_networks(Path(args.net_dir) if args.net_dir else REPO_NET_DIR)
+    except RuntimeError as exc:
+        raise UsageError(str(exc)) from None
+    for out in built:
+        print(f"built {out}")
     return 0
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
+    check_seed(args.seed)
+    if args.trips < 2:
+        raise UsageError(f"--trips: expected at least 2 paired trips for a confidence interval, got {args.trips}")
     _run_and_report(scenario, args.seed, _default_run_dir(scenario.name, args.seed))
     return _demo_guidance_study(args)
 
@@ -145,9 +176,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise UsageError(f"--every: expected a positive number of V2C ticks, got {args.every}")
     if scenario.ego is None:
         raise UsageError(f"{args.scenario}: ego: the camera rides on the ego; the scenario has no ego block")
-    out = Path(args.out) if args.out else Path("renders") / f"{scenario.name}-dataset"
-    if out.exists():
-        raise UsageError(f"--out: {out} already exists; choose a new dataset folder")
+    out = check_new_folder(Path(args.out) if args.out else Path("renders") / f"{scenario.name}-dataset")
     from vcfusion.render.export import render_dataset
 
     counts = render_dataset(scenario, seeds, args.every, out, progress=sys.stderr.isatty())
@@ -204,8 +233,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_study_guidance,
                    interrupted="the study wrote nothing; run the same command again (its trips start over)")
 
-    p = sub.add_parser("build-net", help="rebuild sumo_net/highway.net.xml with netconvert")
-    p.add_argument("--net-dir", help="folder with highway.nod/edg/typ.xml (default: the repo's sumo_net)")
+    p = sub.add_parser("build-net", help="rebuild every sumo_net/NAME.net.xml with netconvert")
+    p.add_argument("--net-dir", help="folder with NAME.nod/edg.xml (+ .typ/.con.xml) (default: the repo's sumo_net)")
     p.set_defaults(func=cmd_build_net)
 
     p = sub.add_parser("bench", help="benchmark suite: print figures, write bench.json and bench.md")
@@ -254,8 +283,9 @@ def main(argv: list[str] | None = None) -> int:
         hint = getattr(args, "interrupted", None)
         print("interrupted" + (f": {hint}" if hint else ""), file=sys.stderr)
         return 130
-    except (ScenarioError, UsageError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except InputError as exc:  # scenario, model, dataset and command-line values (vcfusion.errors)
+        for line in str(exc).splitlines():  # one line per problem (a scenario file may have several)
+            print(f"error: {line}", file=sys.stderr)
         return 2
     except FileExistsError as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 from pathlib import Path
 
 from vcfusion.cloud.twins import ProcessModel
@@ -67,37 +69,44 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
     return CoSimulation(scenario, seed, controller=controller, process_models=process_models, hooks=hooks)
 
 
-def video_dir_for(out_dir: Path) -> Path:
-    """Where a run's AR overlay frames and mp4 go: renders/<run folder name>/."""
-    return Path("renders") / Path(out_dir).name
-
-
 def manifest_for(scenario: Scenario, seed: int) -> dict:
     return {
+        # the resolved scenario: the file merged over the files it extends, defaults filled in
         "scenario": scenario.to_dict() | {"network": scenario.network.name, "vehicle_types": scenario.vehicle_types.name},
         "scenario_file": str(scenario.source) if scenario.source else None,
+        # the file given and the files it extends, in that order (one file when it extends none)
+        "scenario_chain": [str(p) for p in scenario.chain],
         "seed": seed,
         "versions": package_versions(),
     }
 
 
 def execute_run(scenario: Scenario, seed: int, out_dir: Path | None, progress: bool = False) -> RunResult:
-    """Simulate one seed; write the run folder when out_dir is given (and the AR video when the
-    scenario asks for it: renders/<run folder name>/overlay.mp4 + frames/)."""
-    recorder = None
+    """Simulate one seed; write the run folder when out_dir is given, with the AR video in it when
+    the scenario asks for it (overlay.mp4 + frames/): the folder is whole or absent."""
+    recorder, staging = None, None
     if out_dir is not None and scenario.fusion.enabled and scenario.ar.video:
         from vcfusion.fusion.overlay import OverlayRecorder
 
-        recorder = OverlayRecorder(video_dir_for(out_dir), fps=1.0 / scenario.ar.period_s)
+        out_dir = Path(out_dir)
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        # beside the run folder (same file system: moved in, not copied); removed whatever happens
+        staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.video-", dir=out_dir.parent))
+        recorder = OverlayRecorder(staging / "video", fps=1.0 / scenario.ar.period_s)
     try:
         result = build_cosimulation(scenario, seed, recorder=recorder).run(progress=progress)
         if out_dir is not None:
-            write_run_folder(Path(out_dir), result.tables, manifest_for(scenario, seed), result.summary)
+            video = {}
+            if recorder is not None:
+                folder = recorder.close()
+                recorder = None
+                video = {name: folder / name for name in ("overlay.mp4", "frames") if (folder / name).exists()}
+            write_run_folder(Path(out_dir), result.tables, manifest_for(scenario, seed), result.summary,
+                             extra_files=video)
             result.tables.relocate(Path(out_dir))
-    except BaseException:
+    finally:
         if recorder is not None:
             recorder.abort()
-        raise
-    if recorder is not None:
-        recorder.close()
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
     return result

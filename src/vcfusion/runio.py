@@ -204,7 +204,9 @@ def write_run_folder(out_dir: Path, tables: Mapping[str, pd.DataFrame | Path], m
                      extra_files: dict[str, Path] | None = None) -> Path:
     """Write a complete run folder at out_dir (which must not exist yet).
 
-    A table given as a Path is an already-written Parquet file and is moved in.
+    A table given as a Path is an already-written Parquet file and is moved in, and so are
+    `extra_files` (name in the folder -> file or folder, e.g. the AR video and its frames).
+    summary.json gets the list of the folder's files.
     """
     if isinstance(tables, RunTables):
         tables = tables.sources()
@@ -218,7 +220,9 @@ def write_run_folder(out_dir: Path, tables: Mapping[str, pd.DataFrame | Path], m
                 write_table(tmp / f"{name}.parquet", frame)
         for name, src in (extra_files or {}).items():
             shutil.move(str(src), tmp / name)
-        write_json(tmp / SUMMARY, summary)
+        # what the folder holds (a folder's name ends in '/'), these two JSON files included
+        files = sorted([p.name + "/" * p.is_dir() for p in tmp.iterdir()] + [SUMMARY, MANIFEST])
+        write_json(tmp / SUMMARY, {**summary, "files": files})
         write_json(tmp / MANIFEST, manifest)  # last: its presence marks a complete run
     return Path(out_dir)
 

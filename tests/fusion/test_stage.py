@@ -2,6 +2,7 @@
 a camera hook through `tick.frame`, and (once the rendering stage is present) `vcfusion run`
 with real renders writing the fusion table and the AR video."""
 
+import json
 from pathlib import Path
 
 import cv2
@@ -84,7 +85,15 @@ def test_run_with_rendered_camera_writes_fusion_table_and_video(tmp_path, monkey
     assert main(["run", str(path), "--seed", "1", "--out", "runs/a"]) == 0
     table = pd.read_parquet(tmp_path / "runs" / "a" / "fusion.parquet")
     assert len(table) > 20 and table["matched"].mean() > 0.9
-    cap = cv2.VideoCapture(str(tmp_path / "renders" / "a" / "overlay.mp4"))
+    # everything the run writes is in its run folder, listed by its summary
+    run = tmp_path / "runs" / "a"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name, "runs"]
+    assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == ["a"]
+    files = json.loads((run / "summary.json").read_text())["files"]
+    assert files == sorted(p.name + "/" * p.is_dir() for p in run.iterdir())
+    assert {"overlay.mp4", "frames/", "fusion.parquet", "manifest.json"} <= set(files)
+    assert len(list((run / "frames").glob("*.png"))) == table["time"].nunique()
+    cap = cv2.VideoCapture(str(run / "overlay.mp4"))
     ok, first = cap.read()
     assert ok and first.shape == (480, 640, 3)
     assert cap.get(cv2.CAP_PROP_FRAME_COUNT) == table["time"].nunique()

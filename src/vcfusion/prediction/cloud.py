@@ -86,9 +86,7 @@ def predictor_for_scenario(scenario, road: Road) -> LaneChangePredictor | None:
         model = load_model(cfg.model)
     except ModelFileError as exc:
         raise ScenarioError(f"{scenario.source}: prediction.model: {exc}") from None
-    if abs(model.period_s - scenario.v2c.period_s) > 1e-9:
-        raise ScenarioError(f"{scenario.source}: prediction.model: trained for a V2C period of {model.period_s} s, "
-                            f"the scenario's v2c.period_s is {scenario.v2c.period_s} s")
+    # (load_scenario checked the model's V2C period against the scenario's)
     return LaneChangePredictor(model, road, scenario.v2c.period_s, cfg.smoothing, cfg.threshold,
                                cfg.tau_a_ticks, cfg.tau_c_ticks, cfg.conservative_threshold,
                                flag_end_after_mid_s=scenario.simulation.lanechange_duration_s / 2)

@@ -28,25 +28,26 @@ from vcfusion.workers import JobFailed, run_jobs
 LOST_WORKER_RETRIES = 2
 
 
-def parse_seeds(text: str) -> list[int]:
-    """'0-99', '3', '1,4,7-9' -> sorted unique seeds."""
-    seeds: set[int] = set()
+MAX_SEED = 2**31 - 1  # SUMO's --seed is a C int
+MAX_SEEDS = 1_000_000  # seeds of one command: a typo like 0-99999999999 is refused, not enumerated
+
+
+def parse_seeds(text: str, option: str = "--seeds") -> list[int]:
+    """'0-99', '3', '1,4,7-9' -> sorted unique seeds (UsageError naming `option` otherwise)."""
+    expected = f"{option}: expected seeds from 0 to {MAX_SEED} like '0-99' or '1,4,7-9'"
+    ranges = []
     try:
         for part in text.split(","):
-            part = part.strip()
-            if "-" in part:
-                lo, hi = (int(x) for x in part.split("-", 1))
-                if lo > hi or lo < 0:
-                    raise ValueError
-                seeds.update(range(lo, hi + 1))
-            else:
-                seed = int(part)
-                if seed < 0:
-                    raise ValueError
-                seeds.add(seed)
+            lo, _, hi = part.strip().partition("-")
+            lo, hi = int(lo), int(hi) if hi else int(lo)
+            if not 0 <= lo <= hi <= MAX_SEED:
+                raise ValueError
+            ranges.append((lo, hi))
     except ValueError:
-        raise UsageError(f"--seeds: expected non-negative seeds like '0-99' or '1,4,7-9', got {text!r}") from None
-    return sorted(seeds)
+        raise UsageError(f"{expected}, got {text!r}") from None
+    if sum(hi - lo + 1 for lo, hi in ranges) > MAX_SEEDS:
+        raise UsageError(f"{expected} (at most {MAX_SEEDS:,} seeds), got {text!r}")
+    return sorted({s for lo, hi in ranges for s in range(lo, hi + 1)})
 
 
 def seed_folder(out: Path, seed: int) -> Path:
@@ -104,7 +105,10 @@ def _pool_outcomes(executor: Executor, task, jobs: list[tuple], out: Path):
 
     def started(index: int, pid: int) -> None:
         running.mkdir(exist_ok=True)
-        (running / f"seed_{jobs[index][1]:04d}.pid").write_text(f"{pid}\n")
+        # written under another name and renamed: a reader never sees an empty pid file
+        pid_file = running / f"seed_{jobs[index][1]:04d}.pid"
+        pid_file.with_suffix(".pid-writing").write_text(f"{pid}\n")
+        pid_file.with_suffix(".pid-writing").replace(pid_file)
 
     try:
         for index, result in run_jobs(task, jobs, executor.workers, on_start=started):

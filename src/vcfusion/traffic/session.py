@@ -122,10 +122,7 @@ class SumoSession:
         self.road = read_road(scenario.network)
         self.vtypes = read_vehicle_types(scenario.vehicle_types)
         self.step_s = scenario.simulation.step_s
-        for vt in self._vtypes_used():
-            if vt not in self.vtypes:
-                raise RunError(f"vehicle type {vt!r} is not defined in {scenario.vehicle_types}")
-        self._check_lanes()
+        # (load_scenario checked the vehicle types, lanes and positions against these files)
         self.placements = plan_placements(scenario, self.road, self.vtypes, rng)
         self.sumo_args = [
             "sumo",
@@ -155,25 +152,6 @@ class SumoSession:
         except Exception:
             self.close()
             raise
-
-    def _vtypes_used(self) -> set[str]:
-        sc = self.scenario
-        used = {g.vtype for g in sc.vehicles} | {f.vtype for f in sc.flows}
-        if sc.accident is not None:
-            used.add(sc.accident.vtype)
-        if sc.ego is not None:
-            used.add(sc.ego.vtype)
-        return used
-
-    def _check_lanes(self) -> None:
-        sc = self.scenario
-        lanes = [("ego.lane", sc.ego.lane)] if sc.ego else []
-        lanes += [(f"vehicles.{g.name}.lanes", lane) for g in sc.vehicles for lane in g.lanes]
-        lanes += [(f"flows[{i}].lanes", lane) for i, f in enumerate(sc.flows) for lane in f.lanes]
-        lanes += [("accident.lanes", lane) for lane in (sc.accident.lanes if sc.accident else [])]
-        for field, lane in lanes:
-            if lane >= self.road.num_lanes:
-                raise RunError(f"{field}: lane {lane} does not exist (the road has {self.road.num_lanes} lanes)")
 
     # -- set-up -------------------------------------------------------------------------
     def _populate(self) -> None:
