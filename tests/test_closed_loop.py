@@ -131,3 +131,18 @@ def test_right_boxes_count_as_right():
     assert set(driver.warnings) == {"cutter"}
     assert highlight_counts(guidance, fusion, 0.1) == {"highlights_right": 1, "highlights_wrong": 0,
                                                        "missed_warnings": 0}
+
+
+def test_box_owner_counts_the_pixels_inside_the_box():
+    from vcfusion.fusion.fuse import box_owner
+
+    inst = np.full((10, 10), -1, np.int32)
+    inst[:, 0:5] = 0
+    inst[:, 5:10] = 1
+    inst[0:2, :] = -1  # sky
+    ids = ("a", "b")
+    # pixel-centre convention: columns 2..7 inside (3 of each vehicle): a tie goes to the lower index
+    assert box_owner((1.5, -0.5, 7.5, 9.5), inst, ids) == "a"
+    assert box_owner((2.5, -0.5, 8.5, 9.5), inst, ids) == "b"  # columns 3..8: 2 of a, 4 of b
+    assert box_owner((1.5, -0.5, 7.5, 1.5), inst, ids) is None  # rows 0..1: no vehicle pixel
+    assert box_owner((1.5, -0.5, 7.5, 9.5), None, ids) is None  # no instance map
