@@ -170,7 +170,9 @@ class DriverModel:
 
     def _notice(self, now: float, seen: _Seen, lateral: dict, lane: dict) -> None:
         policy, w = self.policy, self.policy.lane_width_m
-        ahead = {vid for vid in lateral if policy.ahead(seen.rear[vid], seen.ego_front, self.p.notice_range_m)}
+        # a list in the tick's vehicle order (a set's order would follow the process's string hashing,
+        # and the events table must be the same in every process)
+        ahead = [vid for vid in lateral if policy.ahead(seen.rear[vid], seen.ego_front, self.p.notice_range_m)]
         # anticipation: a moving neighbour with a stopped vehicle ahead of it in its own lane
         stopped = [(lane[v], seen.rear[v]) for v in lateral if seen.speed[v] < STOPPED_MPS and lane[v] != 0]
         for vid in ahead:
