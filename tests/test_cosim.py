@@ -317,3 +317,13 @@ def test_process_models_declare_their_end_of_run_step(tmp_path):
                                           r"process model lane_change \(LaneChangePredictor\)"):
         CoSimulation(sc, 0, controller=cosim.controller, process_models=cosim.process_models,
                      hooks=cosim.hooks + [AlsoFlags()])
+
+
+def test_the_ego_lane_of_a_lane_change_is_the_one_the_ego_drives_in_at_its_midpoint():
+    from vcfusion.cosim import _ego_lane_at
+    from vcfusion.traffic.network import read_road
+
+    road = read_road(REPO / "sumo_net" / "highway.net.xml")  # 3 lanes of 3.5 m
+    tracks = {"ego": {"time": np.array([0.0, 0.1, 0.2, 0.3]), "d": np.array([8.75, 6.9, 5.3, 5.25])}}
+    assert _ego_lane_at(tracks, np.array([0.0, 0.12, 0.3]), road, 2).tolist() == [2, 1, 1]
+    assert _ego_lane_at({}, np.array([1.0]), road, 2).tolist() == [2]

@@ -17,8 +17,9 @@ from __future__ import annotations
 import tempfile
 import time as wallclock
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
 import numpy as np
 import pandas as pd
@@ -27,12 +28,15 @@ from tqdm import tqdm
 
 from vcfusion.cloud.channel import V2CChannel
 from vcfusion.cloud.twins import ProcessModel, TwinStore, neighbours
+from vcfusion.metrics.run_metrics import add_run_metrics
+from vcfusion.metrics.traffic import sumo_model_rates
 from vcfusion.records import EGO_ID, GuidanceSet, TwinStates, VehicleStates
 from vcfusion.runio import RunTables, TableSink, vehicle_tracks
 from vcfusion.scenario import Scenario
 from vcfusion.stages import WiringError, check_wiring, declared, stage_name
 from vcfusion.threads import one_blas_thread
-from vcfusion.traffic.lanechanges import lane_change_events, read_sumo_lanechanges, relate_to_ego
+from vcfusion.traffic.lanechanges import (ego_lane_changes, lane_change_events, merge_changes, read_sumo_lanechanges,
+                                          relate_to_ego)
 from vcfusion.traffic.network import Road
 from vcfusion.traffic.session import Collision, SumoSession
 
@@ -74,9 +78,35 @@ class Tick:
 
 
 class EgoController(Protocol):
-    """Sets the ego's acceleration every tick; may declare `needs` and `finish` (vcfusion.stages)."""
+    """Sets the ego's acceleration every tick; may declare `needs` and `finish` (vcfusion.stages).
+
+    A controller may also have ``step(EgoStep) -> EgoCommand``, called every SUMO step after the
+    tick's stages: a person at the wheel (vcfusion.hitl) acts between ticks, and steers."""
 
     def acceleration(self, tick: Tick) -> float: ...
+
+
+@dataclass(frozen=True)
+class EgoStep:
+    """What a per-step ego controller sees before each SUMO step."""
+
+    time: float
+    s_front: float  # front bumper along the road
+    speed: float
+    states: Callable[[], VehicleStates]  # the ground truth now, read on demand (e.g. a display frame)
+
+
+@dataclass(frozen=True)
+class EgoCommand:
+    """A per-step controller's command for the next step: the acceleration, and optionally where the
+    ego's front bumper centre is across the road (`d`, m left of the right road edge) and its yaw
+    relative to the road (rad, left positive). With `d` set the ego is placed (SUMO moveToXY,
+    keepRoute=2: it stays on its edge, in the lane under its centre, and SUMO's followers and
+    collision check see it there); without, it keeps its lane as SUMO drives it."""
+
+    accel: float
+    d: float | None = None
+    yaw: float = 0.0
 
 
 class TickHook(Protocol):
@@ -181,8 +211,10 @@ class CoSimulation:
         sinks = {name: TableSink(Path(workdir.name) / f"{name}.parquet") for name in STREAMED_TABLES}
         sinks.update({hook.table: TableSink(Path(workdir.name) / f"{hook.table}.parquet") for hook in self.hooks})
         lc_file = Path(workdir.name) / "lanechanges.xml"
+        tripinfo = Path(workdir.name) / "tripinfo.xml"  # SUMO's emission totals (metrics)
         session = SumoSession(sc, self.seed, lc_file, np.random.default_rng(self.rng.integers(2**63)),
-                              self.extra_sumo_args)
+                              self.extra_sumo_args, (tripinfo, partial(sumo_model_rates, sc.metrics))
+                              if sc.metrics.enabled else None)
         try:
             loop_started = wallclock.perf_counter()
             with one_blas_thread():  # small per-tick arrays: BLAS threads only cost hand-offs
@@ -202,14 +234,21 @@ class CoSimulation:
         lateral = tables.arrow("trajectories", ["vehicle_id", "time", "d", "s"])
         # the changers' and the ego's samples as plain arrays, selected once for both lane-change steps
         tracks = vehicle_tracks(lateral, set(sumo_changes["vehicle_id"]) | {EGO_ID}, ["time", "d", "s"])
-        events = lane_change_events(sumo_changes, tracks, session.road)
         if sc.ego is not None:
             lengths = dict(zip(vehicles["vehicle_id"], vehicles["length"]))
-            events = relate_to_ego(events, tracks, lengths, sc.ego.lane)
+            # a person steers the ego across lanes; SUMO does not report those changes
+            sumo_changes = merge_changes(sumo_changes, ego_lane_changes(tracks.get(EGO_ID), session.road,
+                                                                        lengths[EGO_ID]))
+        events = lane_change_events(sumo_changes, tracks, session.road)
+        if sc.ego is not None:
+            events = relate_to_ego(events, tracks, lengths, _ego_lane_at(tracks, events["mid_time"], session.road,
+                                                                         sc.ego.lane))
         tables["lane_changes"] = pd.DataFrame(events)
         summary = summarize(sc, self.seed, tables, events, out["channel"], out["end_reason"], lateral)
         for stage in self.stages():
             _finish(stage, tables, summary)
+        if sc.metrics.enabled:  # per-vehicle safety, comfort and emissions (vcfusion.metrics)
+            summary["metrics"] = add_run_metrics(sc, tables, tripinfo, session.emission_classes)
         return RunResult(sc, self.seed, tables, summary, wallclock.perf_counter() - started, loop_wall)
 
     def _loop(self, session: SumoSession, sinks: dict[str, TableSink], progress: bool) -> dict:
@@ -228,6 +267,8 @@ class CoSimulation:
         ego_cfg = sc.ego
         ego_speed = ego_cfg.speed_mps if ego_cfg else 0.0
         ego_accel = 0.0
+        stepper = getattr(self.controller, "step", None)  # a per-step controller (a person driving)
+        command = None
         if ego_cfg is not None:
             trip_end_s = ego_cfg.depart_pos_m + ego_cfg.trip_distance_m
         end_reason = "max_time"
@@ -269,6 +310,9 @@ class CoSimulation:
                     sinks[hook.table].append_rows(hook(tick) or [])
                 if ego_cfg is not None:
                     ego_accel = float(self.controller.acceleration(tick))
+            if stepper is not None:
+                command = stepper(EgoStep(session.time, s_front, ego_speed_now, session.states))
+                ego_accel = float(command.accel)
             if ego_cfg is not None:
                 ego_rows.append((round(session.time, 6), s_front, ego_speed_now, sumo_acc, ego_accel,
                                  *(leader or ("", np.nan))))
@@ -277,6 +321,9 @@ class CoSimulation:
                     ego_rows = []
                 ego_speed = max(0.0, ego_speed + ego_accel * dt)
                 session.set_ego_speed(ego_speed)
+                if command is not None and command.d is not None:
+                    # SUMO moves its vehicles s += v dt with the new speed; the placed ego does the same
+                    session.place_ego(s_front + ego_speed * dt * np.cos(command.yaw), command.d, command.yaw)
             session.step()
             k += 1
             if k % tick_every == 0:
@@ -301,6 +348,16 @@ class CoSimulation:
             leader_gap_m=leader[1] if leader else None,
             leader_speed=session.speed_of(leader[0]) if leader else None,
         )
+
+
+def _ego_lane_at(tracks: dict, times: np.ndarray, road: Road, start_lane: int) -> np.ndarray:
+    """The ego's lane at each of `times` (its nearest trajectory sample): a person may change
+    lanes (vcfusion.hitl), so "into the ego's lane" means the lane it drives in then."""
+    ego = tracks.get(EGO_ID)
+    if ego is None or not len(ego["time"]) or not len(times):
+        return np.full(len(times), start_lane)
+    at = np.abs(ego["time"][None, :] - np.asarray(times)[:, None]).argmin(axis=1)
+    return road.lane_of(ego["d"][at])
 
 
 def _finish(stage, tables: RunTables, summary: dict) -> None:

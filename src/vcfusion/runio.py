@@ -172,6 +172,10 @@ class RunTables(Mapping):
     def update(self, other: dict[str, pd.DataFrame]) -> None:
         self._frames.update(other)
 
+    def add_arrow(self, name: str, table: pa.Table) -> None:
+        """A table made as Arrow (converted to pandas only if someone reads it)."""
+        self._stored[name] = table
+
     def sources(self) -> dict[str, pd.DataFrame | pa.Table | Path]:
         """Each table as a DataFrame, an Arrow table or its already-written Parquet file."""
         return {**self._stored, **self._frames}

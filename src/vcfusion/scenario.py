@@ -203,6 +203,40 @@ class PredictionConfig(_Strict):
     conservative_threshold: Probability = 0.5
 
 
+class MetricsConfig(_Strict):
+    """Safety, comfort and emission metrics of every vehicle of a run (vcfusion.metrics).
+
+    One place for the thresholds and definitions: runs, batches, `vcfusion metrics` and the
+    guidance study all read them from here (docs/architecture.md, "Metrics").
+    """
+
+    enabled: bool = True
+    # TTC below which a following situation is a conflict (TET/TIT, conflict episodes): 1.5 s, the
+    # SSAM default (Gettman & Head, "Surrogate Safety Measures From Traffic Simulation Models",
+    # FHWA-RD-03-050, 2003; Gettman et al., "Surrogate Safety Assessment Model and Validation",
+    # FHWA-HRT-08-051, 2008).
+    ttc_threshold_s: Positive = 1.5
+    # Jerk: the acceleration (speed difference per sample) is smoothed by a centred moving average
+    # over this window before it is differentiated (one V2C tick: the ego's command is piecewise
+    # constant over a tick; at the 0.1 s trajectory period it is no smoothing).
+    jerk_window_s: Positive = 0.1
+    # The guidance study's mean TTC to the cut-in vehicle is also given with TTC clipped here.
+    ttc_clip_s: Positive = 20.0
+    # A vehicle's leader is the nearest vehicle ahead in its lane within this range (bumper to bumper).
+    leader_range_m: Positive = 250.0
+    # MOVESTAR source type (1 light-duty passenger car, 2 light-duty truck) by SUMO vType id or vClass
+    # (the vType id wins); vehicles of other types (trucks, buses) get SUMO's emission model only.
+    movestar: dict[str, Literal[1, 2]] = {"passenger": 1}
+    # The vehicles SUMO's own emission model rates (HBEFA/PHEMlight, the class their vType sets):
+    # "others" = those without a MOVESTAR type (trucks, buses: every vehicle gets one model), "all"
+    # (the cars too, a second opinion; SUMO then rates every vehicle every step, which costs the run
+    # ~20-30 %), "none".
+    sumo_emissions: Literal["others", "all", "none"] = "others"
+    # Vehicles of these placement groups (vehicles.parquet `group`) keep their rows and still lead
+    # others, but are left out of the traffic-wide figures (the parked accident vehicles are obstacles).
+    exclude_groups: list[str] = ["accident"]
+
+
 class Scenario(_Strict):
     name: str
     description: str = ""
@@ -220,6 +254,7 @@ class Scenario(_Strict):
     flows: list[Flow] = []
     accident: AccidentConfig | None = None
     prediction: PredictionConfig = PredictionConfig()
+    metrics: MetricsConfig = MetricsConfig()
     # Where the scenario was read from (set by the loader, not by the file): the file given and,
     # when it extends others, the chain of files it was merged from (the given file first).
     source: Path | None = Field(default=None, exclude=True)

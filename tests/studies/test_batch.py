@@ -34,7 +34,8 @@ def test_batch_resumes_and_runs_identically(tmp_path, accident_path):
     cli_out = tmp_path / "cli"
     subprocess.run([sys.executable, "-m", "vcfusion", "run", str(accident_path), "--seed", "7",
                     "--out", str(cli_out)], check=True, capture_output=True)
-    for name in ("trajectories", "twins", "ego", "lane_changes", "collisions", "vehicles"):
+    for name in ("trajectories", "twins", "ego", "lane_changes", "collisions", "vehicles", "metrics", "conflicts",
+                 "metric_histograms", "sumo_emissions"):
         assert (cli_out / f"{name}.parquet").read_bytes() == (seed_folder(out, 7) / f"{name}.parquet").read_bytes()
 
 

@@ -20,6 +20,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from vcfusion.errors import UsageError
+from vcfusion.metrics.run_metrics import batch_row
 from vcfusion.runio import discard_partial_folder, is_complete_run, write_json, write_table
 from vcfusion.workers import JobFailed, run_jobs
 
@@ -201,7 +202,7 @@ def _write_index(out: Path, seeds: list[int], failed: list[SeedOutcome]) -> None
         folder = seed_folder(out, s)
         if is_complete_run(folder):
             summary = json.loads((folder / "summary.json").read_text())
-            rows.append({k: v for k, v in summary.items() if not isinstance(v, (dict, list))})
+            rows.append(batch_row(summary))
     if rows:
         write_table(out / "batch_summary.parquet", pd.DataFrame(rows).sort_values("seed"))
     failures_file = out / "failures.json"

@@ -64,8 +64,8 @@ SAFETY_METRICS = [
     ("avg_ttc_s", "average TTC to the lane-change vehicle", "s", None, None, 30.31),
     ("avg_ttc_clipped_s", "average TTC, clipped at 20 s", "s", None, None, None),
     ("min_ttc_s", "minimum TTC to the lane-change vehicle", "s", None, None, None),
-    ("tet_s", "TET (TTC < 3 s)", "s", None, None, None),
-    ("tit_s2", "TIT (TTC < 3 s)", "s^2", None, None, None),
+    ("tet_s", "TET (TTC < metrics.ttc_threshold_s)", "s", None, None, None),
+    ("tit_s2", "TIT (TTC < metrics.ttc_threshold_s)", "s^2", None, None, None),
     ("avg_abs_accel_mps2", "average |acceleration|", "m/s^2", 2.57, 2.07, None),
     ("max_abs_jerk_mps3", "maximum |jerk|", "m/s^3", 40.14, 35.91, None),
     ("max_decel_mps2", "maximum deceleration", "m/s^2", None, None, None),
@@ -210,6 +210,7 @@ def arm_metrics(run: dict, target_id: str | None) -> dict:
     against the seed's `target_id`."""
     from vcfusion.metrics.movestar import trip_emissions
     from vcfusion.metrics.safety import cut_in_target, trip_metrics
+    from vcfusion.metrics.traffic import ego_movestar_type
 
     sc, tables, arm = run["scenario"], dict(run["tables"]), run["arm"]
     own = cut_in_target(tables.get("lane_changes"))
@@ -218,14 +219,17 @@ def arm_metrics(run: dict, target_id: str | None) -> dict:
         tables["lane_changes"] = lc[lc["vehicle_id"] == target_id]
     row = {"end_reason": run["summary"]["end_reason"],
            "cut_ins_ahead_of_ego": run["summary"].get("cut_ins_ahead_of_ego", 0)}
-    row.update(trip_metrics(tables, sc.ego.lane, sc.simulation.step_s))
+    m = sc.metrics  # the same thresholds and definitions as the runs' metrics tables
+    row.update(trip_metrics(tables, sc.ego.lane, sc.simulation.step_s, m.ttc_threshold_s, m.jerk_window_s,
+                            m.ttc_clip_s))
+    row["ttc_threshold_s"] = m.ttc_threshold_s
     row["target_id"] = target_id
     # whether the seed's vehicle cut in ahead of the ego in this arm (else its TTC / gap are NaN)
     row["target_cut_in_here"] = bool(target_id is not None and not math.isnan(row["target_mid_time_s"]))
     row["own_first_cut_in_id"] = None if own is None else str(own["vehicle_id"])
     row["first_cut_in_differs"] = row["own_first_cut_in_id"] != target_id
     ego = tables["ego"]
-    em = trip_emissions(ego["time"].to_numpy(), ego["speed"].to_numpy())
+    em = trip_emissions(ego["time"].to_numpy(), ego["speed"].to_numpy(), ego_movestar_type(sc, tables["vehicles"]))
     pk = em["per_km"]
     row.update({
         "fuel_g_per_km": pk["Fuel"], "co_g_per_km": pk["CO"], "hc_g_per_km": pk["HC"], "nox_g_per_km": pk["NOx"],

@@ -53,6 +53,39 @@ def read_sumo_lanechanges(path: str | Path) -> dict[str, np.ndarray]:
     return {name: np.array(v, dtype=dtype) for (name, dtype), v in zip(SUMO_CHANGE_DTYPES.items(), values)}
 
 
+PERSON_REASON = "person"  # the ego's lane changes when a person steers it (vcfusion.hitl)
+
+
+def ego_lane_changes(track: dict[str, np.ndarray] | None, road: Road, ego_length_m: float) -> dict[str, np.ndarray]:
+    """The ego's own lane changes as SUMO would report them (one row per change, columns of
+    SUMO_CHANGE_DTYPES), from its trajectory: SUMO's lanechange-output does not see a vehicle
+    placed with moveToXY. The midpoint is the first sample with the centre line in the new lane
+    (at the trajectory's period); pos_m the front bumper there, speed from the neighbouring
+    samples; reason `person`; the gaps are not known (NaN). A model-driven ego never changes
+    lanes: no rows."""
+    empty = {name: np.array([], dtype=dtype) for name, dtype in SUMO_CHANGE_DTYPES.items()}
+    if track is None or len(track["time"]) < 2:
+        return empty
+    t, d, s = track["time"], track["d"], track["s"]
+    lane = road.lane_of(d)
+    k = np.flatnonzero((lane[1:] != lane[:-1]) & (lane[1:] >= 0) & (lane[:-1] >= 0)) + 1
+    if not len(k):
+        return empty
+    lo, hi = np.maximum(k - 1, 0), np.minimum(k + 1, len(t) - 1)
+    return {
+        "vehicle_id": np.full(len(k), EGO_ID).astype(str), "mid_time": t[k].astype(float),
+        "from_lane": lane[k - 1].astype(np.int64), "to_lane": lane[k].astype(np.int64),
+        "direction": np.sign(lane[k].astype(np.int64) - lane[k - 1]),  # SUMO: +1 = to the left
+        "reason": np.full(len(k), PERSON_REASON).astype(str), "pos_m": s[k] + ego_length_m / 2,
+        "speed_mps": (s[hi] - s[lo]) / (t[hi] - t[lo]), "leader_gap_m": np.full(len(k), np.nan),
+        "follower_gap_m": np.full(len(k), np.nan),
+    }
+
+
+def merge_changes(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {name: np.concatenate([a[name], b[name]]).astype(dtype) for name, dtype in SUMO_CHANGE_DTYPES.items()}
+
+
 def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, dict[str, np.ndarray]],
                        road: Road) -> dict[str, np.ndarray]:
     """Add start and end times from the lateral trajectory; one element per lane change, in
@@ -81,8 +114,9 @@ def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, di
 
 
 def relate_to_ego(events: dict[str, np.ndarray], tracks: dict[str, dict[str, np.ndarray]],
-                  lengths: dict[str, float], ego_lane: int) -> dict[str, np.ndarray]:
+                  lengths: dict[str, float], ego_lane: int | np.ndarray) -> dict[str, np.ndarray]:
     """Mark lane changes into the ego's lane and where they happened relative to the ego.
+    `ego_lane`: the ego's lane, or per event the ego's lane at the change's midpoint.
 
     `gap_to_ego_m`: bumper to bumper along the road, the changer's rear minus the ego's front,
     at the trajectory sample nearest the change's midpoint. `tracks`: time and s of the ego's

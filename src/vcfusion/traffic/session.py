@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import libsumo
 import numpy as np
@@ -116,7 +117,10 @@ class SumoSession:
     """One running SUMO simulation of a scenario."""
 
     def __init__(self, scenario: Scenario, seed: int, lanechange_file: Path, rng: np.random.Generator,
-                 extra_sumo_args: list[str] | None = None):
+                 extra_sumo_args: list[str] | None = None,
+                 emissions: tuple[Path, Callable[[str, str], bool]] | None = None):
+        """`emissions`: (tripinfo file, rated(vtype, vclass)): SUMO's emissions device on the vehicles
+        whose type `rated` names, their trip totals written to the tripinfo file (the metrics)."""
         self.scenario = scenario
         self.seed = seed
         self.road = read_road(scenario.network)
@@ -124,6 +128,7 @@ class SumoSession:
         self.step_s = scenario.simulation.step_s
         # (load_scenario checked the vehicle types, lanes and positions against these files)
         self.placements = plan_placements(scenario, self.road, self.vtypes, rng)
+        self._emission_types: list[str] = []
         self.sumo_args = [
             "sumo",
             "--net-file", str(scenario.network),
@@ -137,6 +142,7 @@ class SumoSession:
             "--no-step-log", "true",
             "--no-warnings", "true",
             "--duration-log.disable", "true",
+            *(self._emission_args(*emissions) if emissions else []),
             *(extra_sumo_args or []),
         ]
         libsumo.start(self.sumo_args)
@@ -148,14 +154,29 @@ class SumoSession:
         self.collisions: list[Collision] = []  # every collision SUMO reported, in step order
         self._ego_min_gap: float | None = None
         try:
+            # SUMO's emission model of each vehicle type (HBEFA/PHEMlight; SUMO's default where the type names none)
+            self.emission_classes = {vt: libsumo.vehicletype.getEmissionClass(vt) for vt in self.vtypes}
             self._populate()
         except Exception:
             self.close()
             raise
 
+    def _emission_args(self, tripinfo: Path, rated: Callable[[str, str], bool]) -> list[str]:
+        # The device goes on the rated types only (_populate): it rates its vehicles every step, which
+        # costs more than the rest of the metrics when every vehicle has it. Not by
+        # --device.emissions.explicit: libsumo keeps the first run's list for the process's later runs.
+        sc = self.scenario
+        used = {g.vtype for g in sc.vehicles} | {f.vtype for f in sc.flows}
+        used |= {sc.accident.vtype} if sc.accident else set()
+        used |= {sc.ego.vtype} if sc.ego else set()
+        self._emission_types = sorted(vt for vt in used if rated(vt, self.vtypes[vt].get("vClass", "passenger")))
+        return ["--tripinfo-output", str(tripinfo), "--tripinfo-output.write-unfinished", "true"]
+
     # -- set-up -------------------------------------------------------------------------
     def _populate(self) -> None:
         sc = self.scenario
+        for vt in self._emission_types:  # before any vehicle of the type is built
+            libsumo.vehicletype.setParameter(vt, "has.emissions.device", "true")
         libsumo.route.add(ROUTE_ID, [self.road.edge_id])
         if sc.accident is not None:
             for i, lane in enumerate(sc.accident.lanes):
@@ -198,6 +219,15 @@ class SumoSession:
 
     def set_ego_speed(self, speed_mps: float) -> None:
         libsumo.vehicle.setSpeed(EGO_ID, max(0.0, speed_mps))
+
+    def place_ego(self, s_front: float, d: float, yaw: float) -> None:
+        """Put the ego's front bumper centre at road position (`s_front`, `d`) (d: m left of the
+        right road edge), yawed `yaw` rad (left positive) from the road, for the next step.
+        keepRoute=2: the ego stays on its edge, in the lane under its front bumper, so SUMO's
+        followers and lane changers see it there and its collision check includes it."""
+        x, y = self.road.to_world(s_front, d)
+        angle = 90.0 - np.degrees(self.road.heading_rad + yaw)
+        libsumo.vehicle.moveToXY(EGO_ID, "", -1, float(x), float(y), angle=float(angle), keepRoute=2)
 
     def vehicle_count(self) -> int:
         return libsumo.vehicle.getIDCount()
