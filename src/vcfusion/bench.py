@@ -14,7 +14,10 @@ its worker processes) is its own:
   the bounded histories; the growing tables are streamed to Parquet);
 - P6 a person's drive paced to the wall clock (`vcfusion drive`) with the full vision tick at
   640x480 and a 30 frames/s display (SDL dummy driver): display frames per second, late and
-  dropped frames, the simulation's lag behind the clock, input-to-display time.
+  dropped frames, the simulation's lag behind the clock, input-to-display time;
+- P7 the default guidance study (`--arms none,fusion`: the fusion arm renders, detects with the
+  shipped CNN, matches and draws the overlay) on a few paired trips with 2 workers, projected
+  to the 200 trips of the paper's figure (target <= 30 min).
 """
 
 from __future__ import annotations
