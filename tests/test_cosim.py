@@ -324,6 +324,7 @@ def test_the_ego_lane_of_a_lane_change_is_the_one_the_ego_drives_in_at_its_midpo
     from vcfusion.traffic.network import read_road
 
     road = read_road(REPO / "sumo_net" / "highway.net.xml")  # 3 lanes of 3.5 m
-    tracks = {"ego": {"time": np.array([0.0, 0.1, 0.2, 0.3]), "d": np.array([8.75, 6.9, 5.3, 5.25])}}
+    tracks = {"ego": {"time": np.array([0.0, 0.1, 0.2, 0.3]), "d": np.array([8.75, 6.9, 5.3, 5.25]),
+                       "s": np.array([100.0, 102.0, 104.0, 106.0])}}
     assert _ego_lane_at(tracks, np.array([0.0, 0.12, 0.3]), road, 2).tolist() == [2, 1, 1]
     assert _ego_lane_at({}, np.array([1.0]), road, 2).tolist() == [2]

@@ -37,7 +37,7 @@ from vcfusion.stages import WiringError, check_wiring, declared, stage_name
 from vcfusion.threads import one_blas_thread
 from vcfusion.traffic.lanechanges import (ego_lane_changes, lane_change_events, merge_changes, read_sumo_lanechanges,
                                           relate_to_ego)
-from vcfusion.traffic.network import Road
+from vcfusion.traffic.roadframe import RoadFrame
 from vcfusion.traffic.session import Collision, SumoSession
 
 if TYPE_CHECKING:  # the camera and detector types only: traffic-only runs never import OpenGL or torch
@@ -137,7 +137,7 @@ TRAJECTORY_COLUMNS = ["time", "vehicle_id", "x", "y", "z", "heading", "speed", "
 EMPTY_COLUMNS = {"trajectories": TRAJECTORY_COLUMNS, "ego": EGO_COLUMNS}
 
 
-def _truth_rows(truth: VehicleStates, road: Road) -> dict[str, np.ndarray]:
+def _truth_rows(truth: VehicleStates, road: RoadFrame) -> dict[str, np.ndarray]:
     s, d = truth.road_frame(road)
     return {
         "time": np.full(len(truth), round(truth.time, 6)),
@@ -222,7 +222,7 @@ class CoSimulation:
             loop_wall = wallclock.perf_counter() - loop_started
         finally:
             session.close()
-        sumo_changes = read_sumo_lanechanges(lc_file)
+        sumo_changes = read_sumo_lanechanges(lc_file, session.road)
         lc_file.unlink(missing_ok=True)
         stored = {name: sink.close() for name, sink in sinks.items()}
         frames = {name: pd.DataFrame(columns=EMPTY_COLUMNS.get(name, [])) for name, f in stored.items() if f is None}
@@ -350,14 +350,14 @@ class CoSimulation:
         )
 
 
-def _ego_lane_at(tracks: dict, times: np.ndarray, road: Road, start_lane: int) -> np.ndarray:
+def _ego_lane_at(tracks: dict, times: np.ndarray, road: RoadFrame, start_lane: int) -> np.ndarray:
     """The ego's lane at each of `times` (its nearest trajectory sample): a person may change
     lanes (vcfusion.hitl), so "into the ego's lane" means the lane it drives in then."""
     ego = tracks.get(EGO_ID)
     if ego is None or not len(ego["time"]) or not len(times):
         return np.full(len(times), start_lane)
     at = np.abs(ego["time"][None, :] - np.asarray(times)[:, None]).argmin(axis=1)
-    return road.lane_of(ego["d"][at])
+    return road.lane_of(ego["s"][at], ego["d"][at])
 
 
 def _finish(stage, tables: RunTables, summary: dict) -> None:

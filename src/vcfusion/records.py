@@ -83,7 +83,7 @@ class VehicleStates:
     heading: np.ndarray
     speed: np.ndarray
     accel: np.ndarray
-    lane: np.ndarray  # int16, SUMO lane index (0 = rightmost), -1 if not on the road
+    lane: np.ndarray  # int16, track of the scenario's route (lane index from the right), -1 off the route
     lateral_offset: np.ndarray  # metres left of the lane centre
     length: np.ndarray
     width: np.ndarray
@@ -99,7 +99,7 @@ class VehicleStates:
         return _take(self, index)
 
     def road_frame(self, road) -> tuple[np.ndarray, np.ndarray]:
-        """(s, d) of the footprint centres on `road` (see Road.to_road_frame); computed once."""
+        """(s, d) of the footprint centres on `road` (see RoadFrame.to_frame); computed once."""
         return _road_frame(self, road)
 
 
@@ -154,7 +154,7 @@ class TwinStates:
     heading: np.ndarray
     speed: np.ndarray
     accel: np.ndarray
-    lane: np.ndarray  # map-matched from the GNSS position, -1 off the road
+    lane: np.ndarray  # track map-matched from the GNSS position (RoadFrame.locate), -1 off the road
     length: np.ndarray
     width: np.ndarray
     height: np.ndarray
@@ -170,7 +170,7 @@ class TwinStates:
         return sub
 
     def road_frame(self, road) -> tuple[np.ndarray, np.ndarray]:
-        """(s, d) of the twins' GNSS points on `road` (see Road.to_road_frame); computed once."""
+        """(s, d) of the twins' GNSS points on `road` (see RoadFrame.to_frame); computed once."""
         return _road_frame(self, road)
 
 

@@ -26,7 +26,7 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
     """
     from vcfusion.traffic.network import read_road
 
-    road = read_road(scenario.network)
+    road = read_road(scenario.network, scenario.route)
     process_models = []
     if scenario.prediction.enabled:
         from vcfusion.prediction.cloud import predictor_for_scenario

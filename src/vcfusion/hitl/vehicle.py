@@ -89,7 +89,9 @@ class VehicleModel:
 
         steer = c.steer
         if c.lane_change:
-            current = int(self.road.lane_of(st.d)) if 0 <= st.d < self.road.width_m else 0
+            # s = 0: vcfusion drive needs the camera, which runs on straight single-edge roads only,
+            # where the lane does not depend on s
+            current = int(self.road.lane_of(0.0, st.d)) if 0 <= st.d < self.road.width_m else 0
             base = st.target_lane if st.target_lane is not None else current
             st.target_lane = min(max(base + int(c.lane_change), 0), self.road.num_lanes - 1)
         if st.target_lane is not None:

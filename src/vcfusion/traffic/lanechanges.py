@@ -5,6 +5,11 @@ lane (the manoeuvre's midpoint), with the reason. With continuous lane changing 
 manoeuvre starts earlier and ends later: start is the last sample before the midpoint at
 which the vehicle was still centred in its old lane, end the first sample after it at which
 it is centred in the new one (to `CENTRED_TOL_M`), at the trajectory's sampling period.
+
+Lanes are tracks of the scenario's route (index from the right, stable across edges): SUMO's
+lane ids map to them with the road frame's `track_of`, so a ramp vehicle's merge from the
+acceleration lane is track 0 -> 1 whatever SUMO's index on that edge; a change on an edge off the
+route has lanes -1 (and no start or end).
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from vcfusion.records import EGO_ID
-from vcfusion.traffic.network import Road
+from vcfusion.traffic.roadframe import RoadFrame
 
 CENTRED_TOL_M = 0.05
 
@@ -40,14 +45,28 @@ SUMO_CHANGE_DTYPES = {
 }
 
 
-def read_sumo_lanechanges(path: str | Path) -> dict[str, np.ndarray]:
-    """SUMO's lanechange-output as columns (one element per change, at its midpoint)."""
+def read_sumo_lanechanges(path: str | Path, road: RoadFrame | None = None) -> dict[str, np.ndarray]:
+    """SUMO's lanechange-output as columns (one element per change, at its midpoint). With a
+    road frame, lanes are the tracks of its route and pos_m the position along it (-1 and NaN on
+    lanes off the route); without one, SUMO's lane indices and lane positions."""
     path = Path(path)
+    if road is None:
+        lane_of, pos_of = _lane_index, lambda lane_id, pos: pos
+    else:
+        track_of, edge_start = road.track_of, road.edge_start_s
+
+        def lane_of(lane_id: str) -> int:
+            return track_of.get(lane_id, -1)
+
+        def pos_of(lane_id: str, pos: float) -> float:
+            start = edge_start.get(lane_id.rsplit("_", 1)[0])
+            return start + pos if start is not None else np.nan
     rows = []
     if path.exists() and path.stat().st_size:
         for c in ET.parse(path).getroot().iter("change"):
-            rows.append((c.get("id"), float(c.get("time")), _lane_index(c.get("from")), _lane_index(c.get("to")),
-                         int(c.get("dir")), c.get("reason"), float(c.get("pos")), float(c.get("speed")),
+            rows.append((c.get("id"), float(c.get("time")), lane_of(c.get("from")), lane_of(c.get("to")),
+                         int(c.get("dir")), c.get("reason"), pos_of(c.get("from"), float(c.get("pos"))),
+                         float(c.get("speed")),
                          _gap(c.get("leaderGap")), _gap(c.get("followerGap"))))
     values = list(zip(*rows)) if rows else [()] * len(SUMO_CHANGE_DTYPES)
     return {name: np.array(v, dtype=dtype) for (name, dtype), v in zip(SUMO_CHANGE_DTYPES.items(), values)}
@@ -67,7 +86,7 @@ def ego_lane_changes(track: dict[str, np.ndarray] | None, road: Road, ego_length
     if track is None or len(track["time"]) < 2:
         return empty
     t, d, s = track["time"], track["d"], track["s"]
-    lane = road.lane_of(d)
+    lane = road.lane_of(s, d)
     k = np.flatnonzero((lane[1:] != lane[:-1]) & (lane[1:] >= 0) & (lane[:-1] >= 0)) + 1
     if not len(k):
         return empty
@@ -87,10 +106,11 @@ def merge_changes(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[st
 
 
 def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, dict[str, np.ndarray]],
-                       road: Road) -> dict[str, np.ndarray]:
+                       road: RoadFrame) -> dict[str, np.ndarray]:
     """Add start and end times from the lateral trajectory; one element per lane change, in
-    LANE_CHANGE_COLUMNS order, sorted by midpoint then vehicle. `tracks`: time and d of each
-    changer's trajectory samples, in time order (see runio.vehicle_tracks)."""
+    LANE_CHANGE_COLUMNS order, sorted by midpoint then vehicle. `tracks`: time, d and s of each
+    changer's trajectory samples, in time order (see runio.vehicle_tracks); lane centres are
+    taken at each sample's s (a lane's d range may change along the route)."""
     order = np.lexsort((sumo_changes["vehicle_id"], sumo_changes["mid_time"]))  # stable
     events = {name: values[order] for name, values in sumo_changes.items()}
     starts = np.full(len(order), np.nan)
@@ -98,11 +118,12 @@ def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, di
     columns = (events[c] for c in ("vehicle_id", "from_lane", "to_lane", "mid_time"))
     for i, (vid, from_lane, to_lane, mid_time) in enumerate(zip(*columns)):
         track = tracks.get(vid)
-        if track is None:
+        if track is None or from_lane < 0 or to_lane < 0:
             continue
         t, d = track["time"], track["d"]
-        in_old = np.abs(d - road.lane_centre_d(from_lane)) <= CENTRED_TOL_M
-        in_new = np.abs(d - road.lane_centre_d(to_lane)) <= CENTRED_TOL_M
+        s = track["s"] if "s" in track else 0.0
+        in_old = np.abs(d - road.lane_centre_d(from_lane, s)) <= CENTRED_TOL_M
+        in_new = np.abs(d - road.lane_centre_d(to_lane, s)) <= CENTRED_TOL_M
         before = np.flatnonzero(in_old & (t <= mid_time + 1e-9))
         after = np.flatnonzero(in_new & (t >= mid_time - 1e-9))
         if len(before):
