@@ -122,7 +122,8 @@ class VisionConfig(_Strict):
     every_ticks: Annotated[int, Field(ge=1)] = 1
     # Render and fuse only at ticks where a neighbour twin carries a warning (the overlay then has
     # something to warn about; at other ticks it would draw no warning, so the driver is shown the
-    # same warnings). The guidance study's camera arms use it (speed); the video needs it off.
+    # same warnings). Off by default: the joint matcher's position filter then gets fewer
+    # updates, so the identification is not the every-tick system's; the video needs it off.
     only_when_warning: bool = False
 
 

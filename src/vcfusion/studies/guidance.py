@@ -115,8 +115,9 @@ def arm_scenario(scenario, arm: str):
     elif arm == "fusion" and not scenario.fusion.enabled:
         fusion = fusion.model_copy(update={"detector": "cnn"})
     return scenario.model_copy(update={
-        # render and fuse only where a warning can be drawn: the driver is shown the same warnings
-        "vision": scenario.vision.model_copy(update={"enabled": camera, "only_when_warning": camera}),
+        # every tick renders and fuses unless the scenario itself asks for vision.only_when_warning:
+        # skipping ticks starves the joint matcher's position filter, so it is not the default path
+        "vision": scenario.vision.model_copy(update={"enabled": camera}),
         "fusion": fusion,
         "ar": scenario.ar.model_copy(update={"video": False}),
     })
