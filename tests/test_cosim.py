@@ -213,9 +213,17 @@ def wrong_orders(sc, cosim):
     with pytest.raises(WiringError, match=r"VisionFusionHook\) needs 'frame', which no earlier stage provides; "
                                           r"tick hook 1 \(CameraHook\) provides it: put it before"):
         CoSimulation(sc, 0, controller=cosim.controller, hooks=[fusion, camera, cloud])
+    # with fusion the guidance log reads the overlay's guidance: it must come after it
+    with pytest.raises(WiringError, match=r"tick hook 1 \(CloudGuidanceFallback\) needs 'guidance', which no earlier "
+                                          r"stage provides; tick hook 2 \(VisionFusionHook\) provides it"):
+        CoSimulation(sc, 0, controller=cosim.controller, hooks=[camera, cloud, fusion])
+    # the cloud guidance of a run without fusion fills guidance: a provider after it is refused
+    from vcfusion.driver.cloud_guidance import CloudGuidanceFallback
+
+    filler = CloudGuidanceFallback(cloud.road, cloud.policy)
     with pytest.raises(WiringError, match=r"VisionFusionHook\) provides 'guidance' after tick hook 1 "
                                           r"\(CloudGuidanceFallback\), which fills it only where no earlier stage did"):
-        CoSimulation(sc, 0, controller=cosim.controller, hooks=[camera, cloud, fusion])
+        CoSimulation(sc, 0, controller=cosim.controller, hooks=[camera, filler, fusion])
     with pytest.raises(WiringError, match="controller DriverModel needs 'guidance', which no earlier stage provides"):
         CoSimulation(sc, 0, controller=cosim.controller, hooks=[camera])
     # a hook list changed after building is checked again when the run starts

@@ -93,7 +93,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
 
 def cmd_study_guidance(args: argparse.Namespace) -> int:
-    from vcfusion.studies.guidance import StudyError, run_guidance_study
+    from vcfusion.studies.guidance import StudyError, parse_arms, run_guidance_study
 
     load_scenario(args.scenario)  # fail fast, before any worker starts
     if args.trips < 2:
@@ -105,9 +105,10 @@ def cmd_study_guidance(args: argparse.Namespace) -> int:
     out = check_folder_path(Path(args.out) if args.out else Path("runs") / f"guidance-study-{Path(args.scenario).stem}")
     check_folder_path(Path(args.renders), "--renders")
     try:
+        arms = parse_arms(args.arms)
         result = run_guidance_study(Path(args.scenario), args.trips, args.workers, out, Path(args.renders),
                                     first_seed=args.first_seed, process_model_specs=tuple(args.process_model),
-                                    progress=True)
+                                    progress=True, arms=arms)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     except StudyError as exc:
@@ -168,7 +169,8 @@ def _demo_guidance_study(args: argparse.Namespace) -> int:
 
     out = _default_run_dir("guidance-study", args.seed)
     specs = tuple(args.process_model)
-    print(f"\nguidance study on {args.trips} paired trips (with and without AR guidance):")
+    print(f"\nguidance study on {args.trips} paired trips (arms none and fusion: without AR, and with the "
+          f"rendered camera, detector and AR overlay):")
     try:
         result = run_guidance_study(Path(args.scenario), args.trips, 2, out, Path("renders"),
                                     first_seed=args.seed, process_model_specs=specs, progress=sys.stderr.isatty())
@@ -284,6 +286,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_identification_parser(study)
     p = study.add_parser("guidance", help="paired trips with and without AR guidance (paper Fig. 8/9)")
     p.add_argument("scenario")
+    p.add_argument("--arms", default="none,fusion",
+                   help="comma-separated arms among none (no AR), cloud (highlights from the cloud alone), "
+                        "fusion (camera + CNN + matcher + overlay: the paper's system), oracle (ground-truth "
+                        "boxes); paired on seeds and driver draws, each compared with none (default: none,fusion)")
     p.add_argument("--trips", type=int, default=200, help="number of paired trips (seeds FIRST..FIRST+N-1)")
     p.add_argument("--workers", type=int, default=2, help="worker processes (one simulation each)")
     p.add_argument("--first-seed", type=int, default=0)

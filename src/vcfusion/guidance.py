@@ -99,6 +99,15 @@ class GuidancePolicy:
     def warns(level: str) -> bool:
         return level in WARNING_LEVELS
 
+    def any_warning(self, twins) -> bool:
+        """Whether any of `twins` (e.g. the ego's neighbours) has a warning level."""
+        if twins is None or not len(twins) or "lc_prob" not in twins.outputs:
+            return False
+        prob = np.asarray(twins.outputs["lc_prob"], dtype=float)
+        decision = twins.outputs.get("lc_decision")
+        decisions = [None] * len(prob) if decision is None else np.asarray(decision).tolist()
+        return any(self.warns(self.level(float(p), d)) for p, d in zip(prob.tolist(), decisions))
+
     def ahead(self, rear_s, ego_front_s, range_m: float | None = None):
         """Rear bumper(s) `rear_s` beyond the ego's front bumper by at most `range_m` (default:
         the view range). Scalars or arrays."""

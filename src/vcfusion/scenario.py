@@ -134,6 +134,11 @@ class VisionConfig(_Strict):
     enabled: bool = False
     # Render every this many V2C ticks (1 = every tick).
     every_ticks: Annotated[int, Field(ge=1)] = 1
+    # Render and fuse only at ticks where a neighbour twin carries a warning (the overlay then has
+    # something to warn about; at other ticks it would draw no warning, so the driver is shown the
+    # same warnings). Off by default: the joint matcher's position filter then gets fewer
+    # updates, so the identification is not the every-tick system's; the video needs it off.
+    only_when_warning: bool = False
 
 
 class EgoConfig(_Strict):
@@ -157,6 +162,9 @@ class DriverConfig(_Strict):
     # Guidance items are made for neighbours ahead within this range; levels follow ar.medium_threshold /
     # ar.high_threshold (one GuidancePolicy per run, vcfusion.guidance).
     guidance_view_range_m: Positive = 150.0
+    # The driver's forward field of view (degrees); default: the camera's hfov_deg (the AR shows
+    # the camera's view). See vcfusion.driver.perception.
+    field_of_view_deg: Annotated[float, Field(gt=1.0, lt=180.0)] | None = None
 
 
 class VehicleGroup(_Strict):
