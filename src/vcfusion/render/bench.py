@@ -4,7 +4,8 @@
 
 Simulates one seed of the scenario (traffic only), then renders its states at the scenario's
 camera settings (default 640x480) and prints the median, 10th and 90th percentile per frame,
-and the median of its parts: the draw pass with read-back (RGB, instances, depth) and the RGB
+the median CPU time of all threads per frame (for A/B comparisons on a busy machine), and the
+median of its parts: the draw pass with read-back (RGB, instances, depth) and the RGB
 finish (sky gradient, supersampling for the quality preset, camera model).
 """
 
@@ -46,11 +47,12 @@ def main(argv: list[str] | None = None) -> int:
     camera = scenario.camera if args.preset is None else scenario.camera.model_copy(update={"render_preset": args.preset})
     renderer = EgoCameraRenderer(read_road(scenario.network), camera)
     renderer.render(picks[0])  # warm-up: shader compilation, buffer uploads
-    times, seen, parts = [], [], []
+    times, cpu, seen, parts = [], [], [], []
     for truth in picks:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         frame = renderer.render(truth)
         times.append(1000.0 * (time.perf_counter() - t0))
+        cpu.append(1000.0 * (time.process_time() - c0))
         seen.append(int((np.unique(frame.instances) >= 0).sum()))
         parts.append(renderer.last_timings_ms)
     renderer.close()
@@ -61,6 +63,9 @@ def main(argv: list[str] | None = None) -> int:
           f"{np.mean(seen):.1f} vehicles seen per frame)")
     print(f"RGB + depth + instances: median {np.median(ms):.1f} ms/frame "
           f"(p10 {np.percentile(ms, 10):.1f}, p90 {np.percentile(ms, 90):.1f})")
+    # CPU time of all the process's threads (llvmpipe's too): steadier than wall time on a busy
+    # machine, so A/B comparisons of two versions can use it there.
+    print(f"  CPU time: median {np.median(cpu):.1f} ms/frame (all threads)")
     print("  parts (median ms): " + ", ".join(f"{k} {np.median([p[k] for p in parts]):.1f}" for k in parts[0]))
     return 0
 

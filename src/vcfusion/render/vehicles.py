@@ -41,6 +41,7 @@ INDICATOR = (230, 130, 20)
 PLATE = (236, 236, 228)
 PLATE_TEXT = (30, 30, 34)
 CHASSIS = (38, 38, 42)
+FRAME = (120, 122, 128)  # box bodies' rear door frame
 
 # Car paints seen on European roads (silver, grey, black, white dominate), as a stable function of the id.
 BODY_COLOURS = (
@@ -64,6 +65,8 @@ def stable_index(key: str, n: int) -> int:
 
 
 def _box(x0, x1, y0, y1, z0, z1, rgb, material=MATTE) -> trimesh.Trimesh:
+    """An axis-aligned box between two corners given in any order (mirrored parts swap them)."""
+    (x0, x1), (y0, y1), (z0, z1) = sorted((x0, x1)), sorted((y0, y1)), sorted((z0, z1))
     box = trimesh.creation.box(extents=(x1 - x0, y1 - y0, z1 - z0))
     box.apply_translation(((x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2))
     return coloured(box, rgb, material)
@@ -81,8 +84,8 @@ def wheel(x, y_outer, radius, width, side: float) -> list[trimesh.Trimesh]:
     """Tyre whose outer face is at |y| = y_outer, a metal rim and a dark hub on that face."""
     yc = side * (y_outer - width / 2)
     return [
-        _disc(x, yc, radius, radius, width, TYRE, MATTE, 20),
-        _disc(x, side * (y_outer - 0.012), radius, 0.64 * radius, 0.03, RIM, METAL, 14),
+        _disc(x, yc, radius, radius, width, TYRE, MATTE, 16),
+        _disc(x, side * (y_outer - 0.012), radius, 0.64 * radius, 0.03, RIM, METAL, 12),
         _disc(x, side * (y_outer - 0.004), radius, 0.22 * radius, 0.014, HUB, MATTE, 8),
     ]
 
@@ -107,22 +110,22 @@ PROFILES = {
         top=[(-0.5, 0.50), (-0.485, 0.61), (-0.45, 0.65), (-0.30, 0.67), (-0.13, 0.97), (-0.09, 1.0),
              (0.06, 1.0), (0.10, 0.975), (0.27, 0.66), (0.42, 0.60), (0.48, 0.56), (0.5, 0.47)],
         belt=0.60, bottom=0.12, rear_window=(-0.30, -0.10), roof=(-0.10, 0.09), windscreen=(0.09, 0.27),
-        side=(-0.215, 0.215), pillars=(0.0,), lamp_z=(0.50, 0.60), tumble=0.80),
+        side=(-0.215, 0.215), pillars=(0.0,), lamp_z=(0.52, 0.60), tumble=0.80),
     "hatchback": dict(
         top=[(-0.5, 0.56), (-0.49, 0.82), (-0.47, 0.95), (-0.43, 1.0), (0.03, 1.0), (0.08, 0.975),
              (0.27, 0.64), (0.43, 0.58), (0.48, 0.55), (0.5, 0.47)],
         belt=0.60, bottom=0.12, rear_window=(-0.5, -0.43), roof=(-0.43, 0.07), windscreen=(0.07, 0.27),
-        side=(-0.40, 0.215), pillars=(-0.05, -0.30), lamp_z=(0.58, 0.72), tumble=0.80),
+        side=(-0.40, 0.215), pillars=(-0.05, -0.30), lamp_z=(0.58, 0.68), tumble=0.80),
     "suv": dict(
         top=[(-0.5, 0.58), (-0.49, 0.86), (-0.47, 0.97), (-0.44, 1.0), (0.11, 1.0), (0.15, 0.975),
              (0.30, 0.71), (0.44, 0.66), (0.48, 0.63), (0.5, 0.55)],
         belt=0.64, bottom=0.15, rear_window=(-0.5, -0.44), roof=(-0.44, 0.14), windscreen=(0.14, 0.30),
-        side=(-0.41, 0.25), pillars=(-0.04, -0.28), lamp_z=(0.60, 0.74), tumble=0.84),
+        side=(-0.41, 0.25), pillars=(-0.04, -0.28), lamp_z=(0.60, 0.70), tumble=0.84),
     "van": dict(
         top=[(-0.5, 0.60), (-0.495, 0.93), (-0.48, 1.0), (0.20, 1.0), (0.25, 0.96), (0.40, 0.70),
              (0.46, 0.64), (0.49, 0.60), (0.5, 0.52)],
-        belt=0.58, bottom=0.13, rear_window=(-0.5, -0.48), roof=(-0.48, 0.24), windscreen=(0.24, 0.41),
-        side=(-0.45, 0.36), pillars=(0.12, -0.17), lamp_z=(0.50, 0.70), tumble=0.88),
+        belt=0.58, bottom=0.13, rear_window=(-0.5, -0.45), roof=(-0.45, 0.24), windscreen=(0.24, 0.41),
+        side=(-0.44, 0.36), pillars=(0.12, -0.17), lamp_z=(0.50, 0.66), tumble=0.88),
 }
 
 # Ring segments, bottom centre -> +y side -> roof centre (then mirrored): what each segment is.
@@ -173,9 +176,9 @@ def _loft(xs: np.ndarray, rings: np.ndarray) -> tuple[trimesh.Trimesh, np.ndarra
 
 
 def _stations(L: float, axles: list[float], arch_r: float) -> np.ndarray:
-    xs = list(np.linspace(-L / 2, L / 2, 41))
+    xs = list(np.linspace(-L / 2, L / 2, 29))
     for xa in axles:
-        xs += list(xa + arch_r * np.array([-1.02, -0.98, -0.8, -0.55, -0.25, 0.0, 0.25, 0.55, 0.8, 0.98, 1.02]))
+        xs += list(xa + arch_r * np.array([-1.02, -0.98, -0.75, -0.4, 0.0, 0.4, 0.75, 0.98, 1.02]))
     return np.unique(np.clip(np.round(xs, 5), -L / 2, L / 2))
 
 
@@ -245,7 +248,7 @@ def car_mesh(shape: str, length: float, width: float, height: float, paint) -> t
     lz0, lz1 = p["lamp_z"][0] * H, p["lamp_z"][1] * H
     xr, xf = -L / 2, L / 2
     for s in (1.0, -1.0):
-        parts.append(_box(xr, xr + 0.3, s * 0.55 * wb_max, s * 0.93 * wb_max, lz0, lz1, TAIL_LIGHT, LAMP))
+        parts.append(_box(xr, xr + 0.3, s * 0.5 * wb_max, s * 0.95 * wb_max, lz0, lz1, TAIL_LIGHT, LAMP))
         parts.append(_box(xf - 0.3, xf, s * 0.58 * wb_max, s * 0.92 * wb_max, 0.50 * H, 0.56 * H, HEAD_LIGHT, LAMP))
         # Mirrors at the windscreen's foot, reaching the full width.
         xm = p["windscreen"][1] * L - 0.05
@@ -299,13 +302,24 @@ def truck_mesh(shape: str, length: float, width: float, height: float, cab_rgb, 
     # Cargo: a box body (rigid) or a semi-trailer with a gap behind the cab.
     gap = 0.25 if shape == "rigid" else 0.6
     box_front = x_cab - gap
-    parts.append(_rounded_block(xr, box_front, W / 2 - 0.065, floor, H, cargo_rgb, MATTE, 0.05))
+    # The box's rear face is 3 cm in: the door frame, bars and markings stand proud of it (no z-fighting).
+    parts.append(_rounded_block(xr + 0.03, box_front, W / 2 - 0.065, floor, H, cargo_rgb, MATTE, 0.05))
     parts.append(_box(xr + 0.3, box_front, -0.4 * W, 0.4 * W, 0.9 * r, floor, CHASSIS))  # chassis rails
     # Rear doors: two leaves with a seam, hinges and lock bars (thin trim), a rear underrun bar and lamps.
-    parts.append(_box(xr - 0.0, xr + 0.03, -0.012, 0.012, floor + 0.05, H - 0.08, TRIM))
+    parts.append(_box(xr, xr + 0.03, -0.025, 0.025, floor + 0.05, H - 0.08, TRIM))
     for y in (-0.36 * W, -0.12 * W, 0.12 * W, 0.36 * W):
-        parts.append(_box(xr, xr + 0.03, y - 0.015, y + 0.015, floor + 0.1, H - 0.15, (150, 152, 156), METAL))
+        parts.append(_box(xr, xr + 0.03, y - 0.035, y + 0.035, floor + 0.15, H - 0.15, (90, 92, 96), METAL))
     parts.append(_box(xr, xr + 0.15, -0.45 * W, 0.45 * W, 0.5 * r, 0.5 * r + 0.12, TRIM))  # underrun bar
+    # Rear door frame (grey metal) and the red retro-reflective contour marking around the rear outline.
+    hb = W / 2 - 0.065
+    for y0, y1, z0, z1 in ((-hb, -hb + 0.1, floor, H), (hb - 0.1, hb, floor, H), (-hb, hb, H - 0.1, H),
+                           (-hb, hb, floor, floor + 0.12)):
+        parts.append(_box(xr + 0.005, xr + 0.045, y0, y1, z0, z1, FRAME, METAL))
+    for y0, y1, z0, z1 in ((-hb + 0.01, -hb + 0.09, floor + 0.15, H - 0.15), (hb - 0.09, hb - 0.01, floor + 0.15, H - 0.15),
+                           (-hb + 0.01, hb - 0.01, H - 0.09, H - 0.01), (-hb + 0.01, hb - 0.01, floor + 0.02, floor + 0.1)):
+        parts.append(_box(xr, xr + 0.04, y0, y1, z0, z1, TAIL_LIGHT, LAMP))
+    for s in (1.0, -1.0):  # mudflaps behind the last axle
+        parts.append(_box(xr + 0.5, xr + 0.53, s * (W / 2 - 0.08), s * (W / 2 - 0.75), 0.12, 2 * r + 0.05, TRIM))
     for s in (1.0, -1.0):
         parts.append(_box(xr, xr + 0.12, s * 0.28 * W, s * 0.44 * W, 0.5 * r + 0.14, 0.5 * r + 0.3, TAIL_LIGHT, LAMP))
         parts.append(_box(xr, xr + 0.12, s * 0.2 * W, s * 0.27 * W, 0.5 * r + 0.14, 0.5 * r + 0.3, INDICATOR, LAMP))
@@ -318,7 +332,7 @@ def truck_mesh(shape: str, length: float, width: float, height: float, cab_rgb, 
         for s in (1.0, -1.0):
             parts += wheel(xa, W / 2 - 0.07, r, tw, s)
             if k > 0:
-                parts.append(_disc(xa, s * (W / 2 - 0.07 - tw - 0.02 - tw / 2), r, r, tw, TYRE, MATTE, 20))
+                parts.append(_disc(xa, s * (W / 2 - 0.07 - tw - 0.02 - tw / 2), r, r, tw, TYRE, MATTE, 16))
     parts.append(contact_shadow(L, W, H))
     return trimesh.util.concatenate(parts)
 

@@ -54,9 +54,11 @@ vec3 sky(float s)  // s = sine of the elevation of a view direction
     return mix(c, ZENITH, smoothstep(0.4, 1.0, s));
 }
 
-float hash(vec2 p)
+float hash(vec2 p)  // in [0, 1); multiplications only (a sine costs a polynomial under llvmpipe)
 {
-    return fract(sin(dot(p, vec2(12.9898, 78.233))) * 43758.5453);
+    vec3 p3 = fract(vec3(p.xyx) * 0.1031);
+    p3 += dot(p3, p3.yzx + 33.33);
+    return fract((p3.x + p3.y) * p3.z);
 }
 
 float value_noise(vec2 p)
@@ -67,15 +69,9 @@ float value_noise(vec2 p)
     return mix(mix(hash(i), hash(i + vec2(1.0, 0.0)), f.x), mix(hash(i + vec2(0.0, 1.0)), hash(i + vec2(1.0, 1.0)), f.x), f.y);
 }
 
-// Asphalt albedo factor at a ground point: grain (fading with distance, where it would only
-// flicker), patches of older and newer surface.
-float asphalt(vec2 p, float dist)
-{
-    float grain = (hash(floor(p * 30.0)) - 0.5) * 0.16 * clamp(1.0 - dist / 25.0, 0.0, 1.0);
-    float patches = (value_noise(p * vec2(0.08, 0.3)) - 0.5) * 0.16;
-    return 1.0 + grain + patches;
-}
-
+// llvmpipe (OSMesa) evaluates both sides of a branch that differs between neighbouring
+// fragments, so every material runs one path: one grain hash, one value noise, one sky lookup and
+// one highlight, with per-material weights picked by cheap selects.
 void main()
 {
     vec3 n = normalize(world_normal);
@@ -84,44 +80,43 @@ void main()
     vec3 v = to_cam / dist;
     vec3 l = -directional_lights[0].direction;
     vec3 sun = directional_lights[0].color * directional_lights[0].intensity;
-    float ndl = max(dot(n, l), 0.0);
-    vec3 albedo = vertex_colour;
-    float code = material.base_color_factor.a;
-    vec3 colour;
-    if (mat_id == MAT_SHADOW) {
-        // The shadowed asphalt: its albedo in ambient light only.
-        albedo = vec3(72.0, 74.0, 78.0) / 255.0 * asphalt(world_position.xy, dist);
-        colour = albedo * ambient_light * 0.85;
-        code = 0.0;
-    } else if (mat_id == MAT_LAMP) {
-        colour = albedo * (0.75 + 0.35 * ndl);
-    } else {
-        if (mat_id == MAT_ASPHALT || mat_id == MAT_PAINT_MARK) {
-            albedo *= asphalt(world_position.xy, dist);
-        } else if (mat_id == MAT_GRASS) {
-            albedo *= 0.85 + 0.3 * value_noise(world_position.xy * 0.05) + 0.1 * value_noise(world_position.xy * 0.7);
-        } else if (mat_id == MAT_FOLIAGE) {
-            albedo *= 0.8 + 0.4 * hash(floor(world_position.xy * 3.0 + world_position.z * 2.0));
-        }
-        colour = albedo * (ambient_light + sun * ndl);
-        if (mat_id == MAT_PAINT || mat_id == MAT_GLASS || mat_id == MAT_METAL) {
-            if (dot(n, v) < 0.0) n = -n;
-            vec3 h = normalize(l + v);
-            float nh = max(dot(n, h), 0.0);
-            float fresnel = pow(1.0 - max(dot(n, v), 0.0), 5.0);
-            vec3 r = reflect(-v, n);
-            vec3 env = sky(r.z);
-            if (mat_id == MAT_PAINT) {
-                float f = 0.06 + 0.6 * fresnel;
-                colour = mix(colour, env, f) + sun * (0.45 * pow(nh, 80.0) + 0.08 * pow(nh, 8.0)) * ndl;
-            } else if (mat_id == MAT_GLASS) {
-                float f = 0.12 + 0.75 * fresnel;
-                colour = mix(albedo * 0.6, env, f) + sun * 1.2 * pow(nh, 200.0);
-            } else {
-                colour = mix(colour, env * albedo * 1.3, 0.35) + sun * 0.3 * pow(nh, 20.0);
-            }
-        }
+    bool shadow = mat_id == MAT_SHADOW;
+    bool ground = mat_id == MAT_ASPHALT || mat_id == MAT_PAINT_MARK || shadow;
+    bool grass = mat_id == MAT_GRASS;
+    bool foliage = mat_id == MAT_FOLIAGE;
+    vec2 p = world_position.xy;
+    // Grain: asphalt chippings near the camera (faded where they would only flicker), leaf clumps.
+    float grain = hash(floor(foliage ? p * 3.0 + world_position.z * 2.0 : p * 30.0)) - 0.5;
+    float grain_w = ground ? 0.16 * clamp(1.0 - dist / 25.0, 0.0, 1.0) : (foliage ? 0.4 : 0.0);
+    // Patches: older and newer asphalt stretched along the road, meadows of lighter and darker grass.
+    float patches = value_noise(grass ? p * 0.05 : p * vec2(0.08, 0.3)) - 0.5;
+    float patch_w = ground ? 0.16 : (grass ? 0.35 : 0.0);
+    // The shadow is the asphalt under it in ambient light only.
+    vec3 albedo = shadow ? vec3(72.0, 74.0, 78.0) / 255.0 : vertex_colour;
+    albedo *= 1.0 + grain * grain_w + patches * patch_w;
+    float ndl = shadow ? 0.0 : max(dot(n, l), 0.0);
+    vec3 diffuse = albedo * (ambient_light * (shadow ? 0.85 : 1.0) + sun * ndl);
+    vec3 colour = mat_id == MAT_LAMP ? vertex_colour * (0.75 + 0.35 * ndl) : diffuse;
+
+    // Paint, glass and metal: Fresnel-weighted sky reflection and a Blinn-Phong highlight.
+    bool paint = mat_id == MAT_PAINT;
+    bool glass = mat_id == MAT_GLASS;
+    bool metal = mat_id == MAT_METAL;
+    if (paint || glass || metal) {
+        vec3 ns = dot(n, v) < 0.0 ? -n : n;
+        float nv = max(dot(ns, v), 0.0);
+        float f5 = (1.0 - nv) * (1.0 - nv);
+        f5 = f5 * f5 * (1.0 - nv);
+        vec3 env = sky(reflect(-v, ns).z);
+        float nh = max(dot(ns, normalize(l + v)), 0.0);
+        float shininess = glass ? 200.0 : (paint ? 80.0 : 20.0);
+        float highlight = pow(nh, shininess) * (glass ? 1.2 : (paint ? 0.45 : 0.3));
+        float f = glass ? 0.12 + 0.75 * f5 : (paint ? 0.06 + 0.6 * f5 : 0.35);
+        vec3 base = glass ? albedo * 0.6 : (metal ? diffuse : diffuse);
+        env = metal ? env * albedo * 1.3 : env;
+        colour = mix(base, env, f) + sun * highlight * (glass ? 1.0 : ndl);
     }
     float haze = 1.0 - exp(-dist / HAZE_M);
+    float code = shadow ? 0.0 : material.base_color_factor.a;
     frag_color = vec4(mix(colour, HORIZON, haze), code);
 }
