@@ -41,7 +41,7 @@ SHOULDER_M = 2.5
 RAIL_OFFSET_M = 0.6  # guard rail beyond the shoulder
 POST_SPACING_M = 4.0
 DELINEATOR_SPACING_M = 50.0
-TREE_SPACING_M = 25.0  # one candidate tree site per side every this many metres
+TREE_SPACING_M = 40.0  # one candidate tree site per side every this many metres
 
 
 def _unit(key: str) -> float:

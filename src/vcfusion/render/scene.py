@@ -32,12 +32,14 @@ MAX_INSTANCE_CODES = 255  # instance codes travel in the 8-bit alpha channel; 0 
 SMOOTH_BELOW_DEG = 35.0  # faces meeting at smaller angles are shaded smooth (car bodies), larger ones flat (boxes)
 
 
-def flat_primitive(mesh: trimesh.Trimesh, alpha: float = 0.0) -> pyrender.Primitive:
+def flat_primitive(mesh: trimesh.Trimesh, alpha: float = 0.0, glossy: bool = False) -> pyrender.Primitive:
     """One opaque primitive with per-face colours and materials (one draw call).
 
     ``alpha`` is the instance code / 255 that the camera's shader writes to the alpha channel.
     The face colours' alpha byte is the material id (:mod:`vcfusion.render.materials`), passed
-    as the first texture coordinate. Normals: the vertex normal where it is within
+    as the first texture coordinate. ``glossy`` primitives (vehicles) carry a second, unused
+    texture coordinate: it makes pyrender compile the shader's variant with reflections and
+    highlights for them only (see ``shaders/lambert.frag``). Normals: the vertex normal where it is within
     SMOOTH_BELOW_DEG of the face's (smooth bodies), else the face normal (crisp edges).
     """
     faces = mesh.faces
@@ -53,7 +55,7 @@ def flat_primitive(mesh: trimesh.Trimesh, alpha: float = 0.0) -> pyrender.Primit
     material = pyrender.MetallicRoughnessMaterial(
         baseColorFactor=[1.0, 1.0, 1.0, alpha], metallicFactor=0.0, roughnessFactor=0.85, alphaMode="OPAQUE")
     return pyrender.Primitive(positions=positions, normals=normals, color_0=colours, texcoord_0=texcoords,
-                              material=material, mode=4)
+                              texcoord_1=np.zeros_like(texcoords) if glossy else None, material=material, mode=4)
 
 
 def vehicle_pose(x: float, y: float, z: float, yaw: float) -> np.ndarray:
@@ -110,7 +112,7 @@ class TrafficScene:
         model = self._models.get(style)
         if model is None:
             model = self._models[style] = vehicle_mesh(style)
-        return pyrender.Mesh([flat_primitive(model, alpha=code / 255.0)])
+        return pyrender.Mesh([flat_primitive(model, alpha=code / 255.0, glossy=True)])
 
     def update(self, truth: VehicleStates, in_view: np.ndarray) -> list[str]:
         """Add, move, hide and remove vehicle nodes; returns the drawn vehicle ids in record order.

@@ -84,8 +84,8 @@ def wheel(x, y_outer, radius, width, side: float) -> list[trimesh.Trimesh]:
     """Tyre whose outer face is at |y| = y_outer, a metal rim and a dark hub on that face."""
     yc = side * (y_outer - width / 2)
     return [
-        _disc(x, yc, radius, radius, width, TYRE, MATTE, 16),
-        _disc(x, side * (y_outer - 0.012), radius, 0.64 * radius, 0.03, RIM, METAL, 12),
+        _disc(x, yc, radius, radius, width, TYRE, MATTE, 12),
+        _disc(x, side * (y_outer - 0.012), radius, 0.64 * radius, 0.03, RIM, METAL, 10),
         _disc(x, side * (y_outer - 0.004), radius, 0.22 * radius, 0.014, HUB, MATTE, 8),
     ]
 
@@ -176,9 +176,9 @@ def _loft(xs: np.ndarray, rings: np.ndarray) -> tuple[trimesh.Trimesh, np.ndarra
 
 
 def _stations(L: float, axles: list[float], arch_r: float) -> np.ndarray:
-    xs = list(np.linspace(-L / 2, L / 2, 29))
+    xs = list(np.linspace(-L / 2, L / 2, 21))
     for xa in axles:
-        xs += list(xa + arch_r * np.array([-1.02, -0.98, -0.75, -0.4, 0.0, 0.4, 0.75, 0.98, 1.02]))
+        xs += list(xa + arch_r * np.array([-1.02, -0.98, -0.6, 0.0, 0.6, 0.98, 1.02]))
     return np.unique(np.clip(np.round(xs, 5), -L / 2, L / 2))
 
 
@@ -332,7 +332,7 @@ def truck_mesh(shape: str, length: float, width: float, height: float, cab_rgb, 
         for s in (1.0, -1.0):
             parts += wheel(xa, W / 2 - 0.07, r, tw, s)
             if k > 0:
-                parts.append(_disc(xa, s * (W / 2 - 0.07 - tw - 0.02 - tw / 2), r, r, tw, TYRE, MATTE, 16))
+                parts.append(_disc(xa, s * (W / 2 - 0.07 - tw - 0.02 - tw / 2), r, r, tw, TYRE, MATTE, 12))
     parts.append(contact_shadow(L, W, H))
     return trimesh.util.concatenate(parts)
 

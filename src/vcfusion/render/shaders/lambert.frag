@@ -70,8 +70,11 @@ float value_noise(vec2 p)
 }
 
 // llvmpipe (OSMesa) evaluates both sides of a branch that differs between neighbouring
-// fragments, so every material runs one path: one grain hash, one value noise, one sky lookup and
-// one highlight, with per-material weights picked by cheap selects.
+// fragments (and, measured, an `if` that no fragment takes still costs), so every material runs
+// one path with per-material weights picked by cheap selects, and the program is compiled twice:
+// for vehicles (pyrender defines TEXCOORD_1_LOC: their primitives carry a second texture
+// coordinate as the flag) with reflections and highlights, for the static scene with the
+// asphalt and grass patches.
 void main()
 {
     vec3 n = normalize(world_normal);
@@ -89,7 +92,11 @@ void main()
     float grain = hash(floor(foliage ? p * 3.0 + world_position.z * 2.0 : p * 30.0)) - 0.5;
     float grain_w = ground ? 0.16 * clamp(1.0 - dist / 25.0, 0.0, 1.0) : (foliage ? 0.4 : 0.0);
     // Patches: older and newer asphalt stretched along the road, meadows of lighter and darker grass.
+#ifdef TEXCOORD_1_LOC
+    float patches = 0.0;
+#else
     float patches = value_noise(grass ? p * 0.05 : p * vec2(0.08, 0.3)) - 0.5;
+#endif
     float patch_w = ground ? 0.16 : (grass ? 0.35 : 0.0);
     // The shadow is the asphalt under it in ambient light only.
     vec3 albedo = shadow ? vec3(72.0, 74.0, 78.0) / 255.0 : vertex_colour;
@@ -98,6 +105,7 @@ void main()
     vec3 diffuse = albedo * (ambient_light * (shadow ? 0.85 : 1.0) + sun * ndl);
     vec3 colour = mat_id == MAT_LAMP ? vertex_colour * (0.75 + 0.35 * ndl) : diffuse;
 
+#ifdef TEXCOORD_1_LOC
     // Paint, glass and metal: Fresnel-weighted sky reflection and a Blinn-Phong highlight.
     bool paint = mat_id == MAT_PAINT;
     bool glass = mat_id == MAT_GLASS;
@@ -116,6 +124,7 @@ void main()
         env = metal ? env * albedo * 1.3 : env;
         colour = mix(base, env, f) + sun * highlight * (glass ? 1.0 : ndl);
     }
+#endif
     float haze = 1.0 - exp(-dist / HAZE_M);
     float code = shadow ? 0.0 : material.base_color_factor.a;
     frag_color = vec4(mix(colour, HORIZON, haze), code);
