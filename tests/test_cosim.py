@@ -8,8 +8,10 @@ import pytest
 
 from scenario_files import REPO, write_scenario
 from vcfusion.cosim import CoSimulation
+from vcfusion.driver.idm import IdmController
 from vcfusion.records import gnss_antenna_points
 from vcfusion.scenario import load_scenario
+from vcfusion.stages import WiringError
 
 ACCIDENT = """
 name: t
@@ -27,6 +29,7 @@ accident: {pos_m: 380, lanes: [0, 1]}
 def run(tmp_path, lat=0.0, loss=0.0, noise=0.0, seed=1, **kw):
     text = ACCIDENT.replace("LAT", str(lat)).replace("LOSS", str(loss)).replace("NOISE", str(noise))
     sc = load_scenario(write_scenario(tmp_path, text))
+    kw.setdefault("controller", IdmController.for_scenario(sc))
     return CoSimulation(sc, seed, **kw).run()
 
 
@@ -150,3 +153,159 @@ def test_lane_change_events_from_tracks_and_without_changes():
     empty = lane_change_events({k: np.array([], dtype=dt) for k, dt in SUMO_CHANGE_DTYPES.items()}, {}, road)
     frame = pd.DataFrame(empty)
     assert len(frame) == 0 and frame["from_lane"].dtype == np.int64 and frame["start_time"].dtype == np.float64
+
+
+# -- wiring of the stages (vcfusion.stages) ------------------------------------------------------
+
+def _scenario(tmp_path, seconds=1.0, **blocks):
+    sc = load_scenario(REPO / "scenarios" / "accident.yaml")
+    update = {"simulation": sc.simulation.model_copy(update={"max_time_s": seconds})}
+    for name, values in blocks.items():
+        update[name] = values if values is None else getattr(sc, name).model_copy(update=values)
+    return sc.model_copy(update=update)
+
+
+@pytest.mark.slow
+def test_normal_wirings_build_and_run(tmp_path):
+    """Traffic only (no ego), guidance from the cloud, camera, camera + fusion: each builds and runs,
+    and the stages see the tick fields they declare."""
+    from vcfusion.run import build_cosimulation
+
+    small = {"width_px": 160, "height_px": 120}
+    wirings = {
+        "traffic": _scenario(tmp_path, ego=None),
+        "guidance": _scenario(tmp_path),
+        "vision": _scenario(tmp_path, vision={"enabled": True}, camera=small),
+        "vision+fusion": _scenario(tmp_path, vision={"enabled": True}, camera=small,
+                                   fusion={"enabled": True, "detector": "oracle"}),
+    }
+    expected_hooks = {"traffic": [], "guidance": ["CloudGuidanceFallback"],
+                      "vision": ["CameraHook", "CloudGuidanceFallback"],
+                      "vision+fusion": ["CameraHook", "VisionFusionHook", "CloudGuidanceFallback"]}
+    for name, sc in wirings.items():
+        seen = []
+
+        class Probe:  # last hook: what the tick carries after the stages ran
+            table = f"probe_{name.replace('+', '_')}"
+
+            def __call__(self, tick):
+                seen.append((tick.frame is not None, tick.detections is not None,
+                             tick.guidance.source if tick.guidance is not None else None))
+
+        cosim = build_cosimulation(sc, 0)
+        assert [type(h).__name__ for h in cosim.hooks] == expected_hooks[name]
+        cosim.hooks.append(Probe())
+        result = cosim.run()
+        assert len(seen) == 10 and result.summary["simulated_s"] > 0.8, name
+        frames, detections, sources = (set(v) for v in zip(*seen))
+        assert frames == {name.startswith("vision")} and detections == {name == "vision+fusion"}
+        assert sources == {"traffic": {None}, "guidance": {"cloud"}, "vision": {"cloud"},
+                           "vision+fusion": {"fusion"}}[name]
+        if name != "traffic":
+            assert "driver" in result.summary and "driver" in result.tables
+        if name == "vision+fusion":
+            wrong_orders(sc, cosim)
+
+
+def wrong_orders(sc, cosim):
+    """The stages of a real vision + fusion run, put in orders that cannot work: refused when built."""
+    camera, fusion, cloud, probe = cosim.hooks
+    with pytest.raises(WiringError, match=r"VisionFusionHook\) needs 'frame', which no earlier stage provides; "
+                                          r"tick hook 1 \(CameraHook\) provides it: put it before"):
+        CoSimulation(sc, 0, controller=cosim.controller, hooks=[fusion, camera, cloud])
+    with pytest.raises(WiringError, match=r"VisionFusionHook\) provides 'guidance' after tick hook 1 "
+                                          r"\(CloudGuidanceFallback\), which fills it only where no earlier stage did"):
+        CoSimulation(sc, 0, controller=cosim.controller, hooks=[camera, cloud, fusion])
+    with pytest.raises(WiringError, match="controller DriverModel needs 'guidance', which no earlier stage provides"):
+        CoSimulation(sc, 0, controller=cosim.controller, hooks=[camera])
+    # a hook list changed after building is checked again when the run starts
+    cosim.hooks[:] = [fusion, camera, cloud]
+    with pytest.raises(WiringError, match="needs 'frame'"):
+        cosim.run()
+
+
+def test_ego_and_controller_go_together(tmp_path):
+    sc = _scenario(tmp_path)
+    with pytest.raises(WiringError, match="it has an ego, so the run needs the ego's controller"):
+        CoSimulation(sc, 0)
+    no_ego = sc.model_copy(update={"ego": None})
+    with pytest.raises(WiringError, match="controller IdmController given, but the scenario has no ego block"):
+        CoSimulation(no_ego, 0, controller=IdmController.for_scenario(sc))
+
+    class NeedsEgo:
+        table = "x"
+        needs = ("ego",)
+
+        def __call__(self, tick):
+            return None
+
+    with pytest.raises(WiringError, match=r"NeedsEgo\) needs 'ego', which no earlier stage provides; the scenario has no ego"):
+        CoSimulation(no_ego, 0, hooks=[NeedsEgo()])
+
+    class Typo(NeedsEgo):
+        needs = ("frames",)
+
+    with pytest.raises(WiringError, match="needs 'frames': expected a Tick field"):
+        CoSimulation(sc, 0, controller=IdmController.for_scenario(sc), hooks=[Typo()])
+
+
+def test_end_of_run_steps_keep_to_what_they_declare(tmp_path):
+    sc = _scenario(tmp_path, seconds=0.5)
+
+    class Summarises:
+        table = "summarises"
+        finish_summary = ("my_key",)
+
+        def __init__(self, writes: dict):
+            self.writes = writes
+
+        def __call__(self, tick):
+            return None
+
+        def finish(self, tables, summary):
+            summary.update(self.writes)
+
+    ok = Summarises({"my_key": 1})
+    result = CoSimulation(sc, 0, controller=IdmController.for_scenario(sc), hooks=[ok]).run()
+    assert result.summary["my_key"] == 1 and result.summary["scenario"] == "accident"
+    sneaky = Summarises({"my_key": 1, "undeclared": 2})
+    with pytest.raises(WiringError, match="Summarises.finish wrote summary key 'undeclared'"):
+        CoSimulation(sc, 0, controller=IdmController.for_scenario(sc), hooks=[sneaky]).run()
+
+    class Twice(Summarises):
+        table = "twice"
+
+    with pytest.raises(WiringError, match="summary key 'my_key' is already written by tick hook 0"):
+        CoSimulation(sc, 0, controller=IdmController.for_scenario(sc), hooks=[ok, Twice({})])
+
+    class WantsTable(Summarises):
+        table = "wants"
+        finish_needs = ("driver",)
+
+    with pytest.raises(WiringError, match="needs table 'driver' at the end of the run, which no earlier stage writes"):
+        CoSimulation(sc, 0, controller=IdmController.for_scenario(sc), hooks=[WantsTable({})])
+
+
+def test_process_models_declare_their_end_of_run_step(tmp_path):
+    """The cloud predictor's lane_change_flags come from its own finish, declared like a hook's."""
+    from vcfusion.run import build_cosimulation
+
+    sc = _scenario(tmp_path)
+    cosim = build_cosimulation(sc, 0)
+    (name, predictor), = cosim.process_models
+    assert predictor.finish_summary == ("lane_change_flags",)
+
+    class AlsoFlags:
+        table = "also"
+        finish_summary = ("lane_change_flags",)
+
+        def __call__(self, tick):
+            return None
+
+        def finish(self, tables, summary):
+            pass
+
+    with pytest.raises(WiringError, match=r"summary key 'lane_change_flags' is already written by "
+                                          r"process model lane_change \(LaneChangePredictor\)"):
+        CoSimulation(sc, 0, controller=cosim.controller, process_models=cosim.process_models,
+                     hooks=cosim.hooks + [AlsoFlags()])

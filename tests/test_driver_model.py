@@ -9,11 +9,13 @@ import pytest
 from vcfusion.cosim import Tick
 from vcfusion.driver.model import DriverModel
 from vcfusion.driver.params import CarLimits, draw_driver
-from vcfusion.records import Guidance, VehicleStates, guidance_level
+from vcfusion.guidance import GuidancePolicy
+from vcfusion.records import Guidance, GuidanceSet, VehicleStates
 from vcfusion.traffic.network import read_road
 
 ROAD = read_road(Path(__file__).resolve().parents[1] / "sumo_net" / "highway.net.xml")
 W = ROAD.lane_width_m
+POLICY = GuidancePolicy.on_road(ROAD, ego_lane=2, medium=0.3, high=0.6, view_range_m=150.0)
 
 
 def _truth(t, ego_s, ego_v, other_s, other_d, other_v):
@@ -27,7 +29,7 @@ def _truth(t, ego_s, ego_v, other_s, other_d, other_v):
                          length=np.full(n, 4.6), width=np.full(n, 1.8), height=np.full(n, 1.5))
 
 
-def _drive(driver, drift_at=None, guidance_at=None, until=4.0, gap=20.0):
+def _drive(driver, drift_at=None, guidance_at=None, until=4.0, gap=20.0, level="high"):
     """Ego from 19 m/s; a car at 14 m/s in the adjacent lane `gap` m ahead; it starts to drift at drift_at."""
     accs = []
     ego_s, ego_v, cut_s = 100.0, 19.0, 100.0 + gap + 4.6
@@ -39,8 +41,8 @@ def _drive(driver, drift_at=None, guidance_at=None, until=4.0, gap=20.0):
         truth = _truth(t, ego_s - 2.3, ego_v, cut_s - 2.3, d, 14.0)
         items = []
         if guidance_at is not None and t >= guidance_at:
-            items = [Guidance(t, "cutter", 0.9, "high", None)]
-        tick = Tick(t, truth, None, None, None, {"guidance": items})
+            items = [Guidance(t, "cutter", 0.9, level, None)]
+        tick = Tick(t, truth, None, None, None, guidance=GuidanceSet(tuple(items), "cloud"))
         accs.append(driver.acceleration(tick))
         ego_s += ego_v * 0.1 + 0.5 * accs[-1] * 0.01  # the ego moves as the driver asked
         ego_v = max(0.0, ego_v + accs[-1] * 0.1)
@@ -50,7 +52,7 @@ def _drive(driver, drift_at=None, guidance_at=None, until=4.0, gap=20.0):
 
 def _driver(guidance, seed=1, **over):
     p = replace(draw_driver(seed, 19.0), **over)
-    return DriverModel(p, ROAD, ego_lane=2, guidance_enabled=guidance)
+    return DriverModel(p, ROAD, POLICY, guidance_enabled=guidance)
 
 
 def test_lateral_drift_is_noticed_after_threshold_and_reaction_time():
@@ -101,8 +103,21 @@ def test_driver_draw_is_seeded_and_within_documented_ranges():
         assert 0.3 <= p.lateral_notice_m <= 0.5
 
 
-def test_guidance_levels():
-    assert [guidance_level(p, 0.5, 0.8) for p in (0.1, 0.5, 0.79, 0.8, 1.0)] == \
-        ["none", "medium", "medium", "high", "high"]
-    # With the cloud's smoothed decision: nothing is highlighted while it predicts no change.
-    assert [guidance_level(0.95, 0.5, 0.8, d) for d in (0, 1)] == ["none", "high"]
+def test_only_warning_levels_reach_the_driver():
+    """An item of level none is shown (a thin outline) but is no warning: the driver does not respond."""
+    drv = _driver(True, guidance_reaction_s=0.75)
+    _drive(drv, guidance_at=0.5, until=3.0, level="none")
+    assert drv.events == []
+    drv = _driver(True, guidance_reaction_s=0.75)
+    _drive(drv, guidance_at=0.5, until=3.0, level="medium")
+    assert [e["cue"] for e in drv.events] == ["guidance"] and drv.events[0]["level"] == "medium"
+
+
+def test_driver_finishes_with_its_tables_and_summary():
+    drv = _driver(True)
+    _drive(drv, drift_at=1.0, guidance_at=0.5, until=3.0)
+    tables, summary = {}, {}
+    drv.finish(tables, summary)
+    assert set(tables) == set(drv.finish_tables) and set(summary) == set(drv.finish_summary)
+    assert len(tables["driver"]) == 31 and summary["driver"]["guidance_enabled"] is True
+    assert tables["driver_events"]["cue"].tolist() == ["guidance", "lateral"]  # both cues are logged

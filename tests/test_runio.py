@@ -74,3 +74,19 @@ def test_vehicle_tracks_per_vehicle_in_table_order(tmp_path, stored):
     np.testing.assert_allclose(tracks["a"]["s"], [0.0, 11.0, 20.0, 31.0, 40.0])
     np.testing.assert_allclose(tracks["c"]["s"], [12.0, 32.0])
     assert vehicle_tracks(tables.arrow("traj", ["vehicle_id", "time"]), set(), ["time"]) == {}
+
+
+def test_run_folder_moves_extra_files_in_and_its_summary_lists_them(tmp_path):
+    import json
+
+    staging = tmp_path / "staging"
+    (staging / "frames").mkdir(parents=True)
+    (staging / "frames" / "000000.png").write_bytes(b"png")
+    (staging / "overlay.mp4").write_bytes(b"mp4")
+    out = write_run_folder(tmp_path / "run", {"ego": pd.DataFrame({"t": [0.0, 0.1]})}, {"seed": 1}, {"seed": 1},
+                           extra_files={"overlay.mp4": staging / "overlay.mp4", "frames": staging / "frames"})
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["files"] == ["ego.parquet", "frames/", "manifest.json", "overlay.mp4", "summary.json"]
+    assert summary["files"] == sorted(p.name + "/" * p.is_dir() for p in out.iterdir())
+    assert (out / "frames" / "000000.png").read_bytes() == b"png" and not list(staging.iterdir())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run", "staging"]  # no temporary folder left

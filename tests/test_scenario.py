@@ -3,7 +3,7 @@ import sys
 
 import pytest
 
-from scenario_files import write_scenario
+from scenario_files import REPO, write_scenario
 from vcfusion.scenario import ScenarioError, load_scenario
 
 BASE = """
@@ -65,3 +65,94 @@ def test_cli_rejects_bad_scenario_without_run_folder(tmp_path):
     assert proc.stderr.count("error:") == 1
     assert not out.exists()
     assert not list(tmp_path.glob("run*"))
+
+
+# --- extends: a scenario merged over its base -------------------------------------------------
+
+def test_accident_ar_holds_only_what_differs_from_accident(accident_path):
+    """The shipped variant extends the paper's scenario: same traffic, the vision stages on."""
+    base, ar = load_scenario(accident_path), load_scenario(accident_path.with_name("accident_ar.yaml"))
+    assert ar.chain == (accident_path.with_name("accident_ar.yaml"), accident_path.with_name("accident.yaml"))
+    same = {k: v for k, v in base.to_dict().items() if k not in ("name", "description", "ar", "vision", "fusion")}
+    assert {k: ar.to_dict()[k] for k in same} == same
+    assert ar.ar.period_s == base.ar.period_s == 0.1  # merged key by key into the base's ar block
+    assert ar.ar.video and ar.fusion.enabled and ar.vision.enabled and not base.fusion.enabled
+    assert "vehicles" not in __import__("yaml").safe_load(accident_path.with_name("accident_ar.yaml").read_text())
+
+
+def test_extends_merges_mappings_and_replaces_lists_along_a_chain(tmp_path):
+    (tmp_path / "sub").mkdir()
+    write_scenario(tmp_path, BASE + "v2c: {latency_s: 0.2, jitter_s: 0.01}\n"
+                   "vehicles: [{name: a, count: 2, lanes: [0, 1], pos_m: [80, 120]}]\n", "base.yaml")
+    write_scenario(tmp_path, "extends: ../base.yaml\nname: middle\nv2c: {jitter_s: 0.02, gnss_noise_std_m: 0.5}\n"
+                   "vehicles: [{name: b, count: 1, lanes: [2], pos_m: [90, 95]}]\n", "sub/middle.yaml")
+    leaf = write_scenario(tmp_path, "extends: sub/middle.yaml\nv2c: {latency_s: 0.1}\n", "leaf.yaml")
+    sc = load_scenario(leaf)
+    assert sc.name == "middle"  # not set in the leaf: from its base
+    # mappings merge key by key through the chain: each key from the last file that sets it
+    assert (sc.v2c.latency_s, sc.v2c.jitter_s, sc.v2c.gnss_noise_std_m) == (0.1, 0.02, 0.5)
+    assert sc.v2c.period_s == 0.1  # set by no file: the default
+    # a list replaces the base's list as a whole
+    assert [(g.name, g.count, g.lanes) for g in sc.vehicles] == [("b", 1, [2])]
+    assert sc.ego.lane == 2 and sc.network.name == "highway.net.xml"
+    assert sc.chain == (leaf, tmp_path / "sub" / "middle.yaml", tmp_path / "sub" / ".." / "base.yaml")
+    # the run manifest records the merged scenario and the chain of files
+    from vcfusion.run import manifest_for
+
+    manifest = manifest_for(sc, 3)
+    assert manifest["scenario"]["v2c"]["jitter_s"] == 0.02 and manifest["scenario"]["name"] == "middle"
+    assert manifest["scenario_chain"] == [str(p) for p in sc.chain] and manifest["scenario_file"] == str(leaf)
+
+
+def test_extends_resolves_paths_against_the_file_that_names_them(tmp_path):
+    """A base in another folder keeps its relative network path; a variant's own paths are its own."""
+    import shutil
+
+    (tmp_path / "net").mkdir()
+    (tmp_path / "scen").mkdir()
+    shutil.copy(REPO / "sumo_net" / "highway.net.xml", tmp_path / "net" / "road.net.xml")
+    shutil.copy(REPO / "sumo_net" / "vtypes.add.xml", tmp_path / "scen" / "types.add.xml")
+    (tmp_path / "net" / "base.yaml").write_text("name: b\nnetwork: road.net.xml\nvehicle_types: ../scen/types.add.xml\n"
+                                                "ego: {lane: 1}\n")
+    (tmp_path / "scen" / "v.yaml").write_text("extends: ../net/base.yaml\nvehicle_types: types.add.xml\n")
+    sc = load_scenario(tmp_path / "scen" / "v.yaml")
+    assert sc.network == tmp_path / "net" / "road.net.xml"
+    assert sc.vehicle_types == tmp_path / "scen" / "types.add.xml"
+
+
+def test_extends_errors_name_the_file_the_bad_field_came_from(tmp_path):
+    write_scenario(tmp_path, BASE + "v2c: {latency_s: -1}\n", "base.yaml")
+    leaf = write_scenario(tmp_path, "extends: base.yaml\nsimulation: {stepp_s: 0.01}\n", "leaf.yaml")
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(leaf)
+    lines = sorted(str(err.value).splitlines())  # one line per problem, each naming its own file
+    assert len(lines) == 2
+    assert lines[0].startswith(f"{tmp_path / 'base.yaml'} (extended by {leaf}): v2c.latency_s: ")
+    assert lines[1].startswith(f"{leaf}: simulation.stepp_s: unknown key")
+    # a field the leaf overrides is the leaf's; a check across fields names the field's file
+    write_scenario(tmp_path, "extends: base.yaml\nv2c: {latency_s: 0.0, period_s: 0.015}\n", "leaf2.yaml")
+    with pytest.raises(ScenarioError, match=r"leaf2.yaml: v2c.period_s: expected a whole multiple") as err:
+        load_scenario(tmp_path / "leaf2.yaml")
+    assert "base.yaml" not in str(err.value)
+    write_scenario(tmp_path, BASE.replace("lane: 2", "lane: 7"), "base3.yaml")
+    (tmp_path / "leaf3.yaml").write_text("extends: base3.yaml\nname: x\n")
+    with pytest.raises(ScenarioError, match=r"base3.yaml \(extended by .*leaf3.yaml\): ego.lane: expected a lane"):
+        load_scenario(tmp_path / "leaf3.yaml")
+
+
+@pytest.mark.parametrize("files, start, expected", [
+    ({"a.yaml": "extends: a.yaml\nname: a\n"}, "a.yaml", r"a.yaml: extends: a.yaml makes a cycle"),
+    ({"a.yaml": "extends: b.yaml\n", "b.yaml": "extends: c.yaml\n", "c.yaml": "extends: a.yaml\n"}, "a.yaml",
+     r"c.yaml: extends: a.yaml makes a cycle \(.*a.yaml -> .*b.yaml -> .*c.yaml -> .*a.yaml\)"),
+    ({"a.yaml": "extends: missing.yaml\nname: a\n"}, "a.yaml",
+     r"a.yaml: extends: file not found: missing.yaml \(relative to the scenario file\)"),
+    ({"a.yaml": "extends: b.yaml\n", "b.yaml": "extends: gone/base.yaml\n"}, "a.yaml",
+     r"b.yaml: extends: file not found: gone/base.yaml"),
+    ({"a.yaml": "extends: [b.yaml]\n"}, "a.yaml", r"a.yaml: extends: expected the path of a base scenario file"),
+    ({"a.yaml": "extends: b.yaml\n", "b.yaml": "name: [unclosed\n"}, "a.yaml", r"b.yaml: line 2, column 1: not valid YAML"),
+])
+def test_extends_refuses_cycles_missing_bases_and_bad_values(tmp_path, files, start, expected):
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    with pytest.raises(ScenarioError, match=expected):
+        load_scenario(tmp_path / start)

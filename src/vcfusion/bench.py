@@ -4,7 +4,7 @@ Each section runs in a fresh interpreter, so its peak memory (max RSS of the pro
 its worker processes) is its own:
 - P1 traffic-only closed loop of the accident scenario (SUMO + cloud twins + whatever process
   models and driver the scenario enables, no rendering): simulated seconds per wall second on
-  one core;
+  one core, with the per-vehicle metrics (the default) and without them side by side (their cost);
 - P2 the full vision tick at 640x480 (render, detect, depth, match, overlay): median ms per
   tick and per stage, and the real-time factor;
 - P3 labelled dataset samples per second (simulation + features + labels + Parquet);
@@ -36,12 +36,38 @@ def _peak_rss_mb() -> dict[str, float]:
     return {"peak_rss_mb": round(own, 1), "peak_rss_children_mb": round(children, 1)}
 
 
+def _bare_sumo_block(scenario, durations: dict[int, float]) -> float:
+    """Wall time of SUMO alone on the same trips: the scenario's network, vehicles, accident and
+    ego inserted exactly as in the closed loop (same session code), then stepped for the simulated
+    time each seed's closed-loop trip took, with nothing read and nothing computed between steps."""
+    import numpy as np
+
+    from vcfusion.traffic.session import SumoSession
+
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="vcfusion-bare-") as tmp:
+        for seed, simulated_s in durations.items():
+            rng = np.random.default_rng(seed)
+            session = SumoSession(scenario, seed, Path(tmp) / "lanechanges.xml",
+                                  np.random.default_rng(rng.integers(2**63)))
+            try:
+                for _ in range(int(round(simulated_s / scenario.simulation.step_s))):
+                    session.step()
+            finally:
+                session.close()
+    return time.perf_counter() - start
+
+
 def p1_traffic(seeds: int, repeats: int = 3) -> dict:
-    """Closed loop, one process, seeds one after the other (SUMO start-up included).
+    """Closed loop, one process, seeds one after the other (SUMO start-up included), and beside
+    it bare SUMO on the same trips.
 
     The block of trips is timed `repeats` times: this VM's speed drifts by tens of per cent
     from minute to minute (other tenants; CPU time drifts with wall time, so it is not steal),
-    so the best block is the code's speed and the median says what a busy minute gives.
+    so the best block is the code's speed and the median says what a busy minute gives. Each
+    closed-loop block is followed by a bare-SUMO block of the same trips (same seeds, same
+    simulated seconds): their ratio, measured side by side, is the closed loop's cost over SUMO
+    and holds when the machine's speed drifts between runs.
     """
     import statistics
 
@@ -52,23 +78,44 @@ def p1_traffic(seeds: int, repeats: int = 3) -> dict:
         # the last one: on the 2-core machine core 0 ran the same loop ~15 % slower (system work)
         os.sched_setaffinity(0, {max(os.sched_getaffinity(0))})
     scenario = load_scenario(ACCIDENT)
+    # the same trips without the per-vehicle metrics (and SUMO's emissions device): their cost
+    bare = scenario.model_copy(update={"metrics": scenario.metrics.model_copy(update={"enabled": False})})
     build_cosimulation(scenario, seeds).run()  # warm-up: imports, first SUMO start, model file, kernels
-    blocks = []
+    blocks: dict[str, list] = {"metrics": [], "bare": []}
+    bare_walls = []
     for _ in range(repeats):
-        simulated = loop = 0.0
-        start = time.perf_counter()
-        for seed in range(seeds):
-            result = build_cosimulation(scenario, seed).run()
-            simulated += result.summary["simulated_s"]
-            loop += result.loop_wall_s
-        blocks.append((simulated, time.perf_counter() - start, loop))
-    simulated, wall, loop = min(blocks, key=lambda b: b[1])
+        for label, sc in (("metrics", scenario), ("bare", bare)):  # alternated: the VM's speed drifts
+            simulated = loop = 0.0
+            durations = {}
+            start = time.perf_counter()
+            for seed in range(seeds):
+                result = build_cosimulation(sc, seed).run()
+                simulated += result.summary["simulated_s"]
+                durations[seed] = result.summary["simulated_s"]
+                loop += result.loop_wall_s
+            blocks[label].append((simulated, time.perf_counter() - start, loop))
+        bare_walls.append(_bare_sumo_block(scenario, durations))
+    best = min(range(repeats), key=lambda i: blocks["metrics"][i][1])
+    simulated, wall, loop = blocks["metrics"][best]
+    ratios = [b[1] / bare for b, bare in zip(blocks["metrics"], bare_walls)]
+    bare_wall = min(b[1] for b in blocks["bare"])
+    paired = [m[1] / b[1] - 1.0 for m, b in zip(blocks["metrics"], blocks["bare"])]
     return {"name": "P1 traffic closed loop", "runs": seeds, "repeats": repeats, "simulated_s": round(simulated, 2),
             "wall_s": round(wall, 3), "real_time_factor": round(simulated / wall, 1),
-            "real_time_factor_median": round(statistics.median(b[0] / b[1] for b in blocks), 1),
+            "real_time_factor_median": round(statistics.median(b[0] / b[1] for b in blocks["metrics"]), 1),
             # the tick loop alone, without each trip's SUMO start-up and end-of-run tables
             "loop_wall_s": round(loop, 3), "loop_real_time_factor": round(simulated / loop, 1),
-            "per_trip_overhead_ms": round(1000 * (wall - loop) / seeds, 1), "target": ">= 200"}
+            "per_trip_overhead_ms": round(1000 * (wall - loop) / seeds, 1),
+            # bare SUMO on the same trips, timed right after each closed-loop block
+            "bare_sumo_real_time_factor": round(simulated / min(bare_walls), 1),
+            "closed_loop_over_bare_sumo": round(statistics.median(ratios), 2),
+            "closed_loop_over_bare_sumo_range": [round(min(ratios), 2), round(max(ratios), 2)],
+            # the same trips without the metrics: best block against best block, and the median of
+            # the back-to-back pairs
+            "real_time_factor_without_metrics": round(simulated / bare_wall, 1),
+            "metrics_cost_pct": round(100.0 * (wall / bare_wall - 1.0), 1),
+            "metrics_cost_pct_median_pair": round(100.0 * statistics.median(paired), 1),
+            "target": ">= 200; metrics <= 10 %"}
 
 
 def p4_scaling(seeds: int) -> dict:
@@ -156,6 +203,9 @@ class _Timed:
 
     def __init__(self, hook):
         self.hook, self.table, self.seconds = hook, hook.table, []
+        # the wrapped stage's declarations (vcfusion.stages), so the run's wiring check sees them
+        for attribute in ("needs", "provides", "fills"):
+            setattr(self, attribute, getattr(hook, attribute, ()))
 
     def __call__(self, tick):
         start = time.perf_counter()

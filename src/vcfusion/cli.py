@@ -6,8 +6,36 @@ import argparse
 import sys
 from pathlib import Path
 
-from vcfusion.errors import UsageError
-from vcfusion.scenario import ScenarioError, load_scenario
+from vcfusion.errors import InputError, UsageError
+from vcfusion.scenario import load_scenario
+
+
+def check_seed(seed: int, option: str = "--seed") -> int:
+    from vcfusion.studies.batch import MAX_SEED
+
+    if not 0 <= seed <= MAX_SEED:
+        raise UsageError(f"{option}: expected a seed from 0 to {MAX_SEED}, got {seed}")
+    return seed
+
+
+def check_new_folder(out: Path, option: str = "--out") -> Path:
+    """A folder the command will create: it must not exist, and no part of its path may be a file."""
+    if out.exists():
+        raise UsageError(f"{option}: {out} already exists; choose a new folder")
+    check_folder_path(out, option)
+    return out
+
+
+def check_folder_path(out: Path, option: str = "--out") -> Path:
+    """A folder the command creates or reuses: neither it nor a parent may be a file."""
+    for part in (out, *out.parents):
+        if part.exists() and not part.is_dir():
+            raise UsageError(f"{option}: {part} is a file; expected a folder path")
+    return out
+
+# What Ctrl-C leaves of a resumable batch of seeds (batch, dataset), for the user.
+INTERRUPTED_BATCH = ("complete seeds are kept, partial ones removed; run the same command again to resume "
+                     "(complete seeds are skipped)")
 
 
 def _default_run_dir(name: str, seed: int) -> Path:
@@ -21,9 +49,8 @@ def _default_run_dir(name: str, seed: int) -> Path:
 
 def cmd_run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
-    out = Path(args.out) if args.out else _default_run_dir(scenario.name, args.seed)
-    if out.exists():
-        raise UsageError(f"--out: {out} already exists; choose a new run folder")
+    check_seed(args.seed)
+    out = check_new_folder(Path(args.out) if args.out else _default_run_dir(scenario.name, args.seed))
     _run_and_report(scenario, args.seed, out)
     return 0
 
@@ -32,8 +59,12 @@ def _run_and_report(scenario, seed: int, out: Path) -> None:
     from vcfusion.cosim import format_summary
     from vcfusion.run import execute_run
 
+    from vcfusion.metrics.run_metrics import format_run_metrics
+
     result = execute_run(scenario, seed, out, progress=sys.stderr.isatty())
     print(format_summary(result.summary, result.wall_s))
+    if "metrics" in result.summary:
+        print(format_run_metrics(result.summary))
     print(f"run folder: {out}")
 
 
@@ -48,13 +79,16 @@ def cmd_batch(args: argparse.Namespace) -> int:
         raise UsageError(f"--dask-local: expected a positive number of worker processes, got {args.dask_local}")
     if args.scheduler is not None and not args.scheduler.startswith(("tcp://", "tls://", "inproc://", "ucx://")):
         raise UsageError(f"--scheduler: expected a Dask scheduler address like tcp://HOST:PORT, got {args.scheduler!r}")
-    out = Path(args.out) if args.out else Path("runs") / f"{scenario.name}-batch"
+    out = check_folder_path(Path(args.out) if args.out else Path("runs") / f"{scenario.name}-batch")
     executor = Executor(workers=args.workers, dask_scheduler=args.scheduler, dask_local=args.dask_local)
     report = run_batch(Path(args.scenario), seeds, out, executor=executor)
     print(f"batch {scenario.name} -> {out}: {report['done']} run, {report['skipped']} already complete, "
           f"{len(report['failed'])} failed")
     for seed, error in report["failed"]:
         print(f"  seed {seed}: {error.splitlines()[0]}")
+    from vcfusion.metrics.commands import print_batch_metrics
+
+    print_batch_metrics(out)
     return 1 if report["failed"] else 0
 
 
@@ -66,9 +100,10 @@ def cmd_study_guidance(args: argparse.Namespace) -> int:
         raise UsageError(f"--trips: expected at least 2 paired trips for a confidence interval, got {args.trips}")
     if args.workers < 1:
         raise UsageError(f"--workers: expected a positive number of processes, got {args.workers}")
-    if args.first_seed < 0:
-        raise UsageError(f"--first-seed: expected a non-negative seed, got {args.first_seed}")
-    out = Path(args.out) if args.out else Path("runs") / f"guidance-study-{Path(args.scenario).stem}"
+    check_seed(args.first_seed, "--first-seed")
+    check_seed(args.first_seed + args.trips - 1, "--first-seed + --trips - 1")
+    out = check_folder_path(Path(args.out) if args.out else Path("runs") / f"guidance-study-{Path(args.scenario).stem}")
+    check_folder_path(Path(args.renders), "--renders")
     try:
         result = run_guidance_study(Path(args.scenario), args.trips, args.workers, out, Path(args.renders),
                                     first_seed=args.first_seed, process_model_specs=tuple(args.process_model),
@@ -80,19 +115,28 @@ def cmd_study_guidance(args: argparse.Namespace) -> int:
         return 1
     print(result["text"])
     print(f"tables: {out}/trips.parquet, {out}/summary.csv; figures: " + ", ".join(str(p) for p in result["figures"]))
-    return 0
+    for seed, error in result["failed"]:  # also in OUT/failures.json
+        print(f"  trip {seed} failed: {error.splitlines()[0]}")
+    return 1 if result["failed"] else 0
 
 
 def cmd_build_net(args: argparse.Namespace) -> int:
-    from vcfusion.traffic.network import REPO_NET_DIR, build_network
+    from vcfusion.traffic.network import REPO_NET_DIR, build_networks
 
-    out = build_network(Path(args.net_dir) if args.net_dir else REPO_NET_DIR)
-    print(f"built {out}")
+    try:
+        built = build_networks(Path(args.net_dir) if args.net_dir else REPO_NET_DIR)
+    except RuntimeError as exc:
+        raise UsageError(str(exc)) from None
+    for out in built:
+        print(f"built {out}")
     return 0
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
+    check_seed(args.seed)
+    if args.trips < 2:
+        raise UsageError(f"--trips: expected at least 2 paired trips for a confidence interval, got {args.trips}")
     _run_and_report(scenario, args.seed, _default_run_dir(scenario.name, args.seed))
     return _demo_guidance_study(args)
 
@@ -137,9 +181,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise UsageError(f"--every: expected a positive number of V2C ticks, got {args.every}")
     if scenario.ego is None:
         raise UsageError(f"{args.scenario}: ego: the camera rides on the ego; the scenario has no ego block")
-    out = Path(args.out) if args.out else Path("renders") / f"{scenario.name}-dataset"
-    if out.exists():
-        raise UsageError(f"--out: {out} already exists; choose a new dataset folder")
+    out = check_new_folder(Path(args.out) if args.out else Path("renders") / f"{scenario.name}-dataset")
     from vcfusion.render.export import render_dataset
 
     counts = render_dataset(scenario, seeds, args.every, out, progress=sys.stderr.isatty())
@@ -162,7 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenario", help="scenario YAML file")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", help="run folder to create (default: runs/NAME-seedN)")
-    p.set_defaults(func=cmd_run)
+    p.set_defaults(func=cmd_run, interrupted="no run folder was written; run the same command again to redo the run")
 
     p = sub.add_parser("batch", help="run many seeds in parallel processes (resumable)")
     p.add_argument("scenario")
@@ -173,7 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--scheduler", help="run the seeds on this Dask scheduler (tcp://HOST:PORT); "
                                            "its workers must share this file system")
     where.add_argument("--dask-local", type=int, metavar="N", help="start a local Dask cluster of N worker processes")
-    p.set_defaults(func=cmd_batch)
+    p.set_defaults(func=cmd_batch, interrupted=INTERRUPTED_BATCH)
 
     p = sub.add_parser("study", help="studies over many runs: guidance (Fig. 8/9), identification (Fig. 4)")
     study = p.add_subparsers(dest="study", required=True)
@@ -190,10 +232,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--process-model", action="append", default=[], metavar="MODULE:FACTORY",
                    help="extra cloud twin process model: FACTORY(scenario) returns fn(twins, store) -> "
                         "{'lc_prob': ...}; repeatable (e.g. a stand-in before the predictor is wired)")
-    p.set_defaults(func=cmd_study_guidance)
+    p.set_defaults(func=cmd_study_guidance,
+                   interrupted="the study wrote nothing; run the same command again (its trips start over)")
 
-    p = sub.add_parser("build-net", help="rebuild sumo_net/highway.net.xml with netconvert")
-    p.add_argument("--net-dir", help="folder with highway.nod/edg/typ.xml (default: the repo's sumo_net)")
+    p = sub.add_parser("build-net", help="rebuild every sumo_net/NAME.net.xml with netconvert")
+    p.add_argument("--net-dir", help="folder with NAME.nod/edg.xml (+ .typ/.con.xml) (default: the repo's sumo_net)")
     p.set_defaults(func=cmd_build_net)
 
     p = sub.add_parser("bench", help="benchmark suite: print figures, write bench.json and bench.md")
@@ -230,6 +273,10 @@ def build_parser() -> argparse.ArgumentParser:
     from vcfusion.detection.commands import add_parsers as add_detection_parsers
 
     add_detection_parsers(sub)
+
+    from vcfusion.metrics.commands import add_parsers as add_metrics_parsers
+
+    add_metrics_parsers(sub)  # metrics, report
     return parser
 
 
@@ -237,8 +284,15 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ScenarioError, UsageError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except KeyboardInterrupt:
+        # What Ctrl-C left and how to go on: the command's set_defaults(interrupted=...).
+        # The workers were stopped and temporary folders removed on the way up.
+        hint = getattr(args, "interrupted", None)
+        print("interrupted" + (f": {hint}" if hint else ""), file=sys.stderr)
+        return 130
+    except InputError as exc:  # scenario, model, dataset and command-line values (vcfusion.errors)
+        for line in str(exc).splitlines():  # one line per problem (a scenario file may have several)
+            print(f"error: {line}", file=sys.stderr)
         return 2
     except FileExistsError as exc:
         print(f"error: {exc}", file=sys.stderr)

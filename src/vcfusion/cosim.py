@@ -4,20 +4,22 @@ SUMO advances in steps of `simulation.step_s`. Every V2C period (a tick):
 1. every vehicle's GNSS report goes into the V2C channel; reports that have arrived reach the
    cloud twin store, which runs its process models over all twins at once;
 2. the ego receives its neighbours' twins (within `v2c.neighbour_range_m`);
-3. tick hooks run (vision, overlay, logging of extra tables);
+3. tick hooks run in order (camera, fusion + overlay, guidance; each may log rows to a table)
+   and fill the tick's typed fields (frame, detections, guidance);
 4. the ego controller sets the ego's acceleration for the steps until the next tick.
+What each stage reads and sets is declared and checked when the run is built (vcfusion.stages).
 The ego's speed is integrated here and imposed on SUMO every step (speed mode 0), so the
 ego's motion is exactly what the controller asked for.
 """
 
 from __future__ import annotations
 
-import math
 import tempfile
 import time as wallclock
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
-from typing import Callable, Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import pandas as pd
@@ -26,14 +28,21 @@ from tqdm import tqdm
 
 from vcfusion.cloud.channel import V2CChannel
 from vcfusion.cloud.twins import ProcessModel, TwinStore, neighbours
-from vcfusion.driver.idm import IDMParams, idm_acceleration
-from vcfusion.records import TwinStates, VehicleStates
+from vcfusion.metrics.run_metrics import add_run_metrics
+from vcfusion.metrics.traffic import sumo_model_rates
+from vcfusion.records import EGO_ID, GuidanceSet, TwinStates, VehicleStates
 from vcfusion.runio import RunTables, TableSink, vehicle_tracks
-from vcfusion.threads import one_blas_thread
 from vcfusion.scenario import Scenario
-from vcfusion.traffic.lanechanges import lane_change_events, read_sumo_lanechanges
+from vcfusion.stages import WiringError, check_wiring, declared, stage_name
+from vcfusion.threads import one_blas_thread
+from vcfusion.traffic.lanechanges import lane_change_events, read_sumo_lanechanges, relate_to_ego
 from vcfusion.traffic.network import Road
-from vcfusion.traffic.session import EGO_ID, Collision, SumoSession
+from vcfusion.traffic.session import Collision, SumoSession
+
+if TYPE_CHECKING:  # the camera and detector types only: traffic-only runs never import OpenGL or torch
+    from vcfusion.detection.detectors import Detections
+    from vcfusion.fusion.fuse import CameraFrame
+    from vcfusion.render.renderer import Frame
 
 
 @dataclass(frozen=True)
@@ -51,36 +60,35 @@ class EgoView:
 
 @dataclass
 class Tick:
+    """What the stages of one tick see. The loop sets the first five fields (`ego` and
+    `neighbours` only when the scenario has an ego); each later field is set by the one stage that
+    declares it in `provides` (or `fills`), and may be None at ticks where that stage has nothing."""
+
     time: float
     truth: VehicleStates
     twins: TwinStates
     ego: EgoView | None
     neighbours: TwinStates | None
-    # Filled by hooks for the controller and the logs (e.g. guidance from the AR overlay).
-    annotations: dict = field(default_factory=dict)
+    # The ego camera's image: a rendered Frame (render/hook.py), or a CameraFrame from a frame
+    # source that stands in for the renderer.
+    frame: Frame | CameraFrame | None = None
+    detections: Detections | None = None  # the detector's boxes on that frame (fusion stage)
+    guidance: GuidanceSet | None = None  # what the driver is shown, with its source (fusion / cloud guidance)
 
 
 class EgoController(Protocol):
+    """Sets the ego's acceleration every tick; may declare `needs` and `finish` (vcfusion.stages)."""
+
     def acceleration(self, tick: Tick) -> float: ...
 
 
 class TickHook(Protocol):
-    """Runs every V2C tick; may return rows for a table of the run folder."""
+    """Runs every V2C tick; may return rows for its table of the run folder; declares what it
+    needs from and provides to the tick (vcfusion.stages)."""
 
     table: str
 
     def __call__(self, tick: Tick) -> list[dict] | None: ...
-
-
-class IdmEgoController:
-    """Placeholder driver until the driver model: IDM on the radar leader in the ego's lane."""
-
-    def __init__(self, params: IDMParams):
-        self.params = params
-
-    def acceleration(self, tick: Tick) -> float:
-        ego = tick.ego
-        return idm_acceleration(self.params, ego.speed, ego.leader_gap_m, ego.leader_speed)
 
 
 @dataclass
@@ -143,24 +151,43 @@ class CoSimulation:
         self.seed = seed
         # One generator per run: placements, V2C loss/jitter/noise all follow from the seed.
         self.rng = np.random.default_rng(seed)
-        ego_cfg = scenario.ego
-        self.controller = controller or (
-            IdmEgoController(IDMParams(desired_speed_mps=ego_cfg.desired_speed_mps)) if ego_cfg else None)
+        if scenario.ego is not None and controller is None:
+            raise WiringError(f"scenario {scenario.name}: it has an ego, so the run needs the ego's controller "
+                              "(run.build_cosimulation wires the driver model; driver.idm.IdmController follows "
+                              "the radar leader)")
+        if scenario.ego is None and controller is not None:
+            raise WiringError(f"scenario {scenario.name}: controller {stage_name(controller)} given, but the "
+                              "scenario has no ego block")
+        self.controller = controller
         self.process_models = process_models or []
         self.hooks = hooks or []
         # Further SUMO options (e.g. --fcd-output for cross-checks, SSM devices).
         self.extra_sumo_args = extra_sumo_args or []
+        self.check_wiring()
+
+    def check_wiring(self) -> None:
+        """Refuse stages in an order that cannot work (raises WiringError; see vcfusion.stages).
+        Run again by run(): callers may change `hooks` after building."""
+        check_wiring(self.process_models, self.hooks, self.controller, self.scenario.ego is not None)
+
+    def stages(self) -> list:
+        """Every stage of the run in the order it runs: process models, hooks, controller."""
+        return [m for _, m in self.process_models] + list(self.hooks) + (
+            [self.controller] if self.controller is not None else [])
 
     def run(self, progress: bool = False) -> RunResult:
         sc = self.scenario
+        self.check_wiring()
         started = wallclock.perf_counter()
         # Tables that grow with simulated time are streamed to Parquet here (flat memory).
         workdir = tempfile.TemporaryDirectory(prefix="vcfusion-run-")
         sinks = {name: TableSink(Path(workdir.name) / f"{name}.parquet") for name in STREAMED_TABLES}
         sinks.update({hook.table: TableSink(Path(workdir.name) / f"{hook.table}.parquet") for hook in self.hooks})
         lc_file = Path(workdir.name) / "lanechanges.xml"
+        tripinfo = Path(workdir.name) / "tripinfo.xml"  # SUMO's emission totals (metrics)
         session = SumoSession(sc, self.seed, lc_file, np.random.default_rng(self.rng.integers(2**63)),
-                              self.extra_sumo_args)
+                              self.extra_sumo_args, (tripinfo, partial(sumo_model_rates, sc.metrics))
+                              if sc.metrics.enabled else None)
         try:
             loop_started = wallclock.perf_counter()
             with one_blas_thread():  # small per-tick arrays: BLAS threads only cost hand-offs
@@ -177,20 +204,19 @@ class CoSimulation:
         frames["collisions"] = pd.DataFrame([c.__dict__ for c in out["collisions"]],
                                             columns=list(Collision.__dataclass_fields__))
         tables = RunTables(frames, {k: f for k, f in stored.items() if f is not None}, keepalive=workdir)
-        # A controller that keeps its own log (e.g. the driver model) adds its tables and summary.
-        if hasattr(self.controller, "tables"):
-            tables.update(self.controller.tables())
         lateral = tables.arrow("trajectories", ["vehicle_id", "time", "d", "s"])
         # the changers' and the ego's samples as plain arrays, selected once for both lane-change steps
         tracks = vehicle_tracks(lateral, set(sumo_changes["vehicle_id"]) | {EGO_ID}, ["time", "d", "s"])
         events = lane_change_events(sumo_changes, tracks, session.road)
         if sc.ego is not None:
             lengths = dict(zip(vehicles["vehicle_id"], vehicles["length"]))
-            events = _relate_to_ego(events, tracks, lengths, sc.ego.lane)
+            events = relate_to_ego(events, tracks, lengths, sc.ego.lane)
         tables["lane_changes"] = pd.DataFrame(events)
         summary = summarize(sc, self.seed, tables, events, out["channel"], out["end_reason"], lateral)
-        if hasattr(self.controller, "summary"):
-            summary["driver"] = self.controller.summary()
+        for stage in self.stages():
+            _finish(stage, tables, summary)
+        if sc.metrics.enabled:  # per-vehicle safety, comfort and emissions (vcfusion.metrics)
+            summary["metrics"] = add_run_metrics(sc, tables, tripinfo, session.emission_classes)
         return RunResult(sc, self.seed, tables, summary, wallclock.perf_counter() - started, loop_wall)
 
     def _loop(self, session: SumoSession, sinks: dict[str, TableSink], progress: bool) -> dict:
@@ -284,30 +310,20 @@ class CoSimulation:
         )
 
 
-def _relate_to_ego(events: dict[str, np.ndarray], tracks: dict[str, dict[str, np.ndarray]],
-                   lengths: dict[str, float], ego_lane: int) -> dict[str, np.ndarray]:
-    """Mark lane changes into the ego's lane and where they happened relative to the ego.
-
-    `gap_to_ego_m`: bumper to bumper along the road, the changer's rear minus the ego's front,
-    at the trajectory sample nearest the change's midpoint. `tracks`: time and s of the ego's
-    and the changers' trajectory samples (see runio.vehicle_tracks; others are ignored).
-    """
-    vids, mid = events["vehicle_id"], events["mid_time"]
-    gaps = np.full(len(vids), np.nan)
-    ego = tracks.get(EGO_ID)
-    if ego is not None and len(ego["time"]) and len(vids):
-        ego_t, ego_s = ego["time"], ego["s"]
-        at = np.abs(ego_t[None, :] - mid[:, None]).argmin(axis=1)
-        changer_s = np.full(len(vids), np.nan)
-        for i, (vid, t) in enumerate(zip(vids, ego_t[at])):
-            track = tracks.get(vid)
-            hit = np.flatnonzero(track["time"] == t) if track is not None else ()
-            if len(hit):
-                changer_s[i] = track["s"][hit[-1]]
-        changer_length = np.array([lengths.get(v, np.nan) for v in vids], dtype=float)
-        gaps = changer_s - ego_s[at] - 0.5 * (changer_length + lengths[EGO_ID])
-    return events | {"into_ego_lane": (events["to_lane"] == ego_lane) & (vids != EGO_ID),
-                     "gap_to_ego_m": gaps, "ahead_of_ego": gaps > 0}
+def _finish(stage, tables: RunTables, summary: dict) -> None:
+    """A stage's end-of-run step, held to what it declared (vcfusion.stages): it may add its
+    tables and summary keys, never replace another's."""
+    finish = getattr(stage, "finish", None)
+    if finish is None:
+        return
+    tables_before, keys_before = set(tables), set(summary)
+    finish(tables, summary)
+    for kind, before, after, allowed in (("table", tables_before, set(tables), declared(stage, "finish_tables")),
+                                         ("summary key", keys_before, set(summary), declared(stage, "finish_summary"))):
+        extra = sorted((after - before) - set(allowed)) or sorted(set(allowed) & before)
+        if extra:
+            raise WiringError(f"{stage_name(stage)}.finish wrote {kind} {extra[0]!r}, which it does not declare "
+                              f"or which an earlier step wrote")
 
 
 def summarize(sc: Scenario, seed: int, tables, lc: dict[str, np.ndarray], channel: V2CChannel, end_reason: str,
@@ -344,19 +360,6 @@ def summarize(sc: Scenario, seed: int, tables, lc: dict[str, np.ndarray], channe
             "ego_mean_speed_mps": float(speed.mean()) if len(speed) else 0.0,
             "ego_min_leader_gap_m": float(np.nanmin(gap)) if (~np.isnan(gap)).any() else None,
         })
-        if "lc_decision" in tables.column_names("twins"):
-            from vcfusion.prediction.cloud import first_flags
-
-            into = lc["into_ego_lane"]
-            into_ids = set(lc["vehicle_id"][into])
-            # Only the columns and vehicles the flags need: the twins table is the largest one.
-            twins = vehicle_tracks(tables.arrow("twins", ["vehicle_id", "time", "lc_decision"]), into_ids,
-                                   ["time", "lc_decision"])
-            theirs = np.isin(lc["vehicle_id"], list(into_ids))
-            flags = first_flags(twins, {k: v[theirs] for k, v in lc.items()}, sc.simulation.lanechange_duration_s / 2)
-            ahead = dict(zip(lc["event_id"][into].tolist(), lc["ahead_of_ego"][into].tolist()))
-            summary["lane_change_flags"] = [f | {"ahead_of_ego": bool(ahead[f["event_id"]])}
-                                            for f in flags if f["event_id"] in ahead]
     return summary
 
 

@@ -16,11 +16,12 @@ Conventions (see docs/architecture.md):
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields
 
 import numpy as np
 
+# The ego's vehicle id, in SUMO and in every table (one definition for all stages).
+EGO_ID = "ego"
 
 _FIELD_NAMES: dict[type, tuple[str, ...]] = {}
 
@@ -173,35 +174,34 @@ class TwinStates:
         return _road_frame(self, road)
 
 
-GUIDANCE_LEVELS = ("none", "medium", "high")
-
-
-def guidance_level(prob: float, medium: float, high: float, decision: int | None = None) -> str:
-    """Colour level of a neighbour's guidance.
-
-    `decision` is the cloud's smoothed lane-change decision (`lc_decision`) when the predictor
-    provides one: a vehicle is highlighted only while the cloud predicts a lane change (the
-    paper's Algorithm 3/4 output); its colour then follows the probability thresholds.
-    """
-    if (decision is not None and not decision) or not math.isfinite(prob):
-        return "none"
-    if prob >= high:
-        return "high"
-    if prob >= medium:
-        return "medium"
-    return "none"
-
-
 @dataclass(frozen=True)
 class Guidance:
-    """One item of AR guidance shown to the driver at a tick (put in ``Tick.annotations['guidance']``).
+    """One item of AR guidance shown to the driver at a tick (part of a :class:`GuidanceSet`).
 
-    Produced by the vision-cloud fusion stage (the overlay of a neighbour's lane-change
-    probability on its matched box); consumed by the driver model.
+    Made by the vision-cloud fusion stage (a neighbour's lane-change probability on its matched
+    box) or by the cloud guidance stage (no box); its level follows the run's
+    :class:`vcfusion.guidance.GuidancePolicy`. Consumed by the driver model.
     """
 
     time: float
     vehicle_id: str
     lc_prob: float
-    level: str  # one of GUIDANCE_LEVELS, from configurable probability thresholds
+    level: str  # one of vcfusion.guidance.GUIDANCE_LEVELS
     box: tuple[float, float, float, float] | None  # matched image box (x1, y1, x2, y2) px; None if unmatched
+
+
+GUIDANCE_SOURCES = ("fusion", "cloud", "none")
+
+
+@dataclass(frozen=True)
+class GuidanceSet:
+    """What the driver is shown at one tick (``Tick.guidance``) and where it came from:
+    ``fusion`` (the AR overlay's matched boxes), ``cloud`` (the cloud's predictions, no image) or
+    ``none`` (no process model writes ``lc_prob``: nothing can be shown)."""
+
+    items: tuple[Guidance, ...]
+    source: str
+
+    def __post_init__(self):
+        if self.source not in GUIDANCE_SOURCES:
+            raise ValueError(f"guidance source: expected one of {GUIDANCE_SOURCES}, got {self.source!r}")

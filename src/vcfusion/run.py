@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 from pathlib import Path
 
 from vcfusion.cloud.twins import ProcessModel
 from vcfusion.cosim import CoSimulation, RunResult
+from vcfusion.guidance import GuidancePolicy
 from vcfusion.runio import package_versions, write_run_folder
 from vcfusion.scenario import Scenario
 
@@ -19,9 +22,6 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
     both arms of a trip); `extra_process_models` are added to the cloud twins' models;
     `recorder` receives the AR overlay frames (video).
     """
-    from vcfusion.driver.cloud_guidance import CloudGuidanceFallback
-    from vcfusion.driver.model import DriverModel
-    from vcfusion.driver.params import draw_driver
     from vcfusion.traffic.network import read_road
 
     road = read_road(scenario.network)
@@ -32,57 +32,71 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
         process_models.append(("lane_change", predictor_for_scenario(scenario, road)))
     process_models += list(extra_process_models or [])
     hooks = []
+    controller = None
+    # One guidance policy (thresholds, "ahead", lanes, ego id) for the overlay, the cloud guidance
+    # and the driver (vcfusion.guidance).
+    policy = GuidancePolicy.from_scenario(scenario, road) if scenario.ego is not None else None
     if scenario.vision.enabled:
         # Imported only here: traffic-only runs never load OpenGL.
         from vcfusion.render.hook import CameraHook
 
         hooks.append(CameraHook(scenario, every_ticks=scenario.vision.every_ticks))
     if scenario.fusion.enabled:
-        # After the camera hook: fusion reads the frame it puts in the tick's annotations.
         from vcfusion.fusion.stage import build_fusion_hook
 
-        hooks.append(build_fusion_hook(scenario, seed, recorder))
-    controller = None
+        hooks.append(build_fusion_hook(scenario, seed, policy, recorder))
     if scenario.ego is not None:
-        # Last hook: fills tick.annotations['guidance'] from the cloud only if no overlay did.
-        hooks.append(CloudGuidanceFallback(road, scenario.ar.medium_threshold, scenario.ar.high_threshold,
-                                           scenario.driver.guidance_view_range_m))
+        from vcfusion.driver.cloud_guidance import CloudGuidanceFallback
+        from vcfusion.driver.model import DriverModel
+        from vcfusion.driver.params import draw_driver
+
+        hooks.append(CloudGuidanceFallback(road, policy))
         enabled = scenario.driver.guidance if guidance_enabled is None else guidance_enabled
-        controller = DriverModel(draw_driver(seed, scenario.ego.desired_speed_mps), road, scenario.ego.lane, enabled)
+        controller = DriverModel(draw_driver(seed, scenario.ego.desired_speed_mps), road, policy, enabled)
+    # The order above is what the stages declare they need (checked here, see vcfusion.stages):
+    # camera -> fusion (reads tick.frame) -> cloud guidance (fills tick.guidance where fusion made
+    # none) -> driver (reads tick.guidance).
     return CoSimulation(scenario, seed, controller=controller, process_models=process_models, hooks=hooks)
-
-
-def video_dir_for(out_dir: Path) -> Path:
-    """Where a run's AR overlay frames and mp4 go: renders/<run folder name>/."""
-    return Path("renders") / Path(out_dir).name
 
 
 def manifest_for(scenario: Scenario, seed: int) -> dict:
     return {
+        # the resolved scenario: the file merged over the files it extends, defaults filled in
         "scenario": scenario.to_dict() | {"network": scenario.network.name, "vehicle_types": scenario.vehicle_types.name},
         "scenario_file": str(scenario.source) if scenario.source else None,
+        # the file given and the files it extends, in that order (one file when it extends none)
+        "scenario_chain": [str(p) for p in scenario.chain],
         "seed": seed,
         "versions": package_versions(),
     }
 
 
 def execute_run(scenario: Scenario, seed: int, out_dir: Path | None, progress: bool = False) -> RunResult:
-    """Simulate one seed; write the run folder when out_dir is given (and the AR video when the
-    scenario asks for it: renders/<run folder name>/overlay.mp4 + frames/)."""
-    recorder = None
+    """Simulate one seed; write the run folder when out_dir is given, with the AR video in it when
+    the scenario asks for it (overlay.mp4 + frames/): the folder is whole or absent."""
+    recorder, staging = None, None
     if out_dir is not None and scenario.fusion.enabled and scenario.ar.video:
         from vcfusion.fusion.overlay import OverlayRecorder
 
-        recorder = OverlayRecorder(video_dir_for(out_dir), fps=1.0 / scenario.ar.period_s)
+        out_dir = Path(out_dir)
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        # beside the run folder (same file system: moved in, not copied); removed whatever happens
+        staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.video-", dir=out_dir.parent))
+        recorder = OverlayRecorder(staging / "video", fps=1.0 / scenario.ar.period_s)
     try:
         result = build_cosimulation(scenario, seed, recorder=recorder).run(progress=progress)
         if out_dir is not None:
-            write_run_folder(Path(out_dir), result.tables, manifest_for(scenario, seed), result.summary)
+            video = {}
+            if recorder is not None:
+                folder = recorder.close()
+                recorder = None
+                video = {name: folder / name for name in ("overlay.mp4", "frames") if (folder / name).exists()}
+            write_run_folder(Path(out_dir), result.tables, manifest_for(scenario, seed), result.summary,
+                             extra_files=video)
             result.tables.relocate(Path(out_dir))
-    except BaseException:
+    finally:
         if recorder is not None:
             recorder.abort()
-        raise
-    if recorder is not None:
-        recorder.close()
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
     return result

@@ -172,6 +172,10 @@ class RunTables(Mapping):
     def update(self, other: dict[str, pd.DataFrame]) -> None:
         self._frames.update(other)
 
+    def add_arrow(self, name: str, table: pa.Table) -> None:
+        """A table made as Arrow (converted to pandas only if someone reads it)."""
+        self._stored[name] = table
+
     def sources(self) -> dict[str, pd.DataFrame | pa.Table | Path]:
         """Each table as a DataFrame, an Arrow table or its already-written Parquet file."""
         return {**self._stored, **self._frames}
@@ -204,7 +208,9 @@ def write_run_folder(out_dir: Path, tables: Mapping[str, pd.DataFrame | Path], m
                      extra_files: dict[str, Path] | None = None) -> Path:
     """Write a complete run folder at out_dir (which must not exist yet).
 
-    A table given as a Path is an already-written Parquet file and is moved in.
+    A table given as a Path is an already-written Parquet file and is moved in, and so are
+    `extra_files` (name in the folder -> file or folder, e.g. the AR video and its frames).
+    summary.json gets the list of the folder's files.
     """
     if isinstance(tables, RunTables):
         tables = tables.sources()
@@ -218,9 +224,20 @@ def write_run_folder(out_dir: Path, tables: Mapping[str, pd.DataFrame | Path], m
                 write_table(tmp / f"{name}.parquet", frame)
         for name, src in (extra_files or {}).items():
             shutil.move(str(src), tmp / name)
-        write_json(tmp / SUMMARY, summary)
+        # what the folder holds (a folder's name ends in '/'), these two JSON files included
+        files = sorted([p.name + "/" * p.is_dir() for p in tmp.iterdir()] + [SUMMARY, MANIFEST])
+        write_json(tmp / SUMMARY, {**summary, "files": files})
         write_json(tmp / MANIFEST, manifest)  # last: its presence marks a complete run
     return Path(out_dir)
+
+
+def _partial(out: Path) -> Path:
+    return Path(out).with_name(Path(out).name + ".tmp-writing")
+
+
+def discard_partial_folder(out: Path) -> None:
+    """Remove what a writer of `out` killed before it completed (SIGKILL) left behind."""
+    shutil.rmtree(_partial(out), ignore_errors=True)
 
 
 @contextmanager
@@ -230,7 +247,7 @@ def atomic_folder(out: Path, kind: str = "folder"):
     if out.exists():
         raise FileExistsError(f"{out}: {kind} already exists")
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp-writing")
+    tmp = _partial(out)
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir()

@@ -1,25 +1,29 @@
 """Scenario files: schema, loading and validation.
 
-A scenario is a YAML file. Every field is checked on load; a bad file raises
-:class:`ScenarioError` whose message names the file, the field and what was expected.
-Paths inside a scenario (network, vehicle types) are relative to the scenario file.
+A scenario is a YAML file. Every field is checked on load, and so is every file it names (the
+network, the vehicle types, the lane-change model, the detector weights): a scenario that loads
+can run. A bad file raises :class:`ScenarioError` whose message names the file, the field and
+what was expected.
+
+`extends: base.yaml` merges the file over its base (mappings merge key by key, any other value,
+lists included, replaces the base's); a base may extend another. Paths inside a scenario
+(network, vehicle types, model files, the base) are relative to the file that names them.
 """
 
 from __future__ import annotations
 
+import typing
 from pathlib import Path
 from typing import Annotated, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from vcfusion.errors import ScenarioError  # the loader's error; importable from here as before
+
 NonNegative = Annotated[float, Field(ge=0.0)]
 Positive = Annotated[float, Field(gt=0.0)]
 Probability = Annotated[float, Field(ge=0.0, le=1.0)]
-
-
-class ScenarioError(ValueError):
-    """A scenario file that cannot be used. The message is meant for the user as is."""
 
 
 class _Strict(BaseModel):
@@ -53,10 +57,11 @@ class V2CConfig(_Strict):
 
 class AROverlayConfig(_Strict):
     period_s: Positive = 0.1
-    # lane-change probability at or above which a neighbour is flagged yellow (medium) / red (high)
+    # calibrated lane-change probability at or above which a flagged neighbour is yellow (medium) /
+    # red (high), for the overlay, the cloud guidance and the driver alike; why 0.3 / 0.6: vcfusion.guidance
     medium_threshold: Probability = 0.3
     high_threshold: Probability = 0.6
-    # write the AR overlay as PNG frames + an mp4 under renders/ (needs fusion.enabled)
+    # write the AR overlay as PNG frames + an mp4 into the run folder (needs fusion.enabled)
     video: bool = False
 
     @model_validator(mode="after")
@@ -132,7 +137,8 @@ class DriverConfig(_Strict):
 
     # Whether the driver uses the AR guidance in a single run (the guidance study runs both).
     guidance: bool = True
-    # Guidance levels follow ar.medium_threshold / ar.high_threshold (one setting for overlay and driver).
+    # Guidance items are made for neighbours ahead within this range; levels follow ar.medium_threshold /
+    # ar.high_threshold (one GuidancePolicy per run, vcfusion.guidance).
     guidance_view_range_m: Positive = 150.0
 
 
@@ -193,6 +199,40 @@ class PredictionConfig(_Strict):
     conservative_threshold: Probability = 0.5
 
 
+class MetricsConfig(_Strict):
+    """Safety, comfort and emission metrics of every vehicle of a run (vcfusion.metrics).
+
+    One place for the thresholds and definitions: runs, batches, `vcfusion metrics` and the
+    guidance study all read them from here (docs/architecture.md, "Metrics").
+    """
+
+    enabled: bool = True
+    # TTC below which a following situation is a conflict (TET/TIT, conflict episodes): 1.5 s, the
+    # SSAM default (Gettman & Head, "Surrogate Safety Measures From Traffic Simulation Models",
+    # FHWA-RD-03-050, 2003; Gettman et al., "Surrogate Safety Assessment Model and Validation",
+    # FHWA-HRT-08-051, 2008).
+    ttc_threshold_s: Positive = 1.5
+    # Jerk: the acceleration (speed difference per sample) is smoothed by a centred moving average
+    # over this window before it is differentiated (one V2C tick: the ego's command is piecewise
+    # constant over a tick; at the 0.1 s trajectory period it is no smoothing).
+    jerk_window_s: Positive = 0.1
+    # The guidance study's mean TTC to the cut-in vehicle is also given with TTC clipped here.
+    ttc_clip_s: Positive = 20.0
+    # A vehicle's leader is the nearest vehicle ahead in its lane within this range (bumper to bumper).
+    leader_range_m: Positive = 250.0
+    # MOVESTAR source type (1 light-duty passenger car, 2 light-duty truck) by SUMO vType id or vClass
+    # (the vType id wins); vehicles of other types (trucks, buses) get SUMO's emission model only.
+    movestar: dict[str, Literal[1, 2]] = {"passenger": 1}
+    # The vehicles SUMO's own emission model rates (HBEFA/PHEMlight, the class their vType sets):
+    # "others" = those without a MOVESTAR type (trucks, buses: every vehicle gets one model), "all"
+    # (the cars too, a second opinion; SUMO then rates every vehicle every step, which costs the run
+    # ~20-30 %), "none".
+    sumo_emissions: Literal["others", "all", "none"] = "others"
+    # Vehicles of these placement groups (vehicles.parquet `group`) keep their rows and still lead
+    # others, but are left out of the traffic-wide figures (the parked accident vehicles are obstacles).
+    exclude_groups: list[str] = ["accident"]
+
+
 class Scenario(_Strict):
     name: str
     description: str = ""
@@ -210,8 +250,11 @@ class Scenario(_Strict):
     flows: list[Flow] = []
     accident: AccidentConfig | None = None
     prediction: PredictionConfig = PredictionConfig()
-    # Where the scenario was read from (set by the loader, not by the file).
+    metrics: MetricsConfig = MetricsConfig()
+    # Where the scenario was read from (set by the loader, not by the file): the file given and,
+    # when it extends others, the chain of files it was merged from (the given file first).
     source: Path | None = Field(default=None, exclude=True)
+    chain: tuple[Path, ...] = Field(default=(), exclude=True)
 
     @model_validator(mode="after")
     def _consistent(self) -> "Scenario":
@@ -224,6 +267,12 @@ class Scenario(_Strict):
             ratio = period / step
             if abs(ratio - round(ratio)) > 1e-6:
                 raise ValueError(f"{name}: expected a whole multiple of simulation.step_s ({step}), got {period}")
+        # the AR stage (fusion) runs on V2C ticks: another period would skip ticks unevenly (and
+        # the video's frame rate, 1 / ar.period_s, would not match its frames)
+        ratio = self.ar.period_s / self.v2c.period_s
+        if self.fusion.enabled and (ratio < 1 - 1e-6 or abs(ratio - round(ratio)) > 1e-6):
+            raise ValueError(f"ar.period_s: expected a whole multiple of v2c.period_s ({self.v2c.period_s}), "
+                             f"got {self.ar.period_s}")
         if self.vision.enabled and self.ego is None:
             raise ValueError("vision.enabled: the camera rides on the ego; expected an ego block")
         if self.fusion.enabled:
@@ -243,6 +292,110 @@ class Scenario(_Strict):
         return self.model_dump(mode="json")
 
 
+# ---------------------------------------------------------------------------------------------
+# loading: the chain of files, their merge, validation with the file each field came from
+
+PATH_FIELDS = (("network",), ("vehicle_types",), ("prediction", "model"), ("fusion", "weights"))
+
+
+class _UniqueKeyLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
+    """YAML's safe loader (libyaml's parser where installed: a batch loads its scenario once per
+    seed), refusing a key given twice in one mapping (YAML would keep the last silently, so a
+    second `v2c:` block would drop the first)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(None, None, f"key {key!r} given twice in one mapping",
+                                                        key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
+def _read_mapping(path: Path) -> dict:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise ScenarioError(f"{path}: not a UTF-8 text file; expected a YAML scenario") from None
+    except OSError as exc:
+        raise ScenarioError(f"{path}: cannot read the scenario file: {exc.strerror or exc}") from None
+    try:
+        raw = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a safe loader
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = " ".join(str(exc.problem or exc.context or "syntax error").split())
+        raise ScenarioError(f"{path}: {where}not valid YAML ({problem})") from None
+    except yaml.YAMLError as exc:
+        raise ScenarioError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
+    if not isinstance(raw, dict):
+        got = "an empty file" if raw is None else f"a {type(raw).__name__}"
+        raise ScenarioError(f"{path}: expected a mapping of scenario fields at the top level, got {got}")
+    return raw
+
+
+def read_chain(path: Path) -> list[tuple[Path, dict]]:
+    """The file and the files it extends, as (path, fields without `extends`), the given file first."""
+    chain: list[tuple[Path, dict]] = []
+    seen: set[Path] = set()
+    current = path
+    while True:
+        seen.add(current.resolve())
+        raw = _read_mapping(current)
+        base = raw.pop("extends", None)
+        chain.append((current, raw))
+        if base is None:
+            return chain
+        if not isinstance(base, str) or not base.strip():
+            raise ScenarioError(f"{current}: extends: expected the path of a base scenario file "
+                                f"(relative to this file), got {base!r}")
+        target = current.parent / base
+        if not target.is_file():
+            raise ScenarioError(f"{current}: extends: file not found: {base} (relative to the scenario file)")
+        if target.resolve() in seen:
+            cycle = " -> ".join(str(p) for p, _ in chain) + f" -> {target}"
+            raise ScenarioError(f"{current}: extends: {base} makes a cycle ({cycle}); expected a chain that ends "
+                                "in a file without `extends`")
+        current = target
+
+
+def merge_over(base: dict, over: dict, source: Path, origin: dict, prefix: tuple = ()) -> dict:
+    """`over` merged over `base`: mappings key by key, any other value (lists too) replaces.
+    `origin` maps key paths to the file that set them (a deeper entry wins over a shorter one)."""
+    merged = dict(base)
+    for key, value in over.items():
+        loc = prefix + (key,)
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = merge_over(merged[key], value, source, origin, loc)
+            continue
+        merged[key] = value
+        for stale in [k for k in origin if k[:len(loc)] == loc]:
+            del origin[stale]
+        origin[loc] = source
+    return merged
+
+
+class _Origins:
+    """Which file of the chain a field came from, for messages and for relative paths."""
+
+    def __init__(self, leaf: Path, origin: dict):
+        self.leaf = leaf
+        self.origin = origin
+
+    def file_of(self, loc: tuple) -> Path:
+        for n in range(len(loc), 0, -1):
+            if loc[:n] in self.origin:
+                return self.origin[loc[:n]]
+        return self.leaf
+
+    def label(self, loc: tuple) -> str:
+        """The file to name in a message about `loc` (with the file given, when they differ)."""
+        f = self.file_of(loc)
+        return str(f) if f == self.leaf else f"{f} (extended by {self.leaf})"
+
+
 def _format_location(loc: tuple) -> str:
     parts = []
     for item in loc:
@@ -253,61 +406,144 @@ def _format_location(loc: tuple) -> str:
     return "".join(parts) or "(top level)"
 
 
+def _model_at(loc: tuple) -> type[BaseModel] | None:
+    """The schema class holding the last key of `loc` (list indices skipped)."""
+    model: type[BaseModel] | None = Scenario
+    for part in loc[:-1]:
+        if isinstance(part, int):
+            continue
+        field = model.model_fields.get(part) if model else None
+        model = _inner_model(field.annotation) if field else None
+    return model
+
+
+def _inner_model(tp) -> type[BaseModel] | None:
+    if isinstance(tp, type) and issubclass(tp, BaseModel):
+        return tp
+    for arg in typing.get_args(tp):
+        found = _inner_model(arg)
+        if found is not None:
+            return found
+    return None
+
+
 def _describe(err: dict) -> str:
     kind = err.get("type", "")
     if kind == "extra_forbidden":
-        return "unknown key"
+        model = _model_at(err["loc"])
+        known = [k for k, f in model.model_fields.items() if not f.exclude] if model else []
+        return "unknown key" + (f"; expected one of: {', '.join(known)}" if known else "")
     if kind == "missing":
         return "required field is missing"
     msg = err.get("msg", "invalid value")
     msg = msg.removeprefix("Value error, ")
     got = err.get("input")
-    if kind not in ("missing",) and not isinstance(got, (dict, list)):
+    if not isinstance(got, (dict, list)):
         msg += f" (got {got!r})"
     return msg
 
 
+def _validation_lines(exc: ValidationError, origins: _Origins) -> list[str]:
+    lines = []
+    for err in exc.errors():
+        loc = err["loc"]
+        if err["type"] == "value_error" and not loc and ":" in err["msg"]:
+            # a cross-field check: its message starts with the field it names
+            where, _, rest = err["msg"].removeprefix("Value error, ").partition(": ")
+            lines.append(f"{origins.label(tuple(where.split('.')))}: {where}: {rest}")
+        else:
+            lines.append(f"{origins.label(loc)}: {_format_location(loc)}: {_describe(err)}")
+    return lines
+
+
 def load_scenario(path: str | Path) -> Scenario:
-    """Read and validate a scenario file; raises ScenarioError with one clear message."""
+    """Read, merge (`extends`) and validate a scenario file and the files it names; raises
+    ScenarioError with one line per problem naming the file, the field and what was expected."""
     path = Path(path)
     if not path.is_file():
         raise ScenarioError(f"{path}: scenario file not found")
+    chain = read_chain(path)
+    merged: dict = {}
+    origin: dict = {}
+    for source, raw in reversed(chain):  # the last base first, the given file last
+        merged = merge_over(merged, raw, source, origin)
+    origins = _Origins(path, origin)
     try:
-        raw = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ScenarioError(f"{path}: not valid YAML: {exc}") from None
-    if not isinstance(raw, dict):
-        raise ScenarioError(f"{path}: expected a mapping of scenario fields at the top level")
-    try:
-        scenario = Scenario.model_validate(raw)
+        scenario = Scenario.model_validate(merged)
     except ValidationError as exc:
-        lines = []
-        for err in exc.errors():
-            where = _format_location(err["loc"])
-            if err["type"] == "value_error" and not err["loc"] and ":" in err["msg"]:
-                where, _, rest = err["msg"].removeprefix("Value error, ").partition(": ")
-                lines.append(f"{path}: {where}: {rest}")
-            else:
-                lines.append(f"{path}: {where}: {_describe(err)}")
-        raise ScenarioError("\n".join(lines)) from None
-    base = path.parent
+        raise ScenarioError("\n".join(_validation_lines(exc, origins))) from None
     resolved = {}
-    for field in ("network", "vehicle_types"):
-        target = (base / getattr(scenario, field)).resolve()
+    for loc in PATH_FIELDS:
+        block = scenario if len(loc) == 1 else getattr(scenario, loc[0])
+        value = getattr(block, loc[-1])
+        if value is None or (loc[0] == "prediction" and not scenario.prediction.enabled):
+            continue
+        target = (origins.file_of(loc).parent / value).resolve()
         if not target.is_file():
-            raise ScenarioError(f"{path}: {field}: file not found: {getattr(scenario, field)} (relative to the scenario file)")
-        resolved[field] = target
-    pred = scenario.prediction
-    if pred.enabled and pred.model is not None:
-        target = (base / pred.model).resolve()
-        if not target.is_file():
-            raise ScenarioError(f"{path}: prediction.model: file not found: {pred.model} (relative to the scenario file)")
-        resolved["prediction"] = pred.model_copy(update={"model": target})
-    if scenario.fusion.weights is not None:
-        weights = (base / scenario.fusion.weights).resolve()
-        if not weights.is_file():
-            raise ScenarioError(f"{path}: fusion.weights: file not found: {scenario.fusion.weights} "
+            raise ScenarioError(f"{origins.label(loc)}: {'.'.join(loc)}: file not found: {value} "
                                 "(relative to the scenario file)")
-        resolved["fusion"] = scenario.fusion.model_copy(update={"weights": weights})
-    return scenario.model_copy(update={**resolved, "source": path})
+        if len(loc) == 1:
+            resolved[loc[0]] = target
+        else:
+            resolved[loc[0]] = resolved.get(loc[0], block).model_copy(update={loc[1]: target})
+    scenario = scenario.model_copy(update={**resolved, "source": path, "chain": tuple(p for p, _ in chain)})
+    _check_named_files(scenario, origins)
+    return scenario
 
+
+def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
+    """Read the files the scenario names and check the scenario against them (lanes, positions,
+    vehicle types), so a bad one stops the command before anything is written."""
+    from vcfusion.traffic.network import NetworkFileError, read_road, read_vehicle_types
+
+    try:
+        road = read_road(scenario.network)
+    except NetworkFileError as exc:
+        raise ScenarioError(f"{origins.label(('network',))}: network: {exc}") from None
+    try:
+        vtypes = read_vehicle_types(scenario.vehicle_types)
+    except NetworkFileError as exc:
+        raise ScenarioError(f"{origins.label(('vehicle_types',))}: vehicle_types: {exc}") from None
+
+    uses: list[tuple[tuple, str, list[int], list[float]]] = []  # (loc, vtype, lanes, positions along the road)
+    if scenario.ego is not None:
+        uses.append((("ego",), scenario.ego.vtype, [scenario.ego.lane], [scenario.ego.depart_pos_m]))
+    # a range partly beyond the road is left to the seeds (a draw outside is an impossible departure
+    # of that seed, RunError); one wholly beyond it can never run
+    uses += [(("vehicles", i), g.vtype, g.lanes, [g.pos_m[0]]) for i, g in enumerate(scenario.vehicles)]
+    uses += [(("flows", i), f.vtype, f.lanes, []) for i, f in enumerate(scenario.flows)]
+    if scenario.accident is not None:
+        uses.append((("accident",), scenario.accident.vtype, scenario.accident.lanes, [scenario.accident.pos_m]))
+    for loc, vtype, lanes, positions in uses:
+        where = _format_location(loc)
+        if vtype not in vtypes:
+            raise ScenarioError(f"{origins.label(loc + ('vtype',))}: {where}.vtype: {vtype!r} is not defined in "
+                                f"{scenario.vehicle_types.name}; expected one of: {', '.join(vtypes)}")
+        field = "lane" if loc == ("ego",) else "lanes"
+        for lane in lanes:
+            if lane >= road.num_lanes:
+                raise ScenarioError(f"{origins.label(loc + (field,))}: {where}.{field}: expected a lane of "
+                                    f"{scenario.network.name} (0 to {road.num_lanes - 1}), got {lane}")
+        field = "depart_pos_m" if loc == ("ego",) else "pos_m"
+        for pos in positions:
+            if pos > road.length_m:
+                raise ScenarioError(f"{origins.label(loc + (field,))}: {where}.{field}: expected a position on the "
+                                    f"road (at most its length, {road.length_m:g} m), got {pos:g}")
+    if scenario.prediction.enabled:
+        from vcfusion.prediction.model import ModelFileError, load_model
+
+        label = origins.label(("prediction", "model"))
+        try:
+            model = load_model(scenario.prediction.model)
+        except ModelFileError as exc:
+            raise ScenarioError(f"{label}: prediction.model: {exc}") from None
+        if abs(model.period_s - scenario.v2c.period_s) > 1e-9:
+            raise ScenarioError(f"{label}: prediction.model: trained for a V2C period of {model.period_s} s; "
+                                f"expected v2c.period_s to match, got {scenario.v2c.period_s} s")
+    if scenario.fusion.enabled and scenario.fusion.detector == "cnn":
+        from vcfusion.detection.detector_net import DetectorFileError, check_weights, default_weights_path
+
+        try:
+            check_weights(scenario.fusion.weights or default_weights_path())
+        except DetectorFileError as exc:
+            raise ScenarioError(f"{origins.label(('fusion', 'weights'))}: fusion.weights: {exc}") from None

@@ -1,4 +1,4 @@
-"""Worker processes for batch runs, datasets and studies.
+"""Worker processes for batch runs, datasets and studies, and the pool that survives their death.
 
 libsumo holds one simulation per process, so parallel runs are processes. On platforms with a
 fork server, workers are forked from it: it is started once per parent process, runs no
@@ -6,11 +6,35 @@ simulation and no threads of ours, and has already imported the run code and loa
 compiled per-tick kernels (`vcfusion.worker_preload`), so a worker starts in milliseconds
 instead of paying ~2 s of imports and numba initialisation per process. Elsewhere workers are
 spawned fresh. Either way no SUMO state is ever inherited.
+
+`run_jobs` is the one pool every command uses. Each worker has its own pipe and runs one job at
+a time, so the parent always knows which job a worker holds: when a worker dies (SIGKILL from
+the out-of-memory killer, a crash in native code, any abrupt exit) only that job fails, with the
+exit signal as its cause, a fresh worker takes the dead one's place and the other jobs go on.
+(A concurrent.futures pool cannot do this: one dead worker breaks the pool and fails every
+pending future, running or merely queued.)
 """
 
 from __future__ import annotations
 
 import multiprocessing
+import os
+import shutil
+import signal
+import sys
+import tempfile
+import threading
+import time
+import traceback
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from multiprocessing.connection import wait
+
+# A worker still busy this long after being asked to stop (Ctrl-C) is killed.
+STOP_GRACE_S = 10.0
+INTERRUPTED_EXIT = 130  # a worker's exit status after SIGINT, as a shell's
 
 
 def worker_context():
@@ -20,3 +44,173 @@ def worker_context():
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(["vcfusion.worker_preload"])
     return ctx
+
+
+@dataclass(frozen=True)
+class JobFailed:
+    """A job that gave no result: its task raised, or its worker process died running it."""
+
+    cause: str  # first line for the user, then details (the task's traceback)
+
+
+def death_cause(exitcode: int | None) -> str:
+    """'worker process died (signal 9: SIGKILL)' from a multiprocessing exit code."""
+    if exitcode is not None and exitcode < 0:
+        try:
+            name = signal.Signals(-exitcode).name
+        except ValueError:
+            name = "unknown signal"
+        return f"worker process died (signal {-exitcode}: {name})"
+    if exitcode == INTERRUPTED_EXIT:
+        return "worker process interrupted (SIGINT)"
+    return f"worker process died (exit code {exitcode})"
+
+
+def _interrupt_once(signum, frame):
+    # The first SIGINT (the terminal's Ctrl-C, or the parent stopping the pool) interrupts the
+    # job; a second one must not interrupt the clean-up that follows (partial folders removed).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    raise KeyboardInterrupt
+
+
+def _serve(task: Callable, conn, scratch: str) -> None:
+    """A worker: run task(*job) for each job received until the parent closes the pipe."""
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:  # as the parent's (a background job ignores it)
+        signal.signal(signal.SIGINT, _interrupt_once)
+    # Temporary files of the jobs go to a folder the parent removes, even after a SIGKILL here.
+    tempfile.tempdir = scratch
+    os.environ["TMPDIR"] = scratch
+    # tqdm's default lock is a multiprocessing semaphore, which a killed worker would leak (and
+    # the resource tracker warn about at exit); a worker's bars are its own: a thread lock does.
+    from tqdm import tqdm
+
+    tqdm.set_lock(threading.RLock())
+    try:
+        while True:
+            job = conn.recv()
+            try:
+                result = task(*job)
+            except Exception as exc:  # the job fails, the worker goes on
+                result = JobFailed(f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}")
+            try:
+                conn.send(result)
+            except (EOFError, OSError):
+                raise
+            except Exception as exc:  # a result that cannot be pickled (nothing was sent yet)
+                conn.send(JobFailed(f"the job's result could not be sent back: {type(exc).__name__}: {exc}"))
+    except (EOFError, OSError):
+        pass  # the parent closed the pipe or went away: exit quietly
+    except KeyboardInterrupt:
+        sys.exit(INTERRUPTED_EXIT)  # quietly, and telling the parent why
+
+
+class _Worker:
+    def __init__(self, ctx, task: Callable):
+        self.scratch = tempfile.mkdtemp(prefix="vcfusion-worker-")
+        self.conn, child_end = ctx.Pipe()
+        # not daemonic, as a concurrent.futures worker: a job may start processes of its own
+        self.process = ctx.Process(target=_serve, args=(task, child_end, self.scratch))
+        self.process.start()
+        child_end.close()
+        self.job: int | None = None  # index of the job it runs
+        self.pipe_closed = False  # the worker's end is gone: it died (its exit code follows)
+
+
+def run_jobs(task: Callable, jobs: Sequence[tuple], workers: int,
+             on_start: Callable[[int, int], None] | None = None) -> Iterator[tuple[int, object]]:
+    """Run task(*job) for every job in at most `workers` worker processes.
+
+    Yields (index of the job, its result) as jobs end, in completion order. The result is the
+    task's return value, or a JobFailed when the task raised or its worker died. `on_start(index,
+    pid)` is called when a job is handed to worker `pid`. Closing the iterator early, or an
+    exception (Ctrl-C) in the caller, stops the pool: busy workers get SIGINT so that their jobs
+    clean up, and are killed after STOP_GRACE_S.
+    """
+    ctx = worker_context()
+    pending = deque(range(len(jobs)))
+    pool: list[_Worker] = []
+    try:
+        while pending or any(w.job is not None for w in pool):
+            for w in [w for w in pool if w.job is None]:
+                if pending:
+                    _hand_over(w, pending, jobs, on_start)
+            while pending and len(pool) < max(1, workers):
+                w = _Worker(ctx, task)
+                pool.append(w)
+                _hand_over(w, pending, jobs, on_start)
+            wait([w.conn for w in pool if not w.pipe_closed] + [w.process.sentinel for w in pool])
+            for w in list(pool):
+                result = _collect(w)
+                if result is not None:
+                    index, value = result
+                    yield index, value
+                elif not w.process.is_alive():  # died, busy or idle: a fresh one replaces it
+                    w.process.join()
+                    pool.remove(w)
+                    _discard(w)
+                    if w.job is not None:
+                        yield w.job, JobFailed(death_cause(w.process.exitcode))
+    finally:
+        _stop(pool)
+
+
+def _hand_over(w: _Worker, pending: deque, jobs: Sequence[tuple], on_start) -> None:
+    index = pending.popleft()
+    try:
+        w.conn.send(jobs[index])
+    except OSError:  # the worker died while idle: the job waits for the next one
+        pending.appendleft(index)
+        return
+    w.job = index
+    if on_start is not None:
+        on_start(index, w.process.pid)
+
+
+def _collect(w: _Worker) -> tuple[int, object] | None:
+    """(job, result) when worker `w` sent one, else None (nothing yet, or the pipe closed: an
+    idle worker sends nothing, so a readable pipe of one means it died)."""
+    if w.pipe_closed or not w.conn.poll():
+        return None
+    try:
+        value = w.conn.recv()
+    except (EOFError, OSError):
+        w.pipe_closed = True  # the worker died: its sentinel tells when its exit code is known
+        return None
+    index, w.job = w.job, None
+    return index, value
+
+
+def _discard(w: _Worker) -> None:
+    w.conn.close()
+    shutil.rmtree(w.scratch, ignore_errors=True)
+
+
+@contextmanager
+def _sigint_ignored():
+    """While stopping the pool, a second Ctrl-C must not abandon its workers."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _stop(pool: list[_Worker]) -> None:
+    with _sigint_ignored():
+        for w in pool:
+            if w.job is not None and w.process.is_alive():
+                try:
+                    os.kill(w.process.pid, signal.SIGINT)  # its job removes its partial outputs
+                except ProcessLookupError:
+                    pass  # it has just ended
+            w.conn.close()  # an idle worker reads the end of its pipe and exits
+        deadline = time.monotonic() + STOP_GRACE_S
+        for w in pool:
+            w.process.join(max(0.0, deadline - time.monotonic()))
+            if w.process.is_alive():
+                w.process.kill()
+                w.process.join()
+            shutil.rmtree(w.scratch, ignore_errors=True)

@@ -16,6 +16,8 @@ from vcfusion.fusion.fuse import METHODS, VisionFusionHook
 from vcfusion.studies.identification import Condition, accuracy_at, run_identification_study
 from vcfusion.fusion.matching import box_iou
 from vcfusion.fusion.overlay import OverlayRecorder
+from vcfusion.guidance import GuidancePolicy
+from vcfusion.traffic.network import read_road
 
 SCENARIO = Path(__file__).resolve().parents[2] / "scenarios" / "accident.yaml"
 
@@ -53,12 +55,16 @@ def test_fusion_hook_guides_and_records_the_overlay(tmp_path):
     seen_guidance = []
 
     class Controller:  # records what the driver model would get
+        needs = ("guidance",)
+
         def acceleration(self, tick):
-            seen_guidance.append(tick.annotations.get("guidance", []))
+            seen_guidance.append(tick.guidance.items if tick.guidance is not None else ())
+            assert tick.guidance is None or tick.guidance.source == "fusion"
             return 0.0
 
+    policy = GuidancePolicy.from_scenario(sc, read_road(sc.network))
     with OverlayRecorder(tmp_path / "video") as rec:
-        hook = VisionFusionHook(recording_source, OracleDetector(), seed=0, recorder=rec)
+        hook = VisionFusionHook(recording_source, OracleDetector(), 0, policy, recorder=rec)
         result = CoSimulation(sc, 0, controller=Controller(), process_models=[("lc", lane_change_model)],
                               hooks=[hook]).run()
     table = result.tables["fusion"]

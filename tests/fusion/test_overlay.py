@@ -2,25 +2,20 @@ import cv2
 import numpy as np
 import pytest
 
-from vcfusion.fusion.overlay import (RED, YELLOW, Hud, OverlayParams, OverlayRecorder, draw_overlay, guidance_level,
-                                     make_guidance)
+from vcfusion.fusion.overlay import RED, YELLOW, Hud, OverlayRecorder, draw_overlay, make_guidance
+from vcfusion.guidance import GuidancePolicy
 
-
-def test_levels_at_the_thresholds():
-    p = OverlayParams(medium_threshold=0.3, high_threshold=0.6)
-    assert [guidance_level(v, p) for v in (0.0, 0.2999, 0.3, 0.5999, 0.6, 1.0, float("nan"))] == \
-        ["none", "none", "medium", "medium", "high", "high", "none"]
-    custom = OverlayParams(medium_threshold=0.1, high_threshold=0.2)
-    assert guidance_level(0.25, custom) == "high"
-    with pytest.raises(ValueError):
-        OverlayParams(medium_threshold=0.7, high_threshold=0.6)
+POLICY = GuidancePolicy(medium=0.3, high=0.6, view_range_m=150.0, ego_lane=2, lane_width_m=3.2, ego_lane_centre_d=8.0)
 
 
 def test_guidance_records_and_colours_drawn_at_the_boxes():
     image = np.full((240, 320, 3), 90, np.uint8)
     guidance = make_guidance(3.0, ["a", "b", "c", "d"], [0.45, 0.8, 0.1, 0.9],
-                             [(20, 60, 100, 120), (180, 60, 300, 200), (130, 150, 160, 170), None])
+                             [(20, 60, 100, 120), (180, 60, 300, 200), (130, 150, 160, 170), None], POLICY)
     assert [g.level for g in guidance] == ["medium", "high", "none", "high"]
+    # the cloud's smoothed decision gates the colours: nothing is flagged while it predicts no change
+    gated = make_guidance(3.0, ["a", "b"], [0.45, 0.8], [None, None], POLICY, decisions=[0, 1])
+    assert [g.level for g in gated] == ["none", "high"]
     assert guidance[3].box is None and guidance[0].box == (20.0, 60.0, 100.0, 120.0)
     out = draw_overlay(image, guidance, Hud(3.0, 19.0))
     assert out is not image and (image == 90).all()  # the input is left alone

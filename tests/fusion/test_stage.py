@@ -1,7 +1,8 @@
 """The fusion stage wired from a scenario: checks of the scenario blocks, the fusion hook fed by
-a camera hook through tick annotations, and (once the rendering stage is present) `vcfusion run`
+a camera hook through `tick.frame`, and (once the rendering stage is present) `vcfusion run`
 with real renders writing the fusion table and the AR video."""
 
+import json
 from pathlib import Path
 
 import cv2
@@ -12,6 +13,9 @@ import yaml
 
 from support.cuboid_frames import CuboidFrameSource
 from vcfusion.cosim import CoSimulation
+from vcfusion.driver.idm import IdmController
+from vcfusion.guidance import GuidancePolicy
+from vcfusion.traffic.network import read_road
 from vcfusion.scenario import Scenario, ScenarioError, load_scenario
 from vcfusion.fusion.overlay import OverlayRecorder
 from vcfusion.fusion.stage import build_fusion_hook
@@ -46,23 +50,24 @@ def test_scenario_checks_the_fusion_blocks(tmp_path):
 
 
 class FakeCameraHook:
-    """Stands in for the rendering stage's camera hook: puts a frame into the tick's annotations."""
+    """Stands in for the rendering stage's camera hook: sets the tick's frame."""
 
     table = "camera"
+    provides = ("frame",)
 
     def __init__(self):
         self.source = CuboidFrameSource()
 
     def __call__(self, tick):
-        tick.annotations["frame"] = self.source(tick)
+        tick.frame = self.source(tick)
 
 
 @pytest.mark.slow
 def test_fusion_hook_reads_the_camera_hooks_frame(tmp_path):
     sc = load_scenario(scenario_file(tmp_path, fusion={"detector": "oracle"}, ar={"period_s": 0.2}))
     with OverlayRecorder(tmp_path / "video") as rec:
-        fusion = build_fusion_hook(sc, 1, rec)
-        result = CoSimulation(sc, 1, hooks=[FakeCameraHook(), fusion]).run()
+        fusion = build_fusion_hook(sc, 1, GuidancePolicy.from_scenario(sc, read_road(sc.network)), rec)
+        result = CoSimulation(sc, 1, controller=IdmController.for_scenario(sc), hooks=[FakeCameraHook(), fusion]).run()
     table = result.tables["fusion"]
     assert table["matched"].mean() > 0.9
     # the AR period (0.2 s) halves the V2C tick rate (0.1 s)
@@ -80,7 +85,15 @@ def test_run_with_rendered_camera_writes_fusion_table_and_video(tmp_path, monkey
     assert main(["run", str(path), "--seed", "1", "--out", "runs/a"]) == 0
     table = pd.read_parquet(tmp_path / "runs" / "a" / "fusion.parquet")
     assert len(table) > 20 and table["matched"].mean() > 0.9
-    cap = cv2.VideoCapture(str(tmp_path / "renders" / "a" / "overlay.mp4"))
+    # everything the run writes is in its run folder, listed by its summary
+    run = tmp_path / "runs" / "a"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name, "runs"]
+    assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == ["a"]
+    files = json.loads((run / "summary.json").read_text())["files"]
+    assert files == sorted(p.name + "/" * p.is_dir() for p in run.iterdir())
+    assert {"overlay.mp4", "frames/", "fusion.parquet", "manifest.json"} <= set(files)
+    assert len(list((run / "frames").glob("*.png"))) == table["time"].nunique()
+    cap = cv2.VideoCapture(str(run / "overlay.mp4"))
     ok, first = cap.read()
     assert ok and first.shape == (480, 640, 3)
     assert cap.get(cv2.CAP_PROP_FRAME_COUNT) == table["time"].nunique()

@@ -179,12 +179,13 @@ def test_vision_enabled_run_puts_frames_on_ticks():
 
     class Grab:
         table = "grab"
+        needs = ("frame",)
 
         def __call__(self, tick):
-            if "frame" in tick.annotations:
-                frames.append(tick.annotations["frame"])
+            if tick.frame is not None:
+                frames.append(tick.frame)
 
-    cosim = CoSimulation(sc, 0, hooks=cosim.hooks + [Grab()])
+    cosim = CoSimulation(sc, 0, controller=cosim.controller, hooks=cosim.hooks + [Grab()])
     result = cosim.run()
     assert len(frames) == len(result.tables["camera"]) == 5
     assert frames[0].rgb.shape == (120, 160, 3)

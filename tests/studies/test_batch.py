@@ -34,7 +34,8 @@ def test_batch_resumes_and_runs_identically(tmp_path, accident_path):
     cli_out = tmp_path / "cli"
     subprocess.run([sys.executable, "-m", "vcfusion", "run", str(accident_path), "--seed", "7",
                     "--out", str(cli_out)], check=True, capture_output=True)
-    for name in ("trajectories", "twins", "ego", "lane_changes", "collisions", "vehicles"):
+    for name in ("trajectories", "twins", "ego", "lane_changes", "collisions", "vehicles", "metrics", "conflicts",
+                 "metric_histograms", "sumo_emissions"):
         assert (cli_out / f"{name}.parquet").read_bytes() == (seed_folder(out, 7) / f"{name}.parquet").read_bytes()
 
 
@@ -107,12 +108,10 @@ def test_workers_start_warm_and_without_a_simulation():
     a SUMO simulation."""
     import multiprocessing
     import os
-    from concurrent.futures import ProcessPoolExecutor
 
-    from vcfusion.workers import worker_context
+    from vcfusion.workers import run_jobs
 
-    with ProcessPoolExecutor(2, mp_context=worker_context()) as pool:
-        states = [f.result() for f in [pool.submit(_worker_state) for _ in range(4)]]
+    states = [state for _, state in run_jobs(_worker_state, [()] * 4, 2)]
     assert all(pid != os.getpid() for pid, _, _ in states)
     if "forkserver" in multiprocessing.get_all_start_methods():  # else spawned fresh
         assert all(preloaded for _, preloaded, _ in states)

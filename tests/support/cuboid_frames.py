@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vcfusion.traffic.session import EGO_ID
+from vcfusion.records import EGO_ID
 from vcfusion.fusion.fuse import CameraFrame
 from vcfusion.fusion.matching import CameraView
 

@@ -1,5 +1,6 @@
 """Handlers of the detector subcommands of `vcfusion` (train-detector, eval-detector, export-onnx);
-the cli only parses arguments."""
+the cli only parses arguments. A bad weights file or dataset folder raises DetectorFileError
+(InputError: the CLI prints it and exits with 2)."""
 
 from __future__ import annotations
 
@@ -23,21 +24,17 @@ def parse_size(text: str, option: str) -> tuple[int, int]:
 
 
 def cmd_train_detector(args: argparse.Namespace) -> int:
-    from vcfusion.detection.detector_net import DetectorFileError
     from vcfusion.detection.detector_train import train_detector
 
     input_wh = parse_size(args.input_size, "--input-size")
     for name in ("epochs", "batch_size"):
         if getattr(args, name) < 1:
             raise UsageError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(args, name)}")
-    try:
-        net, report = train_detector(
-            args.data, args.out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, input_wh=input_wh,
-            val_fraction=args.val_fraction, val_data=args.val, seed=args.seed, threads=args.threads,
-            device=args.device, progress=sys.stderr.isatty(), max_iterations=args.iterations,
-            min_train_area=args.min_train_area, eval_min_area=args.min_area)
-    except DetectorFileError as exc:
-        raise UsageError(str(exc)) from None
+    net, report = train_detector(
+        args.data, args.out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, input_wh=input_wh,
+        val_fraction=args.val_fraction, val_data=args.val, seed=args.seed, threads=args.threads,
+        device=args.device, progress=sys.stderr.isatty(), max_iterations=args.iterations,
+        min_train_area=args.min_train_area, eval_min_area=args.min_area)
     size_mb = Path(args.out).stat().st_size / 2**20
     print(f"trained {report.iterations} iterations ({report.epochs} epochs) on {report.n_train} images "
           f"in {report.wall_s:.0f} s; loss {report.first_losses[0]:.3f} -> {report.loss_history[-1]:.3f}")
@@ -48,30 +45,25 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
 
 
 def _make_detector(args):
-    from vcfusion.detection.detector_net import DetectorFileError, OnnxDetector, TorchDetector, default_weights_path
+    from vcfusion.detection.detector_net import OnnxDetector, TorchDetector, default_weights_path
 
-    try:
-        if args.onnx:
-            if not args.classes:
-                raise UsageError("--classes: expected the category ids of the ONNX model's score columns, e.g. 1,2")
-            class_ids = [int(c) for c in args.classes.split(",")]
-            return OnnxDetector(args.onnx, parse_size(args.input_size, "--input-size"), class_ids,
-                                scale=args.scale, objectness=args.objectness, letterbox=args.letterbox)
-        return TorchDetector(args.weights or default_weights_path())
-    except DetectorFileError as exc:
-        raise UsageError(str(exc)) from None
+    if args.onnx:
+        try:
+            class_ids = [int(c) for c in (args.classes or "").split(",")]
+        except ValueError:
+            raise UsageError("--classes: expected the category ids of the ONNX model's score columns, e.g. 1,2, "
+                             f"got {args.classes!r}") from None
+        return OnnxDetector(args.onnx, parse_size(args.input_size, "--input-size"), class_ids,
+                            scale=args.scale, objectness=args.objectness, letterbox=args.letterbox)
+    return TorchDetector(args.weights or default_weights_path())
 
 
 def cmd_eval_detector(args: argparse.Namespace) -> int:
-    from vcfusion.detection.detector_net import DetectorFileError
     from vcfusion.detection.detector_train import evaluate_detector, load_coco_many
 
     detector = _make_detector(args)
-    try:
-        ds = load_coco_many(args.data)
-        result = evaluate_detector(detector, ds, progress=sys.stderr.isatty(), min_area=args.min_area)
-    except DetectorFileError as exc:
-        raise UsageError(str(exc)) from None
+    ds = load_coco_many(args.data)
+    result = evaluate_detector(detector, ds, progress=sys.stderr.isatty(), min_area=args.min_area)
     print(f"{' '.join(args.data)}: {len(ds)} images (boxes >= {args.min_area:g} px^2)  mAP@0.5 {result.map_50:.3f}  mAP@0.5:0.95 {result.map_50_95:.3f}")
     for cid, name in zip(ds.class_ids, ds.class_names):
         if cid in result.ap_per_category:
@@ -80,16 +72,13 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
 
 
 def cmd_export_onnx(args: argparse.Namespace) -> int:
-    from vcfusion.detection.detector_net import DetectorFileError, DetectorModel, default_weights_path, export_onnx
+    from vcfusion.detection.detector_net import DetectorModel, default_weights_path, export_onnx
 
     try:
         import onnx  # noqa: F401 - torch's exporter needs it
     except ImportError:
         raise UsageError("export-onnx: needs the onnx package (pip install onnx, or the project's dev extra)") from None
-    try:
-        net = DetectorModel.load(args.weights or default_weights_path())
-    except DetectorFileError as exc:
-        raise UsageError(str(exc)) from None
+    net = DetectorModel.load(args.weights or default_weights_path())
     out = export_onnx(net, args.out)
     w, h = net.input_wh
     ids = ",".join(str(c) for c in net.class_ids)

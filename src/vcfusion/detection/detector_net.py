@@ -21,6 +21,7 @@ Weights are a torch file holding the state dict and the metadata needed to rebui
 
 from __future__ import annotations
 
+import functools
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,13 +33,14 @@ import torch.nn.functional as F
 from torch import nn
 
 from vcfusion.detection.detectors import Detections, batched_nms
+from vcfusion.errors import InputError
 
 WEIGHTS_FORMAT = "vcfusion-centernet-v1"
 STRIDE = 4
 MEAN, STD = 114.0, 58.0  # input normalisation (0..255 RGB)
 
 
-class DetectorFileError(ValueError):
+class DetectorFileError(InputError):
     """A dataset or model file that cannot be used; the message names the file and the problem."""
 
 
@@ -175,20 +177,79 @@ class DetectorModel:
 
     @staticmethod
     def load(path) -> "DetectorModel":
+        """Read a weights file; DetectorFileError names the file and the key or layer that is wrong."""
         path = Path(path)
         if not path.is_file():
             raise DetectorFileError(f"{path}: detector weights not found")
         try:
             blob = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as exc:  # noqa: BLE001 - any unreadable file gets the same message
-            raise DetectorFileError(f"{path}: not a vcfusion detector weights file ({exc.__class__.__name__})") from None
+            raise DetectorFileError(f"{path}: not a vcfusion detector weights file ({exc.__class__.__name__}); "
+                                    "expected one written by `vcfusion train-detector`") from None
         if not isinstance(blob, dict) or blob.get("format") != WEIGHTS_FORMAT:
-            raise DetectorFileError(f"{path}: format: expected {WEIGHTS_FORMAT!r}")
-        model = CenterNetLite(len(blob["class_ids"]), tuple(blob["widths"][:4]), blob["widths"][4])
+            got = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
+            raise DetectorFileError(f"{path}: format: expected {WEIGHTS_FORMAT!r}, got {got!r}")
+        missing = [k for k in ("state_dict", "input_wh", "class_ids", "class_names", "widths") if k not in blob]
+        if missing:
+            raise DetectorFileError(f"{path}: missing keys {missing}; expected a file written by "
+                                    "`vcfusion train-detector`")
+        class_ids, widths, input_wh = _checked_header(path, blob)
+        model = CenterNetLite(len(class_ids), widths[:4], widths[4])
+        _check_state_dict(path, blob["state_dict"], model.state_dict())
         model.load_state_dict(blob["state_dict"])
         model.eval()
-        return DetectorModel(model, tuple(blob["input_wh"]), list(blob["class_ids"]), list(blob["class_names"]),
-                             tuple(blob["widths"]), dict(blob.get("meta", {})))
+        return DetectorModel(model, input_wh, class_ids, [str(n) for n in blob["class_names"]],
+                             widths, dict(blob.get("meta") or {}))
+
+
+def _checked_header(path: Path, blob: dict) -> tuple[list[int], tuple[int, ...], tuple[int, int]]:
+    def ints(key: str, n: int | None, expected: str) -> list[int]:
+        value = blob[key]
+        try:
+            out = [int(v) for v in value]
+        except (TypeError, ValueError):
+            out = []
+        if not out or (n is not None and len(out) != n) or (key != "class_ids" and min(out) <= 0):
+            raise DetectorFileError(f"{path}: {key}: expected {expected}, got {value!r}")
+        return out
+
+    class_ids = ints("class_ids", None, "a list of category ids")
+    widths = ints("widths", 5, "5 positive layer widths")
+    input_wh = ints("input_wh", 2, "[width, height] in pixels")
+    names = blob["class_names"]
+    if not isinstance(names, (list, tuple)) or len(names) != len(class_ids):
+        raise DetectorFileError(f"{path}: class_names: expected one name per class id ({len(class_ids)}), "
+                                f"got {names!r}")
+    return class_ids, tuple(widths), (input_wh[0], input_wh[1])
+
+
+def _check_state_dict(path: Path, state, expected: dict) -> None:
+    """Every layer of the network present with the shape the header implies."""
+    if not isinstance(state, dict):
+        raise DetectorFileError(f"{path}: state_dict: expected a mapping of layer names to tensors")
+    missing = [k for k in expected if k not in state]
+    unknown = [k for k in state if k not in expected]
+    if missing or unknown:
+        raise DetectorFileError(f"{path}: state_dict: expected the layers of CenterNetLite; "
+                                f"missing {missing[:3]}, unknown {unknown[:3]}")
+    for name, tensor in expected.items():
+        got = tuple(getattr(state[name], "shape", ()))
+        if got != tuple(tensor.shape):
+            raise DetectorFileError(f"{path}: state_dict.{name}: expected shape {tuple(tensor.shape)}, got {got}")
+
+
+@functools.lru_cache(maxsize=4)
+def _check_weights_file(name: str, _mtime_ns: int) -> None:
+    DetectorModel.load(name)
+
+
+def check_weights(path) -> None:
+    """Raise DetectorFileError if `path` is not a usable weights file (cached by path and modification
+    time: a batch loads its scenario once per seed)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DetectorFileError(f"{path}: detector weights not found")
+    _check_weights_file(str(path), path.stat().st_mtime_ns)
 
 
 class TorchDetector:

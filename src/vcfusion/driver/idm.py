@@ -35,3 +35,22 @@ def idm_acceleration(p: IDMParams, speed: float, gap: float | None = None, leade
         interaction = (s_star / max(gap, 0.1)) ** 2
     acc = p.max_accel_mps2 * (free - interaction)
     return max(acc, -p.max_decel_mps2)
+
+
+class IdmController:
+    """Ego controller without a human in it: IDM on the radar leader in the ego's lane (SUMO's
+    leader of the ego). For runs that need the ego to drive but not the driver model (camera
+    renders, the identification study); `vcfusion run` uses the driver model."""
+
+    needs = ("ego",)
+
+    def __init__(self, params: IDMParams):
+        self.params = params
+
+    @classmethod
+    def for_scenario(cls, scenario) -> "IdmController":
+        return cls(IDMParams(desired_speed_mps=scenario.ego.desired_speed_mps))
+
+    def acceleration(self, tick) -> float:
+        ego = tick.ego
+        return idm_acceleration(self.params, ego.speed, ego.leader_gap_m, ego.leader_speed)

@@ -6,10 +6,11 @@ Every V2C tick (0.1 s) the driver:
 2. **notices cut-ins**. Without guidance, a neighbour ahead (within ``notice_range_m``) in an
    adjacent lane is noticed when its centre has moved ``lateral_notice_m`` from its lane centre
    toward the ego lane; the driver responds ``cutin_reaction_s`` later (an unexpected event).
-   With guidance (when enabled for this trip), an AR item of level medium/high for a vehicle
-   ahead in an adjacent lane is noticed when first shown, and the driver responds
-   ``guidance_reaction_s`` later (an expected event). The earliest response wins; the visual
-   cue works in both arms;
+   With guidance (when enabled for this trip), a warning item (level medium/high) of
+   ``tick.guidance`` for a vehicle ahead in an adjacent lane is noticed when first shown, and the
+   driver responds ``guidance_reaction_s`` later (an expected event). The earliest response wins;
+   the visual cue works in both arms. "Ahead", "adjacent lane", the warning levels and the ego's
+   id are the run's :class:`~vcfusion.guidance.GuidancePolicy`;
 3. **chooses leaders**: every vehicle whose centre is in the ego lane ahead, plus every
    vehicle it has responded to as a prospective leader while that vehicle is still ahead
    displaced toward the ego lane (or, for guidance, while its warning is still shown);
@@ -33,9 +34,8 @@ import numpy as np
 
 from vcfusion.driver.idm import IDMParams, idm_acceleration
 from vcfusion.driver.params import CarLimits, DriverParams
+from vcfusion.guidance import GuidancePolicy
 from vcfusion.traffic.network import Road
-
-ACTIVE_LEVELS = ("medium", "high")
 
 
 @dataclass
@@ -48,19 +48,22 @@ class _Seen:
 
 
 class DriverModel:
-    """Ego controller (see the module doc). `acceleration(tick)` is called every V2C tick."""
+    """Ego controller (see the module doc). `acceleration(tick)` is called every V2C tick; at the
+    end of the run `finish` adds its tables (``driver``, ``driver_events``) and its summary."""
 
-    log_table = "driver"
+    finish_tables = ("driver", "driver_events")
+    finish_summary = ("driver",)
 
-    def __init__(self, params: DriverParams, road: Road, ego_lane: int, guidance_enabled: bool,
-                 limits: CarLimits = CarLimits(), ego_id: str = "ego"):
+    def __init__(self, params: DriverParams, road: Road, policy: GuidancePolicy, guidance_enabled: bool,
+                 limits: CarLimits = CarLimits()):
         self.p = params
         self.limits = limits
         self.road = road
-        self.ego_lane = ego_lane
-        self.ego_id = ego_id
+        self.policy = policy
+        self.ego_id = policy.ego_id
         self.guidance_enabled = guidance_enabled
-        self._lane_d = float(road.lane_centre_d(ego_lane))  # the ego lane's centre, d from the right edge
+        # with guidance on it reads what the driver is shown; it sees the traffic either way
+        self.needs = ("ego", "guidance") if guidance_enabled else ("ego",)
         self.idm = IDMParams(desired_speed_mps=params.desired_speed_mps, time_headway_s=params.time_headway_s,
                              min_gap_m=params.min_gap_m, max_accel_mps2=params.max_accel_mps2,
                              comfort_decel_mps2=params.comfort_decel_mps2, max_decel_mps2=limits.max_decel_mps2)
@@ -75,6 +78,10 @@ class DriverModel:
     def summary(self) -> dict:
         """The trip's driver draw, for the run summary."""
         return self.p.to_dict() | {"guidance_enabled": self.guidance_enabled}
+
+    def finish(self, tables, summary: dict) -> None:
+        tables.update(self.tables())
+        summary["driver"] = self.summary()
 
     def tables(self) -> dict:
         """Run-folder tables: the driver's per-tick decisions and the cues it noticed."""
@@ -94,7 +101,7 @@ class DriverModel:
         # plain dicts of plain floats, everyone but the ego (the loops below run over ~10 vehicles)
         rear = dict(zip(truth.ids, (s - truth.length / 2).tolist()))
         speed = dict(zip(truth.ids, truth.speed.tolist()))
-        lateral = dict(zip(truth.ids, np.abs(d - self._lane_d).tolist()))
+        lateral = dict(zip(truth.ids, self.policy.lateral_m(d).tolist()))
         for others in (rear, speed, lateral):
             del others[self.ego_id]
         seen = _Seen(tick.time, ego_front, float(truth.speed[i]), rear, speed)
@@ -109,26 +116,22 @@ class DriverModel:
                 return m
         return self._memory[0]
 
-    def _notice(self, tick, seen: _Seen, lateral: dict) -> None:
-        w = self.road.lane_width_m
+    def _notice(self, tick, seen: _Seen, lateral: dict, shown: list) -> None:
+        policy, w = self.policy, self.policy.lane_width_m
         for vid, dist in lateral.items():
-            ahead = seen.rear[vid] > seen.ego_front and seen.rear[vid] - seen.ego_front <= self.p.notice_range_m
-            if not ahead or vid in self.visual_response:
+            if vid in self.visual_response or not policy.ahead(seen.rear[vid], seen.ego_front, self.p.notice_range_m):
                 continue
             # An adjacent-lane neighbour that has moved toward the ego lane by the noticed amount.
-            if w / 2 <= dist <= w - self.p.lateral_notice_m:
+            if policy.in_adjacent_lane(dist) and dist <= w - self.p.lateral_notice_m:
                 self.visual_response[vid] = tick.time + self.p.cutin_reaction_s
                 self.events.append({"time": tick.time, "vehicle_id": vid, "cue": "lateral",
                                     "response_time": self.visual_response[vid]})
-        if not self.guidance_enabled:
-            return
-        for item in tick.annotations.get("guidance", []) or []:
+        for item in shown:
             vid = item.vehicle_id
-            if item.level not in ACTIVE_LEVELS or vid in self.guidance_response or vid not in lateral:
+            if vid in self.guidance_response or vid not in lateral:
                 continue
-            dist = lateral[vid]
-            ahead = seen.rear[vid] > seen.ego_front and seen.rear[vid] - seen.ego_front <= self.p.notice_range_m
-            if ahead and w / 2 <= dist < 1.5 * w:
+            if (policy.ahead(seen.rear[vid], seen.ego_front, self.p.notice_range_m)
+                    and policy.in_adjacent_lane(lateral[vid])):
                 self.guidance_response[vid] = tick.time + self.p.guidance_reaction_s
                 self.events.append({"time": tick.time, "vehicle_id": vid, "cue": "guidance",
                                     "level": item.level, "lc_prob": float(item.lc_prob),
@@ -138,10 +141,12 @@ class DriverModel:
     def acceleration(self, tick) -> float:
         now = tick.time
         seen, lateral = self._see(tick)
-        self._notice(tick, seen, lateral)
-        w = self.road.lane_width_m
-        shown = {g.vehicle_id for g in (tick.annotations.get("guidance", []) or [])
-                 if g.level in ACTIVE_LEVELS} if self.guidance_enabled else set()
+        # the warnings shown at this tick (none reach a driver who does not use the guidance)
+        shown_items = tick.guidance.items if self.guidance_enabled and tick.guidance is not None else ()
+        warnings = [g for g in shown_items if self.policy.warns(g.level)]
+        self._notice(tick, seen, lateral, warnings)
+        policy, w = self.policy, self.policy.lane_width_m
+        shown = {g.vehicle_id for g in warnings}
         past = self._delayed(now)
         ego_speed = seen.ego_speed
         desired = idm_acceleration(self.idm, ego_speed)  # free road
@@ -149,12 +154,12 @@ class DriverModel:
         for vid, dist in lateral.items():
             if seen.rear[vid] <= seen.ego_front:
                 continue
-            in_lane = dist < w / 2
+            in_lane = policy.in_ego_lane(dist)
             responded = min(self.visual_response.get(vid, math.inf), self.guidance_response.get(vid, math.inf))
             # Responded to, not yet in the lane, and still a candidate: an adjacent-lane car that
             # is still displaced toward the ego lane, or whose warning is still shown.
             prospective = (not in_lane and responded <= now
-                           and ((vid in shown and dist < 1.5 * w) or dist < w - 0.1))
+                           and ((vid in shown and policy.in_adjacent_lane(dist)) or dist < w - 0.1))
             if not (in_lane or prospective):
                 continue
             if vid in past.rear:

@@ -23,6 +23,8 @@ from vcfusion.fusion.depth_eval import DepthEvalParams, reduce_depth_samples, sa
 from vcfusion.detection.detector_net import CenterNetLite, DetectorModel, TorchDetector, default_weights_path
 from vcfusion.fusion.matching import JointMatcher, TwinProjection, match_all_baseline, match_all_paper
 from vcfusion.fusion.overlay import Hud, OverlayRecorder, draw_overlay, make_guidance
+from vcfusion.guidance import GuidancePolicy
+from vcfusion.scenario import AROverlayConfig
 
 
 def synthetic_scene(rng, width=640, height=480, n_boxes=10, n_twins=8):
@@ -59,6 +61,9 @@ def main(argv=None) -> int:
         detector, label = TorchDetector(net), "untrained default architecture (same compute)"
     image, depth, boxes, proj = synthetic_scene(rng)
     matcher = JointMatcher()
+    ar = AROverlayConfig()  # the scenario defaults' colours; the lane geometry plays no part in drawing
+    policy = GuidancePolicy(ar.medium_threshold, ar.high_threshold, view_range_m=150.0, ego_lane=0, lane_width_m=3.2,
+                            ego_lane_centre_d=1.6)
     times = {k: [] for k in ("detect", "depth", "match", "overlay_draw", "overlay_write")}
     with tempfile.TemporaryDirectory() as tmp, OverlayRecorder(Path(tmp) / "v") as rec:
         for i in range(args.frames + 5):
@@ -73,7 +78,7 @@ def main(argv=None) -> int:
             chosen = matcher.assign(proj, boxes, samples)
             t3 = time.perf_counter()
             guidance = make_guidance(0.1 * i, [f"v{k}" for k in range(len(chosen))], rng.random(len(chosen)),
-                                     [boxes[j] if j >= 0 else None for j in chosen])
+                                     [boxes[j] if j >= 0 else None for j in chosen], policy)
             frame = draw_overlay(image, guidance, Hud(0.1 * i, 19.0))
             t4 = time.perf_counter()
             rec.add(frame)

@@ -13,12 +13,13 @@ from typing import Protocol
 
 import numpy as np
 
-from vcfusion.records import TwinStates
+from vcfusion.guidance import GuidancePolicy
+from vcfusion.records import GuidanceSet, TwinStates
 from vcfusion.fusion.depth_eval import DepthEvalParams, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector
 from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, match_all_baseline, match_all_paper,
                                       point_in_boxes, project_twins)
-from vcfusion.fusion.overlay import Hud, OverlayParams, OverlayRecorder, draw_overlay, make_guidance
+from vcfusion.fusion.overlay import Hud, OverlayRecorder, draw_overlay, make_guidance
 
 # baseline: the paper's RGB-only rule; baseline_centre: our nearest-box-centre heuristic (RGB only);
 # paper: Algorithm 2 (RGB + depth); joint: the joint matcher (see matching.py)
@@ -93,25 +94,34 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
 
 
 class VisionFusionHook:
-    """Tick hook: fuse the camera frame with the ego's neighbour twins, put the guidance in
-    ``tick.annotations['guidance']``, draw the AR overlay (into ``recorder`` when given) and log one
-    row per neighbour in view to the run folder's ``fusion`` table."""
+    """Tick hook: fuse the camera frame with the ego's neighbour twins, set ``tick.detections`` and
+    ``tick.guidance`` (source ``fusion``, levels from `policy`), draw the AR overlay (into
+    ``recorder`` when given) and log one row per neighbour in view to the run folder's ``fusion``
+    table. Without a `frame_source` it reads the camera stage's ``tick.frame``."""
 
     table = "fusion"
+    provides = ("detections", "guidance")
 
-    def __init__(self, frame_source: FrameSource, detector: Detector, seed: int, method: str = "joint",
-                 depth_params: DepthEvalParams = DepthEvalParams(), joint: JointMatcher | None = None,
-                 overlay: OverlayParams = OverlayParams(), recorder: OverlayRecorder | None = None,
+    def __init__(self, frame_source: FrameSource | None, detector: Detector, seed: int, policy: GuidancePolicy,
+                 method: str = "joint", depth_params: DepthEvalParams = DepthEvalParams(),
+                 joint: JointMatcher | None = None, recorder: OverlayRecorder | None = None,
                  period_s: float | None = None):
         if method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+        if frame_source is None:
+            from vcfusion.fusion.stage import tick_frame_source  # the camera stage's frames (imports fuse.py)
+
+            frame_source = tick_frame_source
+            self.needs = ("neighbours", "frame")
+        else:
+            self.needs = ("neighbours",)
         self.frame_source = frame_source
+        self.policy = policy
         self.detector = detector
         self.rng = np.random.default_rng(seed)
         self.method = method
         self.depth_params = depth_params
         self.joint = joint or JointMatcher()
-        self.overlay = overlay
         self.recorder = recorder
         self.timings: list[dict] = []
         # run every period_s (the AR update period, ar.period_s); None = every tick
@@ -136,13 +146,14 @@ class VisionFusionHook:
         view = np.flatnonzero(result.in_view)
         boxes = [result.box_of(self.method, i) for i in view]
         decision = twins.outputs.get("lc_decision")
-        guidance = make_guidance(tick.time, [twins.ids[i] for i in view], lc[view], boxes, self.overlay,
+        guidance = make_guidance(tick.time, [twins.ids[i] for i in view], lc[view], boxes, self.policy,
                                  None if decision is None else np.asarray(decision)[view])
-        tick.annotations["guidance"] = guidance
+        tick.detections = result.detections
+        tick.guidance = GuidanceSet(tuple(guidance), "fusion")
         t3 = wallclock.perf_counter()
         if self.recorder is not None:
             ego_speed = tick.ego.speed if tick.ego is not None else float("nan")
-            self.recorder.add(draw_overlay(frame.image, guidance, Hud(tick.time, ego_speed), self.overlay))
+            self.recorder.add(draw_overlay(frame.image, guidance, Hud(tick.time, ego_speed)))
         self.timings.append({"render": t_render, **result.timings_s, "overlay": wallclock.perf_counter() - t3})
         rows = []
         for g in guidance:

@@ -1,6 +1,6 @@
 """AR overlay (the paper's Fig. 7): each neighbour's matched box drawn with its lane-change
-probability, colour-coded (yellow medium, red high), a small HUD, and the guidance records for the
-driver model; frames written as PNGs and an mp4.
+probability, colour-coded (yellow medium, red high: the run's GuidancePolicy, vcfusion.guidance),
+a small HUD, and the guidance records for the driver model; frames written as PNGs and an mp4.
 
 Images are RGB uint8; colours below are RGB. Writing converts to OpenCV's BGR.
 """
@@ -15,8 +15,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vcfusion.records import GUIDANCE_LEVELS, Guidance
-from vcfusion.records import guidance_level as level_of
+from vcfusion.guidance import GUIDANCE_LEVELS, GuidancePolicy
+from vcfusion.records import Guidance
 
 YELLOW = (255, 210, 0)
 RED = (230, 20, 20)
@@ -24,37 +24,20 @@ GREEN = (40, 200, 90)
 WHITE = (255, 255, 255)
 
 
-@dataclass(frozen=True)
-class OverlayParams:
-    medium_threshold: float = 0.3  # lc_prob >= this: medium (yellow)
-    high_threshold: float = 0.6  # lc_prob >= this: high (red)
-    draw_low: bool = True  # also outline matched neighbours below the medium threshold (thin green)
-
-    def __post_init__(self):
-        if not 0.0 <= self.medium_threshold <= self.high_threshold <= 1.0:
-            raise ValueError("overlay thresholds: expected 0 <= medium_threshold <= high_threshold <= 1, got "
-                             f"{self.medium_threshold}, {self.high_threshold}")
-
-
-def guidance_level(lc_prob: float, params: OverlayParams = OverlayParams(), decision: int | None = None) -> str:
-    """The overlay's thresholds applied by the one rule every guidance source uses (records.guidance_level)."""
-    return level_of(lc_prob, params.medium_threshold, params.high_threshold, decision)
-
-
 def level_colour(level: str) -> tuple[int, int, int]:
     return {"high": RED, "medium": YELLOW}.get(level, GREEN)
 
 
-def make_guidance(time: float, vehicle_ids, lc_prob, boxes, params: OverlayParams = OverlayParams(),
-                  decisions=None) -> list[Guidance]:
-    """One Guidance per neighbour; ``boxes`` holds each one's matched box (4 values) or None;
-    ``decisions``, when given, the cloud's smoothed lane-change decision of each (0/1)."""
+def make_guidance(time: float, vehicle_ids, lc_prob, boxes, policy: GuidancePolicy, decisions=None) -> list[Guidance]:
+    """One Guidance per neighbour, levelled by `policy`; ``boxes`` holds each one's matched box
+    (4 values) or None; ``decisions``, when given, the cloud's smoothed lane-change decision of
+    each (0/1)."""
     out = []
     decisions = [None] * len(boxes) if decisions is None else [int(d) for d in decisions]
     for vid, p, box, d in zip(vehicle_ids, np.asarray(lc_prob, dtype=float), boxes, decisions):
         b = None if box is None else tuple(float(v) for v in box)
         out.append(Guidance(time=float(time), vehicle_id=str(vid), lc_prob=float(p),
-                            level=guidance_level(float(p), params, d), box=b))
+                            level=policy.level(float(p), d), box=b))
     assert all(g.level in GUIDANCE_LEVELS for g in out)
     return out
 
@@ -65,15 +48,15 @@ class Hud:
     ego_speed_mps: float
 
 
-def draw_overlay(image: np.ndarray, guidance: list[Guidance], hud: Hud | None,
-                 params: OverlayParams = OverlayParams()) -> np.ndarray:
-    """A copy of the RGB image with the guidance boxes, probabilities and the HUD drawn on it."""
+def draw_overlay(image: np.ndarray, guidance: list[Guidance], hud: Hud | None, draw_low: bool = True) -> np.ndarray:
+    """A copy of the RGB image with the guidance boxes, probabilities and the HUD drawn on it;
+    `draw_low`: also outline matched neighbours of level none (thin green)."""
     out = np.ascontiguousarray(image.copy())
     font = cv2.FONT_HERSHEY_SIMPLEX
     # low first so that flagged boxes are drawn on top
     order = sorted(guidance, key=lambda g: GUIDANCE_LEVELS.index(g.level))
     for g in order:
-        if g.box is None or (g.level == "none" and not params.draw_low):
+        if g.box is None or (g.level == "none" and not draw_low):
             continue
         x1, y1, x2, y2 = (int(round(v)) for v in g.box)
         colour = level_colour(g.level)

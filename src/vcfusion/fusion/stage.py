@@ -1,10 +1,10 @@
 """Wiring of the vision-cloud fusion stage to the renderer and to a scenario's settings.
 
 The ego camera frames come from the rendering stage: in a run, its camera hook (scenario
-``vision.enabled``) puts a rendered ``Frame`` (rgb, depth, instances, vehicle_ids, K,
-T_world_to_camera) in ``tick.annotations['frame']`` before the fusion hook runs;
-:func:`annotation_frame_source` turns it into a :class:`CameraFrame` (ground-truth boxes from the
-instance map, a :class:`CameraView` from K and T). The identification study renders its frames
+``vision.enabled``) sets ``tick.frame`` to a rendered ``Frame`` (rgb, depth, instances,
+vehicle_ids, K, T_world_to_camera); the fusion hook, which declares that it needs ``frame``
+(checked when the run is built), reads it through :func:`tick_frame_source`, which turns it into a
+:class:`CameraFrame` (ground-truth boxes from the instance map, a :class:`CameraView` from K and T). The identification study renders its frames
 itself through :class:`RenderedFrameSources` (one renderer reused over all runs).
 """
 
@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from vcfusion.scenario import Scenario, ScenarioError
 from vcfusion.fusion.depth_eval import DepthEvalParams
 from vcfusion.fusion.fuse import CameraFrame
 from vcfusion.fusion.matching import CameraView
-from vcfusion.fusion.overlay import OverlayParams, OverlayRecorder
+from vcfusion.fusion.overlay import OverlayRecorder
+from vcfusion.guidance import GuidancePolicy
+from vcfusion.records import EGO_ID
+from vcfusion.scenario import Scenario, ScenarioError
 
 
 def camera_view(K: np.ndarray, T_world_to_camera: np.ndarray, width: int, height: int, time: float) -> CameraView:
@@ -46,9 +48,9 @@ def frame_from_render(frame, truth) -> CameraFrame:
                        gt_classes=np.array([category_id(c) for c in gt.vclass], dtype=np.int64))
 
 
-def annotation_frame_source(tick) -> CameraFrame | None:
-    """The frame the camera hook rendered at this tick (None at ticks without one)."""
-    frame = tick.annotations.get("frame")
+def tick_frame_source(tick) -> CameraFrame | None:
+    """The frame the camera stage put on this tick (None at ticks without one)."""
+    frame = tick.frame
     if frame is None or isinstance(frame, CameraFrame):
         return frame
     return frame_from_render(frame, tick.truth)
@@ -71,7 +73,6 @@ class RenderedFrameSources:
         if self._renderer is None:
             try:
                 from vcfusion.traffic.network import read_road
-                from vcfusion.traffic.session import EGO_ID
                 from vcfusion.render.renderer import EgoCameraRenderer
             except ImportError as exc:
                 raise ScenarioError(f"the ego camera renderer cannot be loaded: {exc}") from None
@@ -110,15 +111,13 @@ def depth_params(scenario: Scenario) -> DepthEvalParams:
     return DepthEvalParams(th=f.depth_th, n=f.depth_samples, reducer=f.depth_reducer)
 
 
-def overlay_params(scenario: Scenario) -> OverlayParams:
-    return OverlayParams(medium_threshold=scenario.ar.medium_threshold, high_threshold=scenario.ar.high_threshold)
-
-
-def build_fusion_hook(scenario: Scenario, seed: int, recorder: OverlayRecorder | None = None, frame_source=None):
-    """The tick hook of the fusion stage as the scenario configures it; it must come after the
-    camera hook in the hook list (it reads the frame that hook puts in the tick's annotations)."""
+def build_fusion_hook(scenario: Scenario, seed: int, policy: GuidancePolicy, recorder: OverlayRecorder | None = None,
+                      frame_source=None):
+    """The tick hook of the fusion stage as the scenario configures it, levelling guidance by the
+    run's `policy`. Without `frame_source` it reads ``tick.frame`` (it then needs the camera hook
+    before it: the run refuses another order)."""
     from vcfusion.fusion.fuse import VisionFusionHook
 
-    return VisionFusionHook(frame_source or annotation_frame_source, build_detector(scenario, seed), seed,
+    return VisionFusionHook(frame_source, build_detector(scenario, seed), seed, policy,
                             method=scenario.fusion.method, depth_params=depth_params(scenario),
-                            overlay=overlay_params(scenario), recorder=recorder, period_s=scenario.ar.period_s)
+                            recorder=recorder, period_s=scenario.ar.period_s)

@@ -96,6 +96,12 @@ def _parse_rates(text: str) -> dict[int, np.ndarray]:
 
 
 RATES = {vt: _parse_rates(t) for vt, t in _RATES_TEXT.items()}
+# the same rates as one array: [vehicle type, OpMode number, pollutant] (unused numbers: NaN)
+_RATE_TABLE = np.full((max(RATES) + 1, max(max(r) for r in RATES.values()) + 1, len(POLLUTANTS)), np.nan)
+for _vt, _rates in RATES.items():
+    for _mode, _row in _rates.items():
+        _RATE_TABLE[_vt, _mode] = _row
+_ROAD_LOAD_ROWS = np.array([ROAD_LOAD.get(vt, (np.nan,) * 5) for vt in range(max(ROAD_LOAD) + 1)])
 
 
 def _check_vehicle_type(vehicle_type) -> int:
@@ -119,47 +125,65 @@ def _check_speeds(speeds_mps: Sequence[float]) -> np.ndarray:
     return v
 
 
-def accelerations(v: np.ndarray) -> np.ndarray:
-    """Central difference at 1 Hz; zero at the first and last second."""
+def accelerations(v: np.ndarray, starts: np.ndarray | None = None) -> np.ndarray:
+    """Central difference at 1 Hz; zero at the first and last second (of each trip beginning at
+    `starts` in a concatenation of trips)."""
     a = np.zeros_like(v)
     if v.size >= 3:
         a[1:-1] = (v[2:] - v[:-2]) / 2.0
+    if starts is not None and v.size:
+        a[starts] = 0.0
+        a[np.r_[starts[1:], v.size] - 1] = 0.0
     return a
 
 
-def vsp(v: np.ndarray, a: np.ndarray, vehicle_type: int = 1) -> np.ndarray:
-    """Vehicle specific power (kW/tonne), zero grade."""
-    A, B, C, M, f = ROAD_LOAD[_check_vehicle_type(vehicle_type)]
+def vsp(v: np.ndarray, a: np.ndarray, vehicle_type=1) -> np.ndarray:
+    """Vehicle specific power (kW/tonne), zero grade; `vehicle_type` one type or one per sample."""
+    types = np.asarray(vehicle_type)
+    if types.ndim == 0:
+        _check_vehicle_type(vehicle_type)
+    A, B, C, M, f = _ROAD_LOAD_ROWS[types].T if types.ndim else _ROAD_LOAD_ROWS[types]
     return (A * v + B * v**2 + C * v**3 + M * a * v) / f
 
 
-def _band(value: float, edges: Sequence[float], modes: Sequence[int]) -> int:
-    for edge, mode in zip(edges, modes):
-        if value < edge:
-            return mode
-    return modes[-1]
+_LOW_SPEED = ((0, 3, 6, 9, 12), (11, 12, 13, 14, 15, 16))  # 1 <= mph < 25: VSP edges, modes
+_MID_SPEED = ((0, 3, 6, 9, 12, 18, 24, 30), (21, 22, 23, 24, 25, 27, 28, 29, 30))  # 25 <= mph < 50
+_HIGH_SPEED = ((6, 12, 18, 24, 30), (33, 35, 37, 38, 39, 40))  # mph >= 50
 
 
-def operating_modes(v: np.ndarray, a: np.ndarray, power: np.ndarray) -> list[int]:
-    """OpMode of every second (spec step 4: the first matching rule wins)."""
+def _band(power: np.ndarray, band: tuple) -> np.ndarray:
+    """The mode of the first VSP edge above each value (the last mode above all edges)."""
+    edges, modes = band
+    return np.asarray(modes)[np.searchsorted(edges, power, side="right")]
+
+
+def operating_modes(v: np.ndarray, a: np.ndarray, power: np.ndarray, starts: np.ndarray | None = None) -> np.ndarray:
+    """OpMode of every second (spec step 4: the first matching rule wins), all seconds at once
+    (of each trip beginning at `starts` in a concatenation of trips)."""
     k = MPS_TO_MPH
-    modes = []
-    for i in range(v.size):
-        mph = v[i] * k
-        if a[i] * k <= -2:
-            mode = 0
-        elif i >= 2 and a[i - 2] * k < -1 and a[i - 1] * k < -1:
-            mode = 0
-        elif mph < 1:
-            mode = 1
-        elif mph < 25:
-            mode = _band(power[i], (0, 3, 6, 9, 12), (11, 12, 13, 14, 15, 16))
-        elif mph < 50:
-            mode = _band(power[i], (0, 3, 6, 9, 12, 18, 24, 30), (21, 22, 23, 24, 25, 27, 28, 29, 30))
-        else:
-            mode = _band(power[i], (6, 12, 18, 24, 30), (33, 35, 37, 38, 39, 40))
-        modes.append(mode)
-    return modes
+    mph, accel = v * k, a * k
+    braked = np.zeros(v.size, dtype=bool)  # the two seconds before both below -1 mph/s
+    braked[2:] = (accel[:-2] < -1) & (accel[1:-1] < -1)
+    if starts is not None:  # ... within the same trip
+        braked[np.r_[starts, starts + 1][np.r_[starts, starts + 1] < v.size]] = False
+    return np.select([(accel <= -2) | braked, mph < 1, mph < 25, mph < 50],
+                     [0, 1, _band(power, _LOW_SPEED), _band(power, _MID_SPEED)], _band(power, _HIGH_SPEED))
+
+
+def _fuel(co2):
+    return co2 * 12.0 / 44.0 * 13.78 / 12.0
+
+
+def movestar_trips(v: np.ndarray, starts: np.ndarray, vehicle_types: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """MOVESTAR of many 1 Hz trips at once (the same computation as movestar()): `v` the trips'
+    speeds concatenated, trip i beginning at starts[i], of type vehicle_types[i]. Returns the
+    totals (trips x OUTPUT_KEYS) and the distance travelled per trip (the sum of its speeds)."""
+    lengths = np.diff(np.r_[starts, v.size])
+    types = np.repeat(vehicle_types, lengths)
+    a = accelerations(v, starts)
+    modes = operating_modes(v, a, vsp(v, a, types), starts)
+    sums = np.add.reduceat(_RATE_TABLE[types, modes], starts, axis=0) / 3600.0
+    return np.c_[sums, _fuel(sums[:, POLLUTANTS.index("CO2")])], np.add.reduceat(v, starts)
 
 
 def movestar(speeds_mps: Sequence[float], vehicle_type: int = 1) -> dict:
@@ -173,11 +197,9 @@ def movestar(speeds_mps: Sequence[float], vehicle_type: int = 1) -> dict:
     a = accelerations(v)
     power = vsp(v, a, vehicle_type)
     modes = operating_modes(v, a, power)
-    table = RATES[vehicle_type]
-    sums = np.sum([table[m] for m in modes], axis=0) / 3600.0
-    totals = {name: float(x) for name, x in zip(POLLUTANTS, sums)}
-    totals["Fuel"] = totals["CO2"] * 12.0 / 44.0 * 13.78 / 12.0
-    td = float(v.sum())
+    sums, td = movestar_trips(v, np.array([0]), np.array([vehicle_type]))
+    totals = {name: float(x) for name, x in zip(OUTPUT_KEYS, sums[0])}
+    td = float(td[0])
     if td > 0:
         per_mile = {k: x * METERS_PER_MILE / td for k, x in totals.items()}
         per_km = {k: x / KM_PER_MILE for k, x in per_mile.items()}
@@ -185,7 +207,7 @@ def movestar(speeds_mps: Sequence[float], vehicle_type: int = 1) -> dict:
         per_mile = {k: None for k in totals}
         per_km = {k: None for k in totals}
     return {"totals": totals, "per_mile": per_mile, "per_km": per_km, "TT_s": float(v.size), "TD_m": td,
-            "opmodes": modes, "vsp": power.tolist(), "vehicle_type": vehicle_type}
+            "opmodes": modes.tolist(), "vsp": power.tolist(), "vehicle_type": vehicle_type}
 
 
 def resample_to_1hz(time_s: Sequence[float], values: Sequence[float], step_s: float | None = None) -> np.ndarray:

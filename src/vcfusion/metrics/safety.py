@@ -24,7 +24,9 @@ Definitions (the same for both arms of the guidance study):
   by near-zero closing speeds; ``avg_ttc_clipped_s`` is the mean of min(TTC, ``ttc_clip_s``)
   (default 20 s) over the same samples (winsorised: no sample is dropped).
 - **TET / TIT** (Minderhoud & Bovy 2001) on that same TTC series: TET = time with
-  TTC < threshold (s); TIT = integral of (threshold - TTC) over that time (s^2).
+  TTC < threshold (s); TIT = integral of (threshold - TTC) over that time (s^2). The threshold
+  and the jerk window are the scenario's ``metrics:`` block (default 1.5 s, SSAM), shared with
+  the per-vehicle run metrics (vcfusion.metrics.traffic).
 - **Collisions**: SUMO collisions involving the ego.
 """
 
@@ -35,7 +37,7 @@ import math
 import numpy as np
 import pandas as pd
 
-EGO_ID = "ego"
+from vcfusion.records import EGO_ID
 
 
 def acceleration_from_speed(speed: np.ndarray, dt: float) -> np.ndarray:
@@ -104,22 +106,30 @@ def target_ttc(ego: pd.DataFrame, trajectories: pd.DataFrame, target_id: str, ta
                          "closing_mps": np.where(valid, ego_speed - v_target, np.nan), "ttc_s": ttc})
 
 
-def trip_metrics(tables: dict[str, pd.DataFrame], ego_lane: int, dt: float,
-                 ttc_threshold_s: float = 3.0, jerk_window_s: float = 0.1, ttc_clip_s: float = 20.0) -> dict:
-    """Safety/comfort metrics of one run's tables (see the module doc for the definitions)."""
-    ego = tables["ego"].sort_values("time")
-    speed = ego["speed"].to_numpy()
+def kinematics(time: np.ndarray, s: np.ndarray, speed: np.ndarray, dt: float, jerk_window_s: float = 0.1) -> dict:
+    """Travel and comfort figures of one vehicle's samples every dt (time order); the same
+    definitions for the guidance study's ego and every vehicle of a run's metrics table."""
+    speed = np.asarray(speed, dtype=float)
     accel = acceleration_from_speed(speed, dt)
     jerk = jerk_from_acceleration(accel, dt, jerk_window_s)
-    out = {
-        "trip_time_s": float(ego["time"].iloc[-1] - ego["time"].iloc[0] + dt) if len(ego) else 0.0,
-        "ego_distance_m": float(ego["s"].iloc[-1] - ego["s"].iloc[0]) if len(ego) else 0.0,
-        "mean_speed_mps": float(speed.mean()) if speed.size else math.nan,
-        "min_speed_mps": float(speed.min()) if speed.size else math.nan,
+    n = len(speed)
+    return {
+        "trip_time_s": float(time[-1] - time[0] + dt) if n else 0.0,
+        "ego_distance_m": float(s[-1] - s[0]) if n else 0.0,
+        "mean_speed_mps": float(speed.mean()) if n else math.nan,
+        "min_speed_mps": float(speed.min()) if n else math.nan,
         "avg_abs_accel_mps2": float(np.abs(accel).mean()) if accel.size else math.nan,
         "max_decel_mps2": float(max(0.0, -accel.min())) if accel.size else math.nan,
         "max_abs_jerk_mps3": float(np.abs(jerk).max()) if jerk.size else math.nan,
     }
+
+
+def trip_metrics(tables: dict[str, pd.DataFrame], ego_lane: int, dt: float,
+                 ttc_threshold_s: float = 1.5, jerk_window_s: float = 0.1, ttc_clip_s: float = 20.0) -> dict:
+    """Safety/comfort metrics of one run's tables (see the module doc for the definitions).
+    The thresholds come from the scenario's `metrics:` block (MetricsConfig)."""
+    ego = tables["ego"].sort_values("time")
+    out = kinematics(ego["time"].to_numpy(), ego["s"].to_numpy(), ego["speed"].to_numpy(), dt, jerk_window_s)
     collisions = tables.get("collisions")
     if collisions is not None and len(collisions):
         mine = collisions[(collisions["collider"] == EGO_ID) | (collisions["victim"] == EGO_ID)]

@@ -5,6 +5,8 @@ twins; it computes the features of all of them at once, runs the MLP once on the
 matrix, thresholds the probabilities and smooths the decisions per twin (streaming Algorithm
 3 or 4). It returns `lc_prob` (float) and `lc_decision` (0/1), which the store attaches to the
 snapshot: they reach the ego in `Tick.neighbours` and are logged in the run's `twins` table.
+At the end of a run with an ego it reports, for every lane change into the ego's lane, when the
+cloud first flagged it (summary key `lane_change_flags`, :func:`first_flags`).
 
 The per-twin memory the features need (smoothed speed, leaky maximum speed) is kept by the
 predictor's FeatureExtractor from the snapshots themselves, not read from the store's raw
@@ -17,6 +19,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from vcfusion.runio import vehicle_tracks
+
 from vcfusion.prediction.features import FeatureExtractor
 from vcfusion.prediction.model import LaneChangeModel, load_model
 from vcfusion.prediction.smoothing import StreamingSmoother
@@ -25,10 +29,17 @@ from vcfusion.traffic.network import Road
 
 
 class LaneChangePredictor:
+    """Twin process model; at the end of the run it adds `lane_change_flags` to the summary
+    (`flag_end_after_mid_s`: a change's end when the trajectory does not show it, see first_flags)."""
+
+    finish_needs = ("lane_changes", "twins")
+    finish_summary = ("lane_change_flags",)
+
     def __init__(self, model: LaneChangeModel, road: Road, period_s: float, smoothing: str | None = None,
                  threshold: float | None = None, tau_a_ticks: int | None = None, tau_c_ticks: int | None = None,
-                 conservative_threshold: float | None = None):
+                 conservative_threshold: float | None = None, flag_end_after_mid_s: float = 1.5):
         self.model = model
+        self.flag_end_after_mid_s = flag_end_after_mid_s
         self.extractor = FeatureExtractor(road, period_s)
         smoothing = smoothing or model.smoothing
         self.threshold = model.threshold_for(smoothing) if threshold is None else threshold
@@ -44,6 +55,24 @@ class LaneChangePredictor:
         decision = self.smoother(twins.ids, (prob > self.threshold).astype(np.int8))
         return {"lc_prob": prob.astype(np.float64), "lc_decision": decision.astype(np.int8)}
 
+    def finish(self, tables, summary: dict) -> None:
+        """`lane_change_flags`: the cloud's first flags of the lane changes into the ego's lane
+        (runs with an ego only: the lane_changes table then relates every change to the ego)."""
+        changes = tables["lane_changes"]
+        if "into_ego_lane" not in changes.columns or "lc_decision" not in tables.column_names("twins"):
+            return
+        lc = {name: changes[name].to_numpy() for name in changes.columns}
+        into = lc["into_ego_lane"]
+        into_ids = set(lc["vehicle_id"][into])
+        # Only the columns and vehicles the flags need: the twins table is the largest one.
+        twins = vehicle_tracks(tables.arrow("twins", ["vehicle_id", "time", "lc_decision"]), into_ids,
+                               ["time", "lc_decision"])
+        theirs = np.isin(lc["vehicle_id"], list(into_ids))
+        flags = first_flags(twins, {k: v[theirs] for k, v in lc.items()}, self.flag_end_after_mid_s)
+        ahead = dict(zip(lc["event_id"][into].tolist(), lc["ahead_of_ego"][into].tolist()))
+        summary["lane_change_flags"] = [f | {"ahead_of_ego": bool(ahead[f["event_id"]])}
+                                        for f in flags if f["event_id"] in ahead]
+
 
 def predictor_for_scenario(scenario, road: Road) -> LaneChangePredictor | None:
     """The predictor a scenario's `prediction:` block asks for (None when disabled)."""
@@ -57,11 +86,10 @@ def predictor_for_scenario(scenario, road: Road) -> LaneChangePredictor | None:
         model = load_model(cfg.model)
     except ModelFileError as exc:
         raise ScenarioError(f"{scenario.source}: prediction.model: {exc}") from None
-    if abs(model.period_s - scenario.v2c.period_s) > 1e-9:
-        raise ScenarioError(f"{scenario.source}: prediction.model: trained for a V2C period of {model.period_s} s, "
-                            f"the scenario's v2c.period_s is {scenario.v2c.period_s} s")
+    # (load_scenario checked the model's V2C period against the scenario's)
     return LaneChangePredictor(model, road, scenario.v2c.period_s, cfg.smoothing, cfg.threshold,
-                               cfg.tau_a_ticks, cfg.tau_c_ticks, cfg.conservative_threshold)
+                               cfg.tau_a_ticks, cfg.tau_c_ticks, cfg.conservative_threshold,
+                               flag_end_after_mid_s=scenario.simulation.lanechange_duration_s / 2)
 
 
 def first_flags(twins: dict[str, dict[str, np.ndarray]], events, end_after_mid_s: float = 1.5) -> list[dict]:

@@ -1,27 +1,37 @@
-"""Handlers of the `vcfusion dataset | train | evaluate | bench-predict` commands."""
+"""Handlers of the `vcfusion dataset | train | evaluate | bench-predict` commands. A bad dataset or
+model file raises DatasetError / ModelFileError (InputError: the CLI prints it and exits with 2)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from vcfusion.cli import check_folder_path
 from vcfusion.errors import UsageError
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
-    from vcfusion.prediction.dataset import DatasetError, build_dataset
+    from vcfusion.prediction.dataset import build_dataset
     from vcfusion.scenario import load_scenario
     from vcfusion.studies.batch import parse_seeds
 
+    sources = [name for name, given in (("SCENARIO", args.scenario), ("--from-ngsim", args.from_ngsim),
+                                        ("--from-highd", args.from_highd)) if given]
+    if len(sources) != 1:
+        raise UsageError("dataset: expected exactly one of SCENARIO (simulate seeds), --from-ngsim FILE or "
+                         f"--from-highd PATH, got {' and '.join(sources) if sources else 'none'}")
+    if args.scenario is None:
+        args.interrupted = "an import writes its folder only when complete; nothing was written, run it again"
+        return _import_recordings(args)
+    if args.seeds is None:
+        raise UsageError("--seeds: required with a SCENARIO, e.g. --seeds 0-199")
     load_scenario(args.scenario)  # fail fast on a bad file
     seeds = parse_seeds(args.seeds)  # UsageError on a bad range
+    check_folder_path(Path(args.out))
     if args.workers < 1:
         raise UsageError(f"--workers: expected a positive number of processes, got {args.workers}")
-    try:
-        report = build_dataset(Path(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g,
-                               refeature=args.refeature)
-    except DatasetError as exc:
-        raise UsageError(str(exc)) from None
+    report = build_dataset(Path(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g,
+                           refeature=args.refeature, privileged=args.privileged)
     c = report["counts"]
     if args.refeature:
         print(f"recomputed the features of {report['refeatured']} existing runs")
@@ -35,34 +45,77 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     return 1 if report["failed"] else 0
 
 
+def _import_recordings(args: argparse.Namespace) -> int:
+    """`vcfusion dataset --from-ngsim FILE... | --from-highd PATH --out DIR`."""
+    from vcfusion.prediction.sources.trajectories import import_recordings
+
+    if args.refeature or args.privileged:
+        raise UsageError(f"{'--refeature' if args.refeature else '--privileged'}: only for simulated datasets "
+                         f"(a recording has no SUMO state; import it again after a feature change)")
+    check_folder_path(Path(args.out))
+    # a bad file raises RealDataError (an InputError: the CLI prints it and exits with 2)
+    if args.from_ngsim:
+        from vcfusion.prediction.sources.ngsim import parse_main_lanes, read_ngsim
+
+        lanes = parse_main_lanes(args.main_lanes)
+        recordings = [read_ngsim(f, lanes) for f in args.from_ngsim]
+        source = {"format": "ngsim", "files": [str(f) for f in args.from_ngsim], "main_lanes": list(lanes)}
+    else:
+        from vcfusion.prediction.sources.highd import read_highd_path
+
+        recordings = read_highd_path(args.from_highd)
+        source = {"format": "highd", "path": str(args.from_highd)}
+    report = import_recordings(recordings, Path(args.out), args.tau, args.tau_g, args.chunk, source)
+    c = report["counts"]
+    print(f"dataset -> {args.out}: {len(report['recordings'])} recordings (driving directions) imported as "
+          f"{c['seeds']} seeds of {args.chunk:g} s")
+    for rec in report["recordings"]:
+        q = rec["quality"]
+        print(f"  {rec['name']}: {q['twins']} twins of {q['vehicles']} vehicles, {q['lane_changes']} lane changes "
+              f"({q['lane_changes_end_unseen']} without a seen end); repaired: {q['duplicate_samples']} duplicate "
+              f"samples, {q['tracks_split_at_gaps']} tracks split at gaps, {q['gaps_interpolated']} gaps "
+              f"interpolated, {q['lane_flicker_removed']} lane flickers; {q['samples_off_main_lanes']} samples off "
+              f"the main lanes, {q['lateral_unknown_samples']} without lateral position")
+        for key, value in rec.get("quality_reader", {}).items():
+            if value:
+                print(f"    {key}: {value}")
+    print(f"  {c['lane_changes']} lane changes, {c['samples']} stream samples, "
+          f"{c['window_positive']} positive / {c['window_negative']} negative window samples")
+    print("  splits: " + ", ".join(f"{k} {len(v)} seeds" for k, v in report["splits"].items()))
+    return 0
+
+
 def cmd_train(args: argparse.Namespace) -> int:
-    from vcfusion.prediction.dataset import DatasetError
     from vcfusion.prediction.train import TrainConfig, train_model
 
+    for option in ("hidden", "epochs", "patience", "threads"):
+        if getattr(args, option) < 1:
+            raise UsageError(f"--{option}: expected a positive number, got {getattr(args, option)}")
+    if args.learning_rate <= 0 or args.weight_decay < 0 or args.background_negatives < 0:
+        raise UsageError("--learning-rate / --weight-decay / --background-negatives: expected a positive rate and "
+                         f"non-negative others, got {args.learning_rate}, {args.weight_decay}, "
+                         f"{args.background_negatives}")
     cfg = TrainConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
                       background_negatives=args.background_negatives, threads=args.threads,
-                      learning_rate=args.learning_rate, weight_decay=args.weight_decay)
+                      learning_rate=args.learning_rate, weight_decay=args.weight_decay, privileged=args.privileged)
     out = Path(args.out)
     if out.exists() and not args.force:
         raise UsageError(f"--out: {out} already exists (use --force to replace it)")
-    try:
-        report = train_model(Path(args.dataset), out, cfg)
-    except DatasetError as exc:
-        raise UsageError(str(exc)) from None
+    check_folder_path(out.parent)
+    report = train_model(Path(args.dataset), out, cfg)
     print(report)
     return 0
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from vcfusion.prediction.dataset import DatasetError
     from vcfusion.prediction.evaluate import evaluate
-    from vcfusion.prediction.model import ModelFileError
 
-    try:
-        report_path = evaluate(Path(args.model), Path(args.dataset), Path(args.out) if args.out else None,
-                               split=args.split, horizon_s=args.horizon)
-    except (DatasetError, ModelFileError) as exc:
-        raise UsageError(str(exc)) from None
+    if not args.horizon > 0:
+        raise UsageError(f"--horizon: expected a positive number of seconds, got {args.horizon}")
+    if args.out:
+        check_folder_path(Path(args.out))
+    report_path = evaluate(Path(args.model), Path(args.dataset), Path(args.out) if args.out else None,
+                           split=args.split, horizon_s=args.horizon)
     print(Path(report_path).read_text())
     print(f"report: {report_path}")
     return 0
@@ -76,17 +129,32 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub) -> None:
-    p = sub.add_parser("dataset", help="simulate seeds and write a labelled lane-change dataset (Parquet)")
-    p.add_argument("scenario", help="scenario YAML file, e.g. scenarios/dense.yaml")
-    p.add_argument("--seeds", required=True, help="e.g. 0-199 or 1,4,7-9")
-    p.add_argument("--out", required=True, help="dataset folder (resumable)")
+    from vcfusion.cli import INTERRUPTED_BATCH  # (called by the cli's build_parser)
+
+    p = sub.add_parser("dataset", help="simulate seeds (or import NGSIM / highD recordings) and write a labelled "
+                                       "lane-change dataset (Parquet)")
+    p.add_argument("scenario", nargs="?", help="scenario YAML file, e.g. scenarios/dense.yaml")
+    p.add_argument("--seeds", help="e.g. 0-199 or 1,4,7-9 (with a SCENARIO)")
+    p.add_argument("--out", required=True, help="dataset folder (resumable for a SCENARIO; new for an import)")
+    p.add_argument("--from-ngsim", dest="from_ngsim", nargs="+", metavar="FILE",
+                   help="import NGSIM trajectory files (18 columns, .csv / .txt, optionally .gz) instead of simulating")
+    p.add_argument("--from-highd", dest="from_highd", metavar="PATH",
+                   help="import highD recordings: a folder (every XX_tracks.csv) or one XX_tracks.csv")
+    p.add_argument("--main-lanes", dest="main_lanes", default="1-5",
+                   help="NGSIM Lane_IDs of the main lanes (1 = leftmost); others (ramps, auxiliary) are off the "
+                        "road. US-101: 1-5, I-80: 1-6")
+    p.add_argument("--chunk", type=float, default=300.0,
+                   help="imports: seconds of a recording per seed (the unit of the train/validation/test split)")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--tau", type=float, default=5.0, help="time window tau, s (Fig. 5)")
     p.add_argument("--tau-g", dest="tau_g", type=float, default=2.0, help="gap tau_g, s (Fig. 5)")
     p.add_argument("--refeature", action="store_true",
                    help="recompute the samples of runs already in --out with this version's features "
                         "(from their logged twins tables, no simulation) instead of refusing a feature change")
-    p.set_defaults(func=cmd_dataset)
+    p.add_argument("--privileged", action="store_true",
+                   help="also log SUMO's own lane-change state every tick (table lc_state) and add it to the "
+                        "samples as sumo_* columns, for the privileged ceiling (`vcfusion train --privileged`)")
+    p.set_defaults(func=cmd_dataset, interrupted=INTERRUPTED_BATCH)
 
     p = sub.add_parser("train", help="train the lane-change MLP on a dataset")
     p.add_argument("dataset", help="dataset folder from `vcfusion dataset`")
@@ -102,13 +170,17 @@ def add_parsers(sub) -> None:
     p.add_argument("--weight-decay", dest="weight_decay", type=float, default=1e-5, help="Adam weight decay (L2)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     p.add_argument("--force", action="store_true", help="replace an existing --out")
+    p.add_argument("--privileged", action="store_true",
+                   help="the privileged ceiling: also feed SUMO's lane-change state (a dataset built with "
+                        "--privileged); such a model cannot run in the cloud")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("evaluate", help="frame- and event-level evaluation of a model on a dataset's test seeds")
     p.add_argument("model", help="model file from `vcfusion train`")
     p.add_argument("dataset", help="dataset folder")
     p.add_argument("--out", help="report folder (default: DATASET/eval-MODELNAME)")
-    p.add_argument("--split", default="test", choices=["train", "validation", "test"])
+    p.add_argument("--split", default="test", choices=["all", "train", "validation", "test"],
+                   help="seeds to score (all: every seed, i.e. every vehicle of an imported dataset)")
     p.add_argument("--horizon", type=float, default=10.0,
                    help="a lane change counts as predicted by a positive decision at most this many s before its end")
     p.set_defaults(func=cmd_evaluate)

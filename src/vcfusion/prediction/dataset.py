@@ -21,11 +21,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from vcfusion.errors import InputError
 from vcfusion.prediction.features import FEATURE_NAMES, features_from_twins_table
 from vcfusion.prediction.labels import label_samples
 from vcfusion.studies.batch import SeedOutcome, run_batch, seed_folder
 from vcfusion.traffic.network import read_road
-from vcfusion.workers import worker_context
+from vcfusion.workers import JobFailed, run_jobs
 
 DATASET_JSON = "dataset.json"
 SAMPLES = "samples.parquet"
@@ -34,7 +35,7 @@ ID_COLUMNS = ["seed", "time", "vehicle_id", "event_id", "lc_reason", "time_to_lc
 SPLIT_FRACTIONS = (0.7, 0.15, 0.15)  # train, validation, test, in seed order
 
 
-class DatasetError(ValueError):
+class DatasetError(InputError):
     """A dataset folder that cannot be used; the message is for the user."""
 
 
@@ -62,8 +63,10 @@ def build_samples(tables: dict[str, pd.DataFrame], road, period_s: float, seed: 
     return out
 
 
-def _dataset_seed(scenario_path: str, seed: int, out: str, tau: float, tau_g: float) -> SeedOutcome:
-    """Batch-runner task: simulate one seed and write its run folder with samples.parquet."""
+def _dataset_seed(scenario_path: str, seed: int, out: str, tau: float, tau_g: float,
+                  privileged: bool = False) -> SeedOutcome:
+    """Batch-runner task: simulate one seed and write its run folder with samples.parquet
+    (privileged: also log SUMO's lane-change state, table `lc_state`, and join it to the samples)."""
     import traceback
 
     from vcfusion.run import build_cosimulation, manifest_for
@@ -72,10 +75,19 @@ def _dataset_seed(scenario_path: str, seed: int, out: str, tau: float, tau_g: fl
 
     try:
         scenario = load_scenario(scenario_path)
-        result = build_cosimulation(scenario, seed).run()
+        cosim = build_cosimulation(scenario, seed)
+        if privileged:
+            from vcfusion.prediction.privileged import LaneChangeStateHook
+
+            cosim.hooks.append(LaneChangeStateHook())
+        result = cosim.run()
         road = read_road(scenario.network)
         samples = build_samples(result.tables, road, scenario.v2c.period_s, seed, tau, tau_g,
                                 scenario.simulation.lanechange_duration_s / 2)
+        if privileged:
+            from vcfusion.prediction.privileged import LC_STATE_TABLE, add_privileged
+
+            samples = add_privileged(samples, result.tables[LC_STATE_TABLE])
         tables = {k: v for k, v in result.tables.items() if k != "ego"} | {"samples": samples}
         manifest = manifest_for(scenario, seed) | {"dataset": {"tau": tau, "tau_g": tau_g}}
         write_run_folder(seed_folder(Path(out), seed), tables, manifest, result.summary)
@@ -95,6 +107,10 @@ def _refeature_seed(folder: str, scenario_path: str, seed: int, tau: float, tau_
     tables = {k: pd.read_parquet(folder / f"{k}.parquet") for k in ("twins", "vehicles", "lane_changes")}
     samples = build_samples(tables, read_road(scenario.network), scenario.v2c.period_s, seed, tau, tau_g,
                             scenario.simulation.lanechange_duration_s / 2)
+    from vcfusion.prediction.privileged import LC_STATE_TABLE, add_privileged
+
+    if (folder / f"{LC_STATE_TABLE}.parquet").is_file():  # a privileged dataset keeps its SUMO columns
+        samples = add_privileged(samples, pd.read_parquet(folder / f"{LC_STATE_TABLE}.parquet"))
     tmp = folder / (SAMPLES + ".tmp-writing")
     write_table(tmp, samples)
     tmp.replace(folder / SAMPLES)
@@ -102,27 +118,28 @@ def _refeature_seed(folder: str, scenario_path: str, seed: int, tau: float, tau_
 
 
 def refeature_runs(scenario_path: Path, seeds: list[int], runs: Path, workers: int, tau: float, tau_g: float,
-                   progress: bool = True) -> list[int]:
-    """Recompute samples.parquet of every complete run folder among `seeds` (parallel); returns the seeds."""
-    from concurrent.futures import ProcessPoolExecutor
+                   progress: bool = True) -> tuple[list[int], list[tuple[int, str]]]:
+    """Recompute samples.parquet of every complete run folder among `seeds` (parallel).
 
+    Returns the seeds recomputed and the (seed, cause) of those that failed (their worker died
+    or the recomputation raised): their samples are of the old features and must not be used.
+    """
     from tqdm import tqdm
 
     from vcfusion.runio import is_complete_run
 
     todo = [s for s in seeds if is_complete_run(seed_folder(runs, s))]
     args = [(str(seed_folder(runs, s)), str(scenario_path), s, tau, tau_g) for s in todo]
-    bar = tqdm(total=len(todo), desc="features", unit="seed", disable=not progress)
-    if workers <= 1:
-        for a in args:
-            _refeature_seed(*a)
+    done, failed = [], []
+    with tqdm(total=len(todo), desc="features", unit="seed", disable=not progress) as bar:
+        for index, result in run_jobs(_refeature_seed, args, workers):
+            if isinstance(result, JobFailed):
+                failed.append((todo[index], result.cause))
+                bar.write(f"features of seed {todo[index]} failed: {result.cause.splitlines()[0]}")
+            else:
+                done.append(todo[index])
             bar.update()
-    else:
-        with ProcessPoolExecutor(workers, mp_context=worker_context()) as pool:
-            for _ in pool.map(_refeature_seed, *zip(*args)):
-                bar.update()
-    bar.close()
-    return todo
+    return sorted(done), sorted(failed)
 
 
 def split_seeds(seeds: list[int]) -> dict[str, list[int]]:
@@ -146,6 +163,12 @@ class DatasetInfo:
     splits: dict[str, list[int]]
     meta: dict
 
+    def seeds(self, split: str) -> list[int]:
+        """The seeds of a split; 'all' = every seed (for an imported recording: every vehicle)."""
+        if split == "all":
+            return sorted({s for seeds in self.splits.values() for s in seeds})
+        return list(self.splits.get(split, []))
+
     def samples_file(self, seed: int) -> Path:
         return seed_folder(self.root / "runs", seed) / SAMPLES
 
@@ -153,25 +176,74 @@ class DatasetInfo:
         return seed_folder(self.root / "runs", seed)
 
 
+def read_dataset_json(meta_file: Path) -> dict:
+    try:
+        meta = json.loads(meta_file.read_text())
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{meta_file}: cannot read: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{meta_file}: line {exc.lineno}, column {exc.colno}: not valid JSON ({exc.msg}); "
+                           "expected the dataset.json `vcfusion dataset` writes") from None
+    if not isinstance(meta, dict):
+        raise DatasetError(f"{meta_file}: expected a JSON object of dataset parameters, got {type(meta).__name__}")
+    return meta
+
+
 def load_dataset(root: str | Path) -> DatasetInfo:
+    """A dataset folder's parameters; every samples file of its splits is checked for the columns
+    training and evaluation read (Parquet footers only), so a bad folder stops a command before it
+    computes or writes anything."""
     root = Path(root)
     meta_file = root / DATASET_JSON
     if not meta_file.is_file():
         raise DatasetError(f"{root}: not a dataset folder (no {DATASET_JSON}); build one with `vcfusion dataset`")
-    meta = json.loads(meta_file.read_text())
+    meta = read_dataset_json(meta_file)
     if "splits" not in meta:
         raise DatasetError(f"{meta_file}: the dataset build did not finish (no splits); run `vcfusion dataset` again")
-    return DatasetInfo(root, float(meta["tau"]), float(meta["tau_g"]), float(meta["period_s"]),
-                       tuple(meta["feature_names"]), {k: list(v) for k, v in meta["splits"].items()}, meta)
+    for key, kind, expected in (("tau", (int, float), "a number"), ("tau_g", (int, float), "a number"),
+                                ("period_s", (int, float), "a number"), ("feature_names", list, "a list of names"),
+                                ("splits", dict, "{split: [seeds]}")):
+        if not isinstance(meta.get(key), kind) or isinstance(meta.get(key), bool):
+            raise DatasetError(f"{meta_file}: {key}: expected {expected}, got {meta.get(key)!r}")
+    splits = meta["splits"]
+    for split, seeds in splits.items():
+        if not (isinstance(seeds, list) and all(isinstance(x, int) and x >= 0 for x in seeds)):
+            raise DatasetError(f"{meta_file}: splits.{split}: expected a list of seeds, got {seeds!r}")
+    info = DatasetInfo(root, float(meta["tau"]), float(meta["tau_g"]), float(meta["period_s"]),
+                       tuple(meta["feature_names"]), {k: list(v) for k, v in splits.items()}, meta)
+    needed = set(ID_COLUMNS) | set(info.feature_names)
+    for split, seeds in info.splits.items():
+        for seed in seeds:
+            _check_samples_file(info.samples_file(seed), seed, split, needed)
+    return info
+
+
+def _check_samples_file(f: Path, seed: int, split: str, needed: set[str]) -> None:
+    import pyarrow.parquet as pq
+
+    if not f.is_file():
+        raise DatasetError(f"{f}: missing samples of seed {seed} (split {split})")
+    try:
+        names = set(pq.read_schema(f).names)
+    except Exception as exc:  # noqa: BLE001 - any unreadable file gets the same message
+        raise DatasetError(f"{f}: not a readable Parquet file ({type(exc).__name__}); rebuild seed {seed} with "
+                           "`vcfusion dataset`") from None
+    missing = sorted(needed - names)
+    if missing:
+        raise DatasetError(f"{f}: missing columns {missing[:5]}{' ...' if len(missing) > 5 else ''}; expected "
+                           "the samples table `vcfusion dataset` writes")
 
 
 def load_samples(info: DatasetInfo, split: str, window_only: bool = False, columns: list[str] | None = None) -> pd.DataFrame:
     frames = []
-    for seed in info.splits[split]:
+    for seed in info.seeds(split):
         f = info.samples_file(seed)
         if not f.is_file():
             raise DatasetError(f"{f}: missing samples of seed {seed} (split {split})")
-        df = pd.read_parquet(f, columns=columns)
+        try:
+            df = pd.read_parquet(f, columns=columns)
+        except Exception as exc:  # noqa: BLE001 - a file that passed the footer check but not the read
+            raise DatasetError(f"{f}: cannot read the samples ({type(exc).__name__}: {exc})") from None
         if window_only:
             df = df[df["window_label"] >= 0]
         frames.append(df)
@@ -215,11 +287,13 @@ runs' `twins` tables without simulating again.
 
 
 def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int, tau: float, tau_g: float,
-                  progress: bool = True, refeature: bool = False) -> dict:
+                  progress: bool = True, refeature: bool = False, privileged: bool = False) -> dict:
     """Simulate every seed not yet done (parallel, resumable) and write dataset.json + README.md.
 
     refeature: first recompute the samples of the runs already in `out` with this version's
     features (allowed to differ from the folder's; tau / tau_g must not), instead of failing.
+    privileged: log SUMO's lane-change state every tick and add the privileged columns to the
+    samples (vcfusion.prediction.privileged; for the ceiling, never a run-time input).
     """
     from vcfusion.runio import write_json
     from vcfusion.scenario import load_scenario
@@ -232,10 +306,15 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
     params = {"scenario": scenario.name, "scenario_file": str(Path(scenario_path).resolve()),
               "tau": tau, "tau_g": tau_g, "period_s": scenario.v2c.period_s,
               "feature_names": list(FEATURE_NAMES)}
+    if privileged:  # only then: datasets built before keep comparing equal
+        from vcfusion.prediction.privileged import PRIVILEGED_NAMES
+
+        params["privileged_names"] = list(PRIVILEGED_NAMES)
     if meta_file.is_file():
-        old = json.loads(meta_file.read_text())
+        old = read_dataset_json(meta_file)
         free = {"scenario_file"} | ({"feature_names"} if refeature else set())
-        clash = {k: (old.get(k), v) for k, v in params.items() if k not in free and old.get(k) != v}
+        keys = [*params, *({"privileged_names"} - set(params))]  # a privileged folder stays privileged
+        clash = {k: (old.get(k), params.get(k)) for k in keys if k not in free and old.get(k) != params.get(k)}
         if clash:
             hint = " (or --refeature, when only the features differ)" if set(clash) == {"feature_names"} else ""
             raise DatasetError(f"{meta_file}: the folder holds a dataset with other parameters "
@@ -245,10 +324,14 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
     tmp = meta_file.with_name(DATASET_JSON + ".tmp-writing")
     write_json(tmp, params)
     tmp.replace(meta_file)
-    refeatured = refeature_runs(Path(scenario_path), seeds, out / "runs", workers, tau, tau_g, progress) if refeature else []
-    task = functools.partial(_dataset_seed, tau=tau, tau_g=tau_g)
+    refeatured, stale = [], []
+    if refeature:
+        refeatured, stale = refeature_runs(Path(scenario_path), seeds, out / "runs", workers, tau, tau_g, progress)
+    task = functools.partial(_dataset_seed, tau=tau, tau_g=tau_g, privileged=privileged)
     report = run_batch(Path(scenario_path), seeds, out / "runs", workers=workers, progress=progress, task=task)
-    done = [s for s in seeds if (seed_folder(out / "runs", s) / SAMPLES).is_file()]
+    report["failed"] = sorted(report["failed"] + stale)  # a seed with old features is left out
+    stale_seeds = {s for s, _ in stale}
+    done = [s for s in seeds if (seed_folder(out / "runs", s) / SAMPLES).is_file() and s not in stale_seeds]
     counts = {"seeds": len(done), "samples": 0, "window_positive": 0, "window_negative": 0, "lane_changes": 0}
     for s in done:
         lab = pd.read_parquet(seed_folder(out / "runs", s) / SAMPLES, columns=["window_label"])["window_label"]

@@ -14,6 +14,14 @@ paper's balanced set) and on the full every-tick stream. Scores for ROC AUC: the
 (original), its running max over tau_a + 1 ticks (aggressive), the running mean of the raw
 decisions over tau_c + 1 ticks (conservative), matching how each variant decides.
 Event level: see vcfusion.prediction.events.
+
+`split`: train / validation / test, or all (every seed: for an imported recording, every vehicle).
+Baselines need train and validation seeds; a dataset without them (a short recording) is scored
+with the model alone, and the report says so. A model trained with SUMO's state
+(`vcfusion train --privileged`) is scored as the ceiling, and on a `--privileged` dataset the rule
+"SUMO wants to change lanes" joins the baselines (vcfusion.prediction.privileged).
+Outputs: report.md, evaluation.png, metrics.csv (one row per predictor x variant), settings.json
+and evaluation.json (:func:`evaluation_summary`).
 """
 
 from __future__ import annotations
@@ -28,7 +36,8 @@ from scipy.stats import rankdata
 
 from vcfusion.prediction.dataset import DatasetError, load_dataset, load_samples
 from vcfusion.prediction.events import event_scores, smooth_stream, track_bounds
-from vcfusion.prediction.model import LaneChangeModel, load_model
+from vcfusion.prediction.model import LaneChangeModel, load_model, model_feature_names
+from vcfusion.prediction.privileged import SumoWantsRule
 from vcfusion.prediction.train import TrainConfig, _fit_torch, stream_with_events, training_rows, tune_decisions
 
 VARIANTS = ("original", "aggressive", "conservative")
@@ -105,47 +114,63 @@ def _fmt(v: float, pct: bool = False) -> str:
 def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: str = "test",
              horizon_s: float = 10.0, seed: int = 0) -> Path:
     info = load_dataset(dataset)
-    model = load_model(model_path, expected_features=info.feature_names)
-    if not info.splits.get(split):
+    names = list(info.feature_names)  # what the cloud can observe: the baselines' inputs
+    privileged = list(info.meta.get("privileged_names", []))  # SUMO's state, in a --privileged dataset
+    # a ceiling model (`vcfusion train --privileged`) also takes the privileged columns
+    ceiling = bool(privileged) and set(privileged) <= set(model_feature_names(model_path))
+    model_names = names + privileged if ceiling else names
+    model = load_model(model_path, expected_features=model_names)
+    model_label = "MLP + SUMO state (privileged)" if ceiling else "MLP"
+    if not info.seeds(split):
         raise DatasetError(f"{dataset}: split {split!r} is empty")
-    names = list(info.feature_names)
     out = Path(out) if out else Path(dataset) / f"eval-{Path(model_path).stem}"
-    out.mkdir(parents=True, exist_ok=True)
 
-    # Baselines, fitted on the same training seeds.
-    rng = np.random.default_rng(seed)
-    bg = float(model.info.get("config", {}).get("background_negatives", 0.0))
-    tr = training_rows(info, "train", bg, rng)
-    va = training_rows(info, "validation", bg, rng)
-    x_tr, y_tr = tr[names].to_numpy(np.float32), (tr["window_label"] == 1).to_numpy(np.float32)
-    mean, std = x_tr.mean(axis=0), np.maximum(x_tr.std(axis=0), 1e-6).astype(np.float32)
-    norm = lambda a: ((a - mean) / std).astype(np.float32)  # noqa: E731
-    w, _ = _fit_torch(norm(x_tr), y_tr, norm(va[names].to_numpy(np.float32)),
-                      (va["window_label"] == 1).to_numpy(np.float32), TrainConfig(kind="logistic", seed=seed), len(names))
-    logistic = LaneChangeModel(tuple(names), mean, std, w, info.tau, info.tau_g, info.period_s)
-    rule = RuleBaseline(names).fit(x_tr, y_tr)
-
-    val_stream, val_events = stream_with_events(info, "validation", columns=["seed", "vehicle_id", "time", *names])
-    x_val = val_stream[names].to_numpy(np.float32)
+    # Baselines, fitted on the dataset's training seeds and tuned on its validation seeds (an
+    # imported recording too short for those splits is scored with the model alone).
+    predictors: dict = {model_label: (model, model_names)}
+    rule = None
+    fitted = bool(info.splits.get("train")) and bool(info.splits.get("validation"))
+    if fitted:
+        rng = np.random.default_rng(seed)
+        bg = float(model.info.get("config", {}).get("background_negatives", 0.0))
+        tr = training_rows(info, "train", bg, rng)
+        va = training_rows(info, "validation", bg, rng)
+        x_tr, y_tr = tr[names].to_numpy(np.float32), (tr["window_label"] == 1).to_numpy(np.float32)
+        mean, std = x_tr.mean(axis=0), np.maximum(x_tr.std(axis=0), 1e-6).astype(np.float32)
+        norm = lambda a: ((a - mean) / std).astype(np.float32)  # noqa: E731
+        w, _ = _fit_torch(norm(x_tr), y_tr, norm(va[names].to_numpy(np.float32)),
+                          (va["window_label"] == 1).to_numpy(np.float32), TrainConfig(kind="logistic", seed=seed),
+                          len(names))
+        logistic = LaneChangeModel(tuple(names), mean, std, w, info.tau, info.tau_g, info.period_s)
+        rule = RuleBaseline(names).fit(x_tr, y_tr)
+        predictors |= {"logistic regression": (logistic, names), "gap/speed rule": (rule, names)}
+        if privileged:  # the ceiling's simplest form: flag a vehicle while SUMO wants to change lanes
+            predictors["SUMO wants to change (privileged)"] = (SumoWantsRule(privileged), privileged)
+        val_stream, val_events = stream_with_events(info, "validation",
+                                                    columns=["seed", "vehicle_id", "time", *names, *privileged])
+    baselines = {"fitted": fitted,
+                 "scored_on_their_training_seeds": fitted and split in ("train", "all"),
+                 "note": ("logistic regression and gap/speed rule fitted on the train seeds, tuned on the "
+                          "validation seeds" if fitted else
+                          "no baselines: the dataset has no train and validation seeds (fewer than 3 seeds)")}
     stream, events = stream_with_events(info, split, columns=["seed", "vehicle_id", "time", "window_label",
-                                                               "stream_label", *names])
+                                                               "stream_label", *names, *privileged])
     bounds = track_bounds(stream)
-    x = stream[names].to_numpy(np.float32)
     in_window = stream["window_label"].to_numpy() >= 0
     y_window = stream["window_label"].to_numpy()[in_window] == 1
     y_stream = stream["stream_label"].to_numpy() == 1
 
-    predictors = {"MLP": (model, None), "logistic regression": (logistic, None), "gap/speed rule": (rule, None)}
     rows, per_event_all, settings = [], {}, {}
-    for pname, (pred, _) in predictors.items():
-        if pname == "MLP":
+    for pname, (pred, inputs) in predictors.items():
+        if pred is model:
             tuned = {"none": {"threshold": model.threshold_for("none"), "tau_ticks": 0},
                      "aggressive": {"threshold": model.threshold_for("aggressive"), "tau_ticks": model.tau_a_ticks},
                      "conservative": {"threshold": model.threshold_for("conservative"),
                                       "tau_ticks": model.tau_c_ticks}}
         else:
-            tuned = tune_decisions(pred.predict_proba(x_val), val_stream, val_events, info.period_s, horizon_s)
-        prob = pred.predict_proba(x)
+            tuned = tune_decisions(pred.predict_proba(val_stream[inputs].to_numpy(np.float32)), val_stream,
+                                   val_events, info.period_s, horizon_s)
+        prob = pred.predict_proba(stream[inputs].to_numpy(np.float32))
         settings[pname] = {k: {"threshold": v["threshold"], "tau_ticks": v["tau_ticks"]} for k, v in tuned.items()}
         for variant in VARIANTS:
             t = tuned[_METHOD[variant]]
@@ -166,17 +191,63 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
                          "tau_ticks": t["tau_ticks"], **{f"window_{k}": v for k, v in fw.items()},
                          **{f"stream_{k}": v for k, v in fs.items()}, **ev})
     table = pd.DataFrame(rows)
+    out.mkdir(parents=True, exist_ok=True)  # only now: a bad input leaves nothing behind
     table.to_csv(out / "metrics.csv", index=False)
-    default = ("MLP", {"none": "original"}.get(model.smoothing, model.smoothing))
+    default = (model_label, {"none": "original"}.get(model.smoothing, model.smoothing))
     _plot(table, per_event_all, default, out / "evaluation.png")
-    report = _report(table, info, split, model_path, model, horizon_s, default, rule, events, per_event_all[default])
+    report = _report(table, info, split, model_path, model, horizon_s, default, rule, events, per_event_all[default],
+                     baselines)
     (out / "report.md").write_text(report)
     (out / "settings.json").write_text(json.dumps(settings, indent=2) + "\n")
+    summary = evaluation_summary(table, info, split, model_path, horizon_s, default, stream, events,
+                                 per_event_all[default], baselines)
+    tmp = out / (EVALUATION_JSON + ".tmp-writing")
+    tmp.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    tmp.replace(out / EVALUATION_JSON)
     return out / "report.md"
 
 
-def _report(table, info, split, model_path, model, horizon_s, default, rule, events, per_event) -> str:
-    seeds = info.splits[split]
+EVALUATION_JSON = "evaluation.json"
+# metrics.csv column -> evaluation.json key (shares as fractions, rates per vehicle-hour)
+_JSON_KEYS = {"predicted_share": "predicted", "predicted_before_mid_share": "predicted_before_mid",
+              "false_alarms_per_vehicle_hour": "false_alarms_per_veh_h"}
+
+
+def _plain(value):
+    """JSON-safe scalar: NaN / inf -> None, NumPy scalars -> Python."""
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+def evaluation_summary(table: pd.DataFrame, info, split: str, model_path, horizon_s: float, default,
+                       stream: pd.DataFrame, events: pd.DataFrame, per_event: pd.DataFrame, baselines: dict) -> dict:
+    """The machine-readable form of the report (`evaluation.json`): `default` is the model's own
+    variant, `variants` every predictor x variant row, with the same keys; `predicted` and
+    `predicted_before_mid` are fractions of the lane changes (null when there are none)."""
+    rows = [{_JSON_KEYS.get(k, k): _plain(v) for k, v in r.items()} for r in table.to_dict("records")]
+    chosen = next(r for r in rows if (r["predictor"], r["variant"]) == default)
+    by_reason = per_event.merge(events[["seed", "event_id", "reason"]], on=["seed", "event_id"], how="left")
+    by_reason["reason"] = by_reason["reason"].fillna("").str.split("|").str[0]
+    reasons = [{"reason": reason, "lane_changes": int(len(g)), "predicted": _plain(g["predicted"].mean()),
+                "advance_final_mean_s": _plain(g.loc[g["predicted"], "advance_final_s"].mean())}
+               for reason, g in by_reason.groupby("reason")]
+    return {
+        "model": str(model_path), "dataset": str(info.root), "source": info.meta.get("scenario"),
+        "split": split, "seeds": [int(s) for s in info.seeds(split)],
+        "vehicles": int(stream[["seed", "vehicle_id"]].drop_duplicates().shape[0]),
+        "lane_changes": int(len(events)), "vehicle_hours": _plain(len(stream) * info.period_s / 3600.0),
+        "tau_s": info.tau, "tau_g_s": info.tau_g, "horizon_s": horizon_s,
+        "baselines": baselines, "default": chosen, "variants": rows, "default_by_reason": reasons,
+    }
+
+
+def _report(table, info, split, model_path, model, horizon_s, default, rule, events, per_event, baselines) -> str:
+    seeds = info.seeds(split)
     lines = [f"# Lane-change prediction: evaluation of `{Path(model_path).name}`", "",
              f"Dataset `{info.root}` ({info.meta.get('scenario')}), {split} split: {len(seeds)} seeds "
              f"({seeds[0]}..{seeds[-1]}), {len(events)} lane changes. tau = {info.tau} s, tau_g = {info.tau_g} s; "
@@ -204,8 +275,14 @@ def _report(table, info, split, model_path, model, horizon_s, default, rule, eve
     for reason, g in by_reason.groupby("reason"):
         lines.append(f"| {reason} | {len(g)} | {_fmt(g['predicted'].mean(), True)} | "
                      f"{_fmt(g.loc[g['predicted'], 'advance_final_s'].mean())} |")
-    lines += ["", f"Rule baseline thresholds (fitted on training windows): dv = {rule.dv} m/s, gap = {rule.gap} m, "
-              f"blocked = {rule.block} m.", "", "![evaluation](evaluation.png)", ""]
+    if rule is not None:
+        lines += ["", f"Rule baseline thresholds (fitted on training windows): dv = {rule.dv} m/s, gap = {rule.gap} m, "
+                  f"blocked = {rule.block} m."]
+    lines += ["", f"Baselines: {baselines['note']}."]
+    if baselines["scored_on_their_training_seeds"]:
+        lines.append(f"Split {split!r} holds the train seeds: the baselines are partly scored on the seeds they were "
+                     "fitted on.")
+    lines += ["", "![evaluation](evaluation.png)", ""]
     return "\n".join(lines)
 
 

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vcfusion.errors import InputError
 from vcfusion.threads import one_blas_thread
 
 MODEL_FORMAT = "vcfusion-lane-change-mlp/1"
@@ -36,7 +37,7 @@ DEFAULT_MODEL_NAME = "lane_change_mlp.npz"
 SMALL_BATCH_ROWS = 4096  # up to this many rows (a tick's twins) the MLP runs on one BLAS thread
 
 
-class ModelFileError(ValueError):
+class ModelFileError(InputError):
     """A model file that cannot be used here; the message is for the user."""
 
 
@@ -188,6 +189,18 @@ def save_model(model: LaneChangeModel, path: str | Path) -> Path:
     return path
 
 
+def model_feature_names(path: str | Path) -> tuple[str, ...]:
+    """The input features a model file was trained on (read without checking them)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelFileError(f"{path}: model file not found")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return tuple(json.loads(str(data["meta"]))["feature_names"])
+    except Exception as exc:
+        raise ModelFileError(f"{path}: not a vcfusion lane-change model file ({type(exc).__name__}: {exc})") from None
+
+
 def load_model(path: str | Path | None = None, expected_features=None) -> LaneChangeModel:
     """Read a model file (None = the shipped default); checks it against the current feature list.
 
@@ -204,20 +217,31 @@ def load_model(path: str | Path | None = None, expected_features=None) -> LaneCh
     return _load_model_file(str(path.resolve()), path.stat().st_mtime_ns, expected)
 
 
+# metadata keys a model file must hold, with the type each must have
+META_KEYS = {"feature_names": list, "tau": (int, float), "tau_g": (int, float), "period_s": (int, float),
+             "threshold": (int, float), "smoothing": str, "tau_a_ticks": int, "tau_c_ticks": int,
+             "conservative_threshold": (int, float), "layers": int}
+
+
 @functools.lru_cache(maxsize=8)
 def _load_model_file(name: str, _mtime_ns: int, expected_features: tuple[str, ...]) -> LaneChangeModel:
     path = Path(name)
     try:
         with np.load(path, allow_pickle=False) as data:
+            if "meta" not in data:
+                raise ModelFileError(f"{path}: meta: missing; expected a model file written by `vcfusion train`")
             meta = json.loads(str(data["meta"]))
-            if meta.get("format") != MODEL_FORMAT:
-                raise ModelFileError(f"{path}: format: expected {MODEL_FORMAT!r}, got {meta.get('format')!r}")
-            weights = [(data[f"w{k}"], data[f"b{k}"]) for k in range(int(meta["layers"]))]
-            mean, std = data["mean"], data["std"]
+            if not isinstance(meta, dict) or meta.get("format") != MODEL_FORMAT:
+                got = meta.get("format") if isinstance(meta, dict) else meta
+                raise ModelFileError(f"{path}: format: expected {MODEL_FORMAT!r}, got {got!r}")
+            _check_meta(path, meta)
+            arrays = {k: data[k] for k in data.files if k != "meta"}
     except ModelFileError:
         raise
     except Exception as exc:
-        raise ModelFileError(f"{path}: not a vcfusion lane-change model file ({type(exc).__name__}: {exc})") from None
+        raise ModelFileError(f"{path}: not a vcfusion lane-change model file ({type(exc).__name__}); "
+                             "expected a .npz written by `vcfusion train`") from None
+    weights, mean, std = _checked_arrays(path, meta, arrays)
     model = LaneChangeModel(
         feature_names=tuple(meta["feature_names"]), mean=mean, std=std, weights=weights,
         tau=float(meta["tau"]), tau_g=float(meta["tau_g"]), period_s=float(meta["period_s"]),
@@ -226,7 +250,48 @@ def _load_model_file(name: str, _mtime_ns: int, expected_features: tuple[str, ..
         info=meta.get("info", {}), thresholds=dict(meta.get("thresholds", {})),
         calibration=tuple(float(c) for c in meta.get("calibration", (1.0, 0.0))),
     )
-    if len(mean) != len(model.feature_names) or weights[0][0].shape[1] != len(model.feature_names):
-        raise ModelFileError(f"{path}: weights do not match its feature list of {len(model.feature_names)} features")
     model.check_features(expected_features, source=str(path))
     return model
+
+
+def _check_meta(path: Path, meta: dict) -> None:
+    for key, kind in META_KEYS.items():
+        if key not in meta:
+            raise ModelFileError(f"{path}: meta.{key}: missing; expected a model file written by `vcfusion train`")
+        if not isinstance(meta[key], kind) or isinstance(meta[key], bool):
+            raise ModelFileError(f"{path}: meta.{key}: expected a {getattr(kind, '__name__', 'number')}, "
+                                 f"got {meta[key]!r}")
+    if meta["layers"] < 1:
+        raise ModelFileError(f"{path}: meta.layers: expected at least 1 layer, got {meta['layers']}")
+    if meta["smoothing"] not in ("none", "aggressive", "conservative"):
+        raise ModelFileError(f"{path}: meta.smoothing: expected none, aggressive or conservative, "
+                             f"got {meta['smoothing']!r}")
+    calibration = meta.get("calibration", [1.0, 0.0])
+    if not (isinstance(calibration, list) and len(calibration) == 2):
+        raise ModelFileError(f"{path}: meta.calibration: expected [a, b], got {calibration!r}")
+
+
+def _checked_arrays(path: Path, meta: dict, arrays: dict) -> tuple[list, np.ndarray, np.ndarray]:
+    """The layers, mean and std, each checked for presence and shape: layer k maps the previous
+    layer's outputs (the features for k = 0) to its own, the last has one output."""
+    n_features = len(meta["feature_names"])
+
+    def array(name: str, shape: tuple) -> np.ndarray:
+        if name not in arrays:
+            raise ModelFileError(f"{path}: {name}: missing array; expected one of shape {shape}")
+        a = arrays[name]
+        ok = a.ndim == len(shape) and all(want is None or got == want for got, want in zip(a.shape, shape))
+        if not ok or not np.issubdtype(a.dtype, np.floating):
+            want = "(" + ", ".join("any" if w is None else str(w) for w in shape) + ("," * (len(shape) == 1)) + ")"
+            raise ModelFileError(f"{path}: {name}: expected a float array of shape {want}, "
+                                 f"got {a.dtype} {a.shape}")
+        return a
+
+    mean, std = array("mean", (n_features,)), array("std", (n_features,))
+    weights, inputs = [], n_features
+    for k in range(meta["layers"]):
+        last = k == meta["layers"] - 1
+        w = array(f"w{k}", (1 if last else None, inputs))
+        weights.append((w, array(f"b{k}", (w.shape[0],))))
+        inputs = w.shape[0]
+    return weights, mean, std

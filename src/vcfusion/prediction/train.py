@@ -48,6 +48,7 @@ class TrainConfig:
     background_negatives: float = 0.0
     threads: int = 1
     kind: str = "mlp"  # mlp | logistic
+    privileged: bool = False  # also SUMO's lane-change state (the ceiling; needs a --privileged dataset)
     horizon_s: float = 10.0
 
 
@@ -117,7 +118,7 @@ def stream_with_events(info: DatasetInfo, split: str, columns: list[str] | None 
     stream = load_samples(info, split, columns=columns)
     stream = stream.sort_values(["seed", "vehicle_id", "time"], kind="stable").reset_index(drop=True)
     frames = []
-    for seed in info.splits[split]:
+    for seed in info.seeds(split):
         ev = pd.read_parquet(info.run_folder(seed) / "lane_changes.parquet")
         if len(ev):
             half = float(info.meta.get("lanechange_end_after_mid_s", 1.5))
@@ -201,6 +202,11 @@ def train_model(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = Tru
             raise DatasetError(f"{dataset}: split {split!r} is empty (build the dataset from at least 3 seeds)")
     rng = np.random.default_rng(cfg.seed)
     names = list(info.feature_names)
+    if cfg.privileged:
+        if not info.meta.get("privileged_names"):
+            raise DatasetError(f"{dataset}: --privileged needs SUMO's lane-change state in the samples; build the "
+                               f"dataset with `vcfusion dataset ... --privileged`")
+        names += list(info.meta["privileged_names"])
     tr = training_rows(info, "train", cfg.background_negatives, rng)
     va = training_rows(info, "validation", cfg.background_negatives, rng)
     x_tr = tr[names].to_numpy(np.float32)
@@ -229,7 +235,8 @@ def train_model(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = Tru
         "splits": info.splits, "tuning": tuned, "calibration": list(model.calibration),
         "command": f"vcfusion train {dataset} --out {out.name} --hidden {cfg.hidden} --epochs {cfg.epochs} "
                    f"--patience {cfg.patience} --seed {cfg.seed} --background-negatives {cfg.background_negatives} "
-                   f"--learning-rate {cfg.learning_rate} --weight-decay {cfg.weight_decay}",
+                   f"--learning-rate {cfg.learning_rate} --weight-decay {cfg.weight_decay}"
+                   + (" --privileged" if cfg.privileged else ""),
     }
     save_model(model, out)
     lines = [f"trained {cfg.kind} on {len(tr)} samples ({int(y_tr.sum())} positive) of {len(info.splits['train'])} "

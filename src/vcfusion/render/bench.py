@@ -28,6 +28,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     from vcfusion.cosim import CoSimulation
+    from vcfusion.driver.idm import IdmController
     from vcfusion.scenario import load_scenario
     from vcfusion.traffic.network import read_road
     from vcfusion.render.renderer import EgoCameraRenderer
@@ -41,7 +42,8 @@ def main(argv: list[str] | None = None) -> int:
         def __call__(self, tick):
             states.append(tick.truth)
 
-    CoSimulation(scenario, args.seed, hooks=[Collect()]).run()
+    controller = IdmController.for_scenario(scenario) if scenario.ego is not None else None
+    CoSimulation(scenario, args.seed, controller=controller, hooks=[Collect()]).run()
     states = [s for s in states if "ego" in s.ids]
     picks = [states[i] for i in np.linspace(0, len(states) - 1, args.frames).astype(int)]
     camera = scenario.camera if args.preset is None else scenario.camera.model_copy(update={"render_preset": args.preset})

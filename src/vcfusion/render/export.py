@@ -20,9 +20,10 @@ import cv2
 from tqdm import tqdm
 
 from vcfusion.cosim import CoSimulation
+from vcfusion.driver.idm import IdmController
 from vcfusion.runio import atomic_folder, package_versions, write_json
 from vcfusion.scenario import Scenario
-from vcfusion.traffic.session import EGO_ID
+from vcfusion.records import EGO_ID
 
 
 def render_dataset(scenario: Scenario, seeds: list[int], every: int, out: Path, progress: bool = True) -> dict:
@@ -54,7 +55,7 @@ def render_dataset(scenario: Scenario, seeds: list[int], every: int, out: Path, 
                 # One renderer (and its scene) for all seeds.
                 hook = CameraHook(scenario, every_ticks=every, on_frame=save,
                                   **({"renderer": hook.renderer} if hook is not None else {}))
-                CoSimulation(scenario, seed, hooks=[hook]).run()
+                CoSimulation(scenario, seed, controller=IdmController.for_scenario(scenario), hooks=[hook]).run()
                 bar.update(1)
             bar.close()
             data = coco.to_dict()

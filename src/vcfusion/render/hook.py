@@ -1,8 +1,8 @@
 """The camera stage of the tick loop: render the ego camera every k-th V2C tick.
 
-The rendered :class:`~vcfusion.render.renderer.Frame` goes to ``tick.annotations['frame']`` for the
-later stages (detector, matching, overlay); ticks without a render carry no 'frame'. The hook
-logs a small ``camera`` table (time, vehicles seen, render time).
+The rendered :class:`~vcfusion.render.renderer.Frame` goes to ``tick.frame`` for the later stages
+(detector, matching, overlay; they declare that they need it); ticks without a render keep
+``tick.frame = None``. The hook logs a small ``camera`` table (time, vehicles seen, render time).
 """
 
 from __future__ import annotations
@@ -14,11 +14,13 @@ import numpy as np
 
 from vcfusion.scenario import Scenario
 from vcfusion.traffic.network import read_road
-from vcfusion.traffic.session import EGO_ID
+from vcfusion.records import EGO_ID
 
 
 class CameraHook:
     table = "camera"
+    needs = ("ego",)  # the camera rides on the ego
+    provides = ("frame",)
 
     def __init__(self, scenario: Scenario, every_ticks: int = 1,
                  on_frame: Callable | None = None, renderer=None):
@@ -37,7 +39,7 @@ class CameraHook:
         started = wallclock.perf_counter()
         frame = self.renderer.render(tick.truth)
         render_ms = 1000.0 * (wallclock.perf_counter() - started)
-        tick.annotations["frame"] = frame
+        tick.frame = frame
         if self.on_frame is not None:
             self.on_frame(frame, tick)
         seen = np.unique(frame.instances)

@@ -41,7 +41,7 @@ from pyrender.shader_program import ShaderProgram, ShaderProgramCache  # noqa: E
 from vcfusion.records import VehicleStates  # noqa: E402
 from vcfusion.scenario import CameraConfig  # noqa: E402
 from vcfusion.traffic.network import Road  # noqa: E402
-from vcfusion.traffic.session import EGO_ID  # noqa: E402
+from vcfusion.records import EGO_ID  # noqa: E402
 from vcfusion.render.camera import Intrinsics, opengl_camera_pose, world_to_camera  # noqa: E402
 from vcfusion.render.presets import PRESETS, RenderPreset, finish_rgb  # noqa: E402
 from vcfusion.render.sky import sky_image  # noqa: E402
@@ -84,7 +84,7 @@ NO_VEHICLE = -1
 
 @dataclass(frozen=True)
 class Frame:
-    """One ego-camera frame: images plus the camera that took them (``Tick.annotations['frame']``)."""
+    """One ego-camera frame: images plus the camera that took them (``Tick.frame``)."""
 
     time: float
     rgb: np.ndarray  # (H, W, 3) uint8

@@ -17,7 +17,7 @@ import trimesh  # noqa: E402
 
 from vcfusion.records import VehicleStates  # noqa: E402
 from vcfusion.traffic.network import Road  # noqa: E402
-from vcfusion.traffic.session import EGO_ID  # noqa: E402
+from vcfusion.records import EGO_ID  # noqa: E402
 from vcfusion.render.meshes import SKY, ground_mesh, road_extent, road_mesh  # noqa: E402
 from vcfusion.render.vehicles import vehicle_mesh, vehicle_style  # noqa: E402
 

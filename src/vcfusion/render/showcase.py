@@ -43,6 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="renders/showcase")
     args = parser.parse_args(argv)
     from vcfusion.cosim import CoSimulation
+    from vcfusion.driver.idm import IdmController
     from vcfusion.scenario import load_scenario
     from vcfusion.render.gt_boxes import ground_truth_boxes
     from vcfusion.render.hook import CameraHook
@@ -60,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(name)
 
         hook = CameraHook(scenario, on_frame=keep)
-        CoSimulation(scenario, seed, hooks=[hook]).run()
+        CoSimulation(scenario, seed, controller=IdmController.for_scenario(scenario), hooks=[hook]).run()
         hook.close()
     return 0
 

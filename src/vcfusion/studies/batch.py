@@ -2,15 +2,17 @@
 
 libsumo holds one simulation per process, so seeds run in worker processes (forked from a
 warm fork server or spawned, never inheriting SUMO state: vcfusion.workers). A seed's run
-folder is OUT/seed_NNNN; a seed whose folder is
-complete is skipped, so a re-run resumes. A failing seed is recorded in OUT/failures.json
-and the others go on.
+folder is OUT/seed_NNNN; a seed whose folder is complete is skipped, so a re-run resumes.
+A failing seed is recorded in OUT/failures.json with its cause and the others go on: a seed
+that raised, or whose worker process died running it (killed by the out-of-memory killer, a
+crash): the worker is replaced. While a seed runs, OUT/running/seed_NNNN.pid names its worker
+process. On Dask a seed whose worker is lost is run again, up to `lost_worker_retries` times.
 """
 
 from __future__ import annotations
 
+import shutil
 import traceback
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,29 +20,35 @@ import pandas as pd
 from tqdm import tqdm
 
 from vcfusion.errors import UsageError
-from vcfusion.runio import is_complete_run, write_json, write_table
-from vcfusion.workers import worker_context
+from vcfusion.metrics.run_metrics import batch_row
+from vcfusion.runio import discard_partial_folder, is_complete_run, write_json, write_table
+from vcfusion.workers import JobFailed, run_jobs
+
+# On Dask: how many times a seed is run again after the worker running it was lost (Dask's
+# scheduler setting distributed.scheduler.allowed-failures, applied to the clusters we start).
+LOST_WORKER_RETRIES = 2
 
 
-def parse_seeds(text: str) -> list[int]:
-    """'0-99', '3', '1,4,7-9' -> sorted unique seeds."""
-    seeds: set[int] = set()
+MAX_SEED = 2**31 - 1  # SUMO's --seed is a C int
+MAX_SEEDS = 1_000_000  # seeds of one command: a typo like 0-99999999999 is refused, not enumerated
+
+
+def parse_seeds(text: str, option: str = "--seeds") -> list[int]:
+    """'0-99', '3', '1,4,7-9' -> sorted unique seeds (UsageError naming `option` otherwise)."""
+    expected = f"{option}: expected seeds from 0 to {MAX_SEED} like '0-99' or '1,4,7-9'"
+    ranges = []
     try:
         for part in text.split(","):
-            part = part.strip()
-            if "-" in part:
-                lo, hi = (int(x) for x in part.split("-", 1))
-                if lo > hi or lo < 0:
-                    raise ValueError
-                seeds.update(range(lo, hi + 1))
-            else:
-                seed = int(part)
-                if seed < 0:
-                    raise ValueError
-                seeds.add(seed)
+            lo, _, hi = part.strip().partition("-")
+            lo, hi = int(lo), int(hi) if hi else int(lo)
+            if not 0 <= lo <= hi <= MAX_SEED:
+                raise ValueError
+            ranges.append((lo, hi))
     except ValueError:
-        raise UsageError(f"--seeds: expected non-negative seeds like '0-99' or '1,4,7-9', got {text!r}") from None
-    return sorted(seeds)
+        raise UsageError(f"{expected}, got {text!r}") from None
+    if sum(hi - lo + 1 for lo, hi in ranges) > MAX_SEEDS:
+        raise UsageError(f"{expected} (at most {MAX_SEEDS:,} seeds), got {text!r}")
+    return sorted({s for lo, hi in ranges for s in range(lo, hi + 1)})
 
 
 def seed_folder(out: Path, seed: int) -> Path:
@@ -77,40 +85,72 @@ class Executor:
     must see the same file system as this process (the run folders are written by the workers).
     `dask_local` starts a local Dask cluster of that many single-threaded worker processes.
     Either way each worker process runs one simulation at a time (libsumo: one per process).
+    `lost_worker_retries`: on a local Dask cluster, how many times a seed is run again after the
+    worker running it died (a cluster at `dask_scheduler` applies its own
+    distributed.scheduler.allowed-failures, Dask's default 3).
     """
 
     workers: int = 1
     dask_scheduler: str | None = None
     dask_local: int | None = None
+    lost_worker_retries: int = LOST_WORKER_RETRIES
 
     @property
     def kind(self) -> str:
         return "dask" if self.dask_scheduler or self.dask_local else "processes"
 
 
-def _pool_outcomes(executor: Executor, task, jobs: list[tuple]):
-    with ProcessPoolExecutor(max_workers=max(1, executor.workers), mp_context=worker_context()) as pool:
-        futures = [pool.submit(task, *job) for job in jobs]
-        for fut in as_completed(futures):
-            yield fut.result()
+def _pool_outcomes(executor: Executor, task, jobs: list[tuple], out: Path):
+    running = out / "running"  # seed_NNNN.pid while a worker runs the seed (which pid, for the user)
+    shutil.rmtree(running, ignore_errors=True)  # left by a batch that was killed itself
+
+    def started(index: int, pid: int) -> None:
+        running.mkdir(exist_ok=True)
+        # written under another name and renamed: a reader never sees an empty pid file
+        pid_file = running / f"seed_{jobs[index][1]:04d}.pid"
+        pid_file.with_suffix(".pid-writing").write_text(f"{pid}\n")
+        pid_file.with_suffix(".pid-writing").replace(pid_file)
+
+    try:
+        for index, result in run_jobs(task, jobs, executor.workers, on_start=started):
+            seed = jobs[index][1]
+            (running / f"seed_{seed:04d}.pid").unlink(missing_ok=True)
+            if isinstance(result, JobFailed):  # its worker died (or the task itself broke)
+                discard_partial_folder(seed_folder(out, seed))
+                result = SeedOutcome(seed, False, None, result.cause)
+            yield result
+    finally:
+        shutil.rmtree(running, ignore_errors=True)
 
 
-def _dask_outcomes(executor: Executor, task, jobs: list[tuple]):
-    from distributed import Client, LocalCluster
+def _dask_outcomes(executor: Executor, task, jobs: list[tuple], out: Path):
+    import dask
+    from distributed import Client, KilledWorker, LocalCluster
     from distributed import as_completed as dask_as_completed
 
     cluster = None
     if executor.dask_scheduler:
         client = Client(executor.dask_scheduler)
     else:
-        cluster = LocalCluster(n_workers=executor.dask_local, threads_per_worker=1, processes=True,
-                               host="127.0.0.1", dashboard_address=None)
+        # Dask runs a task again when the worker running it dies, up to allowed-failures times
+        # (its `retries=` only covers tasks that raise; ours catch their errors themselves).
+        with dask.config.set({"distributed.scheduler.allowed-failures": executor.lost_worker_retries}):
+            cluster = LocalCluster(n_workers=executor.dask_local, threads_per_worker=1, processes=True,
+                                   host="127.0.0.1", dashboard_address=None)
         client = Client(cluster)
     try:
         # pure=False: a seed job writes files, it is not a cacheable function of its arguments.
         futures = client.map(task, *zip(*jobs), pure=False)
+        seed_of = {fut.key: job[1] for fut, job in zip(futures, jobs)}
         for fut in dask_as_completed(futures):
-            yield fut.result()
+            try:
+                yield fut.result()
+            except KilledWorker as exc:
+                seed = seed_of[fut.key]
+                discard_partial_folder(seed_folder(out, seed))
+                tries = exc.allowed_failures + 1
+                yield SeedOutcome(seed, False, None, f"worker process died ({tries} Dask worker"
+                                                     f"{'s' * (tries > 1)} lost running it)\n{exc}")
     finally:
         client.close()
         if cluster is not None:
@@ -130,12 +170,24 @@ def run_batch(scenario_path: Path, seeds: list[int], out: Path, workers: int = 1
     if todo:
         jobs = [(str(Path(scenario_path).resolve()), s, str(out)) for s in todo]
         source = _dask_outcomes if executor.kind == "dask" else _pool_outcomes
-        for outcome in source(executor, task, jobs):
-            outcomes.append(outcome)
-            bar.update(1)
-            if not outcome.ok:
-                bar.write(f"seed {outcome.seed} failed: {outcome.error.splitlines()[0]}")
-    bar.close()
+        stream = source(executor, task, jobs, out)
+        try:
+            for outcome in stream:
+                outcomes.append(outcome)
+                bar.update(1)
+                if not outcome.ok:
+                    bar.write(f"seed {outcome.seed} failed: {outcome.error.splitlines()[0]}")
+        except KeyboardInterrupt:
+            stream.close()  # stops the workers; their seeds remove what they had written
+            # What a worker killed in the middle of writing left is removed here. On a cluster
+            # of one's own, seeds may still be running there: they write whole folders or none.
+            if not executor.dask_scheduler:
+                for seed in todo:
+                    discard_partial_folder(seed_folder(out, seed))
+            raise
+        finally:
+            stream.close()
+            bar.close()
     failed = sorted((o for o in outcomes if not o.ok), key=lambda o: o.seed)
     _write_index(out, seeds, failed)
     return {"done": len(todo) - len(failed), "skipped": skipped, "failed": [(o.seed, o.error) for o in failed]}
@@ -150,7 +202,7 @@ def _write_index(out: Path, seeds: list[int], failed: list[SeedOutcome]) -> None
         folder = seed_folder(out, s)
         if is_complete_run(folder):
             summary = json.loads((folder / "summary.json").read_text())
-            rows.append({k: v for k, v in summary.items() if not isinstance(v, (dict, list))})
+            rows.append(batch_row(summary))
     if rows:
         write_table(out / "batch_summary.parquet", pd.DataFrame(rows).sort_values("seed"))
     failures_file = out / "failures.json"

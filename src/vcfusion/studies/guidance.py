@@ -23,7 +23,6 @@ import json
 import math
 import time as wallclock
 import traceback
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +30,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from vcfusion.runio import write_json, write_table
-from vcfusion.workers import worker_context
+from vcfusion.workers import JobFailed, run_jobs
 
 ARMS = ("off", "on")
 
@@ -40,8 +39,8 @@ SAFETY_METRICS = [
     ("avg_ttc_s", "average TTC to the lane-change vehicle", "s", None, None, 30.31),
     ("avg_ttc_clipped_s", "average TTC, clipped at 20 s", "s", None, None, None),
     ("min_ttc_s", "minimum TTC to the lane-change vehicle", "s", None, None, None),
-    ("tet_s", "TET (TTC < 3 s)", "s", None, None, None),
-    ("tit_s2", "TIT (TTC < 3 s)", "s^2", None, None, None),
+    ("tet_s", "TET (TTC < metrics.ttc_threshold_s)", "s", None, None, None),
+    ("tit_s2", "TIT (TTC < metrics.ttc_threshold_s)", "s^2", None, None, None),
     ("avg_abs_accel_mps2", "average |acceleration|", "m/s^2", 2.57, 2.07, None),
     ("max_abs_jerk_mps3", "maximum |jerk|", "m/s^3", 40.14, 35.91, None),
     ("max_decel_mps2", "maximum deceleration", "m/s^2", None, None, None),
@@ -82,6 +81,7 @@ def run_arm(scenario, seed: int, guidance: bool, process_model_specs: tuple[str,
     """One arm of one trip: metrics row (no run folder is written)."""
     from vcfusion.metrics.movestar import trip_emissions
     from vcfusion.metrics.safety import trip_metrics
+    from vcfusion.metrics.traffic import ego_movestar_type
     from vcfusion.run import build_cosimulation
 
     extra = [load_process_model(s, scenario) for s in process_model_specs]
@@ -91,9 +91,11 @@ def run_arm(scenario, seed: int, guidance: bool, process_model_specs: tuple[str,
     dt = scenario.simulation.step_s
     row = {"seed": seed, "arm": "on" if guidance else "off", "end_reason": result.summary["end_reason"],
            "cut_ins_ahead_of_ego": result.summary.get("cut_ins_ahead_of_ego", 0)}
-    row.update(trip_metrics(tables, scenario.ego.lane, dt))
+    m = scenario.metrics  # the same thresholds and definitions as the runs' metrics tables
+    row.update(trip_metrics(tables, scenario.ego.lane, dt, m.ttc_threshold_s, m.jerk_window_s, m.ttc_clip_s))
+    row["ttc_threshold_s"] = m.ttc_threshold_s
     ego = tables["ego"]
-    em = trip_emissions(ego["time"].to_numpy(), ego["speed"].to_numpy())
+    em = trip_emissions(ego["time"].to_numpy(), ego["speed"].to_numpy(), ego_movestar_type(scenario, tables["vehicles"]))
     pk = em["per_km"]
     row.update({
         "fuel_g_per_km": pk["Fuel"], "co_g_per_km": pk["CO"], "hc_g_per_km": pk["HC"], "nox_g_per_km": pk["NOx"],
@@ -256,18 +258,27 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
     rows: list[dict] = []
     failed: list[tuple[int, str]] = []
     bar = tqdm(total=len(seeds), unit="trip", desc=f"guidance study {scenario.name}", disable=not progress)
-    ctx = worker_context()
-    with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx) as pool:
-        futures = [pool.submit(run_trip, str(scenario_path), s, tuple(process_model_specs)) for s in seeds]
-        for fut in as_completed(futures):
-            seed, result, error = fut.result()
+    jobs = [(str(scenario_path), s, tuple(process_model_specs)) for s in seeds]
+    try:
+        for index, outcome in run_jobs(run_trip, jobs, workers):
+            # a JobFailed: the trip's worker process died (its other trips go on in a new one)
+            seed, result, error = (seeds[index], None, outcome.cause) if isinstance(outcome, JobFailed) else outcome
             if error:
                 failed.append((seed, error))
                 bar.write(f"trip {seed} failed: {error.splitlines()[0]}")
             else:
                 rows.extend(result)
             bar.update(1)
-    bar.close()
+    finally:
+        bar.close()
+    failed.sort()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    # as a batch's: the failed trips and their causes (the command then exits with 1)
+    if failed:
+        write_json(out / "failures.json", {str(s): e for s, e in failed})
+    else:
+        (out / "failures.json").unlink(missing_ok=True)
     if not rows:
         raise StudyError(f"all {len(seeds)} trips failed; first error: {failed[0][1] if failed else '?'}")
     table = pd.DataFrame(rows).sort_values(["seed", "arm"]).reset_index(drop=True)
@@ -290,8 +301,6 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
         "trips_with_target": int(on["target_id"].notna().sum()),
         "mean_response_gain_s": float(gain.mean()) if len(gain) else math.nan, "response_pairs": int(len(gain)),
     }
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     write_table(out / "trips.parquet", table)
     tmp = out / "trips.csv.tmp"
     table.to_csv(tmp, index=False)
@@ -304,4 +313,4 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
                                              "failed": {str(s): e for s, e in failed}})
     (out / "summary.txt").write_text(text + "\n")
     figures = plot_figures(table, summary, Path(renders), info["guidance_source"].split(" ")[0])
-    return {"info": info, "summary": summary, "text": text, "figures": figures, "trips": table}
+    return {"info": info, "summary": summary, "text": text, "figures": figures, "trips": table, "failed": failed}

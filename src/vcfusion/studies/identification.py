@@ -185,6 +185,7 @@ def default_conditions(latencies=(0.0, 0.1, 0.2, 0.3, 0.5), noises=(0.0, 0.5, 1.
 
 class _StudyHook:
     table = "identification"
+    needs = ("neighbours",)  # its frames come from its own frame source, not the camera stage
 
     def __init__(self, frame_source, detectors: dict, seed: int, condition: Condition,
                  depth_params: DepthEvalParams, joint_params: JointMatcherParams, min_gt_area_px: float,
@@ -227,6 +228,7 @@ def run_identification_study(scenarios, seeds, frame_source_factory, detectors: 
     ``detectors`` maps a name to a detector (e.g. {'oracle': OracleDetector(), 'cnn': TorchDetector(...)}).
     """
     from vcfusion.cosim import CoSimulation
+    from vcfusion.driver.idm import IdmController
 
     conditions = conditions or default_conditions()
     scenarios = list(scenarios) if isinstance(scenarios, (list, tuple)) else [scenarios]
@@ -241,7 +243,7 @@ def run_identification_study(scenarios, seeds, frame_source_factory, detectors: 
         # a new joint matcher per run and detector: its position filter holds per-run state
         hook = _StudyHook(frame_source_factory(sc, seed), detectors, seed, cond, depth_params, joint_params,
                           min_gt_area_px, fallback_radius_px, scenario.name)
-        CoSimulation(sc, seed, hooks=[hook]).run()
+        CoSimulation(sc, seed, controller=IdmController.for_scenario(sc), hooks=[hook]).run()
         rows.extend(hook.rows)
     frame = pd.DataFrame(rows, columns=ROW_COLUMNS)
     write_study_outputs(frame, out_dir)

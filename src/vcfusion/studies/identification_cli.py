@@ -79,4 +79,5 @@ def add_study_parser(ssub) -> None:
     p.add_argument("--anchor-radius", type=float, default=None,
                    help="baseline and paper: with no box containing the anchor, take the nearest box within "
                         "this many pixels (default: off, the paper's rule)")
-    p.set_defaults(func=cmd_study_identification)
+    p.set_defaults(func=cmd_study_identification,
+                   interrupted="the study wrote nothing; run the same command again (its runs start over)")

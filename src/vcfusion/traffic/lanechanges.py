@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vcfusion.records import EGO_ID
 from vcfusion.traffic.network import Road
 
 CENTRED_TOL_M = 0.05
@@ -77,3 +78,29 @@ def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, di
             ends[i] = t[after[0]]
     events |= {"event_id": np.arange(len(order), dtype=np.int64), "start_time": starts, "end_time": ends}
     return {name: events[name] for name in LANE_CHANGE_COLUMNS}
+
+
+def relate_to_ego(events: dict[str, np.ndarray], tracks: dict[str, dict[str, np.ndarray]],
+                  lengths: dict[str, float], ego_lane: int) -> dict[str, np.ndarray]:
+    """Mark lane changes into the ego's lane and where they happened relative to the ego.
+
+    `gap_to_ego_m`: bumper to bumper along the road, the changer's rear minus the ego's front,
+    at the trajectory sample nearest the change's midpoint. `tracks`: time and s of the ego's
+    and the changers' trajectory samples (see runio.vehicle_tracks; others are ignored).
+    """
+    vids, mid = events["vehicle_id"], events["mid_time"]
+    gaps = np.full(len(vids), np.nan)
+    ego = tracks.get(EGO_ID)
+    if ego is not None and len(ego["time"]) and len(vids):
+        ego_t, ego_s = ego["time"], ego["s"]
+        at = np.abs(ego_t[None, :] - mid[:, None]).argmin(axis=1)
+        changer_s = np.full(len(vids), np.nan)
+        for i, (vid, t) in enumerate(zip(vids, ego_t[at])):
+            track = tracks.get(vid)
+            hit = np.flatnonzero(track["time"] == t) if track is not None else ()
+            if len(hit):
+                changer_s[i] = track["s"][hit[-1]]
+        changer_length = np.array([lengths.get(v, np.nan) for v in vids], dtype=float)
+        gaps = changer_s - ego_s[at] - 0.5 * (changer_length + lengths[EGO_ID])
+    return events | {"into_ego_lane": (events["to_lane"] == ego_lane) & (vids != EGO_ID),
+                     "gap_to_ego_m": gaps, "ahead_of_ego": gaps > 0}

@@ -1,0 +1,146 @@
+"""Handlers of the `vcfusion metrics | report` commands."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+import pandas as pd
+
+from vcfusion.errors import UsageError
+
+BATCH_SUMMARY = "batch_summary.parquet"
+
+
+def run_folders(path: Path) -> tuple[list[Path], bool]:
+    """The run folders of a run folder or a batch folder (seed_NNNN), and whether it is a batch."""
+    from vcfusion.runio import is_complete_run
+
+    path = Path(path)
+    if is_complete_run(path):
+        return [path], False
+    seeds = sorted(p for p in path.glob("seed_*") if is_complete_run(p)) if path.is_dir() else []
+    if not seeds:
+        raise UsageError(f"{path}: expected a run folder (with manifest.json) or a batch folder "
+                         "(with complete seed_NNNN run folders)")
+    return seeds, True
+
+
+def _settings(folder: Path, scenario_file: str | None):
+    """(metrics config, simulation config): the metrics block of --scenario, else the run's own
+    (a run written before the block existed gets the defaults); the sampling is always the run's."""
+    from vcfusion.scenario import MetricsConfig, SimulationConfig, load_scenario
+
+    recorded = json.loads((folder / "manifest.json").read_text())["scenario"]
+    simulation = SimulationConfig.model_validate(recorded["simulation"])
+    if scenario_file:
+        return load_scenario(scenario_file).metrics, simulation
+    return MetricsConfig.model_validate(recorded.get("metrics", {})), simulation
+
+
+def recompute_folder(folder: Path, scenario_file: str | None = None) -> bool:
+    """Rewrite a run folder's metric tables and the metrics block of its summary.json from its
+    tables; returns whether SUMO's emission totals were there."""
+    import pyarrow.parquet as pq
+
+    from vcfusion.metrics.run_metrics import METRIC_TABLES, folder_metrics, write_summary_metrics
+
+    for name in ("trajectories.parquet", "vehicles.parquet", "summary.json"):
+        if not (folder / name).is_file():
+            raise UsageError(f"{folder}: {name} is missing; expected a complete run folder")
+    cfg, simulation = _settings(folder, scenario_file)
+    result, block, has_sumo = folder_metrics(folder, cfg, simulation)
+    written = []
+    try:  # every table first to a temporary name: a failure leaves the folder as it was
+        for name, table in zip(METRIC_TABLES, (result.vehicles, result.conflicts, result.histograms)):
+            tmp = folder / f"{name}.parquet.tmp"
+            pq.write_table(table, tmp, compression="zstd")  # as the run folder writer writes Arrow tables
+            written.append((tmp, folder / f"{name}.parquet"))
+    except BaseException:
+        for tmp, _ in written:
+            tmp.unlink(missing_ok=True)
+        raise
+    for tmp, final in written:
+        os.replace(tmp, final)
+    write_summary_metrics(folder, block)
+    return has_sumo
+
+
+def rebuild_batch_summary(batch: Path, folders: list[Path]) -> pd.DataFrame:
+    """batch_summary.parquet from its seeds' summaries (the seeds it listed, else every complete one)."""
+    from vcfusion.metrics.run_metrics import batch_row
+    from vcfusion.runio import write_table
+
+    path = batch / BATCH_SUMMARY
+    listed = set(pd.read_parquet(path, columns=["seed"])["seed"]) if path.is_file() else None
+    rows = []
+    for folder in folders:
+        summary = json.loads((folder / "summary.json").read_text())
+        if listed is None or summary["seed"] in listed:
+            rows.append(batch_row(summary))
+    frame = pd.DataFrame(rows).sort_values("seed")
+    tmp = batch / (BATCH_SUMMARY + ".tmp")
+    write_table(tmp, frame)
+    os.replace(tmp, path)
+    return frame
+
+
+def print_batch_metrics(batch: Path) -> None:
+    """The metrics of a batch over its seeds (end of `vcfusion batch` and `vcfusion metrics`)."""
+    from vcfusion.metrics.batch_table import format_seed_statistics, seed_statistics
+
+    path = Path(batch) / BATCH_SUMMARY
+    if not path.is_file():
+        return
+    stats = seed_statistics(pd.read_parquet(path))
+    if len(stats):
+        print("metrics over the seeds (mean, t-based 95% confidence interval of the mean, spread of the seeds):")
+        print(format_seed_statistics(stats))
+
+
+def cmd_metrics(args: argparse.Namespace) -> int:
+    if args.scenario:
+        from vcfusion.scenario import load_scenario
+
+        load_scenario(args.scenario)  # fail fast on a bad file
+    targets = [(Path(p), *run_folders(Path(p))) for p in args.paths]
+    missing_sumo = []
+    for path, folders, is_batch in targets:
+        for folder in folders:
+            if not recompute_folder(folder, args.scenario):
+                missing_sumo.append(folder)
+        print(f"{path}: metrics of {len(folders)} run folder{'s' if len(folders) != 1 else ''} recomputed")
+        if is_batch:
+            rebuild_batch_summary(path, folders)
+            print_batch_metrics(path)
+    if missing_sumo:
+        print(f"note: {len(missing_sumo)} run folder(s) have no sumo_emissions.parquet (written before SUMO's "
+              "emission totals were recorded): their SUMO emission columns are empty; rerun those seeds to get them. "
+              "First: " + str(missing_sumo[0]))
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from vcfusion.metrics.report import write_report
+
+    batch = Path(args.batch)
+    folders, _ = run_folders(batch)
+    out = Path(args.out) if args.out else batch / "report"
+    report = write_report(batch, folders, out)
+    print(f"report: {report}")
+    return 0
+
+
+def add_parsers(sub) -> None:
+    p = sub.add_parser("metrics", help="(re)compute safety, comfort and emission metrics of existing run folders")
+    p.add_argument("paths", nargs="+", metavar="RUN_OR_BATCH_DIR", help="run folders or batch folders (seed_NNNN)")
+    p.add_argument("--scenario", help="take the metrics: block (thresholds, definitions) from this scenario file "
+                                      "instead of the one each run recorded")
+    p.set_defaults(func=cmd_metrics)
+
+    p = sub.add_parser("report", help="figures and a one-page Markdown report of a batch's metrics")
+    p.add_argument("batch", metavar="BATCH_DIR")
+    p.add_argument("--out", help="report folder (default: BATCH_DIR/report)")
+    p.set_defaults(func=cmd_report)

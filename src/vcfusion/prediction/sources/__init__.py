@@ -1,0 +1,1 @@
+"""Real trajectory recordings (NGSIM, highD) replayed as cloud twins: readers and the dataset import."""

@@ -1,0 +1,689 @@
+"""The road frame of a route through any SUMO network: (s, d) coordinates and lane identity.
+
+A route is a list of edges. Its frame is built from the ``.net.xml`` lane shapes:
+
+- **reference line**: the route's right road boundary at d = 0 (the right edge of the rightmost
+  lane the route ever has), stitched along the route's edges and the junction-internal lanes
+  between them. Where that lane does not exist (the acceleration lane before the merge), the
+  line runs where its right edge would be (the lanes' nominal widths);
+- **s**: distance along the route as SUMO counts it (lane lengths, internal lanes included), so a
+  vehicle at lane position p on a route edge has s = ``edge_start_s[edge] + p``: continuous across
+  edge boundaries. Along an edge s spreads SUMO's length over the middle of the road (an edge's
+  length is its middle's); SUMO spreads it over each lane's own shape, so on an edge that is part
+  straight, part curved the lanes beside the middle differ from SUMO's positions by up to their
+  offset times half the edge's turn (0.6 m for 3.5 m and 20 degrees);
+- **d**: metres left of the reference line, along its normal: the same lane is one constant d
+  range on every edge it continues through;
+- **tracks**: a lane's index from the right, stable across edges where SUMO's connections say the
+  lane continues (the main line's lanes keep their index when an acceleration lane is added to
+  their right: that lane gets the lower index, and the main line's index 0 is then track 1).
+  A SUMO lane maps to its track with ``track_of[lane_id]``; the lanes present change along s.
+
+Geometry. The reference polyline P_i carries at every vertex a miter vector M_i (the bisector of
+the adjacent segments' left normals, scaled so its projection on each normal is 1): SUMO offsets
+lane shapes the same way, so lanes are lines of constant d. Inside segment i the map is
+Q(t, e) = P_i + t (P_i+1 - P_i) + e (M_i + t (M_i+1 - M_i)) with s linear in t: an exact,
+continuous inverse of itself (world -> (s, d) solves a quadratic in t). Before the route's start
+and after its end the first and last segments extend straight, as the straight road does.
+The conversion runs for every twin on every tick: it is a compiled kernel with a uniform grid over
+the segments (points farther than 60 m from the road fall back to a scan of all segments).
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from collections import Counter
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import numba
+import numpy as np
+
+# Longest segment the lookup grid stores (longer straight segments are split: the same map).
+_MAX_SEGMENT_M = 25.0
+_CELL_M = 25.0
+_MAX_CELLS = 1_000_000
+# Lateral band around the road whose points are found through the grid (the other carriageway,
+# ramps alongside); beyond it, a scan of all segments.
+_BAND_M = 60.0
+# Within this band the segments' maps do not overlap (curve radii are larger): the first segment
+# whose map holds a point is the one.
+_UNIQUE_BAND_M = 15.0
+# Reference lines of consecutive pieces meet within this distance (SUMO's lane ends and the next
+# piece's starts coincide to its 0.01 m output precision; offsetting bends adds a few cm).
+_JOIN_TOL_M = 0.5
+
+
+class RouteError(ValueError):
+    """A route the network cannot carry (unknown edge, edges that do not connect).
+
+    `where` names the part of the route ("route[2]", "route"; "" for the network as a whole) and
+    `detail` what is wrong, so a scenario's validation can name its own field instead."""
+
+    def __init__(self, net_file, where: str, detail: str):
+        super().__init__(f"{net_file}: {where}: {detail}" if where else f"{net_file}: {detail}")
+        self.net_file, self.where, self.detail = Path(net_file), where, detail
+
+
+@dataclass(frozen=True)
+class _Lane:
+    lane_id: str
+    edge_id: str
+    index: int
+    width: float
+    length: float
+    shape: np.ndarray  # (k, 2)
+
+
+@dataclass(frozen=True)
+class _Connection:
+    from_edge: str
+    to_edge: str
+    from_lane: int
+    to_lane: int
+    via: str | None
+
+
+class _Net:
+    """The parts of a .net.xml the frame needs (ElementTree: sumolib's reader is much slower on
+    large imported networks and hides the internal lanes' connection chain)."""
+
+    def __init__(self, net_file: Path):
+        root = ET.parse(net_file).getroot()
+        if root.get("lefthand") in ("1", "true"):
+            # there lane 0 is the leftmost lane: tracks and d would run the wrong way
+            raise RouteError(net_file, "", f"a left-hand-traffic network (lefthand=\"{root.get('lefthand')}\"); "
+                             "the road frame supports right-hand traffic only")
+        self.lanes: dict[str, _Lane] = {}
+        self.edge_lanes: dict[str, list[_Lane]] = {}
+        self.internal_edges: set[str] = set()
+        for edge in root.iter("edge"):
+            eid = edge.get("id")
+            if edge.get("function") == "internal":
+                self.internal_edges.add(eid)
+            elif edge.get("function") not in (None, "normal"):
+                continue  # walking areas, crossings
+            lanes = []
+            for lane in edge.iter("lane"):
+                shape = np.array([[float(c) for c in p.split(",")[:2]] for p in lane.get("shape").split()])
+                lanes.append(_Lane(lane.get("id"), eid, int(lane.get("index")), float(lane.get("width", 3.2)),
+                                   float(lane.get("length")), shape))
+            lanes.sort(key=lambda ln: ln.index)
+            self.edge_lanes[eid] = lanes
+            self.lanes.update({ln.lane_id: ln for ln in lanes})
+        self.connections: list[_Connection] = [
+            _Connection(c.get("from"), c.get("to"), int(c.get("fromLane")), int(c.get("toLane")), c.get("via"))
+            for c in root.iter("connection")]
+        self.between: dict[tuple[str, str], list[_Connection]] = {}
+        self.into: dict[str, list[_Connection]] = {}
+        for c in self.connections:
+            self.between.setdefault((c.from_edge, c.to_edge), []).append(c)
+            self.into.setdefault(c.to_edge, []).append(c)
+        # internal lane -> the next internal lane of its chain (junctions with internal stops)
+        self._next_via = {f"{c.from_edge}_{c.from_lane}": c.via for c in self.connections
+                          if c.from_edge in self.internal_edges and c.via}
+
+    @property
+    def normal_edges(self) -> list[str]:
+        return [e for e in self.edge_lanes if e not in self.internal_edges]
+
+    def via_chain(self, connection: _Connection) -> list[_Lane]:
+        chain, via = [], connection.via
+        while via is not None:
+            chain.append(self.lanes[via])
+            via = self._next_via.get(via)
+        return chain
+
+
+def _miters(points: np.ndarray) -> np.ndarray:
+    """Per vertex: the left normal bisector, scaled so its projection on both adjacent segments'
+    normals is 1 (an offset by e along it keeps distance e from both segments)."""
+    seg = np.diff(points, axis=0)
+    seg /= np.hypot(seg[:, 0], seg[:, 1])[:, None]
+    normals = np.column_stack([-seg[:, 1], seg[:, 0]])
+    m = np.empty_like(points)
+    m[0], m[-1] = normals[0], normals[-1]
+    if len(points) > 2:
+        b = normals[:-1] + normals[1:]
+        b /= np.hypot(b[:, 0], b[:, 1])[:, None]
+        cos_half = np.maximum(np.einsum("ij,ij->i", b, normals[1:]), 0.1)  # no spikes at hairpins
+        m[1:-1] = b / cos_half[:, None]
+    return m
+
+
+def _dedupe(points: np.ndarray, min_gap: float = 1e-3) -> np.ndarray:
+    keep = [0]
+    for i in range(1, len(points)):
+        if np.hypot(*(points[i] - points[keep[-1]])) > min_gap:
+            keep.append(i)
+    if len(keep) == 1:  # a lane of (almost) zero extent: keep its ends
+        keep.append(len(points) - 1)
+    return points[keep]
+
+
+@dataclass(frozen=True)
+class _Piece:
+    """One stretch of the route: a route edge, or one internal lane between two route edges."""
+
+    edge_id: str
+    s0: float
+    length: float
+    anchor: _Lane  # the lane whose shape gives this piece's geometry
+    anchor_track: int
+    widths: dict[int, float]  # track -> width of the lane present here
+
+
+class RoadFrame:
+    """(s, d) frame and lane tracks of one route of a SUMO network (see the module docstring).
+
+    Build with :meth:`from_net`. All queries take and return NumPy arrays (scalars broadcast).
+    """
+
+    def __init__(self, net_file: str | Path, route: list[str] | tuple[str, ...]):
+        self.net_file = Path(net_file)
+        self.route = tuple(route)
+        net = _Net(self.net_file)
+        self._build(net)
+
+    @classmethod
+    def from_net(cls, net_file: str | Path, route: list[str] | tuple[str, ...] | None = None) -> "RoadFrame":
+        """The frame of `route` (edge ids in driving order); without a route, the network's one
+        chain of edges (a network with branches needs a route)."""
+        if route is None:
+            route = default_route(net_file)
+        return cls(net_file, route)
+
+    # value semantics: stages that each build the frame of the same route share cached results
+    @cached_property
+    def key(self) -> tuple:
+        return (str(self.net_file.resolve()), self.route)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, RoadFrame) and self.key == other.key
+
+    def __hash__(self) -> int:
+        return hash(self.key)
+
+    def __repr__(self) -> str:
+        return f"RoadFrame({self.net_file.name}, route={list(self.route)}, length={self.length_m:.2f} m)"
+
+    # ------------------------------------------------------------------ construction
+    def _build(self, net: _Net) -> None:
+        if not self.route:
+            raise RouteError(self.net_file, "route", "expected at least one edge")
+        for k, edge in enumerate(self.route):
+            if edge not in net.edge_lanes or edge in net.internal_edges:
+                raise RouteError(self.net_file, f"route[{k}]", f"unknown edge {edge!r}")
+        shift = self._track_shifts(net)
+        low = min(shift[k] for k in range(len(self.route)))
+        shift = [v - low for v in shift]  # the rightmost lane the route ever has is track 0
+        self.track_of: dict[str, int] = {}
+        self.edge_start_s: dict[str, float] = {}
+        pieces: list[_Piece] = []
+        s = 0.0
+        for k, edge in enumerate(self.route):
+            lanes = net.edge_lanes[edge]
+            for ln in lanes:
+                self.track_of[ln.lane_id] = ln.index + shift[k]
+            self.edge_start_s[edge] = s
+            pieces.append(_Piece(edge, s, lanes[0].length, lanes[0], shift[k],
+                                 {ln.index + shift[k]: ln.width for ln in lanes}))
+            s += lanes[0].length
+            if k + 1 < len(self.route):
+                s = self._junction_pieces(net, k, shift, s, pieces)
+        self.length_m = s
+        self.num_tracks = 1 + max(max(p.widths, default=0) for p in pieces)
+        nominal = {}
+        for p in pieces:  # a track's width where the route first has it
+            for t, w in p.widths.items():
+                nominal.setdefault(t, w)
+        # Per piece: right boundary of every track (virtual tracks at their nominal width).
+        bounds = np.zeros((len(pieces), self.num_tracks + 1))
+        present = np.zeros((len(pieces), self.num_tracks), dtype=bool)
+        for i, p in enumerate(pieces):
+            for t in range(self.num_tracks):
+                bounds[i, t + 1] = bounds[i, t] + p.widths.get(t, nominal[t])
+                present[i, t] = t in p.widths
+        self._pieces = pieces
+        self._piece_s0 = np.array([p.s0 for p in pieces])
+        self._bounds = bounds
+        self._present = present
+        self.max_width_m = float(bounds[:, -1].max())
+        self._build_reference(pieces, bounds)
+        self._build_track_intervals()
+
+    def _track_shifts(self, net: _Net) -> list[int]:
+        """Track of lane j of route edge k = j + shift[k]. The shift between consecutive edges is
+        the one most of their connections agree on (a lane that ends or starts breaks no
+        continuity); ties go to the lanes that line up geometrically."""
+        shift = [0]
+        for k in range(len(self.route) - 1):
+            a, b = self.route[k], self.route[k + 1]
+            conns = net.between.get((a, b), [])
+            if not conns:
+                raise RouteError(self.net_file, f"route[{k + 1}]", f"edges {a!r} and {b!r} do not connect "
+                                 "(no lane of the first continues onto the second)")
+            votes = Counter(c.from_lane - c.to_lane for c in conns)
+
+            def gap(delta: int) -> float:
+                pairs = [c for c in conns if c.from_lane - c.to_lane == delta]
+                return float(np.mean([np.hypot(*(net.edge_lanes[a][c.from_lane].shape[-1]
+                                                 - net.edge_lanes[b][c.to_lane].shape[0])) for c in pairs]))
+
+            best = max(votes, key=lambda delta: (votes[delta], -gap(delta)))
+            shift.append(shift[-1] + best)
+        return shift
+
+    def _junction_pieces(self, net: _Net, k: int, shift: list[int], s: float, pieces: list[_Piece]) -> float:
+        """The internal lanes between route edges k and k+1: geometry from the continuing lane
+        with the lowest track; the lanes present are those entering edge k+1 (from any edge)."""
+        a, b = self.route[k], self.route[k + 1]
+        into_b = [c for c in net.into.get(b, []) if c.via and c.from_edge not in net.internal_edges]
+        continuing = [c for c in into_b if c.from_edge == a and c.from_lane + shift[k] == c.to_lane + shift[k + 1]]
+        if not continuing:
+            return s  # no internal lanes (networks built with --no-internal-links)
+        anchor = min(continuing, key=lambda c: c.to_lane)
+        widths_by_step: list[dict[int, float]] = []
+        for c in into_b:
+            track = c.to_lane + shift[k + 1]
+            for step, ln in enumerate(net.via_chain(c)):
+                while len(widths_by_step) <= step:
+                    widths_by_step.append({})
+                widths_by_step[step].setdefault(track, ln.width)
+                self.track_of.setdefault(ln.lane_id, track)
+        start = s
+        for step, ln in enumerate(net.via_chain(anchor)):
+            widths = widths_by_step[step] if step < len(widths_by_step) else {}
+            pieces.append(_Piece(ln.edge_id, s, ln.length, ln, anchor.to_lane + shift[k + 1], widths))
+            self.edge_start_s.setdefault(ln.edge_id, s)
+            s += ln.length
+        # the other connections' internal lanes start where the junction starts
+        for c in into_b:
+            for ln in net.via_chain(c):
+                self.edge_start_s.setdefault(ln.edge_id, start)
+        return s
+
+    def _build_reference(self, pieces: list[_Piece], bounds: np.ndarray) -> None:
+        pts_all: list[np.ndarray] = []
+        s_all: list[np.ndarray] = []
+        self.max_join_gap_m = 0.0
+        for i, p in enumerate(pieces):
+            shape = _dedupe(p.anchor.shape)
+            if np.hypot(*(shape[-1] - shape[0])) < 1e-6 and len(shape) == 2:
+                continue  # a junction lane of no extent (its length joins the next segment's s)
+            miters = _miters(shape)
+            centre_d = bounds[i, p.anchor_track] + p.widths[p.anchor_track] / 2
+            ref = shape - centre_d * miters
+            # SUMO spreads a lane's length over the lane's own geometry, and an edge's length is
+            # that of its middle: s spreads the length over the middle of the lanes present, so
+            # on a bend the lanes left and right of it are off SUMO's positions by half as much
+            present = sorted(p.widths)
+            middle_d = 0.5 * (bounds[i, present[0]] + bounds[i, present[-1] + 1])
+            middle = shape + (middle_d - centre_d) * miters
+            geo = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(middle, axis=0).T))])
+            s_vertices = p.s0 + geo * (p.length / geo[-1])
+            if pts_all:
+                gap = float(np.hypot(*(ref[0] - pts_all[-1][-1])))
+                if gap > _JOIN_TOL_M:
+                    raise RouteError(
+                        self.net_file, "route", f"the lane geometry jumps by {gap:.2f} m where "
+                        f"{pieces[i - 1].edge_id!r} meets {p.edge_id!r}; the road frame cannot follow it")
+                self.max_join_gap_m = max(self.max_join_gap_m, gap)
+                pts_all[-1][-1] = 0.5 * (pts_all[-1][-1] + ref[0])  # both pieces end at the midpoint
+                ref, s_vertices = ref[1:], s_vertices[1:]
+            pts_all.append(ref.copy())
+            s_all.append(s_vertices)
+        pts = np.concatenate(pts_all)
+        svals = np.concatenate(s_all)
+        # drop vertices that coincide (zero-length internal lanes): their segment has no direction
+        keep = [0]
+        for j in range(1, len(pts)):
+            if np.hypot(*(pts[j] - pts[keep[-1]])) > 1e-6:
+                keep.append(j)
+            elif j == len(pts) - 1:
+                keep[-1] = j  # the route ends exactly at its last point
+        pts, svals = pts[keep], svals[keep]
+        if len(pts) < 2:
+            raise RouteError(self.net_file, "route", "the route has no extent")
+        miters = _miters(pts)
+        # split long segments (same bilinear map) so the grid's cells list few segments each
+        P, M, S = [pts[:1]], [miters[:1]], [svals[:1]]
+        for i in range(len(pts) - 1):
+            n = max(1, math.ceil(np.hypot(*(pts[i + 1] - pts[i])) / _MAX_SEGMENT_M))
+            t = (np.arange(1, n + 1) / n)[:, None]
+            t[-1] = 1.0
+            P.append(pts[i] + t * (pts[i + 1] - pts[i]))
+            M.append(miters[i] + t * (miters[i + 1] - miters[i]))
+            S.append(svals[i] + t[:, 0] * (svals[i + 1] - svals[i]))
+            P[-1][-1], M[-1][-1], S[-1][-1] = pts[i + 1], miters[i + 1], svals[i + 1]
+        self._P = np.ascontiguousarray(np.concatenate(P))
+        self._M = np.ascontiguousarray(np.concatenate(M))
+        self._S = np.ascontiguousarray(np.concatenate(S))
+        self._build_grid()
+
+    def _build_grid(self) -> None:
+        P, M = self._P, self._M
+        lo, hi = -_BAND_M, self.max_width_m + _BAND_M
+        corners = np.stack([P[:-1] + lo * M[:-1], P[:-1] + hi * M[:-1], P[1:] + lo * M[1:], P[1:] + hi * M[1:]])
+        cmin, cmax = corners.min(axis=0), corners.max(axis=0)  # (n_seg, 2)
+        origin = cmin.min(axis=0)
+        extent = cmax.max(axis=0) - origin
+        cell = max(_CELL_M, float(np.sqrt(extent[0] * extent[1] / _MAX_CELLS)))  # long routes: coarser
+        nx, ny = (np.floor(extent / cell).astype(int) + 1)
+        i0 = np.floor((cmin - origin) / cell).astype(int)
+        i1 = np.floor((cmax - origin) / cell).astype(int)
+        cells, segs = [], []
+        for seg in range(len(P) - 1):
+            gx, gy = np.meshgrid(np.arange(i0[seg, 0], i1[seg, 0] + 1), np.arange(i0[seg, 1], i1[seg, 1] + 1))
+            cells.append((gx * ny + gy).ravel())
+            segs.append(np.full(gx.size, seg))
+        cells, segs = np.concatenate(cells), np.concatenate(segs)
+        order = np.argsort(cells, kind="stable")
+        self._grid_items = np.ascontiguousarray(segs[order], dtype=np.int64)
+        self._grid_start = np.searchsorted(cells[order], np.arange(nx * ny + 1)).astype(np.int64)
+        # origin, cell size, cells along x and y, band centre and half-width (see _to_frame)
+        self._grid_f = np.array([origin[0], origin[1], cell, nx, ny, 0.5 * self.max_width_m,
+                                 0.5 * self.max_width_m + _UNIQUE_BAND_M])
+
+    def _build_track_intervals(self) -> None:
+        """Per track, the [start, end) stretches of s where it exists (consecutive pieces merged)."""
+        ends = np.append(self._piece_s0[1:], self.length_m)
+        self._intervals: list[np.ndarray] = []
+        for t in range(self.num_tracks):
+            spans: list[list[float]] = []
+            for i in np.flatnonzero(self._present[:, t]):
+                if spans and abs(spans[-1][1] - self._piece_s0[i]) < 1e-9:
+                    spans[-1][1] = ends[i]
+                else:
+                    spans.append([self._piece_s0[i], ends[i]])
+            self._intervals.append(np.array(spans).reshape(-1, 2))
+
+    # ------------------------------------------------------------------ queries
+    def to_frame(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+        """World (x, y) -> (s along the route, d left of the reference line)."""
+        x, y, shape = _flat_pair(x, y)
+        s, d = _to_frame(x, y, self._P, self._M, self._S, self._grid_f, self._grid_start, self._grid_items)
+        return s.reshape(shape), d.reshape(shape)
+
+    # the straight Road's name: records cache road_frame(road) through it (vcfusion.records)
+    def to_road_frame(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+        return self.to_frame(x, y)
+
+    def locate(self, x, y) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World (x, y) -> (s, d, track): :meth:`to_frame` and :meth:`lane_of` in one pass (the
+        per-tick map matching of every twin)."""
+        x, y, shape = _flat_pair(x, y)
+        s, d = _to_frame(x, y, self._P, self._M, self._S, self._grid_f, self._grid_start, self._grid_items)
+        lane = _lane_of(s, d, self._piece_s0, self._bounds, self._present)
+        return s.reshape(shape), d.reshape(shape), lane.reshape(shape)
+
+    def to_world(self, s, d) -> tuple[np.ndarray, np.ndarray]:
+        """(s, d) -> world (x, y); beyond the route's ends the first/last segment extends straight."""
+        s, d, shape = _flat_pair(s, d)
+        x, y = _to_world(s, d, self._P, self._M, self._S)
+        return x.reshape(shape), y.reshape(shape)
+
+    def _segment_of(self, s: np.ndarray):
+        S = self._S
+        i = np.clip(np.searchsorted(S, s, side="right") - 1, 0, len(S) - 2)
+        t = (s - S[i]) / (S[i + 1] - S[i])
+        return i, t, (t < 0) | (t > 1)
+
+    def heading(self, s, d=0.0) -> np.ndarray:
+        """Yaw (rad, counter-clockwise from +x) of the line of constant d at (s, d)."""
+        s, d = np.broadcast_arrays(np.asarray(s, dtype=np.float64), np.asarray(d, dtype=np.float64))
+        i, t, off = self._segment_of(s)
+        P, M = self._P, self._M
+        tangent = (P[i + 1] - P[i]) + np.where(off, 0.0, d)[..., None] * (M[i + 1] - M[i])
+        return np.arctan2(tangent[..., 1], tangent[..., 0])
+
+    def _piece_of(self, s) -> np.ndarray:
+        return np.clip(np.searchsorted(self._piece_s0, s, side="right") - 1, 0, len(self._pieces) - 1)
+
+    def lane_of(self, s, d) -> np.ndarray:
+        """Track (lane index from the right) at (s, d); -1 off the road or in a lane absent there.
+        Beyond the route's ends the end pieces' lanes continue."""
+        s, d, shape = _flat_pair(s, d)
+        return _lane_of(s, d, self._piece_s0, self._bounds, self._present).reshape(shape)
+
+    def lane_bounds(self, track, s) -> tuple[np.ndarray, np.ndarray]:
+        """(d of the right edge, d of the left edge) of a track at s (its nominal place where absent)."""
+        track, s = np.broadcast_arrays(np.asarray(track, dtype=np.int64), np.asarray(s, dtype=np.float64))
+        k = self._piece_of(s)
+        return self._bounds[k, track], self._bounds[k, track + 1]
+
+    def lane_centre_d(self, track, s) -> np.ndarray:
+        right, left = self.lane_bounds(track, s)
+        return 0.5 * (right + left)
+
+    def lane_exists(self, track, s) -> np.ndarray:
+        track, s = np.broadcast_arrays(np.asarray(track, dtype=np.int64), np.asarray(s, dtype=np.float64))
+        valid = (track >= 0) & (track < self.num_tracks)
+        k = self._piece_of(s)
+        return valid & self._present[k, np.clip(track, 0, self.num_tracks - 1)]
+
+    def lane_count(self, s) -> np.ndarray:
+        return self._present[self._piece_of(s)].sum(axis=-1)
+
+    def road_bounds(self, s) -> tuple[np.ndarray, np.ndarray]:
+        """d of the rightmost and leftmost edge of the lanes present at s."""
+        k = self._piece_of(s)
+        present, b = self._present[k], self._bounds[k]
+        right = np.min(np.where(present, b[..., :-1], np.inf), axis=-1)
+        left = np.max(np.where(present, b[..., 1:], -np.inf), axis=-1)
+        return right, left
+
+    def lane_end_ahead(self, track, s) -> np.ndarray:
+        """s where the track, present at s, ends ahead (a lane drop, the end of an acceleration
+        lane, a lane that leaves the route); inf where it runs to the route's end; nan where the
+        track is absent at s."""
+        track, s = np.broadcast_arrays(np.asarray(track, dtype=np.int64), np.asarray(s, dtype=np.float64))
+        out = np.full(s.shape, np.nan)
+        for t in np.unique(track):
+            if not 0 <= t < self.num_tracks:
+                continue
+            spans = self._intervals[t]
+            sel = track == t
+            q = np.clip(s[sel], 0.0, self.length_m)  # beyond the ends: the end pieces' lanes
+            j = np.searchsorted(spans[:, 0], q, side="right") - 1
+            end = spans[np.maximum(j, 0), 1]
+            # a lane's end is where the next piece begins (absent there), except the route's end
+            inside = (j >= 0) & ((q < end) | (end >= self.length_m - 1e-9))
+            end = np.where(end >= self.length_m - 1e-9, np.inf, end)
+            out[sel] = np.where(inside, end, np.nan)
+        return out
+
+    def lane_start_ahead(self, track, s) -> np.ndarray:
+        """s where the track next begins ahead of s (an acceleration lane, a lane added at a
+        widening); inf where it does not begin again before the route's end."""
+        track, s = np.broadcast_arrays(np.asarray(track, dtype=np.int64), np.asarray(s, dtype=np.float64))
+        out = np.full(s.shape, np.inf)
+        for t in np.unique(track):
+            if 0 <= t < self.num_tracks:
+                starts = np.append(self._intervals[t][:, 0], np.inf)
+                sel = track == t
+                out[sel] = starts[np.searchsorted(starts, s[sel], side="right")]
+        return out
+
+    def lane_spans(self, track: int) -> np.ndarray:
+        """(k, 2) [start, end) stretches of s where a track exists."""
+        return self._intervals[track].copy()
+
+    def sumo_lane_position(self, track: int, s: float) -> tuple[str, float]:
+        """SUMO's (lane id, lane position) of a track at s on a route edge: where to insert a
+        vehicle placed at s. ValueError where the track is absent at s or s is in a junction."""
+        if not 0.0 <= s <= self.length_m:
+            raise ValueError(f"s = {s:.2f} m is off the route (0 to {self.length_m:.2f} m)")
+        k = int(self._piece_of(s))
+        piece = self._pieces[k]
+        if piece.edge_id.startswith(":"):
+            raise ValueError(f"s = {s:.2f} m is inside junction lane {piece.anchor.lane_id!r}: "
+                             "place vehicles on the route's edges")
+        if not (0 <= track < self.num_tracks and self._present[k, track]):
+            raise ValueError(f"track {track} does not exist at s = {s:.2f} m on edge {piece.edge_id!r} "
+                             f"(its tracks there: {sorted(piece.widths)})")
+        # an edge piece's anchor is its lane 0
+        return f"{piece.edge_id}_{track - piece.anchor_track}", min(s - piece.s0, piece.length)
+
+    def route_position(self, lane_id: str, pos_m) -> np.ndarray:
+        """s of SUMO's lane position `pos_m` on a lane of the route (edges and junction lanes)."""
+        edge = lane_id.rsplit("_", 1)[0]
+        if edge not in self.edge_start_s:
+            raise KeyError(f"lane {lane_id!r} is not on the route {list(self.route)}")
+        return self.edge_start_s[edge] + np.asarray(pos_m, dtype=np.float64)
+
+
+def default_route(net_file: str | Path) -> tuple[str, ...]:
+    """The route of a network that is one chain of edges (e.g. a single straight edge)."""
+    net = _Net(Path(net_file))
+    edges = net.normal_edges
+    succ: dict[str, set[str]] = {e: set() for e in edges}
+    pred: dict[str, set[str]] = {e: set() for e in edges}
+    for c in net.connections:
+        if c.from_edge in succ and c.to_edge in succ:
+            succ[c.from_edge].add(c.to_edge)
+            pred[c.to_edge].add(c.from_edge)
+    starts = [e for e in edges if not pred[e]]
+    if len(starts) != 1 or any(len(v) > 1 for v in succ.values()):
+        raise RouteError(net_file, "route", f"the network is not one chain of edges (starts {sorted(starts)}): "
+                         "give the route (list of edges)")
+    route = [starts[0]]
+    while succ[route[-1]]:
+        nxt = next(iter(succ[route[-1]]))
+        if nxt in route:
+            raise RouteError(net_file, "route", "the network's edges form a loop: give the route")
+        route.append(nxt)
+    if len(route) != len(edges):
+        raise RouteError(net_file, "route", "the network is not one chain of edges: give the route")
+    return tuple(route)
+
+
+# ---------------------------------------------------------------------- compiled kernels
+@numba.njit(cache=True)
+def _solve_segment(qx, qy, i, P, M, n_seg):
+    """(ok, t, e) of point q in segment i's bilinear map; the first and last segments extend
+    straight beyond the route's ends (t < 0, t > 1)."""
+    px, py = P[i, 0], P[i, 1]
+    dx, dy = P[i + 1, 0] - px, P[i + 1, 1] - py
+    m0x, m0y = M[i, 0], M[i, 1]
+    dmx, dmy = M[i + 1, 0] - m0x, M[i + 1, 1] - m0y
+    ax, ay = qx - px, qy - py
+    if i == 0 or i == n_seg - 1:
+        # beyond the route's ends: the end segment extends straight (the end vertex's miter is
+        # its segment's unit normal, so the boundary is the same line P_end + e M_end)
+        t = (ax * dx + ay * dy) / (dx * dx + dy * dy)
+        if i == 0 and t < 0.0:
+            return True, t, ax * m0x + ay * m0y
+        if i == n_seg - 1 and t > 1.0:
+            return True, t, (qx - P[i + 1, 0]) * M[i + 1, 0] + (qy - P[i + 1, 1]) * M[i + 1, 1]
+    # inside: cross(A - t D, M0 + t dM) = 0, a quadratic in t (linear where the miters agree)
+    a2 = -(dx * dmy - dy * dmx)
+    a1 = (ax * dmy - ay * dmx) - (dx * m0y - dy * m0x)
+    a0 = ax * m0y - ay * m0x
+    if abs(a2) <= 1e-12 * abs(a1):
+        if a1 == 0.0:
+            return False, 0.0, 0.0
+        t = -a0 / a1
+    else:
+        disc = a1 * a1 - 4.0 * a2 * a0
+        if disc < 0.0:
+            return False, 0.0, 0.0
+        sq = math.sqrt(disc)
+        q = -0.5 * (a1 + sq) if a1 >= 0.0 else -0.5 * (a1 - sq)
+        r1 = q / a2
+        r2 = a0 / q if q != 0.0 else np.inf
+        # the root inside the segment (the other lies near the offset lines' crossing)
+        t = r1 if abs(r1 - 0.5) <= abs(r2 - 0.5) else r2
+    eps = 1e-9
+    if t < -eps or t > 1.0 + eps:
+        return False, t, 0.0
+    mx, my = m0x + t * dmx, m0y + t * dmy
+    rx, ry = ax - t * dx, ay - t * dy
+    return True, t, (rx * mx + ry * my) / (mx * mx + my * my)
+
+
+def _flat_pair(a, b) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """Two coordinate arrays as contiguous float64 1-D arrays of one length, and their shape."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if a.shape != b.shape:
+        a, b = np.broadcast_arrays(a, b)
+    shape = a.shape
+    return np.ascontiguousarray(a.reshape(-1)), np.ascontiguousarray(b.reshape(-1)), shape
+
+
+@numba.njit(cache=True)
+def _to_frame(x, y, P, M, S, grid, grid_start, grid_items):
+    gx0, gy0, cell, nx, ny, e_mid, e_half = grid[0], grid[1], grid[2], int(grid[3]), int(grid[4]), grid[5], grid[6]
+    n = x.shape[0]
+    n_seg = P.shape[0] - 1
+    s_out = np.empty(n)
+    d_out = np.empty(n)
+    for k in range(n):
+        qx, qy = x[k], y[k]
+        best_i, best_t, best_e, best_cost = -1, 0.0, 0.0, np.inf
+        cx = int(math.floor((qx - gx0) / cell))
+        cy = int(math.floor((qy - gy0) / cell))
+        if 0 <= cx < nx and 0 <= cy < ny:
+            c = cx * ny + cy
+            for j in range(grid_start[c], grid_start[c + 1]):
+                i = grid_items[j]
+                ok, t, e = _solve_segment(qx, qy, i, P, M, n_seg)
+                if ok and abs(e - e_mid) < best_cost:
+                    best_i, best_t, best_e, best_cost = i, t, e, abs(e - e_mid)
+                    if best_cost <= e_half:
+                        break  # near the road the segments' maps tile the plane: this is the one
+        if best_i < 0:  # far from the route: every segment
+            for i in range(n_seg):
+                ok, t, e = _solve_segment(qx, qy, i, P, M, n_seg)
+                if ok and abs(e - e_mid) < best_cost:
+                    best_i, best_t, best_e, best_cost = i, t, e, abs(e - e_mid)
+        if best_i < 0:  # no segment's map reaches it (beyond a curve's centre): nearest point
+            best_d2 = np.inf
+            for i in range(n_seg):
+                dx, dy = P[i + 1, 0] - P[i, 0], P[i + 1, 1] - P[i, 1]
+                t = ((qx - P[i, 0]) * dx + (qy - P[i, 1]) * dy) / (dx * dx + dy * dy)
+                t = min(max(t, 0.0), 1.0)
+                rx, ry = qx - P[i, 0] - t * dx, qy - P[i, 1] - t * dy
+                d2 = rx * rx + ry * ry
+                if d2 < best_d2:
+                    sign = 1.0 if dx * ry - dy * rx >= 0.0 else -1.0
+                    best_i, best_t, best_e, best_d2 = i, t, sign * math.sqrt(d2), d2
+        s_out[k] = S[best_i] + best_t * (S[best_i + 1] - S[best_i])
+        d_out[k] = best_e
+    return s_out, d_out
+
+
+@numba.njit(cache=True)
+def _to_world(s, d, P, M, S):
+    n = s.shape[0]
+    last = S.shape[0] - 2
+    x_out = np.empty(n)
+    y_out = np.empty(n)
+    for k in range(n):
+        i = min(max(np.searchsorted(S, s[k], side="right") - 1, 0), last)
+        t = (s[k] - S[i]) / (S[i + 1] - S[i])
+        tm = min(max(t, 0.0), 1.0)  # off the ends the end vertex's normal: a straight extension
+        mx = M[i, 0] + tm * (M[i + 1, 0] - M[i, 0])
+        my = M[i, 1] + tm * (M[i + 1, 1] - M[i, 1])
+        x_out[k] = P[i, 0] + t * (P[i + 1, 0] - P[i, 0]) + d[k] * mx
+        y_out[k] = P[i, 1] + t * (P[i + 1, 1] - P[i, 1]) + d[k] * my
+    return x_out, y_out
+
+
+@numba.njit(cache=True)
+def _lane_of(s, d, piece_s0, bounds, present):
+    n = s.shape[0]
+    last = piece_s0.shape[0] - 1
+    n_tracks = present.shape[1]
+    out = np.full(n, -1, dtype=np.int16)
+    for k in range(n):
+        p = min(max(np.searchsorted(piece_s0, s[k], side="right") - 1, 0), last)
+        for t in range(n_tracks):
+            if bounds[p, t] <= d[k] < bounds[p, t + 1]:
+                if present[p, t]:
+                    out[k] = t
+                break
+    return out

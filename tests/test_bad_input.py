@@ -1,0 +1,334 @@
+"""Every input the user controls, refused through the real `vcfusion` command: exit 2, one line
+naming the file and the field or line and what was expected, no traceback, nothing written.
+
+Each case builds its inputs in a fresh folder (the working directory of the command) from valid
+ones with one defect; the sanity tests below check that the valid ones are valid, so every case
+fails for its own defect.
+"""
+
+import json
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from scenario_files import REPO, write_scenario
+from vcfusion.cli import main
+from vcfusion.prediction.dataset import ID_COLUMNS, load_dataset
+from vcfusion.prediction.features import FEATURE_NAMES
+from vcfusion.prediction.model import default_model_path
+from vcfusion.scenario import load_scenario
+
+BASE = """name: t
+network: NET_DIR/highway.net.xml
+vehicle_types: NET_DIR/vtypes.add.xml
+simulation: {max_time_s: 2.0}
+ego: {lane: 2, depart_pos_m: 50, speed_mps: 19}
+vehicles: [{name: car, count: 1, vtype: car, lanes: [1], pos_m: [80, 120]}]
+"""
+FUSION = "vision: {enabled: true}\nfusion: {enabled: true, detector: cnn, weights: WEIGHTS}\n"
+
+
+# --- inputs with one defect, written into the case's folder ---------------------------------
+
+def scenario(tmp: Path, text: str, name: str = "s.yaml") -> str:
+    return str(write_scenario(tmp, text, name))
+
+
+def run(tmp: Path, text: str) -> list[str]:
+    return ["run", scenario(tmp, text), "--out", "out"]
+
+
+def network(tmp: Path, xml: str) -> list[str]:
+    (tmp / "bad.net.xml").write_text(xml)
+    return run(tmp, BASE.replace("NET_DIR/highway.net.xml", "bad.net.xml"))
+
+
+def vtypes(tmp: Path, xml: str) -> list[str]:
+    (tmp / "bad.add.xml").write_text(xml)
+    return run(tmp, BASE.replace("NET_DIR/vtypes.add.xml", "bad.add.xml"))
+
+
+def shipped_model_arrays() -> dict:
+    with np.load(default_model_path(), allow_pickle=False) as data:
+        return {k: data[k] for k in data.files}
+
+
+def model_file(tmp: Path, change: Callable[[dict, dict], None]) -> Path:
+    """The shipped lane-change model with `change(arrays, meta)` applied."""
+    arrays = shipped_model_arrays()
+    meta = json.loads(str(arrays["meta"]))
+    change(arrays, meta)
+    arrays["meta"] = np.array(json.dumps(meta))
+    path = tmp / "bad.npz"
+    np.savez(path, **arrays)
+    return path
+
+
+def with_model(tmp: Path, change) -> list[str]:
+    model_file(tmp, change)
+    return run(tmp, BASE + "prediction: {model: bad.npz}\n")
+
+
+def weights_file(tmp: Path, change: Callable[[dict], None]) -> Path:
+    """The shipped detector weights with `change(blob)` applied."""
+    import torch
+
+    from vcfusion.detection.detector_net import default_weights_path
+
+    blob = torch.load(default_weights_path(), map_location="cpu", weights_only=True)
+    change(blob)
+    path = tmp / "bad.pt"
+    torch.save(blob, path)
+    return path
+
+
+def with_weights(tmp: Path, change) -> list[str]:
+    weights_file(tmp, change)
+    return run(tmp, BASE + FUSION.replace("WEIGHTS", "bad.pt"))
+
+
+def dataset(tmp: Path) -> Path:
+    """A small valid dataset folder (3 seeds: train, validation, test)."""
+    root = tmp / "ds"
+    rng = np.random.default_rng(0)
+    for seed in range(3):
+        folder = root / "runs" / f"seed_{seed:04d}"
+        folder.mkdir(parents=True)
+        n = 40
+        frame = pd.DataFrame({"seed": np.full(n, seed, np.int32), "time": np.arange(n) * 0.1,
+                              "vehicle_id": ["v"] * n, "event_id": np.zeros(n, np.int64), "lc_reason": ["strategic"] * n,
+                              "time_to_lc": 4.0 - np.arange(n) * 0.1, "time_since_lc": np.full(n, np.nan),
+                              "window_label": (np.arange(n) % 2).astype(np.int8),
+                              "stream_label": (np.arange(n) % 2).astype(np.int8)})
+        for name in FEATURE_NAMES:
+            frame[name] = rng.normal(size=n).astype(np.float32)
+        frame.to_parquet(folder / "samples.parquet", index=False)
+    meta = {"scenario": "t", "tau": 5.0, "tau_g": 2.0, "period_s": 0.1, "feature_names": list(FEATURE_NAMES),
+            "splits": {"train": [0], "validation": [1], "test": [2]}}
+    (root / "dataset.json").write_text(json.dumps(meta))
+    return root
+
+
+def train_on(tmp: Path, change: Callable[[Path], None]) -> list[str]:
+    root = dataset(tmp)
+    change(root)
+    return ["train", str(root), "--out", "out.npz", "--epochs", "1"]
+
+
+def set_meta(**changes):
+    def change(root: Path) -> None:
+        meta = json.loads((root / "dataset.json").read_text())
+        meta.update(changes)
+        for key in [k for k, v in changes.items() if v is None]:
+            del meta[key]
+        (root / "dataset.json").write_text(json.dumps(meta))
+    return change
+
+
+def samples_of(seed: int, root: Path) -> Path:
+    return root / "runs" / f"seed_{seed:04d}" / "samples.parquet"
+
+
+def drop_column(root: Path) -> None:
+    f = samples_of(1, root)
+    pd.read_parquet(f).drop(columns=["window_label"]).to_parquet(f, index=False)
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    build: Callable[[Path], list[str]]  # writes the inputs into the folder, returns the command line
+    expected: tuple[str, ...]  # fragments of the one error line: file, field or line, expectation
+
+
+CASES = [
+    # scenario YAML: syntax, shape, types, ranges, unknown keys, periods, the road it names
+    Case("yaml syntax", lambda t: run(t, "name: t\nsimulation: {step_s: 0.01\n"),
+         ("s.yaml", "line 3", "not valid YAML")),
+    Case("yaml key given twice", lambda t: run(t, BASE + "v2c: {latency_s: 0.1}\nv2c: {jitter_s: 0.1}\n"),
+         ("s.yaml", "line 8, column 1", "key 'v2c' given twice")),
+    Case("yaml not a mapping", lambda t: run(t, "- name: t\n"),
+         ("s.yaml", "expected a mapping of scenario fields", "got a list")),
+    Case("yaml empty", lambda t: run(t, ""), ("s.yaml", "expected a mapping", "got an empty file")),
+    Case("scenario missing", lambda t: ["run", "nope.yaml", "--out", "out"], ("nope.yaml", "scenario file not found")),
+    Case("field type", lambda t: run(t, BASE + "v2c: {latency_s: soon}\n"),
+         ("s.yaml", "v2c.latency_s", "valid number", "'soon'")),
+    Case("field range", lambda t: run(t, BASE + "v2c: {loss_probability: 1.5}\n"),
+         ("s.yaml", "v2c.loss_probability", "less than or equal to 1")),
+    Case("unknown key", lambda t: run(t, BASE + "simulaton: {step_s: 0.01}\n"),
+         ("s.yaml", "simulaton: unknown key", "expected one of:", "simulation")),
+    Case("unknown nested key", lambda t: run(t, BASE + "v2c: {latency: 0.1}\n"),
+         ("s.yaml", "v2c.latency: unknown key", "latency_s")),
+    Case("period not a multiple of the step", lambda t: run(t, BASE + "v2c: {period_s: 0.015}\n"),
+         ("s.yaml", "v2c.period_s", "whole multiple of simulation.step_s")),
+    Case("AR period not a multiple of the V2C period", lambda t: run(t, BASE + "ar: {period_s: 0.15}\n" + FUSION.replace("WEIGHTS", "null")),
+         ("s.yaml", "ar.period_s", "whole multiple of v2c.period_s (0.1)", "got 0.15")),
+    Case("lane not on the road", lambda t: run(t, BASE.replace("lane: 2", "lane: 5")),
+         ("s.yaml", "ego.lane", "0 to 2", "got 5")),
+    Case("position beyond the road", lambda t: run(t, BASE + "accident: {pos_m: 5000, lanes: [0]}\n"),
+         ("s.yaml", "accident.pos_m", "at most its length, 2000 m")),
+    Case("extends a missing file", lambda t: run(t, "extends: base.yaml\nname: t\n"),
+         ("s.yaml", "extends: file not found: base.yaml")),
+    Case("extends cycle", lambda t: (scenario(t, "extends: s.yaml\nname: b\n", "b.yaml"),
+                                     run(t, "extends: b.yaml\nname: t\n"))[1],
+         ("b.yaml", "extends: s.yaml makes a cycle", "s.yaml -> ")),
+    # network files
+    Case("network malformed XML", lambda t: network(t, '<net><edge id="x"'),
+         ("s.yaml: network:", "bad.net.xml", "line 1", "not well-formed XML")),
+    Case("network empty", lambda t: network(t, ""), ("bad.net.xml", "empty file", "expected a SUMO network")),
+    Case("network wrong root", lambda t: network(t, "<additional/>"),
+         ("bad.net.xml", "root element <additional>", "expected <net>")),
+    Case("network not one straight edge", lambda t: network(t, '<net><edge id="a"/><edge id="b"/></net>'),
+         ("bad.net.xml", "found 2 edges", "supported: a SUMO .net.xml with one straight edge")),
+    Case("network lane without shape", lambda t: network(
+        t, '<net><edge id="a"><lane id="a_0" index="0" speed="25" width="3.5"/></edge></net>'),
+         ("bad.net.xml", "lane 'a_0': shape", "expected 'x,y x,y ...'")),
+    Case("network missing", lambda t: run(t, BASE.replace("highway.net.xml", "nope.net.xml")),
+         ("s.yaml", "network: file not found", "nope.net.xml")),
+    # vehicle types
+    Case("unknown vehicle type", lambda t: run(t, BASE.replace("vtype: car", "vtype: bus")),
+         ("s.yaml", "vehicles[0].vtype", "'bus' is not defined in vtypes.add.xml", "expected one of: car")),
+    Case("vehicle types missing", lambda t: run(t, BASE.replace("vtypes.add.xml", "nope.add.xml")),
+         ("s.yaml", "vehicle_types: file not found", "nope.add.xml")),
+    Case("vehicle types malformed", lambda t: vtypes(t, '<additional><vType id="car"'),
+         ("s.yaml: vehicle_types:", "bad.add.xml", "not well-formed XML")),
+    Case("vehicle types without vType", lambda t: vtypes(t, "<additional/>"),
+         ("bad.add.xml", "no <vType> elements", "expected at least one vehicle type")),
+    # lane-change model files
+    Case("model garbage", lambda t: ((t / "bad.npz").write_bytes(b"\x00garbage" * 10),
+                                     run(t, BASE + "prediction: {model: bad.npz}\n"))[1],
+         ("s.yaml: prediction.model:", "bad.npz", "not a vcfusion lane-change model file")),
+    Case("model wrong format", lambda t: with_model(t, lambda a, m: m.update(format="other/1")),
+         ("bad.npz", "format: expected 'vcfusion-lane-change-mlp/1'", "'other/1'")),
+    Case("model missing metadata key", lambda t: with_model(t, lambda a, m: m.pop("tau")),
+         ("bad.npz", "meta.tau: missing")),
+    Case("model wrong shape in a hidden layer", lambda t: with_model(t, lambda a, m: a.update(w1=a["w1"][:, :64])),
+         ("bad.npz", "w1: expected a float array of shape (any, 128)", "(128, 64)")),
+    Case("model missing a layer", lambda t: with_model(t, lambda a, m: a.pop("b2")),
+         ("bad.npz", "b2: missing array")),
+    Case("model for another V2C period", lambda t: with_model(t, lambda a, m: m.update(period_s=0.2)),
+         ("s.yaml: prediction.model:", "trained for a V2C period of 0.2 s", "expected v2c.period_s to match")),
+    Case("model given to evaluate", lambda t: (model_file(t, lambda a, m: a.update(w2=a["w2"][:, :3])),
+                                               ["evaluate", "bad.npz", str(dataset(t)), "--out", "out"])[1],
+         ("bad.npz", "w2: expected a float array of shape (1, 128)")),
+    # detector weights
+    Case("weights garbage", lambda t: ((t / "bad.pt").write_bytes(b"not torch"),
+                                       run(t, BASE + FUSION.replace("WEIGHTS", "bad.pt")))[1],
+         ("s.yaml: fusion.weights:", "bad.pt", "not a vcfusion detector weights file")),
+    Case("weights wrong format", lambda t: with_weights(t, lambda b: b.update(format="yolo")),
+         ("bad.pt", "format: expected 'vcfusion-centernet-v1'", "'yolo'")),
+    Case("weights missing key", lambda t: with_weights(t, lambda b: b.pop("class_ids")),
+         ("bad.pt", "missing keys ['class_ids']")),
+    Case("weights wrong layer shape", lambda t: (
+        weights_file(t, lambda b: b["state_dict"].update({"s8.0.0.weight": b["state_dict"]["s8.0.0.weight"][:, :8]})),
+        ["eval-detector", "coco", "--weights", "bad.pt"])[1],
+         ("bad.pt", "state_dict.s8.0.0.weight: expected shape (64, 32, 3, 3)", "(64, 8, 3, 3)")),
+    Case("onnx without class ids", lambda t: ["eval-detector", "coco", "--onnx", "m.onnx", "--classes", "1,car"],
+         ("--classes", "expected the category ids", "'1,car'")),
+    # dataset folders
+    Case("COCO folder missing", lambda t: ["eval-detector", "nope"], ("nope", "dataset folder not found")),
+    Case("COCO annotations corrupt", lambda t: ((t / "coco").mkdir(), (t / "coco" / "annotations.json").write_text("{"),
+                                                ["eval-detector", "coco"])[2],
+         ("annotations.json", "not valid JSON")),
+    Case("dataset folder missing", lambda t: ["train", "nope", "--out", "out.npz"],
+         ("nope", "not a dataset folder", "vcfusion dataset")),
+    Case("dataset.json corrupt", lambda t: train_on(t, lambda r: (r / "dataset.json").write_text('{"tau": 5,')),
+         ("dataset.json", "line 1", "not valid JSON")),
+    Case("dataset.json missing key", lambda t: train_on(t, set_meta(tau=None)),
+         ("dataset.json", "tau: expected a number", "None")),
+    Case("samples not Parquet", lambda t: train_on(t, lambda r: samples_of(0, r).write_bytes(b"PAR1 junk")),
+         ("seed_0000/samples.parquet", "not a readable Parquet file")),
+    Case("samples missing a column", lambda t: train_on(t, drop_column),
+         ("seed_0001/samples.parquet", "missing columns ['window_label']")),
+    Case("evaluate horizon", lambda t: (
+        ["evaluate", str(default_model_path()), str(dataset(t)), "--out", "out", "--horizon", "-1"]),
+         ("--horizon", "expected a positive number of seconds")),
+    # command-line values
+    Case("seed range reversed", lambda t: ["batch", scenario(t, BASE), "--seeds", "5-2", "--out", "out"],
+         ("--seeds", "expected seeds from 0 to 2147483647", "'5-2'")),
+    Case("seed range too large", lambda t: ["batch", scenario(t, BASE), "--seeds", "0-99999999999", "--out", "out"],
+         ("--seeds", "'0-99999999999'")),
+    Case("negative seed", lambda t: ["run", scenario(t, BASE), "--seed", "-1", "--out", "out"],
+         ("--seed", "expected a seed from 0 to 2147483647", "got -1")),
+    Case("no workers", lambda t: ["batch", scenario(t, BASE), "--seeds", "0-3", "--workers", "0", "--out", "out"],
+         ("--workers", "expected a positive number of processes", "got 0")),
+    Case("dataset workers", lambda t: ["dataset", scenario(t, BASE), "--seeds", "0-3", "--workers", "-2",
+                                       "--out", "out"],
+         ("--workers", "expected a positive number", "got -2")),
+    Case("run folder exists", lambda t: ((t / "out").mkdir(), run(t, BASE))[1], ("--out", "out already exists")),
+    Case("output under a file", lambda t: ((t / "afile").write_text("x"),
+                                           ["batch", scenario(t, BASE), "--seeds", "0", "--out", "afile/b"])[1],
+         ("--out", "afile is a file; expected a folder path")),
+    Case("train epochs", lambda t: ["train", str(dataset(t)), "--out", "out.npz", "--epochs", "0"],
+         ("--epochs", "expected a positive number", "got 0")),
+    Case("model output under a file", lambda t: ((t / "afile").write_text("x"),
+                                                 ["train", str(dataset(t)), "--out", "afile/m.npz"])[1],
+         ("--out", "afile is a file; expected a folder path")),
+    Case("dataset output under a file", lambda t: ((t / "afile").write_text("x"),
+                                                   ["dataset", scenario(t, BASE), "--seeds", "0", "--out", "afile/d"])[1],
+         ("--out", "afile is a file; expected a folder path")),
+    Case("render every", lambda t: ["render", scenario(t, BASE), "--seeds", "0", "--every", "0", "--out", "out"],
+         ("--every", "expected a positive number of V2C ticks")),
+]
+
+
+def tree(folder: Path) -> dict[str, int]:
+    return {str(p.relative_to(folder)): p.stat().st_size if p.is_file() else -1 for p in folder.rglob("*")}
+
+
+def test_at_least_25_bad_inputs():
+    assert len(CASES) >= 25 and len({c.name for c in CASES}) == len(CASES)
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
+def test_bad_input_is_refused_in_one_line(case, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    argv = case.build(tmp_path)
+    before = tree(tmp_path)
+    code = main(argv)
+    captured = capsys.readouterr()
+    assert code == 2, captured.err
+    assert "Traceback" not in captured.err and captured.out == ""
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), captured.err
+    for fragment in case.expected:
+        assert fragment in lines[0], f"{fragment!r} not in {lines[0]!r}"
+    assert tree(tmp_path) == before  # nothing written: no output folder, no temporary left behind
+
+
+def test_several_problems_in_one_scenario_give_one_line_each(tmp_path, capsys):
+    path = write_scenario(tmp_path, BASE + "v2c: {latency_s: -1, jitter_s: x}\ncolour: red\n")
+    assert main(["run", str(path), "--out", str(tmp_path / "out")]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 3 and all(line.startswith(f"error: {path}: ") for line in lines)
+    assert {line.split(": ")[2] for line in lines} == {"v2c.latency_s", "v2c.jitter_s", "colour"}
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_valid_inputs_the_cases_start_from_are_valid(tmp_path):
+    sc = load_scenario(write_scenario(tmp_path, BASE))
+    assert sc.ego.lane == 2 and sc.vehicles[0].vtype == "car"
+    model_file(tmp_path, lambda a, m: None)
+    weights_file(tmp_path, lambda b: None)
+    (tmp_path / "sub").mkdir()
+    fused = load_scenario(write_scenario(tmp_path, BASE + FUSION.replace("WEIGHTS", "../bad.pt") +
+                                         "prediction: {model: ../bad.npz}\n", "sub/f.yaml"))
+    assert fused.fusion.weights == tmp_path / "bad.pt" and fused.prediction.model == tmp_path / "bad.npz"
+    info = load_dataset(dataset(tmp_path))
+    assert info.splits == {"train": [0], "validation": [1], "test": [2]}
+
+
+def test_a_subprocess_gets_one_line_and_exit_2(tmp_path):
+    """The installed entry point (not only main()): a malformed network file, as a user hits it."""
+    argv = network(tmp_path, '<net><edge id="x"')
+    proc = subprocess.run([sys.executable, "-m", "vcfusion", *argv], capture_output=True, text=True, cwd=tmp_path,
+                          env={"PYTHONPATH": str(REPO / "src"), "PATH": "/usr/bin:/bin"})
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+    assert "bad.net.xml: line 1, column" in proc.stderr and not (tmp_path / "out").exists()

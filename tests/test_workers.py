@@ -1,0 +1,80 @@
+"""The worker pool (vcfusion.workers.run_jobs) with real worker processes that die."""
+
+import os
+import signal
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from vcfusion.workers import JobFailed, death_cause, run_jobs
+
+
+def _job(k: int, how: str, folder: str):
+    """Job k: returns (k, pid, its temporary folder), or ends its worker the way `how` says."""
+    if how == "sigkill":
+        os.kill(os.getpid(), signal.SIGKILL)
+    if how == "exit":
+        os._exit(3)
+    if how == "raise":
+        raise ValueError(f"job {k} refused")
+    if how == "sleep":
+        try:
+            Path(folder, "started").write_text(str(os.getpid()))
+            time.sleep(60)
+        finally:  # an interrupted job still cleans up
+            Path(folder, "cleaned-up").write_text("yes")
+    return k, os.getpid(), tempfile.gettempdir()
+
+
+@pytest.fixture
+def scratch_root(tmp_path, monkeypatch):
+    root = tmp_path / "tmp"
+    root.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(root))
+    return root
+
+
+def test_a_dead_worker_costs_only_its_job(tmp_path, scratch_root):
+    hows = ["ok", "ok", "sigkill", "ok", "raise", "ok", "exit", "ok", "ok"]
+    jobs = [(k, how, str(tmp_path)) for k, how in enumerate(hows)]
+    started = {}
+    results = dict(run_jobs(_job, jobs, 2, on_start=lambda i, pid: started.setdefault(i, pid)))
+    assert sorted(results) == list(range(len(jobs)))
+    assert sorted(started) == list(range(len(jobs)))
+    assert results[2] == JobFailed("worker process died (signal 9: SIGKILL)")
+    assert results[6] == JobFailed("worker process died (exit code 3)")
+    assert isinstance(results[4], JobFailed) and results[4].cause.startswith("ValueError: job 4 refused")
+    ok = {k: v for k, v in results.items() if hows[k] in ("ok",)}
+    assert all(v[0] == k for k, v in ok.items())
+    # the workers that ran the later jobs replaced the dead ones; never more than 2 at a time alive
+    assert started[2] not in {v[1] for k, v in ok.items() if k > 2}
+    # jobs write temporary files into their worker's scratch folder, removed with the worker
+    assert all(Path(v[2]).parent == scratch_root for v in ok.values())
+    assert list(scratch_root.glob("vcfusion-worker-*")) == []
+
+
+def test_ctrl_c_stops_the_pool_and_busy_jobs_clean_up(tmp_path, scratch_root):
+    pids = {}
+
+    def press_ctrl_c_once_started():  # SIGINT to this process only, as `kill -INT` would
+        deadline = time.monotonic() + 60
+        while not (tmp_path / "started").exists() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=press_ctrl_c_once_started, daemon=True).start()
+    with pytest.raises(KeyboardInterrupt):
+        list(run_jobs(_job, [(0, "sleep", str(tmp_path))], 1, on_start=lambda i, pid: pids.setdefault(i, pid)))
+    # the pool passed the interrupt on to its busy worker: the job cleaned up, the worker is gone
+    assert (tmp_path / "cleaned-up").read_text() == "yes"
+    with pytest.raises(ProcessLookupError):
+        os.kill(pids[0], 0)
+    assert list(scratch_root.glob("vcfusion-worker-*")) == []
+
+
+def test_death_cause_names_the_signal():
+    assert death_cause(-signal.SIGSEGV) == "worker process died (signal 11: SIGSEGV)"
+    assert death_cause(1) == "worker process died (exit code 1)"
