@@ -85,7 +85,7 @@ def test_sky_gradient():
 
 # -- renders -----------------------------------------------------------------------------------------
 
-from test_render import LANE1, LANE2, SCENE, SCENARIO, states  # noqa: E402
+from test_render import LANE2, SCENE, SCENARIO, states  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,6 @@ import numpy as np
 import trimesh
 
 from vcfusion.render.materials import ASPHALT, FOLIAGE, GRASS, MATTE, METAL, PAINT_MARK, coloured
-from vcfusion.render.vehicles import vehicle_mesh, vehicle_style  # noqa: F401  (re-exported)
 from vcfusion.traffic.network import Road
 
 # RGB 0-255.

@@ -9,8 +9,8 @@ Outputs of :meth:`EgoCameraRenderer.render` (a :class:`Frame`):
   **-1 where no vehicle is seen** (road, rails, ground, sky).
 
 How (profiled under OSMesa/llvmpipe, where fragment shading dominates): one pass per frame.
-The scene is drawn with a small Lambert shader (``shaders/lambert.*``, in place of pyrender's
-PBR shader) that writes each object's instance code into the alpha channel, so a single
+The scene is drawn with our shader (``shaders/lambert.*``, in place of pyrender's PBR shader:
+Lambert plus, per material, highlights, sky reflections and procedural ground) that writes each object's instance code into the alpha channel, so a single
 RGBA + depth read-back gives all three images, pixel-consistent. Where pyrender renders into
 a multisampled framebuffer (EGL on a GPU) alpha codes would be blended at edges, so there a
 second, flat segmentation pass gives the instance map instead.

@@ -1,7 +1,7 @@
 """The pyrender scene of the highway: built once, then only vehicle poses change per frame.
 
 A vehicle gets a node when its id first appears and loses it when it is gone; meshes are shared
-by vehicles of the same shape and colour (see :func:`vcfusion.render.meshes.vehicle_mesh`), so
+by vehicles of the same shape and colour (see :func:`vcfusion.render.vehicles.vehicle_mesh`), so
 the GPU buffers of a model are uploaded once. The ego itself is not drawn: the camera sits in it.
 """
 
