@@ -108,6 +108,10 @@ def test_presets_give_identical_depth_and_instances(road):
     diff = np.abs(fast.rgb.astype(int) - quality.rgb.astype(int))
     assert diff.mean() > 0.5  # supersampling and noise changed the colours
     assert np.abs(fast.rgb.mean() - quality.rgb.mean()) < 8  # but not the picture
+    # The sky is painted with the gradient: paler towards the horizon than at the top.
+    column = 20
+    horizon = np.flatnonzero(np.isinf(fast.depth[:, column]))[-1]
+    assert int(fast.rgb[horizon - 2, column, 0]) > int(fast.rgb[0, column, 0]) + 15
 
 
 def test_contact_shadow_darkens_the_road_but_is_no_vehicle(road):
