@@ -10,7 +10,8 @@ setup: $(STAMP)
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || python3 -m venv $(VENV)
-	@ldconfig -p | grep -q libOSMesa || { (apt-get update -qq && apt-get install -y -qq libosmesa6 >/dev/null) || { echo "could not install libosmesa6 (need root and apt)"; exit 1; }; }
+	@# OSMesa: the offscreen renderer; Xvfb: the human-in-the-loop window test runs in a real X11 server
+	@{ ldconfig -p | grep -q libOSMesa && command -v Xvfb >/dev/null; } || { (apt-get update -qq && apt-get install -y -qq libosmesa6 xvfb >/dev/null) || { echo "could not install libosmesa6 and xvfb (need root and apt)"; exit 1; }; }
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[dev]'
 	@touch $(STAMP)

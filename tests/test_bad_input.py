@@ -31,6 +31,8 @@ simulation: {max_time_s: 2.0}
 ego: {lane: 2, depart_pos_m: 50, speed_mps: 19}
 vehicles: [{name: car, count: 1, vtype: car, lanes: [1], pos_m: [80, 120]}]
 """
+# the on-ramp network's main line: tracks 1-3 are its lanes, track 0 the acceleration lane (700-950 m)
+ONRAMP = BASE.replace("highway.net.xml", "onramp.net.xml") + "route: [main_in, accel, main_out]\n"
 FUSION = "vision: {enabled: true}\nfusion: {enabled: true, detector: cnn, weights: WEIGHTS}\n"
 
 
@@ -184,8 +186,29 @@ CASES = [
     Case("network empty", lambda t: network(t, ""), ("bad.net.xml", "empty file", "expected a SUMO network")),
     Case("network wrong root", lambda t: network(t, "<additional/>"),
          ("bad.net.xml", "root element <additional>", "expected <net>")),
-    Case("network not one straight edge", lambda t: network(t, '<net><edge id="a"/><edge id="b"/></net>'),
-         ("bad.net.xml", "found 2 edges", "supported: a SUMO .net.xml with one straight edge")),
+    Case("network of several edges, no route", lambda t: network(t, '<net><edge id="a"/><edge id="b"/></net>'),
+         ("s.yaml", "route:", "bad.net.xml", "not one chain of edges", "give the route")),
+    # routes (issue 19): the field that names the route, its edge, the lane
+    Case("route unknown edge", lambda t: run(t, ONRAMP.replace("main_out]", "nope]")),
+         ("s.yaml", "route[2]:", "unknown edge 'nope'", "onramp.net.xml")),
+    Case("route edges do not connect", lambda t: run(t, ONRAMP.replace("main_in, accel, main_out", "main_in, main_out")),
+         ("s.yaml", "route[1]:", "'main_in' and 'main_out' do not connect")),
+    Case("vehicle group route unknown edge", lambda t: run(t, ONRAMP.replace(
+        "vehicles: [{name: car,", "vehicles: [{name: car, route: [ramp, accel, x],")),
+         ("s.yaml", "vehicles[0].route[2]:", "unknown edge 'x'")),
+    Case("lane absent where placed", lambda t: run(t, ONRAMP.replace("lanes: [1]", "lanes: [0]")),
+         ("s.yaml", "vehicles[0].lanes:", "lane 0 does not exist between 80 and 120 m", "lanes there: [1, 2, 3]")),
+    Case("ego lane ends before the trip's end", lambda t: run(t, ONRAMP.replace(
+        "ego: {lane: 2, depart_pos_m: 50", "ego: {lane: 0, depart_pos_m: 720")),
+         ("s.yaml", "ego.lane:", "lane 0 ends at 946 m", "before the trip's end (1020 m)")),
+    Case("ego route numbering its lanes otherwise", lambda t: run(t, ONRAMP.replace(
+        "ego: {lane: 2,", "ego: {route: [main_out], lane: 0,")),
+         ("s.yaml", "ego.route:", "SUMO lane main_out_0", "lane 1 of the scenario's route")),
+    Case("accident edge off the route", lambda t: run(t, ONRAMP + "accident: {edge: ramp, pos_m: 10, lanes: [0]}\n"),
+         ("s.yaml", "accident.edge:", "expected an edge of the route", "'ramp'")),
+    Case("vision on a curved network", lambda t: run(t, BASE.replace("highway.net.xml", "curved.net.xml")
+                                                      + "vision: {enabled: true}\n"),
+         ("s.yaml", "vision.enabled:", "single straight edge only", "curved.net.xml")),
     Case("network lane without shape", lambda t: network(
         t, '<net><edge id="a"><lane id="a_0" index="0" speed="25" width="3.5"/></edge></net>'),
          ("bad.net.xml", "lane 'a_0': shape", "expected 'x,y x,y ...'")),
@@ -314,6 +337,9 @@ def test_several_problems_in_one_scenario_give_one_line_each(tmp_path, capsys):
 def test_the_valid_inputs_the_cases_start_from_are_valid(tmp_path):
     sc = load_scenario(write_scenario(tmp_path, BASE))
     assert sc.ego.lane == 2 and sc.vehicles[0].vtype == "car"
+    onramp = load_scenario(write_scenario(tmp_path, ONRAMP, "onramp.yaml"))
+    assert onramp.route == ["main_in", "accel", "main_out"]
+    load_scenario(write_scenario(tmp_path, BASE.replace("highway.net.xml", "curved.net.xml"), "curved.yaml"))
     model_file(tmp_path, lambda a, m: None)
     weights_file(tmp_path, lambda b: None)
     (tmp_path / "sub").mkdir()

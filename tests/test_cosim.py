@@ -213,9 +213,17 @@ def wrong_orders(sc, cosim):
     with pytest.raises(WiringError, match=r"VisionFusionHook\) needs 'frame', which no earlier stage provides; "
                                           r"tick hook 1 \(CameraHook\) provides it: put it before"):
         CoSimulation(sc, 0, controller=cosim.controller, hooks=[fusion, camera, cloud])
+    # with fusion the guidance log reads the overlay's guidance: it must come after it
+    with pytest.raises(WiringError, match=r"tick hook 1 \(CloudGuidanceFallback\) needs 'guidance', which no earlier "
+                                          r"stage provides; tick hook 2 \(VisionFusionHook\) provides it"):
+        CoSimulation(sc, 0, controller=cosim.controller, hooks=[camera, cloud, fusion])
+    # the cloud guidance of a run without fusion fills guidance: a provider after it is refused
+    from vcfusion.driver.cloud_guidance import CloudGuidanceFallback
+
+    filler = CloudGuidanceFallback(cloud.road, cloud.policy)
     with pytest.raises(WiringError, match=r"VisionFusionHook\) provides 'guidance' after tick hook 1 "
                                           r"\(CloudGuidanceFallback\), which fills it only where no earlier stage did"):
-        CoSimulation(sc, 0, controller=cosim.controller, hooks=[camera, cloud, fusion])
+        CoSimulation(sc, 0, controller=cosim.controller, hooks=[camera, filler, fusion])
     with pytest.raises(WiringError, match="controller DriverModel needs 'guidance', which no earlier stage provides"):
         CoSimulation(sc, 0, controller=cosim.controller, hooks=[camera])
     # a hook list changed after building is checked again when the run starts
@@ -309,3 +317,14 @@ def test_process_models_declare_their_end_of_run_step(tmp_path):
                                           r"process model lane_change \(LaneChangePredictor\)"):
         CoSimulation(sc, 0, controller=cosim.controller, process_models=cosim.process_models,
                      hooks=cosim.hooks + [AlsoFlags()])
+
+
+def test_the_ego_lane_of_a_lane_change_is_the_one_the_ego_drives_in_at_its_midpoint():
+    from vcfusion.cosim import _ego_lane_at
+    from vcfusion.traffic.network import read_road
+
+    road = read_road(REPO / "sumo_net" / "highway.net.xml")  # 3 lanes of 3.5 m
+    tracks = {"ego": {"time": np.array([0.0, 0.1, 0.2, 0.3]), "d": np.array([8.75, 6.9, 5.3, 5.25]),
+                       "s": np.array([100.0, 102.0, 104.0, 106.0])}}
+    assert _ego_lane_at(tracks, np.array([0.0, 0.12, 0.3]), road, 2).tolist() == [2, 1, 1]
+    assert _ego_lane_at({}, np.array([1.0]), road, 2).tolist() == [2]

@@ -79,7 +79,14 @@ def test_cloud_guidance_shows_neighbours_ahead_with_the_policy_levels():
     # guidance an earlier stage (the overlay) provided is kept and logged as such
     tick = _tick(_neighbours([103.0], [0.9], [1]))
     tick.guidance = GuidanceSet((Guidance(1.0, "v0", 0.9, "high", (1.0, 2.0, 3.0, 4.0)),), "fusion")
-    assert stage(tick) == [{"time": 1.0, "vehicle_id": "v0", "lc_prob": 0.9, "level": "high", "source": "fusion"}]
+    tick.guidance = GuidanceSet((Guidance(1.0, "v0", 0.9, "high", (1.0, 2.0, 3.0, 4.0), "v3"),), "fusion")
+    assert stage(tick) == [{"time": 1.0, "vehicle_id": "v0", "box_vehicle_id": "v3", "lc_prob": 0.9, "level": "high",
+                            "source": "fusion"}]
+    # with a camera the overlay is the only source: a tick without a frame is logged, never filled
+    camera_stage = CloudGuidanceFallback(ROAD, policy, camera=True)
+    assert "guidance" in camera_stage.needs and not getattr(camera_stage, "fills", ())
+    tick = _tick(_neighbours([103.0], [0.9], [1]))
+    assert camera_stage(tick)[0]["source"] == "no_frame" and tick.guidance is None
 
 
 def test_one_ego_id():

@@ -18,7 +18,7 @@ def test_road_matches_sumolib_lane_shapes():
         s, d = road.to_road_frame(np.array([x0, x1]), np.array([y0, y1]))
         np.testing.assert_allclose(d, road.lane_centre_d(lane.getIndex()), atol=1e-9)
         np.testing.assert_allclose(s, [0.0, road.length_m], atol=1e-9)
-        assert road.lane_of(d).tolist() == [lane.getIndex()] * 2
+        assert road.lane_of(s, d).tolist() == [lane.getIndex()] * 2
 
 
 def test_road_frame_round_trip():
@@ -29,7 +29,7 @@ def test_road_frame_round_trip():
     s2, d2 = road.to_road_frame(x, y)
     np.testing.assert_allclose(s2, s)
     np.testing.assert_allclose(d2, d)
-    assert road.lane_of(np.array([-0.1, 10.6])).tolist() == [-1, -1]
+    assert road.lane_of(s[:2], np.array([-0.1, 10.6])).tolist() == [-1, -1]
 
 
 def test_build_reproduces_committed_network(tmp_path):

@@ -11,7 +11,13 @@ its worker processes) is its own:
 - P4 batch scaling from 1 to 2 worker processes (and on a local Dask cluster): efficiency =
   speed-up / workers;
 - P5 resident memory along a 1-hour simulated run of dense traffic (flat = no growth beyond
-  the bounded histories; the growing tables are streamed to Parquet).
+  the bounded histories; the growing tables are streamed to Parquet);
+- P6 a person's drive paced to the wall clock (`vcfusion drive`) with the full vision tick at
+  640x480 and a 30 frames/s display (SDL dummy driver): display frames per second, late and
+  dropped frames, the simulation's lag behind the clock, input-to-display time;
+- P7 the default guidance study (`--arms none,fusion`: the fusion arm renders, detects with the
+  shipped CNN, matches and draws the overlay) on a few paired trips with 2 workers, projected
+  to the 200 trips of the paper's figure (target <= 30 min).
 """
 
 from __future__ import annotations
@@ -270,9 +276,54 @@ def p3_dataset(seeds: int) -> dict:
             "samples_per_s": round(samples / wall), "note": "one worker process"}
 
 
-SECTIONS = {"P1": p1_traffic, "P2": p2_vision, "P3": p3_dataset, "P4": p4_scaling, "P5": p5_memory}
-SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 240, "P5": 1.0},
-         "quick": {"P1": 3, "P2": 1, "P3": 2, "P4": 6, "P5": 0.3}}
+def p6_drive(max_time_s: float) -> dict:
+    """A real-time drive of scenarios/accident_ar.yaml (camera every tick, shipped CNN, joint
+    matcher) at 640x480 with the display at 30 frames/s, headless; the keyboard is idle (the ego
+    coasts), so what is measured is the loop, the vision tick and the display."""
+    import torch
+
+    from vcfusion.hitl.drive import drive
+    from vcfusion.scenario import load_scenario
+
+    torch.set_num_threads(2)
+    sc = load_scenario(REPO / "scenarios" / "accident_ar.yaml")
+    sc = sc.model_copy(update={"simulation": sc.simulation.model_copy(update={"max_time_s": max_time_s}),
+                               "ar": sc.ar.model_copy(update={"video": False})})
+    result = drive(sc, 0, input_spec="keyboard", guidance_on=True, speed=1.0, out_dir=None, headless=True,
+                   display_fps=30.0, start_screen_s=0.0)
+    rt = result.summary["realtime"]
+    return {"name": "P6 real-time drive 640x480 + vision tick", "simulated_s": result.summary["simulated_s"],
+            **rt, "target": "display >= 30 frames/s, lag <= 0.1 s"}
+
+
+def p7_guidance_study(trips: int) -> dict:
+    """The default guidance study (arms none,fusion: the fusion arm renders, runs the shipped CNN,
+    matches and draws the overlay) on `trips` paired trips with 2 workers, extrapolated to the
+    200 trips of the paper's figure (linearly: workers load renderer and detector once)."""
+    import tempfile
+
+    import pandas as pd
+
+    from vcfusion.studies.guidance import run_guidance_study
+
+    with tempfile.TemporaryDirectory(prefix="vcfusion-bench-p6-") as tmp:
+        started = time.perf_counter()
+        run_guidance_study(ACCIDENT, trips, 2, Path(tmp) / "study", Path(tmp) / "renders", progress=False,
+                           arms=("none", "fusion"))
+        wall = time.perf_counter() - started
+        table = pd.read_parquet(Path(tmp) / "study" / "trips.parquet")
+    per_arm = table.groupby("arm")["arm_wall_s"].mean()
+    return {"name": f"P7 guidance study none,fusion, {trips} paired trips, 2 workers",
+            "wall_s": round(wall, 1), "per_trip_s": round(wall / trips, 2),
+            "projected_200_trips_min": round(wall / trips * 200 / 60, 1),
+            "none_arm_s": round(float(per_arm.get("none", float("nan"))), 2),
+            "fusion_arm_s": round(float(per_arm.get("fusion", float("nan"))), 2)}
+
+
+SECTIONS = {"P1": p1_traffic, "P2": p2_vision, "P3": p3_dataset, "P4": p4_scaling, "P5": p5_memory, "P6": p6_drive,
+            "P7": p7_guidance_study}
+SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 240, "P5": 1.0, "P6": 60.0, "P7": 20},
+         "quick": {"P1": 3, "P2": 1, "P3": 2, "P4": 6, "P5": 0.3, "P6": 3.0, "P7": 4}}
 
 
 def run_section(name: str, size: str) -> dict:

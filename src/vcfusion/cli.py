@@ -93,7 +93,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
 
 def cmd_study_guidance(args: argparse.Namespace) -> int:
-    from vcfusion.studies.guidance import StudyError, run_guidance_study
+    from vcfusion.studies.guidance import StudyError, parse_arms, run_guidance_study
 
     load_scenario(args.scenario)  # fail fast, before any worker starts
     if args.trips < 2:
@@ -105,9 +105,10 @@ def cmd_study_guidance(args: argparse.Namespace) -> int:
     out = check_folder_path(Path(args.out) if args.out else Path("runs") / f"guidance-study-{Path(args.scenario).stem}")
     check_folder_path(Path(args.renders), "--renders")
     try:
+        arms = parse_arms(args.arms)
         result = run_guidance_study(Path(args.scenario), args.trips, args.workers, out, Path(args.renders),
                                     first_seed=args.first_seed, process_model_specs=tuple(args.process_model),
-                                    progress=True)
+                                    progress=True, arms=arms)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     except StudyError as exc:
@@ -118,6 +119,27 @@ def cmd_study_guidance(args: argparse.Namespace) -> int:
     for seed, error in result["failed"]:  # also in OUT/failures.json
         print(f"  trip {seed} failed: {error.splitlines()[0]}")
     return 1 if result["failed"] else 0
+
+
+def cmd_study_hitl(args: argparse.Namespace) -> int:
+    from vcfusion.hitl.driver import DriveAborted
+    from vcfusion.hitl.study import run_hitl_study
+
+    if args.speed not in ("1", "max"):
+        raise UsageError(f"--speed: expected 1 or max, got {args.speed!r}")
+    out = Path(args.out) if args.out else Path("runs") / f"hitl-{args.participant}"
+    try:
+        protocol = run_hitl_study(Path(args.scenario), args.participant, args.trips, out, input_spec=args.input,
+                                  axis_map_file=Path(args.axis_map) if args.axis_map else None,
+                                  first_seed=args.first_seed, practice_seed=args.practice_seed, order=args.order,
+                                  ssq=args.ssq, headless=args.headless,
+                                  speed=None if args.speed == "max" else 1.0)
+    except DriveAborted as exc:
+        print(f"{exc}: finished trips are kept in {out}; run the same command again to go on", file=sys.stderr)
+        return 130
+    print(f"participant {protocol['participant']} ({protocol['order']}): practice + {len(protocol['trips'])} trips "
+          f"-> {out} (protocol.json" + (", ssq.json)" if protocol["ssq"] else ")"))
+    return 0
 
 
 def cmd_build_net(args: argparse.Namespace) -> int:
@@ -147,7 +169,8 @@ def _demo_guidance_study(args: argparse.Namespace) -> int:
 
     out = _default_run_dir("guidance-study", args.seed)
     specs = tuple(args.process_model)
-    print(f"\nguidance study on {args.trips} paired trips (with and without AR guidance):")
+    print(f"\nguidance study on {args.trips} paired trips (arms none and fusion: without AR, and with the "
+          f"rendered camera, detector and AR overlay):")
     try:
         result = run_guidance_study(Path(args.scenario), args.trips, 2, out, Path("renders"),
                                     first_seed=args.seed, process_model_specs=specs, progress=sys.stderr.isatty())
@@ -189,6 +212,46 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_drive(args: argparse.Namespace) -> int:
+    if args.calibrate:
+        from vcfusion.hitl.drive import calibrate
+
+        if not args.axis_map:
+            raise UsageError("--calibrate: give --axis-map FILE to write the axis map to")
+        axis_map = calibrate(Path(args.axis_map), headless=args.headless)
+        print(f"axis map of {axis_map.device!r} -> {args.axis_map}: steer axis {axis_map.steer.axis}, "
+              f"throttle axis {axis_map.throttle.axis}, brake axis {axis_map.brake.axis}")
+        return 0
+    if not args.scenario:
+        raise UsageError("drive: give a SCENARIO file (or --calibrate)")
+    from vcfusion.cosim import format_summary
+    from vcfusion.hitl.drive import drive
+
+    scenario = load_scenario(args.scenario)
+    if args.speed not in ("1", "max"):
+        raise UsageError(f"--speed: expected 1 or max, got {args.speed!r}")
+    if args.fps <= 0:
+        raise UsageError(f"--fps: expected a positive frame rate, got {args.fps}")
+    out = Path(args.out) if args.out else _default_run_dir(f"{scenario.name}-{args.participant or 'drive'}", args.seed)
+    from vcfusion.hitl.driver import DriveAborted
+
+    try:
+        result = drive(scenario, args.seed, input_spec=args.input, guidance_on=args.guidance == "on",
+                       speed=None if args.speed == "max" else 1.0, out_dir=out, participant=args.participant,
+                       axis_map_file=Path(args.axis_map) if args.axis_map else None, record_video=args.record_video,
+                       window=not args.no_window, headless=args.headless, display_fps=args.fps,
+                       start_screen_s=0.0 if args.headless else None)  # headless: nobody to press a key
+    except DriveAborted as exc:
+        print(f"{exc}: the trip was not written", file=sys.stderr)
+        return 130
+    print(format_summary(result.summary, result.wall_s))
+    rt = result.summary["realtime"]
+    print(f"  display: {rt['frames_shown']} frames shown, {rt['dropped_frames']} dropped, median "
+          f"{rt['display_fps_median'] or 0:.1f} frames/s; max lag {rt['max_lag_s'] or 0:.3f} s")
+    print(f"run folder: {out}")
+    return 0
+
+
 def cmd_bench_render(args: argparse.Namespace) -> int:
     from vcfusion.render.bench import main as bench_main
 
@@ -224,6 +287,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_identification_parser(study)
     p = study.add_parser("guidance", help="paired trips with and without AR guidance (paper Fig. 8/9)")
     p.add_argument("scenario")
+    p.add_argument("--arms", default="none,fusion",
+                   help="comma-separated arms among none (no AR), cloud (highlights from the cloud alone), "
+                        "fusion (camera + CNN + matcher + overlay: the paper's system), oracle (ground-truth "
+                        "boxes); paired on seeds and driver draws, each compared with none (default: none,fusion)")
     p.add_argument("--trips", type=int, default=200, help="number of paired trips (seeds FIRST..FIRST+N-1)")
     p.add_argument("--workers", type=int, default=2, help="worker processes (one simulation each)")
     p.add_argument("--first-seed", type=int, default=0)
@@ -234,6 +301,22 @@ def build_parser() -> argparse.ArgumentParser:
                         "{'lc_prob': ...}; repeatable (e.g. a stand-in before the predictor is wired)")
     p.set_defaults(func=cmd_study_guidance,
                    interrupted="the study wrote nothing; run the same command again (its trips start over)")
+
+    p = study.add_parser("hitl", help="a participant drives: practice, counterbalanced trips with / without "
+                                      "guidance, optional SSQ (vcfusion drive for each trip)")
+    p.add_argument("scenario")
+    p.add_argument("--participant", required=True)
+    p.add_argument("--trips", type=int, default=4, help="paired trips: each seed driven with and without guidance")
+    p.add_argument("--first-seed", type=int, default=0)
+    p.add_argument("--practice-seed", type=int, default=1000)
+    p.add_argument("--order", choices=("on-first", "off-first"), help="default: alternates between participants")
+    p.add_argument("--ssq", action="store_true", help="simulator sickness questionnaire before and after")
+    p.add_argument("--input", default="keyboard", help="keyboard, joystick or replay:FILE")
+    p.add_argument("--axis-map", help="axis-map JSON of the wheel (vcfusion drive --calibrate)")
+    p.add_argument("--speed", default="1", help="1 (real time) or max (replay inputs only)")
+    p.add_argument("--headless", action="store_true", help="SDL dummy video/audio drivers (no screen)")
+    p.add_argument("--out", help="session folder (default: runs/hitl-PARTICIPANT)")
+    p.set_defaults(func=cmd_study_hitl, interrupted="finished trips are kept; run the same command again to go on")
 
     p = sub.add_parser("build-net", help="rebuild every sumo_net/NAME.net.xml with netconvert")
     p.add_argument("--net-dir", help="folder with NAME.nod/edg.xml (+ .typ/.con.xml) (default: the repo's sumo_net)")
@@ -251,6 +334,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--every", type=int, default=5, help="render every K-th V2C tick (default 5)")
     p.add_argument("--out", help="dataset folder to create (default: renders/NAME-dataset)")
     p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("drive", help="drive the ego yourself (keyboard, wheel, game pad) or replay a drive")
+    p.add_argument("scenario", nargs="?", help="scenario YAML file (not needed with --calibrate)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--guidance", choices=("on", "off"), default="on", help="show the AR guidance (default on)")
+    p.add_argument("--input", default="keyboard", help="keyboard, joystick or replay:FILE (CSV / Parquet)")
+    p.add_argument("--speed", default="1", help="1 (real time) or max (replay only)")
+    p.add_argument("--participant", default="", help="participant id, stored with the trip")
+    p.add_argument("--out", help="run folder to create (default: runs/SCENARIO-PARTICIPANT-seedN)")
+    p.add_argument("--axis-map", help="axis-map JSON of the wheel (written by --calibrate)")
+    p.add_argument("--calibrate", action="store_true", help="calibrate the wheel / pedals into --axis-map FILE")
+    p.add_argument("--record-video", action="store_true", help="also write the driver's view as drive.mp4 "
+                                                               "in the run folder")
+    p.add_argument("--fps", type=float, default=30.0, help="display frames per simulated second (default 30)")
+    p.add_argument("--headless", action="store_true", help="SDL dummy video/audio drivers (no screen)")
+    p.add_argument("--no-window", action="store_true", help="no display at all (replays: tables only)")
+    p.set_defaults(func=cmd_drive, interrupted="the trip was not written")
 
     p = sub.add_parser("bench-render", help="time RGB + depth + instance rendering (median ms per frame)")
     p.add_argument("--scenario", default="scenarios/accident.yaml")

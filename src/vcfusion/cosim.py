@@ -19,7 +19,7 @@ import time as wallclock
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
 import numpy as np
 import pandas as pd
@@ -35,8 +35,9 @@ from vcfusion.runio import RunTables, TableSink, vehicle_tracks
 from vcfusion.scenario import Scenario
 from vcfusion.stages import WiringError, check_wiring, declared, stage_name
 from vcfusion.threads import one_blas_thread
-from vcfusion.traffic.lanechanges import lane_change_events, read_sumo_lanechanges, relate_to_ego
-from vcfusion.traffic.network import Road
+from vcfusion.traffic.lanechanges import (ego_lane_changes, lane_change_events, merge_changes, read_sumo_lanechanges,
+                                          relate_to_ego)
+from vcfusion.traffic.roadframe import RoadFrame
 from vcfusion.traffic.session import Collision, SumoSession
 
 if TYPE_CHECKING:  # the camera and detector types only: traffic-only runs never import OpenGL or torch
@@ -77,9 +78,35 @@ class Tick:
 
 
 class EgoController(Protocol):
-    """Sets the ego's acceleration every tick; may declare `needs` and `finish` (vcfusion.stages)."""
+    """Sets the ego's acceleration every tick; may declare `needs` and `finish` (vcfusion.stages).
+
+    A controller may also have ``step(EgoStep) -> EgoCommand``, called every SUMO step after the
+    tick's stages: a person at the wheel (vcfusion.hitl) acts between ticks, and steers."""
 
     def acceleration(self, tick: Tick) -> float: ...
+
+
+@dataclass(frozen=True)
+class EgoStep:
+    """What a per-step ego controller sees before each SUMO step."""
+
+    time: float
+    s_front: float  # front bumper along the road
+    speed: float
+    states: Callable[[], VehicleStates]  # the ground truth now, read on demand (e.g. a display frame)
+
+
+@dataclass(frozen=True)
+class EgoCommand:
+    """A per-step controller's command for the next step: the acceleration, and optionally where the
+    ego's front bumper centre is across the road (`d`, m left of the right road edge) and its yaw
+    relative to the road (rad, left positive). With `d` set the ego is placed (SUMO moveToXY,
+    keepRoute=2: it stays on its edge, in the lane under its centre, and SUMO's followers and
+    collision check see it there); without, it keeps its lane as SUMO drives it."""
+
+    accel: float
+    d: float | None = None
+    yaw: float = 0.0
 
 
 class TickHook(Protocol):
@@ -110,7 +137,7 @@ TRAJECTORY_COLUMNS = ["time", "vehicle_id", "x", "y", "z", "heading", "speed", "
 EMPTY_COLUMNS = {"trajectories": TRAJECTORY_COLUMNS, "ego": EGO_COLUMNS}
 
 
-def _truth_rows(truth: VehicleStates, road: Road) -> dict[str, np.ndarray]:
+def _truth_rows(truth: VehicleStates, road: RoadFrame) -> dict[str, np.ndarray]:
     s, d = truth.road_frame(road)
     return {
         "time": np.full(len(truth), round(truth.time, 6)),
@@ -195,7 +222,7 @@ class CoSimulation:
             loop_wall = wallclock.perf_counter() - loop_started
         finally:
             session.close()
-        sumo_changes = read_sumo_lanechanges(lc_file)
+        sumo_changes = read_sumo_lanechanges(lc_file, session.road)
         lc_file.unlink(missing_ok=True)
         stored = {name: sink.close() for name, sink in sinks.items()}
         frames = {name: pd.DataFrame(columns=EMPTY_COLUMNS.get(name, [])) for name, f in stored.items() if f is None}
@@ -207,10 +234,15 @@ class CoSimulation:
         lateral = tables.arrow("trajectories", ["vehicle_id", "time", "d", "s"])
         # the changers' and the ego's samples as plain arrays, selected once for both lane-change steps
         tracks = vehicle_tracks(lateral, set(sumo_changes["vehicle_id"]) | {EGO_ID}, ["time", "d", "s"])
-        events = lane_change_events(sumo_changes, tracks, session.road)
         if sc.ego is not None:
             lengths = dict(zip(vehicles["vehicle_id"], vehicles["length"]))
-            events = relate_to_ego(events, tracks, lengths, sc.ego.lane)
+            # a person steers the ego across lanes; SUMO does not report those changes
+            sumo_changes = merge_changes(sumo_changes, ego_lane_changes(tracks.get(EGO_ID), session.road,
+                                                                        lengths[EGO_ID]))
+        events = lane_change_events(sumo_changes, tracks, session.road)
+        if sc.ego is not None:
+            events = relate_to_ego(events, tracks, lengths, _ego_lane_at(tracks, events["mid_time"], session.road,
+                                                                         sc.ego.lane))
         tables["lane_changes"] = pd.DataFrame(events)
         summary = summarize(sc, self.seed, tables, events, out["channel"], out["end_reason"], lateral)
         for stage in self.stages():
@@ -235,6 +267,8 @@ class CoSimulation:
         ego_cfg = sc.ego
         ego_speed = ego_cfg.speed_mps if ego_cfg else 0.0
         ego_accel = 0.0
+        stepper = getattr(self.controller, "step", None)  # a per-step controller (a person driving)
+        command = None
         if ego_cfg is not None:
             trip_end_s = ego_cfg.depart_pos_m + ego_cfg.trip_distance_m
         end_reason = "max_time"
@@ -276,6 +310,9 @@ class CoSimulation:
                     sinks[hook.table].append_rows(hook(tick) or [])
                 if ego_cfg is not None:
                     ego_accel = float(self.controller.acceleration(tick))
+            if stepper is not None:
+                command = stepper(EgoStep(session.time, s_front, ego_speed_now, session.states))
+                ego_accel = float(command.accel)
             if ego_cfg is not None:
                 ego_rows.append((round(session.time, 6), s_front, ego_speed_now, sumo_acc, ego_accel,
                                  *(leader or ("", np.nan))))
@@ -284,6 +321,9 @@ class CoSimulation:
                     ego_rows = []
                 ego_speed = max(0.0, ego_speed + ego_accel * dt)
                 session.set_ego_speed(ego_speed)
+                if command is not None and command.d is not None:
+                    # SUMO moves its vehicles s += v dt with the new speed; the placed ego does the same
+                    session.place_ego(s_front + ego_speed * dt * np.cos(command.yaw), command.d, command.yaw)
             session.step()
             k += 1
             if k % tick_every == 0:
@@ -308,6 +348,16 @@ class CoSimulation:
             leader_gap_m=leader[1] if leader else None,
             leader_speed=session.speed_of(leader[0]) if leader else None,
         )
+
+
+def _ego_lane_at(tracks: dict, times: np.ndarray, road: RoadFrame, start_lane: int) -> np.ndarray:
+    """The ego's lane at each of `times` (its nearest trajectory sample): a person may change
+    lanes (vcfusion.hitl), so "into the ego's lane" means the lane it drives in then."""
+    ego = tracks.get(EGO_ID)
+    if ego is None or not len(ego["time"]) or not len(times):
+        return np.full(len(times), start_lane)
+    at = np.abs(ego["time"][None, :] - np.asarray(times)[:, None]).argmin(axis=1)
+    return road.lane_of(ego["s"][at], ego["d"][at])
 
 
 def _finish(stage, tables: RunTables, summary: dict) -> None:

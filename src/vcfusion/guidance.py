@@ -68,9 +68,13 @@ class GuidancePolicy:
                              f"{self.view_range_m}, {self.lane_width_m}")
 
     @classmethod
-    def on_road(cls, road, ego_lane: int, medium: float, high: float, view_range_m: float) -> "GuidancePolicy":
+    def on_road(cls, road, ego_lane: int, medium: float, high: float, view_range_m: float,
+                ego_s: float = 0.0) -> "GuidancePolicy":
+        """The policy on a road frame; the ego lane's centre is taken at s = ego_s (a track keeps
+        its d range along a route whose lanes keep their widths)."""
         return cls(medium=float(medium), high=float(high), view_range_m=float(view_range_m), ego_lane=int(ego_lane),
-                   lane_width_m=float(road.lane_width_m), ego_lane_centre_d=float(road.lane_centre_d(ego_lane)))
+                   lane_width_m=float(road.lane_width_m),
+                   ego_lane_centre_d=float(road.lane_centre_d(ego_lane, ego_s)))
 
     @classmethod
     def from_scenario(cls, scenario, road) -> "GuidancePolicy":
@@ -78,7 +82,7 @@ class GuidancePolicy:
         if scenario.ego is None:
             raise ValueError(f"{scenario.source or scenario.name}: guidance needs an ego; expected an ego block")
         return cls.on_road(road, scenario.ego.lane, scenario.ar.medium_threshold, scenario.ar.high_threshold,
-                           scenario.driver.guidance_view_range_m)
+                           scenario.driver.guidance_view_range_m, ego_s=scenario.ego.depart_pos_m)
 
     def level(self, prob: float, decision: int | None = None) -> str:
         """The level of a neighbour with lane-change probability `prob` and, when the predictor
@@ -94,6 +98,15 @@ class GuidancePolicy:
     @staticmethod
     def warns(level: str) -> bool:
         return level in WARNING_LEVELS
+
+    def any_warning(self, twins) -> bool:
+        """Whether any of `twins` (e.g. the ego's neighbours) has a warning level."""
+        if twins is None or not len(twins) or "lc_prob" not in twins.outputs:
+            return False
+        prob = np.asarray(twins.outputs["lc_prob"], dtype=float)
+        decision = twins.outputs.get("lc_decision")
+        decisions = [None] * len(prob) if decision is None else np.asarray(decision).tolist()
+        return any(self.warns(self.level(float(p), d)) for p, d in zip(prob.tolist(), decisions))
 
     def ahead(self, rear_s, ego_front_s, range_m: float | None = None):
         """Rear bumper(s) `rear_s` beyond the ego's front bumper by at most `range_m` (default:

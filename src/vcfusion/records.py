@@ -83,7 +83,7 @@ class VehicleStates:
     heading: np.ndarray
     speed: np.ndarray
     accel: np.ndarray
-    lane: np.ndarray  # int16, SUMO lane index (0 = rightmost), -1 if not on the road
+    lane: np.ndarray  # int16, track of the scenario's route (lane index from the right), -1 off the route
     lateral_offset: np.ndarray  # metres left of the lane centre
     length: np.ndarray
     width: np.ndarray
@@ -99,7 +99,7 @@ class VehicleStates:
         return _take(self, index)
 
     def road_frame(self, road) -> tuple[np.ndarray, np.ndarray]:
-        """(s, d) of the footprint centres on `road` (see Road.to_road_frame); computed once."""
+        """(s, d) of the footprint centres on `road` (see RoadFrame.to_frame); computed once."""
         return _road_frame(self, road)
 
 
@@ -154,7 +154,7 @@ class TwinStates:
     heading: np.ndarray
     speed: np.ndarray
     accel: np.ndarray
-    lane: np.ndarray  # map-matched from the GNSS position, -1 off the road
+    lane: np.ndarray  # track map-matched from the GNSS position (RoadFrame.locate), -1 off the road
     length: np.ndarray
     width: np.ndarray
     height: np.ndarray
@@ -170,7 +170,7 @@ class TwinStates:
         return sub
 
     def road_frame(self, road) -> tuple[np.ndarray, np.ndarray]:
-        """(s, d) of the twins' GNSS points on `road` (see Road.to_road_frame); computed once."""
+        """(s, d) of the twins' GNSS points on `road` (see RoadFrame.to_frame); computed once."""
         return _road_frame(self, road)
 
 
@@ -178,16 +178,27 @@ class TwinStates:
 class Guidance:
     """One item of AR guidance shown to the driver at a tick (part of a :class:`GuidanceSet`).
 
-    Made by the vision-cloud fusion stage (a neighbour's lane-change probability on its matched
-    box) or by the cloud guidance stage (no box); its level follows the run's
-    :class:`vcfusion.guidance.GuidancePolicy`. Consumed by the driver model.
+    Made by the vision-cloud fusion stage (a twin's lane-change probability drawn on the box the
+    matcher gave it: no matched box, no item) or by the cloud guidance stage (no image: the item
+    marks the twin itself); its level follows the run's :class:`vcfusion.guidance.GuidancePolicy`.
+    ``vehicle_id`` is the twin the cloud meant; ``box_vehicle_id`` the vehicle actually inside the
+    drawn box (the one owning most of the box's pixels in the rendered instance map; None when no
+    vehicle is). The driver model responds to :attr:`shown_vehicle_id`, the vehicle it sees
+    highlighted: a box drawn around the wrong car misleads the driver, as it would a person.
     """
 
     time: float
     vehicle_id: str
     lc_prob: float
     level: str  # one of vcfusion.guidance.GUIDANCE_LEVELS
-    box: tuple[float, float, float, float] | None  # matched image box (x1, y1, x2, y2) px; None if unmatched
+    box: tuple[float, float, float, float] | None  # matched image box (x1, y1, x2, y2) px; None: no image
+    box_vehicle_id: str | None = None  # the vehicle owning most pixels of `box` (fusion items)
+
+    @property
+    def shown_vehicle_id(self) -> str | None:
+        """The vehicle the driver sees highlighted: the one in the box, or the twin itself for an
+        item without a box (cloud guidance); None for a box around no vehicle."""
+        return self.box_vehicle_id if self.box is not None else self.vehicle_id
 
 
 GUIDANCE_SOURCES = ("fusion", "cloud", "none")

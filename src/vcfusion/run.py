@@ -15,16 +15,18 @@ from vcfusion.scenario import Scenario
 
 def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool | None = None,
                        extra_process_models: list[tuple[str, ProcessModel]] | None = None,
-                       recorder=None) -> CoSimulation:
+                       recorder=None, renderer=None, detector=None) -> CoSimulation:
     """The co-simulation with every stage the scenario enables.
 
     `guidance_enabled` overrides `driver.guidance` of the scenario (the guidance study runs
     both arms of a trip); `extra_process_models` are added to the cloud twins' models;
-    `recorder` receives the AR overlay frames (video).
+    `recorder` receives the AR overlay frames (video). `renderer` / `detector`: a camera renderer
+    and a detector to reuse (a study's worker keeps them loaded across trips; the caller closes
+    the renderer); by default the camera and fusion stages make their own.
     """
     from vcfusion.traffic.network import read_road
 
-    road = read_road(scenario.network)
+    road = read_road(scenario.network, scenario.route)
     process_models = []
     if scenario.prediction.enabled:
         from vcfusion.prediction.cloud import predictor_for_scenario
@@ -40,22 +42,30 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
         # Imported only here: traffic-only runs never load OpenGL.
         from vcfusion.render.hook import CameraHook
 
-        hooks.append(CameraHook(scenario, every_ticks=scenario.vision.every_ticks))
+        when = None
+        if scenario.vision.only_when_warning and policy is not None:
+            def when(tick, policy=policy):
+                return policy.any_warning(tick.neighbours)
+        hooks.append(CameraHook(scenario, every_ticks=scenario.vision.every_ticks, renderer=renderer, when=when))
     if scenario.fusion.enabled:
         from vcfusion.fusion.stage import build_fusion_hook
 
-        hooks.append(build_fusion_hook(scenario, seed, policy, recorder))
+        hooks.append(build_fusion_hook(scenario, seed, policy, recorder, detector=detector))
     if scenario.ego is not None:
         from vcfusion.driver.cloud_guidance import CloudGuidanceFallback
         from vcfusion.driver.model import DriverModel
         from vcfusion.driver.params import draw_driver
+        from vcfusion.driver.perception import DriverView
 
-        hooks.append(CloudGuidanceFallback(road, policy))
+        # with vision fusion the overlay is the only source: the stage logs it (a tick without a
+        # frame is counted, never filled from the cloud)
+        hooks.append(CloudGuidanceFallback(road, policy, camera=scenario.fusion.enabled))
         enabled = scenario.driver.guidance if guidance_enabled is None else guidance_enabled
-        controller = DriverModel(draw_driver(seed, scenario.ego.desired_speed_mps), road, policy, enabled)
+        controller = DriverModel(draw_driver(seed, scenario.ego.desired_speed_mps), road, policy, enabled,
+                                 view=DriverView.from_scenario(scenario))
     # The order above is what the stages declare they need (checked here, see vcfusion.stages):
-    # camera -> fusion (reads tick.frame) -> cloud guidance (fills tick.guidance where fusion made
-    # none) -> driver (reads tick.guidance).
+    # camera -> fusion (reads tick.frame) -> guidance log (without fusion: the cloud guidance,
+    # filling tick.guidance) -> driver (reads tick.guidance).
     return CoSimulation(scenario, seed, controller=controller, process_models=process_models, hooks=hooks)
 
 

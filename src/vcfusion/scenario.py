@@ -16,12 +16,15 @@ import typing
 from pathlib import Path
 from typing import Annotated, Literal
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from vcfusion.errors import ScenarioError  # the loader's error; importable from here as before
 
 NonNegative = Annotated[float, Field(ge=0.0)]
+# A route: edge ids of the network in driving order (vcfusion.traffic.roadframe).
+Route = Annotated[list[Annotated[str, Field(min_length=1)]], Field(min_length=1)]
 Positive = Annotated[float, Field(gt=0.0)]
 Probability = Annotated[float, Field(ge=0.0, le=1.0)]
 
@@ -120,10 +123,18 @@ class VisionConfig(_Strict):
     enabled: bool = False
     # Render every this many V2C ticks (1 = every tick).
     every_ticks: Annotated[int, Field(ge=1)] = 1
+    # Render and fuse only at ticks where a neighbour twin carries a warning (the overlay then has
+    # something to warn about; at other ticks it would draw no warning, so the driver is shown the
+    # same warnings). Off by default: the joint matcher's position filter then gets fewer
+    # updates, so the identification is not the every-tick system's; the video needs it off.
+    only_when_warning: bool = False
 
 
 class EgoConfig(_Strict):
     vtype: str = "ego"
+    # the ego's route (default: the scenario's); lane: a track of it (index from the right), and
+    # depart_pos_m (front bumper) along it
+    route: Route | None = None
     lane: Annotated[int, Field(ge=0)] = 2
     depart_pos_m: NonNegative = 50.0
     speed_mps: NonNegative = 19.0
@@ -140,6 +151,9 @@ class DriverConfig(_Strict):
     # Guidance items are made for neighbours ahead within this range; levels follow ar.medium_threshold /
     # ar.high_threshold (one GuidancePolicy per run, vcfusion.guidance).
     guidance_view_range_m: Positive = 150.0
+    # The driver's forward field of view (degrees); default: the camera's hfov_deg (the AR shows
+    # the camera's view). See vcfusion.driver.perception.
+    field_of_view_deg: Annotated[float, Field(gt=1.0, lt=180.0)] | None = None
 
 
 class VehicleGroup(_Strict):
@@ -148,6 +162,9 @@ class VehicleGroup(_Strict):
     name: str
     count: Annotated[int, Field(ge=1)]
     vtype: str = "car"
+    # the group's route (default: the scenario's); lanes are its tracks (index from the right) and
+    # pos_m the front bumpers' range along it
+    route: Route | None = None
     lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1)
     pos_m: tuple[NonNegative, NonNegative]
     speed_mps: NonNegative = 17.0
@@ -164,17 +181,21 @@ class VehicleGroup(_Strict):
 
 
 class Flow(_Strict):
-    """Poisson arrivals at the start of the road over the whole run."""
+    """Poisson arrivals at the start of the route (the flow's, default the scenario's) over the
+    whole run, in the given tracks of that route's first edge."""
 
     vtype: str = "car"
+    route: Route | None = None
     vehs_per_hour: Positive
     lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1)
     speed_mps: NonNegative = 25.0
 
 
 class AccidentConfig(_Strict):
-    """Stopped vehicles closing lanes (SUMO <stop parking="false">)."""
+    """Stopped vehicles closing lanes (SUMO <stop parking="false">): tracks of the scenario's
+    route at pos_m (front bumper) along `edge`, or along the route when no edge is given."""
 
+    edge: str | None = None
     pos_m: NonNegative
     lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1)
     vtype: str = "truck"
@@ -237,6 +258,9 @@ class Scenario(_Strict):
     name: str
     description: str = ""
     network: Path
+    # the road frame's route (edge ids in driving order) and every vehicle's default route; a
+    # network that is one chain of edges (e.g. one straight edge) needs none
+    route: Route | None = None
     vehicle_types: Path
     simulation: SimulationConfig = SimulationConfig()
     v2c: V2CConfig = V2CConfig()
@@ -491,44 +515,116 @@ def load_scenario(path: str | Path) -> Scenario:
     return scenario
 
 
+def _route_error(origins: _Origins, loc: tuple, exc) -> ScenarioError:
+    """A RouteError of the frame of the route at `loc` (e.g. ("vehicles", 1)), naming its field."""
+    where = _format_location(loc)
+    part = exc.where.removeprefix("route") if exc.where else ""  # "[2]", or "" for the route as a whole
+    field = f"{where}.route{part}" if loc else f"route{part}"
+    return ScenarioError(f"{origins.label(loc + ('route',))}: {field}: {exc.detail} (network {exc.net_file.name})")
+
+
+def _check_ego_lane(scenario: Scenario, road, origins: _Origins) -> None:
+    """The ego keeps its lane for the whole trip (the driver model does not change lanes), and
+    its lane is the guidance's and the metrics' ego lane, a track of the scenario's route: the
+    lane must run to the trip's end, and an own route must number it as the scenario's does."""
+    from vcfusion.traffic.network import read_road, sumo_place
+
+    ego = scenario.ego
+    frame = read_road(scenario.network, ego.route) if ego.route is not None else road
+    lane_id = "{0[0]}_{1}".format(*sumo_place(frame, ego.lane, ego.depart_pos_m))
+    if road.track_of.get(lane_id) != ego.lane:
+        raise ScenarioError(f"{origins.label(('ego', 'route'))}: ego.route: the ego departs in SUMO lane {lane_id}, "
+                            f"which is lane {road.track_of.get(lane_id, 'none')} of the scenario's route "
+                            f"{list(road.route)}, not {ego.lane}; expected an ego route on which the ego's lane "
+                            "has the scenario's index (e.g. a part of the scenario's route)")
+    end = float(frame.lane_end_ahead(ego.lane, ego.depart_pos_m))
+    trip_end = ego.depart_pos_m + ego.trip_distance_m
+    if end < trip_end:
+        raise ScenarioError(f"{origins.label(('ego', 'lane'))}: ego.lane: lane {ego.lane} ends at {end:g} m along the "
+                            f"ego's route, before the trip's end ({trip_end:g} m); the ego keeps its lane: expected "
+                            "a lane that runs to the trip's end")
+
+
 def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
-    """Read the files the scenario names and check the scenario against them (lanes, positions,
-    vehicle types), so a bad one stops the command before anything is written."""
+    """Read the files the scenario names and check the scenario against them (routes, lanes,
+    positions, vehicle types), so a bad one stops the command before anything is written."""
     from vcfusion.traffic.network import NetworkFileError, read_road, read_vehicle_types
+    from vcfusion.traffic.roadframe import RouteError
 
     try:
-        road = read_road(scenario.network)
+        road = read_road(scenario.network, scenario.route)
     except NetworkFileError as exc:
         raise ScenarioError(f"{origins.label(('network',))}: network: {exc}") from None
+    except RouteError as exc:
+        raise _route_error(origins, (), exc) from None
     try:
         vtypes = read_vehicle_types(scenario.vehicle_types)
     except NetworkFileError as exc:
         raise ScenarioError(f"{origins.label(('vehicle_types',))}: vehicle_types: {exc}") from None
+    if scenario.vision.enabled and not road.is_straight:
+        raise ScenarioError(f"{origins.label(('vision', 'enabled'))}: vision.enabled: the ego camera draws a "
+                            f"single straight edge only, and {scenario.network.name} (route "
+                            f"{list(road.route)}) is not one; expected vision.enabled: false")
 
-    uses: list[tuple[tuple, str, list[int], list[float]]] = []  # (loc, vtype, lanes, positions along the road)
+    # (loc, vtype, route frame, lanes, [(field, positions along the route)]): a group's lanes must
+    # exist somewhere in its range (draws where one is absent are drawn again), the others' where they are
+    uses: list[tuple[tuple, str, object, list[int], str, list[float], bool]] = []
     if scenario.ego is not None:
-        uses.append((("ego",), scenario.ego.vtype, [scenario.ego.lane], [scenario.ego.depart_pos_m]))
+        uses.append((("ego",), scenario.ego.vtype, scenario.ego.route, [scenario.ego.lane], "depart_pos_m",
+                     [scenario.ego.depart_pos_m], False))
     # a range partly beyond the road is left to the seeds (a draw outside is an impossible departure
     # of that seed, RunError); one wholly beyond it can never run
-    uses += [(("vehicles", i), g.vtype, g.lanes, [g.pos_m[0]]) for i, g in enumerate(scenario.vehicles)]
-    uses += [(("flows", i), f.vtype, f.lanes, []) for i, f in enumerate(scenario.flows)]
-    if scenario.accident is not None:
-        uses.append((("accident",), scenario.accident.vtype, scenario.accident.lanes, [scenario.accident.pos_m]))
-    for loc, vtype, lanes, positions in uses:
+    uses += [(("vehicles", i), g.vtype, g.route, g.lanes, "pos_m", list(g.pos_m), True)
+             for i, g in enumerate(scenario.vehicles)]
+    uses += [(("flows", i), f.vtype, f.route, f.lanes, "", [0.0], False) for i, f in enumerate(scenario.flows)]
+    acc = scenario.accident
+    if acc is not None:
+        acc_s = acc.pos_m
+        if acc.edge is not None:
+            if acc.edge not in road.route:
+                raise ScenarioError(f"{origins.label(('accident', 'edge'))}: accident.edge: expected an edge of "
+                                    f"the route {list(road.route)}, got {acc.edge!r}")
+            acc_s = road.edge_start_s[acc.edge] + acc.pos_m
+        uses.append((("accident",), acc.vtype, None, acc.lanes, "pos_m", [acc_s], False))
+    for loc, vtype, route, lanes, pos_field, positions, is_range in uses:
         where = _format_location(loc)
         if vtype not in vtypes:
             raise ScenarioError(f"{origins.label(loc + ('vtype',))}: {where}.vtype: {vtype!r} is not defined in "
                                 f"{scenario.vehicle_types.name}; expected one of: {', '.join(vtypes)}")
+        frame = road
+        if route is not None:
+            try:
+                frame = read_road(scenario.network, route)
+            except RouteError as exc:
+                raise _route_error(origins, loc, exc) from None
+        field = "depart_pos_m" if loc == ("ego",) else "pos_m"
+        on = f"route {list(frame.route)}" if len(frame.route) > 1 else "the road"
+        for pos in positions[:1]:
+            if pos > frame.length_m:
+                raise ScenarioError(f"{origins.label(loc + (field,))}: {where}.{field}: expected a position on "
+                                    f"{on} (at most its length, {frame.length_m:g} m), got {pos:g}")
         field = "lane" if loc == ("ego",) else "lanes"
         for lane in lanes:
-            if lane >= road.num_lanes:
+            if lane >= frame.num_tracks:
                 raise ScenarioError(f"{origins.label(loc + (field,))}: {where}.{field}: expected a lane of "
-                                    f"{scenario.network.name} (0 to {road.num_lanes - 1}), got {lane}")
-        field = "depart_pos_m" if loc == ("ego",) else "pos_m"
-        for pos in positions:
-            if pos > road.length_m:
-                raise ScenarioError(f"{origins.label(loc + (field,))}: {where}.{field}: expected a position on the "
-                                    f"road (at most its length, {road.length_m:g} m), got {pos:g}")
+                                    f"{scenario.network.name} (0 to {frame.num_tracks - 1}), got {lane}")
+            if is_range:  # somewhere in the range
+                lo, hi = positions
+                spans = frame.lane_spans(lane)
+                ok = bool(((spans[:, 0] <= min(hi, frame.length_m)) & (spans[:, 1] > lo)).any())
+                at = f"between {lo:g} and {hi:g} m"
+            else:
+                pos = min(positions[0], frame.length_m)
+                ok = bool(frame.lane_exists(lane, pos))
+                at = f"at {pos:g} m" + (" (the route's start, where flows enter)" if loc[0] == "flows" else "")
+            if not ok:
+                present = np.flatnonzero(frame.lane_exists(np.arange(frame.num_tracks),
+                                                           positions[0] if not is_range else positions[0]))
+                raise ScenarioError(f"{origins.label(loc + (field,))}: {where}.{field}: lane {lane} does not exist "
+                                    f"{at} along {on} (lanes there: {present.tolist()}); expected a lane "
+                                    "present there (lanes are indexed from the right)")
+    if scenario.ego is not None:
+        _check_ego_lane(scenario, road, origins)
     if scenario.prediction.enabled:
         from vcfusion.prediction.model import ModelFileError, load_model
 

@@ -6,6 +6,8 @@ import numpy as np
 
 import vcfusion.run  # noqa: F401  (the run code and everything it imports)
 from vcfusion.cloud.twins import TwinStore
+from vcfusion.driver.perception import DriverView, visible_vehicles
+from vcfusion.guidance import GuidancePolicy
 from vcfusion.prediction.features import FeatureExtractor
 from vcfusion.prediction.smoothing import StreamingSmoother
 from vcfusion.records import GnssReports
@@ -21,3 +23,6 @@ for _method in ("none", "aggressive", "conservative"):
 _store = TwinStore(V2CConfig(), _road)
 _store.ingest(GnssReports(measured_time=np.zeros(2), ids=("a", "b"), x=_ones, y=_ones, z=_ones, heading=_ones,
                           speed=_ones, accel=_ones, length=_ones, width=_ones, height=_ones))
+_pos = np.array([10.0, 30.0])
+visible_vehicles(_pos, _ones, _ones, _ones, _ones, 0, GuidancePolicy.on_road(_road, 0, 0.3, 0.6, 150.0),
+                 DriverView())

@@ -91,7 +91,7 @@ def test_dask_cluster_gives_the_same_files(tmp_path, accident_path):
         assert again["skipped"] == 4 and again["done"] == 0
     for seed in seeds:
         for table in (tmp_path / "pool" / f"seed_{seed:04d}").glob("*.parquet"):
-            assert table.read_bytes() == (tmp_path / "dask" / f"seed_{seed:04d}" / table.name).read_bytes()
+            assert table.read_bytes() == (tmp_path / "dask" / f"seed_{seed:04d}" / table.name).read_bytes(), table.name
 
 
 def _worker_state():

@@ -168,7 +168,8 @@ def test_guidance_study_loses_only_the_trip_whose_worker_died(tmp_path):
     scenario = tmp_path / "accident.yaml"
     scenario.write_text(text)
     res = run_guidance_study(scenario, trips=3, workers=2, out=tmp_path / "study", renders=tmp_path / "renders",
-                             process_model_specs=("support.dying_workers:dies_once",), progress=False)
+                             process_model_specs=("support.dying_workers:dies_once",), progress=False,
+                             arms=("none", "cloud"))
     assert len(res["failed"]) == 1
     dead, cause = res["failed"][0]
     assert cause == "worker process died (signal 9: SIGKILL)"

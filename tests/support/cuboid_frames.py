@@ -71,4 +71,5 @@ class CuboidFrameSource:
             if len(xs) >= 20:
                 boxes.append((xs.min(), ys.min(), xs.max() + 1, ys.max() + 1))
                 ids.append(vid)
-        return CameraFrame(tick.time, image, depth, cam, np.array(boxes, float).reshape(-1, 4), tuple(ids))
+        return CameraFrame(tick.time, image, depth, cam, np.array(boxes, float).reshape(-1, 4), tuple(ids),
+                           instances=inst, instance_ids=tuple(vid for _, vid, _ in order))

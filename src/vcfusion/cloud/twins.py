@@ -17,7 +17,7 @@ import numpy as np
 
 from vcfusion.records import GnssReports, TwinStates, keep_road_frame
 from vcfusion.scenario import V2CConfig
-from vcfusion.traffic.network import Road
+from vcfusion.traffic.roadframe import RoadFrame
 
 # Ring-buffer columns of a twin's history.
 HISTORY_FIELDS = ("measured_time", "x", "y", "z", "heading", "speed", "accel")
@@ -56,7 +56,7 @@ class TwinStore:
     twins, so ingest and snapshot are array operations over slots, not Python loops over twins.
     """
 
-    def __init__(self, config: V2CConfig, road: Road):
+    def __init__(self, config: V2CConfig, road: RoadFrame):
         self.config = config
         self.road = road
         # Twice the nominal number of reports, so jittered or duplicated arrivals never cut history short.
@@ -137,9 +137,10 @@ class TwinStore:
         latest = self._latest(slots)
         static = self._static[slots]
         cols = {f: latest[:, k] for k, f in enumerate(HISTORY_FIELDS)}
-        s, d = self.road.to_road_frame(cols["x"], cols["y"])
+        # map matching: (s, d) and the lane (track) from the GNSS position, on any route's frame
+        s, d, lane = self.road.locate(cols["x"], cols["y"])
         twins = TwinStates(
-            time=now, ids=ids, lane=self.road.lane_of(d), outputs={},
+            time=now, ids=ids, lane=lane, outputs={},
             **cols, **{f: static[:, k] for k, f in enumerate(_STATIC_FIELDS)},
         )
         keep_road_frame(twins, self.road, s, d)  # the process models and the ego's stages reuse them

@@ -1,7 +1,10 @@
-"""The guidance the driver is shown when the vision-fusion stage made none at a tick.
+"""The guidance log of a run, and the cloud guidance where a run has no vision fusion.
 
-The AR overlay (vision fusion) sets ``tick.guidance`` (source ``fusion``) at the ticks it runs.
-This stage fills ``tick.guidance`` at every other tick straight from the cloud's predictions:
+With vision fusion (``camera=True``: the AR overlay sets ``tick.guidance``, source ``fusion``)
+this stage only logs what is shown; a tick where the camera gave no frame keeps
+``tick.guidance = None`` (nothing is drawn, nothing stands in for it) and is logged with source
+``no_frame``, so a study counts it. Without vision fusion it fills ``tick.guidance`` at every tick
+straight from the cloud's predictions:
 every neighbour twin ahead of the ego (the run's :class:`~vcfusion.guidance.GuidancePolicy`:
 rear bumper beyond the ego's front bumper, within ``driver.guidance_view_range_m``) gets an item
 with its ``lc_prob`` (from the twins' process-model outputs) and the policy's level: highlighted
@@ -22,24 +25,33 @@ from vcfusion.traffic.network import Road
 
 
 class CloudGuidanceFallback:
-    """Tick hook: guidance from the cloud predictions where no overlay made any."""
+    """Tick hook: logs the guidance shown (``box_vehicle_id``: the vehicle the driver sees
+    highlighted); without a camera it makes that guidance from the cloud predictions."""
 
     table = "guidance"
-    needs = ("ego", "neighbours")
-    fills = ("guidance",)
 
-    def __init__(self, road: Road, policy: GuidancePolicy):
+    def __init__(self, road: Road, policy: GuidancePolicy, camera: bool = False):
         self.road = road
         self.policy = policy
+        self.camera = camera
+        if camera:  # the overlay provides the guidance: log it, never replace it
+            self.needs = ("ego", "neighbours", "guidance")
+        else:
+            self.needs = ("ego", "neighbours")
+            self.fills = ("guidance",)
 
     def __call__(self, tick) -> list[dict]:
-        if tick.guidance is None:
+        if tick.guidance is None and not self.camera:
             items = self._from_cloud(tick)
             tick.guidance = GuidanceSet(tuple(items or ()), "cloud" if items is not None else "none")
+        t = round(tick.time, 6)
+        if tick.guidance is None:
+            return [{"time": t, "vehicle_id": "", "box_vehicle_id": "", "lc_prob": np.nan, "level": "",
+                     "source": "no_frame"}]
         source = tick.guidance.source
-        return [{"time": round(tick.time, 6), "vehicle_id": g.vehicle_id, "lc_prob": float(g.lc_prob),
-                 "level": g.level, "source": source} for g in tick.guidance.items] or [
-            {"time": round(tick.time, 6), "vehicle_id": "", "lc_prob": np.nan, "level": "", "source": source}]
+        return [{"time": t, "vehicle_id": g.vehicle_id, "box_vehicle_id": g.shown_vehicle_id or "",
+                 "lc_prob": float(g.lc_prob), "level": g.level, "source": source} for g in tick.guidance.items] or [
+            {"time": t, "vehicle_id": "", "box_vehicle_id": "", "lc_prob": np.nan, "level": "", "source": source}]
 
     def _from_cloud(self, tick) -> list[Guidance] | None:
         near = tick.neighbours

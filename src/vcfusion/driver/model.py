@@ -1,27 +1,41 @@
 """The human driver model that stands in for the paper's participants (longitudinal only).
 
 Every V2C tick (0.1 s) the driver:
-1. **sees** the traffic (ground truth ``tick.truth`` stands for what the driver sees through
-   the windscreen), and remembers it, so that car following can use a delayed view;
-2. **notices cut-ins**. Without guidance, a neighbour ahead (within ``notice_range_m``) in an
-   adjacent lane is noticed when its centre has moved ``lateral_notice_m`` from its lane centre
-   toward the ego lane; the driver responds ``cutin_reaction_s`` later (an unexpected event).
-   With guidance (when enabled for this trip), a warning item (level medium/high) of
-   ``tick.guidance`` for a vehicle ahead in an adjacent lane is noticed when first shown, and the
-   driver responds ``guidance_reaction_s`` later (an expected event). The earliest response wins;
-   the visual cue works in both arms. "Ahead", "adjacent lane", the warning levels and the ego's
-   id are the run's :class:`~vcfusion.guidance.GuidancePolicy`;
-3. **chooses leaders**: every vehicle whose centre is in the ego lane ahead, plus every
-   vehicle it has responded to as a prospective leader while that vehicle is still ahead
-   displaced toward the ego lane (or, for guidance, while its warning is still shown);
-4. **computes the IDM acceleration** for each leader from the view ``follow_reaction_s`` ago,
+1. **sees** the traffic it can see (``driver/perception.py``: forward field of view, the left
+   mirror, occlusion by nearer vehicles; ground truth of those vehicles), and remembers it, so
+   that car following can use a delayed view;
+2. **notices cues** (each logged to ``driver_events``):
+   - *lateral*: a seen neighbour ahead (within ``notice_range_m``) in an adjacent lane whose
+     centre has moved ``lateral_notice_m`` toward the ego lane; response ``cutin_reaction_s``
+     later (an unexpected event), or ``guidance_reaction_s`` later (an expected event, Green
+     2000) when the driver was already attending to that vehicle: it is highlighted, or the
+     driver *anticipates* its merge;
+   - *anticipation* (every arm: a fair human baseline): a seen neighbour ahead in an adjacent
+     lane with a seen stopped vehicle ahead of it in its own lane (the accident): the driver
+     expects it to merge and attends to it;
+   - *guidance* (when enabled): a warning item (level medium/high) of ``tick.guidance``; the
+     driver responds to the vehicle it sees highlighted (:attr:`Guidance.shown_vehicle_id`: the
+     vehicle inside the box, whichever twin the cloud meant). The warning is *active* while
+     shown and for ``warning_hold_s`` after (hysteresis: a one-tick gap does not end it, and a
+     one-tick warning ends before any response starts);
+3. **responds to a warning** ``guidance_reaction_s`` after first seeing it, for as long as it
+   stays active: releases the throttle and covers the brake (acceleration at most
+   ``-cover_decel_mps2``); it brakes toward a gap (the vehicle becomes a prospective leader)
+   only when the highlighted vehicle starts to move over (the lateral cue) or the gap to it
+   closes (closing in and nearer than the driver's desired gap s0 + v T). The response ends with
+   the warning;
+4. **chooses leaders**: every seen vehicle whose centre is in the ego lane ahead, plus the
+   prospective leaders: vehicles responded to after a lateral cue while still displaced toward
+   the ego lane, and highlighted vehicles whose gap closes while their warning is active;
+5. **computes the IDM acceleration** for each leader from the view ``follow_reaction_s`` ago,
    with the gap extrapolated over the delay at the then closing speed (the anticipation of the
    Human Driver Model), and takes the smallest. A prospective leader not yet in the lane only
-   asks for up to the comfortable deceleration ``b`` (the driver opens the gap smoothly; he
-   does not emergency-brake for a car that is still in its own lane); the free-road term
-   applies as usual;
-5. **moves the pedal**: the applied acceleration follows the desired one with a first-order
+   asks for up to the comfortable deceleration ``b``;
+6. **moves the pedal**: the applied acceleration follows the desired one with a first-order
    lag (``pedal_time_constant_s``), bounded by the car's acceleration and jerk limits.
+
+With guidance enabled and no warning shown, every step is the unguided driver's (tested: the
+ego trace is byte-identical).
 """
 
 from __future__ import annotations
@@ -34,8 +48,12 @@ import numpy as np
 
 from vcfusion.driver.idm import IDMParams, idm_acceleration
 from vcfusion.driver.params import CarLimits, DriverParams
+from vcfusion.driver.perception import DriverView, visible_vehicles
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.traffic.network import Road
+
+# A vehicle slower than this is "stopped" for the anticipation cue (the accident's trucks).
+STOPPED_MPS = 0.5
 
 
 @dataclass
@@ -43,8 +61,17 @@ class _Seen:
     time: float
     ego_front: float
     ego_speed: float
-    rear: dict  # vehicle id -> rear bumper s
+    rear: dict  # vehicle id -> rear bumper s (seen vehicles only)
     speed: dict  # vehicle id -> speed
+
+
+@dataclass
+class _Warning:
+    noticed: float  # first tick shown (of this episode)
+    last_shown: float
+    level: str
+    lc_prob: float
+    twin_id: str  # the twin the cloud meant (differs from the vehicle when the box is wrong)
 
 
 class DriverModel:
@@ -55,11 +82,12 @@ class DriverModel:
     finish_summary = ("driver",)
 
     def __init__(self, params: DriverParams, road: Road, policy: GuidancePolicy, guidance_enabled: bool,
-                 limits: CarLimits = CarLimits()):
+                 limits: CarLimits = CarLimits(), view: DriverView = DriverView()):
         self.p = params
         self.limits = limits
         self.road = road
         self.policy = policy
+        self.view = view
         self.ego_id = policy.ego_id
         self.guidance_enabled = guidance_enabled
         # with guidance on it reads what the driver is shown; it sees the traffic either way
@@ -71,7 +99,8 @@ class DriverModel:
         self.applied = 0.0
         self._last_time: float | None = None
         self.visual_response: dict[str, float] = {}  # vid -> time the driver responds (lateral cue)
-        self.guidance_response: dict[str, float] = {}  # vid -> time the driver responds (AR cue)
+        self.anticipated: set[str] = set()  # vehicles the driver expects to merge
+        self.warnings: dict[str, _Warning] = {}  # active warnings by the vehicle seen highlighted
         self.events: list[dict] = []
         self.log_rows: list[dict] = []
 
@@ -87,7 +116,8 @@ class DriverModel:
         """Run-folder tables: the driver's per-tick decisions and the cues it noticed."""
         import pandas as pd
 
-        events = pd.DataFrame(self.events, columns=["time", "vehicle_id", "cue", "level", "lc_prob", "response_time"])
+        events = pd.DataFrame(self.events, columns=["time", "vehicle_id", "cue", "twin_id", "level", "lc_prob",
+                                                    "response_time"])
         rows = self.log_rows  # one dict per tick: built column by column (cheaper than from records)
         log = pd.DataFrame({k: [r[k] for r in rows] for k in rows[0]}) if rows else pd.DataFrame()
         return {"driver": log, "driver_events": events}
@@ -97,16 +127,18 @@ class DriverModel:
         truth = tick.truth
         i = truth.index_of(self.ego_id)
         s, d = truth.road_frame(self.road)
+        seen_mask = visible_vehicles(s, d, truth.length, truth.width, truth.height, i, self.policy, self.view)
         ego_front = float(s[i] + truth.length[i] / 2)
-        # plain dicts of plain floats, everyone but the ego (the loops below run over ~10 vehicles)
-        rear = dict(zip(truth.ids, (s - truth.length / 2).tolist()))
-        speed = dict(zip(truth.ids, truth.speed.tolist()))
-        lateral = dict(zip(truth.ids, self.policy.lateral_m(d).tolist()))
-        for others in (rear, speed, lateral):
-            del others[self.ego_id]
+        idx = np.flatnonzero(seen_mask).tolist()
+        ids = [truth.ids[k] for k in idx]
+        # plain dicts of plain floats, seen vehicles only (the loops below run over ~10 vehicles)
+        rear = dict(zip(ids, (s[idx] - truth.length[idx] / 2).tolist()))
+        speed = dict(zip(ids, truth.speed[idx].tolist()))
+        lateral = dict(zip(ids, self.policy.lateral_m(d[idx]).tolist()))
+        lane = dict(zip(ids, np.rint((d[idx] - self.policy.ego_lane_centre_d) / self.policy.lane_width_m).tolist()))
         seen = _Seen(tick.time, ego_front, float(truth.speed[i]), rear, speed)
         self._memory.append(seen)
-        return seen, lateral
+        return seen, lateral, lane
 
     def _delayed(self, now: float) -> _Seen:
         """The newest memory at least follow_reaction_s old (the oldest if none is)."""
@@ -116,50 +148,79 @@ class DriverModel:
                 return m
         return self._memory[0]
 
-    def _notice(self, tick, seen: _Seen, lateral: dict, shown: list) -> None:
+    def _event(self, time, vid, cue, response_time, twin_id="", level="", lc_prob=math.nan):
+        self.events.append({"time": time, "vehicle_id": vid, "cue": cue, "twin_id": twin_id, "level": level,
+                            "lc_prob": lc_prob, "response_time": response_time})
+
+    def _update_warnings(self, now: float, items) -> None:
+        """Warnings by the vehicle seen highlighted, with the hold (hysteresis) of the module doc."""
+        for item in items:
+            vid = item.shown_vehicle_id
+            if vid is None or vid == self.ego_id:  # a box around no vehicle highlights nothing
+                continue
+            w = self.warnings.get(vid)
+            if w is None:
+                self.warnings[vid] = _Warning(now, now, item.level, float(item.lc_prob), item.vehicle_id)
+                self._event(now, vid, "guidance", now + self.p.guidance_reaction_s, item.vehicle_id, item.level,
+                            float(item.lc_prob))
+            else:
+                w.last_shown = now
+        for vid in [v for v, w in self.warnings.items() if now - w.last_shown > self.p.warning_hold_s + 1e-9]:
+            del self.warnings[vid]  # the warning has ended, and with it the response
+
+    def _notice(self, now: float, seen: _Seen, lateral: dict, lane: dict) -> None:
         policy, w = self.policy, self.policy.lane_width_m
-        for vid, dist in lateral.items():
-            if vid in self.visual_response or not policy.ahead(seen.rear[vid], seen.ego_front, self.p.notice_range_m):
+        # a list in the tick's vehicle order (a set's order would follow the process's string hashing,
+        # and the events table must be the same in every process)
+        ahead = [vid for vid in lateral if policy.ahead(seen.rear[vid], seen.ego_front, self.p.notice_range_m)]
+        # anticipation: a moving neighbour with a stopped vehicle ahead of it in its own lane
+        stopped = [(lane[v], seen.rear[v]) for v in lateral if seen.speed[v] < STOPPED_MPS and lane[v] != 0]
+        for vid in ahead:
+            if vid in self.anticipated or not policy.in_adjacent_lane(lateral[vid]) or seen.speed[vid] < STOPPED_MPS:
                 continue
-            # An adjacent-lane neighbour that has moved toward the ego lane by the noticed amount.
-            if policy.in_adjacent_lane(dist) and dist <= w - self.p.lateral_notice_m:
-                self.visual_response[vid] = tick.time + self.p.cutin_reaction_s
-                self.events.append({"time": tick.time, "vehicle_id": vid, "cue": "lateral",
-                                    "response_time": self.visual_response[vid]})
-        for item in shown:
-            vid = item.vehicle_id
-            if vid in self.guidance_response or vid not in lateral:
+            if any(ln == lane[vid] and rear > seen.rear[vid] for ln, rear in stopped):
+                self.anticipated.add(vid)
+                self._event(now, vid, "anticipation", math.nan)
+        for vid in ahead:
+            if vid in self.visual_response:
                 continue
-            if (policy.ahead(seen.rear[vid], seen.ego_front, self.p.notice_range_m)
-                    and policy.in_adjacent_lane(lateral[vid])):
-                self.guidance_response[vid] = tick.time + self.p.guidance_reaction_s
-                self.events.append({"time": tick.time, "vehicle_id": vid, "cue": "guidance",
-                                    "level": item.level, "lc_prob": float(item.lc_prob),
-                                    "response_time": self.guidance_response[vid]})
+            # an adjacent-lane neighbour that has moved toward the ego lane by the noticed amount
+            if policy.in_adjacent_lane(lateral[vid]) and lateral[vid] <= w - self.p.lateral_notice_m:
+                expected = vid in self.anticipated or vid in self.warnings
+                delay = self.p.guidance_reaction_s if expected else self.p.cutin_reaction_s
+                self.visual_response[vid] = now + delay
+                self._event(now, vid, "lateral", now + delay)
 
     # -- control ----------------------------------------------------------------------
     def acceleration(self, tick) -> float:
         now = tick.time
-        seen, lateral = self._see(tick)
+        seen, lateral, lane = self._see(tick)
         # the warnings shown at this tick (none reach a driver who does not use the guidance)
-        shown_items = tick.guidance.items if self.guidance_enabled and tick.guidance is not None else ()
-        warnings = [g for g in shown_items if self.policy.warns(g.level)]
-        self._notice(tick, seen, lateral, warnings)
+        shown = tick.guidance.items if self.guidance_enabled and tick.guidance is not None else ()
+        self._update_warnings(now, [g for g in shown if self.policy.warns(g.level)])
+        self._notice(now, seen, lateral, lane)
         policy, w = self.policy, self.policy.lane_width_m
-        shown = {g.vehicle_id for g in warnings}
         past = self._delayed(now)
         ego_speed = seen.ego_speed
         desired = idm_acceleration(self.idm, ego_speed)  # free road
         leader, kind, leader_gap = "", "", math.nan
+        # responding to a warning: throttle released, foot over the brake
+        responding = [vid for vid, wr in self.warnings.items() if now + 1e-9 >= wr.noticed + self.p.guidance_reaction_s]
+        cover = bool(responding)
+        if cover and -self.p.cover_decel_mps2 < desired:
+            desired, kind = -self.p.cover_decel_mps2, "cover"
+        desired_gap = self.idm.min_gap_m + ego_speed * self.idm.time_headway_s
         for vid, dist in lateral.items():
             if seen.rear[vid] <= seen.ego_front:
                 continue
             in_lane = policy.in_ego_lane(dist)
-            responded = min(self.visual_response.get(vid, math.inf), self.guidance_response.get(vid, math.inf))
-            # Responded to, not yet in the lane, and still a candidate: an adjacent-lane car that
-            # is still displaced toward the ego lane, or whose warning is still shown.
-            prospective = (not in_lane and responded <= now
-                           and ((vid in shown and policy.in_adjacent_lane(dist)) or dist < w - 0.1))
+            gap_now = seen.rear[vid] - seen.ego_front
+            # prospective: responded to after it moved over (still displaced toward the lane), or
+            # highlighted, responded to, and the gap to it closes
+            moved_over = self.visual_response.get(vid, math.inf) <= now and dist < w - 0.1
+            gap_closes = (vid in responding and policy.in_adjacent_lane(dist)
+                          and gap_now < desired_gap and seen.speed[vid] < ego_speed)
+            prospective = not in_lane and (moved_over or gap_closes)
             if not (in_lane or prospective):
                 continue
             if vid in past.rear:
@@ -167,7 +228,7 @@ class DriverModel:
                 gap = past.rear[vid] - past.ego_front - self.p.follow_reaction_s * dv
                 v_lead = past.speed[vid]
             else:  # not seen as long ago as the delay: the first look
-                gap, v_lead = seen.rear[vid] - seen.ego_front, seen.speed[vid]
+                gap, v_lead = gap_now, seen.speed[vid]
             acc = idm_acceleration(self.idm, ego_speed, max(gap, 0.1), v_lead)
             if prospective:
                 acc = max(acc, -self.p.comfort_decel_mps2)
@@ -185,5 +246,6 @@ class DriverModel:
         self.log_rows.append({"time": round(now, 6), "leader_id": leader, "leader_kind": kind,
                               "perceived_gap_m": leader_gap, "desired_accel": desired,
                               "applied_accel": self.applied, "guidance_enabled": self.guidance_enabled,
-                              "guidance_shown": len(shown)})
+                              "guidance_shown": len(shown), "warnings_active": len(self.warnings),
+                              "covering": cover, "vehicles_seen": len(lateral)})
         return self.applied

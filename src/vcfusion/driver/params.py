@@ -18,6 +18,19 @@ Sources (see docs/architecture.md, "Driver model"):
   in accident reconstruction, so the braking jerk is bounded by about 9 / 0.3 = 30 m/s^3;
   a mid-size car reaches about 3 m/s^2 at 70 km/h (the ego vtype's accel); the throttle
   side is slower (we bound it at 10 m/s^3, an assumption).
+- Warning response (driver/model.py): on a warning the driver releases the throttle and covers
+  the brake, the "prepared" state in which Green (2000) measures the ~0.75 s expected-event
+  times. Released throttle in gear decelerates a mid-size car at 19 m/s by about 0.4-0.6 m/s^2
+  (air drag 0.5 * 1.2 kg/m^3 * 0.65 m^2 * (19 m/s)^2 = 140 N, rolling resistance 0.01 * 1500 kg
+  * g = 150 N, engine drag torque at the wheels 300-600 N, over 1500 kg): ``cover_decel_mps2``
+  is drawn from 0.3-0.7 m/s^2 (a physics estimate; the drag values are assumptions).
+- Hysteresis of a warning (``warning_hold_s`` 0.3 s): a warning stays active this long after it
+  was last shown. About one fixation (fixations while driving last ~0.2-0.4 s, an assumption
+  stated as such): a warning missing for one 0.1 s frame is not seen to go away, and one shown for
+  a single frame is gone long before the 0.4-1.5 s reaction would start a response.
+- Perception (driver/perception.py): forward field of view = the camera's horizontal field of
+  view (70 deg, configurable in the scenario as ``driver.field_of_view_deg``), left mirror up to
+  50 m behind, a vehicle seen when a quarter of its outline is visible: assumptions.
 - The lateral displacement a driver notices (0.3-0.5 m from the lane centre toward the ego
   lane) and the pedal time constant (0.2-0.4 s, the movement-time share of Green's
   perception-response time) are modelling assumptions, stated as such.
@@ -55,6 +68,8 @@ class DriverParams:
     lateral_notice_m: float  # lateral displacement toward the ego lane that is noticed
     notice_range_m: float  # how far ahead the driver watches the adjacent lanes
     pedal_time_constant_s: float  # first-order lag of the applied acceleration
+    cover_decel_mps2: float = 0.5  # released throttle, foot over the brake (warning response)
+    warning_hold_s: float = 0.3  # a warning stays active this long after last shown (hysteresis)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -80,4 +95,7 @@ def draw_driver(seed: int, desired_speed_mps: float) -> DriverParams:
         lateral_notice_m=float(rng.uniform(0.3, 0.5)),
         notice_range_m=100.0,
         pedal_time_constant_s=float(rng.uniform(0.2, 0.4)),
+        # drawn after the draws above, so those are the same as before these parameters existed
+        cover_decel_mps2=float(rng.uniform(0.3, 0.7)),
+        warning_hold_s=0.3,
     )

@@ -8,7 +8,7 @@ here works on those plain arrays, so it is tested with hand-made frames.
 from __future__ import annotations
 
 import time as wallclock
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -37,6 +37,29 @@ class CameraFrame:
     gt_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (M, 4) visible vehicles' boxes
     gt_ids: tuple[str, ...] = ()  # vehicle id of each ground-truth box
     gt_classes: np.ndarray | None = None  # (M,) category ids, for the oracle detector
+    # (H, W) index into `instance_ids` of the vehicle seen at each pixel, -1 where none (the
+    # renderer's instance map); None when the source has none
+    instances: np.ndarray | None = None
+    instance_ids: tuple[str, ...] = ()
+
+
+def box_owner(box, instances: np.ndarray | None, instance_ids: tuple[str, ...]) -> str | None:
+    """The vehicle owning most of the pixels inside `box` (x1, y1, x2, y2, pixel-centre convention:
+    pixel (u, v) is inside iff x1 <= u < x2 and y1 <= v < y2), or None when no vehicle pixel is
+    inside (or there is no instance map). Ties go to the lower instance index."""
+    if box is None or instances is None:
+        return None
+    h, w = instances.shape
+    x1, y1, x2, y2 = box
+    c1, c2 = max(0, int(np.ceil(x1))), min(w, int(np.ceil(x2)))
+    r1, r2 = max(0, int(np.ceil(y1))), min(h, int(np.ceil(y2)))
+    if c2 <= c1 or r2 <= r1:
+        return None
+    inside = instances[r1:r2, c1:c2].ravel()
+    inside = inside[inside >= 0]
+    if not inside.size:
+        return None
+    return instance_ids[int(np.argmax(np.bincount(inside)))]
 
 
 class FrameSource(Protocol):
@@ -105,7 +128,7 @@ class VisionFusionHook:
     def __init__(self, frame_source: FrameSource | None, detector: Detector, seed: int, policy: GuidancePolicy,
                  method: str = "joint", depth_params: DepthEvalParams = DepthEvalParams(),
                  joint: JointMatcher | None = None, recorder: OverlayRecorder | None = None,
-                 period_s: float | None = None):
+                 period_s: float | None = None, only_when_warning: bool = False):
         if method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
         if frame_source is None:
@@ -127,17 +150,29 @@ class VisionFusionHook:
         # run every period_s (the AR update period, ar.period_s); None = every tick
         self.period_s = period_s
         self._next_time = -np.inf
+        self._shown: GuidanceSet | None = None  # the overlay on the screen
+        # fuse only where a neighbour carries a warning (the camera stage renders only there too)
+        self.only_when_warning = only_when_warning
 
     def __call__(self, tick) -> list[dict] | None:
         if tick.neighbours is None:
             return None
         if self.period_s is not None:
             if tick.time < self._next_time - 1e-9:
+                # between AR updates the overlay drawn last stays on the screen
+                tick.guidance = self._shown
                 return None
             self._next_time = tick.time + self.period_s
+        if self.only_when_warning and not self.policy.any_warning(tick.neighbours):
+            # nothing to warn about: the overlay draws no warning (no frame was rendered for it)
+            tick.guidance = self._shown = GuidanceSet((), "fusion")
+            return None
         t0 = wallclock.perf_counter()
         frame = self.frame_source(tick)
         if frame is None:
+            # no camera frame at an update: nothing is drawn, and nothing stands in for it (the
+            # guidance log counts the tick as "no_frame")
+            self._shown = None
             return None
         t_render = wallclock.perf_counter() - t0
         twins = tick.neighbours
@@ -146,20 +181,27 @@ class VisionFusionHook:
         view = np.flatnonzero(result.in_view)
         boxes = [result.box_of(self.method, i) for i in view]
         decision = twins.outputs.get("lc_decision")
-        guidance = make_guidance(tick.time, [twins.ids[i] for i in view], lc[view], boxes, self.policy,
-                                 None if decision is None else np.asarray(decision)[view])
+        in_view = make_guidance(tick.time, [twins.ids[i] for i in view], lc[view], boxes, self.policy,
+                                None if decision is None else np.asarray(decision)[view])
+        # What is drawn is what the driver is shown: a twin without a matched box gives no item;
+        # each item names the vehicle actually inside its box.
+        in_view = [replace(g, box_vehicle_id=box_owner(g.box, frame.instances, frame.instance_ids))
+                   if g.box is not None else g for g in in_view]
+        guidance = [g for g in in_view if g.box is not None]
         tick.detections = result.detections
-        tick.guidance = GuidanceSet(tuple(guidance), "fusion")
+        tick.guidance = self._shown = GuidanceSet(tuple(guidance), "fusion")
         t3 = wallclock.perf_counter()
         if self.recorder is not None:
             ego_speed = tick.ego.speed if tick.ego is not None else float("nan")
             self.recorder.add(draw_overlay(frame.image, guidance, Hud(tick.time, ego_speed)))
         self.timings.append({"render": t_render, **result.timings_s, "overlay": wallclock.perf_counter() - t3})
+        # every twin in view, matched or not: an unmatched warning is a missed warning
         rows = []
-        for g in guidance:
+        for g in in_view:
             b = g.box if g.box is not None else (np.nan,) * 4
             rows.append({"time": round(tick.time, 6), "vehicle_id": g.vehicle_id, "method": self.method,
                          "lc_prob": g.lc_prob, "level": g.level, "matched": g.box is not None,
+                         "box_vehicle_id": g.box_vehicle_id or "",
                          "x1": b[0], "y1": b[1], "x2": b[2], "y2": b[3]})
         return rows
 

@@ -45,7 +45,8 @@ def frame_from_render(frame, truth) -> CameraFrame:
     return CameraFrame(time=float(frame.time), image=frame.rgb, depth=frame.depth,
                        camera=camera_view(frame.K, frame.T_world_to_camera, frame.width, frame.height, frame.time),
                        gt_boxes=np.asarray(gt.box, dtype=float).reshape(-1, 4), gt_ids=tuple(gt.vehicle_ids),
-                       gt_classes=np.array([category_id(c) for c in gt.vclass], dtype=np.int64))
+                       gt_classes=np.array([category_id(c) for c in gt.vclass], dtype=np.int64),
+                       instances=frame.instances, instance_ids=tuple(frame.vehicle_ids))
 
 
 def tick_frame_source(tick) -> CameraFrame | None:
@@ -112,12 +113,13 @@ def depth_params(scenario: Scenario) -> DepthEvalParams:
 
 
 def build_fusion_hook(scenario: Scenario, seed: int, policy: GuidancePolicy, recorder: OverlayRecorder | None = None,
-                      frame_source=None):
+                      frame_source=None, detector=None):
     """The tick hook of the fusion stage as the scenario configures it, levelling guidance by the
     run's `policy`. Without `frame_source` it reads ``tick.frame`` (it then needs the camera hook
     before it: the run refuses another order)."""
     from vcfusion.fusion.fuse import VisionFusionHook
 
-    return VisionFusionHook(frame_source, build_detector(scenario, seed), seed, policy,
+    return VisionFusionHook(frame_source, detector or build_detector(scenario, seed), seed, policy,
                             method=scenario.fusion.method, depth_params=depth_params(scenario),
-                            recorder=recorder, period_s=scenario.ar.period_s)
+                            recorder=recorder, period_s=scenario.ar.period_s,
+                            only_when_warning=scenario.vision.only_when_warning)

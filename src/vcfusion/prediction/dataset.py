@@ -81,7 +81,7 @@ def _dataset_seed(scenario_path: str, seed: int, out: str, tau: float, tau_g: fl
 
             cosim.hooks.append(LaneChangeStateHook())
         result = cosim.run()
-        road = read_road(scenario.network)
+        road = read_road(scenario.network, scenario.route)
         samples = build_samples(result.tables, road, scenario.v2c.period_s, seed, tau, tau_g,
                                 scenario.simulation.lanechange_duration_s / 2)
         if privileged:
@@ -105,7 +105,8 @@ def _refeature_seed(folder: str, scenario_path: str, seed: int, tau: float, tau_
     scenario = load_scenario(scenario_path)
     folder = Path(folder)
     tables = {k: pd.read_parquet(folder / f"{k}.parquet") for k in ("twins", "vehicles", "lane_changes")}
-    samples = build_samples(tables, read_road(scenario.network), scenario.v2c.period_s, seed, tau, tau_g,
+    road = read_road(scenario.network, scenario.route)
+    samples = build_samples(tables, road, scenario.v2c.period_s, seed, tau, tau_g,
                             scenario.simulation.lanechange_duration_s / 2)
     from vcfusion.prediction.privileged import LC_STATE_TABLE, add_privileged
 

@@ -15,8 +15,12 @@ Neighbours. For each twin and each of its lanes {right, own, left}, the leader i
 nearest twin in that lane whose centre is ahead (larger s), the follower the nearest behind.
 Gaps are bumper to bumper along the road (negative when side by side in an adjacent lane);
 speed differences are neighbour minus own speed. Sentinels:
-- lane does not exist (own lane is the rightmost/leftmost, or the twin is off the road):
+- lane does not exist (own lane is the rightmost/leftmost, or the twin is off the road, or the
+  lane is absent at the twin's s: before an acceleration lane begins, after a lane drop):
   gap = 0 m, speed difference = 0, and `right_lane_exists` / `left_lane_exists` = 0;
+Lanes are the road frame's tracks (index from the right, stable across edges); the features
+`lane` and `lanes_to_left` count the lanes present at the twin's s right and left of its own
+(on a road whose lanes never change, the lane index and the lanes beyond it).
 - lane exists but no twin within `RANGE_M` (or a gap beyond it): gap = RANGE_M, difference 0.
 `stopped_ahead_*` is the distance from the front bumper to the rear of the nearest stopped
 twin (speed < STOPPED_MPS) ahead in that lane, BLOCK_RANGE_M when none (and 0 for a missing
@@ -30,7 +34,7 @@ import numpy as np
 import pandas as pd
 
 from vcfusion.prediction.memory import TwinMemory
-from vcfusion.traffic.network import Road
+from vcfusion.traffic.roadframe import RoadFrame
 
 RANGE_M = 150.0
 BLOCK_RANGE_M = 400.0
@@ -90,9 +94,10 @@ _HISTORY_OWN = ("speed_minus_ema", "speed_below_recent_max")  # filled by Featur
 
 @numba.njit(cache=True)
 def _tick_matrix(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.ndarray, length: np.ndarray,
-                 num_lanes: int) -> tuple[np.ndarray, np.ndarray]:
+                 present: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(N, len(FEATURE_NAMES)) features with the memoryless ones filled (the history columns are
     left 0 for :func:`_history`) and (N, num_lanes, 4) gap_lead, dv_lead, gap_foll, dv_foll towards every lane.
+    `present`: (N, num_lanes) whether each lane exists at each twin's s (RoadFrame.lanes_present).
 
     Compiled (numba): it runs for every twin on every V2C tick, and on the tens of twins of a tick
     NumPy's per-call overhead, not arithmetic, was the cost (~40 array calls, ~125 us a tick; this
@@ -100,6 +105,7 @@ def _tick_matrix(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.n
     so "ahead"/"behind" and ties are decided exactly as by a stable sort of those keys.
     """
     n = s.shape[0]
+    num_lanes = present.shape[1]
     out = np.zeros((n, _N_FEATURES))
     lanes_q = np.zeros((n, num_lanes, 4))
     cell = np.zeros((num_lanes, len(_PER_SIDE)))  # one twin's per-side features towards every lane
@@ -109,9 +115,18 @@ def _tick_matrix(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.n
         out[i, 0], out[i, 1], out[i, 2], out[i, 3] = speed[i], accel[i], length[i], li
         if not on_road:  # a twin off the road has no lanes: every per-lane feature stays 0
             continue
-        out[i, 4] = num_lanes - 1 - li
-        out[i, 5] = li >= 1
-        out[i, 6] = li <= num_lanes - 2
+        # `lane` counts the lanes present right of the own one (the track where every lane is
+        # everywhere): a main line's rightmost lane is lane 0 where no acceleration lane is beside it
+        to_right = 0
+        for k in range(li):
+            to_right += present[i, k]
+        to_left = 0
+        for k in range(li + 1, num_lanes):
+            to_left += present[i, k]
+        out[i, 3] = to_right
+        out[i, 4] = to_left
+        out[i, 5] = 1.0 if li >= 1 and present[i, li - 1] != 0 else 0.0
+        out[i, 6] = 1.0 if li <= num_lanes - 2 and present[i, li + 1] != 0 else 0.0
         front_i = s[i] + length[i] / 2
         rear_i = s[i] - length[i] / 2
         for k in range(num_lanes):
@@ -153,14 +168,15 @@ def _tick_matrix(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.n
         # own lane and both sides, picked from the absolute lanes; 0 where the lane does not exist
         for side in range(3):
             target = li + _SIDE_OFFSETS[side]
-            if 0 <= target < num_lanes:
+            if 0 <= target < num_lanes and present[i, target] != 0:
                 for q in range(len(_PER_SIDE)):
                     out[i, _N_OWN + side * len(_PER_SIDE) + q] = cell[target, q]
     return out, lanes_q
 
 
 @numba.njit(cache=True)
-def _history(out: np.ndarray, lanes_q: np.ndarray, speed: np.ndarray, lane: np.ndarray, previous: np.ndarray,
+def _history(out: np.ndarray, lanes_q: np.ndarray, speed: np.ndarray, lane: np.ndarray, present: np.ndarray,
+             previous: np.ndarray,
              memory: np.ndarray, alphas: np.ndarray, decay: float, src_offset: np.ndarray,
              src_quantity: np.ndarray, col_speed_minus_ema: int, col_below_max: int) -> np.ndarray:
     """Update every twin's memory row from this tick and fill the history columns of `out`.
@@ -189,7 +205,7 @@ def _history(out: np.ndarray, lanes_q: np.ndarray, speed: np.ndarray, lane: np.n
         out[i, _N_TICK] = state[i, 2] - state[i, 2 + h]  # speed_trend
         for m in range(n_src):
             target = lane[i] + src_offset[m]
-            if lane[i] >= 0 and 0 <= target < num_lanes:
+            if lane[i] >= 0 and 0 <= target < num_lanes and present[i, target] != 0:
                 column = 2 + 1 + target * 4 + src_quantity[m]
                 out[i, _N_TICK + 1 + m] = state[i, column] - state[i, column + h]
                 out[i, _N_TICK + 1 + n_src + m] = state[i, column + h]
@@ -199,6 +215,29 @@ def _history(out: np.ndarray, lanes_q: np.ndarray, speed: np.ndarray, lane: np.n
     return state
 
 
+def _lanes_present(road, s: np.ndarray) -> np.ndarray:
+    """(N, num_lanes) uint8: the lanes present at each s (all of them on a lane count)."""
+    if isinstance(road, (int, np.integer)):
+        return np.ones((len(s), int(road)), dtype=np.uint8)
+    if road.all_lanes_everywhere:  # the per-tick path on the straight road: no lookup
+        return np.ones((len(s), road.num_tracks), dtype=np.uint8)
+    return np.ascontiguousarray(road.lanes_present(s), dtype=np.uint8)
+
+
+def lane_end_ahead_m(road, s: np.ndarray, lane: np.ndarray) -> np.ndarray:
+    """Distance from s to where the twin's own lane ends ahead (a lane drop, the end of an
+    acceleration lane), BLOCK_RANGE_M when it does not end within that, 0 off the road.
+
+    Not among FEATURE_NAMES, nor in the datasets' samples: the shipped model was trained on a
+    fixed input list, and the samples' layout is that list; adding it means a new feature list,
+    datasets rebuilt (`vcfusion dataset --refeature`) and a retrained model."""
+    s = np.asarray(s, dtype=float)
+    lane = np.asarray(lane, dtype=np.int64)
+    end = road.lane_end_ahead(np.maximum(lane, 0), s)
+    out = np.minimum(np.nan_to_num(end - s, nan=0.0, posinf=BLOCK_RANGE_M), BLOCK_RANGE_M)
+    return np.where(lane >= 0, out, 0.0)
+
+
 def _kernel_inputs(s, lane, speed, accel, length) -> tuple[np.ndarray, ...]:
     """Contiguous float64 (lane: int64) arrays: one compiled signature whatever the caller's views."""
     return (np.ascontiguousarray(s, dtype=float), np.ascontiguousarray(lane, dtype=np.int64),
@@ -206,13 +245,17 @@ def _kernel_inputs(s, lane, speed, accel, length) -> tuple[np.ndarray, ...]:
 
 
 def tick_features(s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.ndarray,
-                  length: np.ndarray, num_lanes: int, per_lane: bool = False) -> dict[str, np.ndarray]:
+                  length: np.ndarray, num_lanes, per_lane: bool = False) -> dict[str, np.ndarray]:
     """The memoryless features of all twins of one tick (vectorised); s is the footprint centre.
+
+    num_lanes: the road's lane count (every lane everywhere), or the road frame whose lanes
+    present at each twin's s count.
 
     per_lane: also return `_per_lane`, (N, num_lanes, 4): gap_lead, dv_lead, gap_foll, dv_foll
     of each twin towards every lane of the road by absolute index (own lane included).
     """
-    matrix, lanes_q = _tick_matrix(*_kernel_inputs(s, lane, speed, accel, length), num_lanes)
+    args = _kernel_inputs(s, lane, speed, accel, length)
+    matrix, lanes_q = _tick_matrix(*args, _lanes_present(num_lanes, args[0]))
     out = {name: matrix[:, i] for i, name in enumerate(FEATURE_NAMES[:_N_TICK]) if name not in _HISTORY_OWN}
     if per_lane:
         out["_per_lane"] = lanes_q
@@ -228,7 +271,7 @@ class FeatureExtractor:
     (zero trend); a twin missing from a snapshot is forgotten.
     """
 
-    def __init__(self, road: Road, period_s: float):
+    def __init__(self, road: RoadFrame, period_s: float):
         self.road = road
         self.period_s = period_s
         self._alpha = 1.0 - np.exp(-period_s / SPEED_EMA_S)
@@ -250,10 +293,11 @@ class FeatureExtractor:
     def __call__(self, ids, s: np.ndarray, lane: np.ndarray, speed: np.ndarray, accel: np.ndarray,
                  length: np.ndarray) -> np.ndarray:
         """(N, len(FEATURE_NAMES)) float64 features of the N twins of one snapshot; `s` along the
-        road (Road.to_road_frame of the twins' positions: their lateral coordinate is never used)."""
+        road (RoadFrame.to_frame of the twins' positions: their lateral coordinate is never used)."""
         s, lane, speed, accel, length = _kernel_inputs(s, lane, speed, accel, length)
-        out, lanes_q = _tick_matrix(s, lane, speed, accel, length, self.road.num_lanes)
-        state = _history(out, lanes_q, speed, lane, self._memory.previous_rows(ids), self._memory.state,
+        present = _lanes_present(self.road, s)
+        out, lanes_q = _tick_matrix(s, lane, speed, accel, length, present)
+        state = _history(out, lanes_q, speed, lane, present, self._memory.previous_rows(ids), self._memory.state,
                          self._alphas, self._decay, self._src_offset, self._src_quantity,
                          self._col_speed_minus_ema, self._col_below_max)
         self._memory.keep(ids, state)
@@ -264,7 +308,7 @@ class FeatureExtractor:
         return self(twins.ids, twins.road_frame(self.road)[0], twins.lane, twins.speed, twins.accel, twins.length)
 
 
-def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road: Road,
+def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road: RoadFrame,
                               period_s: float) -> pd.DataFrame:
     """Replay a run's `twins` table snapshot by snapshot through a FeatureExtractor.
 

@@ -23,18 +23,19 @@ class CameraHook:
     provides = ("frame",)
 
     def __init__(self, scenario: Scenario, every_ticks: int = 1,
-                 on_frame: Callable | None = None, renderer=None):
+                 on_frame: Callable | None = None, renderer=None, when: Callable | None = None):
         from vcfusion.render.renderer import EgoCameraRenderer  # imports OpenGL: only when a camera is used
 
         self.renderer = renderer or EgoCameraRenderer(read_road(scenario.network), scenario.camera, EGO_ID)
         self.every_ticks = every_ticks
         self.on_frame = on_frame
+        self.when = when  # tick -> bool: render only at ticks where it holds (None: every k-th tick)
         self._ticks = 0
 
     def __call__(self, tick) -> list[dict] | None:
         n = self._ticks
         self._ticks += 1
-        if n % self.every_ticks or EGO_ID not in tick.truth.ids:
+        if n % self.every_ticks or EGO_ID not in tick.truth.ids or (self.when is not None and not self.when(tick)):
             return None
         started = wallclock.perf_counter()
         frame = self.renderer.render(tick.truth)

@@ -1,19 +1,35 @@
-"""The guidance study (paper Section V, Fig. 8 and 9): paired trips with and without guidance.
+"""The guidance study (paper Section V, Fig. 8 and 9): paired trips in several arms.
 
-Trip k runs the scenario with seed k twice: the same traffic seed and the same driver draw
-(`vcfusion.driver.params.draw_driver(seed)`), once with the driver using the AR guidance and
-once without (the baseline, a "legacy vehicle"). Both arms run the whole pipeline: cloud twins
-with their process models (the lane-change predictor writes `lc_prob`), the guidance source
-(the vision-fusion AR overlay when wired, else the cloud fallback; the output says which), the
-driver model. Per trip and arm: TTC / acceleration / jerk metrics (`vcfusion.metrics.safety`)
-and MOVESTAR fuel and emissions per km on the 1 Hz ego speed (`vcfusion.metrics.movestar`).
+Trip k runs the scenario with seed k once per arm, with the same traffic seed and the same
+driver draw (`vcfusion.driver.params.draw_driver(seed)`). Arms (`ARMS`):
+- ``none``: the driver without AR (a "legacy vehicle"); nothing is rendered;
+- ``cloud``: highlights from the cloud's predictions alone, no camera (source ``cloud``);
+- ``fusion``: the paper's system: the ego camera is rendered every tick, the scenario's
+  detector (the shipped CNN unless the scenario's ``fusion`` block names another), the
+  scenario's matcher (joint by default), the AR overlay (source ``fusion``); turned on by the
+  arm whatever the scenario's ``vision`` / ``fusion`` blocks say;
+- ``oracle``: as fusion with the ground-truth boxes of the rendered frame as detections.
+Every arm runs the cloud twins with their process models (the lane-change predictor writes
+`lc_prob`). An arm says what produced its highlights (`guidance_source`); a camera-arm tick
+without a frame is counted (`ticks_without_frame`), never filled from another source.
 
-The effect of guidance is the paired difference (on - off) per trip; the summary gives its
-mean with a t-based 95% confidence interval, the paired t-test p-value, and the relative
-change of the arm means, next to the paper's values.
+Per trip and arm (`arm_metrics`, the one place the study's metrics are computed): TTC, gaps,
+acceleration and jerk (`vcfusion.metrics.safety`), MOVESTAR fuel and emissions per km
+(`vcfusion.metrics.movestar`), the highlight episodes (`highlights_right`: on the vehicle the
+cloud meant; `highlights_wrong`: on another vehicle or none; `missed_warnings`: a twin in view
+the cloud warns about, with no box drawn). TTC and gaps are measured in every arm against the
+same vehicle: the first cut-in ahead of the ego in the reference arm (``none``; the first arm
+with one where it has none), chosen once per seed; because SUMO's vehicles react to the ego, an
+arm's own first cut-in can be another vehicle (`first_cut_in_differs`).
 
-libsumo holds one simulation per process: trips run in worker processes (vcfusion.workers), each running
-its two arms one after the other.
+The effect of an arm is its paired difference to ``none`` per trip, over the trips where every
+arm has the metric (so the table and the figures' bars and annotations are the same numbers):
+mean with a t-based 95% confidence interval, the paired t-test p-value and the relative change
+of the arm means, next to the paper's values.
+
+libsumo holds one simulation per process: trips run in worker processes (vcfusion.workers), each
+running its arms one after the other; a worker keeps its renderer and detector loaded across
+trips (`_worker_resources`).
 """
 
 from __future__ import annotations
@@ -32,7 +48,16 @@ from tqdm import tqdm
 from vcfusion.runio import write_json, write_table
 from vcfusion.workers import JobFailed, run_jobs
 
-ARMS = ("off", "on")
+# none: no AR (a "legacy vehicle"); cloud: highlights from the cloud alone, no camera; fusion:
+# camera render + the scenario's detector (the shipped CNN by default) + matcher + overlay (the
+# paper's system); oracle: the same with ground-truth boxes.
+ARMS = ("none", "cloud", "fusion", "oracle")
+CAMERA_ARMS = ("fusion", "oracle")
+DEFAULT_ARMS = ("none", "fusion")
+REFERENCE_ARM = "none"
+# what produced each arm's highlights (the guidance table's source), for the check that no arm
+# silently fell back to another source
+ARM_SOURCES = {"none": None, "cloud": "cloud", "fusion": "fusion", "oracle": "fusion"}
 
 # (column, label, unit, paper baseline, paper with guidance, paper relative change %)
 SAFETY_METRICS = [
@@ -77,93 +102,234 @@ def load_process_model(spec: str, scenario):
     return (f"{module_name}:{attr}", factory(scenario))
 
 
-def run_arm(scenario, seed: int, guidance: bool, process_model_specs: tuple[str, ...] = ()) -> dict:
-    """One arm of one trip: metrics row (no run folder is written)."""
-    from vcfusion.metrics.movestar import trip_emissions
-    from vcfusion.metrics.safety import trip_metrics
-    from vcfusion.metrics.traffic import ego_movestar_type
+def arm_scenario(scenario, arm: str):
+    """The scenario as arm `arm` runs it: the camera and fusion stages on for the camera arms
+    (with the scenario's own fusion settings where it has them, the shipped CNN otherwise), off
+    for the others (they never render); no video."""
+    if arm not in ARMS:
+        raise ValueError(f"--arms: expected arms among {', '.join(ARMS)}, got {arm!r}")
+    camera = arm in CAMERA_ARMS
+    fusion = scenario.fusion.model_copy(update={"enabled": camera})
+    if arm == "oracle":
+        fusion = fusion.model_copy(update={"detector": "oracle"})
+    elif arm == "fusion" and not scenario.fusion.enabled:
+        fusion = fusion.model_copy(update={"detector": "cnn"})
+    return scenario.model_copy(update={
+        # every tick renders and fuses unless the scenario itself asks for vision.only_when_warning:
+        # skipping ticks starves the joint matcher's position filter, so it is not the default path
+        "vision": scenario.vision.model_copy(update={"enabled": camera}),
+        "fusion": fusion,
+        "ar": scenario.ar.model_copy(update={"video": False}),
+    })
+
+
+# One per worker process (run_jobs workers are persistent): the renderer (its GL context and
+# scene) and the CNN detector are built once and reused by every trip the worker runs.
+_WORKER = {}
+
+
+def _worker_resources(scenario):
+    """(renderer, detector) for a camera arm of `scenario`, built once per worker process."""
+    from vcfusion.fusion.stage import build_detector
+
+    key = ("renderer", str(scenario.network), scenario.camera.model_dump_json())
+    renderer = _WORKER.get(key)
+    if renderer is None:
+        from vcfusion.render.renderer import EgoCameraRenderer
+        from vcfusion.records import EGO_ID
+        from vcfusion.traffic.network import read_road
+
+        for old in [k for k in _WORKER if k[0] == "renderer"]:  # one GL context per worker
+            _WORKER.pop(old).close()
+        renderer = _WORKER[key] = EgoCameraRenderer(read_road(scenario.network), scenario.camera, EGO_ID)
+    f = scenario.fusion
+    if f.detector == "oracle":
+        return renderer, None  # cheap and stateful per frame: a fresh one per run
+    dkey = ("detector", f.detector, str(f.weights))
+    if dkey not in _WORKER:
+        import torch
+
+        torch.set_num_threads(1)  # one worker process per core: intra-op threads only contend
+        _WORKER[dkey] = build_detector(scenario, 0)
+    return renderer, _WORKER[dkey]
+
+
+ARM_TABLES = ("ego", "trajectories", "vehicles", "lane_changes", "collisions", "guidance", "fusion",
+              "driver_events")
+
+
+def simulate_arm(scenario, seed: int, arm: str, process_model_specs: tuple[str, ...] = ()) -> dict:
+    """Run one arm of one trip; the tables the metrics need, and what the run was."""
     from vcfusion.run import build_cosimulation
 
-    extra = [load_process_model(s, scenario) for s in process_model_specs]
-    cosim = build_cosimulation(scenario, seed, guidance_enabled=guidance, extra_process_models=extra)
+    sc = arm_scenario(scenario, arm)
+    extra = [load_process_model(s, sc) for s in process_model_specs]
+    renderer = detector = None
+    if arm in CAMERA_ARMS:
+        renderer, detector = _worker_resources(sc)
+    cosim = build_cosimulation(sc, seed, guidance_enabled=arm != "none", extra_process_models=extra,
+                               renderer=renderer, detector=detector)
     result = cosim.run()
-    tables = result.tables
-    dt = scenario.simulation.step_s
-    row = {"seed": seed, "arm": "on" if guidance else "off", "end_reason": result.summary["end_reason"],
-           "cut_ins_ahead_of_ego": result.summary.get("cut_ins_ahead_of_ego", 0)}
-    m = scenario.metrics  # the same thresholds and definitions as the runs' metrics tables
-    row.update(trip_metrics(tables, scenario.ego.lane, dt, m.ttc_threshold_s, m.jerk_window_s, m.ttc_clip_s))
+    tables = {name: result.tables[name] for name in ARM_TABLES if name in result.tables}
+    return {"arm": arm, "scenario": sc, "tables": tables, "summary": result.summary,
+            "process_models": ",".join(name for name, _ in cosim.process_models) or "(none)",
+            "driver": cosim.controller.p.to_dict()}
+
+
+def highlight_episodes(rows: pd.DataFrame, period_s: float) -> list[tuple[str, str, float]]:
+    """(twin id, shown vehicle id, start time) of each highlight episode in the rows of a
+    guidance or fusion table (one row per item and tick): runs of ticks in which the same twin is
+    shown on the same vehicle, a gap of more than 1.5 periods starting a new episode."""
+    out = []
+    for (twin, shown), g in rows.groupby(["vehicle_id", "box_vehicle_id"], sort=True):
+        t = np.sort(g["time"].to_numpy(dtype=float))
+        starts = np.concatenate([[0], np.flatnonzero(np.diff(t) > 1.5 * period_s + 1e-9) + 1])
+        out += [(str(twin), str(shown), float(t[k])) for k in starts]
+    return out
+
+
+def highlight_counts(guidance: pd.DataFrame | None, fusion: pd.DataFrame | None, period_s: float) -> dict:
+    """Highlight episodes of one run: ``highlights_right`` (a warning drawn on the vehicle the
+    cloud meant), ``highlights_wrong`` (drawn on another vehicle, or on no vehicle), from the
+    ``guidance`` table; ``missed_warnings`` (a twin in the camera's view with a warning level and
+    no matched box: nothing drawn), from the ``fusion`` table (0 without one: the cloud arm marks
+    every warned twin)."""
+    from vcfusion.guidance import WARNING_LEVELS
+
+    out = {"highlights_right": 0, "highlights_wrong": 0, "missed_warnings": 0}
+    if guidance is not None and len(guidance):
+        for twin, shown, _ in highlight_episodes(guidance[guidance["level"].isin(WARNING_LEVELS)], period_s):
+            out["highlights_right" if twin == shown else "highlights_wrong"] += 1
+    if fusion is not None and len(fusion):
+        missed = fusion[~fusion["matched"].astype(bool) & fusion["level"].isin(WARNING_LEVELS)]
+        out["missed_warnings"] = len(highlight_episodes(missed.assign(box_vehicle_id=""), period_s))
+    return out
+
+
+def arm_metrics(run: dict, target_id: str | None) -> dict:
+    """Every metric of one arm of one trip (the study's one metric computation), TTC and gaps
+    against the seed's `target_id`."""
+    from vcfusion.metrics.movestar import trip_emissions
+    from vcfusion.metrics.safety import cut_in_target, trip_metrics
+    from vcfusion.metrics.traffic import ego_movestar_type
+
+    sc, tables, arm = run["scenario"], dict(run["tables"]), run["arm"]
+    own = cut_in_target(tables.get("lane_changes"))
+    if target_id is not None:  # the seed's vehicle, whichever cut in first in this arm
+        lc = tables["lane_changes"]
+        tables["lane_changes"] = lc[lc["vehicle_id"] == target_id]
+    row = {"end_reason": run["summary"]["end_reason"],
+           "cut_ins_ahead_of_ego": run["summary"].get("cut_ins_ahead_of_ego", 0)}
+    m = sc.metrics  # the same thresholds and definitions as the runs' metrics tables
+    row.update(trip_metrics(tables, sc.ego.lane, sc.simulation.step_s, m.ttc_threshold_s, m.jerk_window_s,
+                            m.ttc_clip_s))
     row["ttc_threshold_s"] = m.ttc_threshold_s
+    row["target_id"] = target_id
+    # whether the seed's vehicle cut in ahead of the ego in this arm (else its TTC / gap are NaN)
+    row["target_cut_in_here"] = bool(target_id is not None and not math.isnan(row["target_mid_time_s"]))
+    row["own_first_cut_in_id"] = None if own is None else str(own["vehicle_id"])
+    row["first_cut_in_differs"] = row["own_first_cut_in_id"] != target_id
     ego = tables["ego"]
-    em = trip_emissions(ego["time"].to_numpy(), ego["speed"].to_numpy(), ego_movestar_type(scenario, tables["vehicles"]))
+    em = trip_emissions(ego["time"].to_numpy(), ego["speed"].to_numpy(), ego_movestar_type(sc, tables["vehicles"]))
     pk = em["per_km"]
     row.update({
         "fuel_g_per_km": pk["Fuel"], "co_g_per_km": pk["CO"], "hc_g_per_km": pk["HC"], "nox_g_per_km": pk["NOx"],
         "pm25_g_per_km": (pk["PM2.5_Ele"] + pk["PM2.5_Org"]) if pk["CO"] is not None else None,
         "co2_g_per_km": pk["CO2"], "fuel_g": em["totals"]["Fuel"], "movestar_tt_s": em["TT_s"],
     })
-    guidance_table = tables.get("guidance")
-    sources = sorted(set(guidance_table["source"])) if guidance_table is not None and len(guidance_table) else ["none"]
+    # what produced the highlights, and how good they were
+    guidance = tables.get("guidance")
+    sources = sorted(set(guidance["source"])) if guidance is not None and len(guidance) else ["none"]
     row["guidance_source"] = "+".join(sources)
+    row["ticks_without_frame"] = int((guidance["source"] == "no_frame").sum()) if guidance is not None else 0
+    nan = math.nan
+    counts = highlight_counts(guidance, tables.get("fusion"), sc.v2c.period_s) if arm != REFERENCE_ARM else {}
+    row["highlights_right"] = counts.get("highlights_right", nan)
+    row["highlights_wrong"] = counts.get("highlights_wrong", nan)
+    row["missed_warnings"] = counts.get("missed_warnings", nan)
+    # the driver's first response to the seed's vehicle (any cue)
     events = tables.get("driver_events")
-    target = row["target_id"]
-    row["response_time_s"] = math.nan
-    row["response_cue"] = ""
-    if target and events is not None and len(events):
-        mine = events[events["vehicle_id"] == target]
+    row["response_time_s"], row["response_cue"] = nan, ""
+    if target_id is not None and events is not None and len(events):
+        mine = events[(events["vehicle_id"] == target_id) & events["response_time"].notna()]
         if len(mine):
-            if guidance:
-                first = mine.sort_values("response_time").iloc[0]
-            else:
-                first = mine[mine["cue"] == "lateral"].sort_values("response_time").iloc[0] \
-                    if (mine["cue"] == "lateral").any() else None
-            if first is not None:
-                row["response_time_s"] = float(first["response_time"])
-                row["response_cue"] = str(first["cue"])
-    row["process_models"] = ",".join(name for name, _ in cosim.process_models) or "(none)"
-    for k, v in cosim.controller.p.to_dict().items():
+            first = mine.sort_values("response_time").iloc[0]
+            row["response_time_s"], row["response_cue"] = float(first["response_time"]), str(first["cue"])
+    row["process_models"] = run["process_models"]
+    for k, v in run["driver"].items():
         row[f"driver_{k}"] = v
     return row
 
 
-def run_trip(scenario_path: str, seed: int, process_model_specs: tuple[str, ...]) -> tuple[int, list[dict] | None, str | None]:
-    """Both arms of trip `seed` (worker entry point)."""
+def choose_target(runs: list[dict]) -> str | None:
+    """The seed's vehicle for TTC and gaps: the reference arm's first cut-in ahead of the ego, else
+    the first arm's (in `runs` order, the reference first) that has one."""
+    from vcfusion.metrics.safety import cut_in_target
+
+    ordered = sorted(runs, key=lambda r: r["arm"] != REFERENCE_ARM)
+    for run in ordered:
+        first = cut_in_target(run["tables"].get("lane_changes"))
+        if first is not None:
+            return str(first["vehicle_id"])
+    return None
+
+
+def run_trip(scenario_path: str, seed: int, process_model_specs: tuple[str, ...],
+             arms: tuple[str, ...] = DEFAULT_ARMS) -> tuple[int, list[dict] | None, str | None]:
+    """Every arm of trip `seed` (worker entry point): one metrics row per arm."""
     from vcfusion.scenario import load_scenario
 
     try:
         scenario = load_scenario(scenario_path)
-        return seed, [run_arm(scenario, seed, g, process_model_specs) for g in (False, True)], None
+        runs = []
+        for arm in arms:
+            started = wallclock.perf_counter()
+            run = simulate_arm(scenario, seed, arm, process_model_specs)
+            run["wall_s"] = wallclock.perf_counter() - started
+            runs.append(run)
+        target = choose_target(runs)
+        rows = []
+        for run in runs:
+            rows.append({"seed": seed, "arm": run["arm"], **arm_metrics(run, target), "arm_wall_s": run["wall_s"]})
+        return seed, rows, None
     except Exception as exc:  # one failing trip must not stop the study
         return seed, None, f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}"
 
 
-def paired_summary(trips: pd.DataFrame, metrics=SAFETY_METRICS + EMISSION_METRICS) -> pd.DataFrame:
-    """Mean per arm, mean paired difference (on - off) with a t-based 95% CI, p-value."""
+def paired_summary(trips: pd.DataFrame, metrics=SAFETY_METRICS + EMISSION_METRICS,
+                   reference: str = REFERENCE_ARM) -> pd.DataFrame:
+    """Per metric and arm (other than `reference`): the mean of both arms, the mean paired
+    difference (arm - reference) with a t-based 95% CI, the paired t-test p-value, over the trips
+    where every arm has the metric (the figures use the same numbers)."""
     from scipy import stats
 
-    off = trips[trips["arm"] == "off"].set_index("seed")
-    on = trips[trips["arm"] == "on"].set_index("seed")
+    arms = [a for a in ARMS if a in set(trips["arm"])] + sorted(set(trips["arm"]) - set(ARMS))
+    if reference not in arms:
+        raise StudyError(f"paired summary: the reference arm {reference!r} is not among the arms {arms}")
     rows = []
     for col, label, unit, paper_off, paper_on, paper_rel in metrics:
-        both = pd.concat([off[col].astype(float), on[col].astype(float)], axis=1, keys=["off", "on"]).dropna()
-        n = len(both)
-        diff = both["on"] - both["off"]
-        mean_off, mean_on = both["off"].mean(), both["on"].mean()
-        if n >= 2 and diff.std(ddof=1) > 0:
-            half = stats.t.ppf(0.975, n - 1) * diff.std(ddof=1) / math.sqrt(n)
-            p = float(stats.ttest_rel(both["on"], both["off"]).pvalue)
-        else:
-            half, p = (0.0 if n >= 2 else math.nan), (1.0 if n >= 2 else math.nan)
+        wide = trips.pivot(index="seed", columns="arm", values=col).astype(float)[arms].dropna()
+        n = len(wide)
         if paper_rel is None and paper_off is not None:
             paper_rel = 100.0 * (paper_on - paper_off) / paper_off
-        rows.append({
-            "metric": col, "label": label, "unit": unit, "n_pairs": n,
-            "mean_off": mean_off, "mean_on": mean_on,
-            "mean_diff": diff.mean() if n else math.nan, "ci95_low": diff.mean() - half if n else math.nan,
-            "ci95_high": diff.mean() + half if n else math.nan, "p_value": p,
-            "rel_change_pct": 100.0 * (mean_on - mean_off) / mean_off if n and mean_off else math.nan,
-            "paper_off": paper_off, "paper_on": paper_on, "paper_rel_change_pct": paper_rel,
-        })
+        for arm in arms:
+            if arm == reference:
+                continue
+            diff = wide[arm] - wide[reference]
+            mean_ref, mean_arm = wide[reference].mean(), wide[arm].mean()
+            if n >= 2 and diff.std(ddof=1) > 0:
+                half = stats.t.ppf(0.975, n - 1) * diff.std(ddof=1) / math.sqrt(n)
+                p = float(stats.ttest_rel(wide[arm], wide[reference]).pvalue)
+            else:
+                half, p = (0.0 if n >= 2 else math.nan), (1.0 if n >= 2 else math.nan)
+            rows.append({
+                "metric": col, "label": label, "unit": unit, "arm": arm, "reference": reference, "n_pairs": n,
+                "mean_ref": mean_ref, "mean_arm": mean_arm,
+                "mean_diff": diff.mean() if n else math.nan, "ci95_low": diff.mean() - half if n else math.nan,
+                "ci95_high": diff.mean() + half if n else math.nan, "p_value": p,
+                "rel_change_pct": 100.0 * (mean_arm - mean_ref) / mean_ref if n and mean_ref else math.nan,
+                "paper_off": paper_off, "paper_on": paper_on, "paper_rel_change_pct": paper_rel,
+            })
     return pd.DataFrame(rows)
 
 
@@ -171,67 +337,84 @@ def _verdict(r) -> str:
     if not r.n_pairs or math.isnan(r.ci95_low):
         return "no data"
     if r.ci95_low > 0:
-        return "higher with guidance"
+        return "higher"
     if r.ci95_high < 0:
-        return "lower with guidance"
+        return "lower"
     return "no significant difference"
+
+
+def _given(x) -> bool:
+    return x is not None and not (isinstance(x, float) and math.isnan(x))
 
 
 def format_summary(summary: pd.DataFrame, info: dict) -> str:
     lines = [f"guidance study {info['scenario']}: {info['trips_ok']} paired trips "
-             f"({info['trips_failed']} failed) in {info['wall_s']:.0f} s wall with {info['workers']} workers",
-             f"  guidance source: {info['guidance_source']}; process models: {info['process_models']}",
-             f"  trips with a cut-in ahead of the ego: {info['trips_with_target']} of {info['trips_ok']}",
-             f"  mean response time gained with guidance (on the lane-change vehicle): "
-             f"{info['mean_response_gain_s']:.2f} s over {info['response_pairs']} trips",
-             "",
-             f"  {'metric':<46} {'off':>9} {'on':>9} {'diff (on-off) [95% CI]':>32} {'rel':>8} "
-             f"{'p':>7}  paper (off -> on, rel)  verdict"]
-    for r in summary.itertuples(index=False):
-        paper = ""
-        if r.paper_off is not None and not (isinstance(r.paper_off, float) and math.isnan(r.paper_off)):
-            paper = f"{r.paper_off:g} -> {r.paper_on:g}"
-        if r.paper_rel_change_pct is not None and not (isinstance(r.paper_rel_change_pct, float)
-                                                       and math.isnan(r.paper_rel_change_pct)):
-            paper += f" ({r.paper_rel_change_pct:+.2f}%)"
-        unit = f" [{r.unit}]" if r.unit else ""
-        lines.append(
-            f"  {(r.label + unit)[:46]:<46} {r.mean_off:9.4g} {r.mean_on:9.4g} "
-            f"{r.mean_diff:+9.3g} [{r.ci95_low:+9.3g}, {r.ci95_high:+9.3g}] {r.rel_change_pct:+7.2f}% "
-            f"{r.p_value:7.3g}  {paper:<22}  {_verdict(r)}")
+             f"({info['trips_failed']} failed), arms {', '.join(info['arms'])}, in {info['wall_s']:.0f} s wall "
+             f"with {info['workers']} workers",
+             f"  process models: {info['process_models']}",
+             f"  trips with a cut-in ahead of the ego (TTC/gap vehicle chosen once per seed): "
+             f"{info['trips_with_target']} of {info['trips_ok']}"]
+    for arm, a in info["per_arm"].items():
+        line = f"  {arm}: " + ("no highlights shown" if arm == REFERENCE_ARM
+                                else f"highlights from {a['guidance_source']}")
+        if arm != REFERENCE_ARM:
+            line += (f"; highlight episodes right {a['highlights_right']}, wrong {a['highlights_wrong']}, "
+                     f"missed warnings {a['missed_warnings']}; ticks without a camera frame {a['ticks_without_frame']}")
+        line += f"; own first cut-in differs from the seed's vehicle in {a['first_cut_in_differs']} trips"
+        if arm != REFERENCE_ARM:
+            line += (f"; responds to that vehicle {a['response_gain_s']:.2f} s earlier than {REFERENCE_ARM} "
+                     f"(mean over {a['response_pairs']} trips)")
+        line += f"; {a['mean_wall_s']:.1f} s wall per trip"
+        lines.append(line)
+    for arm in summary["arm"].unique():
+        part = summary[summary["arm"] == arm]
+        lines += ["", f"  {arm} vs {REFERENCE_ARM} (paired over trips where every arm has the metric)",
+                  f"  {'metric':<46} {'n':>4} {REFERENCE_ARM:>9} {arm:>9} {'diff [95% CI]':>32} {'rel':>8} "
+                  f"{'p':>7}  paper (off -> on, rel)  verdict"]
+        for r in part.itertuples(index=False):
+            paper = f"{r.paper_off:g} -> {r.paper_on:g}" if _given(r.paper_off) else ""
+            if _given(r.paper_rel_change_pct):
+                paper += f" ({r.paper_rel_change_pct:+.2f}%)"
+            unit = f" [{r.unit}]" if r.unit else ""
+            lines.append(
+                f"  {(r.label + unit)[:46]:<46} {r.n_pairs:4d} {r.mean_ref:9.4g} {r.mean_arm:9.4g} "
+                f"{r.mean_diff:+9.3g} [{r.ci95_low:+9.3g}, {r.ci95_high:+9.3g}] {r.rel_change_pct:+7.2f}% "
+                f"{r.p_value:7.3g}  {paper:<22}  {_verdict(r)}")
     return "\n".join(lines)
 
 
-def plot_figures(trips: pd.DataFrame, summary: pd.DataFrame, renders: Path, source: str) -> list[Path]:
-    """Fig. 8 (TTC, |accel|, jerk) and Fig. 9 (fuel and emissions) like the paper's, with 95% CIs."""
+ARM_COLOURS = {"none": "#999999", "cloud": "#6a9fd4", "fusion": "#d9a400", "oracle": "#5aa05a"}
+
+
+def plot_figures(summary: pd.DataFrame, renders: Path) -> list[Path]:
+    """Fig. 8 (TTC, |accel|, jerk) and Fig. 9 (fuel and emissions) like the paper's, every arm:
+    bars = arm means over the paired trips, error bars and annotations = the paired difference to
+    the reference arm with its 95% CI (the summary's numbers, nothing recomputed)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     renders.mkdir(parents=True, exist_ok=True)
-    by_metric = summary.set_index("metric")
     paths = []
+    arms = [REFERENCE_ARM] + list(summary["arm"].unique())
     for name, cols, title in (("guidance_fig8_safety_comfort.png", FIG8, "Safety and comfort (cf. paper Fig. 8)"),
                               ("guidance_fig9_fuel_emissions.png", FIG9, "Fuel and emissions (cf. paper Fig. 9)")):
-        fig, axes = plt.subplots(1, len(cols), figsize=(3.1 * len(cols), 3.6))
+        fig, axes = plt.subplots(1, len(cols), figsize=((0.6 + 0.6 * len(arms)) * len(cols), 4.4))
         for ax, col in zip(np.atleast_1d(axes), cols):
-            r = by_metric.loc[col]
-            means, errs = [], []
-            for arm in ARMS:
-                x = trips.loc[trips["arm"] == arm, col].astype(float).dropna()
-                means.append(x.mean())
-                errs.append(1.96 * x.std(ddof=1) / math.sqrt(len(x)) if len(x) > 1 else 0.0)
-            ax.bar(["without", "with"], means, yerr=errs, capsize=4, color=["#999999", "#d9a400"])
-            ax.set_title(f"{r['label']}\n[{r['unit']}]", fontsize=8)
-            note = f"diff {r['mean_diff']:+.3g}\n95% CI [{r['ci95_low']:+.3g}, {r['ci95_high']:+.3g}]"
-            paper_rel = r["paper_rel_change_pct"]
-            if paper_rel is not None and not (isinstance(paper_rel, float) and math.isnan(paper_rel)):
-                note += f"\npaper {paper_rel:+.1f}%"
-            ax.text(0.5, 0.02, note, transform=ax.transAxes, ha="center", va="bottom", fontsize=7,
-                    bbox={"facecolor": "white", "alpha": 0.8, "lw": 0})
-            ax.tick_params(labelsize=8)
-        fig.suptitle(f"{title}: {by_metric['n_pairs'].max()} paired trips, guidance source: {source}", fontsize=9)
+            part = summary[summary["metric"] == col].set_index("arm")
+            first = part.iloc[0]
+            means = [first["mean_ref"]] + [part.loc[a, "mean_arm"] for a in arms[1:]]
+            errs = [0.0] + [(part.loc[a, "ci95_high"] - part.loc[a, "ci95_low"]) / 2 for a in arms[1:]]
+            ax.bar(arms, means, yerr=errs, capsize=4, color=[ARM_COLOURS.get(a, "#777777") for a in arms])
+            ax.set_title(f"{first['label']}\n[{first['unit']}], n = {first['n_pairs']}", fontsize=8)
+            notes = [f"{a}: {part.loc[a, 'mean_diff']:+.3g} [{part.loc[a, 'ci95_low']:+.3g}, "
+                     f"{part.loc[a, 'ci95_high']:+.3g}]" for a in arms[1:]]
+            if _given(first["paper_rel_change_pct"]):
+                notes.append(f"paper {first['paper_rel_change_pct']:+.1f}%")
+            ax.set_xlabel("diff to " + REFERENCE_ARM + " [95% CI]\n" + "\n".join(notes), fontsize=6)
+            ax.tick_params(labelsize=7)
+        fig.suptitle(f"{title}: paired differences to '{REFERENCE_ARM}' (95% CI)", fontsize=9)
         fig.tight_layout()
         path = renders / name
         tmp = path.with_suffix(".tmp.png")
@@ -242,12 +425,28 @@ def plot_figures(trips: pd.DataFrame, summary: pd.DataFrame, renders: Path, sour
     return paths
 
 
+def parse_arms(text: str) -> tuple[str, ...]:
+    arms = tuple(a.strip() for a in text.split(",") if a.strip())
+    bad = [a for a in arms if a not in ARMS]
+    if bad or not arms:
+        raise ValueError(f"--arms: expected a comma-separated list of {', '.join(ARMS)}, got {text!r}")
+    if len(set(arms)) != len(arms):
+        raise ValueError(f"--arms: an arm is named twice in {text!r}")
+    if REFERENCE_ARM not in arms:
+        raise ValueError(f"--arms: expected '{REFERENCE_ARM}' among the arms (every arm is compared with it), "
+                         f"got {text!r}")
+    if len(arms) < 2:
+        raise ValueError(f"--arms: expected at least one arm besides '{REFERENCE_ARM}', got {text!r}")
+    return arms
+
+
 def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path, renders: Path,
                        first_seed: int = 0, process_model_specs: tuple[str, ...] = (),
-                       progress: bool = True) -> dict:
+                       progress: bool = True, arms: tuple[str, ...] = DEFAULT_ARMS) -> dict:
     """Run the paired trips, write OUT/trips.parquet|csv, summary.csv|json|txt and the figures."""
     from vcfusion.scenario import load_scenario
 
+    arms = parse_arms(",".join(arms))
     scenario = load_scenario(scenario_path)
     if scenario.ego is None:
         raise StudyError(f"{scenario_path}: the guidance study needs an ego (the scenario has no 'ego' block)")
@@ -258,7 +457,7 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
     rows: list[dict] = []
     failed: list[tuple[int, str]] = []
     bar = tqdm(total=len(seeds), unit="trip", desc=f"guidance study {scenario.name}", disable=not progress)
-    jobs = [(str(scenario_path), s, tuple(process_model_specs)) for s in seeds]
+    jobs = [(str(scenario_path), s, tuple(process_model_specs), tuple(arms)) for s in seeds]
     try:
         for index, outcome in run_jobs(run_trip, jobs, workers):
             # a JobFailed: the trip's worker process died (its other trips go on in a new one)
@@ -281,25 +480,50 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
         (out / "failures.json").unlink(missing_ok=True)
     if not rows:
         raise StudyError(f"all {len(seeds)} trips failed; first error: {failed[0][1] if failed else '?'}")
-    table = pd.DataFrame(rows).sort_values(["seed", "arm"]).reset_index(drop=True)
-    sources = sorted(set("+".join(table["guidance_source"]).split("+")))
+    table = pd.DataFrame(rows)
+    table["arm"] = pd.Categorical(table["arm"], categories=list(arms))
+    table = table.sort_values(["seed", "arm"]).reset_index(drop=True)
+    table["arm"] = table["arm"].astype(str)
+    guided = table[table["arm"] != REFERENCE_ARM]
+    sources = sorted(set("+".join(guided["guidance_source"]).split("+")))
     if sources == ["none"]:
         raise StudyError("no process model writes 'lc_prob' to the cloud twins, so no guidance was ever shown "
-                         "and both arms are the same driver: wire the lane-change predictor in "
+                         "and every arm is the same driver: wire the lane-change predictor in "
                          "run.build_cosimulation or pass --process-model module:factory")
+    # no silent fallback: an arm's highlights come from its own source (no_frame ticks are counted)
+    for arm in arms:
+        expected = ARM_SOURCES[arm]
+        got = set("+".join(table.loc[table["arm"] == arm, "guidance_source"]).split("+")) - {"no_frame"}
+        if expected is not None and not got <= {expected, "none"}:
+            raise StudyError(f"arm {arm}: highlights came from {sorted(got)}, expected only {expected!r}")
     summary = paired_summary(table)
-    on = table[table["arm"] == "on"].set_index("seed")
-    off = table[table["arm"] == "off"].set_index("seed")
-    gain = (off["response_time_s"] - on["response_time_s"]).dropna()
+    per_arm = {}
+    ref_response = table[table["arm"] == REFERENCE_ARM].set_index("seed")["response_time_s"]
+    for arm in arms:
+        t = table[table["arm"] == arm]
+        resp = t["response_time_s"].dropna()
+        gain = (ref_response - t.set_index("seed")["response_time_s"]).dropna()
+        per_arm[arm] = {
+            "guidance_source": "+".join(sorted(set("+".join(t["guidance_source"]).split("+")))),
+            "highlights_right": int(t["highlights_right"].sum()) if arm != REFERENCE_ARM else None,
+            "highlights_wrong": int(t["highlights_wrong"].sum()) if arm != REFERENCE_ARM else None,
+            "missed_warnings": int(t["missed_warnings"].sum()) if arm != REFERENCE_ARM else None,
+            "ticks_without_frame": int(t["ticks_without_frame"].sum()),
+            "first_cut_in_differs": int(t["first_cut_in_differs"].sum()),
+            "target_cut_in_here": int(t["target_cut_in_here"].sum()),
+            "mean_response_time_s": float(resp.mean()) if len(resp) else math.nan, "responses": int(len(resp)),
+            # paired: how much earlier the driver responds to the seed's vehicle than in the reference arm
+            "response_gain_s": float(gain.mean()) if len(gain) else math.nan, "response_pairs": int(len(gain)),
+            "mean_wall_s": float(t["arm_wall_s"].mean()),
+        }
     info = {
         "scenario": scenario.name, "scenario_file": str(scenario_path), "seeds": [seeds[0], seeds[-1]],
+        "arms": list(arms), "reference_arm": REFERENCE_ARM,
         "trips_ok": int(table["seed"].nunique()), "trips_failed": len(failed), "workers": workers,
         "wall_s": wallclock.perf_counter() - started,
-        "guidance_source": "+".join(s for s in sources if s != "none") + (
-            " (cloud = fallback: guidance items made from the cloud lc_prob, no vision fusion)" if "cloud" in sources else ""),
         "process_models": ", ".join(sorted(set(table["process_models"]))),
-        "trips_with_target": int(on["target_id"].notna().sum()),
-        "mean_response_gain_s": float(gain.mean()) if len(gain) else math.nan, "response_pairs": int(len(gain)),
+        "trips_with_target": int(table.groupby("seed")["target_id"].first().notna().sum()),
+        "per_arm": per_arm,
     }
     write_table(out / "trips.parquet", table)
     tmp = out / "trips.csv.tmp"
@@ -312,5 +536,5 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
     write_json(out / "summary.json", info | {"metrics": json.loads(summary.to_json(orient="records")),
                                              "failed": {str(s): e for s, e in failed}})
     (out / "summary.txt").write_text(text + "\n")
-    figures = plot_figures(table, summary, Path(renders), info["guidance_source"].split(" ")[0])
+    figures = plot_figures(summary, Path(renders))
     return {"info": info, "summary": summary, "text": text, "figures": figures, "trips": table, "failed": failed}

@@ -36,8 +36,8 @@ def run_bench(n_points: int = 100, repeats: int = 3000) -> str:
     s = rng.uniform(0.0, road.length_m, n_points)
     x, y = road.to_world(s, rng.uniform(0.0, road.width_m, n_points))
     t_road = _median_us(lambda: road.to_road_frame(x, y), repeats)
-    t_road_lane = _median_us(lambda: road.lane_of(road.to_road_frame(x, y)[1]), repeats)
-    lines.append(f"  Road (straight, today)      to_frame {t_road:7.1f}   +lane {t_road_lane:7.1f}")
+    t_road_lane = _median_us(lambda: road.locate(x, y), repeats)
+    lines.append(f"  Road (straight, closed form) to_frame {t_road:7.1f}   +lane {t_road_lane:7.1f}")
     for name, route in CASES:
         frame = RoadFrame.from_net(REPO_NET_DIR / f"{name}.net.xml", route)
         s = rng.uniform(0.0, frame.length_m, n_points)

@@ -5,6 +5,11 @@ lane (the manoeuvre's midpoint), with the reason. With continuous lane changing 
 manoeuvre starts earlier and ends later: start is the last sample before the midpoint at
 which the vehicle was still centred in its old lane, end the first sample after it at which
 it is centred in the new one (to `CENTRED_TOL_M`), at the trajectory's sampling period.
+
+Lanes are tracks of the scenario's route (index from the right, stable across edges): SUMO's
+lane ids map to them with the road frame's `track_of`, so a ramp vehicle's merge from the
+acceleration lane is track 0 -> 1 whatever SUMO's index on that edge; a change on an edge off the
+route has lanes -1 (and no start or end).
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from vcfusion.records import EGO_ID
-from vcfusion.traffic.network import Road
+from vcfusion.traffic.roadframe import RoadFrame
 
 CENTRED_TOL_M = 0.05
 
@@ -40,24 +45,72 @@ SUMO_CHANGE_DTYPES = {
 }
 
 
-def read_sumo_lanechanges(path: str | Path) -> dict[str, np.ndarray]:
-    """SUMO's lanechange-output as columns (one element per change, at its midpoint)."""
+def read_sumo_lanechanges(path: str | Path, road: RoadFrame | None = None) -> dict[str, np.ndarray]:
+    """SUMO's lanechange-output as columns (one element per change, at its midpoint). With a
+    road frame, lanes are the tracks of its route and pos_m the position along it (-1 and NaN on
+    lanes off the route); without one, SUMO's lane indices and lane positions."""
     path = Path(path)
+    if road is None:
+        lane_of, pos_of = _lane_index, lambda lane_id, pos: pos
+    else:
+        track_of, edge_start = road.track_of, road.edge_start_s
+
+        def lane_of(lane_id: str) -> int:
+            return track_of.get(lane_id, -1)
+
+        def pos_of(lane_id: str, pos: float) -> float:
+            start = edge_start.get(lane_id.rsplit("_", 1)[0])
+            return start + pos if start is not None else np.nan
     rows = []
     if path.exists() and path.stat().st_size:
         for c in ET.parse(path).getroot().iter("change"):
-            rows.append((c.get("id"), float(c.get("time")), _lane_index(c.get("from")), _lane_index(c.get("to")),
-                         int(c.get("dir")), c.get("reason"), float(c.get("pos")), float(c.get("speed")),
+            rows.append((c.get("id"), float(c.get("time")), lane_of(c.get("from")), lane_of(c.get("to")),
+                         int(c.get("dir")), c.get("reason"), pos_of(c.get("from"), float(c.get("pos"))),
+                         float(c.get("speed")),
                          _gap(c.get("leaderGap")), _gap(c.get("followerGap"))))
     values = list(zip(*rows)) if rows else [()] * len(SUMO_CHANGE_DTYPES)
     return {name: np.array(v, dtype=dtype) for (name, dtype), v in zip(SUMO_CHANGE_DTYPES.items(), values)}
 
 
+PERSON_REASON = "person"  # the ego's lane changes when a person steers it (vcfusion.hitl)
+
+
+def ego_lane_changes(track: dict[str, np.ndarray] | None, road: Road, ego_length_m: float) -> dict[str, np.ndarray]:
+    """The ego's own lane changes as SUMO would report them (one row per change, columns of
+    SUMO_CHANGE_DTYPES), from its trajectory: SUMO's lanechange-output does not see a vehicle
+    placed with moveToXY. The midpoint is the first sample with the centre line in the new lane
+    (at the trajectory's period); pos_m the front bumper there, speed from the neighbouring
+    samples; reason `person`; the gaps are not known (NaN). A model-driven ego never changes
+    lanes: no rows."""
+    empty = {name: np.array([], dtype=dtype) for name, dtype in SUMO_CHANGE_DTYPES.items()}
+    if track is None or len(track["time"]) < 2:
+        return empty
+    t, d, s = track["time"], track["d"], track["s"]
+    lane = road.lane_of(s, d)
+    k = np.flatnonzero((lane[1:] != lane[:-1]) & (lane[1:] >= 0) & (lane[:-1] >= 0)) + 1
+    if not len(k):
+        return empty
+    lo, hi = np.maximum(k - 1, 0), np.minimum(k + 1, len(t) - 1)
+    return {
+        "vehicle_id": np.full(len(k), EGO_ID).astype(str), "mid_time": t[k].astype(float),
+        "from_lane": lane[k - 1].astype(np.int64), "to_lane": lane[k].astype(np.int64),
+        "direction": np.sign(lane[k].astype(np.int64) - lane[k - 1]),  # SUMO: +1 = to the left
+        "reason": np.full(len(k), PERSON_REASON).astype(str), "pos_m": s[k] + ego_length_m / 2,
+        "speed_mps": (s[hi] - s[lo]) / (t[hi] - t[lo]), "leader_gap_m": np.full(len(k), np.nan),
+        "follower_gap_m": np.full(len(k), np.nan),
+    }
+
+
+def merge_changes(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {name: np.concatenate([a[name], b[name]]).astype(dtype) for name, dtype in SUMO_CHANGE_DTYPES.items()}
+
+
 def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, dict[str, np.ndarray]],
-                       road: Road) -> dict[str, np.ndarray]:
+                       road: RoadFrame) -> dict[str, np.ndarray]:
     """Add start and end times from the lateral trajectory; one element per lane change, in
-    LANE_CHANGE_COLUMNS order, sorted by midpoint then vehicle. `tracks`: time and d of each
-    changer's trajectory samples, in time order (see runio.vehicle_tracks)."""
+    LANE_CHANGE_COLUMNS order, sorted by midpoint then vehicle. `tracks`: time, d and s of each
+    changer's trajectory samples, in time order (see runio.vehicle_tracks); lane centres are
+    taken at each sample's s (a lane's d range may change along the route)."""
     order = np.lexsort((sumo_changes["vehicle_id"], sumo_changes["mid_time"]))  # stable
     events = {name: values[order] for name, values in sumo_changes.items()}
     starts = np.full(len(order), np.nan)
@@ -65,11 +118,12 @@ def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, di
     columns = (events[c] for c in ("vehicle_id", "from_lane", "to_lane", "mid_time"))
     for i, (vid, from_lane, to_lane, mid_time) in enumerate(zip(*columns)):
         track = tracks.get(vid)
-        if track is None:
+        if track is None or from_lane < 0 or to_lane < 0:
             continue
         t, d = track["time"], track["d"]
-        in_old = np.abs(d - road.lane_centre_d(from_lane)) <= CENTRED_TOL_M
-        in_new = np.abs(d - road.lane_centre_d(to_lane)) <= CENTRED_TOL_M
+        s = track["s"] if "s" in track else 0.0
+        in_old = np.abs(d - road.lane_centre_d(from_lane, s)) <= CENTRED_TOL_M
+        in_new = np.abs(d - road.lane_centre_d(to_lane, s)) <= CENTRED_TOL_M
         before = np.flatnonzero(in_old & (t <= mid_time + 1e-9))
         after = np.flatnonzero(in_new & (t >= mid_time - 1e-9))
         if len(before):
@@ -81,8 +135,9 @@ def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, di
 
 
 def relate_to_ego(events: dict[str, np.ndarray], tracks: dict[str, dict[str, np.ndarray]],
-                  lengths: dict[str, float], ego_lane: int) -> dict[str, np.ndarray]:
+                  lengths: dict[str, float], ego_lane: int | np.ndarray) -> dict[str, np.ndarray]:
     """Mark lane changes into the ego's lane and where they happened relative to the ego.
+    `ego_lane`: the ego's lane, or per event the ego's lane at the change's midpoint.
 
     `gap_to_ego_m`: bumper to bumper along the road, the changer's rear minus the ego's front,
     at the trajectory sample nearest the change's midpoint. `tracks`: time and s of the ego's

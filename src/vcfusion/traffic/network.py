@@ -1,7 +1,9 @@
-"""The highway network: reproducible build with netconvert, and its road geometry.
+"""The highway networks: reproducible build with netconvert, and the road geometry of a run.
 
-The road is one straight edge. :class:`Road` is the geometry every other stage needs (lane
-centres, road edges, the direction of travel) so no stage has to read SUMO files itself.
+Every stage works in the road frame of the scenario's route (:class:`RoadFrame`, see
+`vcfusion.traffic.roadframe`): s along the route, d from its right edge, lanes as tracks (index
+from the right). :class:`Road` is the frame of the simplest network, one straight edge of
+parallel lanes of equal width, in closed form; :func:`read_road` gives the frame of any network.
 """
 
 from __future__ import annotations
@@ -17,24 +19,64 @@ from pathlib import Path
 import numpy as np
 
 from vcfusion.errors import InputError
+from vcfusion.traffic.roadframe import RoadFrame, RouteError, _Lane, _Piece
 
 REPO_NET_DIR = Path(__file__).resolve().parents[3] / "sumo_net"
 
 
-@dataclass(frozen=True)
-class Road:
-    """A straight multi-lane road. Lane 0 is the rightmost lane (SUMO's convention)."""
+@dataclass(init=False, eq=False, repr=False)
+class Road(RoadFrame):
+    """The road frame of one straight edge of parallel lanes of equal width. Lane 0 is the
+    rightmost lane (SUMO's convention), and a lane is its track.
 
-    edge_id: str
-    start: tuple[float, float]
+    Its conversions are closed-form: the general frame's map on such an edge to 1e-9 m (tested),
+    in the arithmetic the straight-road runs were recorded with, so their tables stay
+    byte-identical; the lane structure (tracks, SUMO lane positions) is the general frame's.
+    Its defining values are dataclass fields (`dataclasses.asdict(road)`, as before).
+    """
+
+    edge_id: str  # (the route's one edge: RoadFrame.edge_id)
+    start: tuple[float, float]  # the left road edge's ends (SUMO's edge shape)
     end: tuple[float, float]
-    num_lanes: int
+    num_lanes: int  # (RoadFrame.num_lanes)
     lane_width_m: float
     speed_limit_mps: float
 
+    def __init__(self, edge_id: str, start: tuple[float, float], end: tuple[float, float], num_lanes: int,
+                 lane_width_m: float, speed_limit_mps: float, net_file: str | Path | None = None):
+        self.net_file = Path(net_file) if net_file is not None else None
+        self.route = (edge_id,)
+        self.start = (float(start[0]), float(start[1]))
+        self.end = (float(end[0]), float(end[1]))
+        self.lane_width_m = float(lane_width_m)
+        self.speed_limit_mps = float(speed_limit_mps)
+        self.length_m = float(np.hypot(self.end[0] - self.start[0], self.end[1] - self.start[1]))
+        w, n = self.lane_width_m, int(num_lanes)
+        # start and end lie on the left road edge (SUMO's edge shape); lane 0's centre line is half a
+        # lane left of the right one
+        offset = self.left_normal * (w / 2 - n * w)
+        shape = np.array([self.start + offset, self.end + offset])
+        lane0 = _Lane(f"{edge_id}_0", edge_id, 0, w, self.length_m, shape, self.speed_limit_mps)
+        self.track_of = {f"{edge_id}_{i}": i for i in range(n)}
+        self.edge_start_s = {edge_id: 0.0}
+        self._assemble([_Piece(edge_id, 0.0, self.length_m, lane0, 0, {i: w for i in range(n)})])
+
     @cached_property
-    def length_m(self) -> float:
-        return float(np.hypot(self.end[0] - self.start[0], self.end[1] - self.start[1]))
+    def key(self) -> tuple:
+        return ("straight", self.edge_id, self.start, self.end, self.num_tracks, self.lane_width_m,
+                self.speed_limit_mps)
+
+    def __repr__(self) -> str:
+        return (f"Road({self.edge_id!r}, start={self.start}, end={self.end}, {self.num_tracks} lanes of "
+                f"{self.lane_width_m} m)")
+
+    @property
+    def is_straight(self) -> bool:
+        return True
+
+    @cached_property
+    def width_m(self) -> float:
+        return self.num_tracks * self.lane_width_m
 
     @cached_property
     def direction(self) -> np.ndarray:
@@ -52,16 +94,12 @@ class Road:
         return float(np.arctan2(d[1], d[0]))
 
     @cached_property
-    def width_m(self) -> float:
-        return self.num_lanes * self.lane_width_m
-
-    @cached_property
     def _frame(self) -> tuple[float, ...]:
-        # plain floats: to_road_frame runs several times per tick, mostly on small arrays
+        # plain floats: the conversion runs several times per tick, mostly on small arrays
         return (float(self.start[0]), float(self.start[1]), *map(float, self.direction),
                 *map(float, self.left_normal), float(self.width_m))
 
-    def to_road_frame(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def to_frame(self, x, y) -> tuple[np.ndarray, np.ndarray]:
         """World (x, y) to (s, d): s along the road from its start, d left of the right road edge."""
         x0, y0, dx, dy, nx, ny, width = self._frame
         rel_x = np.asarray(x) - x0
@@ -71,28 +109,45 @@ class Road:
         d_left = rel_x * nx + rel_y * ny
         return s, d_left + width
 
-    def to_world(self, s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def to_road_frame(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+        return self.to_frame(x, y)
+
+    def locate(self, x, y) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        s, d = self.to_frame(x, y)
+        return s, d, self.lane_of(s, d)
+
+    def to_world(self, s, d) -> tuple[np.ndarray, np.ndarray]:
         s = np.asarray(s, dtype=float)
         d_left = np.asarray(d, dtype=float) - self.width_m
         x = self.start[0] + s * self.direction[0] + d_left * self.left_normal[0]
         y = self.start[1] + s * self.direction[1] + d_left * self.left_normal[1]
         return x, y
 
-    def lane_centre_d(self, lane: np.ndarray | int) -> np.ndarray:
-        return (np.asarray(lane, dtype=float) + 0.5) * self.lane_width_m
+    def heading(self, s, d=0.0) -> np.ndarray:
+        return np.full(np.broadcast(np.asarray(s), np.asarray(d)).shape, self.heading_rad)
 
-    def lane_of(self, d: np.ndarray) -> np.ndarray:
-        """Map-match a lateral road coordinate to a lane index (-1 when off the road)."""
+    def lane_of(self, s, d) -> np.ndarray:
+        """Map-match to a lane index (-1 when off the road); s plays no part on a straight edge."""
         lane = np.floor(np.asarray(d, dtype=float) / self.lane_width_m).astype(np.int16)
-        return np.where((lane >= 0) & (lane < self.num_lanes), lane, -1)
+        lane = np.where((lane >= 0) & (lane < self.num_tracks), lane, -1)
+        shape = np.shape(s)
+        if shape != lane.shape:
+            lane = np.broadcast_to(lane, np.broadcast_shapes(shape, lane.shape)).copy()
+        return lane
+
+    def lane_bounds(self, track, s=0.0) -> tuple[np.ndarray, np.ndarray]:
+        t = np.asarray(track, dtype=float) + 0.0 * np.asarray(s, dtype=float)
+        return t * self.lane_width_m, (t + 1.0) * self.lane_width_m
+
+    def lane_centre_d(self, track, s=0.0) -> np.ndarray:
+        t = np.asarray(track, dtype=float)
+        if np.ndim(s):
+            t = np.broadcast_to(t, np.broadcast(t, np.asarray(s)).shape)
+        return (t + 0.5) * self.lane_width_m
 
 
 class NetworkFileError(InputError):
     """A network or vehicle-types file that cannot be used; the message names the file and the problem."""
-
-
-SUPPORTED_ROAD = ("supported: a SUMO .net.xml with one straight edge (plus internal edges) of parallel lanes of "
-                  "equal width, as `vcfusion build-net` makes")
 
 
 def _parse_xml(path: str | Path, what: str, roots: tuple[str, ...]) -> ET.Element:
@@ -135,48 +190,91 @@ def _shape_points(text: str | None) -> np.ndarray:
     return points
 
 
-def read_road(net_file: str | Path) -> Road:
-    """Read the single straight edge of a SUMO network file (NetworkFileError when it is not one)."""
-    root = _parse_xml(net_file, "SUMO network (.net.xml)", ("net",))
-    edges = [e for e in root.iter("edge") if e.get("function") != "internal"]
-    if len(edges) != 1:
-        raise NetworkFileError(f"{net_file}: found {len(edges)} edges; {SUPPORTED_ROAD}")
-    edge = edges[0]
+def _straight_edge(net_file, edge: ET.Element) -> Road | None:
+    """The closed-form Road of a network's only edge, or None when its lanes are not straight,
+    parallel and of one width (the general frame then takes it)."""
     lanes = list(edge.iter("lane"))
     if not lanes:
-        raise NetworkFileError(f"{net_file}: edge {edge.get('id')!r} has no <lane>; {SUPPORTED_ROAD}")
+        raise NetworkFileError(f"{net_file}: edge {edge.get('id')!r} has no <lane>; expected lanes with shapes")
     lanes.sort(key=lambda lane: _lane_attr(net_file, lane, "index", int, "a lane index"))
     widths = {_lane_attr(net_file, lane, "width", lambda v: float(v if v is not None else 3.2), "a width in m")
               for lane in lanes}
-    if len(widths) != 1:
-        raise NetworkFileError(f"{net_file}: lanes of widths {sorted(widths)}; {SUPPORTED_ROAD}")
-    width = widths.pop()
     shapes = [_lane_attr(net_file, lane, "shape", _shape_points, "'x,y x,y ...' (at least two points)")
               for lane in lanes]
     speed = _lane_attr(net_file, lanes[0], "speed", float, "a speed in m/s")
+    if len(widths) != 1:
+        return None
+    width = widths.pop()
     # Lane shapes are lane centre lines; every one must be a straight segment parallel to the others.
     (x0, y0), (x1, y1) = shapes[-1][0], shapes[-1][-1]
     length = float(np.hypot(x1 - x0, y1 - y0))
     if length <= 0.0:
-        raise NetworkFileError(f"{net_file}: lane {lanes[-1].get('id')!r} has zero length; {SUPPORTED_ROAD}")
+        raise NetworkFileError(f"{net_file}: lane {lanes[-1].get('id')!r} has zero length")
     direction = np.array([x1 - x0, y1 - y0]) / length
     normal = np.array([-direction[1], direction[0]])
-    for i, (lane, points) in enumerate(zip(lanes, shapes)):
+    for i, points in enumerate(shapes):
         # lane i lies (n - 1 - i) lane widths right of the leftmost lane (lane 0 is the rightmost)
         offsets = (points - shapes[-1][0]) @ normal
         if np.abs(offsets + (len(lanes) - 1 - i) * width).max() > 0.05:
-            raise NetworkFileError(f"{net_file}: lane {lane.get('id')!r} is not straight and parallel to the "
-                                   f"others at {width} m spacing; {SUPPORTED_ROAD}")
+            return None
     start = np.array([x0, y0]) + normal * width / 2
     end = np.array([x1, y1]) + normal * width / 2
-    return Road(
-        edge_id=edge.get("id"),
-        start=(float(start[0]), float(start[1])),
-        end=(float(end[0]), float(end[1])),
-        num_lanes=len(lanes),
-        lane_width_m=width,
-        speed_limit_mps=speed,
-    )
+    return Road(edge_id=edge.get("id"), start=(float(start[0]), float(start[1])),
+                end=(float(end[0]), float(end[1])), num_lanes=len(lanes), lane_width_m=width,
+                speed_limit_mps=speed, net_file=net_file)
+
+
+# Frames already built, by (network file, its modification time, route): several stages of a run
+# (and every seed of a batch in one process) ask for the same one.
+_FRAMES: dict[tuple, RoadFrame] = {}
+
+
+def read_road(net_file: str | Path, route: list[str] | tuple[str, ...] | None = None) -> RoadFrame:
+    """The road frame of `route` (edge ids in driving order) through a SUMO network; without a
+    route, the network's one chain of edges. A network of one straight edge of parallel lanes of
+    equal width gives its closed-form :class:`Road`.
+
+    Raises NetworkFileError for a file that is not a usable network and RouteError (with
+    `.where`, e.g. "route[2]") for a route the network cannot carry.
+    """
+    path = Path(net_file)
+    try:
+        stamp = path.stat().st_mtime_ns
+    except OSError:
+        stamp = None  # _parse_xml names the problem
+    key = (str(path.resolve()), stamp, tuple(route) if route is not None else None)
+    if key in _FRAMES:
+        return _FRAMES[key]
+    root = _parse_xml(net_file, "SUMO network (.net.xml)", ("net",))
+    edges = [e for e in root.iter("edge") if e.get("function") in (None, "normal")]
+    if not edges:
+        raise NetworkFileError(f"{net_file}: no <edge> (other than junction-internal ones); expected a road")
+    straight = _straight_edge(net_file, edges[0]) if len(edges) == 1 else None
+    if straight is not None and (route is None or tuple(route) == straight.route):
+        frame: RoadFrame = straight
+    else:
+        try:
+            frame = RoadFrame.from_net(net_file, route)
+        except RouteError:
+            raise
+        except (ValueError, TypeError, AttributeError, KeyError, IndexError) as exc:
+            raise NetworkFileError(f"{net_file}: cannot build a road frame from this network "
+                                   f"({type(exc).__name__}: {exc}); expected a netconvert-built .net.xml") from None
+    _FRAMES[key] = frame
+    return frame
+
+
+def sumo_place(frame: RoadFrame, track: int, front: float) -> tuple[tuple[str, ...], int, float] | None:
+    """(route edges from the insertion edge, SUMO lane index, lane position) of a front bumper at
+    `front` along the frame's route in `track`; None where the track is absent there (or in a
+    junction). A front beyond the route's ends keeps its lane position (the caller refuses it)."""
+    try:
+        lane_id, _ = frame.sumo_lane_position(track, min(max(front, 0.0), frame.length_m))
+    except ValueError:
+        return None
+    edge, index = lane_id.rsplit("_", 1)
+    k = frame.route.index(edge)
+    return frame.route[k:], int(index), front - frame.edge_start_s[edge]
 
 
 def read_vehicle_types(vtype_file: str | Path) -> dict[str, dict[str, str]]:

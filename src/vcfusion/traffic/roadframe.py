@@ -75,6 +75,7 @@ class _Lane:
     width: float
     length: float
     shape: np.ndarray  # (k, 2)
+    speed: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -109,7 +110,7 @@ class _Net:
             for lane in edge.iter("lane"):
                 shape = np.array([[float(c) for c in p.split(",")[:2]] for p in lane.get("shape").split()])
                 lanes.append(_Lane(lane.get("id"), eid, int(lane.get("index")), float(lane.get("width", 3.2)),
-                                   float(lane.get("length")), shape))
+                                   float(lane.get("length")), shape, float(lane.get("speed", "nan"))))
             lanes.sort(key=lambda ln: ln.index)
             self.edge_lanes[eid] = lanes
             self.lanes.update({ln.lane_id: ln for ln in lanes})
@@ -234,6 +235,10 @@ class RoadFrame:
             if k + 1 < len(self.route):
                 s = self._junction_pieces(net, k, shift, s, pieces)
         self.length_m = s
+        self._assemble(pieces)
+
+    def _assemble(self, pieces: list[_Piece]) -> None:
+        """Lane bounds, reference line, lookup grid and track spans of the route's pieces."""
         self.num_tracks = 1 + max(max(p.widths, default=0) for p in pieces)
         nominal = {}
         for p in pieces:  # a track's width where the route first has it
@@ -400,6 +405,37 @@ class RoadFrame:
                     spans.append([self._piece_s0[i], ends[i]])
             self._intervals.append(np.array(spans).reshape(-1, 2))
 
+    # ------------------------------------------------------------------ the straight Road's names
+    # (kept for the code written against the single straight edge; see vcfusion.traffic.network.Road)
+    @property
+    def num_lanes(self) -> int:
+        """Number of tracks (lanes from the right) the route ever has."""
+        return self.num_tracks
+
+    @cached_property
+    def lane_width_m(self) -> float:
+        """The tracks' nominal width (their mean where they differ)."""
+        return float(np.mean(np.diff(self._bounds[0])))
+
+    @property
+    def width_m(self) -> float:
+        return self.max_width_m
+
+    @property
+    def edge_id(self) -> str:
+        """The route's first edge."""
+        return self.route[0]
+
+    @cached_property
+    def speed_limit_mps(self) -> float:
+        """The speed limit of the route's first edge."""
+        return self._pieces[0].anchor.speed
+
+    @property
+    def is_straight(self) -> bool:
+        """A single straight edge of equal lanes (the case the camera renderer draws)."""
+        return False
+
     # ------------------------------------------------------------------ queries
     def to_frame(self, x, y) -> tuple[np.ndarray, np.ndarray]:
         """World (x, y) -> (s along the route, d left of the reference line)."""
@@ -448,13 +484,14 @@ class RoadFrame:
         s, d, shape = _flat_pair(s, d)
         return _lane_of(s, d, self._piece_s0, self._bounds, self._present).reshape(shape)
 
-    def lane_bounds(self, track, s) -> tuple[np.ndarray, np.ndarray]:
-        """(d of the right edge, d of the left edge) of a track at s (its nominal place where absent)."""
+    def lane_bounds(self, track, s=0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(d of the right edge, d of the left edge) of a track at s (its nominal place where absent;
+        on a route whose lanes keep their widths, the same at every s)."""
         track, s = np.broadcast_arrays(np.asarray(track, dtype=np.int64), np.asarray(s, dtype=np.float64))
         k = self._piece_of(s)
         return self._bounds[k, track], self._bounds[k, track + 1]
 
-    def lane_centre_d(self, track, s) -> np.ndarray:
+    def lane_centre_d(self, track, s=0.0) -> np.ndarray:
         right, left = self.lane_bounds(track, s)
         return 0.5 * (right + left)
 
@@ -463,6 +500,15 @@ class RoadFrame:
         valid = (track >= 0) & (track < self.num_tracks)
         k = self._piece_of(s)
         return valid & self._present[k, np.clip(track, 0, self.num_tracks - 1)]
+
+    def lanes_present(self, s) -> np.ndarray:
+        """(..., num_tracks) bool: which tracks exist at each s."""
+        return self._present[self._piece_of(s)]
+
+    @cached_property
+    def all_lanes_everywhere(self) -> bool:
+        """Every track exists at every s (no lane begins or ends along the route)."""
+        return bool(self._present.all())
 
     def lane_count(self, s) -> np.ndarray:
         return self._present[self._piece_of(s)].sum(axis=-1)

@@ -18,9 +18,9 @@ import numpy as np
 
 from vcfusion.records import EGO_ID, VehicleStates
 from vcfusion.scenario import Scenario
-from vcfusion.traffic.network import Road, read_road, read_vehicle_types
+from vcfusion.traffic.network import read_road, read_vehicle_types, sumo_place
+from vcfusion.traffic.roadframe import RoadFrame
 
-ROUTE_ID = "highway"
 # A stop longer than any run: the accident vehicles never leave.
 ACCIDENT_STOP_S = 1.0e6
 
@@ -46,11 +46,16 @@ class Placement:
     vehicle_id: str
     group: str
     vtype: str
-    lane: int
-    pos_m: float  # front bumper, along the lane
+    lane: int  # track of its route (index from the right)
+    pos_m: float  # front bumper, along its route
     speed_mps: float
     desired_speed_mps: float | None
     depart_s: float = 0.0
+    # where SUMO inserts it: the route's edges from the insertion edge on, the lane index and the
+    # lane position there (on a single edge: the route, the lane and pos_m)
+    edges: tuple[str, ...] = ()
+    sumo_lane: int = 0
+    sumo_pos_m: float = 0.0
 
 
 def sumo_angle_to_yaw(angle_deg: np.ndarray) -> np.ndarray:
@@ -58,56 +63,83 @@ def sumo_angle_to_yaw(angle_deg: np.ndarray) -> np.ndarray:
     return np.radians(90.0 - np.asarray(angle_deg, dtype=float))
 
 
-def plan_placements(scenario: Scenario, road: Road, vtypes: dict, rng: np.random.Generator) -> list[Placement]:
-    """Draw the initial vehicles and flow arrivals of one seed."""
+def frame_of(scenario: Scenario, road: RoadFrame, route: list[str] | None) -> RoadFrame:
+    """The frame of an item's own route (the scenario's when it names none)."""
+    if route is None or tuple(route) == road.route:
+        return road
+    return read_road(scenario.network, route)
+
+
+def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.random.Generator) -> list[Placement]:
+    """Draw the initial vehicles and flow arrivals of one seed. A draw of a lane absent at the
+    drawn position (an acceleration lane, a lane drop) is drawn again, like one too close to
+    another vehicle."""
     placements: list[Placement] = []
-    occupied: dict[int, list[tuple[float, float]]] = {}  # lane -> [(rear, front)]
+    # lane -> [(rear, front)]: a track of the scenario's route with positions along it (so spacing
+    # holds across its edges, whatever route a vehicle follows), or a SUMO lane off that route with
+    # lane positions
+    occupied: dict[tuple, list[tuple[float, float]]] = {}
 
     def length_of(vtype: str) -> float:
         return float(vtypes[vtype].get("length", 5.0))
 
-    def free(lane: int, front: float, length: float, spacing: float) -> bool:
+    def slot(place) -> tuple[tuple, float]:
+        edges, index, pos = place
+        track = road.track_of.get(f"{edges[0]}_{index}")
+        if track is None:
+            return ("lane", f"{edges[0]}_{index}"), pos
+        return ("track", track), road.edge_start_s[edges[0]] + pos
+
+    def free(place, length: float, spacing: float) -> bool:
+        lane, front = slot(place)
         return all(front + spacing <= rear or front - length - spacing >= other_front
                    for rear, other_front in occupied.get(lane, []))
 
-    def occupy(lane: int, front: float, length: float) -> None:
+    def occupy(place, length: float) -> None:
+        lane, front = slot(place)
         occupied.setdefault(lane, []).append((front - length, front))
 
     if scenario.accident is not None:
         acc = scenario.accident
+        s = road.edge_start_s[acc.edge] + acc.pos_m if acc.edge is not None else acc.pos_m
         for lane in acc.lanes:
-            occupy(lane, acc.pos_m, length_of(acc.vtype))
+            occupy(sumo_place(road, lane, s), length_of(acc.vtype))
     if scenario.ego is not None:
-        occupy(scenario.ego.lane, scenario.ego.depart_pos_m, length_of(scenario.ego.vtype))
+        ego = scenario.ego
+        occupy(sumo_place(frame_of(scenario, road, ego.route), ego.lane, ego.depart_pos_m), length_of(ego.vtype))
 
     for group in scenario.vehicles:
         length = length_of(group.vtype)
+        frame = frame_of(scenario, road, group.route)
         for k in range(group.count):
             for _attempt in range(200):
                 lane = int(rng.choice(group.lanes))
                 front = float(rng.uniform(*group.pos_m))
-                if free(lane, front, length, group.min_spacing_m):
+                place = sumo_place(frame, lane, front)
+                if place is not None and free(place, length, group.min_spacing_m):
                     break
             else:
                 raise RunError(
                     f"vehicles.{group.name}: could not place vehicle {k + 1} of {group.count} in lanes "
                     f"{group.lanes} within {list(group.pos_m)} m with {group.min_spacing_m} m spacing")
-            if front - length < 0 or front > road.length_m:
+            if front - length < 0 or front > frame.length_m:
                 raise RunError(
                     f"vehicles.{group.name}: vehicle {k + 1} drawn at {front:.1f} m, outside the road "
-                    f"[{length:.1f}, {road.length_m:.1f}] m: impossible departure")
-            occupy(lane, front, length)
+                    f"[{length:.1f}, {frame.length_m:.1f}] m: impossible departure")
+            occupy(place, length)
             placements.append(Placement(f"{group.name}{k}", group.name, group.vtype, lane, front,
-                                        group.speed_mps, group.desired_speed_mps))
+                                        group.speed_mps, group.desired_speed_mps, 0.0, *place))
 
     for f_idx, flow in enumerate(scenario.flows):
         rate = flow.vehs_per_hour / 3600.0
+        frame = frame_of(scenario, road, flow.route)
+        length = length_of(flow.vtype)
         t = float(rng.exponential(1.0 / rate))
         n = 0
         while t < scenario.simulation.max_time_s:
             lane = int(rng.choice(flow.lanes))
-            placements.append(Placement(f"f{f_idx}.{n}", f"flow{f_idx}", flow.vtype, lane,
-                                        length_of(flow.vtype), flow.speed_mps, None, depart_s=t))
+            placements.append(Placement(f"f{f_idx}.{n}", f"flow{f_idx}", flow.vtype, lane, length, flow.speed_mps,
+                                        None, t, *sumo_place(frame, lane, length)))
             n += 1
             t += float(rng.exponential(1.0 / rate))
     return placements
@@ -123,7 +155,12 @@ class SumoSession:
         whose type `rated` names, their trip totals written to the tripinfo file (the metrics)."""
         self.scenario = scenario
         self.seed = seed
-        self.road = read_road(scenario.network)
+        self.road = read_road(scenario.network, scenario.route)
+        # the ego's own route (its s: the ego table, the trip), and whether positions need its edge
+        self.ego_frame = frame_of(scenario, self.road, scenario.ego.route) if scenario.ego is not None else None
+        self._ego_single_edge = self.ego_frame is not None and len(self.ego_frame.route) == 1
+        # a vehicle's lane is its track: on one edge SUMO's lane index, elsewhere from its lane id
+        self._lane_by_index = len(self.road.route) == 1
         self.vtypes = read_vehicle_types(scenario.vehicle_types)
         self.step_s = scenario.simulation.step_s
         # (load_scenario checked the vehicle types, lanes and positions against these files)
@@ -173,25 +210,36 @@ class SumoSession:
         return ["--tripinfo-output", str(tripinfo), "--tripinfo-output.write-unfinished", "true"]
 
     # -- set-up -------------------------------------------------------------------------
+    def _route_id(self, edges: tuple[str, ...]) -> str:
+        """A SUMO route of these edges (added once)."""
+        rid = self._routes.get(edges)
+        if rid is None:
+            rid = self._routes[edges] = f"r{len(self._routes)}"
+            libsumo.route.add(rid, list(edges))
+        return rid
+
     def _populate(self) -> None:
         sc = self.scenario
         for vt in self._emission_types:  # before any vehicle of the type is built
             libsumo.vehicletype.setParameter(vt, "has.emissions.device", "true")
-        libsumo.route.add(ROUTE_ID, [self.road.edge_id])
+        self._routes: dict[tuple[str, ...], str] = {}
         if sc.accident is not None:
-            for i, lane in enumerate(sc.accident.lanes):
+            acc = sc.accident
+            s = self.road.edge_start_s[acc.edge] + acc.pos_m if acc.edge is not None else acc.pos_m
+            for i, lane in enumerate(acc.lanes):
                 vid = f"accident{i}"
-                libsumo.vehicle.add(vid, ROUTE_ID, sc.accident.vtype, depart="0", departLane=str(lane),
-                                    departPos=repr(sc.accident.pos_m), departSpeed="0")
-                libsumo.vehicle.setStop(vid, self.road.edge_id, pos=sc.accident.pos_m, laneIndex=lane,
-                                        duration=ACCIDENT_STOP_S, flags=0)
+                edges, index, pos = sumo_place(self.road, lane, s)
+                libsumo.vehicle.add(vid, self._route_id(edges), acc.vtype, depart="0", departLane=str(index),
+                                    departPos=repr(pos), departSpeed="0")
+                libsumo.vehicle.setStop(vid, edges[0], pos=pos, laneIndex=index, duration=ACCIDENT_STOP_S, flags=0)
         if sc.ego is not None:
-            libsumo.vehicle.add(EGO_ID, ROUTE_ID, sc.ego.vtype, depart="0", departLane=str(sc.ego.lane),
-                                departPos=repr(sc.ego.depart_pos_m), departSpeed=repr(sc.ego.speed_mps))
+            edges, index, pos = sumo_place(self.ego_frame, sc.ego.lane, sc.ego.depart_pos_m)
+            libsumo.vehicle.add(EGO_ID, self._route_id(edges), sc.ego.vtype, depart="0", departLane=str(index),
+                                departPos=repr(pos), departSpeed=repr(sc.ego.speed_mps))
         for p in self.placements:
             depart_speed = repr(p.speed_mps) if p.depart_s == 0.0 else "desired"
-            libsumo.vehicle.add(p.vehicle_id, ROUTE_ID, p.vtype, depart=repr(round(p.depart_s, 2)),
-                                departLane=str(p.lane), departPos=repr(p.pos_m), departSpeed=depart_speed)
+            libsumo.vehicle.add(p.vehicle_id, self._route_id(p.edges), p.vtype, depart=repr(round(p.depart_s, 2)),
+                                departLane=str(p.sumo_lane), departPos=repr(p.sumo_pos_m), departSpeed=depart_speed)
             if p.desired_speed_mps is not None:
                 libsumo.vehicle.setMaxSpeed(p.vehicle_id, p.desired_speed_mps)
         self.step()
@@ -220,16 +268,27 @@ class SumoSession:
     def set_ego_speed(self, speed_mps: float) -> None:
         libsumo.vehicle.setSpeed(EGO_ID, max(0.0, speed_mps))
 
+    def place_ego(self, s_front: float, d: float, yaw: float) -> None:
+        """Put the ego's front bumper centre at road position (`s_front`, `d`) (d: m left of the
+        right road edge), yawed `yaw` rad (left positive) from the road, for the next step.
+        keepRoute=2: the ego stays on its edge, in the lane under its front bumper, so SUMO's
+        followers and lane changers see it there and its collision check includes it."""
+        x, y = self.road.to_world(s_front, d)
+        angle = 90.0 - np.degrees(self.road.heading_rad + yaw)
+        libsumo.vehicle.moveToXY(EGO_ID, "", -1, float(x), float(y), angle=float(angle), keepRoute=2)
+
     def vehicle_count(self) -> int:
         return libsumo.vehicle.getIDCount()
 
     def ego_state(self, horizon_m: float = 250.0) -> tuple[float, float, float, tuple[str, float] | None] | None:
-        """The ego now: (front-bumper position along the road, speed, acceleration, leader), where
+        """The ego now: (front-bumper position along its route, speed, acceleration, leader), where
         leader is SUMO's (id, bumper-to-bumper gap) within horizon_m or None; None once the ego
         left. One call per SUMO step (it runs 100 times per simulated second)."""
         v = libsumo.vehicle
         try:
             pos, speed, accel = v.getLanePosition(EGO_ID), v.getSpeed(EGO_ID), v.getAcceleration(EGO_ID)
+            if not self._ego_single_edge:
+                pos = float(self.ego_frame.route_position(v.getLaneID(EGO_ID), pos))
         except libsumo.TraCIException:
             return None
         found = v.getLeader(EGO_ID, horizon_m)
@@ -255,6 +314,9 @@ class SumoSession:
         n = len(ids)
         position, angle, speed, accel = v.getPosition3D, v.getAngle, v.getSpeed, v.getAcceleration
         lane_index, lateral = v.getLaneIndex, v.getLateralLanePosition
+        if not self._lane_by_index:  # the track of the lane (-1 off the route: a ramp, another road)
+            track_of = self.road.track_of
+            lane_index = lambda vid: track_of.get(v.getLaneID(vid), -1)  # noqa: E731
         # one row of plain floats per vehicle, one conversion for all (fewer NumPy calls per tick)
         cols = np.array([(*position(vid), angle(vid), speed(vid), accel(vid), lane_index(vid), lateral(vid))
                          for vid in ids], dtype=float).reshape(n, 8).T.copy()

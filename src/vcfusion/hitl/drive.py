@@ -1,0 +1,164 @@
+"""One trip driven by a person (`vcfusion drive`), and the wheel calibration (`--calibrate`).
+
+The trip is the scenario's ordinary run (build_cosimulation: camera, fusion, cloud guidance),
+with the driver model replaced by a HumanDriver; it lands in an ordinary run folder with two
+more tables (inputs, frames) and the summary's `realtime` and `hitl` blocks, so every metric and
+study that reads run folders reads human trips too.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time as wallclock
+from pathlib import Path
+
+from vcfusion.errors import UsageError
+from vcfusion.scenario import Scenario
+
+INSTRUCTIONS = [
+    "vcfusion: drive the ego car",
+    "",
+    "Keyboard: Up / W throttle, Down / S brake, Left / A and Right / D steer,",
+    "Q / E change lane left / right.  Wheel: steer and pedals (paddles change lane).",
+    "Drive to the end of the trip. Highlighted cars may change into your lane",
+    "(yellow: maybe, red: likely) when guidance is on.",
+    "",
+    "Press Enter, Space or a wheel button to start; Escape ends the trip.",
+]
+
+
+def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, speed: float | None,
+          out_dir: Path | None, participant: str = "", axis_map_file: Path | None = None,
+          record_video: bool = False, window: bool = True, headless: bool = False,
+          display_fps: float = 30.0, start_screen_s: float | None = None, on_start=None, shared_window=None):
+    """Drive one trip; returns the RunResult (run folder written when out_dir is given).
+    `start_screen_s`: how long the instruction screen waits at most (None: until a key press;
+    replays skip it); `on_start`: called when the trip's clock starts (other recorders of a study,
+    e.g. an eye tracker, start with it); `shared_window`: a Window to draw in and leave open (a
+    study session keeps one window for all its screens and trips)."""
+    from vcfusion.hitl.driver import HumanDriver
+    from vcfusion.hitl.inputs import ReplayInput, open_input
+    from vcfusion.hitl.sdl import init_sdl
+    from vcfusion.hitl.vehicle import VehicleModel
+    from vcfusion.records import EGO_ID
+    from vcfusion.run import build_cosimulation, manifest_for
+    from vcfusion.runio import write_run_folder
+    from vcfusion.traffic.network import read_road, read_vehicle_types
+
+    if scenario.ego is None:
+        raise UsageError(f"{scenario.source}: ego: a person drives the ego; the scenario has no ego block")
+    replay = input_spec.startswith("replay:")
+    if speed is None and not replay:
+        raise UsageError("--speed max: only for replay:FILE inputs (a person drives in real time)")
+    if out_dir is not None and Path(out_dir).exists():
+        raise UsageError(f"--out: {out_dir} already exists; choose a new run folder")
+    if record_video and (not window or out_dir is None):
+        raise UsageError("--record-video: needs the window and a run folder")
+    pygame = init_sdl(headless) if (window or not replay) else None
+    device = open_input(input_spec, axis_map_file)
+
+    cosim = build_cosimulation(scenario, seed, guidance_enabled=guidance_on)
+    road = read_road(scenario.network)
+    ego = scenario.ego
+    width = float(read_vehicle_types(scenario.vehicle_types)[ego.vtype].get("width", 1.8))
+    vehicle = VehicleModel(road, ego.speed_mps, float(road.lane_centre_d(ego.lane)), width)
+    renderer = win = video = staging = None
+    owns_renderer = False
+    if window:
+        from vcfusion.hitl.display import Window
+
+        camera_hook = next((h for h in cosim.hooks if h.table == "camera"), None)
+        if camera_hook is not None:
+            renderer = camera_hook.renderer  # one OpenGL context for the vision tick and the display
+        else:
+            from vcfusion.render.renderer import EgoCameraRenderer
+
+            renderer, owns_renderer = EgoCameraRenderer(road, scenario.camera, EGO_ID), True
+        win = shared_window or Window(pygame, (scenario.camera.width_px, scenario.camera.height_px),
+                                      f"vcfusion drive: {scenario.name} seed {seed}")
+        if record_video:
+            import tempfile
+
+            from vcfusion.fusion.overlay import OverlayRecorder
+
+            # staged beside the run folder (same file system) and moved into it with the tables
+            Path(out_dir).parent.mkdir(parents=True, exist_ok=True)
+            staging = Path(tempfile.mkdtemp(prefix=f".{Path(out_dir).name}.video-", dir=Path(out_dir).parent))
+            video = OverlayRecorder(staging / "video", fps=display_fps, write_png=False, video_name="drive.mp4")
+    info = {"participant": participant, "input": device.name, "seed": seed,
+            "axis_map": device.map.model_dump() if hasattr(device, "map") else None}
+    cosim.controller = HumanDriver(device, vehicle, scenario.simulation.step_s, ego.depart_pos_m + ego.trip_distance_m,
+                                   guidance_on=guidance_on, speed=speed, display_fps=display_fps, pygame=pygame,
+                                   window=win, renderer=renderer, video=video, info=info,
+                                   on_start=on_start)
+    try:
+        if win is not None and not replay:
+            from vcfusion.hitl.driver import forward_axes
+
+            win.wait_for_start(INSTRUCTIONS + [f"guidance: {'on' if guidance_on else 'off'}"],
+                               forward_axes(pygame, device), start_screen_s)
+        result = cosim.run()
+        if out_dir is not None:
+            extra = {}
+            if video is not None:
+                extra = {"drive.mp4": video.close() / "drive.mp4"}
+                video = None
+            manifest = manifest_for(scenario, seed) | {"hitl": info | {"guidance": guidance_on}}
+            write_run_folder(Path(out_dir), result.tables, manifest, result.summary, extra_files=extra)
+            result.tables.relocate(Path(out_dir))
+    finally:
+        if video is not None:
+            video.abort()
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
+        if owns_renderer:
+            renderer.close()
+        if win is not None and win is not shared_window:
+            win.close()
+    return result
+
+
+def calibrate(out_path: Path, *, headless: bool = False, phase_s: float = 4.0, joystick_index: int = 0,
+              size: tuple[int, int] = (800, 450), on_phase=None):
+    """Ask the person to hold each control in turn and write the axis map to `out_path`.
+
+    Phases (each `phase_s`; the reading is the median of its second half): wheel full left, full
+    right, throttle floored, brake floored, then everything released. The rest reading comes last
+    because SDL reports an axis that sent nothing yet as 0: after each pedal was pressed once, the
+    released pedals report their true rest value. `on_phase(name)` is called as each phase starts."""
+    import numpy as np
+
+    from vcfusion.hitl.calibration import axis_map_from_phases
+    from vcfusion.hitl.display import Window, text_screen
+    from vcfusion.hitl.sdl import init_sdl
+
+    pygame = init_sdl(headless)
+    pygame.event.pump()
+    if pygame.joystick.get_count() <= joystick_index:
+        raise UsageError("--calibrate: SDL sees no joystick or wheel; is it plugged in?")
+    js = pygame.joystick.Joystick(joystick_index)
+    js.init()
+    win = Window(pygame, size, "vcfusion drive --calibrate")
+    prompts = {"steer_left": "Turn the wheel fully LEFT and hold it", "steer_right": "Turn the wheel fully RIGHT and hold it",
+               "throttle": "Floor the THROTTLE pedal and hold it", "brake": "Press the BRAKE pedal fully and hold it",
+               "rest": "Centre the wheel; feet off all pedals"}
+    readings: dict[str, list[float]] = {}
+    try:
+        for phase, prompt in prompts.items():
+            samples = []
+            if on_phase is not None:
+                on_phase(phase)
+            started = wallclock.perf_counter()
+            while (elapsed := wallclock.perf_counter() - started) < phase_s:
+                pygame.event.pump()
+                win.show(text_screen(size, [js.get_name(), "", prompt, f"{phase_s - elapsed:.0f}"]))
+                if elapsed >= phase_s / 2:
+                    samples.append([js.get_axis(i) for i in range(js.get_numaxes())])
+                wallclock.sleep(0.02)
+            readings[phase] = [float(v) for v in np.median(np.array(samples), axis=0)]
+    finally:
+        win.close()
+    rest = readings.pop("rest")
+    axis_map = axis_map_from_phases(rest, readings, device=js.get_name())
+    axis_map.save(Path(out_path))
+    return axis_map

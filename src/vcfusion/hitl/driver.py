@@ -1,0 +1,202 @@
+"""HumanDriver: the ego controller when a person drives (vcfusion.cosim's per-step controller).
+
+Every SUMO step (`step`):
+1. pacing: with `speed` (1 = real time) it waits until the wall clock reaches the step's
+   simulated time; a step that starts late is not waited for, and its lag (wall clock minus
+   simulated time since the start) is measured. `speed=None` (replays only) runs as fast as the
+   machine goes;
+2. input: SDL events go to the device, the device gives the step's ControlSample;
+3. vehicle model: the controls become the acceleration and the lateral position / yaw that the
+   loop imposes on SUMO for the next step;
+4. display: when a display frame is due (every 1/display_fps of simulated time) it renders the ego
+   camera (at a tick, the camera stage's render of that tick is the same image: reused), draws
+   the overlay and HUD and shows it. Frames are dropped before the simulation is
+   slowed: when the step is already later than one frame period, the frame is not drawn (unless
+   no frame was shown for MAX_FRAME_GAP frame periods).
+Every step's wall time, simulated time, lag, raw readings and mapped controls go to the
+`inputs` table; every displayed or dropped frame to `frames`; `finish` adds both and the
+summary's `realtime` block (display_fps_median, late_frames, dropped_frames, max_lag_s,
+input_to_display_ms_median) and `hitl` block.
+"""
+
+from __future__ import annotations
+
+import time as wallclock
+
+import numpy as np
+
+from vcfusion.cosim import EgoCommand, EgoStep
+from vcfusion.hitl.display import HudInfo, compose, reprojected
+from vcfusion.hitl.vehicle import VehicleModel
+
+
+# A late frame is dropped, unless none was shown for this many frame periods: a machine that
+# cannot keep real time even without frames would otherwise show a frozen picture; then the
+# display keeps about 1/4 of its rate and the lag grows (measured).
+MAX_FRAME_GAP = 4
+
+
+class DriveAborted(Exception):
+    """The person ended the trip (Escape or closing the window): nothing is written."""
+
+
+class HumanDriver:
+    finish_tables = ("inputs", "frames")
+    finish_summary = ("realtime", "hitl")
+
+    def __init__(self, device, vehicle: VehicleModel, dt: float, trip_end_s: float, *, guidance_on: bool,
+                 speed: float | None = 1.0, display_fps: float = 30.0, pygame=None, window=None, renderer=None,
+                 video=None, info: dict | None = None, on_start=None):
+        self.device = device
+        self.vehicle = vehicle
+        self.dt = dt
+        self.trip_end_s = trip_end_s
+        self.guidance_on = guidance_on
+        self.speed = speed
+        self.frame_period = 1.0 / display_fps
+        self.pg = pygame
+        self.window = window
+        self.renderer = renderer
+        self.video = video
+        self.info = info or {}
+        self.on_start = on_start  # called once when the trip's clock starts (e.g. to start other recorders)
+        # the overlay shows the tick's guidance; the HUD works without it
+        self.needs = ("ego", "guidance") if guidance_on else ("ego",)
+        self._guidance = ()
+        self._guidance_source = "none"
+        self._wall0: float | None = None
+        self._sim0 = 0.0
+        self._next_frame = 0.0
+        self._last_poll = None
+        self._last_shown: float | None = None
+        self._tick_frame = None
+        self.rows: dict[str, list] = {k: [] for k in ("wall_s", "sim_time", "lag_s", "keys", "raw_axes", "raw_buttons",
+                                                      "steer", "throttle", "brake", "lane_change", "accel", "d", "yaw")}
+        self.frame_rows: dict[str, list] = {k: [] for k in ("sim_time", "wall_s", "shown", "lag_s", "render_ms",
+                                                            "input_to_display_ms")}
+
+    # -- the loop's controller interface ------------------------------------------------
+    def acceleration(self, tick) -> float:
+        if tick.guidance is not None:
+            self._guidance = tick.guidance.items
+            self._guidance_source = tick.guidance.source
+        # the camera stage's render of this tick (when it has one) is also this step's display frame
+        self._tick_frame = tick.frame if hasattr(tick.frame, "instances") else None
+        return self.vehicle.state.accel
+
+    def step(self, st: EgoStep) -> EgoCommand:
+        now = wallclock.perf_counter()
+        if self._wall0 is None:
+            self._wall0, self._sim0, self._next_frame = now, st.time, st.time
+            if self.on_start is not None:
+                self.on_start()
+        lag = 0.0
+        if self.speed is not None:
+            due = self._wall0 + (st.time - self._sim0) / self.speed
+            if now < due:
+                wallclock.sleep(due - now)
+                now = wallclock.perf_counter()
+            lag = max(0.0, now - due)
+        if self.pg is not None:
+            for event in self.pg.event.get():
+                if event.type == self.pg.QUIT or (event.type == self.pg.KEYDOWN and event.key == self.pg.K_ESCAPE):
+                    raise DriveAborted("the driver ended the trip (Escape / window closed)")
+                self.device.handle(event)
+        control, raw = self.device.sample(st.time, self.dt)
+        state = self.vehicle.update(control, self.dt)
+        r = self.rows
+        r["wall_s"].append(now - self._wall0)
+        r["sim_time"].append(round(st.time, 6))
+        r["lag_s"].append(lag)
+        r["keys"].append(raw.get("keys", ""))
+        r["raw_axes"].append(raw.get("axes", []))
+        r["raw_buttons"].append(raw.get("buttons", []))
+        for name in ("steer", "throttle", "brake", "lane_change"):
+            r[name].append(getattr(control, name))
+        r["accel"].append(state.accel)
+        r["d"].append(state.d)
+        r["yaw"].append(state.yaw)
+        if self.renderer is not None and st.time >= self._next_frame - 1e-9:
+            while self._next_frame <= st.time + 1e-9:
+                self._next_frame += self.frame_period
+            self._frame(st, lag)
+        self._last_poll = now
+        return EgoCommand(state.accel, state.d, state.yaw)
+
+    def _frame(self, st: EgoStep, lag: float) -> None:
+        f = self.frame_rows
+        f["sim_time"].append(round(st.time, 6))
+        starved = self._last_shown is None or wallclock.perf_counter() - self._last_shown > MAX_FRAME_GAP * self.frame_period
+        if self.speed is not None and lag > self.frame_period and not starved:
+            # behind the clock: drop the frame rather than slow the simulation further
+            f["wall_s"].append(wallclock.perf_counter() - self._wall0)
+            f["shown"].append(False)
+            f["lag_s"].append(lag)
+            f["render_ms"].append(np.nan)
+            f["input_to_display_ms"].append(np.nan)
+            return
+        started = wallclock.perf_counter()
+        tick_frame = self._tick_frame
+        frame = tick_frame if tick_frame is not None and abs(tick_frame.time - st.time) < 1e-9 \
+            else self.renderer.render(st.states())
+        items = reprojected(self._guidance, frame.vehicle_ids, frame.instances,
+                            box_unmatched=self._guidance_source == "cloud") if self.guidance_on else []
+        hud = HudInfo(st.time, st.speed, self.trip_end_s - st.s_front, self.guidance_on, lag)
+        image = compose(frame.rgb, items, hud)
+        if self.window is not None:
+            self.window.show(image)
+        if self.video is not None:
+            self.video.add(image)
+        shown = self._last_shown = wallclock.perf_counter()
+        f["wall_s"].append(shown - self._wall0)
+        f["shown"].append(True)
+        f["lag_s"].append(lag)
+        f["render_ms"].append(1000.0 * (shown - started))
+        # the state shown was moved by the previous step's command: from that poll to the flip
+        f["input_to_display_ms"].append(1000.0 * (shown - (self._last_poll or started)))
+
+    # -- end of the trip ------------------------------------------------------------------
+    def finish(self, tables, summary: dict) -> None:
+        import pandas as pd
+        import pyarrow as pa
+
+        r = self.rows
+        columns = {k: v for k, v in r.items() if k not in ("raw_axes", "raw_buttons")}
+        inputs = pa.table({**{k: pa.array(v) for k, v in columns.items()},
+                           "raw_axes": pa.array(r["raw_axes"], type=pa.list_(pa.float64())),
+                           "raw_buttons": pa.array(r["raw_buttons"], type=pa.list_(pa.int8()))})
+        inputs = inputs.select(["wall_s", "sim_time", "lag_s", "keys", "raw_axes", "raw_buttons", "steer", "throttle",
+                                "brake", "lane_change", "accel", "d", "yaw"])
+        tables["inputs"] = inputs.to_pandas()
+        tables["frames"] = pd.DataFrame(self.frame_rows)
+        summary["realtime"] = realtime_summary(self.frame_rows, r["lag_s"], self.speed)
+        summary["hitl"] = self.info | {"guidance": "on" if self.guidance_on else "off",
+                                      "speed": "max" if self.speed is None else self.speed}
+
+
+def realtime_summary(frames: dict[str, list], step_lags: list[float], speed: float | None) -> dict:
+    """How well the trip kept to the wall clock (see the module doc)."""
+    shown = np.array(frames["shown"], dtype=bool)
+    wall = np.array(frames["wall_s"], dtype=float)[shown]
+    intervals = np.diff(wall)
+    period_lag = np.array(frames["lag_s"], dtype=float)
+    to_display = np.array(frames["input_to_display_ms"], dtype=float)[shown]
+    late_limit = 1.0 / 30.0  # a frame more than one 30-Hz frame behind its simulated time
+    return {
+        "frames_due": int(len(shown)),
+        "frames_shown": int(shown.sum()),
+        "dropped_frames": int((~shown).sum()),
+        "late_frames": int((~shown).sum() + (period_lag[shown] > late_limit).sum()) if speed is not None else 0,
+        "display_fps_median": float(1.0 / np.median(intervals)) if len(intervals) and np.median(intervals) > 0 else None,
+        "max_lag_s": float(max(step_lags)) if step_lags and speed is not None else None,
+        "input_to_display_ms_median": float(np.median(to_display)) if len(to_display) else None,
+    }
+
+
+def forward_axes(pygame, device):
+    """An event handler for the start screen: axis motions reach the device (a pedal pressed
+    while reading the instructions counts as touched); buttons and keys do not (they start)."""
+    def handle(event) -> None:
+        if event.type == pygame.JOYAXISMOTION:
+            device.handle(event)
+    return handle
