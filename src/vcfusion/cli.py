@@ -255,7 +255,8 @@ def cmd_drive(args: argparse.Namespace) -> int:
 def cmd_bench_render(args: argparse.Namespace) -> int:
     from vcfusion.render.bench import main as bench_main
 
-    return bench_main(["--scenario", args.scenario, "--frames", str(args.frames)])
+    return bench_main(["--scenario", args.scenario, "--frames", str(args.frames)]
+                      + (["--preset", args.preset] if args.preset else []))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -354,6 +355,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench-render", help="time RGB + depth + instance rendering (median ms per frame)")
     p.add_argument("--scenario", default="scenarios/accident.yaml")
     p.add_argument("--frames", type=int, default=100)
+    p.add_argument("--preset", choices=("fast", "quality"), help="render preset (default: the scenario's camera.render_preset)")
     p.set_defaults(func=cmd_bench_render)
 
     p = sub.add_parser("demo", help="the main job on the default scenario")

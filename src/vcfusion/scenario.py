@@ -120,6 +120,9 @@ class CameraConfig(_Strict):
     # Clip planes of the renderer; depth beyond far_m reads as sky.
     near_m: Positive = 0.3
     far_m: Positive = 600.0
+    # How the RGB image is finished (vcfusion.render.presets): "fast" for batch renders,
+    # "quality" (supersampling, lens blur, noise) for studies; depth and instances are the same.
+    render_preset: Literal["fast", "quality"] = "fast"
 
     @model_validator(mode="after")
     def _planes(self) -> "CameraConfig":

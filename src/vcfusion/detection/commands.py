@@ -8,6 +8,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from vcfusion.errors import UsageError
 
 
@@ -122,6 +124,32 @@ def cmd_render_scenes(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_coco_check(args: argparse.Namespace) -> int:
+    from vcfusion.detection.coco_check import CheckInputError, GridOnnxDetector, check_folder
+
+    names = None
+    if args.names:
+        try:
+            names = [line.strip() for line in Path(args.names).read_text().splitlines() if line.strip()]
+        except OSError as exc:
+            raise UsageError(f"--names: cannot read {args.names}: {exc.strerror}") from None
+    try:
+        detector = GridOnnxDetector(args.coco_onnx)
+        results = [check_folder(detector, folder, args.min_width, args.iou, args.score, names) for folder in args.data]
+    except CheckInputError as exc:
+        raise UsageError(str(exc)) from None
+    print(f"clearly visible vehicles (unoccluded, untruncated, >= {args.min_width:g} px wide) found as car/bus/truck "
+          f"(IoU >= {args.iou:g}, score >= {args.score:g}) by {Path(args.coco_onnx).name}:")
+    for r in results:
+        med = float(np.median(r.best_scores)) if r.best_scores else float("nan")
+        top = ", ".join(f"{k} {v}" for k, v in sorted(r.labels.items(), key=lambda kv: -kv[1])[:4])
+        print(f"  {r.folder}: {r.found}/{r.vehicles} = {100 * r.share:.0f} % ({r.images} images; "
+              f"median best score {med:.2f}; labelled as: {top})")
+    found, total = sum(r.found for r in results), sum(r.vehicles for r in results)
+    print(f"all: {found}/{total} = {100 * found / max(total, 1):.0f} %")
+    return 0
+
+
 def add_parsers(sub) -> None:
     """The vision subcommands, added to the `vcfusion` parser."""
     p = sub.add_parser("train-detector", help="train the CNN detector on a COCO dataset folder")
@@ -171,6 +199,15 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", required=True, help="dataset folder to create")
     p.add_argument("--scenario", default="scenarios/overlap.yaml", help="scenario giving the road and the camera")
     p.set_defaults(func=cmd_render_scenes)
+
+    p = sub.add_parser("coco-check", help="share of clearly visible rendered vehicles a COCO detector (ONNX) finds")
+    p.add_argument("data", nargs="+", help="`vcfusion render` folder(s)")
+    p.add_argument("--coco-onnx", required=True, help="COCO-80 detector, grid layout (1, 5 + 80, H, W), e.g. FastestDet")
+    p.add_argument("--names", help="class names file, one a line (for the 'labelled as' summary)")
+    p.add_argument("--min-width", type=float, default=40.0, help="vehicles at least this many px wide (default 40)")
+    p.add_argument("--iou", type=float, default=0.5)
+    p.add_argument("--score", type=float, default=0.3)
+    p.set_defaults(func=cmd_coco_check)
 
     p = sub.add_parser("export-onnx", help="export our detector to ONNX (the layout OnnxDetector reads)")
     p.add_argument("--weights", help="weights file (default: the shipped detector)")

@@ -1,7 +1,7 @@
 """The pyrender scene of the highway: built once, then only vehicle poses change per frame.
 
 A vehicle gets a node when its id first appears and loses it when it is gone; meshes are shared
-by vehicles of the same shape and colour (see :func:`vcfusion.render.meshes.vehicle_mesh`), so
+by vehicles of the same shape and colour (see :func:`vcfusion.render.vehicles.vehicle_mesh`), so
 the GPU buffers of a model are uploaded once. The ego itself is not drawn: the camera sits in it.
 """
 
@@ -18,7 +18,8 @@ import trimesh  # noqa: E402
 from vcfusion.records import VehicleStates  # noqa: E402
 from vcfusion.traffic.network import Road  # noqa: E402
 from vcfusion.records import EGO_ID  # noqa: E402
-from vcfusion.render.meshes import SKY, ground_mesh, road_extent, road_mesh, vehicle_mesh, vehicle_style  # noqa: E402
+from vcfusion.render.meshes import SKY, ground_mesh, road_extent, road_mesh  # noqa: E402
+from vcfusion.render.vehicles import vehicle_mesh, vehicle_style  # noqa: E402
 
 # The sun: from the south-west, 50 degrees above the horizon.
 SUN_AZIMUTH_DEG, SUN_ELEVATION_DEG = 225.0, 50.0
@@ -28,18 +29,33 @@ ROAD_PIECE_M = 50.0
 MAX_INSTANCE_CODES = 255  # instance codes travel in the 8-bit alpha channel; 0 = no vehicle
 
 
-def flat_primitive(mesh: trimesh.Trimesh, alpha: float = 0.0) -> pyrender.Primitive:
-    """One opaque, flat-shaded primitive with per-face colours (one draw call).
+SMOOTH_BELOW_DEG = 35.0  # faces meeting at smaller angles are shaded smooth (car bodies), larger ones flat (boxes)
+
+
+def flat_primitive(mesh: trimesh.Trimesh, alpha: float = 0.0, glossy: bool = False) -> pyrender.Primitive:
+    """One opaque primitive with per-face colours and materials (one draw call).
 
     ``alpha`` is the instance code / 255 that the camera's shader writes to the alpha channel.
+    The face colours' alpha byte is the material id (:mod:`vcfusion.render.materials`), passed
+    as the first texture coordinate. ``glossy`` primitives (vehicles) carry a second, unused
+    texture coordinate: it makes pyrender compile the shader's variant with reflections and
+    highlights for them only (see ``shaders/lambert.frag``). Normals: the vertex normal where it is within
+    SMOOTH_BELOW_DEG of the face's (smooth bodies), else the face normal (crisp edges).
     """
     faces = mesh.faces
     positions = mesh.vertices[faces].reshape(-1, 3).astype(np.float32)
-    normals = np.repeat(mesh.face_normals, 3, axis=0).astype(np.float32)
-    colours = np.repeat(np.asarray(mesh.visual.face_colors, dtype=np.float32) / 255.0, 3, axis=0)
+    face_n = np.repeat(mesh.face_normals[:, None, :], 3, axis=1)
+    vertex_n = mesh.vertex_normals[faces]
+    smooth = np.einsum("fkc,fkc->fk", face_n, vertex_n) > np.cos(np.radians(SMOOTH_BELOW_DEG))
+    normals = np.where(smooth[..., None], vertex_n, face_n).reshape(-1, 3).astype(np.float32)
+    face_colours = np.asarray(mesh.visual.face_colors)
+    colours = np.repeat(face_colours[:, :3].astype(np.float32) / 255.0, 3, axis=0)
+    texcoords = np.zeros((len(positions), 2), np.float32)
+    texcoords[:, 0] = np.repeat(face_colours[:, 3], 3)
     material = pyrender.MetallicRoughnessMaterial(
         baseColorFactor=[1.0, 1.0, 1.0, alpha], metallicFactor=0.0, roughnessFactor=0.85, alphaMode="OPAQUE")
-    return pyrender.Primitive(positions=positions, normals=normals, color_0=colours, material=material, mode=4)
+    return pyrender.Primitive(positions=positions, normals=normals, color_0=colours, texcoord_0=texcoords,
+                              texcoord_1=np.zeros_like(texcoords) if glossy else None, material=material, mode=4)
 
 
 def vehicle_pose(x: float, y: float, z: float, yaw: float) -> np.ndarray:
@@ -96,7 +112,7 @@ class TrafficScene:
         model = self._models.get(style)
         if model is None:
             model = self._models[style] = vehicle_mesh(style)
-        return pyrender.Mesh([flat_primitive(model, alpha=code / 255.0)])
+        return pyrender.Mesh([flat_primitive(model, alpha=code / 255.0, glossy=True)])
 
     def update(self, truth: VehicleStates, in_view: np.ndarray) -> list[str]:
         """Add, move, hide and remove vehicle nodes; returns the drawn vehicle ids in record order.
