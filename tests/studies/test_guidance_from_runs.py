@@ -114,6 +114,25 @@ def test_from_runs_gives_the_model_study_rows_and_pairs_human_trips(tmp_path, ca
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(broken) in err[0] and "guidance.parquet missing" in err[0]
     assert not (tmp_path / "s2").exists()
+    # one trip and arm twice
+    shutil.copytree(runs / "off0", tmp_path / "again")
+    assert main(["study", "guidance", "--from-runs", str(runs / "batch"), str(runs / "off0"),
+                 str(tmp_path / "again")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the same trip (seed 0, the driver model) in the same arm 'none'" in err[0], err
+    # folders of one arm only; paired trips of two scenarios (here: another trip length)
+    assert main(["study", "guidance", "--from-runs", str(runs / "off0"), str(runs / "off1")]) == 2
+    assert "all in arm(s) none" in capsys.readouterr().err
+    longer = write_scenario(tmp_path, SHORT.replace("14.0", "15.0"), "longer.yaml")
+    for name, text in (("l_on", ""), ("l_off", "\ndriver: {guidance: false}\n")):
+        path = write_scenario(tmp_path, f"extends: {longer.as_posix()}{text}", f"{name}.yaml")
+        assert main(["run", str(path), "--seed", "0", "--out", str(tmp_path / "other" / name)]) == 0
+    capsys.readouterr()
+    assert main(["study", "guidance", "--from-runs", str(runs / "batch"), str(runs / "off0"),
+                 str(tmp_path / "other"), "--out", str(tmp_path / "s3")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "scenario.simulation.max_time_s differs" in err[0], err
+    assert not (tmp_path / "s3").exists()
 
 
 def test_from_runs_refuses_what_is_not_a_run_folder(tmp_path, capsys):
@@ -144,3 +163,28 @@ def test_from_runs_and_a_scenario_or_model_options_are_a_usage_error(tmp_path, c
         assert main(["study", "guidance", *argv]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and word in err[0], err
+
+
+def test_folders_of_runs_batches_and_hitl_sessions(tmp_path):
+    from vcfusion.studies.from_runs import find_run_folders
+
+    def run(folder):
+        folder.mkdir(parents=True)
+        (folder / "manifest.json").write_text("{}")  # what marks a complete run folder
+        return folder.resolve()
+
+    batch = tmp_path / "batch"
+    seeds = [run(batch / "seed_0000"), run(batch / "seed_0001")]
+    (batch / "seed_0002.tmp-writing").mkdir()  # a seed killed while it was written
+    session = tmp_path / "hitl-P07"
+    run(session / "practice")
+    trips = [run(session / "trip_01_seed0_off"), run(session / "trip_02_seed0_on")]
+    (session / "protocol.json").write_text(json.dumps({"trips": [{"run": "trip_01_seed0_off"},
+                                                                 {"run": "trip_02_seed0_on"}]}))
+    single = run(tmp_path / "single")
+    found, skipped = find_run_folders([batch, session, single, seeds[0].parent / "seed_0000"])
+    assert found == seeds + trips + [single]  # the practice drive is no study trip; a folder named twice counts once
+    assert skipped == [batch / "seed_0002.tmp-writing"]
+    # a folder of sessions: each session's trips
+    found, _ = find_run_folders([tmp_path])
+    assert trips[0] in found and not any(p.name == "practice" for p in found)

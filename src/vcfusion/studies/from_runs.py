@@ -29,7 +29,7 @@ import pandas as pd
 
 from vcfusion.errors import InputError
 from vcfusion.runio import MANIFEST, SUMMARY, is_complete_run
-from vcfusion.studies.guidance import ARM_TABLES, ARMS, REFERENCE_ARM, StudyError, arm_metrics, choose_target, write_study
+from vcfusion.studies.guidance import ARM_TABLES, ARMS, REFERENCE_ARM, arm_metrics, choose_target, write_study
 
 # what arm_metrics reads whatever the run was; `fusion` too when the run fused, `driver_events`
 # when a driver model drove (a person's run has no such table)
@@ -77,6 +77,19 @@ def trip_key(resolved: dict) -> str:
     return json.dumps(trip, sort_keys=True)
 
 
+def _first_difference(a, b, path: str = "") -> str:
+    """The dotted path of the first value in which two JSON values differ."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b)):
+            if a.get(k) != b.get(k):
+                return _first_difference(a.get(k), b.get(k), f"{path}.{k}" if path else k)
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        for i, (x, y) in enumerate(zip(a, b)):
+            if x != y:
+                return _first_difference(x, y, f"{path}[{i}]")
+    return path
+
+
 def _read_json(folder: Path, name: str) -> dict:
     try:
         data = json.loads((folder / name).read_text())
@@ -119,7 +132,8 @@ def load_run_folder(folder: Path) -> RunTrip:
     hitl, driver = summary.get("hitl"), summary.get("driver")
     if isinstance(hitl, dict):
         if hitl.get("guidance") not in ("on", "off"):
-            raise RunFolderError(f"{folder / SUMMARY}: hitl.guidance: expected 'on' or 'off', got {hitl.get('guidance')!r}")
+            raise RunFolderError(f"{folder / SUMMARY}: hitl.guidance: expected 'on' or 'off', "
+                                 f"got {hitl.get('guidance')!r}")
         kind, guided, participant, params = "human", hitl["guidance"] == "on", str(hitl.get("participant") or ""), {}
     elif isinstance(driver, dict) and isinstance(driver.get("guidance_enabled"), bool):
         kind, guided, participant = "model", driver["guidance_enabled"], ""
@@ -194,29 +208,31 @@ def study_of_runs(paths: list[Path], out: Path, renders: Path) -> dict:
     trips = [load_run_folder(f) for f in folders]
     by_pair: dict[tuple, dict[str, RunTrip]] = {}
     for trip in trips:
-        arms = by_pair.setdefault(trip.pair, {})
-        if trip.arm in arms:
-            raise RunFolderError(f"{trip.folder}: the same trip (seed {trip.seed}, {trip.driver_kind} "
-                                 f"{trip.participant or ''}) in the same arm {trip.arm!r} as {arms[trip.arm].folder}; "
-                                 "give one folder per trip and arm".replace("  ", " "))
-        arms[trip.arm] = trip
+        slots = by_pair.setdefault(trip.pair, {})
+        if trip.arm in slots:
+            driver = f"participant {trip.participant!r}" if trip.driver_kind == "human" else "the driver model"
+            raise RunFolderError(f"{trip.folder}: the same trip (seed {trip.seed}, {driver}) in the same arm "
+                                 f"{trip.arm!r} as {slots[trip.arm].folder}; give one folder per trip and arm")
+        slots[trip.arm] = trip
     found = {t.arm for t in trips}
     arms = tuple(a for a in ARMS if a in found)
     if REFERENCE_ARM not in found or len(arms) < 2:
-        raise StudyError(f"the {len(trips)} run folders are all in arm(s) {', '.join(arms)}; the study compares "
-                         f"trips without guidance ('{REFERENCE_ARM}') with guided ones: give folders of both")
+        raise InputError(f"--from-runs: the {len(trips)} run folders are all in arm(s) {', '.join(arms)}; the study "
+                         f"compares trips without guidance ('{REFERENCE_ARM}') with guided ones: give folders of both")
     paired = {k: v for k, v in by_pair.items() if set(v) == set(arms)}
     unpaired = sorted((t.folder, sorted(v)) for v in by_pair.values() if set(v) != set(arms) for t in v.values())
     if not paired:
-        raise StudyError(f"no trip (driver and seed) has a run folder in every arm ({', '.join(arms)}); "
+        raise InputError(f"--from-runs: no trip (driver and seed) has a run folder in every arm ({', '.join(arms)}); "
                          f"{len(unpaired)} unpaired folders, e.g. {unpaired[0][0]}")
-    scenarios: dict[str, set[str]] = {}
+    scenarios: dict[str, RunTrip] = {}
     for key, v in paired.items():
-        scenarios.setdefault(key[2], set()).update(t.run["scenario"].name for t in v.values())
+        scenarios.setdefault(key[2], next(iter(v.values())))
     if len(scenarios) > 1:
-        names = "; ".join(", ".join(sorted(n)) for n in scenarios.values())
-        raise StudyError(f"the paired folders are trips of {len(scenarios)} different scenarios ({names}): "
-                         "a study compares trips of one scenario; give the folders of one")
+        first, other = list(scenarios.values())[:2]
+        raise RunFolderError(f"{other.folder}: a trip of another scenario than {first.folder} (scenario."
+                             f"{_first_difference(json.loads(first.trip_key), json.loads(other.trip_key))} differs; "
+                             f"{len(scenarios)} scenarios in all): a study compares trips of one scenario; "
+                             "give the folders of one")
     rows = []
     for key in sorted(paired, key=lambda k: (k[0], k[1], k[3])):
         runs = [paired[key][a].run for a in arms]
@@ -231,7 +247,8 @@ def study_of_runs(paths: list[Path], out: Path, renders: Path) -> dict:
     people = kinds[kinds["driver_kind"] == "human"]
     drivers = ", ".join(([f"{len(people)} participant(s)"] if len(people) else [])
                         + (["the driver model"] if (kinds["driver_kind"] == "model").any() else []))
-    info = {"scenario": ", ".join(sorted(next(iter(scenarios.values())))), "run_folders": len(folders),
+    names = sorted({t.run["scenario"].name for v in paired.values() for t in v.values()})
+    info = {"scenario": ", ".join(names), "run_folders": len(folders),
             "paired_folders": len(table), "unpaired_folders": len(unpaired), "drivers": drivers,
             "unpaired": [{"folder": str(f), "arms_of_its_trip": a} for f, a in unpaired],
             "skipped_folders": [str(p) for p in skipped], "seeds": sorted(set(table["seed"].tolist())),
