@@ -92,9 +92,21 @@ def cmd_batch(args: argparse.Namespace) -> int:
     return 1 if report["failed"] else 0
 
 
+# the model study's options and their defaults (None in the parser: --from-runs refuses them)
+GUIDANCE_STUDY_DEFAULTS = {"arms": "none,fusion", "trips": 200, "workers": 2, "first_seed": 0}
+
+
 def cmd_study_guidance(args: argparse.Namespace) -> int:
     from vcfusion.studies.guidance import StudyError, parse_arms, run_guidance_study
 
+    if args.from_runs is not None:
+        return _study_guidance_from_runs(args)
+    if not args.scenario:
+        raise UsageError("study guidance: give a SCENARIO file (the driver model's trips) or --from-runs DIR... "
+                         "(existing run folders)")
+    for name, default in GUIDANCE_STUDY_DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, default)
     load_scenario(args.scenario)  # fail fast, before any worker starts
     if args.trips < 2:
         raise UsageError(f"--trips: expected at least 2 paired trips for a confidence interval, got {args.trips}")
@@ -119,6 +131,35 @@ def cmd_study_guidance(args: argparse.Namespace) -> int:
     for seed, error in result["failed"]:  # also in OUT/failures.json
         print(f"  trip {seed} failed: {error.splitlines()[0]}")
     return 1 if result["failed"] else 0
+
+
+def _study_guidance_from_runs(args: argparse.Namespace) -> int:
+    from vcfusion.studies.from_runs import study_of_runs
+    from vcfusion.studies.guidance import StudyError
+
+    if args.scenario:
+        raise UsageError(f"--from-runs: the trips are the run folders' own; not with a SCENARIO ({args.scenario})")
+    given = [name for name in GUIDANCE_STUDY_DEFAULTS if getattr(args, name) is not None]
+    if args.process_model:
+        given.append("process_model")
+    if given:
+        option = "--" + given[0].replace("_", "-")
+        raise UsageError(f"{option}: not with --from-runs (the run folders' trips, arms and process models are "
+                         "the study's)")
+    out = check_folder_path(Path(args.out) if args.out else Path("runs") / "guidance-study-from-runs")
+    check_folder_path(Path(args.renders), "--renders")
+    try:
+        result = study_of_runs([Path(p) for p in args.from_runs], out, Path(args.renders))
+    except StudyError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(result["text"])
+    for folder, arms in result["unpaired"]:  # also in OUT/summary.json
+        print(f"  unpaired, left out: {folder} (its trip has only {', '.join(arms)})")
+    for folder in result["skipped"]:
+        print(f"  skipped: {folder} (not a complete run folder)")
+    print(f"tables: {out}/trips.parquet, {out}/summary.csv; figures: " + ", ".join(str(p) for p in result["figures"]))
+    return 0
 
 
 def cmd_study_hitl(args: argparse.Namespace) -> int:
@@ -286,15 +327,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_identification_parser(study)
     p = study.add_parser("guidance", help="paired trips with and without AR guidance (paper Fig. 8/9)")
-    p.add_argument("scenario")
-    p.add_argument("--arms", default="none,fusion",
+    p.add_argument("scenario", nargs="?", help="scenario YAML file: the driver model drives the trips "
+                                               "(not with --from-runs)")
+    p.add_argument("--from-runs", nargs="+", metavar="DIR",
+                   help="instead of simulating: the study of existing run folders (human trips of vcfusion drive / "
+                        "study hitl, model trips of vcfusion run / batch, or both), paired by driver and seed; "
+                        "DIR is a run folder or a folder of them (a batch, an hitl session)")
+    p.add_argument("--arms",
                    help="comma-separated arms among none (no AR), cloud (highlights from the cloud alone), "
                         "fusion (camera + CNN + matcher + overlay: the paper's system), oracle (ground-truth "
                         "boxes); paired on seeds and driver draws, each compared with none (default: none,fusion)")
-    p.add_argument("--trips", type=int, default=200, help="number of paired trips (seeds FIRST..FIRST+N-1)")
-    p.add_argument("--workers", type=int, default=2, help="worker processes (one simulation each)")
-    p.add_argument("--first-seed", type=int, default=0)
-    p.add_argument("--out", help="study folder (default: runs/guidance-study-SCENARIO)")
+    p.add_argument("--trips", type=int, help="number of paired trips (seeds FIRST..FIRST+N-1; default 200)")
+    p.add_argument("--workers", type=int, help="worker processes (one simulation each; default 2)")
+    p.add_argument("--first-seed", type=int, help="default 0")
+    p.add_argument("--out", help="study folder (default: runs/guidance-study-SCENARIO, "
+                                 "runs/guidance-study-from-runs with --from-runs)")
     p.add_argument("--renders", default="renders", help="folder for the figures (default: renders)")
     p.add_argument("--process-model", action="append", default=[], metavar="MODULE:FACTORY",
                    help="extra cloud twin process model: FACTORY(scenario) returns fn(twins, store) -> "

@@ -245,6 +245,8 @@ class CoSimulation:
                                                                          sc.ego.lane))
         tables["lane_changes"] = pd.DataFrame(events)
         summary = summarize(sc, self.seed, tables, events, out["channel"], out["end_reason"], lateral)
+        # what wrote the twins' predictions (a study reading run folders reports it, as for its own trips)
+        summary["process_models"] = [name for name, _ in self.process_models]
         for stage in self.stages():
             _finish(stage, tables, summary)
         if sc.metrics.enabled:  # per-vehicle safety, comfort and emissions (vcfusion.metrics)

@@ -297,10 +297,11 @@ def run_trip(scenario_path: str, seed: int, process_model_specs: tuple[str, ...]
 
 
 def paired_summary(trips: pd.DataFrame, metrics=SAFETY_METRICS + EMISSION_METRICS,
-                   reference: str = REFERENCE_ARM) -> pd.DataFrame:
+                   reference: str = REFERENCE_ARM, pair_on: tuple[str, ...] = ("seed",)) -> pd.DataFrame:
     """Per metric and arm (other than `reference`): the mean of both arms, the mean paired
     difference (arm - reference) with a t-based 95% CI, the paired t-test p-value, over the trips
-    where every arm has the metric (the figures use the same numbers)."""
+    where every arm has the metric (the figures use the same numbers). A trip is one value of the
+    `pair_on` columns (the seed; for run folders also the driver: participant or model)."""
     from scipy import stats
 
     arms = [a for a in ARMS if a in set(trips["arm"])] + sorted(set(trips["arm"]) - set(ARMS))
@@ -308,7 +309,7 @@ def paired_summary(trips: pd.DataFrame, metrics=SAFETY_METRICS + EMISSION_METRIC
         raise StudyError(f"paired summary: the reference arm {reference!r} is not among the arms {arms}")
     rows = []
     for col, label, unit, paper_off, paper_on, paper_rel in metrics:
-        wide = trips.pivot(index="seed", columns="arm", values=col).astype(float)[arms].dropna()
+        wide = trips.pivot(index=list(pair_on), columns="arm", values=col).astype(float)[arms].dropna()
         n = len(wide)
         if paper_rel is None and paper_off is not None:
             paper_rel = 100.0 * (paper_on - paper_off) / paper_off
@@ -348,9 +349,15 @@ def _given(x) -> bool:
 
 
 def format_summary(summary: pd.DataFrame, info: dict) -> str:
-    lines = [f"guidance study {info['scenario']}: {info['trips_ok']} paired trips "
-             f"({info['trips_failed']} failed), arms {', '.join(info['arms'])}, in {info['wall_s']:.0f} s wall "
-             f"with {info['workers']} workers",
+    if "run_folders" in info:  # the study of existing run folders (vcfusion.studies.from_runs)
+        head = (f"guidance study of run folders ({info['scenario']}): {info['trips_ok']} paired trips from "
+                f"{info['run_folders']} run folders ({info['drivers']}), {info['unpaired_folders']} unpaired "
+                f"folders left out, arms {', '.join(info['arms'])}")
+    else:
+        head = (f"guidance study {info['scenario']}: {info['trips_ok']} paired trips "
+                f"({info['trips_failed']} failed), arms {', '.join(info['arms'])}, in {info['wall_s']:.0f} s wall "
+                f"with {info['workers']} workers")
+    lines = [head,
              f"  process models: {info['process_models']}",
              f"  trips with a cut-in ahead of the ego (TTC/gap vehicle chosen once per seed): "
              f"{info['trips_with_target']} of {info['trips_ok']}"]
@@ -364,7 +371,8 @@ def format_summary(summary: pd.DataFrame, info: dict) -> str:
         if arm != REFERENCE_ARM:
             line += (f"; responds to that vehicle {a['response_gain_s']:.2f} s earlier than {REFERENCE_ARM} "
                      f"(mean over {a['response_pairs']} trips)")
-        line += f"; {a['mean_wall_s']:.1f} s wall per trip"
+        if a.get("mean_wall_s") is not None:
+            line += f"; {a['mean_wall_s']:.1f} s wall per trip"
         lines.append(line)
     for arm in summary["arm"].unique():
         part = summary[summary["arm"] == arm]
@@ -481,8 +489,24 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
     if not rows:
         raise StudyError(f"all {len(seeds)} trips failed; first error: {failed[0][1] if failed else '?'}")
     table = pd.DataFrame(rows)
+    info = {
+        "scenario": scenario.name, "scenario_file": str(scenario_path), "seeds": [seeds[0], seeds[-1]],
+        "trips_failed": len(failed), "workers": workers, "wall_s": wallclock.perf_counter() - started,
+    }
+    result = write_study(table, arms, info, out, renders, ("seed",), failed)
+    return result | {"failed": failed}
+
+
+def write_study(table: pd.DataFrame, arms: tuple[str, ...], info: dict, out: Path, renders: Path,
+                pair_on: tuple[str, ...], failed: list[tuple[int, str]] = ()) -> dict:
+    """From the trips table (one row per trip and arm, `arm_metrics` columns): the checks on the
+    arms' sources, the paired summary, OUT/trips.parquet|csv, summary.csv|json|txt and the
+    figures. A trip is one value of the `pair_on` columns. `info` is completed and returned."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    table = table.copy()
     table["arm"] = pd.Categorical(table["arm"], categories=list(arms))
-    table = table.sort_values(["seed", "arm"]).reset_index(drop=True)
+    table = table.sort_values([*pair_on, "arm"]).reset_index(drop=True)
     table["arm"] = table["arm"].astype(str)
     guided = table[table["arm"] != REFERENCE_ARM]
     sources = sorted(set("+".join(guided["guidance_source"]).split("+")))
@@ -496,13 +520,13 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
         got = set("+".join(table.loc[table["arm"] == arm, "guidance_source"]).split("+")) - {"no_frame"}
         if expected is not None and not got <= {expected, "none"}:
             raise StudyError(f"arm {arm}: highlights came from {sorted(got)}, expected only {expected!r}")
-    summary = paired_summary(table)
+    summary = paired_summary(table, pair_on=pair_on)
     per_arm = {}
-    ref_response = table[table["arm"] == REFERENCE_ARM].set_index("seed")["response_time_s"]
+    ref_response = table[table["arm"] == REFERENCE_ARM].set_index(list(pair_on))["response_time_s"]
     for arm in arms:
         t = table[table["arm"] == arm]
         resp = t["response_time_s"].dropna()
-        gain = (ref_response - t.set_index("seed")["response_time_s"]).dropna()
+        gain = (ref_response - t.set_index(list(pair_on))["response_time_s"]).dropna()
         per_arm[arm] = {
             "guidance_source": "+".join(sorted(set("+".join(t["guidance_source"]).split("+")))),
             "highlights_right": int(t["highlights_right"].sum()) if arm != REFERENCE_ARM else None,
@@ -514,15 +538,14 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
             "mean_response_time_s": float(resp.mean()) if len(resp) else math.nan, "responses": int(len(resp)),
             # paired: how much earlier the driver responds to the seed's vehicle than in the reference arm
             "response_gain_s": float(gain.mean()) if len(gain) else math.nan, "response_pairs": int(len(gain)),
-            "mean_wall_s": float(t["arm_wall_s"].mean()),
+            # the run folders record no wall time per trip
+            "mean_wall_s": float(t["arm_wall_s"].mean()) if "arm_wall_s" in t else None,
         }
-    info = {
-        "scenario": scenario.name, "scenario_file": str(scenario_path), "seeds": [seeds[0], seeds[-1]],
-        "arms": list(arms), "reference_arm": REFERENCE_ARM,
-        "trips_ok": int(table["seed"].nunique()), "trips_failed": len(failed), "workers": workers,
-        "wall_s": wallclock.perf_counter() - started,
+    trips = table.groupby(list(pair_on))
+    info = info | {
+        "arms": list(arms), "reference_arm": REFERENCE_ARM, "trips_ok": int(trips.ngroups),
         "process_models": ", ".join(sorted(set(table["process_models"]))),
-        "trips_with_target": int(table.groupby("seed")["target_id"].first().notna().sum()),
+        "trips_with_target": int(trips["target_id"].first().notna().sum()),
         "per_arm": per_arm,
     }
     write_table(out / "trips.parquet", table)
@@ -537,4 +560,4 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
                                              "failed": {str(s): e for s, e in failed}})
     (out / "summary.txt").write_text(text + "\n")
     figures = plot_figures(summary, Path(renders))
-    return {"info": info, "summary": summary, "text": text, "figures": figures, "trips": table, "failed": failed}
+    return {"info": info, "summary": summary, "text": text, "figures": figures, "trips": table}
