@@ -142,6 +142,10 @@ def run_jobs(task: Callable, jobs: Sequence[tuple], workers: int,
             for w in list(pool):
                 result = _collect(w)
                 if result is not None:
+                    # the next job goes out before the caller handles this result: the worker
+                    # does not idle while the parent writes and reports (short seeds)
+                    if pending:
+                        _hand_over(w, pending, jobs, on_start)
                     index, value = result
                     yield index, value
                 elif not w.process.is_alive():  # died, busy or idle: a fresh one replaces it
