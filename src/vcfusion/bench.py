@@ -36,6 +36,20 @@ REPO = Path(__file__).resolve().parents[2]
 ACCIDENT = REPO / "scenarios" / "accident.yaml"
 
 
+def median_us(fn, repeats: int) -> float:
+    """Median wall time of one call of fn, in microseconds, after one untimed call (compiled
+    kernels compile or load from numba's cache on their first call)."""
+    import statistics
+
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times) * 1e6
+
+
 def _peak_rss_mb() -> dict[str, float]:
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0

@@ -8,21 +8,12 @@ Run: `vcfusion bench-predict --twins 100` or `python -m vcfusion.prediction.benc
 from __future__ import annotations
 
 import sys
-import time
 
 import numpy as np
 
+from vcfusion.bench import median_us
 from vcfusion.records import TwinStates
 from vcfusion.traffic.network import Road
-
-
-def _median_us(fn, repeats: int) -> float:
-    times = np.empty(repeats)
-    for k in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times[k] = time.perf_counter() - t0
-    return float(np.median(times) * 1e6)
 
 
 def run_bench(n_twins: int = 100, repeats: int = 2000) -> str:
@@ -44,10 +35,10 @@ def run_bench(n_twins: int = 100, repeats: int = 2000) -> str:
     features = predictor.extractor.from_twins(twins)
     prob = model.predict_proba(features)
     raw = (prob > predictor.threshold).astype(np.int8)
-    t_features = _median_us(lambda: predictor.extractor.from_twins(twins), repeats)
-    t_mlp = _median_us(lambda: model.predict_proba(features), repeats)
-    t_smooth = _median_us(lambda: predictor.smoother(twins.ids, raw), repeats)
-    t_total = _median_us(lambda: predictor(twins), repeats)
+    t_features = median_us(lambda: predictor.extractor.from_twins(twins), repeats)
+    t_mlp = median_us(lambda: model.predict_proba(features), repeats)
+    t_smooth = median_us(lambda: predictor.smoother(twins.ids, raw), repeats)
+    t_total = median_us(lambda: predictor(twins), repeats)
     lines = [f"lane-change predictor, {n_twins} twins per tick, median of {repeats} ticks "
              f"(model {default_model_path().name}, {len(model.feature_names)} features, "
              f"hidden {model.weights[0][0].shape[0]}):",
@@ -66,7 +57,7 @@ def run_bench(n_twins: int = 100, repeats: int = 2000) -> str:
             with torch.inference_mode():
                 torch.sigmoid(module(xt))
 
-        lines.append(f"  MLP, torch (1 thread)   {_median_us(torch_infer, repeats):8.1f} us  (for comparison)")
+        lines.append(f"  MLP, torch (1 thread)   {median_us(torch_infer, repeats):8.1f} us  (for comparison)")
     except ImportError:
         pass
     return "\n".join(lines)

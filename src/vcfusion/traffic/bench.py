@@ -9,24 +9,14 @@ Points lie on the road, spread over its length and lanes. Run on a quiet machine
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 
+from vcfusion.bench import median_us
 from vcfusion.traffic.network import REPO_NET_DIR, read_road
 from vcfusion.traffic.roadframe import RoadFrame
 
 CASES = (("highway", None), ("curved", None), ("onramp", ("main_in", "accel", "main_out")))
-
-
-def _median_us(fn, repeats: int) -> float:
-    fn()  # compiled kernels: the first call compiles or loads from numba's cache
-    times = np.empty(repeats)
-    for k in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times[k] = time.perf_counter() - t0
-    return float(np.median(times) * 1e6)
 
 
 def run_bench(n_points: int = 100, repeats: int = 3000) -> str:
@@ -35,18 +25,18 @@ def run_bench(n_points: int = 100, repeats: int = 3000) -> str:
     road = read_road(REPO_NET_DIR / "highway.net.xml")
     s = rng.uniform(0.0, road.length_m, n_points)
     x, y = road.to_world(s, rng.uniform(0.0, road.width_m, n_points))
-    t_road = _median_us(lambda: road.to_road_frame(x, y), repeats)
-    t_road_lane = _median_us(lambda: road.locate(x, y), repeats)
+    t_road = median_us(lambda: road.to_road_frame(x, y), repeats)
+    t_road_lane = median_us(lambda: road.locate(x, y), repeats)
     lines.append(f"  Road (straight, closed form) to_frame {t_road:7.1f}   +lane {t_road_lane:7.1f}")
     for name, route in CASES:
         frame = RoadFrame.from_net(REPO_NET_DIR / f"{name}.net.xml", route)
         s = rng.uniform(0.0, frame.length_m, n_points)
         track = rng.integers(1 if name == "onramp" else 0, frame.num_tracks, n_points)
         x, y = frame.to_world(s, frame.lane_centre_d(track, s))
-        t_frame = _median_us(lambda: frame.to_frame(x, y), repeats)
-        t_locate = _median_us(lambda: frame.locate(x, y), repeats)
+        t_frame = median_us(lambda: frame.to_frame(x, y), repeats)
+        t_locate = median_us(lambda: frame.locate(x, y), repeats)
         sd = frame.to_frame(x, y)
-        t_world = _median_us(lambda: frame.to_world(*sd), repeats)
+        t_world = median_us(lambda: frame.to_world(*sd), repeats)
         lines.append(f"  RoadFrame {name:<17} to_frame {t_frame:7.1f}   +lane {t_locate:7.1f}   "
                      f"to_world {t_world:7.1f}   ({len(frame._P) - 1} segments)")
     return "\n".join(lines)
