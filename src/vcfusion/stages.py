@@ -43,6 +43,13 @@ def declared(stage, attribute: str) -> tuple[str, ...]:
     return tuple(getattr(stage, attribute, ()) or ())
 
 
+def _claim(owners: dict[str, str], key: str, label: str, message: str) -> None:
+    """Record `label` as the one owner of `key`; `message` ({owner} filled in) if it has one."""
+    if key in owners:
+        raise WiringError(message.replace("{owner}", owners[key]))
+    owners[key] = label
+
+
 def check_wiring(process_models: list[tuple[str, object]], hooks: list, controller, has_ego: bool) -> None:
     """Raise :class:`WiringError` unless every stage's inputs come from the loop or an earlier stage.
     `process_models`: (name, model) pairs, as the twin store takes them."""
@@ -68,13 +75,9 @@ def check_wiring(process_models: list[tuple[str, object]], hooks: list, controll
             if f in filled:
                 raise WiringError(f"{label} provides {f!r} after {filled[f]}, which fills it only where no earlier "
                                   f"stage did: put {label} before it")
-            if f in providers:
-                raise WiringError(f"{label} provides {f!r}, which {providers[f]} already provides")
-            providers[f] = label
+            _claim(providers, f, label, f"{label} provides {f!r}, which {{owner}} already provides")
         for f in declared(stage, "fills"):
-            if f in filled:
-                raise WiringError(f"{label} fills {f!r}, which {filled[f]} already fills")
-            filled[f] = label
+            _claim(filled, f, label, f"{label} fills {f!r}, which {{owner}} already fills")
         available |= set(declared(stage, "provides")) | set(declared(stage, "fills"))
     check_finish(stages)
 
@@ -84,9 +87,7 @@ def check_finish(stages: list[tuple[str, object]]) -> None:
     for label, stage in stages:
         table = getattr(stage, "table", None)
         if table is not None:
-            if table in tables:
-                raise WiringError(f"{label}: table {table!r} is already written by {tables[table]}")
-            tables[table] = label
+            _claim(tables, table, label, f"{label}: table {table!r} is already written by {{owner}}")
     summary: dict[str, str] = {}
     for label, stage in stages:
         finishes = callable(getattr(stage, "finish", None))
@@ -97,10 +98,6 @@ def check_finish(stages: list[tuple[str, object]]) -> None:
             if t not in tables:
                 raise WiringError(f"{label} needs table {t!r} at the end of the run, which no earlier stage writes")
         for t in declared(stage, "finish_tables"):
-            if t in tables:
-                raise WiringError(f"{label}: table {t!r} is already written by {tables[t]}")
-            tables[t] = label
+            _claim(tables, t, label, f"{label}: table {t!r} is already written by {{owner}}")
         for key in declared(stage, "finish_summary"):
-            if key in summary:
-                raise WiringError(f"{label}: summary key {key!r} is already written by {summary[key]}")
-            summary[key] = label
+            _claim(summary, key, label, f"{label}: summary key {key!r} is already written by {{owner}}")
