@@ -111,7 +111,7 @@ def _check_vehicle_type(vehicle_type) -> int:
     return int(vehicle_type)
 
 
-def _check_speeds(speeds_mps: Sequence[float]) -> np.ndarray:
+def check_speeds(speeds_mps: Sequence[float]) -> np.ndarray:
     v = np.asarray(speeds_mps, dtype=float).reshape(-1)
     if v.size == 0:
         raise ValueError("speeds_mps: expected at least one 1 Hz speed sample, got an empty trajectory")
@@ -193,7 +193,7 @@ def movestar(speeds_mps: Sequence[float], vehicle_type: int = 1) -> dict:
     values when the distance travelled is zero), ``TT_s``, ``TD_m``, ``opmodes``, ``vsp``.
     """
     vehicle_type = _check_vehicle_type(vehicle_type)
-    v = _check_speeds(speeds_mps)
+    v = check_speeds(speeds_mps)
     a = accelerations(v)
     power = vsp(v, a, vehicle_type)
     modes = operating_modes(v, a, power)

@@ -39,14 +39,15 @@ EGO_KEYS = {  # summary key -> metrics.parquet column
 def add_run_metrics(scenario, tables, tripinfo_file: Path, emission_classes: dict[str, str]) -> dict:
     """At the end of a run: SUMO's totals from its tripinfo, the metric tables into `tables`
     (a RunTables), the summary block back."""
-    tables["sumo_emissions"] = read_tripinfo_emissions(tripinfo_file, emission_classes)
+    sumo = read_tripinfo_emissions(tripinfo_file, emission_classes)
+    tables.add_arrow("sumo_emissions", sumo)
     sim = scenario.simulation
     ego = tables.arrow("ego", ["time", "s", "speed"]) if scenario.ego is not None else None
     trajectories = tables.sources()["trajectories"]
     if isinstance(trajectories, pd.DataFrame):  # an empty run: no samples were streamed
         trajectories = pa.Table.from_pandas(trajectories, preserve_index=False)
     result = compute_run_metrics(scenario.metrics, sim.trajectory_period_s, sim.step_s, trajectories,
-                                 tables["vehicles"], ego, tables.get("lane_changes"), tables["sumo_emissions"])
+                                 tables["vehicles"], ego, tables.get("lane_changes"), sumo)
     for name, table in zip(METRIC_TABLES, (result.vehicles, result.conflicts, result.histograms)):
         tables.add_arrow(name, table)
     return summary_block(scenario.metrics, result, tables["collisions"], sumo_available=True)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-import pandas as pd
+import pyarrow as pa
 
 # tripinfo <emissions> attribute -> column of the sumo_emissions table (mg -> g)
 POLLUTANT_COLUMNS = {"CO_abs": "co_g", "CO2_abs": "co2_g", "HC_abs": "hc_g", "NOx_abs": "nox_g",
@@ -26,8 +26,9 @@ COLUMNS = ["vehicle_id", "vtype", "emission_class", "depart_s", "duration_s", "r
            *POLLUTANT_COLUMNS.values(), "electricity_wh"]
 
 
-def read_tripinfo_emissions(tripinfo_file: Path, emission_classes: dict[str, str]) -> pd.DataFrame:
-    """One row per vehicle SUMO inserted: its emission class (by vType) and emission totals."""
+def read_tripinfo_emissions(tripinfo_file: Path, emission_classes: dict[str, str]) -> pa.Table:
+    """One row per vehicle SUMO inserted: its emission class (by vType) and emission totals,
+    sorted by vehicle id. (Arrow built from plain lists: this runs at the end of every run.)"""
     rows = []
     for trip in ET.parse(tripinfo_file).getroot().iter("tripinfo"):
         em = trip.find("emissions")
@@ -39,5 +40,7 @@ def read_tripinfo_emissions(tripinfo_file: Path, emission_classes: dict[str, str
                      float(trip.get("duration")), float(trip.get("routeLength")),
                      *(float(em.get(attr)) / 1000.0 for attr in POLLUTANT_COLUMNS),
                      float(em.get("electricity_abs"))))
-    frame = pd.DataFrame(rows, columns=COLUMNS)
-    return frame.sort_values("vehicle_id", kind="stable").reset_index(drop=True)
+    rows.sort(key=lambda row: row[0])  # stable
+    values = list(zip(*rows)) if rows else [()] * len(COLUMNS)
+    return pa.table({name: pa.array(column, type=pa.string() if i < 3 else pa.float64())
+                     for i, (name, column) in enumerate(zip(COLUMNS, values))})

@@ -49,7 +49,8 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from vcfusion.metrics.movestar import KM_PER_MILE, METERS_PER_MILE, OUTPUT_KEYS, movestar_trips, trip_emissions
+from vcfusion.metrics.movestar import (KM_PER_MILE, METERS_PER_MILE, OUTPUT_KEYS, check_speeds,
+                                      movestar_trips, resample_to_1hz)
 from vcfusion.metrics.safety import kinematics
 from vcfusion.records import EGO_ID
 
@@ -167,7 +168,7 @@ class _Buffers:
 
 def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajectories: pa.Table | Path,
                         vehicles: pd.DataFrame, ego: pa.Table | None, lane_changes: pd.DataFrame | None,
-                        sumo_emissions: pd.DataFrame | None) -> RunMetrics:
+                        sumo_emissions: pd.DataFrame | pa.Table | None) -> RunMetrics:
     """The per-vehicle table, the conflict episodes and the distributions of one run (streamed)."""
     dt = trajectory_period_s
     info = _VehicleFacts(vehicles)
@@ -209,19 +210,18 @@ def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajecto
         s = piece.column("s").to_numpy()
         speed = piece.column("speed").to_numpy()
         columns = follow_measures(time, lane, s, speed, code, np.asarray(lengths), cfg.leader_range_m)
+        # the piece's rows by vehicle (time order kept within each) in one gather; a vehicle's rows
+        # are then a slice, cut where it was absent for long (a teleport: a new stretch begins)
         order = np.argsort(code, kind="stable")
-        bounds = np.flatnonzero(np.diff(code[order])) + 1
-        for rows in np.split(order, bounds):
-            c = int(code[rows[0]])
-            # back after a long absence (a teleport): the stretch so far is finished, a new one begins
-            before = buffers.last_time.get(c, time[rows[0]])
-            breaks = np.flatnonzero(np.diff(np.r_[before, time[rows]]) > _GONE_AFTER_S)
-            for part in np.split(rows, breaks):
-                if not len(part):  # the break came before this piece's first row
-                    continue
-                if c in buffers.chunks and buffers.last_time[c] < time[part[0]] - _GONE_AFTER_S:
-                    finish([c])
-                buffers.add(c, {k: v[part] for k, v in columns.items()})
+        by_vehicle = {k: v[order] for k, v in columns.items()}
+        sorted_code, sorted_time = code[order], by_vehicle["time"]
+        cut = (sorted_code[1:] != sorted_code[:-1]) | (np.diff(sorted_time) > _GONE_AFTER_S)
+        bounds = np.flatnonzero(cut) + 1
+        for a, b in zip(np.concatenate(([0], bounds)).tolist(), np.concatenate((bounds, [len(order)])).tolist()):
+            c = int(sorted_code[a])
+            if c in buffers.chunks and buffers.last_time[c] < sorted_time[a] - _GONE_AFTER_S:
+                finish([c])  # back after a long absence: the stretch so far is finished
+            buffers.add(c, {k: v[a:b] for k, v in by_vehicle.items()})
         now = float(time[-1])
         finish([c for c, last in buffers.last_time.items() if last < now - _GONE_AFTER_S])
     finish(list(buffers.chunks))
@@ -386,13 +386,15 @@ def _movestar(time: np.ndarray, speed: np.ndarray, vehicle_type: int | None) -> 
     if vehicle_type is None:
         return out
     try:
-        em = trip_emissions(time, speed, vehicle_type)
+        v = check_speeds(resample_to_1hz(time, speed))
     except ValueError:  # less than one whole second on the road: no 1 Hz sample to rate
         return out
-    totals = dict(em["totals"])
+    # movestar()'s totals without its per-second opmodes and VSP lists (trip_emissions = movestar of these)
+    sums, distance = movestar_trips(v, np.array([0]), np.array([vehicle_type]))
+    totals = {name: float(x) for name, x in zip(OUTPUT_KEYS, sums[0])}
     totals["PM2.5"] = totals.pop("PM2.5_Ele") + totals.pop("PM2.5_Org")
     out.update({f"movestar_{MOVESTAR_KEYS[k]}": float(v) for k, v in totals.items()})
-    out["movestar_distance_m"], out["movestar_seconds"] = em["TD_m"], int(em["TT_s"])
+    out["movestar_distance_m"], out["movestar_seconds"] = float(distance[0]), int(v.size)
     return out
 
 
@@ -489,13 +491,15 @@ def _lane_changes(vids: list[str], lane_changes: pd.DataFrame | None) -> np.ndar
     return np.array([made.get(v, 0) for v in vids], dtype=np.int64)
 
 
-def _sumo_columns(vids: list[str], distance_m: np.ndarray, sumo: pd.DataFrame | None) -> dict[str, np.ndarray]:
+def _sumo_columns(vids: list[str], distance_m: np.ndarray, sumo: pd.DataFrame | pa.Table | None) -> dict[str, np.ndarray]:
     """SUMO's emission totals and per km (NaN and no class where the run folder has none)."""
     names = [f"{k}_g" for k in SUMO_KEYS] + ["electricity_wh"]
     found: dict[str, tuple] = {}
     if sumo is not None and len(sumo):
-        values = zip(sumo["emission_class"].tolist(), *(sumo[c].tolist() for c in names))
-        found = dict(zip(sumo["vehicle_id"].tolist(), values))
+        if isinstance(sumo, pd.DataFrame):
+            sumo = pa.Table.from_pandas(sumo[["vehicle_id", "emission_class", *names]], preserve_index=False)
+        values = zip(sumo.column("emission_class").to_pylist(), *(sumo.column(c).to_pylist() for c in names))
+        found = dict(zip(sumo.column("vehicle_id").to_pylist(), values))
     blank = ("",) + (math.nan,) * len(names)
     got = [found.get(v, blank) for v in vids]
     out = {"sumo_emission_class": np.array([g[0] for g in got], dtype=object)}

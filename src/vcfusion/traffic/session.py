@@ -222,6 +222,11 @@ class SumoSession:
         sc = self.scenario
         for vt in self._emission_types:  # before any vehicle of the type is built
             libsumo.vehicletype.setParameter(vt, "has.emissions.device", "true")
+        if self._emission_types:
+            # the tripinfo device only where the emissions device is: the tripinfo file is read
+            # for those totals alone, and a device on every vehicle costs SUMO every step
+            for vt in self.vtypes.keys() - set(self._emission_types):
+                libsumo.vehicletype.setParameter(vt, "has.tripinfo.device", "false")
         self._routes: dict[tuple[str, ...], str] = {}
         if sc.accident is not None:
             acc = sc.accident
