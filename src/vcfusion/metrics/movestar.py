@@ -133,7 +133,7 @@ def accelerations(v: np.ndarray, starts: np.ndarray | None = None) -> np.ndarray
         a[1:-1] = (v[2:] - v[:-2]) / 2.0
     if starts is not None and v.size:
         a[starts] = 0.0
-        a[np.r_[starts[1:], v.size] - 1] = 0.0
+        a[np.concatenate((starts[1:], [v.size])) - 1] = 0.0
     return a
 
 
@@ -165,7 +165,8 @@ def operating_modes(v: np.ndarray, a: np.ndarray, power: np.ndarray, starts: np.
     braked = np.zeros(v.size, dtype=bool)  # the two seconds before both below -1 mph/s
     braked[2:] = (accel[:-2] < -1) & (accel[1:-1] < -1)
     if starts is not None:  # ... within the same trip
-        braked[np.r_[starts, starts + 1][np.r_[starts, starts + 1] < v.size]] = False
+        first_two = np.concatenate((starts, starts + 1))
+        braked[first_two[first_two < v.size]] = False
     return np.select([(accel <= -2) | braked, mph < 1, mph < 25, mph < 50],
                      [0, 1, _band(power, _LOW_SPEED), _band(power, _MID_SPEED)], _band(power, _HIGH_SPEED))
 
@@ -178,12 +179,12 @@ def movestar_trips(v: np.ndarray, starts: np.ndarray, vehicle_types: np.ndarray)
     """MOVESTAR of many 1 Hz trips at once (the same computation as movestar()): `v` the trips'
     speeds concatenated, trip i beginning at starts[i], of type vehicle_types[i]. Returns the
     totals (trips x OUTPUT_KEYS) and the distance travelled per trip (the sum of its speeds)."""
-    lengths = np.diff(np.r_[starts, v.size])
+    lengths = np.diff(np.concatenate((starts, [v.size])))
     types = np.repeat(vehicle_types, lengths)
     a = accelerations(v, starts)
     modes = operating_modes(v, a, vsp(v, a, types), starts)
     sums = np.add.reduceat(_RATE_TABLE[types, modes], starts, axis=0) / 3600.0
-    return np.c_[sums, _fuel(sums[:, POLLUTANTS.index("CO2")])], np.add.reduceat(v, starts)
+    return np.column_stack((sums, _fuel(sums[:, POLLUTANTS.index("CO2")]))), np.add.reduceat(v, starts)
 
 
 def movestar(speeds_mps: Sequence[float], vehicle_type: int = 1) -> dict:

@@ -62,6 +62,11 @@ TRAJECTORY_COLUMNS = ["time", "vehicle_id", "lane", "s", "speed"]
 # Distribution bins (histograms in metric_histograms.parquet; percentiles read from them).
 TTC_EDGES = np.round(np.linspace(0.0, 60.0, 1201), 6)  # 0.05 s
 HEADWAY_EDGES = np.round(np.linspace(0.0, 10.0, 501), 6)  # 0.02 s
+# metric_histograms.parquet's bins (the same every run; each run adds its counts)
+_HISTOGRAM_BINS = pa.table({
+    "measure": ["ttc_s"] * len(TTC_EDGES) + ["time_headway_s"] * len(HEADWAY_EDGES),
+    "bin_low": np.concatenate((TTC_EDGES, HEADWAY_EDGES)),
+    "bin_high": np.concatenate((TTC_EDGES[1:], [np.inf], HEADWAY_EDGES[1:], [np.inf]))})
 # movestar() output -> metrics column movestar_<name> (per km: movestar_<name>_per_km)
 MOVESTAR_KEYS = {"CO": "co_g", "HC": "hc_g", "NOx": "nox_g", "PM2.5": "pm25_g", "CO2": "co2_g",
                  "Energy": "energy_kj", "Fuel": "fuel_g"}
@@ -136,7 +141,7 @@ def leaders(time: np.ndarray, lane: np.ndarray, s: np.ndarray) -> np.ndarray:
     if len(time) == 0:
         return np.zeros(0, dtype=np.int64)
     # one integer key per (time, lane): two sort keys instead of three
-    group = np.cumsum(np.r_[0, time[1:] != time[:-1]]) * 65536 + lane.astype(np.int64)
+    group = np.cumsum(np.concatenate(([0], time[1:] != time[:-1]))) * 65536 + lane.astype(np.int64)
     order = np.lexsort((s, group))
     follower, ahead = order[:-1], order[1:]
     same = group[ahead] == group[follower]
@@ -242,11 +247,7 @@ def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajecto
     conflicts.sort(key=lambda c: (c["start_time"], c["vehicle_id"]))
     conflict_table = pa.table({name: pa.array([c[name] for c in conflicts], type=kind)
                                for name, kind in CONFLICT_SCHEMA.items()})
-    histograms = pa.table({
-        "measure": ["ttc_s"] * len(TTC_EDGES) + ["time_headway_s"] * len(HEADWAY_EDGES),
-        "bin_low": np.r_[TTC_EDGES, HEADWAY_EDGES],
-        "bin_high": np.r_[TTC_EDGES[1:], np.inf, HEADWAY_EDGES[1:], np.inf],
-        "count": np.r_[ttc_counts, headway_counts]})
+    histograms = _HISTOGRAM_BINS.append_column("count", pa.array(np.concatenate((ttc_counts, headway_counts))))
     return RunMetrics(pa.table(columns), conflict_table, histograms, columns, ttc_counts, headway_counts)
 
 
@@ -278,7 +279,7 @@ def conflict_episodes(ttc: np.ndarray, leader: np.ndarray, threshold_s: float) -
     continues = np.zeros(len(ttc), dtype=bool)
     continues[1:] = below[1:] & below[:-1] & (leader[1:] == leader[:-1])
     starts = np.flatnonzero(below & ~continues)
-    ends = np.flatnonzero(below & ~np.r_[continues[1:], False]) + 1
+    ends = np.flatnonzero(below & ~np.concatenate((continues[1:], [False]))) + 1
     return list(zip(starts.tolist(), ends.tolist()))
 
 
@@ -290,7 +291,7 @@ def _stretches(series: list[dict[str, np.ndarray]], dt: float, cfg, movestar_typ
     and headway samples of the counted vehicles (for the distributions)."""
     n = np.array([len(x["time"]) for x in series])
     m, total = len(series), int(n.sum())
-    starts = np.r_[0, np.cumsum(n)[:-1]]
+    starts = np.concatenate(([0], np.cumsum(n)[:-1]))
     ends = starts + n - 1
     col = {k: np.concatenate([x[k] for x in series]) for k in _Buffers.COLUMNS}
     t, s, v, ttc = col["time"], col["s"], col["speed"], col["ttc"]
@@ -340,8 +341,8 @@ def _episodes(col: dict[str, np.ndarray], seg: np.ndarray, below: np.ndarray, dt
     continues = np.zeros(len(ttc), dtype=bool)
     continues[1:] = below[1:] & below[:-1] & (leader[1:] == leader[:-1]) & (seg[1:] == seg[:-1])
     first = np.flatnonzero(below & ~continues)
-    stop = np.flatnonzero(below & ~np.r_[continues[1:], False]) + 1
-    lowest = np.minimum.reduceat(np.r_[ttc, np.inf], np.c_[first, stop].ravel())[::2] if len(first) else []
+    stop = np.flatnonzero(below & ~np.concatenate((continues[1:], [False]))) + 1
+    lowest = np.minimum.reduceat(np.concatenate((ttc, [np.inf])), np.column_stack((first, stop)).ravel())[::2] if len(first) else []
     episodes = [{"stretch": int(seg[a]), "leader": int(leader[a]), "start_time": float(col["time"][a]),
                  "end_time": float(col["time"][b - 1] + dt), "duration_s": float((b - a) * dt),
                  "min_ttc_s": float(low), "s_start": float(col["s"][a]), "lane": int(col["lane"][a])}
@@ -359,7 +360,7 @@ def _movestar_stretches(t, v, seg, starts, ends, dt, movestar_types: list[int | 
     types = np.array([x or 0 for x in movestar_types])
     sec = np.floor(t - t[starts][seg] + 1e-6).astype(np.int64)  # as resample_to_1hz
     nsec = sec[ends] + 1
-    bucket = np.r_[0, np.cumsum(nsec)[:-1]][seg] + sec
+    bucket = np.concatenate(([0], np.cumsum(nsec)[:-1]))[seg] + sec
     counts = np.bincount(bucket, minlength=int(nsec.sum()))
     sums = np.bincount(bucket, weights=v, minlength=int(nsec.sum()))
     owner = np.repeat(np.arange(m), nsec)
@@ -367,7 +368,7 @@ def _movestar_stretches(t, v, seg, starts, ends, dt, movestar_types: list[int | 
     if not keep.any():
         return out
     trips = owner[keep]
-    first = np.flatnonzero(np.r_[True, trips[1:] != trips[:-1]])
+    first = np.flatnonzero(np.concatenate(([True], trips[1:] != trips[:-1])))
     rated = trips[first]
     totals, distance = movestar_trips(sums[keep] / counts[keep], first, types[rated])
     by_key = dict(zip(OUTPUT_KEYS, totals.T))
@@ -375,7 +376,7 @@ def _movestar_stretches(t, v, seg, starts, ends, dt, movestar_types: list[int | 
     for key, name in MOVESTAR_KEYS.items():
         out[f"movestar_{name}"][rated] = by_key[key]
     out["movestar_distance_m"][rated] = distance
-    out["movestar_seconds"][rated] = np.diff(np.r_[first, len(trips)])
+    out["movestar_seconds"][rated] = np.diff(np.concatenate((first, [len(trips)])))
     return out
 
 
