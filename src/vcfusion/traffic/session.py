@@ -166,6 +166,7 @@ class SumoSession:
         # (load_scenario checked the vehicle types, lanes and positions against these files)
         self.placements = plan_placements(scenario, self.road, self.vtypes, rng)
         self._emission_types: list[str] = []
+        self._untracked_types: list[str] = []  # vTypes without a tripinfo device (see _emission_args)
         self.sumo_args = [
             "sumo",
             "--net-file", str(scenario.network),
@@ -207,6 +208,9 @@ class SumoSession:
         used |= {sc.accident.vtype} if sc.accident else set()
         used |= {sc.ego.vtype} if sc.ego else set()
         self._emission_types = sorted(vt for vt in used if rated(vt, self.vtypes[vt].get("vClass", "passenger")))
+        # the tripinfo device only where the emissions device is: the file is read for their totals
+        # alone, and a device on every vehicle costs SUMO every step
+        self._untracked_types = sorted(self.vtypes.keys() - set(self._emission_types))
         return ["--tripinfo-output", str(tripinfo), "--tripinfo-output.write-unfinished", "true"]
 
     # -- set-up -------------------------------------------------------------------------
@@ -222,11 +226,8 @@ class SumoSession:
         sc = self.scenario
         for vt in self._emission_types:  # before any vehicle of the type is built
             libsumo.vehicletype.setParameter(vt, "has.emissions.device", "true")
-        if self._emission_types:
-            # the tripinfo device only where the emissions device is: the tripinfo file is read
-            # for those totals alone, and a device on every vehicle costs SUMO every step
-            for vt in self.vtypes.keys() - set(self._emission_types):
-                libsumo.vehicletype.setParameter(vt, "has.tripinfo.device", "false")
+        for vt in self._untracked_types:
+            libsumo.vehicletype.setParameter(vt, "has.tripinfo.device", "false")
         self._routes: dict[tuple[str, ...], str] = {}
         if sc.accident is not None:
             acc = sc.accident
