@@ -226,7 +226,8 @@ def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajecto
             c = int(sorted_code[a])
             if c in buffers.chunks and buffers.last_time[c] < sorted_time[a] - _GONE_AFTER_S:
                 finish([c])  # back after a long absence: the stretch so far is finished
-            buffers.add(c, {k: v[a:b] for k, v in by_vehicle.items()})
+            # copies: a view would keep the whole batch alive as long as this vehicle is on the road
+            buffers.add(c, {k: v[a:b].copy() for k, v in by_vehicle.items()})
         now = float(time[-1])
         finish([c for c, last in buffers.last_time.items() if last < now - _GONE_AFTER_S])
     finish(list(buffers.chunks))
