@@ -219,3 +219,25 @@ def test_acceleration_lane_and_ramp_are_drawn(tmp_path):
         assert rgb.max() < 140 and rgb[1] - rgb[0] < 12  # grey asphalt: not paint, not grass
         line = pixel(frame, road, s, 3.5 + 0.05 + 0.15, MARK_Z)  # the main line's right edge line (0.30 m)
         assert brightness(frame, line) > brightness(frame, ramp) + 60
+
+
+def test_curved_road_identification_with_the_oracle_detector(tmp_path):
+    """Real renders of curved.yaml (the ego through the left curve), the oracle detector's boxes
+    and the joint matcher: most visible targets identified (IoU >= 0.5 with their own box)."""
+    from vcfusion.detection.detectors import OracleDetector
+    from vcfusion.fusion.stage import RenderedFrameSources
+    from vcfusion.studies.identification import Condition, accuracy_at, run_identification_study
+
+    sc = curved_with_camera()
+    sc = sc.model_copy(update={"simulation": sc.simulation.model_copy(update={"max_time_s": 8.0})})
+    sources = RenderedFrameSources()
+    try:
+        rows = run_identification_study(sc, [0], sources, {"oracle": OracleDetector()}, tmp_path,
+                                        conditions=[Condition(0.0, sc.v2c.gnss_noise_std_m)], progress=False)
+    finally:
+        sources.close()
+    joint = rows[rows["method"] == "joint"]
+    assert len(joint) >= 150  # target-frames
+    acc = accuracy_at(joint, 0.5)["accuracy"].iloc[0]
+    print(f"joint matcher, oracle boxes, curved.yaml seed 0: {acc:.3f} of {len(joint)} target-frames at IoU 0.5")
+    assert acc >= 0.9, acc
