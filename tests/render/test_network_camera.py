@@ -241,3 +241,23 @@ def test_curved_road_identification_with_the_oracle_detector(tmp_path):
     acc = accuracy_at(joint, 0.5)["accuracy"].iloc[0]
     print(f"joint matcher, oracle boxes, curved.yaml seed 0: {acc:.3f} of {len(joint)} target-frames at IoU 0.5")
     assert acc >= 0.9, acc
+
+
+def test_a_vehicle_behind_the_guard_rail_is_partly_hidden():
+    """Off a straight road the road's objects can hide vehicles: the ground truth counts it."""
+    sc = curved_with_camera()
+    road = camera_road(sc)
+    ego = only_ego(road, 800.0, float(road.lane_centre_d(2, 800.0)))
+    s, d = 825.0, float(road.road_bounds(825.0)[1]) + 2.5 + 0.6 + 1.2  # on the verge, behind the left rail
+    x, y = road.to_world(s, d)
+    other = VehicleStates(time=0.0, ids=("ego", "verge"), vtype=("ego", "car"), vclass=("passenger", "passenger"),
+                          x=np.array([ego.x[0], float(x)]), y=np.array([ego.y[0], float(y)]), z=np.zeros(2),
+                          heading=np.array([ego.heading[0], float(road.heading(s, d))]), speed=np.zeros(2),
+                          accel=np.zeros(2), lane=np.zeros(2, np.int16), lateral_offset=np.zeros(2),
+                          length=np.array([4.6, 4.6]), width=np.array([1.8, 1.8]), height=np.array([1.5, 1.5]))
+    with EgoCameraRenderer(road, sc.camera.model_copy(update={"width_px": 640, "height_px": 480})) as renderer:
+        frame = renderer.render(other)
+        gt = ground_truth_boxes(frame, other, renderer)
+        j = gt.vehicle_ids.index("verge")
+        assert 0.2 < gt.visible_fraction[j] < 0.9 and gt.full_pixels[j] > gt.pixels[j]
+        assert gt.full_pixels[j] == renderer.silhouette("verge").sum()

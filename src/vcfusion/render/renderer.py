@@ -120,6 +120,7 @@ class EgoCameraRenderer:
 
     def __init__(self, road: RoadFrame, camera: CameraConfig, ego_id: str = EGO_ID, preset: RenderPreset | None = None):
         self.camera = camera
+        self.road = road
         self.ego_id = ego_id
         self.preset = preset or PRESETS[camera.render_preset]
         self.intrinsics = k = Intrinsics.from_fov(camera.hfov_deg, camera.width_px, camera.height_px)
@@ -276,6 +277,17 @@ class EgoCameraRenderer:
             self.traffic.set_only_vehicle(None)
             self.traffic.set_static_visibility(static)
         return codes == self.traffic.codes[vehicle_id]
+
+    def vehicles_only(self) -> np.ndarray:
+        """Instance map (as ``Frame.instances``) of the last render's vehicles drawn without the
+        road and its surroundings: what each vehicle shows when only vehicles can hide it."""
+        static = self.traffic.static_visibility()
+        self.traffic.set_static_visibility([False] * len(static))
+        try:
+            _, codes, _ = self._draw()
+        finally:
+            self.traffic.set_static_visibility(static)
+        return self._code_lut[codes]
 
     def close(self) -> None:
         if self._offscreen is not None:
