@@ -207,6 +207,16 @@ def test_acceleration_lane_and_ramp_are_drawn(tmp_path):
             seen = surface(frame, road, lane0)
             assert abs(seen[2]) < 0.03 and abs(seen[1] - road.lane_centre_d(0, s)) < 0.3
             assert brightness(frame, pixel(frame, road, s, 0.2, MARK_Z)) > brightness(frame, lane0) + 60
+        # where it ends (946 m) the acceleration lane narrows over 60 m: halfway, its right edge
+        # line is 1.75 m further left, with asphalt left of it and none right of it
+        frame = renderer.render(only_ego(road, 955.0, float(road.lane_centre_d(1, 955.0))))
+        s = 976.0
+        assert road.lane_end_ahead(0, 900.0) == pytest.approx(946.0)
+        line = pixel(frame, road, s, 1.75 + 0.2, MARK_Z)
+        inside = surface(frame, road, pixel(frame, road, s, 2.8))
+        assert abs(inside[2]) < 0.03 and abs(inside[1] - 2.8) < 0.3
+        assert brightness(frame, line) > brightness(frame, pixel(frame, road, s, 2.8)) + 60
+        assert brightness(frame, pixel(frame, road, 1010.0, 0.2, MARK_Z)) < 140  # beyond the taper: no line
     with EgoCameraRenderer(road, cam) as renderer:
         # before the merge: the ramp's lane runs beside the main line, right of a solid line
         s_ego = 630.0

@@ -35,7 +35,7 @@ import numpy as np
 import trimesh
 
 from vcfusion.render.materials import ASPHALT, FOLIAGE, GRASS, MATTE, METAL, PAINT_MARK, coloured
-from vcfusion.traffic.roadframe import RoadFrame, _Net
+from vcfusion.traffic.roadframe import RoadFrame, edge_lane_shapes
 
 # RGB 0-255.
 ASPHALT_RGB = (72, 74, 78)
@@ -187,7 +187,7 @@ class RoadLayout:
         for sp in spans:
             cuts += [*sp.ravel(), *(sp[:, 1] + TAPER_M)]
         if not road.is_straight:
-            cuts += [*road._S, *road._piece_s0]
+            cuts += [*road.breaks_s]
         grid = np.unique(np.clip(np.asarray(cuts, dtype=np.float64), s_lo, s_hi))
         grid = grid[np.concatenate([[True], np.diff(grid) > 1e-6])]
         self.grid = grid
@@ -402,17 +402,25 @@ class RoadLayout:
         return bool((np.hypot(ox - x, oy - y) < hw + clearance).any())
 
 
+def _densified(points: np.ndarray, step_m: float) -> np.ndarray:
+    """A polyline's points with points added so that none are farther apart than step_m."""
+    out = [points[:1]]
+    for a, b in zip(points[:-1], points[1:]):
+        n = max(1, int(np.ceil(np.hypot(*(b - a)) / step_m)))
+        out.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
+    return np.concatenate(out)
+
+
 def nearby_edges(road: RoadFrame, s_lo: float, s_hi: float) -> list[str]:
     """The network's other normal edges with a lane point within OTHER_EDGES_WITHIN_M of the
     route's road between s_lo and s_hi (the camera sees them)."""
     if road.is_straight or road.net_file is None:
         return []  # a network of one straight edge
-    net = _Net(road.net_file)
     out = []
-    for edge in net.normal_edges:
+    for edge, shapes in edge_lane_shapes(road.net_file).items():
         if edge in road.route:
             continue
-        pts = np.concatenate([ln.shape for ln in net.edge_lanes[edge]])
+        pts = np.concatenate([_densified(shape, 25.0) for shape in shapes])
         s, d = road.to_frame(pts[:, 0], pts[:, 1])
         near = (s > s_lo) & (s < s_hi) & (d > -OTHER_EDGES_WITHIN_M) & (d < road.max_width_m + OTHER_EDGES_WITHIN_M)
         if near.any():
