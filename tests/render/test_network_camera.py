@@ -271,3 +271,34 @@ def test_a_vehicle_behind_the_guard_rail_is_partly_hidden():
         j = gt.vehicle_ids.index("verge")
         assert 0.2 < gt.visible_fraction[j] < 0.9 and gt.full_pixels[j] > gt.pixels[j]
         assert gt.full_pixels[j] == renderer.silhouette("verge").sum()
+
+
+def test_an_exit_lane_leaves_without_a_taper_an_ending_lane_tapers(tmp_path):
+    """The road builder (no OpenGL): a lane that leaves the route onto an exit continues as the
+    exit's road; the acceleration lane, which ends, narrows over TAPER_M."""
+    from vcfusion.render.meshes import TAPER_M, road_layouts
+    from vcfusion.traffic.network import build_network, read_road
+
+    (tmp_path / "t.nod.xml").write_text(
+        '<nodes><node id="a" x="0" y="0" type="priority"/><node id="b" x="500" y="0" type="priority"/>'
+        '<node id="c" x="1000" y="0" type="priority"/><node id="x" x="900" y="-150" type="priority"/></nodes>')
+    (tmp_path / "t.edg.xml").write_text(
+        '<edges><edge id="e1" from="a" to="b" numLanes="4" speed="25" width="3.5"/>'
+        '<edge id="e2" from="b" to="c" numLanes="3" speed="25" width="3.5"/>'
+        '<edge id="exit" from="b" to="x" numLanes="1" speed="20" width="3.5"/></edges>')
+    (tmp_path / "t.con.xml").write_text(
+        "<connections>" + "".join(f'<connection from="e1" to="e2" fromLane="{i}" toLane="{i - 1}"/>' for i in (1, 2, 3))
+        + '<connection from="e1" to="exit" fromLane="0" toLane="0"/></connections>')
+    road = read_road(build_network(tmp_path, "t"), ["e1", "e2"])
+    assert np.isfinite(road.lane_end_ahead(0, 100.0))  # track 0 leaves the route at b
+    layouts = road_layouts(road)
+    assert [lay.name for lay in layouts] == ["", "exit/"]
+    assert not (layouts[0].cover == 2).any()  # no taper: the lane goes on as the exit
+    assert layouts[0].near[:, 0].any() and layouts[1].near[:, 1].any()  # no rails in the gore
+
+    onramp = road_layouts(read_road(SCENARIOS.parent / "sumo_net" / "onramp.net.xml", ["main_in", "accel", "main_out"]))
+    route = onramp[0]
+    taper = route.cover[0] == 2
+    assert taper.any()
+    s_taper = route.grid[np.append(taper, False)]
+    assert s_taper.min() == pytest.approx(946.0) and s_taper.max() < 946.0 + TAPER_M

@@ -201,22 +201,44 @@ class RoadLayout:
             right[t], left[t] = np.repeat(r[:, None], 2, axis=1), np.repeat(l[:, None], 2, axis=1)
             for a, b in spans[t]:
                 cover[t, (mid > a) & (mid < b)] = 1
+        self.cover, self.right, self.left = cover, right, left
+        # (track, its taper's segments, end s, on the road's right side)
+        self._tapers: list[tuple[int, np.ndarray, float, bool]] = []
         for t in range(n_t):
             for a, b in spans[t]:
-                self._taper(t, b, cover, right, left, mid)
-        self.cover, self.right, self.left = cover, right, left
-        big = 1e9
-        lane_r = np.where(cover[..., None] > 0, right, big)
-        lane_l = np.where(cover[..., None] > 0, left, -big)
-        outer_r, outer_l = lane_r.min(axis=0), lane_l.max(axis=0)
-        paved = (cover > 0).any(axis=0)
-        self.outer_right = np.where(paved[:, None], outer_r, np.nan)
-        self.outer_left = np.where(paved[:, None], outer_l, np.nan)
+                self._taper(t, b, mid)
+        self._outer_edges()
         self.near = np.zeros((n_seg, 2), dtype=bool)
-        self.lane_samples = self._lane_samples()
         self.others: tuple = ()  # lane samples (x, y, half widths) of the scene's other roads
 
-    def _taper(self, t: int, end: float, cover, right, left, mid) -> None:
+    def _outer_edges(self) -> None:
+        big = 1e9
+        on = self.cover[..., None] > 0
+        paved = on[..., 0].any(axis=0)
+        self.outer_right = np.where(paved[:, None], np.where(on, self.right, big).min(axis=0), np.nan)
+        self.outer_left = np.where(paved[:, None], np.where(on, self.left, -big).max(axis=0), np.nan)
+        self.lane_samples = self._lane_samples()
+
+    def drop_tapers_continuing_on(self, x: np.ndarray, y: np.ndarray) -> None:
+        """No taper for a lane that does not end but leaves the route onto another road (an exit
+        lane): that road's lanes (centre points x, y) go on from where it ends, through the
+        junction (within 20 m ahead, beside or outside the lane)."""
+        if not len(x):
+            return
+        s, d = self.road.to_frame(x, y)
+        kept = []
+        for t, segs, end, on_right in self._tapers:
+            right, left = (float(v) for v in self.road.lane_bounds(t, end - 1e-6))
+            beside = (d > right - 3.5) & (d < left) if on_right else (d > right) & (d < left + 3.5)
+            if ((s > end - 1.0) & (s < end + 20.0) & beside).any():
+                self.cover[t, segs] = 0
+            else:
+                kept.append((t, segs, end, on_right))
+        if len(kept) != len(self._tapers):
+            self._tapers = kept
+            self._outer_edges()
+
+    def _taper(self, t: int, end: float, mid: np.ndarray) -> None:
         """Track t ends at `end` (inside the road): it narrows to nothing over TAPER_M beyond it,
         on the side where it is the road's outermost lane."""
         if end >= self.s_hi:
@@ -227,19 +249,18 @@ class RoadLayout:
         j = before[-1]
         present = np.flatnonzero(self.road.lane_exists(np.arange(self.road.num_tracks), mid[j]))
         if t == present.min():
-            moving, fixed = right, left
+            moving, fixed = self.right, self.left
         elif t == present.max():
-            moving, fixed = left, right
+            moving, fixed = self.left, self.right
         else:
             return  # a lane ending between others: no taper
         r0, fix = moving[t, j, 1], fixed[t, j, 1]
-        for k in np.flatnonzero((mid > end) & (mid < end + TAPER_M)):
-            if cover[t, k]:
-                continue
-            a, b = self.grid[k], self.grid[k + 1]
-            cover[t, k] = 2
+        segs = [k for k in np.flatnonzero((mid > end) & (mid < end + TAPER_M)) if not self.cover[t, k]]
+        for k in segs:
+            self.cover[t, k] = 2
             fixed[t, k] = fix
-            moving[t, k] = r0 + (fix - r0) * (np.array([a, b]) - end) / TAPER_M
+            moving[t, k] = r0 + (fix - r0) * (self.grid[k:k + 2] - end) / TAPER_M
+        self._tapers.append((t, np.array(segs, dtype=np.int64), end, moving is self.right))
 
     def _lane_samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """World points along every lane's centre line, LANE_SAMPLE_M apart, and half widths."""
@@ -436,10 +457,16 @@ def road_layouts(road: RoadFrame) -> list[RoadLayout]:
     for edge in nearby_edges(road, s_lo, s_hi):
         frame = RoadFrame.from_net(road.net_file, [edge])
         layouts.append(RoadLayout(frame, 0.0, frame.length_m, name=f"{edge}/"))
+    def others(k):
+        samples = [o.lane_samples for m, o in enumerate(layouts) if m != k]
+        return tuple(np.concatenate(parts) for parts in zip(*samples)) if samples else ()
+
     for k, layout in enumerate(layouts):
-        others = [o.lane_samples for m, o in enumerate(layouts) if m != k]
-        if others:
-            layout.others = tuple(np.concatenate(parts) for parts in zip(*others))
+        if others(k):
+            layout.drop_tapers_continuing_on(*others(k)[:2])
+    for k, layout in enumerate(layouts):
+        layout.others = others(k)
+        if layout.others:
             layout.mark_near(*layout.others)
     return layouts
 
