@@ -206,9 +206,6 @@ CASES = [
          ("s.yaml", "ego.route:", "SUMO lane main_out_0", "lane 1 of the scenario's route")),
     Case("accident edge off the route", lambda t: run(t, ONRAMP + "accident: {edge: ramp, pos_m: 10, lanes: [0]}\n"),
          ("s.yaml", "accident.edge:", "expected an edge of the route", "'ramp'")),
-    Case("vision on a curved network", lambda t: run(t, BASE.replace("highway.net.xml", "curved.net.xml")
-                                                      + "vision: {enabled: true}\n"),
-         ("s.yaml", "vision.enabled:", "single straight edge only", "curved.net.xml")),
     Case("network lane without shape", lambda t: network(
         t, '<net><edge id="a"><lane id="a_0" index="0" speed="25" width="3.5"/></edge></net>'),
          ("bad.net.xml", "lane 'a_0': shape", "expected 'x,y x,y ...'")),

@@ -575,11 +575,6 @@ def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
         vtypes = read_vehicle_types(scenario.vehicle_types)
     except NetworkFileError as exc:
         raise ScenarioError(f"{origins.label(('vehicle_types',))}: vehicle_types: {exc}") from None
-    if scenario.vision.enabled and not road.is_straight:
-        raise ScenarioError(f"{origins.label(('vision', 'enabled'))}: vision.enabled: the ego camera draws a "
-                            f"single straight edge only, and {scenario.network.name} (route "
-                            f"{list(road.route)}) is not one; expected vision.enabled: false")
-
     # (loc, vtype, route frame, lanes, [(field, positions along the route)]): a group's lanes must
     # exist somewhere in its range (draws where one is absent are drawn again), the others' where they are
     uses: list[tuple[tuple, str, object, list[int], str, list[float], bool]] = []

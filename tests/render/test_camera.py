@@ -29,6 +29,34 @@ def test_projection_matches_cv2_project_points():
         assert np.abs(proj.uv[front] - ref.reshape(-1, 2)[front]).max() < 1e-6
 
 
+def test_projection_matches_cv2_on_curved_road_poses():
+    """Ego poses along the curves of sumo_net/curved (heading from the road frame), points on
+    and above the road ahead: the same pixels as OpenCV's projectPoints."""
+    from scenario_files import REPO
+    from vcfusion.traffic.network import read_road
+
+    road = read_road(REPO / "sumo_net" / "curved.net.xml")
+    rng = np.random.default_rng(1)
+    cam = CameraConfig()
+    K = Intrinsics.from_fov(cam.hfov_deg, cam.width_px, cam.height_px).K
+    headings = []
+    for s in rng.uniform(450.0, 1800.0, 20):
+        d = float(road.lane_centre_d(rng.integers(0, 3), s))
+        (x, y), yaw = road.to_world(s, d), float(road.heading(s, d))
+        headings.append(yaw)
+        T = world_to_camera(float(x), float(y), 0.0, yaw, cam)
+        ahead = s + rng.uniform(3.0, 150.0, 50)
+        px, py = road.to_world(ahead, rng.uniform(-5.0, 15.0, 50))
+        pts = np.column_stack([px, py, rng.uniform(0.0, 4.0, 50)])
+        proj = project_points(pts, K, T, cam.width_px, cam.height_px)
+        rvec, _ = cv2.Rodrigues(T[:3, :3])
+        ref, _ = cv2.projectPoints(pts.reshape(-1, 1, 3), rvec, T[:3, 3], K, None)
+        front = ~proj.behind
+        assert front.sum() > 40
+        assert np.abs(proj.uv[front] - ref.reshape(-1, 2)[front]).max() < 1e-6
+    assert np.ptp(headings) > math.radians(40)  # poses through both curves
+
+
 def test_paper_eq_2_3_gives_the_same_pixel():
     K = Intrinsics.from_fov(70.0, 640, 480).K
     p_c = np.array([1.3, -0.4, 17.0])

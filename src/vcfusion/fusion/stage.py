@@ -67,17 +67,17 @@ class RenderedFrameSources:
         self._key = None
 
     def __call__(self, scenario: Scenario, seed: int):
-        key = (str(scenario.network), scenario.camera.model_dump_json())
+        key = (str(scenario.network), scenario.route, scenario.ego and scenario.ego.route,
+               scenario.camera.model_dump_json())
         if self._renderer is not None and key != self._key:
             self.close()
         self._key = key
         if self._renderer is None:
             try:
-                from vcfusion.traffic.network import read_road
                 from vcfusion.render.renderer import EgoCameraRenderer
             except ImportError as exc:
                 raise ScenarioError(f"the ego camera renderer cannot be loaded: {exc}") from None
-            self._renderer = EgoCameraRenderer(read_road(scenario.network), scenario.camera, EGO_ID)
+            self._renderer = EgoCameraRenderer.for_scenario(scenario)
         renderer = self._renderer
 
         def source(tick):

@@ -40,7 +40,6 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
     from vcfusion.hitl.inputs import ReplayInput, open_input
     from vcfusion.hitl.sdl import init_sdl
     from vcfusion.hitl.vehicle import VehicleModel
-    from vcfusion.records import EGO_ID
     from vcfusion.run import build_cosimulation, manifest_for
     from vcfusion.runio import write_run_folder
     from vcfusion.traffic.network import read_road, read_vehicle_types
@@ -58,7 +57,7 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
     device = open_input(input_spec, axis_map_file)
 
     cosim = build_cosimulation(scenario, seed, guidance_enabled=guidance_on)
-    road = read_road(scenario.network)
+    road = read_road(scenario.network, scenario.route)
     ego = scenario.ego
     width = float(read_vehicle_types(scenario.vehicle_types)[ego.vtype].get("width", 1.8))
     vehicle = VehicleModel(road, ego.speed_mps, float(road.lane_centre_d(ego.lane)), width)
@@ -73,7 +72,7 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
         else:
             from vcfusion.render.renderer import EgoCameraRenderer
 
-            renderer, owns_renderer = EgoCameraRenderer(road, scenario.camera, EGO_ID), True
+            renderer, owns_renderer = EgoCameraRenderer.for_scenario(scenario), True
         win = shared_window or Window(pygame, (scenario.camera.width_px, scenario.camera.height_px),
                                       f"vcfusion drive: {scenario.name} seed {seed}")
         if record_video:

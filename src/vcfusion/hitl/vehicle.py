@@ -89,8 +89,8 @@ class VehicleModel:
 
         steer = c.steer
         if c.lane_change:
-            # s = 0: vcfusion drive needs the camera, which runs on straight single-edge roads only,
-            # where the lane does not depend on s
+            # s = 0: the model does not know s; the lanes at the route's start are right wherever
+            # every lane runs the whole route (straight and curved roads), not beside a merge
             current = int(self.road.lane_of(0.0, st.d)) if 0 <= st.d < self.road.width_m else 0
             base = st.target_lane if st.target_lane is not None else current
             st.target_lane = min(max(base + int(c.lane_change), 0), self.road.num_lanes - 1)

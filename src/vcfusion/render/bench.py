@@ -30,7 +30,6 @@ def main(argv: list[str] | None = None) -> int:
     from vcfusion.cosim import CoSimulation
     from vcfusion.driver.idm import IdmController
     from vcfusion.scenario import load_scenario
-    from vcfusion.traffic.network import read_road
     from vcfusion.render.renderer import EgoCameraRenderer
 
     scenario = load_scenario(args.scenario)
@@ -47,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     states = [s for s in states if "ego" in s.ids]
     picks = [states[i] for i in np.linspace(0, len(states) - 1, args.frames).astype(int)]
     camera = scenario.camera if args.preset is None else scenario.camera.model_copy(update={"render_preset": args.preset})
-    renderer = EgoCameraRenderer(read_road(scenario.network), camera)
+    renderer = EgoCameraRenderer.for_scenario(scenario, camera)
     renderer.render(picks[0])  # warm-up: shader compilation, buffer uploads
     times, cpu, seen, parts = [], [], [], []
     for truth in picks:

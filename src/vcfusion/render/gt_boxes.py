@@ -6,8 +6,11 @@ For every vehicle with at least one visible pixel:
   pixel coordinate (u, v) is inside iff x1 <= u < x2 and y1 <= v < y2;
 - ``visible_fraction``: visible pixels / pixels of the vehicle drawn alone (same pose, nothing
   in front of it), both counted inside the image; 1 = unoccluded. The vehicle is only redrawn
-  alone when another vehicle nearer the camera overlaps its projected 3D box; otherwise no other
-  object can hide it on this road and the fraction is 1 without a redraw;
+  alone when another vehicle nearer the camera overlaps its projected 3D box. On a straight road
+  nothing else can hide a vehicle on it (the camera looks along the road, rails and trees are
+  beside it): the fraction is then 1 without a redraw. On other roads a rail or a tree on the
+  inside of a curve can: there one more pass draws the vehicles without the road, and a vehicle
+  that shows more pixels in it than in the frame is partly hidden by the road's objects;
 - ``truncation``: fraction of the projected 3D bounding box (length x width x height, clipped
   at the near plane) that lies outside the image (KITTI's notion; 0 = fully inside);
 - ``median_depth``: median camera Z of its visible pixels (what a depth camera measures).
@@ -112,6 +115,12 @@ def ground_truth_boxes(frame, truth: VehicleStates, renderer=None, near: float =
         near_depth.append(z.min())
         far_depth.append(z.max())
     rects = [None if h is None else (h.min(axis=0), h.max(axis=0)) for h in hulls]
+    # pixels per vehicle where only vehicles can hide it (roads other than one straight edge)
+    alone_counts = None
+    road = getattr(renderer, "road", None)
+    if road is not None and not road.is_straight:
+        vo = renderer.vehicles_only().ravel()
+        alone_counts = np.bincount(vo[vo >= 0], minlength=len(frame.vehicle_ids))
 
     n = len(present)
     box = np.zeros((n, 4))
@@ -130,6 +139,9 @@ def ground_truth_boxes(frame, truth: VehicleStates, renderer=None, near: float =
                 visible_fraction[j] = min(1.0, counts[k] / full[j]) if full[j] else 0.0
             else:
                 full[j] = -1
+        elif alone_counts is not None and alone_counts[k] > counts[k]:  # only the road's objects hide it
+            full[j] = alone_counts[k]
+            visible_fraction[j] = counts[k] / full[j]
         else:
             full[j] = counts[k]
             visible_fraction[j] = 1.0

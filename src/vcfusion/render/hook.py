@@ -13,7 +13,6 @@ from typing import Callable
 import numpy as np
 
 from vcfusion.scenario import Scenario
-from vcfusion.traffic.network import read_road
 from vcfusion.records import EGO_ID
 
 
@@ -26,7 +25,7 @@ class CameraHook:
                  on_frame: Callable | None = None, renderer=None, when: Callable | None = None):
         from vcfusion.render.renderer import EgoCameraRenderer  # imports OpenGL: only when a camera is used
 
-        self.renderer = renderer or EgoCameraRenderer(read_road(scenario.network), scenario.camera, EGO_ID)
+        self.renderer = renderer or EgoCameraRenderer.for_scenario(scenario)
         self.every_ticks = every_ticks
         self.on_frame = on_frame
         self.when = when  # tick -> bool: render only at ticks where it holds (None: every k-th tick)

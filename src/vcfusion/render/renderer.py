@@ -40,7 +40,8 @@ from pyrender.shader_program import ShaderProgram, ShaderProgramCache  # noqa: E
 
 from vcfusion.records import VehicleStates  # noqa: E402
 from vcfusion.scenario import CameraConfig  # noqa: E402
-from vcfusion.traffic.network import Road  # noqa: E402
+from vcfusion.traffic.network import read_road  # noqa: E402
+from vcfusion.traffic.roadframe import RoadFrame  # noqa: E402
 from vcfusion.records import EGO_ID  # noqa: E402
 from vcfusion.render.camera import Intrinsics, opengl_camera_pose, world_to_camera  # noqa: E402
 from vcfusion.render.presets import PRESETS, RenderPreset, finish_rgb  # noqa: E402
@@ -103,6 +104,13 @@ class Frame:
         return int(self.rgb.shape[0])
 
 
+def camera_road(scenario) -> RoadFrame:
+    """The road frame whose road the ego camera draws: the ego's route's (or the scenario's)."""
+    ego = scenario.ego
+    route = ego.route if ego is not None and ego.route is not None else scenario.route
+    return read_road(scenario.network, route)
+
+
 def _seg_colour(code: int) -> np.ndarray:
     return np.array([code, 0.0, 0.0])
 
@@ -110,8 +118,9 @@ def _seg_colour(code: int) -> np.ndarray:
 class EgoCameraRenderer:
     """Renders the ego camera of one scenario; the scene is built once and reused for all frames."""
 
-    def __init__(self, road: Road, camera: CameraConfig, ego_id: str = EGO_ID, preset: RenderPreset | None = None):
+    def __init__(self, road: RoadFrame, camera: CameraConfig, ego_id: str = EGO_ID, preset: RenderPreset | None = None):
         self.camera = camera
+        self.road = road
         self.ego_id = ego_id
         self.preset = preset or PRESETS[camera.render_preset]
         self.intrinsics = k = Intrinsics.from_fov(camera.hfov_deg, camera.width_px, camera.height_px)
@@ -134,6 +143,13 @@ class EgoCameraRenderer:
         self._tan_y = (k.height / 2 + 1) / k.fy
         # code -> index into the frame's vehicle_ids; -1 for code 0 (no vehicle).
         self._code_lut = np.full(256, -1, dtype=np.int32)
+
+    @classmethod
+    def for_scenario(cls, scenario, camera: CameraConfig | None = None, ego_id: str = EGO_ID,
+                     preset: RenderPreset | None = None) -> "EgoCameraRenderer":
+        """The ego camera of a scenario: the road of the ego's route (the scenario's when the ego
+        names none) and the scenario's camera unless another is given."""
+        return cls(camera_road(scenario), camera or scenario.camera, ego_id, preset)
 
     # -- camera ------------------------------------------------------------------------
     def extrinsics(self, truth: VehicleStates) -> np.ndarray:
@@ -261,6 +277,17 @@ class EgoCameraRenderer:
             self.traffic.set_only_vehicle(None)
             self.traffic.set_static_visibility(static)
         return codes == self.traffic.codes[vehicle_id]
+
+    def vehicles_only(self) -> np.ndarray:
+        """Instance map (as ``Frame.instances``) of the last render's vehicles drawn without the
+        road and its surroundings: what each vehicle shows when only vehicles can hide it."""
+        static = self.traffic.static_visibility()
+        self.traffic.set_static_visibility([False] * len(static))
+        try:
+            _, codes, _ = self._draw()
+        finally:
+            self.traffic.set_static_visibility(static)
+        return self._code_lut[codes]
 
     def close(self) -> None:
         if self._offscreen is not None:

@@ -16,16 +16,15 @@ import pyrender  # noqa: E402
 import trimesh  # noqa: E402
 
 from vcfusion.records import VehicleStates  # noqa: E402
-from vcfusion.traffic.network import Road  # noqa: E402
+from vcfusion.traffic.roadframe import RoadFrame  # noqa: E402
 from vcfusion.records import EGO_ID  # noqa: E402
-from vcfusion.render.meshes import SKY, ground_mesh, road_extent, road_mesh  # noqa: E402
+from vcfusion.render.meshes import SKY, ground_mesh, road_layouts, road_pieces  # noqa: E402
 from vcfusion.render.vehicles import vehicle_mesh, vehicle_style  # noqa: E402
 
 # The sun: from the south-west, 50 degrees above the horizon.
 SUN_AZIMUTH_DEG, SUN_ELEVATION_DEG = 225.0, 50.0
 
 
-ROAD_PIECE_M = 50.0
 MAX_INSTANCE_CODES = 255  # instance codes travel in the 8-bit alpha channel; 0 = no vehicle
 
 
@@ -85,18 +84,16 @@ class TrafficScene:
     of the camera within the far plane.
     """
 
-    def __init__(self, road: Road, skip_ids: tuple[str, ...] = (EGO_ID,)):
+    def __init__(self, road: RoadFrame, skip_ids: tuple[str, ...] = (EGO_ID,)):
         # bg alpha 0: the sky's instance code is 0.
         self.scene = pyrender.Scene(bg_color=[*SKY, 0.0], ambient_light=[0.42, 0.44, 0.48])
         # The road is cut into pieces so that those out of view are not drawn (under llvmpipe,
         # vertex work for the whole 2 km of posts and dashes would dominate a frame).
-        self.static_nodes = [self.scene.add(pyrender.Mesh([flat_primitive(ground_mesh(road))]), name="ground")]
+        layouts = road_layouts(road)
+        self.static_nodes = [self.scene.add(pyrender.Mesh([flat_primitive(ground_mesh(road, layouts))]), name="ground")]
         self.piece_spheres = []  # (centre x, y, z, radius) per road piece
-        s_lo, s_hi = road_extent(road)
-        for s0 in np.arange(s_lo, s_hi, ROAD_PIECE_M):
-            s1 = min(s0 + ROAD_PIECE_M, s_hi)
-            piece = road_mesh(road, s0, s1)
-            self.static_nodes.append(self.scene.add(pyrender.Mesh([flat_primitive(piece)]), name=f"road@{s0:.0f}"))
+        for name, piece in road_pieces(layouts):
+            self.static_nodes.append(self.scene.add(pyrender.Mesh([flat_primitive(piece)]), name=name))
             lo, hi = piece.bounds
             self.piece_spheres.append([*((lo + hi) / 2), 0.5 * np.linalg.norm(hi - lo)])
         self.piece_spheres = np.array(self.piece_spheres)

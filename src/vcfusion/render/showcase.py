@@ -2,7 +2,9 @@
 
     python -m vcfusion.render.showcase [--out renders/showcase]
 
-Renders a few fixed moments of scenarios/accident.yaml and scenarios/overlap.yaml (seed 0).
+Renders a few fixed moments of scenarios/accident.yaml, scenarios/overlap.yaml and the on-ramp
+merge seen from the main line, scenarios/onramp_camera.yaml (seed 0); each scenario is simulated
+up to its last shot, and the camera renders only at the shots.
 """
 
 from __future__ import annotations
@@ -14,7 +16,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-SHOTS = (("scenarios/accident.yaml", 0, (3.0, 9.0)), ("scenarios/overlap.yaml", 0, (4.0,)))
+SHOTS = (("scenarios/accident.yaml", 0, (3.0, 9.0)), ("scenarios/overlap.yaml", 0, (4.0,)),
+         ("scenarios/onramp_camera.yaml", 0, (2.0,)))
 PANEL_W = 480
 
 
@@ -52,6 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     for path, seed, times in SHOTS:
         scenario = load_scenario(path)
+        scenario = scenario.model_copy(update={"simulation": scenario.simulation.model_copy(
+            update={"max_time_s": min(scenario.simulation.max_time_s, max(times) + 0.5)})})
 
         def keep(frame, tick, scenario=scenario, times=times):
             if any(abs(frame.time - t) < 1e-6 for t in times):
@@ -60,7 +65,8 @@ def main(argv: list[str] | None = None) -> int:
                 cv2.imwrite(str(name), cv2.cvtColor(panel(frame, boxes), cv2.COLOR_RGB2BGR))
                 print(name)
 
-        hook = CameraHook(scenario, on_frame=keep)
+        hook = CameraHook(scenario, on_frame=keep,
+                          when=lambda tick, times=times: any(abs(tick.time - t) < 1e-6 for t in times))
         CoSimulation(scenario, seed, controller=IdmController.for_scenario(scenario), hooks=[hook]).run()
         hook.close()
     return 0

@@ -132,16 +132,15 @@ def _worker_resources(scenario):
     """(renderer, detector) for a camera arm of `scenario`, built once per worker process."""
     from vcfusion.fusion.stage import build_detector
 
-    key = ("renderer", str(scenario.network), scenario.camera.model_dump_json())
+    key = ("renderer", str(scenario.network), scenario.route, scenario.ego and scenario.ego.route,
+           scenario.camera.model_dump_json())
     renderer = _WORKER.get(key)
     if renderer is None:
         from vcfusion.render.renderer import EgoCameraRenderer
-        from vcfusion.records import EGO_ID
-        from vcfusion.traffic.network import read_road
 
         for old in [k for k in _WORKER if k[0] == "renderer"]:  # one GL context per worker
             _WORKER.pop(old).close()
-        renderer = _WORKER[key] = EgoCameraRenderer(read_road(scenario.network), scenario.camera, EGO_ID)
+        renderer = _WORKER[key] = EgoCameraRenderer.for_scenario(scenario)
     f = scenario.fusion
     if f.detector == "oracle":
         return renderer, None  # cheap and stateful per frame: a fresh one per run

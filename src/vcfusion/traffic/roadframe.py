@@ -506,6 +506,12 @@ class RoadFrame:
         return self._present[self._piece_of(s)]
 
     @cached_property
+    def breaks_s(self) -> np.ndarray:
+        """s of the reference line's vertices and of the pieces' starts: between two consecutive
+        ones every line of constant d is straight and the lanes present do not change."""
+        return np.unique(np.concatenate([self._S, self._piece_s0]))
+
+    @cached_property
     def all_lanes_everywhere(self) -> bool:
         """Every track exists at every s (no lane begins or ends along the route)."""
         return bool(self._present.all())
@@ -579,6 +585,12 @@ class RoadFrame:
         if edge not in self.edge_start_s:
             raise KeyError(f"lane {lane_id!r} is not on the route {list(self.route)}")
         return self.edge_start_s[edge] + np.asarray(pos_m, dtype=np.float64)
+
+
+def edge_lane_shapes(net_file: str | Path) -> dict[str, list[np.ndarray]]:
+    """Every normal edge's lane shapes ((k, 2) polylines, lane 0 first)."""
+    net = _Net(Path(net_file))
+    return {e: [ln.shape for ln in net.edge_lanes[e]] for e in net.normal_edges}
 
 
 def default_route(net_file: str | Path) -> tuple[str, ...]:

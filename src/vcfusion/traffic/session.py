@@ -280,7 +280,7 @@ class SumoSession:
         keepRoute=2: the ego stays on its edge, in the lane under its front bumper, so SUMO's
         followers and lane changers see it there and its collision check includes it."""
         x, y = self.road.to_world(s_front, d)
-        angle = 90.0 - np.degrees(self.road.heading_rad + yaw)
+        angle = 90.0 - np.degrees(float(self.road.heading(s_front, d)) + yaw)
         libsumo.vehicle.moveToXY(EGO_ID, "", -1, float(x), float(y), angle=float(angle), keepRoute=2)
 
     def vehicle_count(self) -> int:
