@@ -135,7 +135,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.out:
         check_folder_path(Path(args.out))
     report_path = evaluate(Path(args.model), Path(args.dataset), Path(args.out) if args.out else None,
-                           split=args.split, horizon_s=args.horizon)
+                           split=args.split, horizon_s=args.horizon, baselines=args.baselines)
     print(Path(report_path).read_text())
     print(f"report: {report_path}")
     return 0
@@ -212,6 +212,9 @@ def add_parsers(sub) -> None:
                    help="seeds to score (all: every seed, i.e. every vehicle of an imported dataset)")
     p.add_argument("--horizon", type=float, default=10.0,
                    help="a lane change counts as predicted by a positive decision at most this many s before its end")
+    p.add_argument("--no-baselines", dest="baselines", action="store_false",
+                   help="score the model alone (no logistic regression / gap-speed rule fitted on the dataset): "
+                        "for comparing models across many datasets")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("bench-predict", help="time the cloud lane-change predictor for N twins in one tick")

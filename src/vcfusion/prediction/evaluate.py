@@ -114,7 +114,7 @@ def _fmt(v: float, pct: bool = False) -> str:
 
 
 def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: str = "test",
-             horizon_s: float = 10.0, seed: int = 0) -> Path:
+             horizon_s: float = 10.0, seed: int = 0, baselines: bool = True) -> Path:
     info = load_dataset(dataset)
     names = list(info.feature_names)  # what the cloud can observe: the baselines' inputs
     privileged = list(info.meta.get("privileged_names", []))  # SUMO's state, in a --privileged dataset
@@ -135,7 +135,7 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
     # imported recording too short for those splits is scored with the model alone).
     predictors: dict = {model_label: (model, model_names)}
     rule = None
-    fitted = bool(info.splits.get("train")) and bool(info.splits.get("validation"))
+    fitted = baselines and bool(info.splits.get("train")) and bool(info.splits.get("validation"))
     if fitted:
         rng = np.random.default_rng(seed)
         bg = float(model.info.get("config", {}).get("background_negatives", 0.0))
@@ -158,6 +158,7 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
                  "scored_on_their_training_seeds": fitted and split in ("train", "all"),
                  "note": ("logistic regression and gap/speed rule fitted on the train seeds, tuned on the "
                           "validation seeds" if fitted else
+                          "no baselines: --no-baselines" if not baselines else
                           "no baselines: the dataset has no train and validation seeds (fewer than 3 seeds)")}
     stream, events = stream_with_events(info, split, columns=["seed", "vehicle_id", "time", "window_label",
                                                                "stream_label", *dict.fromkeys([*names, *privileged,

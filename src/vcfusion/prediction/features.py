@@ -236,6 +236,8 @@ def lane_end_ahead_m(road, s: np.ndarray, lane: np.ndarray) -> np.ndarray:
     datasets' samples carry it as an extra column and the sequence model takes it as an input."""
     s = np.asarray(s, dtype=float)
     lane = np.asarray(lane, dtype=np.int64)
+    if road.all_lanes_everywhere:  # every lane runs to the route's end (the per-tick path on the straight road)
+        return np.where(lane >= 0, BLOCK_RANGE_M, 0.0)
     end = road.lane_end_ahead(np.maximum(lane, 0), s)
     out = np.minimum(np.nan_to_num(end - s, nan=0.0, posinf=BLOCK_RANGE_M), BLOCK_RANGE_M)
     return np.where(lane >= 0, out, 0.0)

@@ -32,6 +32,7 @@ from vcfusion.threads import one_blas_thread
 
 MODEL_FORMAT = "vcfusion-lane-change-mlp/1"
 DEFAULT_MODEL_NAME = "lane_change_mlp.npz"
+SHIPPED_MODEL_NAMES = ("lane_change_mlp.npz", "lane_change_gru.npz")  # in vcfusion/assets
 
 
 SMALL_BATCH_ROWS = 4096  # up to this many rows (a tick's twins) the MLP runs on one BLAS thread
