@@ -93,8 +93,11 @@ def test_cloud_predictor_matches_dataset_path(tmp_path):
     assert {"lc_prob", "lc_decision"} <= set(twins.columns)
     feats = features_from_twins_table(twins, vehicles, read_road(scenario.network), scenario.v2c.period_s)
     merged = twins[["time", "vehicle_id", "lc_prob", "lc_decision"]].merge(feats, on=["time", "vehicle_id"], validate="one_to_one")
-    prob = load_model().predict_proba(merged[list(FEATURE_NAMES)].to_numpy())
-    np.testing.assert_allclose(prob, merged["lc_prob"].to_numpy(), atol=1e-6)
+    model = load_model()  # the shipped default, MLP or GRU: run offline along each twin's track
+    stream = merged.assign(seed=0).sort_values(["vehicle_id", "time"], kind="stable")
+    prob = pd.Series(model.stream_proba(stream.reset_index(drop=True), list(model.feature_names)),
+                     index=stream.index).reindex(merged.index).to_numpy()
+    np.testing.assert_allclose(prob, merged["lc_prob"].to_numpy(), atol=1e-5)
     assert merged["lc_prob"].std() > 0.01
     for _, g in merged.sort_values("time").groupby("vehicle_id"):
         expected = smooth((g["lc_prob"].to_numpy() > 0.5).astype(int), "aggressive", tau_a=5)
@@ -117,3 +120,51 @@ def test_accident_run_reports_cloud_flags(tmp_path):
         assert {"final_run_before_end_s", "first_before_end_s", "final_run_before_mid_s", "ahead_of_ego"} <= set(f)
         if f["first_before_end_s"] is not None:
             assert f["first_before_end_s"] >= f["final_run_before_end_s"] >= 0
+
+
+def _short_onramp(tmp_path: Path, seconds: float) -> Path:
+    raw = yaml.safe_load((REPO / "scenarios" / "onramp.yaml").read_text())
+    raw["network"] = str(REPO / "sumo_net" / "onramp.net.xml")
+    raw["vehicle_types"] = str(REPO / "sumo_net" / "vtypes.add.xml")
+    raw["simulation"]["max_time_s"] = seconds
+    path = tmp_path / "onramp_short.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+@pytest.mark.slow
+def test_gru_on_two_families_end_to_end(tmp_path):
+    """Two tiny family datasets -> GRU trained on both (1 epoch) -> evaluation.json -> the cloud
+    predictor runs the GRU in a real SUMO run, and its per-tick probabilities equal the model run
+    offline over the logged twins table (per-twin states carried tick by tick == whole tracks)."""
+    from vcfusion.prediction.features import SEQUENCE_EXTRA_NAMES
+
+    data = {}
+    for name, scenario in (("dense", _short_dense(tmp_path, 20.0)), ("onramp", _short_onramp(tmp_path, 20.0))):
+        data[name] = tmp_path / name
+        assert main(["dataset", str(scenario), "--seeds", "0-2", "--out", str(data[name]), "--workers", "1"]) == 0
+    onramp_samples = pd.read_parquet(data["onramp"] / "runs" / "seed_0000" / "samples.parquet")
+    assert onramp_samples["lane_end_ahead_m"].min() < 250.0  # the acceleration lane ends ahead of its vehicles
+    model_file = tmp_path / "gru.npz"
+    assert main(["train", str(data["dense"]), str(data["onramp"]), "--kind", "gru", "--epochs", "1",
+                 "--hidden", "8", "--out", str(model_file)]) == 0
+    model = load_model(model_file)
+    assert model.kind == "gru" and model.feature_names == (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES)
+    assert len(model.info["datasets"]) == 2 and model.info["fit"]["epochs_run"] == 1
+    assert main(["evaluate", str(model_file), str(data["onramp"]), "--out", str(tmp_path / "eval"),
+                 "--no-baselines"]) == 0
+    summary = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
+    assert summary["default"]["predictor"] == "GRU" and summary["lane_changes"] > 5
+    assert 0.0 <= summary["default"]["predicted"] <= 1.0 and summary["baselines"]["fitted"] is False
+
+    path = _short_dense(tmp_path, 15.0, enabled=True, model=str(model_file))
+    scenario = load_scenario(path)
+    execute_run(scenario, 4, tmp_path / "run")
+    twins = pd.read_parquet(tmp_path / "run" / "twins.parquet")
+    vehicles = pd.read_parquet(tmp_path / "run" / "vehicles.parquet")
+    feats = features_from_twins_table(twins, vehicles, read_road(scenario.network), scenario.v2c.period_s)
+    merged = twins[["time", "vehicle_id", "lc_prob"]].merge(feats, on=["time", "vehicle_id"], validate="one_to_one")
+    stream = merged.assign(seed=0).sort_values(["vehicle_id", "time"], kind="stable").reset_index(drop=True)
+    offline = model.stream_proba(stream, list(model.feature_names))
+    np.testing.assert_allclose(offline, stream["lc_prob"].to_numpy(), atol=1e-5)
+    assert stream["lc_prob"].std() > 1e-3

@@ -7,7 +7,7 @@ import pytest
 
 from scenario_files import REPO, SCENARIOS
 from vcfusion.prediction.dataset import build_samples
-from vcfusion.prediction.features import FEATURE_NAMES, features_from_twins_table, lane_end_ahead_m
+from vcfusion.prediction.features import features_from_twins_table, lane_end_ahead_m
 from vcfusion.prediction.model import load_model
 from vcfusion.run import build_cosimulation
 from vcfusion.scenario import load_scenario
@@ -132,9 +132,12 @@ def test_onramp_merges_detected_labelled_and_predicted(onramp_run):
     theirs = twins[twins["vehicle_id"].isin(ramp_ids) & (twins["lane"] == 0)]
     assert len(theirs) and theirs["lc_prob"].between(0.0, 1.0).all()
     feats = features_from_twins_table(twins, vehicles, road, scenario.v2c.period_s)
-    merged = theirs[["time", "vehicle_id", "lc_prob"]].merge(feats, on=["time", "vehicle_id"], validate="one_to_one")
-    np.testing.assert_allclose(load_model().predict_proba(merged[list(FEATURE_NAMES)].to_numpy()),
-                               merged["lc_prob"].to_numpy(), atol=1e-6)
+    model = load_model()  # the shipped default, MLP or GRU: run offline along each twin's whole track
+    stream = twins[["time", "vehicle_id", "lc_prob"]].merge(feats, on=["time", "vehicle_id"], validate="one_to_one")
+    stream = stream.assign(seed=0).sort_values(["vehicle_id", "time"], kind="stable").reset_index(drop=True)
+    stream["offline"] = model.stream_proba(stream, list(model.feature_names))
+    merged = theirs[["time", "vehicle_id"]].merge(stream, on=["time", "vehicle_id"], validate="one_to_one")
+    np.testing.assert_allclose(merged["offline"].to_numpy(), merged["lc_prob"].to_numpy(), atol=1e-5)
 
 
 @pytest.mark.slow

@@ -1,8 +1,9 @@
 """The cloud's lane-change predictor: a twin process model (paper Fig. 1, Section IV).
 
 Every V2C tick the twin store calls :class:`LaneChangePredictor` with the snapshot of all
-twins; it computes the features of all of them at once, runs the MLP once on the (N, F)
-matrix, thresholds the probabilities and smooths the decisions per twin (streaming Algorithm
+twins; it computes the features of all of them at once, runs the model once on the (N, F)
+matrix (the MLP; or one step of the GRU sequence model, whose per-twin states
+:class:`vcfusion.prediction.sequence.SequenceState` carries from tick to tick), thresholds the probabilities and smooths the decisions per twin (streaming Algorithm
 3 or 4). It returns `lc_prob` (float) and `lc_decision` (0/1), which the store attaches to the
 snapshot: they reach the ego in `Tick.neighbours` and are logged in the run's `twins` table.
 At the end of a run with an ego it reports, for every lane change into the ego's lane, when the
@@ -23,6 +24,7 @@ from vcfusion.runio import vehicle_tracks
 
 from vcfusion.prediction.features import FeatureExtractor
 from vcfusion.prediction.model import LaneChangeModel, load_model
+from vcfusion.prediction.sequence import SequenceModel, SequenceState
 from vcfusion.prediction.smoothing import StreamingSmoother
 from vcfusion.records import TwinStates
 from vcfusion.traffic.network import Road
@@ -35,12 +37,14 @@ class LaneChangePredictor:
     finish_needs = ("lane_changes", "twins")
     finish_summary = ("lane_change_flags",)
 
-    def __init__(self, model: LaneChangeModel, road: Road, period_s: float, smoothing: str | None = None,
+    def __init__(self, model: LaneChangeModel | SequenceModel, road: Road, period_s: float, smoothing: str | None = None,
                  threshold: float | None = None, tau_a_ticks: int | None = None, tau_c_ticks: int | None = None,
                  conservative_threshold: float | None = None, flag_end_after_mid_s: float = 1.5):
         self.model = model
         self.flag_end_after_mid_s = flag_end_after_mid_s
         self.extractor = FeatureExtractor(road, period_s)
+        # the sequence model's per-twin hidden states (vcfusion.prediction.sequence.SequenceState)
+        self.sequence = SequenceState(model) if model.kind == "gru" else None
         smoothing = smoothing or model.smoothing
         self.threshold = model.threshold_for(smoothing) if threshold is None else threshold
         self.smoother = StreamingSmoother(
@@ -50,8 +54,12 @@ class LaneChangePredictor:
             threshold=model.conservative_threshold if conservative_threshold is None else conservative_threshold)
 
     def __call__(self, twins: TwinStates, store=None) -> dict[str, np.ndarray]:
-        features = self.extractor.from_twins(twins)
-        prob = self.model.predict_proba(features) if len(features) else np.zeros(0, np.float32)
+        if self.sequence is not None:  # the GRU: one step per twin, its state carried to the next tick
+            features = self.extractor.from_twins(twins, extras=True)
+            prob = self.sequence(twins.ids, twins.time, features)
+        else:
+            features = self.extractor.from_twins(twins)
+            prob = self.model.predict_proba(features) if len(features) else np.zeros(0, np.float32)
         decision = self.smoother(twins.ids, (prob > self.threshold).astype(np.int8))
         return {"lc_prob": prob.astype(np.float64), "lc_decision": decision.astype(np.int8)}
 

@@ -87,22 +87,42 @@ def _import_recordings(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     from vcfusion.prediction.train import TrainConfig, train_model
+    from vcfusion.prediction.train_sequence import SequenceConfig, check_sequence_columns, train_sequence_model
 
-    for option in ("hidden", "epochs", "patience", "threads"):
+    gru = args.kind == "gru"
+    defaults = SequenceConfig() if gru else TrainConfig()
+    for option in ("hidden", "epochs", "patience", "background_negatives"):  # not given: the kind's default
+        if getattr(args, option) is None:
+            setattr(args, option, getattr(defaults, option))
+    for option in ("hidden", "epochs", "patience", "threads", "bptt_ticks"):
         if getattr(args, option) < 1:
-            raise UsageError(f"--{option}: expected a positive number, got {getattr(args, option)}")
+            raise UsageError(f"--{option.replace('_', '-')}: expected a positive number, got {getattr(args, option)}")
     if args.learning_rate <= 0 or args.weight_decay < 0 or args.background_negatives < 0:
         raise UsageError("--learning-rate / --weight-decay / --background-negatives: expected a positive rate and "
                          f"non-negative others, got {args.learning_rate}, {args.weight_decay}, "
                          f"{args.background_negatives}")
-    cfg = TrainConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
-                      background_negatives=args.background_negatives, threads=args.threads,
-                      learning_rate=args.learning_rate, weight_decay=args.weight_decay, privileged=args.privileged)
+    if gru and args.privileged:
+        raise UsageError("--privileged: the ceiling is an MLP (--kind mlp)")
     out = Path(args.out)
     if out.exists() and not args.force:
         raise UsageError(f"--out: {out} already exists (use --force to replace it)")
     check_folder_path(out.parent)
-    report = train_model(Path(args.dataset), out, cfg)
+    datasets = [Path(d) for d in args.dataset]
+    if gru:
+        from vcfusion.prediction.train import load_datasets
+
+        check_sequence_columns(load_datasets(datasets))  # before any training: a bad folder stops here
+        cfg = SequenceConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
+                             background_negatives=args.background_negatives, threads=args.threads,
+                             learning_rate=args.learning_rate, weight_decay=args.weight_decay,
+                             bptt_ticks=args.bptt_ticks)
+        report = train_sequence_model(datasets, out, cfg)
+    else:
+        cfg = TrainConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
+                          background_negatives=args.background_negatives, threads=args.threads,
+                          learning_rate=args.learning_rate, weight_decay=args.weight_decay,
+                          privileged=args.privileged)
+        report = train_model(datasets, out, cfg)
     print(report)
     return 0
 
@@ -115,7 +135,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.out:
         check_folder_path(Path(args.out))
     report_path = evaluate(Path(args.model), Path(args.dataset), Path(args.out) if args.out else None,
-                           split=args.split, horizon_s=args.horizon)
+                           split=args.split, horizon_s=args.horizon, baselines=args.baselines)
     print(Path(report_path).read_text())
     print(f"report: {report_path}")
     return 0
@@ -156,16 +176,25 @@ def add_parsers(sub) -> None:
                         "samples as sumo_* columns, for the privileged ceiling (`vcfusion train --privileged`)")
     p.set_defaults(func=cmd_dataset, interrupted=INTERRUPTED_BATCH)
 
-    p = sub.add_parser("train", help="train the lane-change MLP on a dataset")
-    p.add_argument("dataset", help="dataset folder from `vcfusion dataset`")
+    p = sub.add_parser("train", help="train the lane-change MLP or GRU on one or several datasets")
+    p.add_argument("dataset", nargs="+",
+                   help="dataset folder(s) from `vcfusion dataset`; several = scenario families trained on together "
+                        "(each one's train seeds train, its validation seeds stop and tune)")
     p.add_argument("--out", required=True, help="model file to write (.npz)")
-    p.add_argument("--hidden", type=int, default=64, help="units of each of the two hidden layers")
-    p.add_argument("--epochs", type=int, default=60)
-    p.add_argument("--patience", type=int, default=8, help="early stopping: epochs without validation gain")
+    p.add_argument("--kind", choices=["mlp", "gru"], default="mlp",
+                   help="mlp: the paper's MLP on each tick's features; gru: the sequence model over each twin's history")
+    p.add_argument("--hidden", type=int, default=None,
+                   help="units of each of the MLP's two hidden layers (default 64) or of the GRU's state (default 48)")
+    p.add_argument("--epochs", type=int, default=None, help="at most this many epochs (default: MLP 60, GRU 8)")
+    p.add_argument("--patience", type=int, default=None,
+                   help="early stopping: epochs without validation gain (default: MLP 8, GRU 3)")
+    p.add_argument("--bptt-ticks", dest="bptt_ticks", type=int, default=100,
+                   help="GRU: truncated backpropagation through time over chunks of this many V2C ticks")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--background-negatives", dest="background_negatives", type=float, default=0.0,
+    p.add_argument("--background-negatives", dest="background_negatives", type=float, default=None,
                    help="add this many negatives per window sample drawn from ticks outside the windows "
-                        "(0 = the paper's Fig. 5 windows only)")
+                        "(default 0 for the MLP = the paper's Fig. 5 windows only; the GRU weighs all such ticks "
+                        "to this total, default 3)")
     p.add_argument("--learning-rate", dest="learning_rate", type=float, default=1e-3, help="Adam learning rate")
     p.add_argument("--weight-decay", dest="weight_decay", type=float, default=1e-5, help="Adam weight decay (L2)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
@@ -183,6 +212,9 @@ def add_parsers(sub) -> None:
                    help="seeds to score (all: every seed, i.e. every vehicle of an imported dataset)")
     p.add_argument("--horizon", type=float, default=10.0,
                    help="a lane change counts as predicted by a positive decision at most this many s before its end")
+    p.add_argument("--no-baselines", dest="baselines", action="store_false",
+                   help="score the model alone (no logistic regression / gap-speed rule fitted on the dataset): "
+                        "for comparing models across many datasets")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("bench-predict", help="time the cloud lane-change predictor for N twins in one tick")

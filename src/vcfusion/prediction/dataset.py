@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from vcfusion.errors import InputError
-from vcfusion.prediction.features import FEATURE_NAMES, features_from_twins_table
+from vcfusion.prediction.features import FEATURE_NAMES, SEQUENCE_EXTRA_NAMES, features_from_twins_table
 from vcfusion.prediction.labels import label_samples
 from vcfusion.studies.batch import SeedOutcome, run_batch, seed_folder
 from vcfusion.traffic.network import read_road
@@ -58,7 +58,7 @@ def build_samples(tables: dict[str, pd.DataFrame], road, period_s: float, seed: 
         "window_label": labels["window_label"].to_numpy(),
         "stream_label": labels["stream_label"].to_numpy(),
     })
-    for name in FEATURE_NAMES:
+    for name in (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES):
         out[name] = feats[name].to_numpy(dtype=np.float32)
     return out
 
@@ -274,6 +274,7 @@ split of seeds into train / validation / test are in `dataset.json`.
 | window_label | Fig. 5 time windows: 1 positive (0 <= time_to_lc < tau), 0 negative (tau + tau_g < time_to_lc <= 2 tau + tau_g), -1 neither (not used in training) |
 | stream_label | every-tick truth: 1 when 0 <= time_to_lc < tau, else 0 |
 | FEATURES... | float32, see vcfusion/prediction/features.py: longitudinal only, no lateral position/speed, heading, steering, blinker or SUMO lane-change state |
+| lane_end_ahead_m | float32: distance to where the own lane ends ahead (400 m when it does not end within that); an input of the sequence model only |
 
 Features: {features}
 

@@ -2,7 +2,7 @@
 
 Predictors (all fitted on the training seeds, decision settings tuned on the validation
 seeds, scored on the test seeds — three disjoint sets of runs):
-- the MLP model file given;
+- the model file given (the MLP, or the GRU sequence model run along each vehicle's track);
 - logistic regression (one linear layer, same inputs, standardisation, class weighting and
   early stopping as the MLP);
 - a gap/speed threshold rule: positive when the own-lane leader is slower by more than dv
@@ -36,7 +36,9 @@ from scipy.stats import rankdata
 
 from vcfusion.prediction.dataset import DatasetError, load_dataset, load_samples
 from vcfusion.prediction.events import event_scores, smooth_stream, track_bounds
-from vcfusion.prediction.model import LaneChangeModel, load_model, model_feature_names
+from vcfusion.prediction.features import SEQUENCE_EXTRA_NAMES
+from vcfusion.prediction.model import LaneChangeModel, load_model, model_feature_names, model_kind
+from vcfusion.prediction.train_sequence import check_sequence_columns
 from vcfusion.prediction.privileged import SumoWantsRule
 from vcfusion.prediction.train import TrainConfig, _fit_torch, stream_with_events, training_rows, tune_decisions
 
@@ -112,15 +114,19 @@ def _fmt(v: float, pct: bool = False) -> str:
 
 
 def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: str = "test",
-             horizon_s: float = 10.0, seed: int = 0) -> Path:
+             horizon_s: float = 10.0, seed: int = 0, baselines: bool = True) -> Path:
     info = load_dataset(dataset)
     names = list(info.feature_names)  # what the cloud can observe: the baselines' inputs
     privileged = list(info.meta.get("privileged_names", []))  # SUMO's state, in a --privileged dataset
     # a ceiling model (`vcfusion train --privileged`) also takes the privileged columns
     ceiling = bool(privileged) and set(privileged) <= set(model_feature_names(model_path))
-    model_names = names + privileged if ceiling else names
+    if model_kind(model_path) == "gru":  # the sequence model also reads the extra sample columns
+        model_names = names + list(SEQUENCE_EXTRA_NAMES)
+        check_sequence_columns([info])
+    else:
+        model_names = names + privileged if ceiling else names
     model = load_model(model_path, expected_features=model_names)
-    model_label = "MLP + SUMO state (privileged)" if ceiling else "MLP"
+    model_label = {"gru": "GRU"}.get(model.kind, "MLP + SUMO state (privileged)" if ceiling else "MLP")
     if not info.seeds(split):
         raise DatasetError(f"{dataset}: split {split!r} is empty")
     out = Path(out) if out else Path(dataset) / f"eval-{Path(model_path).stem}"
@@ -129,7 +135,7 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
     # imported recording too short for those splits is scored with the model alone).
     predictors: dict = {model_label: (model, model_names)}
     rule = None
-    fitted = bool(info.splits.get("train")) and bool(info.splits.get("validation"))
+    fitted = baselines and bool(info.splits.get("train")) and bool(info.splits.get("validation"))
     if fitted:
         rng = np.random.default_rng(seed)
         bg = float(model.info.get("config", {}).get("background_negatives", 0.0))
@@ -152,9 +158,11 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
                  "scored_on_their_training_seeds": fitted and split in ("train", "all"),
                  "note": ("logistic regression and gap/speed rule fitted on the train seeds, tuned on the "
                           "validation seeds" if fitted else
+                          "no baselines: --no-baselines" if not baselines else
                           "no baselines: the dataset has no train and validation seeds (fewer than 3 seeds)")}
     stream, events = stream_with_events(info, split, columns=["seed", "vehicle_id", "time", "window_label",
-                                                               "stream_label", *names, *privileged])
+                                                               "stream_label", *dict.fromkeys([*names, *privileged,
+                                                                                               *model_names])])
     bounds = track_bounds(stream)
     in_window = stream["window_label"].to_numpy() >= 0
     y_window = stream["window_label"].to_numpy()[in_window] == 1
@@ -170,7 +178,9 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
         else:
             tuned = tune_decisions(pred.predict_proba(val_stream[inputs].to_numpy(np.float32)), val_stream,
                                    val_events, info.period_s, horizon_s)
-        prob = pred.predict_proba(stream[inputs].to_numpy(np.float32))
+        # the model may carry state along each track (the GRU): it scores the sorted stream itself
+        prob = (model.stream_proba(stream, inputs) if pred is model
+                else pred.predict_proba(stream[inputs].to_numpy(np.float32)))
         settings[pname] = {k: {"threshold": v["threshold"], "tau_ticks": v["tau_ticks"]} for k, v in tuned.items()}
         for variant in VARIANTS:
             t = tuned[_METHOD[variant]]

@@ -82,6 +82,10 @@ _N_TICK = FEATURE_NAMES.index("speed_trend")  # features before the history bloc
 assert FEATURE_NAMES[_N_TICK:] == ("speed_trend", *[f"{n}_trend" for n in HISTORY_MEAN_SOURCES],
                                    *[f"{n}_mean" for n in HISTORY_MEAN_SOURCES])
 
+# Inputs of the sequence model beyond FEATURE_NAMES (columns of the datasets' samples too; the
+# MLP's input list stays FEATURE_NAMES, so the shipped MLP file keeps loading).
+SEQUENCE_EXTRA_NAMES: tuple[str, ...] = ("lane_end_ahead_m",)
+
 _LANE_KEY = 1.0e6  # lane * _LANE_KEY + s orders twins by lane, then along the road
 
 
@@ -228,11 +232,12 @@ def lane_end_ahead_m(road, s: np.ndarray, lane: np.ndarray) -> np.ndarray:
     """Distance from s to where the twin's own lane ends ahead (a lane drop, the end of an
     acceleration lane), BLOCK_RANGE_M when it does not end within that, 0 off the road.
 
-    Not among FEATURE_NAMES, nor in the datasets' samples: the shipped model was trained on a
-    fixed input list, and the samples' layout is that list; adding it means a new feature list,
-    datasets rebuilt (`vcfusion dataset --refeature`) and a retrained model."""
+    Not among FEATURE_NAMES (the MLP's fixed input list) but one of SEQUENCE_EXTRA_NAMES: the
+    datasets' samples carry it as an extra column and the sequence model takes it as an input."""
     s = np.asarray(s, dtype=float)
     lane = np.asarray(lane, dtype=np.int64)
+    if road.all_lanes_everywhere:  # every lane runs to the route's end (the per-tick path on the straight road)
+        return np.where(lane >= 0, BLOCK_RANGE_M, 0.0)
     end = road.lane_end_ahead(np.maximum(lane, 0), s)
     out = np.minimum(np.nan_to_num(end - s, nan=0.0, posinf=BLOCK_RANGE_M), BLOCK_RANGE_M)
     return np.where(lane >= 0, out, 0.0)
@@ -303,16 +308,22 @@ class FeatureExtractor:
         self._memory.keep(ids, state)
         return out
 
-    def from_twins(self, twins) -> np.ndarray:
-        """Features of a TwinStates snapshot (the run-time path)."""
-        return self(twins.ids, twins.road_frame(self.road)[0], twins.lane, twins.speed, twins.accel, twins.length)
+    def from_twins(self, twins, extras: bool = False) -> np.ndarray:
+        """Features of a TwinStates snapshot (the run-time path); extras: with the
+        SEQUENCE_EXTRA_NAMES columns appended (the sequence model's inputs)."""
+        s = twins.road_frame(self.road)[0]
+        out = self(twins.ids, s, twins.lane, twins.speed, twins.accel, twins.length)
+        if not extras:
+            return out
+        return np.column_stack([out, lane_end_ahead_m(self.road, s, twins.lane)])
 
 
 def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road: RoadFrame,
                               period_s: float) -> pd.DataFrame:
     """Replay a run's `twins` table snapshot by snapshot through a FeatureExtractor.
 
-    Returns time, vehicle_id and one column per feature, in the table's row order per tick.
+    Returns time, vehicle_id and one column per feature (FEATURE_NAMES, then
+    SEQUENCE_EXTRA_NAMES), sorted by time then vehicle id.
     Lengths come from the `vehicles` table (they are what each vehicle reports to the cloud).
     """
     length_of = vehicles.set_index("vehicle_id")["length"]
@@ -331,6 +342,7 @@ def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road:
               for a, b in zip(starts, ends)]
     values = np.concatenate(blocks) if blocks else np.zeros((0, len(FEATURE_NAMES)))
     out = pd.DataFrame(values, columns=list(FEATURE_NAMES))
+    out["lane_end_ahead_m"] = lane_end_ahead_m(road, s, lane) if len(times) else np.zeros(0)
     out.insert(0, "vehicle_id", twins["vehicle_id"].astype(str).to_numpy())
     out.insert(0, "time", times)
     return out

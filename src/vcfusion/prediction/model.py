@@ -31,7 +31,11 @@ from vcfusion.errors import InputError
 from vcfusion.threads import one_blas_thread
 
 MODEL_FORMAT = "vcfusion-lane-change-mlp/1"
-DEFAULT_MODEL_NAME = "lane_change_mlp.npz"
+# The shipped default: the GRU sequence model, better than the MLP on the validation seeds of the
+# scenario families (issue 14; src/vcfusion/assets/README.md). The MLP stays selectable
+# (`prediction.model: .../lane_change_mlp.npz`).
+DEFAULT_MODEL_NAME = "lane_change_gru.npz"
+SHIPPED_MODEL_NAMES = ("lane_change_mlp.npz", "lane_change_gru.npz")  # in vcfusion/assets
 
 
 SMALL_BATCH_ROWS = 4096  # up to this many rows (a tick's twins) the MLP runs on one BLAS thread
@@ -65,8 +69,14 @@ class LaneChangeModel:
     # Platt scaling (a, b) of the logit: lc_prob = sigmoid(a * z + b); (1, 0) = uncalibrated.
     calibration: tuple[float, float] = (1.0, 0.0)
 
+    kind = "mlp"
+
     def threshold_for(self, smoothing: str) -> float:
         return float(self.thresholds.get(smoothing, self.threshold))
+
+    def stream_proba(self, stream, inputs: list[str]) -> np.ndarray:
+        """P per row of a samples stream (each row on its own: the MLP has no state)."""
+        return self.predict_proba(stream[inputs].to_numpy(np.float32))
 
     def __post_init__(self):
         self.mean = np.asarray(self.mean, dtype=np.float32)
@@ -201,20 +211,37 @@ def model_feature_names(path: str | Path) -> tuple[str, ...]:
         raise ModelFileError(f"{path}: not a vcfusion lane-change model file ({type(exc).__name__}: {exc})") from None
 
 
-def load_model(path: str | Path | None = None, expected_features=None) -> LaneChangeModel:
-    """Read a model file (None = the shipped default); checks it against the current feature list.
+def load_model(path: str | Path | None = None, expected_features=None) -> "LaneChangeModel | SequenceModel":
+    """Read a model file (None = the shipped default); checks it against the current feature list
+    (expected_features; None = what this version computes for the file's kind: FEATURE_NAMES for
+    the MLP, FEATURE_NAMES + SEQUENCE_EXTRA_NAMES for the sequence model). The file says its kind
+    (`meta.format`): the MLP (:class:`LaneChangeModel`) or the GRU
+    (:class:`vcfusion.prediction.sequence.SequenceModel`).
 
     Files are cached by path and modification time: a batch process builds one co-simulation
     per seed, and reading the file each time cost ~1 ms of a ~200 ms trip. The model is never
     modified after loading, so sharing it is safe.
     """
-    from vcfusion.prediction.features import FEATURE_NAMES
-
     path = Path(path) if path is not None else default_model_path()
     if not path.is_file():
         raise ModelFileError(f"{path}: model file not found")
-    expected = tuple(FEATURE_NAMES if expected_features is None else expected_features)
+    expected = None if expected_features is None else tuple(expected_features)
     return _load_model_file(str(path.resolve()), path.stat().st_mtime_ns, expected)
+
+
+def model_kind(path: str | Path) -> str:
+    """'mlp' or 'gru': the kind of model a file holds (read without checking the rest)."""
+    from vcfusion.prediction.sequence import SEQUENCE_FORMAT
+
+    path = Path(path)
+    if not path.is_file():
+        raise ModelFileError(f"{path}: model file not found")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            fmt = json.loads(str(data["meta"])).get("format")
+    except Exception as exc:
+        raise ModelFileError(f"{path}: not a vcfusion lane-change model file ({type(exc).__name__}: {exc})") from None
+    return "gru" if fmt == SEQUENCE_FORMAT else "mlp"
 
 
 # metadata keys a model file must hold, with the type each must have
@@ -224,23 +251,32 @@ META_KEYS = {"feature_names": list, "tau": (int, float), "tau_g": (int, float), 
 
 
 @functools.lru_cache(maxsize=8)
-def _load_model_file(name: str, _mtime_ns: int, expected_features: tuple[str, ...]) -> LaneChangeModel:
+def _load_model_file(name: str, _mtime_ns: int, expected_features: tuple[str, ...] | None):
+    from vcfusion.prediction.features import FEATURE_NAMES, SEQUENCE_EXTRA_NAMES
+    from vcfusion.prediction.sequence import SEQUENCE_FORMAT, sequence_model_from_file
+
     path = Path(name)
     try:
         with np.load(path, allow_pickle=False) as data:
             if "meta" not in data:
                 raise ModelFileError(f"{path}: meta: missing; expected a model file written by `vcfusion train`")
             meta = json.loads(str(data["meta"]))
-            if not isinstance(meta, dict) or meta.get("format") != MODEL_FORMAT:
+            if not isinstance(meta, dict) or meta.get("format") not in (MODEL_FORMAT, SEQUENCE_FORMAT):
                 got = meta.get("format") if isinstance(meta, dict) else meta
-                raise ModelFileError(f"{path}: format: expected {MODEL_FORMAT!r}, got {got!r}")
-            _check_meta(path, meta)
+                raise ModelFileError(f"{path}: format: expected {MODEL_FORMAT!r} or {SEQUENCE_FORMAT!r}, got {got!r}")
+            if meta["format"] == MODEL_FORMAT:
+                _check_meta(path, meta)
             arrays = {k: data[k] for k in data.files if k != "meta"}
     except ModelFileError:
         raise
     except Exception as exc:
         raise ModelFileError(f"{path}: not a vcfusion lane-change model file ({type(exc).__name__}); "
                              "expected a .npz written by `vcfusion train`") from None
+    if meta["format"] == SEQUENCE_FORMAT:
+        seq = sequence_model_from_file(path, meta, arrays)
+        seq.check_features(expected_features or (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES), source=str(path))
+        return seq
+    expected_features = expected_features or FEATURE_NAMES
     weights, mean, std = _checked_arrays(path, meta, arrays)
     model = LaneChangeModel(
         feature_names=tuple(meta["feature_names"]), mean=mean, std=std, weights=weights,

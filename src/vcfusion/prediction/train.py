@@ -131,6 +131,53 @@ def stream_with_events(info: DatasetInfo, split: str, columns: list[str] | None 
     return stream, events
 
 
+SEED_STRIDE = 1_000_000  # when datasets are mixed, dataset k's seeds become k * SEED_STRIDE + seed
+
+
+def load_datasets(datasets: list[Path]) -> list[DatasetInfo]:
+    """The dataset folders a model is trained on (several = scenario families mixed). They must
+    share the labels (tau, tau_g), the V2C period and the features, and each have train and
+    validation seeds."""
+    from vcfusion.prediction.features import FEATURE_NAMES
+
+    if not datasets:
+        raise DatasetError("expected at least one dataset folder")
+    infos = [load_dataset(d) for d in datasets]
+    for d, info in zip(datasets, infos):
+        if tuple(info.feature_names) != FEATURE_NAMES:
+            raise DatasetError(f"{d}: built with other features than this version computes; bring it up to date "
+                               "with `vcfusion dataset ... --refeature`")
+        for split in ("train", "validation"):
+            if not info.splits.get(split):
+                raise DatasetError(f"{d}: split {split!r} is empty (build the dataset from at least 3 seeds)")
+        first = infos[0]
+        for key in ("tau", "tau_g", "period_s"):
+            if getattr(info, key) != getattr(first, key):
+                raise DatasetError(f"{d}: {key} = {getattr(info, key)}, but {datasets[0]} has {getattr(first, key)}; "
+                                   "datasets trained on together need the same labels and V2C period")
+    if len({Path(d).resolve() for d in datasets}) != len(datasets):
+        raise DatasetError("the same dataset folder is given twice")
+    return infos
+
+
+def combined_stream(infos: list[DatasetInfo], split: str, columns: list[str] | None = None
+                    ) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """:func:`stream_with_events` of several datasets, one after the other, with the seeds of
+    dataset k moved to k * SEED_STRIDE + seed so that tracks and events never collide."""
+    streams, events = [], []
+    for k, info in enumerate(infos):
+        if not info.seeds(split):
+            continue
+        stream, ev = stream_with_events(info, split, columns)
+        stream["seed"] = stream["seed"].astype(np.int64) + k * SEED_STRIDE
+        ev["seed"] = ev["seed"].astype(np.int64) + k * SEED_STRIDE
+        streams.append(stream)
+        events.append(ev)
+    if not streams:
+        raise DatasetError(f"split {split!r} is empty in every dataset given")
+    return pd.concat(streams, ignore_index=True), pd.concat(events, ignore_index=True)
+
+
 def tune_decisions(prob: np.ndarray, stream: pd.DataFrame, events: pd.DataFrame, period_s: float,
                    horizon_s: float, conservative_threshold: float = 0.5) -> dict:
     """Pick threshold / tau_a / tau_c on a validation stream.
@@ -189,26 +236,23 @@ def choose_default(tuned: dict) -> str:
     return min(order, key=lambda m: (tuned[m]["validation"]["false_alarms_per_vehicle_hour"], order.index(m)))
 
 
-def train_model(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = True) -> str:
-    """Train, tune the decision settings on validation, save the model file; returns a report."""
+def train_model(datasets: Path | list[Path], out: Path, cfg: TrainConfig, progress: bool = True) -> str:
+    """Train on the train seeds of one or several datasets (scenario families mixed), tune the
+    decision settings on their validation seeds, save the model file; returns a report."""
     started = wallclock.perf_counter()
-    info = load_dataset(dataset)
-    from vcfusion.prediction.features import FEATURE_NAMES
-
-    if tuple(info.feature_names) != FEATURE_NAMES:
-        raise DatasetError(f"{dataset}: built with other features than this version computes; rebuild it")
-    for split in ("train", "validation"):
-        if not info.splits.get(split):
-            raise DatasetError(f"{dataset}: split {split!r} is empty (build the dataset from at least 3 seeds)")
+    datasets = [datasets] if isinstance(datasets, (str, Path)) else list(datasets)
+    infos = load_datasets(datasets)
+    info = infos[0]
     rng = np.random.default_rng(cfg.seed)
     names = list(info.feature_names)
     if cfg.privileged:
-        if not info.meta.get("privileged_names"):
-            raise DatasetError(f"{dataset}: --privileged needs SUMO's lane-change state in the samples; build the "
-                               f"dataset with `vcfusion dataset ... --privileged`")
+        for d, i in zip(datasets, infos):
+            if not i.meta.get("privileged_names"):
+                raise DatasetError(f"{d}: --privileged needs SUMO's lane-change state in the samples; build the "
+                                   f"dataset with `vcfusion dataset ... --privileged`")
         names += list(info.meta["privileged_names"])
-    tr = training_rows(info, "train", cfg.background_negatives, rng)
-    va = training_rows(info, "validation", cfg.background_negatives, rng)
+    tr = pd.concat([training_rows(i, "train", cfg.background_negatives, rng) for i in infos], ignore_index=True)
+    va = pd.concat([training_rows(i, "validation", cfg.background_negatives, rng) for i in infos], ignore_index=True)
     x_tr = tr[names].to_numpy(np.float32)
     y_tr = (tr["window_label"] == 1).to_numpy(np.float32)
     mean = x_tr.mean(axis=0)
@@ -217,8 +261,8 @@ def train_model(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = Tru
     y_va = (va["window_label"] == 1).to_numpy(np.float32)
     weights, fit = _fit_torch(((x_tr - mean) / std).astype(np.float32), y_tr, x_va, y_va, cfg, len(names), progress)
     model = LaneChangeModel(tuple(names), mean, std, weights, info.tau, info.tau_g, info.period_s)
-    stream, events = stream_with_events(info, "validation", columns=["seed", "vehicle_id", "time", "stream_label",
-                                                                     *names])
+    stream, events = combined_stream(infos, "validation", columns=["seed", "vehicle_id", "time", "stream_label",
+                                                                   *names])
     x_stream = stream[names].to_numpy(np.float32)
     model.calibration = fit_platt(model.logits(x_stream), stream["stream_label"].to_numpy() == 1)
     prob = model.predict_proba(x_stream)
@@ -230,17 +274,18 @@ def train_model(dataset: Path, out: Path, cfg: TrainConfig, progress: bool = Tru
     model.tau_a_ticks = int(tuned["aggressive"]["tau_ticks"])
     model.tau_c_ticks = int(tuned["conservative"]["tau_ticks"])
     model.info = {
-        "dataset": str(Path(dataset).resolve()), "scenario": info.meta.get("scenario"), "kind": cfg.kind,
+        "dataset": str(Path(datasets[0]).resolve()), "scenario": info.meta.get("scenario"), "kind": cfg.kind,
+        "datasets": [str(Path(d).resolve()) for d in datasets], "scenarios": [i.meta.get("scenario") for i in infos],
         "config": asdict(cfg), "fit": fit, "train_samples": int(len(tr)), "train_positives": int(y_tr.sum()),
-        "splits": info.splits, "tuning": tuned, "calibration": list(model.calibration),
-        "command": f"vcfusion train {dataset} --out {out.name} --hidden {cfg.hidden} --epochs {cfg.epochs} "
+        "splits": info.splits if len(infos) == 1 else [i.splits for i in infos], "tuning": tuned, "calibration": list(model.calibration),
+        "command": f"vcfusion train {' '.join(map(str, datasets))} --out {out.name} --hidden {cfg.hidden} --epochs {cfg.epochs} "
                    f"--patience {cfg.patience} --seed {cfg.seed} --background-negatives {cfg.background_negatives} "
                    f"--learning-rate {cfg.learning_rate} --weight-decay {cfg.weight_decay}"
                    + (" --privileged" if cfg.privileged else ""),
     }
     save_model(model, out)
-    lines = [f"trained {cfg.kind} on {len(tr)} samples ({int(y_tr.sum())} positive) of {len(info.splits['train'])} "
-             f"seeds in {wallclock.perf_counter() - started:.1f} s: best epoch {fit['best_epoch'] + 1} of "
+    lines = [f"trained {cfg.kind} on {len(tr)} samples ({int(y_tr.sum())} positive) of "
+             f"{sum(len(i.splits['train']) for i in infos)} seeds of {len(infos)} dataset(s) in {wallclock.perf_counter() - started:.1f} s: best epoch {fit['best_epoch'] + 1} of "
              f"{fit['epochs_run']}, validation loss {fit['best_val_loss']:.4f}"]
     for method, t in tuned.items():
         v = t["validation"]

@@ -1,0 +1,220 @@
+"""Training of the lane-change GRU (vcfusion.prediction.sequence) on one or several datasets.
+
+- Data: every vehicle's every-tick samples of the training seeds, as segments
+  (:func:`vcfusion.prediction.sequence.segment_bounds`), the GRU run over each from a zero state.
+- Loss: binary cross-entropy on the Fig. 5 windows (window_label 1 / 0, as the MLP) plus the
+  ticks outside the windows that are not within 2 tau + tau_g of a lane change (negatives the
+  paper's windows never show, like the MLP's `--background-negatives`), those weighted so that
+  they count `background_negatives` times the window samples; positives weighted to balance
+  all negatives. The gap ticks (tau .. tau + tau_g before a change) are not scored, as in Fig. 5.
+- Truncated backpropagation through time: segments are processed in chunks of `bptt_ticks`
+  ticks; the hidden state is carried from one chunk to the next (so the model sees the whole
+  history) and gradients flow back over one chunk (bptt_ticks x 0.1 s).
+- Adam, gradient clipping, early stopping on the validation seeds' loss (best epoch kept);
+  then Platt calibration and the decision settings on the validation stream, as the MLP
+  (:func:`vcfusion.prediction.train.tune_decisions`).
+- Seeded and single-threaded by default: the same command gives the same weights.
+"""
+
+from __future__ import annotations
+
+import time as wallclock
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from vcfusion.prediction.dataset import DatasetError
+from vcfusion.prediction.model import fit_platt
+from vcfusion.prediction.sequence import DEFAULT_RESET_GAP_TICKS, SequenceModel, save_sequence_model, segment_bounds
+
+
+@dataclass(frozen=True)
+class SequenceConfig:
+    hidden: int = 48
+    epochs: int = 8
+    patience: int = 3
+    batch_segments: int = 16
+    bptt_ticks: int = 100  # 10 s at the V2C period
+    learning_rate: float = 2e-3
+    weight_decay: float = 1e-5
+    seed: int = 0
+    background_negatives: float = 3.0
+    threads: int = 1
+    reset_gap_ticks: int = DEFAULT_RESET_GAP_TICKS
+    horizon_s: float = 10.0
+
+
+def loss_weights(stream: pd.DataFrame, tau: float, tau_g: float, background: float) -> tuple[np.ndarray, np.ndarray]:
+    """(target, weight) per row: windows weight 1 (positives re-weighted to balance), far
+    negatives weighted to total `background` x the window rows, gap ticks weight 0."""
+    window = stream["window_label"].to_numpy()
+    ttl = stream["time_to_lc"].to_numpy(dtype=float)
+    target = (window == 1).astype(np.float32)
+    in_window = window >= 0
+    with np.errstate(invalid="ignore"):
+        far = (window < 0) & ~(ttl <= 2 * tau + tau_g)
+    weight = in_window.astype(np.float64)
+    if far.any() and background > 0:
+        weight[far] = background * in_window.sum() / far.sum()
+    neg_total = weight[target == 0].sum()
+    pos_total = weight[target == 1].sum()
+    if pos_total > 0:
+        weight[target == 1] *= neg_total / pos_total
+    return target, weight.astype(np.float32)
+
+
+class _Batches:
+    """Segments grouped into padded batches of similar length (longest first), for TBPTT."""
+
+    def __init__(self, x: np.ndarray, target: np.ndarray, weight: np.ndarray, bounds, batch: int):
+        self.x, self.target, self.weight = x, target, weight
+        lengths = np.array([b - a for a, b in bounds])
+        order = np.argsort(-lengths, kind="stable")
+        self.groups = [[bounds[i] for i in order[k:k + batch]] for k in range(0, len(order), batch)]
+
+    def tensors(self, group):
+        import torch
+
+        t_max = max(b - a for a, b in group)
+        xb = np.zeros((len(group), t_max, self.x.shape[1]), dtype=np.float32)
+        yb = np.zeros((len(group), t_max), dtype=np.float32)
+        wb = np.zeros((len(group), t_max), dtype=np.float32)
+        for i, (a, b) in enumerate(group):
+            xb[i, :b - a], yb[i, :b - a], wb[i, :b - a] = self.x[a:b], self.target[a:b], self.weight[a:b]
+        return torch.from_numpy(xb), torch.from_numpy(yb), torch.from_numpy(wb)
+
+
+def _fit(train: _Batches, val: _Batches, n_inputs: int, cfg: SequenceConfig, progress: bool):
+    import torch
+    from tqdm import tqdm
+
+    torch.manual_seed(cfg.seed)
+    torch.set_num_threads(max(1, cfg.threads))
+    gru = torch.nn.GRU(n_inputs, cfg.hidden, batch_first=True)
+    head = torch.nn.Linear(cfg.hidden, 1)
+    params = list(gru.parameters()) + list(head.parameters())
+    opt = torch.optim.Adam(params, lr=cfg.learning_rate, weight_decay=cfg.weight_decay)
+    rng = np.random.default_rng(cfg.seed)
+
+    def run(batches: _Batches, group, learn: bool) -> tuple[float, float]:
+        xb, yb, wb = batches.tensors(group)
+        h = None
+        total, weight = 0.0, 0.0
+        for c in range(0, xb.shape[1], cfg.bptt_ticks):
+            w = wb[:, c:c + cfg.bptt_ticks]
+            out, h = gru(xb[:, c:c + cfg.bptt_ticks], h)
+            z = head(out)[..., 0]
+            loss = torch.nn.functional.binary_cross_entropy_with_logits(z, yb[:, c:c + cfg.bptt_ticks], weight=w,
+                                                                        reduction="sum")
+            if learn and float(w.sum()) > 0:
+                opt.zero_grad()
+                (loss / w.sum()).backward()
+                torch.nn.utils.clip_grad_norm_(params, 1.0)
+                opt.step()
+            h = h.detach()  # truncation: the state goes on, its gradient stops here
+            total += float(loss.detach())
+            weight += float(w.sum())
+        return total, weight
+
+    best, best_state, best_epoch, stale, history = np.inf, None, 0, 0, []
+    bar = tqdm(range(cfg.epochs), desc="train gru", unit="epoch", disable=not progress, leave=False)
+    for epoch in bar:
+        gru.train()
+        for k in rng.permutation(len(train.groups)):
+            run(train, train.groups[k], learn=True)
+        gru.eval()
+        with torch.no_grad():
+            sums = [run(val, g, learn=False) for g in val.groups]
+        val_loss = sum(s for s, _ in sums) / max(1e-9, sum(w for _, w in sums))
+        history.append(val_loss)
+        bar.set_postfix(val_loss=f"{val_loss:.4f}")
+        if val_loss < best - 1e-5:
+            best, best_epoch, stale = val_loss, epoch, 0
+            best_state = ({k: v.clone() for k, v in gru.state_dict().items()},
+                          {k: v.clone() for k, v in head.state_dict().items()})
+        else:
+            stale += 1
+            if stale >= cfg.patience:
+                break
+    gru.load_state_dict(best_state[0])
+    head.load_state_dict(best_state[1])
+    arrays = {"w_ih": gru.weight_ih_l0, "w_hh": gru.weight_hh_l0, "b_ih": gru.bias_ih_l0, "b_hh": gru.bias_hh_l0,
+              "w_out": head.weight, "b_out": head.bias}
+    arrays = {k: v.detach().numpy().copy() for k, v in arrays.items()}
+    return arrays, {"best_epoch": best_epoch, "epochs_run": len(history), "best_val_loss": best,
+                    "val_loss_history": history}
+
+
+def train_sequence_model(datasets: list[Path], out: Path, cfg: SequenceConfig, progress: bool = True) -> str:
+    """Train the GRU on the train seeds of `datasets`, calibrate and tune on their validation
+    seeds, save the model file; returns a report."""
+    from vcfusion.prediction.features import FEATURE_NAMES, SEQUENCE_EXTRA_NAMES
+    from vcfusion.prediction.train import choose_default, combined_stream, load_datasets, tune_decisions
+
+    started = wallclock.perf_counter()
+    infos = load_datasets(datasets)
+    names = [*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES]
+    tau, tau_g, period = infos[0].tau, infos[0].tau_g, infos[0].period_s
+    columns = ["seed", "vehicle_id", "time", "window_label", "time_to_lc", "stream_label", *names]
+    tr, _ = combined_stream(infos, "train", columns)
+    va, va_events = combined_stream(infos, "validation", columns)
+    x_tr = tr[names].to_numpy(np.float32)
+    mean = x_tr.mean(axis=0)
+    std = np.maximum(x_tr.std(axis=0), 1e-6).astype(np.float32)
+    norm = lambda a: ((a - mean) / std).astype(np.float32)  # noqa: E731
+    y_tr, w_tr = loss_weights(tr, tau, tau_g, cfg.background_negatives)
+    y_va, w_va = loss_weights(va, tau, tau_g, cfg.background_negatives)
+    b_tr = segment_bounds(tr, period, cfg.reset_gap_ticks)
+    b_va = segment_bounds(va, period, cfg.reset_gap_ticks)
+    arrays, fit = _fit(_Batches(norm(x_tr), y_tr, w_tr, b_tr, cfg.batch_segments),
+                       _Batches(norm(va[names].to_numpy(np.float32)), y_va, w_va, b_va, cfg.batch_segments),
+                       len(names), cfg, progress)
+    del x_tr
+    model = SequenceModel(tuple(names), mean, std, **arrays, tau=tau, tau_g=tau_g, period_s=period,
+                          reset_gap_ticks=cfg.reset_gap_ticks)
+    logits = model.sequence_logits(va[names].to_numpy(np.float32), b_va)
+    model.calibration = fit_platt(logits, va["stream_label"].to_numpy() == 1)
+    prob = model.calibrated(logits)
+    tuned = tune_decisions(prob, va, va_events, period, cfg.horizon_s, model.conservative_threshold)
+    default = choose_default(tuned)
+    model.smoothing = default
+    model.thresholds = {m: float(t["threshold"]) for m, t in tuned.items()}
+    model.threshold = model.thresholds[default]
+    model.tau_a_ticks = int(tuned["aggressive"]["tau_ticks"])
+    model.tau_c_ticks = int(tuned["conservative"]["tau_ticks"])
+    model.info = {
+        "kind": "gru", "datasets": [str(Path(d).resolve()) for d in datasets],
+        "scenarios": [i.meta.get("scenario") for i in infos], "config": asdict(cfg), "fit": fit,
+        "train_rows": int(len(tr)), "train_segments": len(b_tr), "splits": [i.splits for i in infos],
+        "tuning": tuned, "calibration": list(model.calibration),
+    }
+    save_sequence_model(model, out)
+    lines = [f"trained gru (hidden {cfg.hidden}) on {len(b_tr)} segments / {len(tr)} ticks of "
+             f"{sum(len(i.splits['train']) for i in infos)} seeds of {len(infos)} datasets in "
+             f"{wallclock.perf_counter() - started:.1f} s: best epoch {fit['best_epoch'] + 1} of {fit['epochs_run']}, "
+             f"validation loss {fit['best_val_loss']:.4f}"]
+    for method, t in tuned.items():
+        v = t["validation"]
+        lines.append(f"  {method:12s} threshold {t['threshold']:.2f} tau {t['tau_ticks']:2d} ticks: "
+                     f"{100 * v['predicted_share']:.1f}% predicted, mean advance {v['advance_final_mean_s']:.2f} s, "
+                     f"{v['false_alarms_per_vehicle_hour']:.2f} false alarms/veh-h (validation)")
+    lines.append(f"  default smoothing: {default}; model file: {out}")
+    return "\n".join(lines)
+
+
+def check_sequence_columns(infos) -> None:
+    """The sequence model's extra inputs must be in the samples (datasets built before they existed
+    are brought up to date with `vcfusion dataset ... --refeature`)."""
+    import pyarrow.parquet as pq
+
+    from vcfusion.prediction.features import SEQUENCE_EXTRA_NAMES
+
+    for info in infos:
+        for seed in info.seeds("all"):
+            f = info.samples_file(seed)
+            missing = [n for n in SEQUENCE_EXTRA_NAMES if n not in pq.read_schema(f).names]
+            if missing:
+                raise DatasetError(f"{f}: missing columns {missing} (the sequence model's inputs); bring the dataset up "
+                                   "to date with `vcfusion dataset SCENARIO --seeds ... --out DIR --refeature`")

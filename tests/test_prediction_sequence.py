@@ -1,0 +1,135 @@
+"""The GRU sequence model: NumPy step == torch, per-twin state across ticks == the sequence in
+one go, model files (round trip, bad files), and the multi-dataset mixing."""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from vcfusion.errors import InputError
+from vcfusion.prediction.features import FEATURE_NAMES, SEQUENCE_EXTRA_NAMES
+from vcfusion.prediction.model import ModelFileError, load_model, model_kind
+from vcfusion.prediction.sequence import SequenceModel, SequenceState, save_sequence_model, segment_bounds
+
+NAMES = (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES)
+
+
+def _model(hidden=12, seed=0, reset_gap_ticks=10) -> SequenceModel:
+    rng = np.random.default_rng(seed)
+    f = len(NAMES)
+    return SequenceModel(
+        NAMES, mean=rng.normal(0, 2, f), std=rng.uniform(0.5, 3, f),
+        w_ih=rng.normal(0, 0.2, (3 * hidden, f)), w_hh=rng.normal(0, 0.3, (3 * hidden, hidden)),
+        b_ih=rng.normal(0, 0.3, 3 * hidden), b_hh=rng.normal(0, 0.3, 3 * hidden),
+        w_out=rng.normal(0, 0.5, (1, hidden)), b_out=rng.normal(0, 0.5, 1),
+        tau=5.0, tau_g=2.0, period_s=0.1, thresholds={"none": 0.7, "aggressive": 0.8, "conservative": 0.6},
+        calibration=(0.8, -0.3), reset_gap_ticks=reset_gap_ticks)
+
+
+def test_numpy_step_equals_torch_gru_cell():
+    torch = pytest.importorskip("torch")
+    model = _model()
+    cell, head = model.to_torch()
+    rng = np.random.default_rng(1)
+    raw = rng.normal(model.mean, model.std, (37, len(NAMES))).astype(np.float32)  # standardised ~ N(0, 1)
+    h = rng.normal(0, 0.5, (37, model.hidden)).astype(np.float32)
+    for _ in range(20):  # several steps: errors would compound
+        x_std = torch.from_numpy((raw - model.mean) / model.std)
+        with torch.no_grad():
+            expected = cell(x_std, torch.from_numpy(h)).numpy()
+            z_expected = head(torch.from_numpy(expected))[:, 0].numpy()
+        h_new = model.step(h, raw)
+        np.testing.assert_allclose(h_new, expected, atol=1e-6)
+        np.testing.assert_allclose(model.output_logits(h_new), z_expected, atol=1e-6)
+        h = expected
+        raw = rng.normal(model.mean, model.std, raw.shape).astype(np.float32)
+
+
+def _stream(rng) -> pd.DataFrame:
+    """Three vehicles: one throughout, one appearing late, one with a short and a long gap."""
+    rows = []
+    for vid, ticks in (("a", range(0, 60)), ("b", range(25, 50)),
+                       ("c", [*range(0, 10), *range(15, 30), *range(46, 70)])):  # gaps of 5 and 16 ticks
+        for k in ticks:
+            rows.append({"seed": 0, "vehicle_id": vid, "time": round(0.1 * k, 6)})
+    stream = pd.DataFrame(rows).sort_values(["seed", "vehicle_id", "time"], kind="stable").reset_index(drop=True)
+    for i, name in enumerate(NAMES):
+        stream[name] = rng.normal(0, 1 + i % 5, len(stream)).astype(np.float32)
+    return stream
+
+
+def test_state_per_twin_across_ticks_equals_the_sequence_in_one_go():
+    model = _model()
+    stream = _stream(np.random.default_rng(2))
+    bounds = segment_bounds(stream, model.period_s, model.reset_gap_ticks)
+    assert [(stream["vehicle_id"][a], b - a) for a, b in bounds] == [("a", 60), ("b", 25), ("c", 25), ("c", 24)]
+    offline = model.stream_proba(stream, list(NAMES))
+    state = SequenceState(model)
+    online = np.full(len(stream), np.nan, dtype=np.float32)
+    for time, tick in stream.groupby("time", sort=True):
+        tick = tick.sample(frac=1.0, random_state=int(time * 10))  # the order of twins in a tick is free
+        online[tick.index] = state(tick["vehicle_id"].tolist(), time, tick[list(NAMES)].to_numpy(np.float32))
+        # a twin absent for up to reset_gap_ticks keeps its state; longer, it is dropped
+        if round(time * 10) == 12:
+            assert len(state) == 2 and "c" in state._row  # c unseen for 3 ticks: still kept
+    np.testing.assert_allclose(online, offline, atol=1e-6)
+    assert sorted(state._row) == ["a", "c"]  # at the end: a absent 10 ticks (kept), b 20 (dropped), c seen
+    # without the reset rule the state would differ after the long gap (the test can fail)
+    no_reset = _model(reset_gap_ticks=100)
+    assert not np.allclose(no_reset.stream_proba(stream, list(NAMES)), offline, atol=1e-4)
+
+
+def test_model_file_round_trip_and_kind(tmp_path):
+    model = _model()
+    model.info = {"note": "x"}
+    path = save_sequence_model(model, tmp_path / "gru.npz")
+    loaded = load_model(path)
+    assert model_kind(path) == "gru" and loaded.kind == "gru"
+    for name in ("mean", "std", "w_ih", "w_hh", "b_ih", "b_hh", "w_out", "b_out"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(model, name))
+    assert loaded.thresholds == model.thresholds and loaded.calibration == model.calibration
+    assert loaded.reset_gap_ticks == 10 and loaded.info == {"note": "x"}
+    stream = _stream(np.random.default_rng(3))
+    np.testing.assert_array_equal(loaded.stream_proba(stream, list(NAMES)), model.stream_proba(stream, list(NAMES)))
+    assert model_kind(load_model.__globals__["default_model_path"]()) in ("mlp", "gru")
+
+
+def _rewrite(src, dst, meta_change=None, arrays_change=None):
+    with np.load(src, allow_pickle=False) as data:
+        meta = json.loads(str(data["meta"]))
+        arrays = {k: data[k] for k in data.files if k != "meta"}
+    if meta_change:
+        meta_change(meta)
+    if arrays_change:
+        arrays_change(arrays)
+    np.savez(dst, meta=np.array(json.dumps(meta)), **arrays)
+    return dst
+
+
+@pytest.mark.parametrize("meta_change, arrays_change, needle", [
+    (lambda m: m.pop("hidden"), None, "meta.hidden: missing"),
+    (lambda m: m.update(format="something/9"), None, "format: expected"),
+    (lambda m: m.update(smoothing="wild"), None, "meta.smoothing"),
+    (lambda m: m.update(calibration=[1.0]), None, "meta.calibration"),
+    (None, lambda a: a.update(w_hh=a["w_hh"][:, :-1]), "w_hh: expected a finite float array of shape (36, 12)"),
+    (None, lambda a: a.pop("b_out"), "b_out: missing array"),
+    (None, lambda a: a["w_ih"].__setitem__((0, 0), np.nan), "w_ih: expected a finite"),
+    (lambda m: m.update(feature_names=m["feature_names"][:-1]), lambda a: a.update(
+        mean=a["mean"][:-1], std=a["std"][:-1], w_ih=a["w_ih"][:, :-1]), "feature list does not match"),
+])
+def test_bad_model_files_are_input_errors(tmp_path, meta_change, arrays_change, needle):
+    good = save_sequence_model(_model(), tmp_path / "good.npz")
+    bad = _rewrite(good, tmp_path / "bad.npz", meta_change, arrays_change)
+    with pytest.raises(ModelFileError) as err:
+        load_model(bad)
+    assert isinstance(err.value, InputError) and needle in str(err.value) and str(bad) in str(err.value)
+
+
+def test_not_a_model_file(tmp_path):
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not a zip")
+    with pytest.raises(ModelFileError, match="not a vcfusion lane-change model file"):
+        load_model(junk)
+    with pytest.raises(ModelFileError, match="not a vcfusion lane-change model file"):
+        model_kind(junk)
