@@ -290,6 +290,45 @@ def project_twins(twins: TwinStates, camera: CameraView, min_z: float = 0.5) -> 
     return TwinProjection(anchor, np.asarray(anchor_z, float), gnss_range, box, np.asarray(face_z, float), in_view)
 
 
+def visible_boxes(proj: TwinProjection, grid: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """The part of each twin's expected box that nearer twins' expected boxes leave visible.
+
+    Returns (visible, anchor_hidden): (N, 4) the bounding box of the cells of a ``grid`` x ``grid``
+    raster of the expected box that no nearer twin (smaller face depth) covers -- the whole
+    expected box when nothing hides it, an empty box (zeros) when all of it is hidden -- and (N,)
+    whether the anchor lies inside a nearer twin's expected box. Twins out of view hide nothing.
+    """
+    e = proj.expected_box
+    n = len(e)
+    visible = e.copy()
+    anchor_hidden = np.zeros(n, bool)
+    if n < 2:
+        return visible, anchor_hidden
+    depth = np.where(proj.in_view, proj.face_z, np.inf)
+    t = (np.arange(grid) + 0.5) / grid
+    for i in np.flatnonzero(proj.in_view):
+        nearer = np.flatnonzero(depth < depth[i])
+        if len(nearer) == 0:
+            continue
+        k = nearer[(e[nearer, 0] < e[i, 2]) & (e[nearer, 2] > e[i, 0]) & (e[nearer, 1] < e[i, 3]) & (e[nearer, 3] > e[i, 1])]
+        if len(k) == 0:
+            continue
+        anchor_hidden[i] = bool(point_in_boxes(proj.anchor[i], e[k]).any())
+        us = e[i, 0] + t * (e[i, 2] - e[i, 0])
+        vs = e[i, 1] + t * (e[i, 3] - e[i, 1])
+        hid_u = (e[k, None, 0] <= us[None, :]) & (us[None, :] <= e[k, None, 2])  # (K, grid)
+        hid_v = (e[k, None, 1] <= vs[None, :]) & (vs[None, :] <= e[k, None, 3])
+        hidden = (hid_v[:, :, None] & hid_u[:, None, :]).any(axis=0)  # (grid v, grid u)
+        if hidden.all():
+            visible[i] = 0.0
+            continue
+        rows, cols = np.flatnonzero(~hidden.all(axis=1)), np.flatnonzero(~hidden.all(axis=0))
+        cu, cv = (e[i, 2] - e[i, 0]) / grid, (e[i, 3] - e[i, 1]) / grid
+        visible[i] = [e[i, 0] + cols[0] * cu, e[i, 1] + rows[0] * cv, e[i, 0] + (cols[-1] + 1) * cu,
+                      e[i, 1] + (rows[-1] + 1) * cv]
+    return visible, anchor_hidden
+
+
 # ---------------------------------------------------------------------------------------------
 # the per-frame drivers for all twins
 
@@ -419,13 +458,18 @@ class JointMatcher:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # all-nan rows (sky) give nan quantiles
                 depths = np.nanquantile(depths, DEPTH_QUANTILES, axis=1).T  # (D, 5)
-        iou = box_iou(proj.expected_box, b) if n and m else np.zeros((n, m))
+        # A partly hidden vehicle's box covers only its visible part, which may not hold its anchor
+        # (e.g. a car whose centre a nearer truck hides): the box is compared with the visible part
+        # of the twin's expected box too, and a hidden anchor is replaced by that part's centre.
+        visible, anchor_hidden = visible_boxes(proj)
+        iou = (np.maximum(box_iou(proj.expected_box, b), box_iou(visible, b)) if n and m else np.zeros((n, m)))
+        anchors = np.where(anchor_hidden[:, None], (visible[:, :2] + visible[:, 2:]) / 2, proj.anchor)
         anchor_dist = np.zeros((n, m))
         inside = np.zeros((n, m), bool)
         diag = np.hypot(b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]) if m else np.zeros(0)
         for i in range(n):
-            anchor_dist[i] = point_to_box_distance(proj.anchor[i], b) / np.maximum(diag, 1.0)
-            inside[i] = point_in_boxes(proj.anchor[i], b)
+            anchor_dist[i] = point_to_box_distance(anchors[i], b) / np.maximum(diag, 1.0)
+            inside[i] = point_in_boxes(anchors[i], b)
         expected = proj.face_z if p.face_offset else proj.anchor_z
         sigma = p.depth_sigma_rel * expected[:, None] + p.depth_sigma_abs_m
         with np.errstate(invalid="ignore"):
