@@ -31,8 +31,11 @@ Four matchers, from the paper's baseline to its future work:
 - :class:`JointMatcher` (better): all twins in view are assigned to boxes at once (Hungarian,
   ``scipy.optimize.linear_sum_assignment``) on a cost built from
   (a) the overlap between the box and the twin's expected box (its 3-D cuboid from the cloud's
-      position, heading, length, width, height, projected into the image),
-  (b) the anchor-to-box distance, and
+      position, heading, length, width, height, projected into the image), or the part of that
+      box that nearer twins' expected boxes leave visible (:func:`visible_boxes`), whichever is
+      larger: a box around the visible part of a partly hidden vehicle is its box,
+  (b) the anchor-to-box distance (for an anchor hidden behind a nearer twin, the distance of the
+      visible part's centre), and
   (c) the disagreement between the box's depth and the expected depth of the vehicle face the
       camera sees (GNSS point = body centre, records.gnss_antenna_points; the depth samples lie on the rear (or front) face,
       half a vehicle length nearer),
