@@ -296,11 +296,17 @@ def test_joint_matcher_matches_the_visible_sliver_of_a_car_a_nearer_truck_hides(
     proj = project_twins(twins, cam)
     assert box_iou(proj.expected_box[1:], sliver[None])[0, 0] < JointMatcherParams().overlap_gate
     assert not (sliver[0] <= proj.anchor[1, 0] <= sliver[2])  # the anchor is outside its box
-    visible, anchor_hidden = visible_boxes(proj)
+    visible, anchor_hidden, hidden_share = visible_boxes(proj)
     assert list(anchor_hidden) == [False, True]
+    assert hidden_share[0] == 0 and 0.9 < hidden_share[1] < 1
     np.testing.assert_allclose(visible[0], proj.expected_box[0])  # nothing hides the truck
     assert box_iou(visible[1:], sliver[None])[0, 0] > 0.5
     samples = np.array([np.full(30, 14.0), np.full(30, 37.75)])  # rear faces
     assert [int(g) for g in JointMatcher().match(twins, boxes, samples, cam)] == [0, 1]
+    # the mostly hidden car pays for its hidden share (a box wanted by it and a visible twin goes to
+    # the visible one); the truck, hidden by nothing, does not
+    cost, _ = JointMatcher().cost_matrix(proj, boxes, samples)
+    cost0, _ = JointMatcher(JointMatcherParams(w_hidden=0.0)).cost_matrix(proj, boxes, samples)
+    np.testing.assert_allclose(cost - cost0, np.repeat(hidden_share[:, None], 2, axis=1))
     # the sliver is not given to the car when the truck's box is the only box
     assert [int(g) for g in JointMatcher().match(twins, truck_box[None], samples[:1], cam)] == [0, NO_MATCH]

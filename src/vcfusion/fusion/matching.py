@@ -293,20 +293,22 @@ def project_twins(twins: TwinStates, camera: CameraView, min_z: float = 0.5) -> 
     return TwinProjection(anchor, np.asarray(anchor_z, float), gnss_range, box, np.asarray(face_z, float), in_view)
 
 
-def visible_boxes(proj: TwinProjection, grid: int = 16) -> tuple[np.ndarray, np.ndarray]:
+def visible_boxes(proj: TwinProjection, grid: int = 16) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The part of each twin's expected box that nearer twins' expected boxes leave visible.
 
-    Returns (visible, anchor_hidden): (N, 4) the bounding box of the cells of a ``grid`` x ``grid``
+    Returns (visible, anchor_hidden, hidden_share): (N, 4) the bounding box of the cells of a ``grid`` x ``grid``
     raster of the expected box that no nearer twin (smaller face depth) covers -- the whole
-    expected box when nothing hides it, an empty box (zeros) when all of it is hidden -- and (N,)
-    whether the anchor lies inside a nearer twin's expected box. Twins out of view hide nothing.
+    expected box when nothing hides it, an empty box (zeros) when all of it is hidden --, (N,)
+    whether the anchor lies inside a nearer twin's expected box, and (N,) the share of the cells
+    hidden. Twins out of view hide nothing.
     """
     e = proj.expected_box
     n = len(e)
     visible = e.copy()
     anchor_hidden = np.zeros(n, bool)
+    hidden_share = np.zeros(n)
     if n < 2:
-        return visible, anchor_hidden
+        return visible, anchor_hidden, hidden_share
     depth = np.where(proj.in_view, proj.face_z, np.inf)
     t = (np.arange(grid) + 0.5) / grid
     for i in np.flatnonzero(proj.in_view):
@@ -322,6 +324,7 @@ def visible_boxes(proj: TwinProjection, grid: int = 16) -> tuple[np.ndarray, np.
         hid_u = (e[k, None, 0] <= us[None, :]) & (us[None, :] <= e[k, None, 2])  # (K, grid)
         hid_v = (e[k, None, 1] <= vs[None, :]) & (vs[None, :] <= e[k, None, 3])
         hidden = (hid_v[:, :, None] & hid_u[:, None, :]).any(axis=0)  # (grid v, grid u)
+        hidden_share[i] = hidden.mean()
         if hidden.all():
             visible[i] = 0.0
             continue
@@ -329,7 +332,7 @@ def visible_boxes(proj: TwinProjection, grid: int = 16) -> tuple[np.ndarray, np.
         cu, cv = (e[i, 2] - e[i, 0]) / grid, (e[i, 3] - e[i, 1]) / grid
         visible[i] = [e[i, 0] + cols[0] * cu, e[i, 1] + rows[0] * cv, e[i, 0] + (cols[-1] + 1) * cu,
                       e[i, 1] + (rows[-1] + 1) * cv]
-    return visible, anchor_hidden
+    return visible, anchor_hidden, hidden_share
 
 
 # ---------------------------------------------------------------------------------------------
@@ -426,6 +429,7 @@ class JointMatcherParams:
     w_overlap: float = 1.0  # weight of (1 - IoU(expected box, box))
     w_anchor: float = 0.5  # weight of the anchor's distance outside the box (in box diagonals)
     w_depth: float = 1.0  # weight of the depth disagreement (in sigmas, capped at depth_gate)
+    w_hidden: float = 1.0  # weight of the share of the twin's expected box that nearer twins hide
     depth_sigma_rel: float = 0.05  # depth disagreement scale: rel * expected depth + abs
     depth_sigma_abs_m: float = 1.0
     depth_gate: float = 4.0  # pairs further apart than this many sigmas are not allowed
@@ -464,7 +468,7 @@ class JointMatcher:
         # A partly hidden vehicle's box covers only its visible part, which may not hold its anchor
         # (e.g. a car whose centre a nearer truck hides): the box is compared with the visible part
         # of the twin's expected box too, and a hidden anchor is replaced by that part's centre.
-        visible, anchor_hidden = visible_boxes(proj)
+        visible, anchor_hidden, hidden_share = visible_boxes(proj)
         iou = (np.maximum(box_iou(proj.expected_box, b), box_iou(visible, b)) if n and m else np.zeros((n, m)))
         anchors = np.where(anchor_hidden[:, None], (visible[:, :2] + visible[:, 2:]) / 2, proj.anchor)
         anchor_dist = np.zeros((n, m))
@@ -489,8 +493,10 @@ class JointMatcher:
         if n > 1 and m:
             depth_err = np.where(self._depth_of_nearer_twin(proj, b, depth_err, sigma),
                                  np.minimum(depth_err, p.depth_gate), depth_err)
+        # the more of a twin nearer twins hide, the less likely it has a box of its own: a box wanted
+        # by a mostly hidden twin and a visible one goes to the visible one
         cost = (p.w_overlap * (1.0 - iou) + p.w_anchor * np.minimum(anchor_dist, 1.0)
-                + p.w_depth * np.minimum(depth_err, p.depth_gate))
+                + p.w_depth * np.minimum(depth_err, p.depth_gate) + p.w_hidden * hidden_share[:, None])
         cost = np.nan_to_num(cost, nan=10.0, posinf=10.0)  # twins out of view (nan anchors) are gated below
         allowed = ((iou >= p.overlap_gate) | inside) & (depth_err <= p.depth_gate)
         allowed &= proj.in_view[:, None]
