@@ -49,6 +49,19 @@ def test_weights_file_round_trip_and_size(trained):
     assert not list(root.glob("*.tmp"))
 
 
+def test_fine_tuning_starts_from_the_given_weights(trained):
+    root, data, net, report = trained
+    common = dict(epochs=1, max_iterations=3, batch_size=8, input_wh=(96, 64), widths=(8, 16, 16, 32, 16),
+                  val_fraction=0.0, lr=1e-4, threads=2, progress=False, seed=1)
+    _, tuned = train_detector(data, root / "tuned.pt", init=root / "w.pt", **common)
+    _, fresh = train_detector(data, None, **common)
+    # the first iterations already have the trained model's low loss; from scratch they do not
+    assert np.mean(tuned.first_losses) < 0.5 * np.mean(fresh.first_losses)
+    assert DetectorModel.load(root / "tuned.pt").meta["init"] == "w.pt"
+    with pytest.raises(DetectorFileError, match="input_wh"):
+        train_detector(data, None, init=root / "w.pt", **{**common, "input_wh": (128, 64)})
+
+
 def test_onnx_through_opencv_equals_torch(trained):
     pytest.importorskip("onnx")
     root, data, net, _ = trained

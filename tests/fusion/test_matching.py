@@ -275,3 +275,38 @@ def test_joint_matcher_matches_a_far_vehicle_whose_lower_part_a_nearer_one_hides
     assert list(JointMatcher().match(alone, far_box[None], samples[1:], cam)) == [NO_MATCH]
     # the near twin's own box is never explained away: with only that box the far twin gets nothing
     assert [int(g) for g in JointMatcher().match(twins, near_box[None], samples[:1], cam)] == [0, NO_MATCH]
+
+
+def test_joint_matcher_matches_the_visible_sliver_of_a_car_a_nearer_truck_hides():
+    """A car 40 m ahead in the next lane, all but its left edge hidden behind a truck 20 m ahead:
+    its box is the visible sliver (under 5 % of its expected box; its anchor, the body centre,
+    lies behind the truck). Compared with the whole expected box the sliver is gated out (the
+    matcher before the visible-cuboid term left the car unmatched); compared with the part of the
+    expected box that the truck's leaves visible, it is the car's."""
+    from vcfusion.fusion.matching import visible_boxes
+
+    cam = pinhole_camera()
+    twins = make_twins(["truck", "car"], [20.0, 40.0], [0.0, 2.56], length=[12.0, 4.5], width=[2.5, 1.8],
+                       height=[3.6, 1.5], z_ground=[-1.8, -0.75])
+    truck_box = vehicle_box(cam, 20.0, 0.0, length=12.0, width=2.5, height=3.6)
+    car_full = vehicle_box(cam, 40.0, 2.56)
+    sliver = np.array([car_full[0], car_full[1], truck_box[0], car_full[3]])  # left of the truck
+    assert 0 < sliver[2] - sliver[0] < 0.05 * (car_full[2] - car_full[0])
+    boxes = np.stack([truck_box, sliver])
+    proj = project_twins(twins, cam)
+    assert box_iou(proj.expected_box[1:], sliver[None])[0, 0] < JointMatcherParams().overlap_gate
+    assert not (sliver[0] <= proj.anchor[1, 0] <= sliver[2])  # the anchor is outside its box
+    visible, anchor_hidden, hidden_share = visible_boxes(proj)
+    assert list(anchor_hidden) == [False, True]
+    assert hidden_share[0] == 0 and 0.9 < hidden_share[1] < 1
+    np.testing.assert_allclose(visible[0], proj.expected_box[0])  # nothing hides the truck
+    assert box_iou(visible[1:], sliver[None])[0, 0] > 0.5
+    samples = np.array([np.full(30, 14.0), np.full(30, 37.75)])  # rear faces
+    assert [int(g) for g in JointMatcher().match(twins, boxes, samples, cam)] == [0, 1]
+    # the mostly hidden car pays for its hidden share (a box wanted by it and a visible twin goes to
+    # the visible one); the truck, hidden by nothing, does not
+    cost, _ = JointMatcher().cost_matrix(proj, boxes, samples)
+    cost0, _ = JointMatcher(JointMatcherParams(w_hidden=0.0)).cost_matrix(proj, boxes, samples)
+    np.testing.assert_allclose(cost - cost0, np.repeat(hidden_share[:, None], 2, axis=1))
+    # the sliver is not given to the car when the truck's box is the only box
+    assert [int(g) for g in JointMatcher().match(twins, truck_box[None], samples[:1], cam)] == [0, NO_MATCH]

@@ -34,7 +34,7 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
         args.data, args.out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, input_wh=input_wh,
         val_fraction=args.val_fraction, val_data=args.val, seed=args.seed, threads=args.threads,
         device=args.device, progress=sys.stderr.isatty(), max_iterations=args.iterations,
-        min_train_area=args.min_train_area, eval_min_area=args.min_area)
+        min_train_area=args.min_train_area, eval_min_area=args.min_area, init=args.init)
     size_mb = Path(args.out).stat().st_size / 2**20
     print(f"trained {report.iterations} iterations ({report.epochs} epochs) on {report.n_train} images "
           f"in {report.wall_s:.0f} s; loss {report.first_losses[0]:.3f} -> {report.loss_history[-1]:.3f}")
@@ -158,6 +158,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--val", nargs="+", help="held-out COCO folder(s) (e.g. other seeds); default: --val-fraction of DATA")
     p.add_argument("--val-fraction", type=float, default=0.1)
     p.add_argument("--epochs", type=int, default=20)
+    p.add_argument("--init", help="weights file to fine-tune from (same categories, input size and widths)")
     p.add_argument("--iterations", type=int, default=None, help="stop after this many iterations")
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--lr", type=float, default=2e-3)

@@ -223,9 +223,11 @@ def train_detector(
     input_wh: tuple[int, int] = (320, 240), widths: tuple[int, ...] = (16, 32, 64, 128, 64),
     val_fraction: float = 0.1, val_data=None, seed: int = 0, threads: int = 2, device: str = "auto",
     progress: bool = True, max_iterations: int | None = None, min_train_area: float = 16.0,
-    eval_min_area: float = 100.0,
+    eval_min_area: float = 100.0, init=None,
 ) -> tuple[DetectorModel, TrainReport]:
-    """Train on the COCO folder(s) ``data``; write the weights atomically to ``out`` if given."""
+    """Train on the COCO folder(s) ``data``; write the weights atomically to ``out`` if given.
+    ``init``: a weights file to start from (fine-tuning) instead of random weights; its categories,
+    input size and layer widths must equal this run's."""
     if input_wh[0] % 16 or input_wh[1] % 16:
         raise ValueError(f"input size: expected width and height multiples of 16, got {input_wh}")
     started = time.perf_counter()
@@ -254,7 +256,16 @@ def train_detector(
     images, boxes = _cache(train_ds, input_wh, "load train", progress)
     classes = [np.array([cls_index[int(c)] for c in cs], np.int64) for cs in train_ds.classes]
 
-    model = CenterNetLite(len(ds.class_ids), tuple(widths[:4]), widths[4]).to(device)
+    if init is not None:
+        base = DetectorModel.load(init)
+        for what, theirs, ours in (("class_ids", base.class_ids, ds.class_ids),
+                                   ("input_wh", tuple(base.input_wh), tuple(input_wh)),
+                                   ("widths", tuple(base.widths), tuple(widths))):
+            if theirs != ours:
+                raise DetectorFileError(f"{init}: {what}: expected {ours} (this training run's), got {theirs}")
+        model = base.model.to(device)
+    else:
+        model = CenterNetLite(len(ds.class_ids), tuple(widths[:4]), widths[4]).to(device)
     n = len(images)
     steps_per_epoch = max(1, math.ceil(n / batch_size))
     total_steps = epochs * steps_per_epoch if max_iterations is None else min(max_iterations, epochs * steps_per_epoch)
@@ -309,7 +320,7 @@ def train_detector(
                          len(train_ds), 0 if val_ds is None else len(val_ds))
     data_list = [data] if isinstance(data, (str, Path)) else list(data)
     net.meta = {"train_data": [str(Path(d).resolve()) for d in data_list], "epochs": report.epochs, "iterations": step,
-                "seed": seed, "final_loss": history[-1] if history else None, "n_train": report.n_train,
+                "seed": seed, "init": None if init is None else Path(init).name, "final_loss": history[-1] if history else None, "n_train": report.n_train,
                 "min_train_area": min_train_area, "eval_min_area": eval_min_area,
                 "n_val": report.n_val, "val_map_50": None if val is None else val.map_50,
                 "val_map_50_95": None if val is None else val.map_50_95}

@@ -31,8 +31,11 @@ Four matchers, from the paper's baseline to its future work:
 - :class:`JointMatcher` (better): all twins in view are assigned to boxes at once (Hungarian,
   ``scipy.optimize.linear_sum_assignment``) on a cost built from
   (a) the overlap between the box and the twin's expected box (its 3-D cuboid from the cloud's
-      position, heading, length, width, height, projected into the image),
-  (b) the anchor-to-box distance, and
+      position, heading, length, width, height, projected into the image), or the part of that
+      box that nearer twins' expected boxes leave visible (:func:`visible_boxes`), whichever is
+      larger: a box around the visible part of a partly hidden vehicle is its box,
+  (b) the anchor-to-box distance (for an anchor hidden behind a nearer twin, the distance of the
+      visible part's centre), and
   (c) the disagreement between the box's depth and the expected depth of the vehicle face the
       camera sees (GNSS point = body centre, records.gnss_antenna_points; the depth samples lie on the rear (or front) face,
       half a vehicle length nearer),
@@ -290,6 +293,48 @@ def project_twins(twins: TwinStates, camera: CameraView, min_z: float = 0.5) -> 
     return TwinProjection(anchor, np.asarray(anchor_z, float), gnss_range, box, np.asarray(face_z, float), in_view)
 
 
+def visible_boxes(proj: TwinProjection, grid: int = 16) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The part of each twin's expected box that nearer twins' expected boxes leave visible.
+
+    Returns (visible, anchor_hidden, hidden_share): (N, 4) the bounding box of the cells of a ``grid`` x ``grid``
+    raster of the expected box that no nearer twin (smaller face depth) covers -- the whole
+    expected box when nothing hides it, an empty box (zeros) when all of it is hidden --, (N,)
+    whether the anchor lies inside a nearer twin's expected box, and (N,) the share of the cells
+    hidden. Twins out of view hide nothing.
+    """
+    e = proj.expected_box
+    n = len(e)
+    visible = e.copy()
+    anchor_hidden = np.zeros(n, bool)
+    hidden_share = np.zeros(n)
+    if n < 2:
+        return visible, anchor_hidden, hidden_share
+    depth = np.where(proj.in_view, proj.face_z, np.inf)
+    t = (np.arange(grid) + 0.5) / grid
+    for i in np.flatnonzero(proj.in_view):
+        nearer = np.flatnonzero(depth < depth[i])
+        if len(nearer) == 0:
+            continue
+        k = nearer[(e[nearer, 0] < e[i, 2]) & (e[nearer, 2] > e[i, 0]) & (e[nearer, 1] < e[i, 3]) & (e[nearer, 3] > e[i, 1])]
+        if len(k) == 0:
+            continue
+        anchor_hidden[i] = bool(point_in_boxes(proj.anchor[i], e[k]).any())
+        us = e[i, 0] + t * (e[i, 2] - e[i, 0])
+        vs = e[i, 1] + t * (e[i, 3] - e[i, 1])
+        hid_u = (e[k, None, 0] <= us[None, :]) & (us[None, :] <= e[k, None, 2])  # (K, grid)
+        hid_v = (e[k, None, 1] <= vs[None, :]) & (vs[None, :] <= e[k, None, 3])
+        hidden = (hid_v[:, :, None] & hid_u[:, None, :]).any(axis=0)  # (grid v, grid u)
+        hidden_share[i] = hidden.mean()
+        if hidden.all():
+            visible[i] = 0.0
+            continue
+        rows, cols = np.flatnonzero(~hidden.all(axis=1)), np.flatnonzero(~hidden.all(axis=0))
+        cu, cv = (e[i, 2] - e[i, 0]) / grid, (e[i, 3] - e[i, 1]) / grid
+        visible[i] = [e[i, 0] + cols[0] * cu, e[i, 1] + rows[0] * cv, e[i, 0] + (cols[-1] + 1) * cu,
+                      e[i, 1] + (rows[-1] + 1) * cv]
+    return visible, anchor_hidden, hidden_share
+
+
 # ---------------------------------------------------------------------------------------------
 # the per-frame drivers for all twins
 
@@ -384,6 +429,7 @@ class JointMatcherParams:
     w_overlap: float = 1.0  # weight of (1 - IoU(expected box, box))
     w_anchor: float = 0.5  # weight of the anchor's distance outside the box (in box diagonals)
     w_depth: float = 1.0  # weight of the depth disagreement (in sigmas, capped at depth_gate)
+    w_hidden: float = 1.0  # weight of the share of the twin's expected box that nearer twins hide
     depth_sigma_rel: float = 0.05  # depth disagreement scale: rel * expected depth + abs
     depth_sigma_abs_m: float = 1.0
     depth_gate: float = 4.0  # pairs further apart than this many sigmas are not allowed
@@ -419,13 +465,18 @@ class JointMatcher:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # all-nan rows (sky) give nan quantiles
                 depths = np.nanquantile(depths, DEPTH_QUANTILES, axis=1).T  # (D, 5)
-        iou = box_iou(proj.expected_box, b) if n and m else np.zeros((n, m))
+        # A partly hidden vehicle's box covers only its visible part, which may not hold its anchor
+        # (e.g. a car whose centre a nearer truck hides): the box is compared with the visible part
+        # of the twin's expected box too, and a hidden anchor is replaced by that part's centre.
+        visible, anchor_hidden, hidden_share = visible_boxes(proj)
+        iou = (np.maximum(box_iou(proj.expected_box, b), box_iou(visible, b)) if n and m else np.zeros((n, m)))
+        anchors = np.where(anchor_hidden[:, None], (visible[:, :2] + visible[:, 2:]) / 2, proj.anchor)
         anchor_dist = np.zeros((n, m))
         inside = np.zeros((n, m), bool)
         diag = np.hypot(b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]) if m else np.zeros(0)
         for i in range(n):
-            anchor_dist[i] = point_to_box_distance(proj.anchor[i], b) / np.maximum(diag, 1.0)
-            inside[i] = point_in_boxes(proj.anchor[i], b)
+            anchor_dist[i] = point_to_box_distance(anchors[i], b) / np.maximum(diag, 1.0)
+            inside[i] = point_in_boxes(anchors[i], b)
         expected = proj.face_z if p.face_offset else proj.anchor_z
         sigma = p.depth_sigma_rel * expected[:, None] + p.depth_sigma_abs_m
         with np.errstate(invalid="ignore"):
@@ -442,8 +493,10 @@ class JointMatcher:
         if n > 1 and m:
             depth_err = np.where(self._depth_of_nearer_twin(proj, b, depth_err, sigma),
                                  np.minimum(depth_err, p.depth_gate), depth_err)
+        # the more of a twin nearer twins hide, the less likely it has a box of its own: a box wanted
+        # by a mostly hidden twin and a visible one goes to the visible one
         cost = (p.w_overlap * (1.0 - iou) + p.w_anchor * np.minimum(anchor_dist, 1.0)
-                + p.w_depth * np.minimum(depth_err, p.depth_gate))
+                + p.w_depth * np.minimum(depth_err, p.depth_gate) + p.w_hidden * hidden_share[:, None])
         cost = np.nan_to_num(cost, nan=10.0, posinf=10.0)  # twins out of view (nan anchors) are gated below
         allowed = ((iou >= p.overlap_gate) | inside) & (depth_err <= p.depth_gate)
         allowed &= proj.in_view[:, None]
