@@ -250,7 +250,7 @@ class CoSimulation:
         for stage in self.stages():
             _finish(stage, tables, summary)
         if sc.metrics.enabled:  # per-vehicle safety, comfort and emissions (vcfusion.metrics)
-            summary["metrics"] = add_run_metrics(sc, tables, tripinfo, session.emission_classes)
+            summary["metrics"] = add_run_metrics(sc, tables, session)
         return RunResult(sc, self.seed, tables, summary, wallclock.perf_counter() - started, loop_wall)
 
     def _loop(self, session: SumoSession, sinks: dict[str, TableSink], progress: bool) -> dict:

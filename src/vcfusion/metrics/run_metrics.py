@@ -18,7 +18,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from vcfusion.metrics.sumo_emissions import read_tripinfo_emissions
+from vcfusion.metrics.sumo_emissions import emission_table
 from vcfusion.runio import write_json
 from vcfusion.metrics.traffic import (EGO_ID, HEADWAY_EDGES, MOVESTAR_KEYS, SUMO_KEYS, TTC_EDGES, RunMetrics,
                                       compute_run_metrics, histogram_percentile)
@@ -36,10 +36,10 @@ EGO_KEYS = {  # summary key -> metrics.parquet column
 }
 
 
-def add_run_metrics(scenario, tables, tripinfo_file: Path, emission_classes: dict[str, str]) -> dict:
-    """At the end of a run: SUMO's totals from its tripinfo, the metric tables into `tables`
-    (a RunTables), the summary block back."""
-    sumo = read_tripinfo_emissions(tripinfo_file, emission_classes)
+def add_run_metrics(scenario, tables, session) -> dict:
+    """At the end of a run (`session`: its closed SumoSession): SUMO's totals from its tripinfo and
+    its parked vehicles, the metric tables into `tables` (a RunTables), the summary block back."""
+    sumo = emission_table(session.tripinfo_file, session.parked_emissions, session.emission_classes)
     tables.add_arrow("sumo_emissions", sumo)
     sim = scenario.simulation
     ego = tables.arrow("ego", ["time", "s", "speed"]) if scenario.ego is not None else None

@@ -6,8 +6,13 @@ carry SUMO's emissions device (SumoSession); their trip totals come from SUMO's 
 included). SUMO's device adds each step after the insertion step at the step's mean speed over
 the time the vehicle moved; SUMO's per-step `--emission-output` rates the speed at the step's
 end (and also lists the insertion step): the two agree within 0.5 % per vehicle in free flow,
-1 % in stop-and-go and 0.2 % over all vehicles (tests/metrics). A vehicle parked at a stop
-(the accident vehicles) is counted by the device for one idle step only.
+1 % in stop-and-go and 0.2 % over all vehicles (tests/metrics).
+
+The parked accident vehicles (of a type no moving vehicle has) carry no device: SUMO rates a
+stopped vehicle the same every step (0 by its models, after the insertion step's idle value), so
+SumoSession reads their per-step values at the insertion step and at the end and sums them over
+the steps: exactly the sum of the emission output. When no moving vehicle is rated, SUMO writes
+no tripinfo at all (its per-step cost is the largest part of the metrics'; docs/performance.md).
 
 SUMO writes mg (fuel in mg since SUMO 1.14) and Wh; the table here is in grams and Wh.
 """
@@ -26,9 +31,24 @@ COLUMNS = ["vehicle_id", "vtype", "emission_class", "depart_s", "duration_s", "r
            *POLLUTANT_COLUMNS.values(), "electricity_wh"]
 
 
+def emission_table(tripinfo_file: Path | None, parked: list[tuple], emission_classes: dict[str, str]) -> pa.Table:
+    """The run's sumo_emissions table: the tripinfo file's vehicles (None: no file) and the parked
+    vehicles' rows (SumoSession.parked_emissions: id, vType, depart, duration, distance, then the
+    totals in mg and Wh), sorted by vehicle id."""
+    rows = _tripinfo_rows(tripinfo_file, emission_classes) if tripinfo_file is not None else []
+    rows += [(vid, vtype, emission_classes.get(vtype, ""), depart, duration, distance,
+              *(x / 1000.0 for x in totals[:-1]), totals[-1])
+             for vid, vtype, depart, duration, distance, *totals in parked]
+    return _table(rows)
+
+
 def read_tripinfo_emissions(tripinfo_file: Path, emission_classes: dict[str, str]) -> pa.Table:
-    """One row per vehicle SUMO inserted: its emission class (by vType) and emission totals,
-    sorted by vehicle id. (Arrow built from plain lists: this runs at the end of every run.)"""
+    """One row per vehicle of the tripinfo file: its emission class (by vType) and emission totals,
+    sorted by vehicle id."""
+    return _table(_tripinfo_rows(tripinfo_file, emission_classes))
+
+
+def _tripinfo_rows(tripinfo_file: Path, emission_classes: dict[str, str]) -> list[tuple]:
     rows = []
     for trip in ET.parse(tripinfo_file).getroot().iter("tripinfo"):
         em = trip.find("emissions")
@@ -40,6 +60,11 @@ def read_tripinfo_emissions(tripinfo_file: Path, emission_classes: dict[str, str
                      float(trip.get("duration")), float(trip.get("routeLength")),
                      *(float(em.get(attr)) / 1000.0 for attr in POLLUTANT_COLUMNS),
                      float(em.get("electricity_abs"))))
+    return rows
+
+
+def _table(rows: list[tuple]) -> pa.Table:
+    """(Arrow built from plain lists: this runs at the end of every run.)"""
     rows.sort(key=lambda row: row[0])  # stable
     values = list(zip(*rows)) if rows else [()] * len(COLUMNS)
     return pa.table({name: pa.array(column, type=pa.string() if i < 3 else pa.float64())

@@ -151,8 +151,10 @@ class SumoSession:
     def __init__(self, scenario: Scenario, seed: int, lanechange_file: Path, rng: np.random.Generator,
                  extra_sumo_args: list[str] | None = None,
                  emissions: tuple[Path, Callable[[str, str], bool]] | None = None):
-        """`emissions`: (tripinfo file, rated(vtype, vclass)): SUMO's emissions device on the vehicles
-        whose type `rated` names, their trip totals written to the tripinfo file (the metrics)."""
+        """`emissions`: (tripinfo file, rated(vtype, vclass)): SUMO's emission model on the vehicles
+        whose type `rated` names (the metrics). Moving vehicles carry SUMO's emissions device, their
+        trip totals written to the tripinfo file (`tripinfo_file`; None when no moving vehicle is
+        rated); the parked accident vehicles are rated without it (`parked_emissions`, at close)."""
         self.scenario = scenario
         self.seed = seed
         self.road = read_road(scenario.network, scenario.route)
@@ -167,6 +169,12 @@ class SumoSession:
         self.placements = plan_placements(scenario, self.road, self.vtypes, rng)
         self._emission_types: list[str] = []
         self._untracked_types: list[str] = []  # vTypes without a tripinfo device (see _emission_args)
+        self.tripinfo_file: Path | None = None
+        # parked accident vehicles SUMO's model rates: id -> (vtype, rates at their insertion step)
+        self._parked_rated: dict[str, tuple[str, tuple[float, ...]]] = {}
+        self._steps = 0  # SUMO steps taken (a parked vehicle is on the road from the first)
+        # their rows of the sumo_emissions table (SUMO's units), filled by close()
+        self.parked_emissions: list[tuple] = []
         self.sumo_args = [
             "sumo",
             "--net-file", str(scenario.network),
@@ -204,10 +212,23 @@ class SumoSession:
         # costs more than the rest of the metrics when every vehicle has it. Not by
         # --device.emissions.explicit: libsumo keeps the first run's list for the process's later runs.
         sc = self.scenario
-        used = {g.vtype for g in sc.vehicles} | {f.vtype for f in sc.flows}
-        used |= {sc.accident.vtype} if sc.accident else set()
-        used |= {sc.ego.vtype} if sc.ego else set()
-        self._emission_types = sorted(vt for vt in used if rated(vt, self.vtypes[vt].get("vClass", "passenger")))
+        moving = {g.vtype for g in sc.vehicles} | {f.vtype for f in sc.flows}
+        moving |= {sc.ego.vtype} if sc.ego else set()
+
+        def rates(vt: str) -> bool:
+            return rated(vt, self.vtypes[vt].get("vClass", "passenger"))
+
+        self._emission_types = sorted(vt for vt in moving if rates(vt))
+        if sc.accident is not None and rates(sc.accident.vtype) and sc.accident.vtype not in moving:
+            # Parked from their insertion to the run's end: SUMO rates a stopped vehicle the same every
+            # step, so two reads give its totals; the device and the tripinfo output would cost every
+            # step (SUMO looks the output up by option name and flushes it each step: ~10,000
+            # instructions, ~2.5 % of a 0.01-s step of the accident scenario). (A type that also moves
+            # carries the device; its parked vehicles then come from the tripinfo file as well.)
+            self._parked_rated = {f"accident{i}": (sc.accident.vtype, ()) for i in range(len(sc.accident.lanes))}
+        if not self._emission_types:
+            return []  # no moving vehicle rated: no device, no tripinfo output
+        self.tripinfo_file = tripinfo
         # the tripinfo device only where the emissions device is: the file is read for their totals
         # alone, and a device on every vehicle costs SUMO every step
         self._untracked_types = sorted(self.vtypes.keys() - set(self._emission_types))
@@ -249,6 +270,12 @@ class SumoSession:
             if p.desired_speed_mps is not None:
                 libsumo.vehicle.setMaxSpeed(p.vehicle_id, p.desired_speed_mps)
         self.step()
+        if self._parked_rated:  # their insertion step's rates (the sum below counts from this step)
+            on_road = set(libsumo.vehicle.getIDList())
+            for vid, (vtype, _) in self._parked_rated.items():
+                if vid not in on_road:
+                    raise RunError(f"SUMO could not insert the accident vehicle {vid} at its position")
+                self._parked_rated[vid] = (vtype, _emission_rates(vid))
         if sc.ego is not None:
             if EGO_ID not in libsumo.vehicle.getIDList():
                 raise RunError("the ego could not be inserted at its departure position")
@@ -263,6 +290,7 @@ class SumoSession:
     # -- stepping -----------------------------------------------------------------------
     def step(self) -> None:
         libsumo.simulationStep()
+        self._steps += 1
         # SUMO's outputs (fcd, lanechange, collisions) label the state after a step with the time
         # the step began; getTime() already returns the next one. Stamp like the outputs.
         self.time = round(libsumo.simulation.getTime() - self.step_s, 9)
@@ -365,14 +393,43 @@ class SumoSession:
 
     def close(self) -> None:
         if self._open:
-            libsumo.close()
-            self._open = False
+            try:
+                if self._parked_rated and all(rates for _, rates in self._parked_rated.values()):
+                    self.parked_emissions = self._parked_totals()
+            finally:
+                libsumo.close()
+                self._open = False
+
+    def _parked_totals(self) -> list[tuple]:
+        """The parked rated vehicles' rows of the sumo_emissions table: SUMO's per-step values (what
+        its --emission-output writes) summed over the run, in SUMO's units (mg, Wh). A stopped
+        vehicle's values are the same every step after its insertion step, so the sum is the
+        insertion step's plus the steps since times now (SUMO rates it 0 while stopped)."""
+        v = libsumo.vehicle
+        on_road = set(v.getIDList())
+        end = libsumo.simulation.getTime()  # the time after the last step, as tripinfo's duration
+        rows = []
+        for vid, (vtype, first) in self._parked_rated.items():
+            if vid not in on_road or not v.isStopped(vid):
+                raise RunError(f"the accident vehicle {vid} left its stop: its emissions were rated as parked")
+            now = _emission_rates(vid)
+            totals = [(a + b * (self._steps - 1)) * self.step_s for a, b in zip(first, now)]
+            rows.append((vid, vtype, 0.0, end, v.getDistance(vid), *totals))
+        return rows
 
     def __enter__(self) -> "SumoSession":
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _emission_rates(vid: str) -> tuple[float, ...]:
+    """SUMO's emission model on a vehicle in the last step: CO, CO2, HC, NOx, PMx, fuel (mg/s) and
+    electricity (Wh/s), the order of the sumo_emissions table's columns."""
+    v = libsumo.vehicle
+    return (v.getCOEmission(vid), v.getCO2Emission(vid), v.getHCEmission(vid), v.getNOxEmission(vid),
+            v.getPMxEmission(vid), v.getFuelConsumption(vid), v.getElectricityConsumption(vid))
 
 
 def sumo_version() -> str:
