@@ -42,13 +42,8 @@ def emission_table(tripinfo_file: Path | None, parked: list[tuple], emission_cla
     return _table(rows)
 
 
-def read_tripinfo_emissions(tripinfo_file: Path, emission_classes: dict[str, str]) -> pa.Table:
-    """One row per vehicle of the tripinfo file: its emission class (by vType) and emission totals,
-    sorted by vehicle id."""
-    return _table(_tripinfo_rows(tripinfo_file, emission_classes))
-
-
 def _tripinfo_rows(tripinfo_file: Path, emission_classes: dict[str, str]) -> list[tuple]:
+    """One row per vehicle of the tripinfo file: its emission class (by vType) and totals (g, Wh)."""
     rows = []
     for trip in ET.parse(tripinfo_file).getroot().iter("tripinfo"):
         em = trip.find("emissions")
