@@ -133,3 +133,34 @@ def test_not_a_model_file(tmp_path):
         load_model(junk)
     with pytest.raises(ModelFileError, match="not a vcfusion lane-change model file"):
         model_kind(junk)
+
+
+def test_decision_tuning_meets_the_false_alarm_budget_it_is_given():
+    """tune_decisions / choose_default keep the validation false alarms within the budget passed
+    (the GRU's training passes SequenceConfig.false_alarm_budget, below the 2 / veh-h target)."""
+    from vcfusion.prediction.train import MAX_FALSE_ALARMS_PER_VH, choose_default, tune_decisions
+    from vcfusion.prediction.train_sequence import SequenceConfig
+
+    ticks, n = 1000, 50  # 100 s tracks at 0.1 s: 1.39 vehicle-hours
+    t = np.arange(ticks) * 0.1
+    stream = pd.DataFrame({"seed": 0, "vehicle_id": np.repeat([f"v{i:02d}" for i in range(n)], ticks),
+                           "time": np.tile(t, n)})
+    prob = np.full((n, ticks), 0.02)
+    bumps = np.linspace(0.30, 0.95, n // 2)  # one spurious bump per vehicle that keeps its lane
+    for i, h in enumerate(bumps):
+        prob[i, 300:320] = h
+    prob[n // 2:, 740:800] = np.linspace(0.30, 0.99, 60)  # the others change lanes, ending at 80 s:
+    events = pd.DataFrame({"seed": 0, "event_id": range(n // 2), "vehicle_id": [f"v{i:02d}" for i in range(n // 2, n)],
+                           "end": 80.0, "mid": 78.5})  # a lower threshold warns earlier
+    chosen = {}
+    for budget in (MAX_FALSE_ALARMS_PER_VH, 0.5):
+        tuned = tune_decisions(prob.ravel(), stream, events, 0.1, 10.0, max_false_alarms=budget)
+        for method, setting in tuned.items():
+            assert setting["validation"]["false_alarms_per_vehicle_hour"] <= budget, (budget, method)
+            assert setting["validation"]["predicted_share"] == 1.0
+        assert tuned[choose_default(tuned, budget)]["validation"]["false_alarms_per_vehicle_hour"] <= budget
+        chosen[budget] = tuned["none"]["threshold"]
+    # 2 / veh-h allows 2 of the 25 bumps (the lowest threshold above the third-highest, 0.896),
+    # 0.5 / veh-h none of them (the highest bump is 0.95, and a decision is prob > threshold)
+    assert chosen == {MAX_FALSE_ALARMS_PER_VH: 0.90, 0.5: 0.95}
+    assert SequenceConfig().false_alarm_budget < MAX_FALSE_ALARMS_PER_VH  # the margin the shipped GRU is tuned with

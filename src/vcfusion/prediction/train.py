@@ -179,11 +179,12 @@ def combined_stream(infos: list[DatasetInfo], split: str, columns: list[str] | N
 
 
 def tune_decisions(prob: np.ndarray, stream: pd.DataFrame, events: pd.DataFrame, period_s: float,
-                   horizon_s: float, conservative_threshold: float = 0.5) -> dict:
+                   horizon_s: float, conservative_threshold: float = 0.5,
+                   max_false_alarms: float = MAX_FALSE_ALARMS_PER_VH) -> dict:
     """Pick threshold / tau_a / tau_c on a validation stream.
 
     For each smoothing and each tau, the lowest threshold of THRESHOLDS with at most
-    MAX_FALSE_ALARMS_PER_VH false alarms per vehicle-hour (found by bisection: raising the
+    `max_false_alarms` false alarms per vehicle-hour (found by bisection: raising the
     threshold only removes positive decisions, so false alarms fall and the share predicted
     falls with it); then, over the taus, the setting predicting the most lane changes (ties:
     larger mean advance). If no setting meets the bound, the one with the fewest false alarms.
@@ -203,7 +204,7 @@ def tune_decisions(prob: np.ndarray, stream: pd.DataFrame, events: pd.DataFrame,
                     cache[i] = event_scores(stream, dec, events, period_s, horizon_s, bounds)[0]
                 return cache[i]
 
-            ok = lambda i: score(i)["false_alarms_per_vehicle_hour"] <= MAX_FALSE_ALARMS_PER_VH  # noqa: E731
+            ok = lambda i: score(i)["false_alarms_per_vehicle_hour"] <= max_false_alarms  # noqa: E731
             lo, hi = 0, len(THRESHOLDS) - 1
             if ok(lo):
                 hi = lo
@@ -215,7 +216,7 @@ def tune_decisions(prob: np.ndarray, stream: pd.DataFrame, events: pd.DataFrame,
                     else:
                         lo = mid
             candidates += [(THRESHOLDS[i], tau, summary) for i, summary in cache.items()]
-        ok_c = [c for c in candidates if c[2]["false_alarms_per_vehicle_hour"] <= MAX_FALSE_ALARMS_PER_VH]
+        ok_c = [c for c in candidates if c[2]["false_alarms_per_vehicle_hour"] <= max_false_alarms]
         if ok_c:
             thr, tau, summary = max(ok_c, key=lambda c: (c[2]["predicted_share"], c[2]["advance_final_mean_s"]))
         else:
@@ -225,12 +226,12 @@ def tune_decisions(prob: np.ndarray, stream: pd.DataFrame, events: pd.DataFrame,
     return best
 
 
-def choose_default(tuned: dict) -> str:
+def choose_default(tuned: dict, max_false_alarms: float = MAX_FALSE_ALARMS_PER_VH) -> str:
     """The smoothing a model file makes default: among the variants that meet the false-alarm bound
     on validation, the one predicting most lane changes; if none meets it, the one with the fewest
     false alarms. Ties go to the aggressive variant (the paper's choice)."""
     order = ("aggressive", "conservative", "none")
-    ok = [m for m in order if tuned[m]["validation"]["false_alarms_per_vehicle_hour"] <= MAX_FALSE_ALARMS_PER_VH]
+    ok = [m for m in order if tuned[m]["validation"]["false_alarms_per_vehicle_hour"] <= max_false_alarms]
     if ok:
         return max(ok, key=lambda m: (tuned[m]["validation"]["predicted_share"], -order.index(m)))
     return min(order, key=lambda m: (tuned[m]["validation"]["false_alarms_per_vehicle_hour"], order.index(m)))
