@@ -9,7 +9,8 @@ import pytest
 from support.synthetic_coco import make_synthetic_coco
 from vcfusion.detection.detector_net import (DetectorFileError, DetectorModel, OnnxDetector, PostParams,
                                           TorchDetector, export_onnx)
-from vcfusion.detection.detector_train import evaluate_detector, load_coco, read_rgb, train_detector
+from vcfusion.detection.detector_train import (checkpoint_path, evaluate_detector, load_coco, read_rgb,
+                                               train_detector)
 from vcfusion.fusion.matching import box_iou
 
 
@@ -19,7 +20,7 @@ def trained(tmp_path_factory):
     data = make_synthetic_coco(root / "data", n_images=32, size=(96, 64), seed=0)
     net, report = train_detector(data, root / "w.pt", epochs=100, max_iterations=60, batch_size=8,
                                  input_wh=(96, 64), widths=(8, 16, 16, 32, 16), val_fraction=0.0, lr=1e-2,
-                                 threads=2, progress=False, seed=0)
+                                 threads=2, progress=False, seed=0, checkpoint_every=25)
     return root, data, net, report
 
 
@@ -47,6 +48,21 @@ def test_weights_file_round_trip_and_size(trained):
     np.testing.assert_array_equal(TorchDetector(loaded).dense(image), TorchDetector(net).dense(image))
     assert (root / "w.pt").stat().st_size < 10 * 2**20
     assert not list(root.glob("*.tmp"))
+
+
+def test_checkpoints_are_written_along_the_way(trained):
+    root, data, net, _ = trained
+    assert checkpoint_path(root / "w.pt", 25) == root / "w.it0025.pt"
+    # every 25 of 60 iterations; the last iteration is the --out file itself
+    assert sorted(p.name for p in root.glob("w.it*.pt")) == ["w.it0025.pt", "w.it0050.pt"]
+    image = read_rgb(load_coco(data).images[3])
+    final = TorchDetector(net).dense(image)
+    for step in (25, 50):
+        saved = DetectorModel.load(checkpoint_path(root / "w.pt", step))
+        assert saved.meta["iterations"] == step
+        assert not np.allclose(TorchDetector(saved).dense(image), final)  # an earlier state, not a copy
+    with pytest.raises(ValueError, match="checkpoint_every"):
+        train_detector(data, None, checkpoint_every=10, epochs=1, input_wh=(96, 64), progress=False)
 
 
 def test_fine_tuning_starts_from_the_given_weights(trained):

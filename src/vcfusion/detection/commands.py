@@ -27,14 +27,15 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
     from vcfusion.detection.detector_train import train_detector
 
     input_wh = parse_size(args.input_size, "--input-size")
-    for name in ("epochs", "batch_size"):
-        if getattr(args, name) < 1:
+    for name in ("epochs", "batch_size", "checkpoint_every"):
+        if getattr(args, name) is not None and getattr(args, name) < 1:
             raise UsageError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(args, name)}")
     net, report = train_detector(
         args.data, args.out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, input_wh=input_wh,
         val_fraction=args.val_fraction, val_data=args.val, seed=args.seed, threads=args.threads,
         device=args.device, progress=sys.stderr.isatty(), max_iterations=args.iterations,
-        min_train_area=args.min_train_area, eval_min_area=args.min_area, init=args.init)
+        min_train_area=args.min_train_area, eval_min_area=args.min_area, init=args.init,
+        checkpoint_every=args.checkpoint_every)
     size_mb = Path(args.out).stat().st_size / 2**20
     print(f"trained {report.iterations} iterations ({report.epochs} epochs) on {report.n_train} images "
           f"in {report.wall_s:.0f} s; loss {report.first_losses[0]:.3f} -> {report.loss_history[-1]:.3f}")
@@ -160,6 +161,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--epochs", type=int, default=20)
     p.add_argument("--init", help="weights file to fine-tune from (same categories, input size and widths)")
     p.add_argument("--iterations", type=int, default=None, help="stop after this many iterations")
+    p.add_argument("--checkpoint-every", type=int, default=None,
+                   help="also write the weights every N iterations next to --out (WEIGHTS.itNNNN.pt)")
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--input-size", default="320x240", help="network input WIDTHxHEIGHT (multiples of 16)")

@@ -223,11 +223,15 @@ def train_detector(
     input_wh: tuple[int, int] = (320, 240), widths: tuple[int, ...] = (16, 32, 64, 128, 64),
     val_fraction: float = 0.1, val_data=None, seed: int = 0, threads: int = 2, device: str = "auto",
     progress: bool = True, max_iterations: int | None = None, min_train_area: float = 16.0,
-    eval_min_area: float = 100.0, init=None,
+    eval_min_area: float = 100.0, init=None, checkpoint_every: int | None = None,
 ) -> tuple[DetectorModel, TrainReport]:
     """Train on the COCO folder(s) ``data``; write the weights atomically to ``out`` if given.
     ``init``: a weights file to start from (fine-tuning) instead of random weights; its categories,
-    input size and layer widths must equal this run's."""
+    input size and layer widths must equal this run's. ``checkpoint_every``: also write the weights
+    every that many iterations to :func:`checkpoint_path` (``out`` needed), so that a long run cut
+    short still leaves a usable model and the iterations can be compared on a validation set."""
+    if checkpoint_every is not None and (checkpoint_every < 1 or out is None):
+        raise ValueError(f"checkpoint_every: expected a positive number and an out path, got {checkpoint_every}")
     if input_wh[0] % 16 or input_wh[1] % 16:
         raise ValueError(f"input size: expected width and height multiples of 16, got {input_wh}")
     started = time.perf_counter()
@@ -273,6 +277,13 @@ def train_detector(
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=total_steps, pct_start=0.15)
     out_hw = (input_wh[1] // STRIDE, input_wh[0] // STRIDE)
     history, first, step = [], [], 0
+    data_list = [data] if isinstance(data, (str, Path)) else list(data)
+
+    def meta(iterations: int, final_loss) -> dict:
+        return {"train_data": [str(Path(d).resolve()) for d in data_list], "iterations": iterations, "seed": seed,
+                "init": None if init is None else Path(init).name, "final_loss": final_loss,
+                "n_train": len(train_ds), "min_train_area": min_train_area, "eval_min_area": eval_min_area}
+
     bar = tqdm(total=total_steps, desc="train detector", unit="it", disable=not progress)
     model.train()
     for _epoch in range(epochs):
@@ -307,6 +318,9 @@ def train_detector(
                 first.append(losses[-1])
             bar.update(1)
             bar.set_postfix(loss=f"{losses[-1]:.3f}")
+            if checkpoint_every and step % checkpoint_every == 0 and step < total_steps:
+                DetectorModel(model, tuple(input_wh), ds.class_ids, ds.class_names, tuple(widths),
+                              meta(step, float(np.mean(losses)))).save(checkpoint_path(out, step))
         if losses:
             history.append(float(np.mean(losses)))
         if step >= total_steps:
@@ -318,15 +332,19 @@ def train_detector(
            if val_ds is not None else None)
     report = TrainReport(len(history), step, history, first, val, time.perf_counter() - started,
                          len(train_ds), 0 if val_ds is None else len(val_ds))
-    data_list = [data] if isinstance(data, (str, Path)) else list(data)
-    net.meta = {"train_data": [str(Path(d).resolve()) for d in data_list], "epochs": report.epochs, "iterations": step,
-                "seed": seed, "init": None if init is None else Path(init).name, "final_loss": history[-1] if history else None, "n_train": report.n_train,
-                "min_train_area": min_train_area, "eval_min_area": eval_min_area,
+    net.meta = {**meta(step, history[-1] if history else None), "epochs": report.epochs,
                 "n_val": report.n_val, "val_map_50": None if val is None else val.map_50,
                 "val_map_50_95": None if val is None else val.map_50_95}
     if out is not None:
         net.save(Path(out))
     return net, report
+
+
+def checkpoint_path(out, step: int) -> Path:
+    """Where ``train_detector(..., checkpoint_every=k)`` writes the weights after ``step`` iterations:
+    next to ``out``, e.g. det.pt -> det.it0400.pt."""
+    out = Path(out)
+    return out.with_name(f"{out.stem}.it{step:04d}{out.suffix}")
 
 
 def evaluate_detector(detector, ds: CocoDataset, progress: bool = False, min_area: float = 0.0) -> BoxMap:
