@@ -288,10 +288,16 @@ def train_model(datasets: Path | list[Path], out: Path, cfg: TrainConfig, progre
     lines = [f"trained {cfg.kind} on {len(tr)} samples ({int(y_tr.sum())} positive) of "
              f"{sum(len(i.splits['train']) for i in infos)} seeds of {len(infos)} dataset(s) in {wallclock.perf_counter() - started:.1f} s: best epoch {fit['best_epoch'] + 1} of "
              f"{fit['epochs_run']}, validation loss {fit['best_val_loss']:.4f}"]
+    return "\n".join(lines + tuning_report(tuned, default, out))
+
+
+def tuning_report(tuned: dict, default: str, out: Path) -> list[str]:
+    """The validation figures of each smoothing method, as printed after training (MLP and GRU alike)."""
+    lines = []
     for method, t in tuned.items():
         v = t["validation"]
         lines.append(f"  {method:12s} threshold {t['threshold']:.2f} tau {t['tau_ticks']:2d} ticks: "
                      f"{100 * v['predicted_share']:.1f}% predicted, mean advance {v['advance_final_mean_s']:.2f} s, "
                      f"{v['false_alarms_per_vehicle_hour']:.2f} false alarms/veh-h (validation)")
     lines.append(f"  default smoothing: {default}; model file: {out}")
-    return "\n".join(lines)
+    return lines
