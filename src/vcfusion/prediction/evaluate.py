@@ -147,7 +147,7 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
         w, _ = _fit_torch(norm(x_tr), y_tr, norm(va[names].to_numpy(np.float32)),
                           (va["window_label"] == 1).to_numpy(np.float32), TrainConfig(kind="logistic", seed=seed),
                           len(names))
-        logistic = LaneChangeModel(tuple(names), mean, std, w, info.tau, info.tau_g, info.period_s)
+        logistic = LaneChangeModel(tuple(names), mean, std, w, tau=info.tau, tau_g=info.tau_g, period_s=info.period_s)
         rule = RuleBaseline(names).fit(x_tr, y_tr)
         predictors |= {"logistic regression": (logistic, names), "gap/speed rule": (rule, names)}
         if privileged:  # the ceiling's simplest form: flag a vehicle while SUMO wants to change lanes

@@ -21,13 +21,14 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from vcfusion.errors import InputError
+from vcfusion.prediction.decision import DECISION_META_KEYS, DecisionSettings, decision_settings_from_meta
 from vcfusion.threads import one_blas_thread
 
 MODEL_FORMAT = "vcfusion-lane-change-mlp/1"
@@ -50,29 +51,13 @@ def default_model_path() -> Path:
 
 
 @dataclass
-class LaneChangeModel:
+class LaneChangeModel(DecisionSettings):
     feature_names: tuple[str, ...]
     mean: np.ndarray
     std: np.ndarray
     weights: list[tuple[np.ndarray, np.ndarray]]  # (W (out, in), b (out,)) per layer, torch layout
-    tau: float
-    tau_g: float
-    period_s: float
-    threshold: float = 0.5
-    smoothing: str = "aggressive"
-    tau_a_ticks: int = 10
-    tau_c_ticks: int = 10
-    conservative_threshold: float = 0.5
-    info: dict = field(default_factory=dict)
-    # Probability threshold per smoothing (none / aggressive / conservative), tuned with it.
-    thresholds: dict = field(default_factory=dict)
-    # Platt scaling (a, b) of the logit: lc_prob = sigmoid(a * z + b); (1, 0) = uncalibrated.
-    calibration: tuple[float, float] = (1.0, 0.0)
 
     kind = "mlp"
-
-    def threshold_for(self, smoothing: str) -> float:
-        return float(self.thresholds.get(smoothing, self.threshold))
 
     def stream_proba(self, stream, inputs: list[str]) -> np.ndarray:
         """P per row of a samples stream (each row on its own: the MLP has no state)."""
@@ -181,13 +166,8 @@ def build_torch_mlp(n_features: int, hidden: int):
 
 def save_model(model: LaneChangeModel, path: str | Path) -> Path:
     path = Path(path)
-    meta = {
-        "format": MODEL_FORMAT, "feature_names": list(model.feature_names), "tau": model.tau, "tau_g": model.tau_g,
-        "period_s": model.period_s, "threshold": model.threshold, "smoothing": model.smoothing,
-        "tau_a_ticks": model.tau_a_ticks, "tau_c_ticks": model.tau_c_ticks,
-        "conservative_threshold": model.conservative_threshold, "thresholds": model.thresholds, "layers": len(model.weights), "info": model.info,
-        "calibration": [float(c) for c in model.calibration],
-    }
+    meta = {"format": MODEL_FORMAT, "feature_names": list(model.feature_names), "layers": len(model.weights),
+            **model.decision_meta()}
     arrays = {"mean": model.mean, "std": model.std, "meta": np.array(json.dumps(meta, sort_keys=True))}
     for k, (w, b) in enumerate(model.weights):
         arrays[f"w{k}"] = w
@@ -245,9 +225,7 @@ def model_kind(path: str | Path) -> str:
 
 
 # metadata keys a model file must hold, with the type each must have
-META_KEYS = {"feature_names": list, "tau": (int, float), "tau_g": (int, float), "period_s": (int, float),
-             "threshold": (int, float), "smoothing": str, "tau_a_ticks": int, "tau_c_ticks": int,
-             "conservative_threshold": (int, float), "layers": int}
+META_KEYS = {"feature_names": list, **DECISION_META_KEYS, "layers": int}
 
 
 @functools.lru_cache(maxsize=8)
@@ -278,14 +256,7 @@ def _load_model_file(name: str, _mtime_ns: int, expected_features: tuple[str, ..
         return seq
     expected_features = expected_features or FEATURE_NAMES
     weights, mean, std = _checked_arrays(path, meta, arrays)
-    model = LaneChangeModel(
-        feature_names=tuple(meta["feature_names"]), mean=mean, std=std, weights=weights,
-        tau=float(meta["tau"]), tau_g=float(meta["tau_g"]), period_s=float(meta["period_s"]),
-        threshold=float(meta["threshold"]), smoothing=meta["smoothing"], tau_a_ticks=int(meta["tau_a_ticks"]),
-        tau_c_ticks=int(meta["tau_c_ticks"]), conservative_threshold=float(meta["conservative_threshold"]),
-        info=meta.get("info", {}), thresholds=dict(meta.get("thresholds", {})),
-        calibration=tuple(float(c) for c in meta.get("calibration", (1.0, 0.0))),
-    )
+    model = LaneChangeModel(tuple(meta["feature_names"]), mean, std, weights, **decision_settings_from_meta(meta))
     model.check_features(expected_features, source=str(path))
     return model
 

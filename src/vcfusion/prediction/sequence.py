@@ -23,10 +23,11 @@ offline probabilities are the run-time ones (tested).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from vcfusion.prediction.decision import DECISION_META_KEYS, DecisionSettings, decision_settings_from_meta
 from vcfusion.threads import one_blas_thread
 
 SEQUENCE_FORMAT = "vcfusion-lane-change-gru/1"
@@ -39,7 +40,7 @@ def _sigmoid(z: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class SequenceModel:
+class SequenceModel(DecisionSettings):
     feature_names: tuple[str, ...]
     mean: np.ndarray
     std: np.ndarray
@@ -49,17 +50,6 @@ class SequenceModel:
     b_hh: np.ndarray  # (3H,)
     w_out: np.ndarray  # (1, H)
     b_out: np.ndarray  # (1,)
-    tau: float
-    tau_g: float
-    period_s: float
-    threshold: float = 0.5
-    smoothing: str = "aggressive"
-    tau_a_ticks: int = 10
-    tau_c_ticks: int = 10
-    conservative_threshold: float = 0.5
-    info: dict = field(default_factory=dict)
-    thresholds: dict = field(default_factory=dict)
-    calibration: tuple[float, float] = (1.0, 0.0)
     reset_gap_ticks: int = DEFAULT_RESET_GAP_TICKS
     kind = "gru"
 
@@ -74,9 +64,6 @@ class SequenceModel:
         self._wi_t = np.ascontiguousarray(self.w_ih.T)
         self._wh_t = np.ascontiguousarray(self.w_hh.T)
         self._wo = np.ascontiguousarray(self.w_out[0])
-
-    def threshold_for(self, smoothing: str) -> float:
-        return float(self.thresholds.get(smoothing, self.threshold))
 
     def check_features(self, names, source: str = "model") -> None:
         from vcfusion.prediction.model import ModelFileError
@@ -201,9 +188,7 @@ class SequenceState:
 
 
 # --- model file ---------------------------------------------------------------------------------
-SEQUENCE_META_KEYS = {"feature_names": list, "tau": (int, float), "tau_g": (int, float), "period_s": (int, float),
-                      "threshold": (int, float), "smoothing": str, "tau_a_ticks": int, "tau_c_ticks": int,
-                      "conservative_threshold": (int, float), "hidden": int, "reset_gap_ticks": int,
+SEQUENCE_META_KEYS = {"feature_names": list, **DECISION_META_KEYS, "hidden": int, "reset_gap_ticks": int,
                       "calibration": list, "thresholds": dict}
 _ARRAYS = ("mean", "std", "w_ih", "w_hh", "b_ih", "b_hh", "w_out", "b_out")
 
@@ -214,11 +199,7 @@ def save_sequence_model(model: SequenceModel, path) -> "Path":
 
     path = Path(path)
     meta = {"format": SEQUENCE_FORMAT, "kind": "gru", "feature_names": list(model.feature_names),
-            "tau": model.tau, "tau_g": model.tau_g, "period_s": model.period_s, "threshold": model.threshold,
-            "smoothing": model.smoothing, "tau_a_ticks": model.tau_a_ticks, "tau_c_ticks": model.tau_c_ticks,
-            "conservative_threshold": model.conservative_threshold, "thresholds": model.thresholds,
-            "hidden": model.hidden, "reset_gap_ticks": model.reset_gap_ticks,
-            "calibration": [float(c) for c in model.calibration], "info": model.info}
+            "hidden": model.hidden, "reset_gap_ticks": model.reset_gap_ticks, **model.decision_meta()}
     arrays = {name: getattr(model, name) for name in _ARRAYS}
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp-writing.npz")
@@ -261,9 +242,4 @@ def sequence_model_from_file(path, meta: dict, arrays: dict) -> SequenceModel:
         raise ModelFileError(f"{path}: std: expected positive standard deviations")
     return SequenceModel(
         feature_names=tuple(meta["feature_names"]), **{name: arrays[name] for name in _ARRAYS},
-        tau=float(meta["tau"]), tau_g=float(meta["tau_g"]), period_s=float(meta["period_s"]),
-        threshold=float(meta["threshold"]), smoothing=meta["smoothing"], tau_a_ticks=int(meta["tau_a_ticks"]),
-        tau_c_ticks=int(meta["tau_c_ticks"]), conservative_threshold=float(meta["conservative_threshold"]),
-        info=meta.get("info", {}), thresholds={k: float(v) for k, v in meta["thresholds"].items()},
-        calibration=(float(meta["calibration"][0]), float(meta["calibration"][1])),
-        reset_gap_ticks=int(meta["reset_gap_ticks"]))
+        reset_gap_ticks=int(meta["reset_gap_ticks"]), **decision_settings_from_meta(meta))

@@ -261,7 +261,7 @@ def train_model(datasets: Path | list[Path], out: Path, cfg: TrainConfig, progre
     x_va = ((va[names].to_numpy(np.float32) - mean) / std).astype(np.float32)
     y_va = (va["window_label"] == 1).to_numpy(np.float32)
     weights, fit = _fit_torch(((x_tr - mean) / std).astype(np.float32), y_tr, x_va, y_va, cfg, len(names), progress)
-    model = LaneChangeModel(tuple(names), mean, std, weights, info.tau, info.tau_g, info.period_s)
+    model = LaneChangeModel(tuple(names), mean, std, weights, tau=info.tau, tau_g=info.tau_g, period_s=info.period_s)
     stream, events = combined_stream(infos, "validation", columns=["seed", "vehicle_id", "time", "stream_label",
                                                                    *names])
     x_stream = stream[names].to_numpy(np.float32)
