@@ -73,12 +73,15 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
 
     detector = _make_detector(args)
     ds = load_coco_many(args.data)
+    from vcfusion.fusion.box_refine import BoxRefineParams
+
     results, _ = evaluate_families(detector, ds, min_area=args.min_area, identification=not args.no_identification,
-                                   progress=sys.stderr.isatty())
+                                   progress=sys.stderr.isatty(), refine=None if args.no_refine else BoxRefineParams())
     if not results:
         raise UsageError(f"{' '.join(args.data)}: annotations: expected at least one ground-truth box")
     overall = results[-1]  # 'all' when there are several families
-    print(f"{' '.join(args.data)}: {len(ds)} images (boxes >= {args.min_area:g} px^2)  "
+    print(f"{' '.join(args.data)}: {len(ds)} images (boxes >= {args.min_area:g} px^2, "
+          f"{'boxes as detected' if args.no_refine else 'boxes refined by depth'})  "
           f"mAP@0.5 {overall.box_map.map_50:.3f}  mAP@0.5:0.95 {overall.box_map.map_50_95:.3f}")
     for cid, name in zip(ds.class_ids, ds.class_names):
         if cid in overall.box_map.ap_per_category:
@@ -88,6 +91,7 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
         from vcfusion.runio import write_json
 
         write_json(Path(args.report), {"data": [str(d) for d in args.data], "min_area": args.min_area,
+                                       "refined_by_depth": not args.no_refine,
                                        "families": [r.summary() for r in results]})
         print(f"report: {args.report}")
     return 0
@@ -194,6 +198,9 @@ def add_parsers(sub) -> None:
         p.add_argument("--no-identification", action="store_true",
                        help="skip the joint-matcher identification check (oracle vs detector boxes)")
         p.add_argument("--report", help="also write the per-family figures to this JSON file")
+        p.add_argument("--no-refine", action="store_true",
+                       help="score the detector's boxes as detected (default: refined by the depth image, as the "
+                            "fusion stage uses them; needs the folders' depth images)")
         p.set_defaults(func=func)
 
     p = sub.add_parser("render-scenes", help="render procedural scenes (no SUMO run) into a COCO dataset folder")

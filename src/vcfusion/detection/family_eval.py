@@ -23,6 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vcfusion.detection.detection_metrics import BoxMap, coco_map
+from vcfusion.detection.detector_net import DetectorFileError
 from vcfusion.detection.detector_train import CocoDataset, read_rgb
 from vcfusion.detection.detectors import Detections, OracleDetector
 
@@ -128,9 +129,13 @@ def _identification(frame, twins, detector, seed: int, min_area: float) -> np.nd
 
 
 def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identification: bool = True,
-                      detector_name: str = "cnn", progress: bool = False) -> tuple[list[FamilyResult], dict]:
+                      detector_name: str = "cnn", progress: bool = False,
+                      refine=None) -> tuple[list[FamilyResult], dict]:
     """Per-family results (in order of first appearance; plus 'all' over every image when there is
-    more than one family) and the detections at COCO-evaluation threshold per image id."""
+    more than one family) and the detections at COCO-evaluation threshold per image id. ``refine``
+    (BoxRefineParams): score the boxes as the fusion stage uses them, snapped to each image's depth
+    (every image then needs its depth image and camera record)."""
+    from vcfusion.fusion.fuse import detect_frame
     from vcfusion.detection.detector_net import PostParams
     from vcfusion.fusion.matching import box_iou
 
@@ -144,7 +149,15 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
         for k, (iid, path) in enumerate(tqdm(list(zip(ds.image_ids, ds.images)), desc="evaluate", unit="img",
                                              disable=not progress, leave=False)):
             image = read_rgb(path)
-            d = detector.detect(image)
+            frame = _camera_frame(ds, k, image) if ds.records and (refine is not None or identification) else None
+            if refine is not None:
+                if frame is None:
+                    raise DetectorFileError(f"{path}: box refinement needs the image's depth image and camera record "
+                                            "(a folder written by vcfusion render / render-scenes); "
+                                            "score the boxes as detected instead (--no-refine)")
+                d = detect_frame(frame, detector, refine)
+            else:
+                d = detector.detect(image)
             dets[iid] = (d.boxes, d.scores, d.classes)
             working = d.select(d.scores >= operating)
             gt = ds.boxes[k]
@@ -152,7 +165,6 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
             iou = box_iou(gt[big], working.boxes) if len(working) and big.any() else np.zeros((int(big.sum()), 0))
             best[iid] = iou.max(axis=1) if iou.shape[1] else np.zeros(int(big.sum()))
             if identification and ds.records and ds.box_vehicle_ids:
-                frame = _camera_frame(ds, k, image)
                 twins = _twins(records[k], frame.time) if frame is not None else None
                 if frame is not None and twins is not None:
                     ident[iid] = {name: _identification(frame, twins, det, k, min_area)

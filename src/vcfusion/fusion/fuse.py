@@ -15,6 +15,7 @@ import numpy as np
 
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import GuidanceSet, TwinStates
+from vcfusion.fusion.box_refine import BoxRefineParams, refine_boxes
 from vcfusion.fusion.depth_eval import DepthEvalParams, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector
 from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, match_all_baseline, match_all_paper,
@@ -83,15 +84,31 @@ class FusionResult:
         return None if j == NO_MATCH else self.detections.boxes[j]
 
 
-def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: np.random.Generator,
-               depth_params: DepthEvalParams = DepthEvalParams(), joint: JointMatcher | None = None,
-               methods=METHODS, fallback_radius_px: float | None = None) -> FusionResult:
-    """Run every requested matcher on one frame for the given twins."""
-    timings = {}
-    t0 = wallclock.perf_counter()
+def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams | None = None) -> Detections:
+    """The detector's boxes on the frame's image, snapped to the depth image when `refine` is given
+    (vcfusion.fusion.box_refine). The oracle's boxes are the truth and are never refined."""
     if isinstance(detector, OracleDetector):
         detector.set_truth(frame.gt_boxes, frame.gt_classes)
+        return detector.detect(frame.image)
     detections = detector.detect(frame.image)
+    if refine is None or not len(detections):
+        return detections
+    cam = frame.camera
+    if cam.K is None or cam.T_world_to_camera is None:
+        raise ValueError("box refinement: the camera has no intrinsics / pose (CameraView.K, T_world_to_camera)")
+    snapped = refine_boxes(detections.boxes, frame.depth, cam.K, cam.T_world_to_camera, refine)
+    return Detections.of(snapped.boxes, detections.scores, detections.classes)
+
+
+def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: np.random.Generator,
+               depth_params: DepthEvalParams = DepthEvalParams(), joint: JointMatcher | None = None,
+               methods=METHODS, fallback_radius_px: float | None = None,
+               refine: BoxRefineParams | None = None) -> FusionResult:
+    """Run every requested matcher on one frame for the given twins (boxes refined by depth when
+    `refine` is given)."""
+    timings = {}
+    t0 = wallclock.perf_counter()
+    detections = detect_frame(frame, detector, refine)
     t1 = wallclock.perf_counter()
     samples = sample_box_depths(frame.depth, detections.boxes, rng, depth_params)
     depths = reduce_depth_samples(samples, depth_params.reducer)  # Algorithm 1
@@ -128,7 +145,8 @@ class VisionFusionHook:
     def __init__(self, frame_source: FrameSource | None, detector: Detector, seed: int, policy: GuidancePolicy,
                  method: str = "joint", depth_params: DepthEvalParams = DepthEvalParams(),
                  joint: JointMatcher | None = None, recorder: OverlayRecorder | None = None,
-                 period_s: float | None = None, only_when_warning: bool = False):
+                 period_s: float | None = None, only_when_warning: bool = False,
+                 refine: BoxRefineParams | None = None):
         if method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
         if frame_source is None:
@@ -144,6 +162,7 @@ class VisionFusionHook:
         self.rng = np.random.default_rng(seed)
         self.method = method
         self.depth_params = depth_params
+        self.refine = refine
         self.joint = joint or JointMatcher()
         self.recorder = recorder
         self.timings: list[dict] = []
@@ -176,7 +195,8 @@ class VisionFusionHook:
             return None
         t_render = wallclock.perf_counter() - t0
         twins = tick.neighbours
-        result = fuse_frame(frame, twins, self.detector, self.rng, self.depth_params, self.joint, (self.method,))
+        result = fuse_frame(frame, twins, self.detector, self.rng, self.depth_params, self.joint, (self.method,),
+                            refine=self.refine)
         lc = np.asarray(twins.outputs.get("lc_prob", np.full(len(twins), np.nan)), dtype=float)
         view = np.flatnonzero(result.in_view)
         boxes = [result.box_of(self.method, i) for i in view]

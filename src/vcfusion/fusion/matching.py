@@ -206,6 +206,10 @@ class CameraView:
     width: int
     height: int
     time: float  # timestamp of the image (s, simulation clock)
+    # pinhole intrinsics (3, 3) and OpenCV extrinsics (4, 4); the depth-guided box refinement
+    # back-projects pixels with them (None for a camera known only by its projection)
+    K: np.ndarray | None = None
+    T_world_to_camera: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

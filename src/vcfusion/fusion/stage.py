@@ -33,7 +33,8 @@ def camera_view(K: np.ndarray, T_world_to_camera: np.ndarray, width: int, height
         return p.uv, p.depth
 
     position = -T[:3, :3].T @ T[:3, 3]
-    return CameraView(project=project, position=position, width=int(width), height=int(height), time=float(time))
+    return CameraView(project=project, position=position, width=int(width), height=int(height), time=float(time),
+                      K=K, T_world_to_camera=T)
 
 
 def frame_from_render(frame, truth) -> CameraFrame:
@@ -114,6 +115,13 @@ def depth_params(scenario: Scenario) -> DepthEvalParams:
     return DepthEvalParams(th=f.depth_th, n=f.depth_samples, reducer=f.depth_reducer)
 
 
+def refine_params(scenario: Scenario):
+    """The depth-guided box refinement of the scenario's detector boxes, or None when switched off."""
+    from vcfusion.fusion.box_refine import BoxRefineParams
+
+    return BoxRefineParams() if scenario.fusion.refine_boxes else None
+
+
 def build_fusion_hook(scenario: Scenario, seed: int, policy: GuidancePolicy, recorder: OverlayRecorder | None = None,
                       frame_source=None, detector=None):
     """The tick hook of the fusion stage as the scenario configures it, levelling guidance by the
@@ -124,4 +132,5 @@ def build_fusion_hook(scenario: Scenario, seed: int, policy: GuidancePolicy, rec
     return VisionFusionHook(frame_source, detector or build_detector(scenario, seed), seed, policy,
                             method=scenario.fusion.method, depth_params=depth_params(scenario),
                             recorder=recorder, period_s=scenario.ar.period_s,
-                            only_when_warning=scenario.vision.only_when_warning)
+                            only_when_warning=scenario.vision.only_when_warning,
+                            refine=refine_params(scenario))

@@ -189,8 +189,9 @@ class _StudyHook:
 
     def __init__(self, frame_source, detectors: dict, seed: int, condition: Condition,
                  depth_params: DepthEvalParams, joint_params: JointMatcherParams, min_gt_area_px: float,
-                 fallback_radius_px: float | None = None, scenario_name: str = ""):
+                 fallback_radius_px: float | None = None, scenario_name: str = "", refine: dict | None = None):
         self.frame_source = frame_source
+        self.refine = refine or {}
         self.scenario_name = scenario_name
         self.detectors = detectors
         self.seed = seed
@@ -210,7 +211,7 @@ class _StudyHook:
             return None
         for name, det in self.detectors.items():
             result = fuse_frame(frame, tick.neighbours, det, self.rngs[name], self.depth_params, self.joints[name],
-                                fallback_radius_px=self.fallback_radius_px)
+                                fallback_radius_px=self.fallback_radius_px, refine=self.refine.get(name))
             self.rows.extend(identification_rows(
                 frame, result, self.min_gt_area_px, scenario=self.scenario_name, seed=self.seed, latency_s=self.condition.latency_s,
                 gnss_noise_m=self.condition.gnss_noise_m, detector=name))
@@ -220,12 +221,14 @@ class _StudyHook:
 def run_identification_study(scenarios, seeds, frame_source_factory, detectors: dict, out_dir,
                              conditions: list[Condition] | None = None, depth_params=DepthEvalParams(),
                              joint_params: JointMatcherParams = JointMatcherParams(), min_gt_area_px: float = 100.0,
-                             fallback_radius_px: float | None = None, progress: bool = True) -> pd.DataFrame:
+                             fallback_radius_px: float | None = None, progress: bool = True,
+                             refine: dict | None = None) -> pd.DataFrame:
     """Run every (scenario, seed, condition), collect the rows, write the outputs; returns the rows.
 
     ``scenarios``: one Scenario or a list of them (each run with every seed; their names must differ).
     ``frame_source_factory(scenario, seed)`` gives the frame source of a run (the renderer);
-    ``detectors`` maps a name to a detector (e.g. {'oracle': OracleDetector(), 'cnn': TorchDetector(...)}).
+    ``detectors`` maps a name to a detector (e.g. {'oracle': OracleDetector(), 'cnn': TorchDetector(...)});
+    ``refine`` maps a detector's name to its depth-guided box refinement (absent: boxes as detected).
     """
     from vcfusion.cosim import CoSimulation
     from vcfusion.driver.idm import IdmController
@@ -242,7 +245,7 @@ def run_identification_study(scenarios, seeds, frame_source_factory, detectors: 
             update={"latency_s": cond.latency_s, "gnss_noise_std_m": cond.gnss_noise_m})})
         # a new joint matcher per run and detector: its position filter holds per-run state
         hook = _StudyHook(frame_source_factory(sc, seed), detectors, seed, cond, depth_params, joint_params,
-                          min_gt_area_px, fallback_radius_px, scenario.name)
+                          min_gt_area_px, fallback_radius_px, scenario.name, refine)
         CoSimulation(sc, seed, controller=IdmController.for_scenario(sc), hooks=[hook]).run()
         rows.extend(hook.rows)
     frame = pd.DataFrame(rows, columns=ROW_COLUMNS)

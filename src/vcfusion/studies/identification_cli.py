@@ -25,6 +25,7 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
     from vcfusion.detection.detector_net import DetectorFileError, TorchDetector, default_weights_path
     from vcfusion.detection.detectors import OracleDetector
     from vcfusion.studies.identification import default_conditions, run_identification_study, summary_lines
+    from vcfusion.fusion.box_refine import BoxRefineParams
     from vcfusion.fusion.stage import RenderedFrameSources, depth_params
 
     scenarios = [load_scenario(path) for path in args.scenario]
@@ -33,17 +34,19 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
         raise UsageError(f"scenario: expected scenarios with distinct names, got {names}")
     seeds = parse_seeds(args.seeds)  # UsageError on a bad range
     conditions = default_conditions(_float_list(args.latencies, "--latencies"), _float_list(args.noises, "--noises"))
-    detectors = {}
+    detectors, refine = {}, {}
     for name in (d.strip() for d in args.detectors.split(",")):
         if name == "oracle":
             detectors[name] = OracleDetector()
-        elif name == "cnn":
+        elif name in ("cnn", "cnn-rgb"):
             try:
                 detectors[name] = TorchDetector(args.weights or default_weights_path())
             except DetectorFileError as exc:
                 raise UsageError(f"--weights: {exc}") from None
+            # cnn: boxes refined by depth (the fusion stage's default); cnn-rgb: the boxes as detected
+            refine[name] = BoxRefineParams() if name == "cnn" else None
         else:
-            raise UsageError(f"--detectors: expected names among oracle, cnn; got {name!r}")
+            raise UsageError(f"--detectors: expected names among oracle, cnn, cnn-rgb; got {name!r}")
     for path, scenario in zip(args.scenario, scenarios):
         if scenario.ego is None:
             raise UsageError(f"{path}: ego: the camera rides on the ego; the scenario has no ego block")
@@ -53,7 +56,8 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
         # Algorithm 1's th, n, reducer: the first scenario's fusion block (one setting per study)
         rows = run_identification_study(scenarios, seeds, sources, detectors, out, conditions,
                                         depth_params=depth_params(scenarios[0]), min_gt_area_px=args.min_area,
-                                        fallback_radius_px=args.anchor_radius, progress=sys.stderr.isatty())
+                                        fallback_radius_px=args.anchor_radius, progress=sys.stderr.isatty(),
+                                        refine=refine)
     finally:
         sources.close()
     n_targets = rows[(rows["latency_s"] == 0) & (rows["gnss_noise_m"] == 0)].groupby(["detector", "method"]).size()
@@ -71,7 +75,8 @@ def add_study_parser(ssub) -> None:
     p.add_argument("scenario", nargs="+", help="one or more scenario files (each run with every seed)")
     p.add_argument("--seeds", required=True, help="e.g. 0-19")
     p.add_argument("--out", default="renders/identification")
-    p.add_argument("--detectors", default="oracle,cnn", help="comma-separated: oracle, cnn")
+    p.add_argument("--detectors", default="oracle,cnn",
+                   help="comma-separated: oracle, cnn (boxes refined by depth), cnn-rgb (the CNN's boxes as detected)")
     p.add_argument("--weights", help="cnn weights (default: the shipped detector)")
     p.add_argument("--latencies", default="0,0.1,0.2,0.3,0.5", help="V2C latencies (s), at zero noise")
     p.add_argument("--noises", default="0,0.5,1,2", help="GNSS noise std (m), at zero latency")

@@ -1,0 +1,150 @@
+"""Depth-guided box refinement: snap each detected box to the vehicle surface the depth image shows.
+
+Why: the detector sees a 320x240 RGB image, so its boxes of small or crowded vehicles are a few
+pixels off, and a car straight ahead in a chain gets a box that swallows the car behind it (the
+paper's Fig. 3). The camera also gives depth at full resolution, where a vehicle is a connected
+surface standing on the road, separated from the next vehicle by a jump in depth.
+
+Per detected box (pixel-centre convention, as everywhere in the fusion stage):
+1. A search window: the box grown by ``margin`` of its size on each side (at least 3 px).
+2. Object pixels: a valid depth whose back-projected point stands more than ``min_height_m``
+   above the road. The renderer's world is flat with the road at world z = 0, so the height
+   follows from the camera's intrinsics and pose alone (no ground fit).
+3. Candidate surface depths: the ``candidates`` most populated 4 % log-depth bins of the object
+   pixels in the box's core (its central half in each direction).
+4. For each candidate depth z0, the object pixels from ``0.3 * band_m`` (+3 % of z0) nearer to
+   ``band_m`` (+3 %) farther than z0, split into 4-connected segments. A segment's box is the
+   span of its rows and columns holding at least ``support`` of its fullest row / column (so a
+   rail or a sliver of road does not widen it).
+5. The segment touching the core whose box overlaps the detected box most replaces it, when that
+   IoU reaches ``min_iou``; otherwise the detected box is kept (and counted as kept).
+
+The band is one vehicle deep: a car behind another in the same lane is at least a car length plus
+the gap farther away, so it falls outside the band of the car in front. Depth quality sets what
+this can do: it was tuned on the renderer's exact depth (validation folders only; see
+docs/architecture.md "Depth-guided box refinement" for the figures and for noisy depth).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+# the renderer's flat world: the road surface lies at world z = 0
+ROAD_Z_M = 0.0
+
+
+@dataclass(frozen=True)
+class BoxRefineParams:
+    margin: float = 0.25  # search window: the box grown by this share of its width / height per side
+    min_height_m: float = 0.05  # above the road by more than this: an object pixel (tyres included)
+    band_m: float = 4.0  # depth band of one vehicle's visible surface (see the module docstring)
+    candidates: int = 3  # surface depths tried per box
+    support: float = 0.15  # rows / columns with less than this share of the fullest one are trimmed
+    min_iou: float = 0.3  # a segment replaces the box only when its box overlaps the box this much
+
+    def __post_init__(self):
+        for name, low, high in (("margin", 0.0, 2.0), ("support", 0.0, 1.0), ("min_iou", 0.0, 1.0)):
+            v = getattr(self, name)
+            if not low <= v <= high:
+                raise ValueError(f"{name}: expected a value in [{low}, {high}], got {v}")
+        if self.band_m <= 0 or self.candidates < 1:
+            raise ValueError(f"band_m and candidates: expected positive values, got {self.band_m}, {self.candidates}")
+
+
+@dataclass(frozen=True)
+class RefinedBoxes:
+    boxes: np.ndarray  # (N, 4) x1, y1, x2, y2: refined where `refined`, else the detected box
+    refined: np.ndarray  # (N,) bool
+
+
+def _box_iou(a: np.ndarray, b: np.ndarray) -> float:
+    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = ix * iy
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return inter / union if union > 0 else 0.0
+
+
+class _Heights:
+    """Height above the road of the point seen at each pixel: camera-Z times a term linear in the
+    pixel coordinates, minus a constant (the world-z row of the inverse pose and intrinsics)."""
+
+    def __init__(self, K: np.ndarray, T_world_to_camera: np.ndarray):
+        K = np.asarray(K, float)
+        T = np.asarray(T_world_to_camera, float)
+        if K.shape != (3, 3) or T.shape != (4, 4):
+            raise ValueError(f"camera: expected K (3, 3) and T_world_to_camera (4, 4), got {K.shape} and {T.shape}")
+        up = T[:3, 2]  # world z axis in camera coordinates (third column of R)
+        ray = up @ np.linalg.inv(K)  # world-z component of the ray through (u, v, 1), per unit camera-Z
+        self.per_u, self.per_v, self.const = (float(x) for x in ray)
+        self.offset = float(up @ T[:3, 3]) + ROAD_Z_M
+
+    def window(self, z: np.ndarray, x0: int, y0: int) -> np.ndarray:
+        h, w = z.shape
+        u = np.arange(x0, x0 + w, dtype=np.float32) * np.float32(self.per_u)
+        v = np.arange(y0, y0 + h, dtype=np.float32) * np.float32(self.per_v) + np.float32(self.const)
+        return z * (v[:, None] + u[None, :]) - np.float32(self.offset)
+
+
+def _segment_box(sel: np.ndarray, support: float, x0: int, y0: int) -> np.ndarray:
+    cols, rows = sel.sum(axis=0), sel.sum(axis=1)
+    xs = np.flatnonzero(cols >= support * cols.max())
+    ys = np.flatnonzero(rows >= support * rows.max())
+    return np.array([x0 + xs[0] - 0.5, y0 + ys[0] - 0.5, x0 + xs[-1] + 0.5, y0 + ys[-1] + 0.5])
+
+
+def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray,
+                 params: BoxRefineParams = BoxRefineParams()) -> RefinedBoxes:
+    """Each box snapped to the depth segment that explains it best (module docstring)."""
+    boxes = np.asarray(boxes, float).reshape(-1, 4)
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise ValueError(f"depth: expected a 2-D depth image (H, W), got shape {depth.shape}")
+    heights = _Heights(K, T_world_to_camera)
+    H, W = depth.shape
+    out = boxes.copy()
+    refined = np.zeros(len(boxes), bool)
+    p = params
+    for i, b in enumerate(boxes):
+        w, h = b[2] - b[0], b[3] - b[1]
+        if not (w > 0 and h > 0):
+            continue
+        mx, my = max(p.margin * w, 3.0), max(p.margin * h, 3.0)
+        x0, y0 = max(0, int(np.floor(b[0] - mx))), max(0, int(np.floor(b[1] - my)))
+        x1, y1 = min(W, int(np.ceil(b[2] + mx)) + 1), min(H, int(np.ceil(b[3] + my)) + 1)
+        if x1 <= x0 or y1 <= y0:
+            continue
+        z = depth[y0:y1, x0:x1].astype(np.float32)
+        valid = np.isfinite(z) & (z > 0)
+        z = np.where(valid, z, np.float32(0))
+        obj = valid & (heights.window(z, x0, y0) > p.min_height_m)
+        # the core: the central half of the box in each direction (at least one pixel)
+        cx0, cy0 = max(int(b[0] + 0.25 * w) - x0, 0), max(int(b[1] + 0.25 * h) - y0, 0)
+        cx1, cy1 = int(np.ceil(b[2] - 0.25 * w)) - x0 + 1, int(np.ceil(b[3] - 0.25 * h)) - y0 + 1
+        core_obj = obj[cy0:cy1, cx0:cx1]
+        core_z = z[cy0:cy1, cx0:cx1][core_obj]
+        if core_z.size < 3:
+            continue
+        log_z = np.log(core_z)
+        edges = np.arange(log_z.min(), log_z.max() + 0.05, 0.04)
+        hist, edges = np.histogram(log_z, bins=edges)
+        best, best_iou = None, p.min_iou
+        for j in np.argsort(-hist, kind="stable")[: p.candidates]:
+            if hist[j] == 0:
+                break
+            z0 = float(np.exp(edges[j]))
+            band = obj & (z > z0 - 0.3 * p.band_m - 0.03 * z0) & (z < z0 + p.band_m + 0.03 * z0)
+            _, labels = cv2.connectedComponents(band.astype(np.uint8), connectivity=4)
+            core_labels = labels[cy0:cy1, cx0:cx1][band[cy0:cy1, cx0:cx1]]
+            for label in np.unique(core_labels):
+                candidate = _segment_box(labels == label, p.support, x0, y0)
+                iou = _box_iou(candidate, b)
+                if iou > best_iou:
+                    best, best_iou = candidate, iou
+        if best is not None:
+            out[i] = best
+            refined[i] = True
+    return RefinedBoxes(out, refined)
