@@ -44,6 +44,8 @@ def test_weights_file_round_trip_and_size(trained):
     loaded = DetectorModel.load(root / "w.pt")
     assert loaded.class_ids == [1, 2] and loaded.class_names == ["car", "truck"]
     assert loaded.meta["iterations"] == 60
+    # shipped weights name their data folders, not this machine's paths
+    assert loaded.meta["train_data"] == [data.name]
     image = read_rgb(load_coco(data).images[3])
     np.testing.assert_array_equal(TorchDetector(loaded).dense(image), TorchDetector(net).dense(image))
     assert (root / "w.pt").stat().st_size < 10 * 2**20

@@ -280,7 +280,8 @@ def train_detector(
     data_list = [data] if isinstance(data, (str, Path)) else list(data)
 
     def meta(iterations: int, final_loss) -> dict:
-        return {"train_data": [str(Path(d).resolve()) for d in data_list], "iterations": iterations, "seed": seed,
+        # folder names only: the weights are shipped, and a machine path means nothing elsewhere
+        return {"train_data": [Path(d).name for d in data_list], "iterations": iterations, "seed": seed,
                 "init": None if init is None else Path(init).name, "final_loss": final_loss,
                 "n_train": len(train_ds), "min_train_area": min_train_area, "eval_min_area": eval_min_area}
 
