@@ -208,3 +208,12 @@ def test_ultralytics_layout_through_opencv_equals_the_torch_model(trained, tmp_p
         np.testing.assert_array_equal(got.classes[order], exp[:, 0])
         np.testing.assert_allclose(got.boxes[order], exp[:, 1:], atol=1e-2)
     assert n_boxes >= 4  # the trained model finds the rectangles in the letterboxed frames too
+
+
+def test_shipped_weights_name_no_machine_paths():
+    from vcfusion.detection.detector_net import default_weights_path
+    shipped = DetectorModel.load(default_weights_path())
+    assert default_weights_path().stat().st_size < 10 * 2**20
+    assert shipped.meta["train_data"], "the shipped weights say what they were trained on"
+    for name in shipped.meta["train_data"]:
+        assert "/" not in name and "\\" not in name, name
