@@ -19,6 +19,11 @@ Per detected box (pixel-centre convention, as everywhere in the fusion stage):
 5. The segment touching the core whose box overlaps the detected box most replaces it, when that
    IoU reaches ``min_iou``; otherwise the detected box is kept (and counted as kept).
 
+Then vehicles the detector missed (a car mostly hidden behind another, a far car in a chain) are
+proposed from the depth image alone (``depth_proposals``): the object pixels of the whole image
+cut at depth jumps into segments; a segment that stands as high as a car roof, is wider than a
+pole and that no confident box explains becomes a box (a truck when it stands higher than a car).
+
 The band is one vehicle deep: a car behind another in the same lane is at least a car length plus
 the gap farther away, so it falls outside the band of the car in front. Depth quality sets what
 this can do: it was tuned on the renderer's exact depth (validation folders only; see
@@ -37,13 +42,30 @@ ROAD_Z_M = 0.0
 
 
 @dataclass(frozen=True)
+class ProposalParams:
+    """Vehicles the detector missed, proposed from the depth image alone (module docstring)."""
+    min_height_m: float = 0.3  # object pixels: above the road by more than this (no markings, kerbs)
+    max_height_m: float = 4.5  # and below this (tree crowns, gantries)
+    jump_m: float = 0.5  # depth discontinuity between neighbours: more than this (+ jump_rel of the depth)
+    jump_rel: float = 0.05
+    min_pixels: int = 60
+    min_top_m: float = 1.0  # the segment's top stands at least this high (a car's roof line; rails are lower)
+    min_width_m: float = 0.8  # wider than this (poles, tree trunks)
+    max_overlap: float = 0.3  # a segment whose box overlaps a detected box more than this is that box's
+    behind_m: float = 3.0  # ... as is one mostly inside a box, unless this far behind the box's surface
+    score: float = 0.3  # the proposals' score; detected boxes at least this confident explain segments
+    truck_top_m: float = 2.6  # a segment whose top stands higher is a truck
+
+
+@dataclass(frozen=True)
 class BoxRefineParams:
     margin: float = 0.25  # search window: the box grown by this share of its width / height per side
     min_height_m: float = 0.05  # above the road by more than this: an object pixel (tyres included)
     band_m: float = 4.0  # depth band of one vehicle's visible surface (see the module docstring)
     candidates: int = 3  # surface depths tried per box
-    support: float = 0.15  # rows / columns with less than this share of the fullest one are trimmed
+    support: float = 0.05  # rows / columns with less than this share of the fullest one are trimmed
     min_iou: float = 0.3  # a segment replaces the box only when its box overlaps the box this much
+    proposals: ProposalParams | None = ProposalParams()  # None: refine the detected boxes only
 
     def __post_init__(self):
         for name, low, high in (("margin", 0.0, 2.0), ("support", 0.0, 1.0), ("min_iou", 0.0, 1.0)):
@@ -66,6 +88,14 @@ def _box_iou(a: np.ndarray, b: np.ndarray) -> float:
     inter = ix * iy
     union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
     return inter / union if union > 0 else 0.0
+
+
+def _inside(a: np.ndarray, b: np.ndarray) -> float:
+    """Share of box a inside box b."""
+    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    area = (a[2] - a[0]) * (a[3] - a[1])
+    return ix * iy / area if area > 0 else 0.0
 
 
 class _Heights:
@@ -148,3 +178,62 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
             out[i] = best
             refined[i] = True
     return RefinedBoxes(out, refined)
+
+
+def _surface_depth(z: np.ndarray, obj: np.ndarray, box: np.ndarray, y_lo: int) -> float:
+    """Median depth of the object pixels in the central half of a box (rows from y_lo); inf if none."""
+    w, h = box[2] - box[0], box[3] - box[1]
+    x0, x1 = max(int(box[0] + 0.25 * w), 0), int(np.ceil(box[2] - 0.25 * w)) + 1
+    y0, y1 = max(int(box[1] + 0.25 * h) - y_lo, 0), max(int(np.ceil(box[3] - 0.25 * h)) + 1 - y_lo, 0)
+    core = z[y0:y1, x0:x1][obj[y0:y1, x0:x1]]
+    return float(np.median(core)) if core.size else np.inf
+
+
+def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
+                    params: ProposalParams = ProposalParams(), support: float = 0.15):
+    """Boxes of depth segments standing on the road that no detected box explains: (M, 4) boxes and
+    (M,) bool is_truck."""
+    z = np.asarray(depth, np.float32)
+    valid = np.isfinite(z) & (z > 0)
+    z = np.where(valid, z, np.float32(0))
+    height = _Heights(K, T_world_to_camera).window(z, 0, 0)
+    obj = valid & (height > params.min_height_m) & (height < params.max_height_m)
+    rows = np.flatnonzero(obj.any(axis=1))
+    if not len(rows):
+        return np.zeros((0, 4)), np.zeros(0, bool)
+    # only the rows holding object pixels (the sky and the road ahead hold none)
+    y_lo, y_hi = int(rows[0]), int(rows[-1]) + 1
+    obj, height, z = obj[y_lo:y_hi], height[y_lo:y_hi], z[y_lo:y_hi]
+    # cut at depth jumps: the farther pixel of each jumping neighbour pair leaves the mask (no
+    # depth counts as infinitely far, so a vehicle keeps its outline against the sky)
+    zj = np.where(valid[y_lo:y_hi], z, np.float32(np.inf))
+    keep = obj.copy()
+    for a, b, a_view, b_view in ((zj[:-1], zj[1:], keep[:-1], keep[1:]),
+                                 (zj[:, :-1], zj[:, 1:], keep[:, :-1], keep[:, 1:])):
+        a_view &= ~(a > b * np.float32(1 + params.jump_rel) + np.float32(params.jump_m))
+        b_view &= ~(b > a * np.float32(1 + params.jump_rel) + np.float32(params.jump_m))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(keep.astype(np.uint8), connectivity=4)
+    fx = float(np.asarray(K, float)[0, 0])
+    out, trucks = [], []
+    existing = np.asarray(boxes, float).reshape(-1, 4)
+    surface = [_surface_depth(z, obj, e, y_lo) for e in existing]
+    for label in range(1, n):
+        x, y, w, h, area = stats[label]
+        if area < params.min_pixels:
+            continue
+        sel = labels[y:y + h, x:x + w] == label
+        box = _segment_box(sel, support, x, y + y_lo)
+        zs = z[y:y + h, x:x + w][sel]
+        top = float(np.percentile(height[y:y + h, x:x + w][sel], 95))
+        width_m = (box[2] - box[0]) * float(np.median(zs)) / fx
+        if top < params.min_top_m or width_m < params.min_width_m:
+            continue
+        depth_m = float(np.median(zs))
+        # explained by a box: overlapping it, or mostly inside it and not clearly behind its surface
+        # (a vehicle peeking over or beside a nearer one lies inside the nearer one's box)
+        if any(_box_iou(box, e) > params.max_overlap or (_inside(box, e) > 0.5 and depth_m < d + params.behind_m)
+               for e, d in zip(existing, surface)):
+            continue
+        out.append(box)
+        trucks.append(top > params.truck_top_m)
+    return np.array(out, float).reshape(-1, 4), np.array(trucks, bool)

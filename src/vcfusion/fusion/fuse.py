@@ -15,7 +15,7 @@ import numpy as np
 
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import GuidanceSet, TwinStates
-from vcfusion.fusion.box_refine import BoxRefineParams, refine_boxes
+from vcfusion.fusion.box_refine import BoxRefineParams, depth_proposals, refine_boxes
 from vcfusion.fusion.depth_eval import DepthEvalParams, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector
 from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, match_all_baseline, match_all_paper,
@@ -91,13 +91,23 @@ def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams
         detector.set_truth(frame.gt_boxes, frame.gt_classes)
         return detector.detect(frame.image)
     detections = detector.detect(frame.image)
-    if refine is None or not len(detections):
+    if refine is None:
         return detections
     cam = frame.camera
     if cam.K is None or cam.T_world_to_camera is None:
         raise ValueError("box refinement: the camera has no intrinsics / pose (CameraView.K, T_world_to_camera)")
-    snapped = refine_boxes(detections.boxes, frame.depth, cam.K, cam.T_world_to_camera, refine)
-    return Detections.of(snapped.boxes, detections.scores, detections.classes)
+    boxes = refine_boxes(detections.boxes, frame.depth, cam.K, cam.T_world_to_camera, refine).boxes
+    scores, classes = detections.scores, detections.classes
+    if refine.proposals is not None:
+        from vcfusion.render.coco import category_id  # the dataset's category ids, as every detector reports
+
+        confident = boxes[scores >= refine.proposals.score]
+        new, is_truck = depth_proposals(frame.depth, cam.K, cam.T_world_to_camera, confident, refine.proposals,
+                                        refine.support)
+        boxes = np.vstack([boxes, new])
+        scores = np.r_[scores, np.full(len(new), refine.proposals.score, np.float32)]
+        classes = np.r_[classes, np.where(is_truck, category_id("truck"), category_id("passenger"))]
+    return Detections.of(boxes, scores, classes)
 
 
 def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: np.random.Generator,
