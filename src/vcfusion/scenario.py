@@ -87,8 +87,9 @@ class FusionConfig(_Strict):
     yolo_input_px: tuple[Annotated[int, Field(ge=32, le=4096)], Annotated[int, Field(ge=32, le=4096)]] = (640, 640)
     yolo_classes: Annotated[tuple[str, ...], Field(min_length=1)] = ("car", "bus", "truck")
     method: Literal["baseline", "baseline_centre", "paper", "joint"] = "joint"
-    # snap the detector's boxes to the vehicle surfaces of the depth image before matching
-    # (vcfusion.fusion.box_refine; never the oracle's); false: the detector's RGB boxes as they are
+    # snap the detector's boxes to the vehicle surfaces of the depth image before matching and add
+    # boxes for vehicles it missed, from depth segments (vcfusion.fusion.box_refine; never the
+    # oracle's); false: the detector's RGB boxes as they are
     refine_boxes: bool = True
     depth_th: Annotated[float, Field(gt=0.0, le=1.0)] = 0.8
     depth_samples: Annotated[int, Field(ge=1)] = 30
