@@ -60,9 +60,9 @@ def test_boxes_a_few_pixels_off_snap_back_to_the_vehicle(frames):
     print(f"IoU with the instance-map box: median {np.median(before):.3f} -> {np.median(after):.3f}, "
           f">= 0.8: {(before >= 0.8).mean():.1%} -> {(after >= 0.8).mean():.1%} ({len(after)} boxes)")
     # a few miss: a truck's side is deeper than the band, or a nearer car joins a truck's segment
-    # (measured: median 0.650 -> 0.896, >= 0.8: 0 % -> 65 % of 23 boxes)
-    assert np.median(after) >= 0.85
-    assert (after >= 0.8).mean() >= 0.6 and after.mean() >= before.mean() + 0.15
+    # (measured: median 0.650 -> 0.976, >= 0.8: 0 % -> 87 % of 23 boxes; 0.896 / 65 % with the support at 0.15)
+    assert np.median(after) >= 0.93
+    assert (after >= 0.8).mean() >= 0.8 and after.mean() >= before.mean() + 0.15
 
 
 def test_a_box_swallowing_the_car_behind_snaps_to_the_car_in_front(frames):
