@@ -146,8 +146,7 @@ def test_the_scenario_switches_the_refinement():
 def _propose(frame, boxes):
     from vcfusion.fusion.box_refine import depth_proposals
 
-    p = BoxRefineParams()
-    return depth_proposals(frame.depth, frame.camera.K, frame.camera.T_world_to_camera, boxes, p.proposals, p.support)
+    return depth_proposals(frame.depth, frame.camera.K, frame.camera.T_world_to_camera, boxes)
 
 
 def test_a_vehicle_without_a_box_is_proposed_from_depth(frames):

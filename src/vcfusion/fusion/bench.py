@@ -97,7 +97,7 @@ def main(argv=None) -> int:
             refine_boxes(detected, depth, K, T, params)
             t06 = time.perf_counter()
             # the whole frame is segmented whatever it holds; two boxes withheld as the detector's misses
-            depth_proposals(depth, K, T, detected[2:], params.proposals, params.support)
+            depth_proposals(depth, K, T, detected[2:], params)
             t1 = time.perf_counter()
             samples = sample_box_depths(depth, boxes, rng, DepthEvalParams())
             depths = reduce_depth_samples(samples)

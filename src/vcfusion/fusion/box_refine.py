@@ -90,12 +90,12 @@ def _box_iou(a: np.ndarray, b: np.ndarray) -> float:
     return inter / union if union > 0 else 0.0
 
 
-def _inside(a: np.ndarray, b: np.ndarray) -> float:
-    """Share of box a inside box b."""
-    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    area = (a[2] - a[0]) * (a[3] - a[1])
-    return ix * iy / area if area > 0 else 0.0
+def _core(box: np.ndarray, x0: int, y0: int) -> tuple[slice, slice]:
+    """Rows and columns of the box's central half in each direction, in an array whose pixel
+    (0, 0) is image pixel (x0, y0)."""
+    w, h = box[2] - box[0], box[3] - box[1]
+    return (slice(max(int(box[1] + 0.25 * h) - y0, 0), max(int(np.ceil(box[3] - 0.25 * h)) - y0 + 1, 0)),
+            slice(max(int(box[0] + 0.25 * w) - x0, 0), max(int(np.ceil(box[2] - 0.25 * w)) - x0 + 1, 0)))
 
 
 class _Heights:
@@ -151,11 +151,8 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
         valid = np.isfinite(z) & (z > 0)
         z = np.where(valid, z, np.float32(0))
         obj = valid & (heights.window(z, x0, y0) > p.min_height_m)
-        # the core: the central half of the box in each direction (at least one pixel)
-        cx0, cy0 = max(int(b[0] + 0.25 * w) - x0, 0), max(int(b[1] + 0.25 * h) - y0, 0)
-        cx1, cy1 = int(np.ceil(b[2] - 0.25 * w)) - x0 + 1, int(np.ceil(b[3] - 0.25 * h)) - y0 + 1
-        core_obj = obj[cy0:cy1, cx0:cx1]
-        core_z = z[cy0:cy1, cx0:cx1][core_obj]
+        core = _core(b, x0, y0)  # at least one pixel
+        core_z = z[core][obj[core]]
         if core_z.size < 3:
             continue
         log_z = np.log(core_z)
@@ -168,7 +165,7 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
             z0 = float(np.exp(edges[j]))
             band = obj & (z > z0 - 0.3 * p.band_m - 0.03 * z0) & (z < z0 + p.band_m + 0.03 * z0)
             _, labels = cv2.connectedComponents(band.astype(np.uint8), connectivity=4)
-            core_labels = labels[cy0:cy1, cx0:cx1][band[cy0:cy1, cx0:cx1]]
+            core_labels = labels[core][band[core]]
             for label in np.unique(core_labels):
                 candidate = _segment_box(labels == label, p.support, x0, y0)
                 iou = _box_iou(candidate, b)
@@ -180,19 +177,22 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
     return RefinedBoxes(out, refined)
 
 
-def _surface_depth(z: np.ndarray, obj: np.ndarray, box: np.ndarray, y_lo: int) -> float:
-    """Median depth of the object pixels in the central half of a box (rows from y_lo); inf if none."""
-    w, h = box[2] - box[0], box[3] - box[1]
-    x0, x1 = max(int(box[0] + 0.25 * w), 0), int(np.ceil(box[2] - 0.25 * w)) + 1
-    y0, y1 = max(int(box[1] + 0.25 * h) - y_lo, 0), max(int(np.ceil(box[3] - 0.25 * h)) + 1 - y_lo, 0)
-    core = z[y0:y1, x0:x1][obj[y0:y1, x0:x1]]
-    return float(np.median(core)) if core.size else np.inf
+def _surface_depth(z: np.ndarray, obj: np.ndarray, box: np.ndarray, y0: int) -> float:
+    """Median depth of the object pixels in a box's core (arrays starting at image row y0); inf if none."""
+    core = _core(box, 0, y0)
+    depths = z[core][obj[core]]
+    return float(np.median(depths)) if depths.size else np.inf
 
 
 def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
-                    params: ProposalParams = ProposalParams(), support: float = 0.15):
+                    refine: BoxRefineParams = BoxRefineParams()):
     """Boxes of depth segments standing on the road that no detected box explains: (M, 4) boxes and
-    (M,) bool is_truck."""
+    (M,) bool is_truck (``refine.proposals``; segments trimmed with ``refine.support``)."""
+    from vcfusion.fusion.matching import box_iou
+
+    params = refine.proposals
+    if params is None:
+        raise ValueError("depth_proposals: the proposals are switched off (BoxRefineParams.proposals is None)")
     z = np.asarray(depth, np.float32)
     valid = np.isfinite(z) & (z > 0)
     z = np.where(valid, z, np.float32(0))
@@ -216,23 +216,25 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     fx = float(np.asarray(K, float)[0, 0])
     out, trucks = [], []
     existing = np.asarray(boxes, float).reshape(-1, 4)
-    surface = [_surface_depth(z, obj, e, y_lo) for e in existing]
+    surface = np.array([_surface_depth(z, obj, e, y_lo) for e in existing])
+    existing_area = (existing[:, 2] - existing[:, 0]) * (existing[:, 3] - existing[:, 1])
     for label in range(1, n):
         x, y, w, h, area = stats[label]
         if area < params.min_pixels:
             continue
         sel = labels[y:y + h, x:x + w] == label
-        box = _segment_box(sel, support, x, y + y_lo)
-        zs = z[y:y + h, x:x + w][sel]
+        box = _segment_box(sel, refine.support, x, y + y_lo)
+        depth_m = float(np.median(z[y:y + h, x:x + w][sel]))
         top = float(np.percentile(height[y:y + h, x:x + w][sel], 95))
-        width_m = (box[2] - box[0]) * float(np.median(zs)) / fx
+        width_m = (box[2] - box[0]) * depth_m / fx
         if top < params.min_top_m or width_m < params.min_width_m:
             continue
-        depth_m = float(np.median(zs))
         # explained by a box: overlapping it, or mostly inside it and not clearly behind its surface
         # (a vehicle peeking over or beside a nearer one lies inside the nearer one's box)
-        if any(_box_iou(box, e) > params.max_overlap or (_inside(box, e) > 0.5 and depth_m < d + params.behind_m)
-               for e, d in zip(existing, surface)):
+        iou = box_iou(box[None], existing)[0]
+        area = (box[2] - box[0]) * (box[3] - box[1])
+        inside = iou * (area + existing_area) / ((1 + iou) * area)  # intersection / segment area, from the IoU
+        if np.any((iou > params.max_overlap) | ((inside > 0.5) & (depth_m < surface + params.behind_m))):
             continue
         out.append(box)
         trucks.append(top > params.truck_top_m)

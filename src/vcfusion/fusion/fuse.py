@@ -102,8 +102,7 @@ def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams
         from vcfusion.render.coco import category_id  # the dataset's category ids, as every detector reports
 
         confident = boxes[scores >= refine.proposals.score]
-        new, is_truck = depth_proposals(frame.depth, cam.K, cam.T_world_to_camera, confident, refine.proposals,
-                                        refine.support)
+        new, is_truck = depth_proposals(frame.depth, cam.K, cam.T_world_to_camera, confident, refine)
         boxes = np.vstack([boxes, new])
         scores = np.r_[scores, np.full(len(new), refine.proposals.score, np.float32)]
         classes = np.r_[classes, np.where(is_truck, category_id("truck"), category_id("passenger"))]
