@@ -8,7 +8,7 @@ import pytest
 
 from support.synthetic_coco import make_synthetic_coco
 from vcfusion.detection.detector_net import (DetectorFileError, DetectorModel, OnnxDetector, PostParams,
-                                          TorchDetector, export_onnx)
+                                          TorchDetector, decode_dense, export_onnx, inference_copy)
 from vcfusion.detection.detector_train import (checkpoint_path, evaluate_detector, load_coco, read_rgb,
                                                train_detector)
 from vcfusion.fusion.matching import box_iou
@@ -50,6 +50,25 @@ def test_weights_file_round_trip_and_size(trained):
     np.testing.assert_array_equal(TorchDetector(loaded).dense(image), TorchDetector(net).dense(image))
     assert (root / "w.pt").stat().st_size < 10 * 2**20
     assert not list(root.glob("*.tmp"))
+
+
+def test_inference_copy_folds_batch_norm_and_leaves_the_model_alone(trained):
+    import torch
+
+    root, data, net, _ = trained
+    before = {k: v.clone() for k, v in net.model.state_dict().items()}
+    folded = inference_copy(net.model)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+    assert sum(isinstance(m, torch.nn.BatchNorm2d) for m in net.model.modules()) > 0
+    x = torch.from_numpy(np.stack([read_rgb(p).transpose(2, 0, 1) for p in load_coco(data).images[:4]])
+                         .astype(np.float32))
+    with torch.inference_mode():
+        ref = decode_dense(*net.model.eval()(x))
+        got = decode_dense(*folded(x.contiguous(memory_format=torch.channels_last)))
+    np.testing.assert_allclose(got.numpy(), ref.numpy(), rtol=1e-4, atol=1e-4)
+    # the trained model keeps its own layers and weights (training can go on with it)
+    for k, v in net.model.state_dict().items():
+        assert torch.equal(v, before[k]), k
 
 
 def test_checkpoints_are_written_along_the_way(trained):

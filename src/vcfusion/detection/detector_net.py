@@ -22,6 +22,7 @@ Weights are a torch file holding the state dict and the metadata needed to rebui
 
 from __future__ import annotations
 
+import copy
 import functools
 import os
 from dataclasses import dataclass, field
@@ -251,19 +252,36 @@ def check_weights(path) -> None:
     _check_weights_file(str(path), path.stat().st_mtime_ns)
 
 
+def inference_copy(model: nn.Module, device: str = "cpu") -> nn.Module:
+    """A copy of `model` for inference only: each batch norm folded into the convolution before it
+    (eval statistics; outputs equal to float rounding) and the weights in channels-last layout, the
+    layout oneDNN's CPU convolutions run fastest in. The two together take the forward pass of the
+    shipped network at 320x240 from ~25 to ~16 ms on two CPU threads (``python -m
+    vcfusion.fusion.bench``). The model itself is left as it is (training goes on with it)."""
+    from torch.nn.utils.fusion import fuse_conv_bn_eval
+
+    folded = copy.deepcopy(model).eval()
+    for seq in [m for m in folded.modules() if isinstance(m, nn.Sequential)]:
+        for k in range(len(seq) - 1):
+            conv, bn = seq[k], seq[k + 1]
+            if isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d):
+                seq[k], seq[k + 1] = fuse_conv_bn_eval(conv, bn), nn.Identity()
+    return folded.to(device).to(memory_format=torch.channels_last)
+
+
 class TorchDetector:
-    """Our CNN in torch (CPU by default)."""
+    """Our CNN in torch (CPU by default), run from an inference copy (:func:`inference_copy`)."""
 
     def __init__(self, weights, params: PostParams = PostParams(), device: str = "cpu"):
         self.net = weights if isinstance(weights, DetectorModel) else DetectorModel.load(weights)
-        self.net.model.to(device).eval()
+        self.model = inference_copy(self.net.model, device)
         self.device = device
         self.params = params
 
     def dense(self, image: np.ndarray) -> np.ndarray:
         x = torch.from_numpy(preprocess(image, self.net.input_wh)).to(self.device)
         with torch.inference_mode():
-            return decode_dense(*self.net.model(x))[0].cpu().numpy()
+            return decode_dense(*self.model(x.contiguous(memory_format=torch.channels_last)))[0].cpu().numpy()
 
     def detect(self, image: np.ndarray) -> Detections:
         return postprocess(self.dense(image), image.shape[:2], self.net.input_wh, self.net.class_ids, self.params)
