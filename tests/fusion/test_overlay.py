@@ -60,3 +60,27 @@ def test_recorder_leaves_nothing_on_error(tmp_path):
     (tmp_path / "exists").mkdir()
     with pytest.raises(FileExistsError):
         OverlayRecorder(tmp_path / "exists")
+
+
+def test_recorder_raises_a_writer_thread_failure_and_leaves_nothing(tmp_path):
+    import shutil
+
+    rec = OverlayRecorder(tmp_path / "v")
+    rec.add(np.zeros((48, 64, 3), np.uint8))
+    shutil.rmtree(rec._tmp / "frames")  # the frames folder vanishes under the writer thread
+    with pytest.raises(RuntimeError, match="overlay video writer failed"):
+        with rec:
+            for _ in range(20):
+                rec.add(np.zeros((48, 64, 3), np.uint8))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_recorder_writes_each_frame_as_it_was_handed_over(tmp_path):
+    # the caller draws into the same array again: the recorder must have kept its own copy
+    frame = np.zeros((48, 64, 3), np.uint8)
+    with OverlayRecorder(tmp_path / "v") as rec:
+        for k in range(10):
+            frame[:] = 20 * k
+            rec.add(frame)
+    got = [cv2.imread(str(p))[0, 0, 0] for p in sorted((tmp_path / "v" / "frames").glob("*.png"))]
+    assert got == [20 * k for k in range(10)]

@@ -224,17 +224,20 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
             continue
         sel = labels[y:y + h, x:x + w] == label
         box = _segment_box(sel, refine.support, x, y + y_lo)
+        # explained by a box: overlapping it (checked first: most segments are detected vehicles),
+        # or mostly inside it and not clearly behind its surface (a vehicle peeking over or beside a
+        # nearer one lies inside the nearer one's box)
+        iou = box_iou(box[None], existing)[0]
+        if np.any(iou > params.max_overlap):
+            continue
         depth_m = float(np.median(z[y:y + h, x:x + w][sel]))
         top = float(np.percentile(height[y:y + h, x:x + w][sel], 95))
         width_m = (box[2] - box[0]) * depth_m / fx
         if top < params.min_top_m or width_m < params.min_width_m:
             continue
-        # explained by a box: overlapping it, or mostly inside it and not clearly behind its surface
-        # (a vehicle peeking over or beside a nearer one lies inside the nearer one's box)
-        iou = box_iou(box[None], existing)[0]
         area = (box[2] - box[0]) * (box[3] - box[1])
         inside = iou * (area + existing_area) / ((1 + iou) * area)  # intersection / segment area, from the IoU
-        if np.any((iou > params.max_overlap) | ((inside > 0.5) & (depth_m < surface + params.behind_m))):
+        if np.any((inside > 0.5) & (depth_m < surface + params.behind_m)):
             continue
         out.append(box)
         trucks.append(top > params.truck_top_m)

@@ -7,8 +7,10 @@ Images are RGB uint8; colours below are RGB. Writing converts to OpenCV's BGR.
 
 from __future__ import annotations
 
+import queue
 import shutil
 import tempfile
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -83,9 +85,15 @@ def draw_overlay(image: np.ndarray, guidance: list[Guidance], hud: Hud | None, d
 class OverlayRecorder:
     """Writes frames as ``frames/000000.png`` ... and ``overlay.mp4`` into ``out_dir``, atomically:
     everything goes to a temporary folder beside it that is renamed when :meth:`close` completes
-    (an error leaves no half-written output). Use as a context manager."""
+    (an error leaves no half-written output). Use as a context manager.
 
-    def __init__(self, out_dir, fps: float = 10.0, write_png: bool = True, video_name: str = "overlay.mp4"):
+    Encoding runs on a writer thread (OpenCV releases the GIL while it encodes), so a tick hands its
+    frame over and goes on with the next step; at most ``queue_frames`` frames wait, after which
+    :meth:`add` waits for the writer. An error on the writer thread is raised by the next
+    :meth:`add` or by :meth:`close`."""
+
+    def __init__(self, out_dir, fps: float = 10.0, write_png: bool = True, video_name: str = "overlay.mp4",
+                 queue_frames: int = 8):
         self.out_dir = Path(out_dir)
         if self.out_dir.exists():
             raise FileExistsError(f"{self.out_dir} already exists; choose a new output folder")
@@ -99,8 +107,12 @@ class OverlayRecorder:
         self.count = 0
         if write_png:
             (self._tmp / "frames").mkdir()
+        self._queue: queue.Queue = queue.Queue(maxsize=max(1, queue_frames))
+        self._error: BaseException | None = None
+        self._thread: threading.Thread | None = None
 
     def add(self, frame_rgb: np.ndarray) -> None:
+        self._raise_writer_error()
         h, w = frame_rgb.shape[:2]
         if self._writer is None:
             self._size = (w, h)
@@ -108,23 +120,55 @@ class OverlayRecorder:
                                            self.fps, (w, h))
             if not self._writer.isOpened():
                 raise RuntimeError("OpenCV cannot open an mp4v video writer on this system")
+            self._thread = threading.Thread(target=self._write_frames, name="overlay-writer", daemon=True)
+            self._thread.start()
         elif (w, h) != self._size:
             raise ValueError(f"frame size changed from {self._size} to {(w, h)}")
-        bgr = cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2BGR)
-        self._writer.write(bgr)
-        if self.write_png:
-            cv2.imwrite(str(self._tmp / "frames" / f"{self.count:06d}.png"), bgr)
+        # a copy: the caller may draw into its array again while this one waits to be written
+        self._queue.put((self.count, np.array(frame_rgb, copy=True)))
         self.count += 1
 
-    def close(self) -> Path:
+    def _write_frames(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            if self._error is not None:
+                continue  # drain after a failure; the error is raised on the caller's thread
+            index, frame_rgb = item
+            try:
+                bgr = cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2BGR)
+                self._writer.write(bgr)
+                if self.write_png and not cv2.imwrite(str(self._tmp / "frames" / f"{index:06d}.png"), bgr):
+                    raise OSError(f"{self._tmp / 'frames'}: cannot write frame {index:06d}.png")
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+                self._error = exc
+
+    def _stop_writer(self) -> None:
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join()
+            self._thread = None
         if self._writer is not None:
             self._writer.release()
+            self._writer = None
+
+    def _raise_writer_error(self) -> None:
+        if self._error is not None:
+            raise RuntimeError(f"overlay video writer failed: {self._error}") from self._error
+
+    def close(self) -> Path:
+        self._stop_writer()
+        try:
+            self._raise_writer_error()
+        except BaseException:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            raise
         self._tmp.rename(self.out_dir)
         return self.out_dir
 
     def abort(self) -> None:
-        if self._writer is not None:
-            self._writer.release()
+        self._stop_writer()
         shutil.rmtree(self._tmp, ignore_errors=True)
 
     def __enter__(self) -> "OverlayRecorder":
