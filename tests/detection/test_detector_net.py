@@ -71,6 +71,22 @@ def test_inference_copy_folds_batch_norm_and_leaves_the_model_alone(trained):
         assert torch.equal(v, before[k]), k
 
 
+def test_the_forward_pass_gets_back_its_threads_after_sumo_took_them(trained):
+    # SUMO's steps set the main thread's OpenMP thread count to 1 (through torch's runtime when
+    # torch was loaded first); the detector restores the count it was built with before each pass
+    import torch
+
+    root, data, net, _ = trained
+    before = torch.get_num_threads()
+    try:
+        det = TorchDetector(net, threads=2)
+        torch.set_num_threads(1)  # what a SUMO step does
+        det.dense(read_rgb(load_coco(data).images[0]))
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_checkpoints_are_written_along_the_way(trained):
     root, data, net, _ = trained
     assert checkpoint_path(root / "w.pt", 25) == root / "w.it0025.pt"

@@ -272,13 +272,19 @@ def inference_copy(model: nn.Module, device: str = "cpu") -> nn.Module:
 class TorchDetector:
     """Our CNN in torch (CPU by default), run from an inference copy (:func:`inference_copy`)."""
 
-    def __init__(self, weights, params: PostParams = PostParams(), device: str = "cpu"):
+    def __init__(self, weights, params: PostParams = PostParams(), device: str = "cpu", threads: int | None = None):
         self.net = weights if isinstance(weights, DetectorModel) else DetectorModel.load(weights)
         self.model = inference_copy(self.net.model, device)
         self.device = device
         self.params = params
+        self.threads = threads or torch.get_num_threads()  # CPU threads of the forward pass
 
     def dense(self, image: np.ndarray) -> np.ndarray:
+        # SUMO's steps set the calling thread's OpenMP thread count to 1 (libsumo bundles OpenMP
+        # libraries, which bind to torch's OpenMP runtime when torch was loaded first): without
+        # this the CNN ran single-threaded in every co-simulation, ~10 ms slower a tick
+        if torch.get_num_threads() != self.threads:
+            torch.set_num_threads(self.threads)
         x = torch.from_numpy(preprocess(image, self.net.input_wh)).to(self.device)
         with torch.inference_mode():
             return decode_dense(*self.model(x.contiguous(memory_format=torch.channels_last)))[0].cpu().numpy()

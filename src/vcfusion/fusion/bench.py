@@ -8,6 +8,7 @@ depth of the default camera's road with ten box-shaped vehicles on it, eight twi
 costs depend on the image size, the number and size of boxes and twins, not on the content. Rendering is timed by the renderer's own benchmark; add it
 to these figures for the full tick. Without --weights (and no shipped model) the detector is an
 untrained network of the default architecture: the same computation as the trained one.
+``overlay_handover`` is what a tick pays for the video: the recorder encodes on its own thread.
 """
 
 from __future__ import annotations
@@ -87,7 +88,7 @@ def main(argv=None) -> int:
     ar = AROverlayConfig()  # the scenario defaults' colours; the lane geometry plays no part in drawing
     policy = GuidancePolicy(ar.medium_threshold, ar.high_threshold, view_range_m=150.0, ego_lane=0, lane_width_m=3.2,
                             ego_lane_centre_d=1.6)
-    times = {k: [] for k in ("detect", "refine", "propose", "depth", "match", "overlay_draw", "overlay_write")}
+    times = {k: [] for k in ("detect", "refine", "propose", "depth", "match", "overlay_draw", "overlay_handover")}
     params = BoxRefineParams()
     with tempfile.TemporaryDirectory() as tmp, OverlayRecorder(Path(tmp) / "v") as rec:
         for i in range(args.frames + 5):
