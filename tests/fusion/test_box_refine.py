@@ -189,3 +189,42 @@ def test_detect_frame_adds_proposals_to_the_detectors_boxes(frames):
     assert len(detect_frame(frame, Blind(), replace(BoxRefineParams(), proposals=None))) == 0
     sky = replace(frame, depth=np.full_like(frame.depth, np.inf))
     assert len(detect_frame(sky, Blind(), BoxRefineParams())) == 0
+
+
+def _plate(depth, K, T, x, y0, y1, top):
+    """A flat upright rectangle facing the camera, x metres ahead, across y0..y1, from the road up to
+    `top`, drawn into the camera-Z depth image by exact ray-plane intersection."""
+    R, t = T[:3, :3], T[:3, 3]
+    centre = -R.T @ t
+    h, w = depth.shape
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    rays = R.T @ (np.linalg.inv(K) @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)]))  # camera-Z = 1 per ray
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (x - centre[0]) / rays[0]
+    p = centre[:, None] + s * rays
+    hit = (s > 0) & (p[1] >= y0) & (p[1] <= y1) & (p[2] >= 0) & (p[2] <= top)
+    z = depth.ravel().copy()
+    z[hit & (s < z)] = s[hit & (s < z)]
+    return z.reshape(h, w).astype(np.float32)
+
+
+def test_a_narrow_car_sliver_is_proposed_but_not_a_post_or_a_tree_trunk():
+    """What is left of a car mostly hidden behind another is as narrow as 0.3 m; reflector posts
+    (0.12 m) are narrower, and a segment standing higher than a truck's roof line must be as wide as
+    a vehicle (tree trunks)."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import depth_proposals
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    cases = {"car sliver": (2.0, 2.45, 1.5), "post": (5.0, 5.12, 1.4), "trunk": (-6.0, -5.55, 4.0)}
+    proposed = {}
+    for name, (y0, y1, top) in cases.items():
+        depth = _plate(road, K, T, 20.0, y0, y1, top)
+        assert (depth < road).sum() > 60, name  # the object is in view
+        boxes, _ = depth_proposals(depth, K, T, np.zeros((0, 4)), BoxRefineParams())
+        proposed[name] = len(boxes)
+    assert proposed == {"car sliver": 1, "post": 0, "trunk": 0}
+    # the same sliver 0.8 m wide stands for any vehicle; the trunk that wide is a (truck-high) vehicle
+    wide = _plate(road, K, T, 20.0, -6.0, -5.1, 4.0)
+    assert len(depth_proposals(wide, K, T, np.zeros((0, 4)), BoxRefineParams())[0]) == 1

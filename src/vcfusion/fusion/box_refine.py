@@ -22,7 +22,8 @@ Per detected box (pixel-centre convention, as everywhere in the fusion stage):
 Then vehicles the detector missed (a car mostly hidden behind another, a far car in a chain) are
 proposed from the depth image alone (``depth_proposals``): the object pixels of the whole image
 cut at depth jumps into segments; a segment that stands as high as a car roof, is wider than a
-pole and that no confident box explains becomes a box (a truck when it stands higher than a car).
+post (than a vehicle, when it stands higher than a truck: tree trunks) and that no confident box
+explains becomes a box (a truck when it stands higher than a car).
 
 The band is one vehicle deep: a car behind another in the same lane is at least a car length plus
 the gap farther away, so it falls outside the band of the car in front. Depth quality sets what
@@ -50,7 +51,9 @@ class ProposalParams:
     jump_rel: float = 0.05
     min_pixels: int = 60
     min_top_m: float = 1.0  # the segment's top stands at least this high (a car's roof line; rails are lower)
-    min_width_m: float = 0.8  # wider than this (poles, tree trunks)
+    min_width_m: float = 0.3  # wider than this (reflector posts, 0.12 m): a car mostly hidden
+    # behind another shows a sliver as narrow as this
+    min_tall_width_m: float = 0.8  # a segment standing higher than truck_top_m: wider than this (tree trunks)
     max_overlap: float = 0.3  # a segment whose box overlaps a detected box more than this is that box's
     behind_m: float = 3.0  # ... as is one mostly inside a box, unless this far behind the box's surface
     score: float = 0.3  # the proposals' score; detected boxes at least this confident explain segments
@@ -233,7 +236,8 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         depth_m = float(np.median(z[y:y + h, x:x + w][sel]))
         top = float(np.percentile(height[y:y + h, x:x + w][sel], 95))
         width_m = (box[2] - box[0]) * depth_m / fx
-        if top < params.min_top_m or width_m < params.min_width_m:
+        min_width = params.min_tall_width_m if top > params.truck_top_m else params.min_width_m
+        if top < params.min_top_m or width_m < min_width:
             continue
         area = (box[2] - box[0]) * (box[3] - box[1])
         inside = iou * (area + existing_area) / ((1 + iou) * area)  # intersection / segment area, from the IoU
