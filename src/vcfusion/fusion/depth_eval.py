@@ -97,3 +97,28 @@ def evaluate_box_depths(
 ) -> np.ndarray:
     """Algorithm 1: distance (m) of each box from the camera, (N,); nan where no valid depth was sampled."""
     return reduce_depth_samples(sample_box_depths(depth, boxes, rng, params), params.reducer)
+
+
+def grid_box_depths(depth: np.ndarray, boxes: np.ndarray, th: float = 0.8, nx: int = 6, ny: int = 5) -> np.ndarray:
+    """Depths on a regular nx x ny grid over each whole box shrunk by ``th`` (no randomness), (N, nx*ny);
+    nan for sky / invalid pixels. Not part of Algorithm 1: the joint matcher adds these to the
+    lower-quarter samples, because a vehicle whose lower part a nearer one hides (a truck behind a
+    car) shows its own depth only higher up in its box."""
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise ValueError(f"depth: expected a 2-D depth image (H, W), got shape {depth.shape}")
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    if not len(b):
+        return np.zeros((0, nx * ny))
+    cx, cy = (b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2
+    w, h = (b[:, 2] - b[:, 0]) * th, (b[:, 3] - b[:, 1]) * th
+    fx = (np.arange(nx) + 0.5) / nx - 0.5  # cell centres, -0.5..0.5 of the shrunk box
+    fy = (np.arange(ny) + 0.5) / ny - 0.5
+    xs = (cx[:, None] + w[:, None] * fx[None, :])[:, None, :].repeat(ny, axis=1).reshape(len(b), -1)
+    ys = (cy[:, None] + h[:, None] * fy[None, :])[:, :, None].repeat(nx, axis=2).reshape(len(b), -1)
+    height, width = depth.shape
+    cols = np.clip(np.floor(xs + 0.5).astype(np.int64), 0, width - 1)
+    rows = np.clip(np.floor(ys + 0.5).astype(np.int64), 0, height - 1)
+    samples = depth[rows, cols].astype(np.float64)
+    samples[~(np.isfinite(samples) & (samples > 0))] = np.nan
+    return samples
