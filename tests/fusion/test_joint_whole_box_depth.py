@@ -19,9 +19,9 @@ def test_grid_samples_cover_the_whole_shrunk_box_and_skip_the_sky():
     rows = s[0].reshape(5, 6)
     np.testing.assert_array_equal(rows[0], 30.0)  # the top row of the grid lies in the top quarter
     np.testing.assert_array_equal(rows[1:], 12.0)
-    assert grid_box_depths(depth, np.zeros((0, 4))).shape == (0, 30)
+    assert grid_box_depths(depth, np.zeros((0, 4)), th=0.8).shape == (0, 30)
     with pytest.raises(ValueError, match="2-D depth"):
-        grid_box_depths(depth[None], np.zeros((1, 4)))
+        grid_box_depths(depth[None], np.zeros((1, 4)), th=0.8)
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +49,7 @@ def test_a_truck_behind_a_car_keeps_its_box(far_chain, monkeypatch):
     iou = _identified(far_chain)
     assert len(iou) >= 6 and np.all(iou >= 0.7)
     # the same frames with the lower-quarter samples only: targets are lost
-    import vcfusion.fusion.fuse as fuse
+    import vcfusion.fusion.depth_eval as depth_eval
 
-    monkeypatch.setattr(fuse, "grid_box_depths", lambda depth, boxes, th: np.zeros((len(boxes), 0)))
+    monkeypatch.setattr(depth_eval, "grid_box_depths", lambda depth, boxes, th: np.zeros((len(boxes), 0)))
     assert (_identified(far_chain) < 0.7).sum() >= 4

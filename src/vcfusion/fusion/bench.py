@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from vcfusion.fusion.box_refine import BoxRefineParams, depth_proposals, refine_boxes
-from vcfusion.fusion.depth_eval import DepthEvalParams, grid_box_depths, reduce_depth_samples, sample_box_depths
+from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detector_net import CenterNetLite, DetectorModel, TorchDetector, default_weights_path
 from vcfusion.fusion.matching import JointMatcher, TwinProjection, match_all_baseline, match_all_paper
 from vcfusion.fusion.overlay import Hud, OverlayRecorder, draw_overlay, make_guidance
@@ -105,8 +105,7 @@ def main(argv=None) -> int:
             t2 = time.perf_counter()
             match_all_baseline(proj, boxes)
             match_all_paper(proj, boxes, depths)
-            # as fuse_frame: the joint matcher also reads a grid over each whole box
-            chosen = matcher.assign(proj, boxes, np.concatenate([samples, grid_box_depths(depth, boxes)], axis=1))
+            chosen = matcher.assign(proj, boxes, joint_depth_samples(depth, boxes, samples, DepthEvalParams().th))
             t3 = time.perf_counter()
             guidance = make_guidance(0.1 * i, [f"v{k}" for k in range(len(chosen))], rng.random(len(chosen)),
                                      [boxes[j] if j >= 0 else None for j in chosen], policy)

@@ -39,15 +39,39 @@ class DepthEvalParams:
             raise ValueError(f"reducer: expected 'mean' or 'median', got {self.reducer!r}")
 
 
-def sampling_areas(boxes: np.ndarray, th: float) -> np.ndarray:
-    """The lower-quarter area of each box shrunk by ``th`` about its centre, (N, 4) x1, y1, x2, y2."""
+def _shrunk(boxes: np.ndarray, th: float) -> np.ndarray:
+    """Each box shrunk by ``th`` about its centre, (N, 4) x1, y1, x2, y2."""
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
     cx, cy = (b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2
     w, h = (b[:, 2] - b[:, 0]) * th, (b[:, 3] - b[:, 1]) * th
-    x1, x2 = cx - w / 2, cx + w / 2
-    y2 = cy + h / 2
-    y1 = y2 - h / 4
-    return np.stack([x1, y1, x2, y2], axis=1)
+    return np.stack([cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2], axis=1)
+
+
+def sampling_areas(boxes: np.ndarray, th: float) -> np.ndarray:
+    """The lower-quarter area of each box shrunk by ``th`` about its centre, (N, 4) x1, y1, x2, y2."""
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    a = _shrunk(b, th)
+    a[:, 1] = a[:, 3] - (b[:, 3] - b[:, 1]) * th / 4
+    return a
+
+
+def _checked_depth(depth: np.ndarray) -> np.ndarray:
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise ValueError(f"depth: expected a 2-D depth image (H, W), got shape {depth.shape}")
+    return depth
+
+
+def _depths_at(depth: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """Depth at image positions (any shape), nan for sky / invalid pixels; positions outside the
+    image are clamped to its border."""
+    height, width = depth.shape
+    # pixel-centre convention (OpenCV, the renderer's boxes): pixel c spans [c - 0.5, c + 0.5)
+    cols = np.clip(np.floor(xs + 0.5).astype(np.int64), 0, width - 1)
+    rows = np.clip(np.floor(ys + 0.5).astype(np.int64), 0, height - 1)
+    samples = depth[rows, cols].astype(np.float64)
+    samples[~(np.isfinite(samples) & (samples > 0))] = np.nan
+    return samples
 
 
 def sample_box_depths(
@@ -57,25 +81,17 @@ def sample_box_depths(
     params: DepthEvalParams = DepthEvalParams(),
 ) -> np.ndarray:
     """The sampled depths of Algorithm 1 before averaging, (N, n); nan for sky / invalid pixels."""
-    depth = np.asarray(depth)
-    if depth.ndim != 2:
-        raise ValueError(f"depth: expected a 2-D depth image (H, W), got shape {depth.shape}")
+    depth = _checked_depth(depth)
     areas = sampling_areas(boxes, params.th)
     n_boxes = len(areas)
     if n_boxes == 0:
         return np.zeros((0, params.n))
-    height, width = depth.shape
-    # All boxes at once: uniform positions in each area, floored to pixel indices inside the image.
+    # All boxes at once: uniform positions in each area.
     u = rng.random((n_boxes, params.n))
     v = rng.random((n_boxes, params.n))
     xs = areas[:, [0]] + u * (areas[:, [2]] - areas[:, [0]])
     ys = areas[:, [1]] + v * (areas[:, [3]] - areas[:, [1]])
-    # pixel-centre convention (OpenCV, the renderer's boxes): pixel c spans [c - 0.5, c + 0.5)
-    cols = np.clip(np.floor(xs + 0.5).astype(np.int64), 0, width - 1)
-    rows = np.clip(np.floor(ys + 0.5).astype(np.int64), 0, height - 1)
-    samples = depth[rows, cols].astype(np.float64)
-    samples[~(np.isfinite(samples) & (samples > 0))] = np.nan
-    return samples
+    return _depths_at(depth, xs, ys)
 
 
 def reduce_depth_samples(samples: np.ndarray, reducer: Reducer = "mean") -> np.ndarray:
@@ -99,26 +115,21 @@ def evaluate_box_depths(
     return reduce_depth_samples(sample_box_depths(depth, boxes, rng, params), params.reducer)
 
 
-def grid_box_depths(depth: np.ndarray, boxes: np.ndarray, th: float = 0.8, nx: int = 6, ny: int = 5) -> np.ndarray:
+def grid_box_depths(depth: np.ndarray, boxes: np.ndarray, th: float, nx: int = 6, ny: int = 5) -> np.ndarray:
     """Depths on a regular nx x ny grid over each whole box shrunk by ``th`` (no randomness), (N, nx*ny);
-    nan for sky / invalid pixels. Not part of Algorithm 1: the joint matcher adds these to the
-    lower-quarter samples, because a vehicle whose lower part a nearer one hides (a truck behind a
-    car) shows its own depth only higher up in its box."""
-    depth = np.asarray(depth)
-    if depth.ndim != 2:
-        raise ValueError(f"depth: expected a 2-D depth image (H, W), got shape {depth.shape}")
-    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
-    if not len(b):
-        return np.zeros((0, nx * ny))
-    cx, cy = (b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2
-    w, h = (b[:, 2] - b[:, 0]) * th, (b[:, 3] - b[:, 1]) * th
-    fx = (np.arange(nx) + 0.5) / nx - 0.5  # cell centres, -0.5..0.5 of the shrunk box
-    fy = (np.arange(ny) + 0.5) / ny - 0.5
-    xs = (cx[:, None] + w[:, None] * fx[None, :])[:, None, :].repeat(ny, axis=1).reshape(len(b), -1)
-    ys = (cy[:, None] + h[:, None] * fy[None, :])[:, :, None].repeat(nx, axis=2).reshape(len(b), -1)
-    height, width = depth.shape
-    cols = np.clip(np.floor(xs + 0.5).astype(np.int64), 0, width - 1)
-    rows = np.clip(np.floor(ys + 0.5).astype(np.int64), 0, height - 1)
-    samples = depth[rows, cols].astype(np.float64)
-    samples[~(np.isfinite(samples) & (samples > 0))] = np.nan
-    return samples
+    nan for sky / invalid pixels. Not part of Algorithm 1 (see :func:`joint_depth_samples`)."""
+    depth = _checked_depth(depth)
+    a = _shrunk(boxes, th)
+    fx = (np.arange(nx) + 0.5) / nx  # cell centres, 0..1 of the shrunk box
+    fy = (np.arange(ny) + 0.5) / ny
+    xs = a[:, 0, None, None] + (a[:, 2] - a[:, 0])[:, None, None] * fx[None, None, :]  # (N, 1, nx)
+    ys = a[:, 1, None, None] + (a[:, 3] - a[:, 1])[:, None, None] * fy[None, :, None]  # (N, ny, 1)
+    xs, ys = np.broadcast_arrays(xs, ys)
+    return _depths_at(depth, xs, ys).reshape(len(a), nx * ny)
+
+
+def joint_depth_samples(depth: np.ndarray, boxes: np.ndarray, samples: np.ndarray, th: float) -> np.ndarray:
+    """What the joint matcher reads per box: Algorithm 1's lower-quarter `samples` plus the
+    :func:`grid_box_depths` over the whole box, because a vehicle whose lower part a nearer one
+    hides (a truck behind a car) shows its own depth only higher up in its box."""
+    return np.concatenate([samples, grid_box_depths(depth, boxes, th)], axis=1)

@@ -16,7 +16,7 @@ import numpy as np
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import GuidanceSet, TwinStates
 from vcfusion.fusion.box_refine import BoxRefineParams, depth_proposals, refine_boxes
-from vcfusion.fusion.depth_eval import DepthEvalParams, grid_box_depths, reduce_depth_samples, sample_box_depths
+from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector
 from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, match_all_baseline, match_all_paper,
                                       point_in_boxes, project_twins)
@@ -134,11 +134,8 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
         choice["paper"] = match_all_paper(proj, detections.boxes, depths, fallback_radius_px,
                                           scores=detections.scores)
     if "joint" in methods:
-        # Algorithm 1's lower-quarter samples plus a grid over the whole box: a truck behind a car
-        # shows its own depth only above the car (grid_box_depths)
-        whole = grid_box_depths(frame.depth, detections.boxes, depth_params.th)
-        choice["joint"] = (joint or JointMatcher()).match(twins, detections.boxes, np.concatenate([samples, whole], axis=1),
-                                                          frame.camera)
+        joint_samples = joint_depth_samples(frame.depth, detections.boxes, samples, depth_params.th)
+        choice["joint"] = (joint or JointMatcher()).match(twins, detections.boxes, joint_samples, frame.camera)
     timings["match"] = wallclock.perf_counter() - t2
     n_anchor_boxes = np.zeros(len(twins), np.int64)
     for i in np.flatnonzero(proj.in_view):
