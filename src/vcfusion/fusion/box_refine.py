@@ -236,13 +236,13 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         depth_m = float(np.median(z[y:y + h, x:x + w][sel]))
         top = float(np.percentile(height[y:y + h, x:x + w][sel], 95))
         width_m = (box[2] - box[0]) * depth_m / fx
-        min_width = params.min_tall_width_m if top > params.truck_top_m else params.min_width_m
-        if top < params.min_top_m or width_m < min_width:
+        is_truck = top > params.truck_top_m
+        if top < params.min_top_m or width_m < (params.min_tall_width_m if is_truck else params.min_width_m):
             continue
         area = (box[2] - box[0]) * (box[3] - box[1])
         inside = iou * (area + existing_area) / ((1 + iou) * area)  # intersection / segment area, from the IoU
         if np.any((inside > 0.5) & (depth_m < surface + params.behind_m)):
             continue
         out.append(box)
-        trucks.append(top > params.truck_top_m)
+        trucks.append(is_truck)
     return np.array(out, float).reshape(-1, 4), np.array(trucks, bool)

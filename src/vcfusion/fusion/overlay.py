@@ -124,8 +124,8 @@ class OverlayRecorder:
             self._thread.start()
         elif (w, h) != self._size:
             raise ValueError(f"frame size changed from {self._size} to {(w, h)}")
-        # a copy: the caller may draw into its array again while this one waits to be written
-        self._queue.put((self.count, np.array(frame_rgb, copy=True)))
+        # the conversion is also the copy the writer needs: the caller may draw into its array again
+        self._queue.put((self.count, cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2BGR)))
         self.count += 1
 
     def _write_frames(self) -> None:
@@ -135,9 +135,8 @@ class OverlayRecorder:
                 return
             if self._error is not None:
                 continue  # drain after a failure; the error is raised on the caller's thread
-            index, frame_rgb = item
+            index, bgr = item
             try:
-                bgr = cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2BGR)
                 self._writer.write(bgr)
                 if self.write_png and not cv2.imwrite(str(self._tmp / "frames" / f"{index:06d}.png"), bgr):
                     raise OSError(f"{self._tmp / 'frames'}: cannot write frame {index:06d}.png")
@@ -159,11 +158,9 @@ class OverlayRecorder:
 
     def close(self) -> Path:
         self._stop_writer()
-        try:
-            self._raise_writer_error()
-        except BaseException:
+        if self._error is not None:
             shutil.rmtree(self._tmp, ignore_errors=True)
-            raise
+            self._raise_writer_error()
         self._tmp.rename(self.out_dir)
         return self.out_dir
 
