@@ -228,3 +228,28 @@ def test_a_narrow_car_sliver_is_proposed_but_not_a_post_or_a_tree_trunk():
     # the same sliver 0.8 m wide stands for any vehicle; the trunk that wide is a (truck-high) vehicle
     wide = _plate(road, K, T, 20.0, -6.0, -5.1, 4.0)
     assert len(depth_proposals(wide, K, T, np.zeros((0, 4)), BoxRefineParams())[0]) == 1
+
+
+def test_a_near_car_touching_a_farther_truck_in_its_band_snaps_to_the_car_alone():
+    """A truck's rear 3 m behind a near car and beside it touches the car in the image and lies
+    within the car's depth band: only the cut at the depth jump between them keeps the car's box
+    from taking in the truck. A box a few pixels off the car must snap to the car."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    car_only = _plate(road, K, T, 5.0, -0.9, 0.9, 1.5)
+    scene = _plate(car_only, K, T, 8.0, 0.9, 3.4, 3.8)
+    car = car_only < road
+    truck = scene < car_only
+    ys, xs = np.nonzero(car)
+    truth = np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5])
+    # the two touch in the image (a car pixel beside a truck pixel)
+    assert (car[:, :-1] & truck[:, 1:]).any() or (car[:, 1:] & truck[:, :-1]).any()
+    detected = truth + np.array([-6.0, 4.0, 5.0, -3.0])
+    out = refine_boxes(detected[None], scene, K, T, BoxRefineParams(proposals=None))
+    assert out.refined[0]
+    assert box_iou(out.boxes, truth[None])[0, 0] > 0.95
+    # on the car alone the same box snaps to the same place: the truck changed nothing
+    alone = refine_boxes(detected[None], car_only, K, T, BoxRefineParams(proposals=None)).boxes
+    np.testing.assert_allclose(out.boxes, alone, atol=1.0)

@@ -13,11 +13,15 @@ Per detected box (pixel-centre convention, as everywhere in the fusion stage):
 3. Candidate surface depths: the ``candidates`` most populated 4 % log-depth bins of the object
    pixels in the box's core (its central half in each direction).
 4. For each candidate depth z0, the object pixels from ``0.3 * band_m`` (+3 % of z0) nearer to
-   ``band_m`` (+3 %) farther than z0, split into 4-connected segments. A segment's box is the
-   span of its rows and columns holding at least ``support`` of its fullest row / column (so a
-   rail or a sliver of road does not widen it).
-5. The segment touching the core whose box overlaps the detected box most replaces it, when that
-   IoU reaches ``min_iou``; otherwise the detected box is kept (and counted as kept).
+   ``band_m`` (+3 %) farther than z0, split into 4-connected segments twice: as they are, and cut
+   at depth jumps (the farther pixel of each neighbour pair whose depths differ by more than
+   ``jump_m`` + ``jump_rel`` of the depth removed). Why both: a near car touches, in the image,
+   the side of a truck or the car beside it that lies within its band, and only the cut separates
+   them; but the cut also takes a pixel off each occluded outline, which a small far box cannot
+   spare. A segment's box is the span of its rows and columns holding at least ``support`` of its
+   fullest row / column (so a rail or a sliver of road does not widen it).
+5. Of the segments touching the core, the one whose box overlaps the detected box most replaces
+   it, when that IoU reaches ``min_iou``; otherwise the detected box is kept (and counted as kept).
 
 Then vehicles the detector missed (a car mostly hidden behind another, a far car in a chain) are
 proposed from the depth image alone (``depth_proposals``): the object pixels of the whole image
@@ -47,8 +51,6 @@ class ProposalParams:
     """Vehicles the detector missed, proposed from the depth image alone (module docstring)."""
     min_height_m: float = 0.3  # object pixels: above the road by more than this (no markings, kerbs)
     max_height_m: float = 4.5  # and below this (tree crowns, gantries)
-    jump_m: float = 0.5  # depth discontinuity between neighbours: more than this (+ jump_rel of the depth)
-    jump_rel: float = 0.05
     min_pixels: int = 60
     min_top_m: float = 1.0  # the segment's top stands at least this high (a car's roof line; rails are lower)
     min_width_m: float = 0.3  # wider than this (reflector posts, 0.12 m): a car mostly hidden
@@ -68,6 +70,8 @@ class BoxRefineParams:
     candidates: int = 3  # surface depths tried per box
     support: float = 0.05  # rows / columns with less than this share of the fullest one are trimmed
     min_iou: float = 0.3  # a segment replaces the box only when its box overlaps the box this much
+    jump_m: float = 0.5  # depth discontinuity between neighbours: more than this (+ jump_rel of the
+    jump_rel: float = 0.05  # depth); the refinement's cut segments and the proposals both use it
     proposals: ProposalParams | None = ProposalParams()  # None: refine the detected boxes only
 
     def __post_init__(self):
@@ -122,6 +126,20 @@ class _Heights:
         return z * (v[:, None] + u[None, :]) - np.float32(self.offset)
 
 
+def _jump_free(z: np.ndarray, valid: np.ndarray, jump_m: float, jump_rel: float) -> np.ndarray:
+    """False at the farther pixel of each 4-neighbour pair whose depths jump by more than jump_m +
+    jump_rel of the depth (no depth counts as infinitely far, so a vehicle keeps its outline
+    against the sky)."""
+    zj = np.where(valid, z, np.float32(np.inf))
+    keep = np.ones(z.shape, bool)
+    scale, offset = np.float32(1 + jump_rel), np.float32(jump_m)
+    for a, b, a_view, b_view in ((zj[:-1], zj[1:], keep[:-1], keep[1:]),
+                                 (zj[:, :-1], zj[:, 1:], keep[:, :-1], keep[:, 1:])):
+        a_view &= ~(a > b * scale + offset)
+        b_view &= ~(b > a * scale + offset)
+    return keep
+
+
 def _segment_box(sel: np.ndarray, support: float, x0: int, y0: int) -> np.ndarray:
     cols, rows = sel.sum(axis=0), sel.sum(axis=1)
     xs = np.flatnonzero(cols >= support * cols.max())
@@ -154,6 +172,7 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
         valid = np.isfinite(z) & (z > 0)
         z = np.where(valid, z, np.float32(0))
         obj = valid & (heights.window(z, x0, y0) > p.min_height_m)
+        jump_free = _jump_free(z, valid, p.jump_m, p.jump_rel)
         core = _core(b, x0, y0)  # at least one pixel
         core_z = z[core][obj[core]]
         if core_z.size < 3:
@@ -167,13 +186,14 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
                 break
             z0 = float(np.exp(edges[j]))
             band = obj & (z > z0 - 0.3 * p.band_m - 0.03 * z0) & (z < z0 + p.band_m + 0.03 * z0)
-            _, labels = cv2.connectedComponents(band.astype(np.uint8), connectivity=4)
-            core_labels = labels[core][band[core]]
-            for label in np.unique(core_labels):
-                candidate = _segment_box(labels == label, p.support, x0, y0)
-                iou = _box_iou(candidate, b)
-                if iou > best_iou:
-                    best, best_iou = candidate, iou
+            cut = band & jump_free
+            for segments in (band, cut) if cut.sum() < band.sum() else (band,):
+                _, labels = cv2.connectedComponents(segments.astype(np.uint8), connectivity=4)
+                for label in np.unique(labels[core][segments[core]]):
+                    candidate = _segment_box(labels == label, p.support, x0, y0)
+                    iou = _box_iou(candidate, b)
+                    if iou > best_iou:
+                        best, best_iou = candidate, iou
         if best is not None:
             out[i] = best
             refined[i] = True
@@ -207,14 +227,8 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     # only the rows holding object pixels (the sky and the road ahead hold none)
     y_lo, y_hi = int(rows[0]), int(rows[-1]) + 1
     obj, height, z = obj[y_lo:y_hi], height[y_lo:y_hi], z[y_lo:y_hi]
-    # cut at depth jumps: the farther pixel of each jumping neighbour pair leaves the mask (no
-    # depth counts as infinitely far, so a vehicle keeps its outline against the sky)
-    zj = np.where(valid[y_lo:y_hi], z, np.float32(np.inf))
-    keep = obj.copy()
-    for a, b, a_view, b_view in ((zj[:-1], zj[1:], keep[:-1], keep[1:]),
-                                 (zj[:, :-1], zj[:, 1:], keep[:, :-1], keep[:, 1:])):
-        a_view &= ~(a > b * np.float32(1 + params.jump_rel) + np.float32(params.jump_m))
-        b_view &= ~(b > a * np.float32(1 + params.jump_rel) + np.float32(params.jump_m))
+    # cut at depth jumps: the farther pixel of each jumping neighbour pair leaves the mask
+    keep = obj & _jump_free(z, valid[y_lo:y_hi], refine.jump_m, refine.jump_rel)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(keep.astype(np.uint8), connectivity=4)
     fx = float(np.asarray(K, float)[0, 0])
     out, trucks = [], []
