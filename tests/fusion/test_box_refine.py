@@ -253,3 +253,28 @@ def test_a_near_car_touching_a_farther_truck_in_its_band_snaps_to_the_car_alone(
     # on the car alone the same box snaps to the same place: the truck changed nothing
     alone = refine_boxes(detected[None], car_only, K, T, BoxRefineParams(proposals=None)).boxes
     np.testing.assert_allclose(out.boxes, alone, atol=1.0)
+
+
+def test_a_narrow_truck_top_seen_over_a_nearer_car_is_proposed_but_not_a_trunk_on_the_ground():
+    """A truck 10 m behind a car shows only a narrow strip above the car's roof, standing higher than a
+    car: as narrow as a tree trunk, but its lower outline rests on the nearer car instead of the road."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import depth_proposals
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    car = _plate(road, K, T, 10.0, -1.0, 1.0, 1.5)
+    ys, xs = np.nonzero(car < road)
+    car_box = np.array([[xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5]])
+    for y0, y1, over_car in ((0.2, 0.7, True), (-6.0, -5.5, False)):  # over the car / on the verge
+        scene = _plate(car, K, T, 20.0, y0, y1, 3.6)
+        strip = scene < car
+        assert strip.sum() > 60
+        boxes, is_truck = depth_proposals(scene, K, T, car_box, BoxRefineParams())
+        if over_car:
+            assert len(boxes) == 1 and is_truck[0]
+            ys, xs = np.nonzero(strip)
+            truth = np.array([[xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5]])
+            assert box_iou(boxes, truth)[0, 0] > 0.85
+        else:
+            assert len(boxes) == 0  # the same strip standing on the road: a trunk

@@ -26,8 +26,9 @@ Per detected box (pixel-centre convention, as everywhere in the fusion stage):
 Then vehicles the detector missed (a car mostly hidden behind another, a far car in a chain) are
 proposed from the depth image alone (``depth_proposals``): the object pixels of the whole image
 cut at depth jumps into segments; a segment that stands as high as a car roof, is wider than a
-post (than a vehicle, when it stands higher than a truck: tree trunks) and that no confident box
-explains becomes a box (a truck when it stands higher than a car).
+post (than a vehicle, when it stands on the road higher than a truck: tree trunks; the top of a
+truck seen over the car in front rests on that car instead) and that no confident box explains
+becomes a box (a truck when it stands higher than a car).
 
 The band is one vehicle deep: a car behind another in the same lane is at least a car length plus
 the gap farther away, so it falls outside the band of the car in front. Depth quality sets what
@@ -207,6 +208,24 @@ def _surface_depth(z: np.ndarray, obj: np.ndarray, box: np.ndarray, y0: int) -> 
     return float(np.median(depths)) if depths.size else np.inf
 
 
+def _seen_over_nearer(sel: np.ndarray, x: int, y: int, z: np.ndarray, obj: np.ndarray, depth_m: float,
+                      jump_m: float, jump_rel: float) -> bool:
+    """Whether most of a segment's lower outline rests on a nearer object: the top of a truck seen
+    over the vehicle in front of it, not a trunk standing on the ground. `sel` is the segment's
+    mask in its bounding box, whose pixel (0, 0) is (x, y) of z and obj. The row just below the
+    outline is the segment's own pixel cut at the jump, so the object is looked for one row lower."""
+    lower = np.zeros_like(sel)
+    lower[:-1] = sel[1:]
+    rows, cols = np.nonzero(sel & ~lower)
+    rows, cols = rows + y + 2, cols + x
+    inside = rows < z.shape[0]
+    if not inside.any():
+        return False
+    rows, cols = rows[inside], cols[inside]
+    nearer = obj[rows, cols] & (z[rows, cols] < depth_m / (1 + jump_rel) - jump_m)
+    return bool(nearer.mean() > 0.5)
+
+
 def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
                     refine: BoxRefineParams = BoxRefineParams()):
     """Boxes of depth segments standing on the road that no detected box explains: (M, 4) boxes and
@@ -251,7 +270,11 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         top = float(np.percentile(height[y:y + h, x:x + w][sel], 95))
         width_m = (box[2] - box[0]) * depth_m / fx
         is_truck = top > params.truck_top_m
-        if top < params.min_top_m or width_m < (params.min_tall_width_m if is_truck else params.min_width_m):
+        min_width = params.min_width_m
+        if is_truck and width_m < params.min_tall_width_m and not _seen_over_nearer(
+                sel, x, y, z, obj, depth_m, refine.jump_m, refine.jump_rel):
+            min_width = params.min_tall_width_m  # standing on the ground as tall as this: a trunk or a pole
+        if top < params.min_top_m or width_m < min_width:
             continue
         area = (box[2] - box[0]) * (box[3] - box[1])
         inside = iou * (area + existing_area) / ((1 + iou) * area)  # intersection / segment area, from the IoU
