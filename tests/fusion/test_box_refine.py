@@ -278,3 +278,33 @@ def test_a_narrow_truck_top_seen_over_a_nearer_car_is_proposed_but_not_a_trunk_o
             assert box_iou(boxes, truth)[0, 0] > 0.85
         else:
             assert len(boxes) == 0  # the same strip standing on the road: a trunk
+
+
+def test_a_car_in_front_of_the_surface_its_box_measured_is_proposed():
+    """Fig. 3 at range: one box over a car at 60 m and the truck 12 m behind it measures the truck
+    (the larger surface in its core). The car stands clearly in front of that surface, so the box does
+    not explain it and it is proposed."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import depth_proposals
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    truck = _plate(road, K, T, 72.0, -1.25, 1.25, 3.8)
+    scene = _plate(truck, K, T, 60.0, -0.9, 0.9, 1.5)
+
+    def box_of(mask):
+        ys, xs = np.nonzero(mask)
+        return np.array([[xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5]])
+
+    car_box = box_of(scene < truck)  # about 18 x 10 px: one row or column off is IoU 0.83
+    union = box_of(scene < road)
+    boxes, is_truck = depth_proposals(scene, K, T, union, BoxRefineParams())
+    assert len(boxes) == 1 and not is_truck[0]
+    assert box_iou(boxes, car_box)[0, 0] > 0.8
+    # the truck's box instead: the car in front of it is still proposed, the truck is not
+    truck_box = box_of((scene < road) & (scene >= truck))
+    boxes, _ = depth_proposals(scene, K, T, truck_box, BoxRefineParams())
+    assert len(boxes) == 1 and box_iou(boxes, car_box)[0, 0] > 0.8
+    # the car's own box explains the car: nothing is proposed over it
+    boxes, _ = depth_proposals(scene, K, T, car_box, BoxRefineParams())
+    assert len(boxes) == 0 or box_iou(boxes, car_box).max() < 0.3

@@ -260,13 +260,15 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
             continue
         sel = labels[y:y + h, x:x + w] == label
         box = _segment_box(sel, refine.support, x, y + y_lo)
-        # explained by a box: overlapping it (checked first: most segments are detected vehicles),
-        # or mostly inside it and not clearly behind its surface (a vehicle peeking over or beside a
-        # nearer one lies inside the nearer one's box)
+        # explained by a box: overlapping it, or mostly inside it and not clearly behind its surface
+        # (a vehicle peeking over or beside a nearer one lies inside the nearer one's box), unless
+        # it stands clearly in front of the box's surface (nearer by a depth jump): then the box
+        # measured a farther vehicle and this segment is the one in front (Fig. 3 at range)
         iou = box_iou(box[None], existing)[0]
-        if np.any(iou > params.max_overlap):
-            continue
         depth_m = float(np.median(z[y:y + h, x:x + w][sel]))
+        not_in_front = depth_m > surface / (1 + refine.jump_rel) - refine.jump_m
+        if np.any((iou > params.max_overlap) & not_in_front):
+            continue
         top = float(np.percentile(height[y:y + h, x:x + w][sel], 95))
         width_m = (box[2] - box[0]) * depth_m / fx
         is_truck = top > params.truck_top_m
@@ -278,7 +280,7 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
             continue
         area = (box[2] - box[0]) * (box[3] - box[1])
         inside = iou * (area + existing_area) / ((1 + iou) * area)  # intersection / segment area, from the IoU
-        if np.any((inside > 0.5) & (depth_m < surface + params.behind_m)):
+        if np.any((inside > 0.5) & not_in_front & (depth_m < surface + params.behind_m)):
             continue
         out.append(box)
         trucks.append(is_truck)
