@@ -308,3 +308,21 @@ def test_a_car_in_front_of_the_surface_its_box_measured_is_proposed():
     # the car's own box explains the car: nothing is proposed over it
     boxes, _ = depth_proposals(scene, K, T, car_box, BoxRefineParams())
     assert len(boxes) == 0 or box_iou(boxes, car_box).max() < 0.3
+
+
+def test_what_goes_on_above_any_vehicles_roof_is_not_proposed():
+    """A wide surface standing from the road to 7 m (a tree crown, a pillar, a sign) cut at the
+    4.5 m height cap leaves a vehicle-sized segment whose top goes on upward: not a vehicle. The same
+    surface 3.8 m high, with sky above its top, is a truck."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import depth_proposals
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    proposed = {}
+    for top in (7.0, 3.8):
+        scene = _plate(road, K, T, 40.0, 5.0, 7.5, top)
+        assert (scene < road).sum() > 200
+        boxes, is_truck = depth_proposals(scene, K, T, np.zeros((0, 4)), BoxRefineParams())
+        proposed[top] = (len(boxes), bool(is_truck.all()))
+    assert proposed == {7.0: (0, True), 3.8: (1, True)}

@@ -27,8 +27,8 @@ Then vehicles the detector missed (a car mostly hidden behind another, a far car
 proposed from the depth image alone (``depth_proposals``): the object pixels of the whole image
 cut at depth jumps into segments; a segment that stands as high as a car roof, is wider than a
 post (than a vehicle, when it stands on the road higher than a truck: tree trunks; the top of a
-truck seen over the car in front rests on that car instead) and that no confident box explains
-becomes a box (a truck when it stands higher than a car).
+truck seen over the car in front rests on that car instead), whose top does not go on upward
+(tree crowns and poles cut at the height cap) and that no confident box explains becomes a box (a truck when it stands higher than a car).
 
 The band is one vehicle deep: a car behind another in the same lane is at least a car length plus
 the gap farther away, so it falls outside the band of the car in front. Depth quality sets what
@@ -52,6 +52,8 @@ class ProposalParams:
     """Vehicles the detector missed, proposed from the depth image alone (module docstring)."""
     min_height_m: float = 0.3  # object pixels: above the road by more than this (no markings, kerbs)
     max_height_m: float = 4.5  # and below this (tree crowns, gantries)
+    max_top_continuing: float = 0.3  # a segment whose top outline goes on, as the same surface,
+    # above max_height_m over more than this share is part of a tree, a pole or a bridge
     min_pixels: int = 60
     min_top_m: float = 1.0  # the segment's top stands at least this high (a car's roof line; rails are lower)
     min_width_m: float = 0.3  # wider than this (reflector posts, 0.12 m): a car mostly hidden
@@ -226,6 +228,24 @@ def _seen_over_nearer(sel: np.ndarray, x: int, y: int, z: np.ndarray, obj: np.nd
     return bool(nearer.mean() > 0.5)
 
 
+def _continues_above(sel: np.ndarray, x: int, y: int, z: np.ndarray, valid: np.ndarray, height: np.ndarray,
+                     max_height_m: float, jump_m: float, jump_rel: float) -> float:
+    """Share of a segment's top outline whose upper neighbour is the same surface (no depth jump)
+    standing higher than any vehicle: a tree crown or a pole cut at the height cap. `sel` is the
+    segment's mask in its bounding box, whose pixel (0, 0) is (x, y) of the other arrays."""
+    upper = np.zeros_like(sel)
+    upper[1:] = sel[:-1]
+    rows, cols = np.nonzero(sel & ~upper)
+    rows, cols = rows + y, cols + x
+    ok = rows >= 1
+    if not ok.any():
+        return 0.0
+    rows, cols = rows[ok], cols[ok]
+    za, zs = z[rows - 1, cols], z[rows, cols]
+    same = valid[rows - 1, cols] & (za < zs * (1 + jump_rel) + jump_m) & (zs < za * (1 + jump_rel) + jump_m)
+    return float((same & (height[rows - 1, cols] >= max_height_m)).sum() / len(rows))
+
+
 def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
                     refine: BoxRefineParams = BoxRefineParams()):
     """Boxes of depth segments standing on the road that no detected box explains: (M, 4) boxes and
@@ -245,9 +265,10 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         return np.zeros((0, 4)), np.zeros(0, bool)
     # only the rows holding object pixels (the sky and the road ahead hold none)
     y_lo, y_hi = int(rows[0]), int(rows[-1]) + 1
-    obj, height, z = obj[y_lo:y_hi], height[y_lo:y_hi], z[y_lo:y_hi]
+    y_lo = max(y_lo - 1, 0)  # and the row above them: what stands above a segment's top
+    obj, height, z, valid_c = obj[y_lo:y_hi], height[y_lo:y_hi], z[y_lo:y_hi], valid[y_lo:y_hi]
     # cut at depth jumps: the farther pixel of each jumping neighbour pair leaves the mask
-    keep = obj & _jump_free(z, valid[y_lo:y_hi], refine.jump_m, refine.jump_rel)
+    keep = obj & _jump_free(z, valid_c, refine.jump_m, refine.jump_rel)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(keep.astype(np.uint8), connectivity=4)
     fx = float(np.asarray(K, float)[0, 0])
     out, trucks = [], []
@@ -282,6 +303,9 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         inside = iou * (area + existing_area) / ((1 + iou) * area)  # intersection / segment area, from the IoU
         if np.any((inside > 0.5) & not_in_front & (depth_m < surface + params.behind_m)):
             continue
+        if _continues_above(sel, x, y, z, valid_c, height, params.max_height_m, refine.jump_m,
+                            refine.jump_rel) > params.max_top_continuing:
+            continue  # a tree crown or a pole cut at the height cap, not a vehicle's roof
         out.append(box)
         trucks.append(is_truck)
     return np.array(out, float).reshape(-1, 4), np.array(trucks, bool)
