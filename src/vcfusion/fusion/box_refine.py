@@ -59,7 +59,7 @@ class ProposalParams:
     min_width_m: float = 0.3  # wider than this (reflector posts, 0.12 m): a car mostly hidden
     # behind another shows a sliver as narrow as this
     min_tall_width_m: float = 0.8  # a segment standing higher than truck_top_m: wider than this (tree trunks)
-    max_overlap: float = 0.3  # a segment whose box overlaps a detected box more than this is that box's
+    max_overlap: float = 0.5  # a segment whose box overlaps a detected box more than this is that box's
     behind_m: float = 3.0  # ... as is one mostly inside a box, unless this far behind the box's surface
     score: float = 0.3  # the proposals' score; detected boxes at least this confident explain segments
     truck_top_m: float = 2.6  # a segment whose top stands higher is a truck
