@@ -326,3 +326,13 @@ def test_what_goes_on_above_any_vehicles_roof_is_not_proposed():
         boxes, is_truck = depth_proposals(scene, K, T, np.zeros((0, 4)), BoxRefineParams())
         proposed[top] = (len(boxes), bool(is_truck.all()))
     assert proposed == {7.0: (0, True), 3.8: (1, True)}
+
+
+def test_a_proposal_the_detector_saw_below_its_threshold_ranks_above_one_it_did_not_see():
+    from vcfusion.fusion.fuse import _proposal_scores
+
+    proposals = np.array([[100, 100, 140, 130], [300, 100, 320, 140]], float)
+    weak = np.array([[102, 101, 141, 131], [98, 99, 139, 128], [500, 100, 520, 120]], float)
+    scores = _proposal_scores(proposals, weak, np.array([0.12, 0.2, 0.25], np.float32), 0.3)
+    np.testing.assert_allclose(scores, [0.5, 0.3], atol=1e-6)  # the best covering one; none for the second
+    np.testing.assert_allclose(_proposal_scores(proposals, np.zeros((0, 4)), np.zeros(0, np.float32), 0.3), [0.3, 0.3])

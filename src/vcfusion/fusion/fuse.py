@@ -101,12 +101,29 @@ def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams
     if refine.proposals is not None:
         from vcfusion.render.coco import category_id  # the dataset's category ids, as every detector reports
 
-        confident = boxes[scores >= refine.proposals.score]
-        new, is_truck = depth_proposals(frame.depth, cam.K, cam.T_world_to_camera, confident, refine)
+        confident = scores >= refine.proposals.score
+        new, is_truck = depth_proposals(frame.depth, cam.K, cam.T_world_to_camera, boxes[confident], refine)
         boxes = np.vstack([boxes, new])
-        scores = np.r_[scores, np.full(len(new), refine.proposals.score, np.float32)]
+        scores = np.r_[scores, _proposal_scores(new, boxes[:len(scores)][~confident], scores[~confident],
+                                                refine.proposals.score)]
         classes = np.r_[classes, np.where(is_truck, category_id("truck"), category_id("passenger"))]
     return Detections.of(boxes, scores, classes)
+
+
+def _proposal_scores(proposals: np.ndarray, weak_boxes: np.ndarray, weak_scores: np.ndarray,
+                     base: float) -> np.ndarray:
+    """A depth proposal scores `base` (the proposals' operating score) plus the best score of a
+    detection below it that covers the proposal (IoU >= 0.5): where the detector saw something too,
+    the proposal is likelier a vehicle (a bush or a sign standing on the road side never has one).
+    Only a detector run below the operating threshold (the COCO evaluation) has such detections; the
+    proposals are kept either way, only their rank changes."""
+    from vcfusion.fusion.matching import box_iou
+
+    out = np.full(len(proposals), base, np.float32)
+    if len(proposals) and len(weak_boxes):
+        covers = box_iou(proposals, weak_boxes) >= 0.5
+        out += np.where(covers, weak_scores[None, :], 0.0).max(axis=1).astype(np.float32)
+    return out
 
 
 def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: np.random.Generator,
