@@ -310,3 +310,22 @@ def test_joint_matcher_matches_the_visible_sliver_of_a_car_a_nearer_truck_hides(
     np.testing.assert_allclose(cost - cost0, np.repeat(hidden_share[:, None], 2, axis=1))
     # the sliver is not given to the car when the truck's box is the only box
     assert [int(g) for g in JointMatcher().match(twins, truck_box[None], samples[:1], cam)] == [0, NO_MATCH]
+
+
+def test_an_anchor_off_the_image_is_replaced_by_the_centre_of_the_twins_part_in_view():
+    """A car close by in the next lane is cut by the image border: its box is what is in view, its
+    expected box is clipped to the image, its anchor (the body centre) is not. Like a hidden anchor,
+    it is replaced by the centre of the part in view, so the car's own box pays no anchor distance."""
+    cam = pinhole_camera()
+    twins = make_twins(["cut"], [4.0], [3.5])
+    proj = project_twins(twins, cam)
+    assert proj.in_view[0] and proj.anchor[0, 0] < 0  # in view, anchor off the image
+    box = vehicle_box(cam, 4.0, 3.5)
+    box[[0, 2]] = np.clip(box[[0, 2]], 0, cam.width)
+    box[[1, 3]] = np.clip(box[[1, 3]], 0, cam.height)
+    samples = np.full((1, 30), 4.0 - 2.25)
+    cost, allowed = JointMatcher().cost_matrix(proj, box[None], samples)
+    no_anchor, _ = JointMatcher(JointMatcherParams(w_anchor=0.0)).cost_matrix(proj, box[None], samples)
+    assert allowed[0, 0]
+    np.testing.assert_allclose(cost, no_anchor)  # the anchor term is zero: the anchor used lies in the box
+    assert [int(g) for g in JointMatcher().match(twins, box[None], samples, cam)] == [0]

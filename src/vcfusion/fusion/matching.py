@@ -474,6 +474,12 @@ class JointMatcher:
         # of the twin's expected box too, and a hidden anchor is replaced by that part's centre.
         visible, anchor_hidden, hidden_share = visible_boxes(proj)
         iou = (np.maximum(box_iou(proj.expected_box, b), box_iou(visible, b)) if n and m else np.zeros((n, m)))
+        # An anchor outside the image (a vehicle cut by the image border: the expected box is
+        # clipped to the image, the anchor is not) is as unobservable as a hidden one.
+        e = proj.expected_box
+        off_image = ~((e[:, 0] <= proj.anchor[:, 0]) & (proj.anchor[:, 0] <= e[:, 2])
+                      & (e[:, 1] <= proj.anchor[:, 1]) & (proj.anchor[:, 1] <= e[:, 3]))
+        anchor_hidden = anchor_hidden | (off_image & proj.in_view)
         anchors = np.where(anchor_hidden[:, None], (visible[:, :2] + visible[:, 2:]) / 2, proj.anchor)
         anchor_dist = np.zeros((n, m))
         inside = np.zeros((n, m), bool)
