@@ -54,7 +54,7 @@ class ProposalParams:
     max_height_m: float = 4.5  # and below this (tree crowns, gantries)
     max_top_continuing: float = 0.3  # a segment whose top outline goes on, as the same surface,
     # above max_height_m over more than this share is part of a tree, a pole or a bridge
-    min_pixels: int = 60
+    min_pixels: int = 40  # a far car partly hidden shows as few (60 before the twelfth session)
     min_top_m: float = 1.0  # the segment's top stands at least this high (a car's roof line; rails are lower)
     min_width_m: float = 0.3  # wider than this (reflector posts, 0.12 m): a car mostly hidden
     # behind another shows a sliver as narrow as this
