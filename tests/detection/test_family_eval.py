@@ -109,6 +109,15 @@ def test_family_groups_best_iou_and_identification(families, tmp_path):
     assert by["all"].n_targets == n_big
     # on these synthetic scenes the joint matcher with true boxes identifies most targets
     assert by["all"].identification["oracle"] >= 0.8
+    # per visible fraction: the bins hold every identification target (the renders carry the
+    # fraction of each box) and their accuracies average back to the family's
+    for r in results:
+        bins = r.identification_by_visibility["truth"]
+        assert sum(n for n, _ in bins.values()) == r.n_identified_targets
+        pooled = sum(n * acc for n, acc in bins.values() if n) / r.n_identified_targets
+        assert pooled == pytest.approx(r.identification["truth"])
+    # the jam hides cars behind cars: some of its targets are less than half visible
+    assert sum(n for label, (n, _) in by["jam"].identification_by_visibility["oracle"].items() if label != ">=0.5") > 0
     # a detector that finds nothing: mAP 0, best IoU 0, identification 0
     class Blind:
         def detect(self, image):
@@ -132,6 +141,18 @@ def test_eval_detector_cli_reports_families(families, tmp_path):
     rows = {r["family"]: r for r in json.loads(report.read_text())["families"]}
     assert set(rows) == {"jam", "cut_in", "all"}
     assert 0 <= rows["jam"]["map_50"] <= 1 and "ident_0.7_oracle" in rows["jam"]
+    assert "by the share of the target left visible" in proc.stdout
+    assert rows["jam"]["ident_0.7_oracle_visible_>=0.5"]["targets"] > 0
     bad = subprocess.run([sys.executable, "-m", "vcfusion", "eval-detector", str(families[0]), "--onnx",
                           str(tmp_path / "none.onnx"), "--layout", "ultralytics"], capture_output=True, text=True)
     assert bad.returncode == 2 and "none.onnx: ONNX model not found" in bad.stderr
+
+
+def test_identification_by_visible_fraction_against_hand_values():
+    from vcfusion.detection.family_eval import _by_visibility
+
+    right = np.array([True, False, True, True, False, True])
+    visible = np.array([0.1, 0.2, 0.25, 0.49, 0.5, np.nan])  # a target without a fraction is left out
+    bins = _by_visibility(right, visible)
+    assert bins["<0.25"] == (2, 0.5) and bins["0.25-0.5"] == (2, 1.0)
+    assert bins[">=0.5"] == (1, 0.0)

@@ -69,7 +69,7 @@ def _make_detector(args):
 
 def cmd_eval_detector(args: argparse.Namespace) -> int:
     from vcfusion.detection.detector_train import load_coco_many
-    from vcfusion.detection.family_eval import evaluate_families, format_table
+    from vcfusion.detection.family_eval import evaluate_families, format_table, format_visibility_table
 
     detector = _make_detector(args)
     ds = load_coco_many(args.data)
@@ -87,6 +87,9 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
         if cid in overall.box_map.ap_per_category:
             print(f"  {name}: AP@0.5:0.95 {overall.box_map.ap_per_category[cid]:.3f}")
     print(format_table(results))
+    by_visibility = format_visibility_table(results)
+    if by_visibility:
+        print(by_visibility)
     if args.report:
         from vcfusion.runio import write_json
 

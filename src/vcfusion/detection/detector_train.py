@@ -39,6 +39,9 @@ class CocoDataset:
     # (None where the file has none); empty lists where not loaded
     records: list[dict] = field(default_factory=list)
     box_vehicle_ids: list[list] = field(default_factory=list)
+    # per image (G,): the share of each box's vehicle that nearer objects leave visible (the
+    # renderer's visible_fraction; nan where the file has none); empty where not loaded
+    box_visible: list[np.ndarray] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.images)
@@ -47,7 +50,8 @@ class CocoDataset:
         index = list(index)
         pick = lambda items: [items[i] for i in index] if items else []  # noqa: E731
         return CocoDataset(self.folder, pick(self.images), pick(self.image_ids), pick(self.boxes), pick(self.classes),
-                           self.class_ids, self.class_names, pick(self.records), pick(self.box_vehicle_ids))
+                           self.class_ids, self.class_names, pick(self.records), pick(self.box_vehicle_ids),
+                           pick(self.box_visible))
 
     def ground_truth(self) -> dict:
         return {iid: (b, c) for iid, b, c in zip(self.image_ids, self.boxes, self.classes)}
@@ -82,6 +86,7 @@ def load_coco(folder) -> CocoDataset:
     class_ids = [int(c["id"]) for c in cats]
     per_image: dict[int, list] = {}
     vids: dict[int, list] = {}
+    visible: dict[int, list] = {}
     for k, ann in enumerate(coco["annotations"]):
         bbox = ann.get("bbox")
         if not (isinstance(bbox, list) and len(bbox) == 4) or ann.get("category_id") not in class_ids:
@@ -93,6 +98,8 @@ def load_coco(folder) -> CocoDataset:
             x, y = x - 0.5, y - 0.5
             per_image.setdefault(int(ann["image_id"]), []).append((x, y, x + w, y + h, int(ann["category_id"])))
             vids.setdefault(int(ann["image_id"]), []).append(ann.get("vehicle_id"))
+            vis = ann.get("visible_fraction")
+            visible.setdefault(int(ann["image_id"]), []).append(np.nan if vis is None else float(vis))
     images, ids, boxes, classes = [], [], [], []
     for k, img in enumerate(coco["images"]):
         name = img.get("file_name")
@@ -109,7 +116,8 @@ def load_coco(folder) -> CocoDataset:
     if not images:
         raise DetectorFileError(f"{path}: images: expected at least one image")
     return CocoDataset(folder, images, ids, boxes, classes, class_ids, [str(c.get("name", c["id"])) for c in cats],
-                       list(coco["images"]), [vids.get(int(img["id"]), []) for img in coco["images"]])
+                       list(coco["images"]), [vids.get(int(img["id"]), []) for img in coco["images"]],
+                       [np.array(visible.get(int(img["id"]), []), float) for img in coco["images"]])
 
 
 def load_coco_many(folders) -> CocoDataset:
@@ -127,7 +135,7 @@ def load_coco_many(folders) -> CocoDataset:
                        [(k, i) for k, d in enumerate(parts) for i in d.image_ids],  # ids unique across folders
                        [b for d in parts for b in d.boxes], [c for d in parts for c in d.classes],
                        first.class_ids, first.class_names, [r for d in parts for r in d.records],
-                       [v for d in parts for v in d.box_vehicle_ids])
+                       [v for d in parts for v in d.box_vehicle_ids], [v for d in parts for v in d.box_visible])
 
 
 def read_rgb(path: Path) -> np.ndarray:

@@ -10,7 +10,9 @@ frames of `vcfusion render` have none and form the group ``all``). Per group:
   (oracle). The twins are the image's vehicles as the renderer placed them (the recipe's
   ``twins`` for procedural scenes, else the ``vehicles`` anchors): GNSS point = body centre
   (:func:`vcfusion.records.gnss_antenna_points`), no noise, no latency; the depth image is the
-  rendered one. A target is a vehicle with a ground-truth box of at least ``min_area`` px^2.
+  rendered one. A target is a vehicle with a ground-truth box of at least ``min_area`` px^2;
+- the same identification per share of the target that nearer objects leave visible
+  (:data:`VISIBILITY_BINS` of the renderer's ``visible_fraction``), where the folder has it.
 """
 
 from __future__ import annotations
@@ -29,6 +31,9 @@ from vcfusion.detection.detectors import Detections, OracleDetector
 
 IDENTIFICATION_IOU = 0.7
 IOU_QUANTILES = (0.1, 0.25, 0.5)
+# identification per how much of the target nearer objects leave visible (the renderer's
+# visible_fraction): the bins' lower edges and labels
+VISIBILITY_BINS = ((0.0, "<0.25"), (0.25, "0.25-0.5"), (0.5, ">=0.5"))
 
 
 @dataclass
@@ -40,6 +45,8 @@ class FamilyResult:
     best_iou: np.ndarray  # (targets,) best IoU of a detected box per target (0 where none)
     identification: dict = field(default_factory=dict)  # detector name -> accuracy at IoU 0.7 (joint matcher)
     n_identified_targets: int = 0
+    # detector name -> {visibility bin label: (targets, accuracy at IoU 0.7)}; empty without visible_fraction
+    identification_by_visibility: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         q = np.quantile(self.best_iou, IOU_QUANTILES) if len(self.best_iou) else [np.nan] * len(IOU_QUANTILES)
@@ -49,7 +56,9 @@ class FamilyResult:
                 "best_iou_ge_0.5": float((self.best_iou >= 0.5).mean()) if len(self.best_iou) else np.nan,
                 "best_iou_ge_0.7": float((self.best_iou >= 0.7).mean()) if len(self.best_iou) else np.nan,
                 "identification_targets": self.n_identified_targets,
-                **{f"ident_0.7_{k}": v for k, v in self.identification.items()}}
+                **{f"ident_0.7_{k}": v for k, v in self.identification.items()},
+                **{f"ident_0.7_{k}_visible_{label}": {"targets": n, "accuracy": acc}
+                   for k, bins in self.identification_by_visibility.items() for label, (n, acc) in bins.items()}}
 
 
 class _Fixed:
@@ -114,8 +123,8 @@ def _camera_frame(ds: CocoDataset, k: int, image: np.ndarray):
                        gt_ids=tuple(ds.box_vehicle_ids[k]), gt_classes=ds.classes[k])
 
 
-def _identification(frame, twins, detector, seed: int, min_area: float) -> np.ndarray:
-    """IoU of the joint matcher's box per target (0 where unmatched)."""
+def _identification(frame, twins, detector, seed: int, min_area: float) -> tuple[np.ndarray, list]:
+    """IoU of the joint matcher's box per target (0 where unmatched) and the targets' vehicle ids."""
     from vcfusion.fusion.depth_eval import DepthEvalParams
     from vcfusion.fusion.fuse import fuse_frame
     from vcfusion.fusion.matching import JointMatcher, JointMatcherParams
@@ -125,7 +134,7 @@ def _identification(frame, twins, detector, seed: int, min_area: float) -> np.nd
     joint = JointMatcher(JointMatcherParams(smoothing_alpha=None))
     result = fuse_frame(frame, twins, detector, np.random.default_rng(seed), DepthEvalParams(), joint, ("joint",))
     rows = identification_rows(frame, result, min_area)
-    return np.array([r["iou"] for r in rows], float)
+    return np.array([r["iou"] for r in rows], float), [r["vehicle_id"] for r in rows]
 
 
 def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identification: bool = True,
@@ -167,8 +176,11 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
             if identification and ds.records and ds.box_vehicle_ids:
                 twins = _twins(records[k], frame.time) if frame is not None else None
                 if frame is not None and twins is not None:
-                    ident[iid] = {name: _identification(frame, twins, det, k, min_area)
-                                  for name, det in (("oracle", OracleDetector()), (detector_name, _Fixed(working)))}
+                    visible = dict(zip(ds.box_vehicle_ids[k], ds.box_visible[k])) if ds.box_visible else {}
+                    ident[iid] = {}
+                    for name, det in (("oracle", OracleDetector()), (detector_name, _Fixed(working))):
+                        iou_t, vids = _identification(frame, twins, det, k, min_area)
+                        ident[iid][name] = (iou_t, np.array([visible.get(v, np.nan) for v in vids], float))
     finally:
         if hasattr(detector, "params"):
             detector.params = saved
@@ -188,11 +200,47 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
         with_ident = [i for i in ids if i in ident]
         if with_ident:
             for name in ident[with_ident[0]]:
-                iou = np.concatenate([ident[i][name] for i in with_ident])
-                res.identification[name] = float((iou >= IDENTIFICATION_IOU - 1e-12).mean()) if len(iou) else np.nan
-            res.n_identified_targets = int(sum(len(ident[i]["oracle"]) for i in with_ident))
+                iou = np.concatenate([ident[i][name][0] for i in with_ident])
+                vis = np.concatenate([ident[i][name][1] for i in with_ident])
+                right = iou >= IDENTIFICATION_IOU - 1e-12
+                res.identification[name] = float(right.mean()) if len(iou) else np.nan
+                if np.isfinite(vis).any():
+                    res.identification_by_visibility[name] = _by_visibility(right, vis)
+            res.n_identified_targets = int(sum(len(ident[i]["oracle"][0]) for i in with_ident))
         results.append(res)
     return results, dets
+
+
+def _by_visibility(right: np.ndarray, visible: np.ndarray) -> dict:
+    """{bin label: (targets, share right)} over VISIBILITY_BINS (targets without a visible fraction
+    are left out)."""
+    edges = [lo for lo, _ in VISIBILITY_BINS] + [np.inf]
+    out = {}
+    for (lo, label), hi in zip(VISIBILITY_BINS, edges[1:]):
+        m = (visible >= lo) & (visible < hi)
+        out[label] = (int(m.sum()), float(right[m].mean()) if m.any() else np.nan)
+    return out
+
+
+def format_visibility_table(results: list[FamilyResult], detector_name: str = "cnn") -> str:
+    """Identification at IoU 0.7 per family and visible fraction of the target (oracle / detector);
+    empty when the folders carry no visible fractions."""
+    rows = [r for r in results if detector_name in r.identification_by_visibility]
+    if not rows:
+        return ""
+    labels = [label for _, label in VISIBILITY_BINS]
+    lines = ["identification at IoU 0.7 by the share of the target left visible by nearer objects",
+             f"{'':<16} " + " ".join(f"{'visible ' + label:^25}" for label in labels),
+             f"{'family':<16} " + " ".join(f"{'targets':>7} {'oracle':>8} {detector_name:>8}" for _ in labels)]
+    for r in rows:
+        cells = []
+        for label in labels:
+            n, acc = r.identification_by_visibility[detector_name][label]
+            _, acc_o = r.identification_by_visibility.get("oracle", {}).get(label, (n, np.nan))
+            pct = lambda a: f"{a:>8.1%}" if n else f"{'-':>8}"  # noqa: E731 - an empty bin has no accuracy
+            cells.append(f"{n:>7} {pct(acc_o)} {pct(acc)}")
+        lines.append(f"{r.family:<16} " + " ".join(cells))
+    return "\n".join(lines)
 
 
 def format_table(results: list[FamilyResult], detector_name: str = "cnn") -> str:
