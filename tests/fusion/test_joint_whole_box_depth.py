@@ -42,7 +42,7 @@ def far_chain(tmp_path_factory):
 def _identified(far_chain, seeds=range(4)):
     from vcfusion.detection.family_eval import OracleDetector, _identification
 
-    return np.concatenate([_identification(f, t, OracleDetector(), s, 100.0) for f, t in far_chain for s in seeds])
+    return np.concatenate([_identification(f, t, OracleDetector(), s, 100.0)[0] for f, t in far_chain for s in seeds])
 
 
 def test_a_truck_behind_a_car_keeps_its_box(far_chain, monkeypatch):
