@@ -129,17 +129,21 @@ class _Heights:
         return z * (v[:, None] + u[None, :]) - np.float32(self.offset)
 
 
+def _farther(a, b, jump_m: float, jump_rel: float):
+    """Whether depth a lies behind depth b by a jump: more than jump_m + jump_rel of the depth (the
+    one definition of a depth discontinuity for the refinement and the proposals)."""
+    return a > b * np.float32(1 + jump_rel) + np.float32(jump_m)
+
+
 def _jump_free(z: np.ndarray, valid: np.ndarray, jump_m: float, jump_rel: float) -> np.ndarray:
-    """False at the farther pixel of each 4-neighbour pair whose depths jump by more than jump_m +
-    jump_rel of the depth (no depth counts as infinitely far, so a vehicle keeps its outline
-    against the sky)."""
+    """False at the farther pixel of each 4-neighbour pair whose depths jump (:func:`_farther`; no
+    depth counts as infinitely far, so a vehicle keeps its outline against the sky)."""
     zj = np.where(valid, z, np.float32(np.inf))
     keep = np.ones(z.shape, bool)
-    scale, offset = np.float32(1 + jump_rel), np.float32(jump_m)
     for a, b, a_view, b_view in ((zj[:-1], zj[1:], keep[:-1], keep[1:]),
                                  (zj[:, :-1], zj[:, 1:], keep[:, :-1], keep[:, 1:])):
-        a_view &= ~(a > b * scale + offset)
-        b_view &= ~(b > a * scale + offset)
+        a_view &= ~_farther(a, b, jump_m, jump_rel)
+        b_view &= ~_farther(b, a, jump_m, jump_rel)
     return keep
 
 
@@ -190,7 +194,7 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
             z0 = float(np.exp(edges[j]))
             band = obj & (z > z0 - 0.3 * p.band_m - 0.03 * z0) & (z < z0 + p.band_m + 0.03 * z0)
             cut = band & jump_free
-            for segments in (band, cut) if cut.sum() < band.sum() else (band,):
+            for segments in (band, cut) if (band > cut).any() else (band,):
                 _, labels = cv2.connectedComponents(segments.astype(np.uint8), connectivity=4)
                 for label in np.unique(labels[core][segments[core]]):
                     candidate = _segment_box(labels == label, p.support, x0, y0)
@@ -210,40 +214,44 @@ def _surface_depth(z: np.ndarray, obj: np.ndarray, box: np.ndarray, y0: int) -> 
     return float(np.median(depths)) if depths.size else np.inf
 
 
+def _beyond_outline(sel: np.ndarray, x: int, y: int, rows_away: int, n_rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """Image rows and columns ``rows_away`` rows below (> 0) or above (< 0) each pixel of a segment's
+    lower (resp. upper) outline, those inside rows 0..n_rows-1. `sel` is the segment's mask in its
+    bounding box, whose pixel (0, 0) is image pixel (x, y)."""
+    shifted = np.zeros_like(sel)
+    if rows_away > 0:
+        shifted[:-1] = sel[1:]  # the pixel below is in the segment
+    else:
+        shifted[1:] = sel[:-1]  # the pixel above is
+    rows, cols = np.nonzero(sel & ~shifted)
+    rows, cols = rows + y + rows_away, cols + x
+    inside = (rows >= 0) & (rows < n_rows)
+    return rows[inside], cols[inside]
+
+
 def _seen_over_nearer(sel: np.ndarray, x: int, y: int, z: np.ndarray, obj: np.ndarray, depth_m: float,
                       jump_m: float, jump_rel: float) -> bool:
     """Whether most of a segment's lower outline rests on a nearer object: the top of a truck seen
-    over the vehicle in front of it, not a trunk standing on the ground. `sel` is the segment's
-    mask in its bounding box, whose pixel (0, 0) is (x, y) of z and obj. The row just below the
+    over the vehicle in front of it, not a trunk standing on the ground. The row just below the
     outline is the segment's own pixel cut at the jump, so the object is looked for one row lower."""
-    lower = np.zeros_like(sel)
-    lower[:-1] = sel[1:]
-    rows, cols = np.nonzero(sel & ~lower)
-    rows, cols = rows + y + 2, cols + x
-    inside = rows < z.shape[0]
-    if not inside.any():
+    rows, cols = _beyond_outline(sel, x, y, 2, z.shape[0])
+    if not len(rows):
         return False
-    rows, cols = rows[inside], cols[inside]
-    nearer = obj[rows, cols] & (z[rows, cols] < depth_m / (1 + jump_rel) - jump_m)
+    nearer = obj[rows, cols] & _farther(np.float32(depth_m), z[rows, cols], jump_m, jump_rel)
     return bool(nearer.mean() > 0.5)
 
 
 def _continues_above(sel: np.ndarray, x: int, y: int, z: np.ndarray, valid: np.ndarray, height: np.ndarray,
                      max_height_m: float, jump_m: float, jump_rel: float) -> float:
-    """Share of a segment's top outline whose upper neighbour is the same surface (no depth jump)
-    standing higher than any vehicle: a tree crown or a pole cut at the height cap. `sel` is the
-    segment's mask in its bounding box, whose pixel (0, 0) is (x, y) of the other arrays."""
-    upper = np.zeros_like(sel)
-    upper[1:] = sel[:-1]
-    rows, cols = np.nonzero(sel & ~upper)
-    rows, cols = rows + y, cols + x
-    ok = rows >= 1
-    if not ok.any():
+    """Share of a segment's top outline whose upper neighbour is the same surface (no depth jump
+    either way) standing higher than any vehicle: a tree crown or a pole cut at the height cap."""
+    rows, cols = _beyond_outline(sel, x, y, -1, z.shape[0])
+    if not len(rows):
         return 0.0
-    rows, cols = rows[ok], cols[ok]
-    za, zs = z[rows - 1, cols], z[rows, cols]
-    same = valid[rows - 1, cols] & (za < zs * (1 + jump_rel) + jump_m) & (zs < za * (1 + jump_rel) + jump_m)
-    return float((same & (height[rows - 1, cols] >= max_height_m)).sum() / len(rows))
+    above, below = z[rows, cols], z[rows + 1, cols]
+    same = (valid[rows, cols] & ~_farther(above, below, jump_m, jump_rel)
+            & ~_farther(below, above, jump_m, jump_rel))
+    return float((same & (height[rows, cols] >= max_height_m)).mean())
 
 
 def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
@@ -287,7 +295,7 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         # measured a farther vehicle and this segment is the one in front (Fig. 3 at range)
         iou = box_iou(box[None], existing)[0]
         depth_m = float(np.median(z[y:y + h, x:x + w][sel]))
-        not_in_front = depth_m > surface / (1 + refine.jump_rel) - refine.jump_m
+        not_in_front = ~_farther(surface, np.float32(depth_m), refine.jump_m, refine.jump_rel)
         if np.any((iou > params.max_overlap) & not_in_front):
             continue
         top = float(np.percentile(height[y:y + h, x:x + w][sel], 95))
