@@ -18,8 +18,8 @@ from vcfusion.records import GuidanceSet, TwinStates
 from vcfusion.fusion.box_refine import BoxRefineParams, depth_proposals, refine_boxes
 from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector
-from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, match_all_baseline, match_all_paper,
-                                      point_in_boxes, project_twins)
+from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, box_iou, match_all_baseline,
+                                      match_all_paper, point_in_boxes, project_twins)
 from vcfusion.fusion.overlay import Hud, OverlayRecorder, draw_overlay, make_guidance
 
 # baseline: the paper's RGB-only rule; baseline_centre: our nearest-box-centre heuristic (RGB only);
@@ -103,9 +103,8 @@ def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams
 
         confident = scores >= refine.proposals.score
         new, is_truck = depth_proposals(frame.depth, cam.K, cam.T_world_to_camera, boxes[confident], refine)
-        boxes = np.vstack([boxes, new])
-        scores = np.r_[scores, _proposal_scores(new, boxes[:len(scores)][~confident], scores[~confident],
-                                                refine.proposals.score)]
+        new_scores = _proposal_scores(new, boxes[~confident], scores[~confident], refine.proposals.score)
+        boxes, scores = np.vstack([boxes, new]), np.r_[scores, new_scores]
         classes = np.r_[classes, np.where(is_truck, category_id("truck"), category_id("passenger"))]
     return Detections.of(boxes, scores, classes)
 
@@ -117,8 +116,6 @@ def _proposal_scores(proposals: np.ndarray, weak_boxes: np.ndarray, weak_scores:
     the proposal is likelier a vehicle (a bush or a sign standing on the road side never has one).
     Only a detector run below the operating threshold (the COCO evaluation) has such detections; the
     proposals are kept either way, only their rank changes."""
-    from vcfusion.fusion.matching import box_iou
-
     out = np.full(len(proposals), base, np.float32)
     if len(proposals) and len(weak_boxes):
         covers = box_iou(proposals, weak_boxes) >= 0.5

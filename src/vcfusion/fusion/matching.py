@@ -303,13 +303,15 @@ def visible_boxes(proj: TwinProjection, grid: int = 16) -> tuple[np.ndarray, np.
     Returns (visible, anchor_hidden, hidden_share): (N, 4) the bounding box of the cells of a ``grid`` x ``grid``
     raster of the expected box that no nearer twin (smaller face depth) covers -- the whole
     expected box when nothing hides it, an empty box (zeros) when all of it is hidden --, (N,)
-    whether the anchor lies inside a nearer twin's expected box, and (N,) the share of the cells
-    hidden. Twins out of view hide nothing.
+    whether the anchor cannot be seen: it lies inside a nearer twin's expected box, or off the image
+    (a vehicle cut by the image border: the expected box is clipped to the image, the anchor is
+    not), and (N,) the share of the cells hidden. Twins out of view hide nothing.
     """
     e = proj.expected_box
     n = len(e)
     visible = e.copy()
-    anchor_hidden = np.zeros(n, bool)
+    u, v = proj.anchor[:, 0], proj.anchor[:, 1]
+    anchor_hidden = proj.in_view & ~((e[:, 0] <= u) & (u <= e[:, 2]) & (e[:, 1] <= v) & (v <= e[:, 3]))
     hidden_share = np.zeros(n)
     if n < 2:
         return visible, anchor_hidden, hidden_share
@@ -322,7 +324,7 @@ def visible_boxes(proj: TwinProjection, grid: int = 16) -> tuple[np.ndarray, np.
         k = nearer[(e[nearer, 0] < e[i, 2]) & (e[nearer, 2] > e[i, 0]) & (e[nearer, 1] < e[i, 3]) & (e[nearer, 3] > e[i, 1])]
         if len(k) == 0:
             continue
-        anchor_hidden[i] = bool(point_in_boxes(proj.anchor[i], e[k]).any())
+        anchor_hidden[i] |= bool(point_in_boxes(proj.anchor[i], e[k]).any())
         us = e[i, 0] + t * (e[i, 2] - e[i, 0])
         vs = e[i, 1] + t * (e[i, 3] - e[i, 1])
         hid_u = (e[k, None, 0] <= us[None, :]) & (us[None, :] <= e[k, None, 2])  # (K, grid)
@@ -474,12 +476,6 @@ class JointMatcher:
         # of the twin's expected box too, and a hidden anchor is replaced by that part's centre.
         visible, anchor_hidden, hidden_share = visible_boxes(proj)
         iou = (np.maximum(box_iou(proj.expected_box, b), box_iou(visible, b)) if n and m else np.zeros((n, m)))
-        # An anchor outside the image (a vehicle cut by the image border: the expected box is
-        # clipped to the image, the anchor is not) is as unobservable as a hidden one.
-        e = proj.expected_box
-        off_image = ~((e[:, 0] <= proj.anchor[:, 0]) & (proj.anchor[:, 0] <= e[:, 2])
-                      & (e[:, 1] <= proj.anchor[:, 1]) & (proj.anchor[:, 1] <= e[:, 3]))
-        anchor_hidden = anchor_hidden | (off_image & proj.in_view)
         anchors = np.where(anchor_hidden[:, None], (visible[:, :2] + visible[:, 2:]) / 2, proj.anchor)
         anchor_dist = np.zeros((n, m))
         inside = np.zeros((n, m), bool)
