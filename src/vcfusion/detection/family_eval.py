@@ -232,13 +232,13 @@ def format_visibility_table(results: list[FamilyResult], detector_name: str = "c
     lines = ["identification at IoU 0.7 by the share of the target left visible by nearer objects",
              f"{'':<16} " + " ".join(f"{'visible ' + label:^25}" for label in labels),
              f"{'family':<16} " + " ".join(f"{'targets':>7} {'oracle':>8} {detector_name:>8}" for _ in labels)]
+    def cell(n: int, oracle: float, acc: float) -> str:
+        return f"{n:>7} " + (f"{oracle:>8.1%} {acc:>8.1%}" if n else f"{'-':>8} {'-':>8}")  # an empty bin: no accuracy
+
     for r in rows:
-        cells = []
-        for label in labels:
-            n, acc = r.identification_by_visibility[detector_name][label]
-            _, acc_o = r.identification_by_visibility.get("oracle", {}).get(label, (n, np.nan))
-            pct = lambda a: f"{a:>8.1%}" if n else f"{'-':>8}"  # noqa: E731 - an empty bin has no accuracy
-            cells.append(f"{n:>7} {pct(acc_o)} {pct(acc)}")
+        oracle = r.identification_by_visibility.get("oracle", {})
+        cells = [cell(n, oracle.get(label, (n, np.nan))[1], acc)
+                 for label, (n, acc) in r.identification_by_visibility[detector_name].items()]
         lines.append(f"{r.family:<16} " + " ".join(cells))
     return "\n".join(lines)
 
