@@ -1,3 +1,5 @@
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -161,6 +163,42 @@ def test_joint_matcher_leaves_an_occluded_twin_unmatched():
     boxes = vehicle_box(cam, 15.0, 0.0)[None]
     got = JointMatcher().match(twins, boxes, [15.0 - 2.25], cam)
     assert list(got) == [0, NO_MATCH]
+
+
+class _GivenCosts(JointMatcher):
+    """The joint matcher's assignment on hand-set costs (None: the pair is not allowed)."""
+
+    def __init__(self, costs, **params):
+        super().__init__(JointMatcherParams(**params))
+        self.costs = costs
+
+    def cost_matrix(self, proj, boxes, box_depths):
+        c = np.array([[np.inf if v is None else v for v in row] for row in self.costs])
+        return np.where(np.isfinite(c), c, 10.0), np.isfinite(c)
+
+
+def test_joint_matcher_lets_boxes_and_twins_go_unmatched_rather_than_shift_a_chain():
+    """A jam frame (dev seed 3030, costs rounded): a near car A with its box 0 and a stray partial
+    box 2 on it, a partly hidden car B behind with its box 1, and a car H the two hide entirely,
+    whose only allowed box is B's. Forced to give every box an owner, the assignment shifts the
+    chain: A takes the stray, B takes A's box, H takes B's (10.8 against 7.5 with H left out at the
+    default miss cost 6)."""
+    costs = [[0.2, 3.3, 1.0],  # A
+             [4.9, 1.3, None],  # B
+             [None, 4.9, None]]  # H
+
+    def assign(costs, **params):
+        n, m = len(costs), len(costs[0])
+        got = _GivenCosts(costs, **params).assign(SimpleNamespace(anchor=np.zeros((n, 2))), np.zeros((m, 4)), np.zeros(m))
+        return [int(g) for g in got]
+
+    assert assign(costs, miss_cost=None) == [2, 0, 1]
+    assert assign(costs) == [0, 1, NO_MATCH]
+    # a pair dearer than leaving the twin out is never taken, however few boxes there are
+    assert assign([[5.5], [0.5]], miss_cost=5.0) == [NO_MATCH, 0]
+    assert assign([[5.5], [None]], miss_cost=5.0) == [NO_MATCH, NO_MATCH]
+    assert assign([[4.5], [None]], miss_cost=5.0) == [0, NO_MATCH]
+    assert assign([[5.5], [None]], miss_cost=None) == [0, NO_MATCH]
 
 
 def test_face_offset_expected_depth_is_half_a_length_nearer():

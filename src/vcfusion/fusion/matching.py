@@ -440,6 +440,9 @@ class JointMatcherParams:
     depth_sigma_abs_m: float = 1.0
     depth_gate: float = 4.0  # pairs further apart than this many sigmas are not allowed
     overlap_gate: float = 0.05  # pairs with less IoU and the anchor outside the box are not allowed
+    # cost of leaving a twin without a box (6: only pairs near the dearest allowed one, 1 overlap +
+    # 0.5 anchor + 4 depth + 1 hidden = 6.5, lose to it); None: every twin with an allowed box gets one
+    miss_cost: float | None = 6.0
 
     def __post_init__(self):
         if self.depth_gate <= 0 or self.depth_sigma_abs_m <= 0 or self.depth_sigma_rel < 0:
@@ -546,8 +549,15 @@ class JointMatcher:
         if cost.size == 0 or not allowed.any():
             return out
         big = 1e6
-        rows, cols = linear_sum_assignment(np.where(allowed, cost, big))
+        cost = np.where(allowed, cost, big)
+        m = cost.shape[1]
+        if self.params.miss_cost is not None:
+            # one "no box" column per twin: without it, the assignment must give a box to every twin
+            # it can, so a mostly hidden twin takes a box at any cost and pushes the box's own
+            # vehicle onto a worse one, and that one onto the next
+            cost = np.hstack([cost, np.where(np.eye(len(cost), dtype=bool), self.params.miss_cost, big)])
+        rows, cols = linear_sum_assignment(cost)
         for i, j in zip(rows, cols):
-            if allowed[i, j]:
+            if j < m and allowed[i, j]:
                 out[i] = j
         return out
