@@ -25,7 +25,8 @@ Per detected box (pixel-centre convention, as everywhere in the fusion stage):
 
 Then vehicles the detector missed (a car mostly hidden behind another, a far car in a chain) are
 proposed from the depth image alone (``depth_proposals``): the object pixels of the whole image
-cut at depth jumps into segments; a segment that stands as high as a car roof, is wider than a
+cut at depth jumps into segments (the pixels the cut removed, a hidden vehicle's outline next to
+the nearer one, go back to their own surface's segment); a segment that stands as high as a car roof, is wider than a
 post (than a vehicle, when it stands on the road higher than a truck: tree trunks; the top of a
 truck seen over the car in front rests on that car instead), whose top does not go on upward
 (tree crowns and poles cut at the height cap) and that no confident box explains becomes a box (a truck when it stands higher than a car).
@@ -42,6 +43,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.ndimage import find_objects
 
 # the renderer's flat world: the road surface lies at world z = 0
 ROAD_Z_M = 0.0
@@ -145,6 +147,25 @@ def _jump_free(z: np.ndarray, valid: np.ndarray, jump_m: float, jump_rel: float)
         a_view &= ~_farther(a, b, jump_m, jump_rel)
         b_view &= ~_farther(b, a, jump_m, jump_rel)
     return keep
+
+
+def _restore_outlines(labels: np.ndarray, removed: np.ndarray, z: np.ndarray, jump_m: float,
+                      jump_rel: float) -> np.ndarray:
+    """Segment labels with the pixels the cut removed given back: each removed pixel (the farther of
+    a jumping pair, so the outline of a vehicle a nearer one hides) takes the label of a 4-neighbour
+    on its own surface (no jump either way). Without this a sliver of a hidden car, 12 px wide,
+    loses a pixel on each hidden side and its box misses IoU 0.7 with the true one."""
+    out = labels.copy()
+    H, W = labels.shape
+    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        # this pixel's region and its neighbour's (dy, dx) away
+        here = (slice(max(-dy, 0), H - max(dy, 0)), slice(max(-dx, 0), W - max(dx, 0)))
+        there = (slice(max(dy, 0), H - max(-dy, 0)), slice(max(dx, 0), W - max(-dx, 0)))
+        a, b, lab = z[here], z[there], labels[there]
+        take = (removed[here] & (out[here] == 0) & (lab > 0) & ~_farther(a, b, jump_m, jump_rel)
+                & ~_farther(b, a, jump_m, jump_rel))
+        out[here][take] = lab[take]
+    return out
 
 
 def _segment_box(sel: np.ndarray, support: float, x0: int, y0: int) -> np.ndarray:
@@ -277,16 +298,19 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     obj, height, z, valid_c = obj[y_lo:y_hi], height[y_lo:y_hi], z[y_lo:y_hi], valid[y_lo:y_hi]
     # cut at depth jumps: the farther pixel of each jumping neighbour pair leaves the mask
     keep = obj & _jump_free(z, valid_c, refine.jump_m, refine.jump_rel)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(keep.astype(np.uint8), connectivity=4)
+    n, labels = cv2.connectedComponents(keep.astype(np.uint8), connectivity=4)
+    labels = _restore_outlines(labels, obj & ~keep, z, refine.jump_m, refine.jump_rel)
+    areas = np.bincount(labels.ravel(), minlength=n)
     fx = float(np.asarray(K, float)[0, 0])
     out, trucks = [], []
     existing = np.asarray(boxes, float).reshape(-1, 4)
     surface = np.array([_surface_depth(z, obj, e, y_lo) for e in existing])
     existing_area = (existing[:, 2] - existing[:, 0]) * (existing[:, 3] - existing[:, 1])
-    for label in range(1, n):
-        x, y, w, h, area = stats[label]
-        if area < params.min_pixels:
+    for label, region in enumerate(find_objects(labels), start=1):
+        if region is None or areas[label] < params.min_pixels:
             continue
+        y, x = region[0].start, region[1].start
+        h, w = region[0].stop - y, region[1].stop - x
         sel = labels[y:y + h, x:x + w] == label
         box = _segment_box(sel, refine.support, x, y + y_lo)
         # explained by a box: overlapping it, or mostly inside it and not clearly behind its surface
