@@ -211,6 +211,20 @@ def test_face_offset_expected_depth_is_half_a_length_nearer():
     np.testing.assert_allclose(proj.gnss_range, [30.0, np.hypot(30.0, 3.5)])
 
 
+def test_a_vehicle_cut_by_the_image_border_is_expected_at_the_depth_of_its_side_in_view():
+    """A truck in the next lane 2-14 m ahead: its rear (the usual face) lies outside the image, left
+    of the border; what depth sees of it is its side from where the border cuts it: 2.25 m to the
+    left at u = 0 with fx = 500, cx = 320, so 2.25 * 500 / 320 = 3.52 m ahead (outline sampled every
+    0.75 m)."""
+    cam = pinhole_camera()
+    truck = make_twins(["truck", "car"], [8.0, 20.0], [3.5, 0.0], length=[12.0, 4.5], width=[2.5, 1.8],
+                       height=[3.6, 1.5])
+    proj = project_twins(truck, cam)
+    assert proj.in_view.all()
+    assert 2.25 * 500 / 320 <= proj.face_z[0] <= 2.25 * 500 / 320 + 0.75
+    assert proj.face_z[1] == pytest.approx(20.0 - 4.5 / 2)  # a face in view keeps its depth
+
+
 def test_extrapolation_moves_along_heading_by_speed_times_age():
     twins = make_twins(["a", "b"], [10.0, 0.0], [0.0, 5.0], measured_time=[0.6, 0.9], heading=[0.0, np.pi / 2],
                        speed=[20.0, 10.0])

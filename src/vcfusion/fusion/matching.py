@@ -261,6 +261,25 @@ def cuboid_corners(x, y, z_ground, heading, length, width, height) -> np.ndarray
     return np.stack([cx, cy, cz], axis=-1)
 
 
+def _nearest_in_view_z(ground, heading, length, width, height, camera: CameraView, default: np.ndarray,
+                       samples: int = 16) -> np.ndarray:
+    """Camera-Z of the nearest point in the image of each vehicle's outline a quarter of its height
+    up (where Algorithm 1 samples), or ``default`` where none of it is in view."""
+    t = (np.arange(samples) + 0.5) / samples - 0.5
+    # the footprint's outline: both sides along the length, rear and front across the width
+    dl = np.r_[t, t, np.full(samples, -0.5), np.full(samples, 0.5)]
+    dw = np.r_[np.full(samples, -0.5), np.full(samples, 0.5), t, t]
+    c, s = np.cos(heading)[:, None], np.sin(heading)[:, None]
+    along, across = dl[None, :] * length[:, None], dw[None, :] * width[:, None]
+    pts = np.stack([ground[:, 0, None] + along * c - across * s, ground[:, 1, None] + along * s + across * c,
+                    np.broadcast_to(ground[:, 2, None] + 0.25 * height[:, None], along.shape)], axis=-1)
+    uv, cz = camera.project(pts.reshape(-1, 3))
+    uv, cz = np.asarray(uv).reshape(len(ground), -1, 2), np.asarray(cz).reshape(len(ground), -1)
+    seen = ((uv[..., 0] >= 0) & (uv[..., 0] <= camera.width) & (uv[..., 1] >= 0) & (uv[..., 1] <= camera.height)
+            & (cz > 0))
+    return np.where(seen.any(axis=1), np.where(seen, cz, np.inf).min(axis=1), default)
+
+
 def project_twins(twins: TwinStates, camera: CameraView, min_z: float = 0.5) -> TwinProjection:
     """Anchors, GNSS distances, expected boxes and expected face depths of the twins."""
     n = len(twins)
@@ -291,7 +310,16 @@ def project_twins(twins: TwinStates, camera: CameraView, min_z: float = 0.5) -> 
     sign = np.where(away, -1.0, 1.0)
     face = ground + sign[:, None] * 0.5 * length[:, None] * direction
     face[:, 2] += 0.25 * height
-    _, face_z = camera.project(face)
+    face_uv, face_z = camera.project(face)
+    face_z = np.asarray(face_z, float).copy()
+    # A vehicle cut by the image border (beside the camera, close) may show only its side: the face
+    # point then lies off the image, and depth sees the nearest part of the side that is in view.
+    off = in_front & ~((face_uv[:, 0] >= 0) & (face_uv[:, 0] <= camera.width)
+                       & (face_uv[:, 1] >= 0) & (face_uv[:, 1] <= camera.height))
+    if off.any():
+        face_z[off] = _nearest_in_view_z(ground[off], heading[off], length[off],
+                                         np.asarray(twins.width, dtype=np.float64)[off], height[off], camera,
+                                         face_z[off])
     anchor = np.asarray(anchor, float)
     in_view = in_front & overlaps & (np.asarray(anchor_z) > min_z) & np.isfinite(anchor).all(axis=1)
     return TwinProjection(anchor, np.asarray(anchor_z, float), gnss_range, box, np.asarray(face_z, float), in_view)
