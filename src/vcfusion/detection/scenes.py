@@ -15,10 +15,7 @@ Training distribution (``train``; all draws uniform unless said otherwise, per s
   offset from the truck's within +- 0.35 m, so it is hidden, or the truck further than 35 m) [1],
   a truck beside a car (adjacent lanes, same distance +- 2 m) [1], a vehicle mid lane change
   (yaw 2-9 deg towards a neighbouring lane, centre 0.3-1.7 m off its lane centre) [1.5], a near
-  vehicle (rear 3-12 m ahead) in a neighbouring lane, truncated at the image border [1], a slow
-  queue (a same-lane chain of 4-9 vehicles, bumper gaps 1-5 m, one speed 0-8 m/s, nearest rear
-  3-60 m log-uniform; with probability 0.5 a second one in a neighbouring lane starting within
-  +- 5 m) [1.5];
+  vehicle (rear 3-12 m ahead) in a neighbouring lane, truncated at the image border [1];
 - a pattern's nearest rear face is 3-150 m ahead of the camera, log-uniform (as many near as far
   vehicles per metre of image height); lanes uniform over all lanes (patterns needing a
   neighbour lane pick one that exists);
@@ -292,8 +289,7 @@ def _neighbour(rng, lane: int, num_lanes: int) -> int | None:
 
 
 PATTERN_WEIGHTS = {"single": 3.0, "chain": 2.0, "pair": 2.0, "truck_front": 1.0, "truck_beside": 1.0,
-                   "lane_change": 1.5, "near_side": 1.0, "queue": 1.5}
-QUEUE_LENGTH, QUEUE_GAP_M, QUEUE_SPEED = (4, 10), (1.0, 5.0), (0.0, 8.0)
+                   "lane_change": 1.5, "near_side": 1.0}
 
 
 def _train_pattern(b: _Builder, name: str) -> None:
@@ -327,18 +323,6 @@ def _train_pattern(b: _Builder, name: str) -> None:
         other = _neighbour(rng, r.ego_lane, r.num_lanes)
         if other is not None:
             b.vehicle(b.kind(), other, float(rng.uniform(MIN_AHEAD_M, 12.0)))
-    elif name == "queue":
-        # slow traffic: long close chains that hide each other, in one lane or two side by side
-        # (three full lanes would be the held-out jam, which the rejection below redraws)
-        start = _log_uniform(rng, MIN_AHEAD_M, 60.0)
-        speed = float(rng.uniform(*QUEUE_SPEED))
-        lanes = [lane]
-        other = _neighbour(rng, lane, r.num_lanes)
-        if other is not None and rng.random() < 0.5:
-            lanes.append(other)
-        for k, queue_lane in enumerate(lanes):
-            b.chain(queue_lane, start + (float(rng.uniform(-5.0, 5.0)) if k else 0.0),
-                    int(rng.integers(*QUEUE_LENGTH)), QUEUE_GAP_M, speed=speed, jitter_m=0.3)
     else:
         raise ValueError(f"unknown pattern {name!r}")
 
