@@ -2,6 +2,8 @@
 or swallowing the car behind (the paper's Fig. 3), snap back to the instance-map boxes; the
 oracle's boxes and boxes with no vehicle surface in them are left alone."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -191,9 +193,9 @@ def test_detect_frame_adds_proposals_to_the_detectors_boxes(frames):
     assert len(detect_frame(sky, Blind(), BoxRefineParams())) == 0
 
 
-def _plate(depth, K, T, x, y0, y1, top):
-    """A flat upright rectangle facing the camera, x metres ahead, across y0..y1, from the road up to
-    `top`, drawn into the camera-Z depth image by exact ray-plane intersection."""
+def _plate(depth, K, T, x, y0, y1, top, bottom=0.0):
+    """A flat upright rectangle facing the camera, x metres ahead, across y0..y1, from `bottom` (the
+    road) up to `top`, drawn into the camera-Z depth image by exact ray-plane intersection."""
     R, t = T[:3, :3], T[:3, 3]
     centre = -R.T @ t
     h, w = depth.shape
@@ -202,7 +204,7 @@ def _plate(depth, K, T, x, y0, y1, top):
     with np.errstate(divide="ignore", invalid="ignore"):
         s = (x - centre[0]) / rays[0]
     p = centre[:, None] + s * rays
-    hit = (s > 0) & (p[1] >= y0) & (p[1] <= y1) & (p[2] >= 0) & (p[2] <= top)
+    hit = (s > 0) & (p[1] >= y0) & (p[1] <= y1) & (p[2] >= bottom) & (p[2] <= top)
     z = depth.ravel().copy()
     z[hit & (s < z)] = s[hit & (s < z)]
     return z.reshape(h, w).astype(np.float32)
@@ -251,6 +253,45 @@ def test_a_sliver_between_two_nearer_cars_is_proposed_with_its_whole_outline():
     sliver = boxes[np.argmax(box_iou(truth[None], boxes)[0])]
     # left, top and right as shown; the bottom stops where object pixels do, 0.3 m above the road
     np.testing.assert_allclose(sliver[:3], truth[:3])
+
+
+def test_a_tree_lower_than_the_cap_is_not_proposed_but_a_truck_seen_between_two_cars_is():
+    """A crown 1.6 m wide and 1.5-4 m up on a 0.2 m trunk stands on one narrow stem under its middle:
+    a tree (it is lower than the 4.5 m cap and wider than a trunk, so only its shape tells). A truck
+    seen over two nearer cars and through the 0.2 m gap between them has the same shape, but nearer
+    vehicles stand beside its 'stem': it is proposed."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import depth_proposals
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    tree = _plate(_plate(road, K, T, 40.0, -6.8, -5.2, 4.0, bottom=1.5), K, T, 40.0, -6.1, -5.9, 1.5)
+    assert len(depth_proposals(tree, K, T, np.zeros((0, 4)), BoxRefineParams())[0]) == 0
+    no_rule = replace(BoxRefineParams(), proposals=replace(BoxRefineParams().proposals, max_stem_share=0.0))
+    assert len(depth_proposals(tree, K, T, np.zeros((0, 4)), no_rule)[0]) == 1
+    truck = _plate(road, K, T, 30.0, -1.25, 1.25, 3.6)
+    scene = _plate(_plate(truck, K, T, 15.0, 0.1, 1.9, 1.6), K, T, 15.0, -1.9, -0.1, 1.6)
+    boxes, is_truck = depth_proposals(scene, K, T, np.zeros((0, 4)), BoxRefineParams())
+    assert len(boxes) == 3 and is_truck.sum() == 1  # the two cars and the truck
+
+
+def test_a_stem_is_under_the_middle_of_its_crown():
+    """The stem rule on hand-made masks (nothing beside them): a crown on a centred run of two
+    pixels is a tree; the same run under one end of the crown (what shows of a car down the side of
+    a nearer one, here with the nearer one's depth missing) is not, nor are two runs."""
+    from vcfusion.fusion.box_refine import _on_a_stem
+
+    def on_stem(stem_cols):
+        sel = np.zeros((12, 20), bool)
+        sel[:8, 2:18] = True
+        for c in stem_cols:
+            sel[8:, c:c + 2] = True
+        z = np.full(sel.shape, 50.0, np.float32)
+        return _on_a_stem(sel, 0, 0, z, sel.copy(), 50.0, 0.25, 0.5, 0.05)
+
+    assert on_stem([9])
+    assert not on_stem([2])
+    assert not on_stem([4, 14])
 
 
 def test_a_near_car_touching_a_farther_truck_in_its_band_snaps_to_the_car_alone():

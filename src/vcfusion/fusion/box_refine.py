@@ -29,7 +29,8 @@ cut at depth jumps into segments (the pixels the cut removed, a hidden vehicle's
 the nearer one, go back to their own surface's segment); a segment that stands as high as a car roof, is wider than a
 post (than a vehicle, when it stands on the road higher than a truck: tree trunks; the top of a
 truck seen over the car in front rests on that car instead), whose top does not go on upward
-(tree crowns and poles cut at the height cap) and that no confident box explains becomes a box (a truck when it stands higher than a car).
+(tree crowns and poles cut at the height cap), that does not stand on a narrow stem under its
+middle with nothing nearer beside it (a tree lower than the cap) and that no confident box explains becomes a box (a truck when it stands higher than a car).
 
 The band is one vehicle deep: a car behind another in the same lane is at least a car length plus
 the gap farther away, so it falls outside the band of the car in front. Depth quality sets what
@@ -65,6 +66,8 @@ class ProposalParams:
     behind_m: float = 3.0  # ... as is one mostly inside a box, unless this far behind the box's surface
     score: float = 0.3  # the proposals' score; detected boxes at least this confident explain segments
     truck_top_m: float = 2.6  # a segment whose top stands higher is a truck
+    max_stem_share: float = 0.25  # a segment whose lowest quarter of rows is one run narrower than
+    # this share of its widest row stands on a stem: a tree
 
 
 @dataclass(frozen=True)
@@ -275,6 +278,39 @@ def _continues_above(sel: np.ndarray, x: int, y: int, z: np.ndarray, valid: np.n
     return float((same & (height[rows, cols] >= max_height_m)).mean())
 
 
+def _on_a_stem(sel: np.ndarray, x: int, y: int, z: np.ndarray, obj: np.ndarray, depth_m: float, share: float,
+               jump_m: float, jump_rel: float, stem_rows: float = 0.25) -> bool:
+    """Whether a segment stands on one narrow stem: each of its lowest rows (``stem_rows`` of them, at
+    least two) is a single run of pixels narrower than ``share`` of its widest row, under the middle
+    of it, with nothing nearer beside it (a tree's trunk under its crown; a vehicle stands on its
+    full width, and what nearer ones leave of it runs down one side of them or between them)."""
+    rows = np.flatnonzero(sel.any(axis=1))
+    n = max(2, int(round(stem_rows * len(rows))))
+    if len(rows) < 2 * n:
+        return False
+    widths = sel.sum(axis=1)
+    low = sel[rows[-n:]]
+    runs = low[:, 0].astype(int) + (low[:, 1:] & ~low[:, :-1]).sum(axis=1)
+    if not (np.all(runs == 1) and np.all(widths[rows[-n:]] <= share * widths.max())):
+        return False
+    # under the middle of the crown (what shows of a car beside a nearer one runs down one side)
+    cols = np.arange(sel.shape[1])
+    widest = sel[int(np.argmax(widths))]
+    crown = cols[widest].mean()
+    stem = (low * cols).sum() / low.sum()
+    if abs(stem - crown) > 0.2 * widths.max():
+        return False
+    # the pixels just left and right of the stem: a gap between nearer vehicles shows a vehicle, not a trunk
+    r = rows[-n:]
+    first, last = np.argmax(low, axis=1), low.shape[1] - 1 - np.argmax(low[:, ::-1], axis=1)
+    side_r = np.r_[r, r] + y
+    side_c = np.r_[first - 1, last + 1] + x
+    inside = (side_c >= 0) & (side_c < z.shape[1])
+    side_r, side_c = side_r[inside], side_c[inside]
+    nearer = obj[side_r, side_c] & _farther(np.float32(depth_m), z[side_r, side_c], jump_m, jump_rel)
+    return bool(len(side_r) == 0 or nearer.mean() < 0.5)
+
+
 def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
                     refine: BoxRefineParams = BoxRefineParams()):
     """Boxes of depth segments standing on the road that no detected box explains: (M, 4) boxes and
@@ -338,6 +374,8 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         if _continues_above(sel, x, y, z, valid_c, height, params.max_height_m, refine.jump_m,
                             refine.jump_rel) > params.max_top_continuing:
             continue  # a tree crown or a pole cut at the height cap, not a vehicle's roof
+        if _on_a_stem(sel, x, y, z, obj, depth_m, params.max_stem_share, refine.jump_m, refine.jump_rel):
+            continue  # a tree lower than the cap: a crown on a trunk
         out.append(box)
         trucks.append(is_truck)
     return np.array(out, float).reshape(-1, 4), np.array(trucks, bool)
