@@ -67,7 +67,9 @@ def test_recorder_raises_a_writer_thread_failure_and_leaves_nothing(tmp_path):
 
     rec = OverlayRecorder(tmp_path / "v")
     rec.add(np.zeros((48, 64, 3), np.uint8))
-    shutil.rmtree(rec._tmp / "frames")  # the frames folder vanishes under the writer thread
+    frames = rec._tmp / "frames"
+    while frames.exists():  # the frames folder vanishes under the writer thread (which may be
+        shutil.rmtree(frames, ignore_errors=True)  # writing the first frame into it meanwhile)
     with pytest.raises(RuntimeError, match="overlay video writer failed"):
         with rec:
             for _ in range(20):
