@@ -140,6 +140,11 @@ def _farther(a, b, jump_m: float, jump_rel: float):
     return a > b * np.float32(1 + jump_rel) + np.float32(jump_m)
 
 
+def _same_surface(a, b, jump_m: float, jump_rel: float):
+    """Whether depths a and b belong to one surface: no jump either way."""
+    return ~_farther(a, b, jump_m, jump_rel) & ~_farther(b, a, jump_m, jump_rel)
+
+
 def _jump_free(z: np.ndarray, valid: np.ndarray, jump_m: float, jump_rel: float) -> np.ndarray:
     """False at the farther pixel of each 4-neighbour pair whose depths jump (:func:`_farther`; no
     depth counts as infinitely far, so a vehicle keeps its outline against the sky)."""
@@ -165,8 +170,7 @@ def _restore_outlines(labels: np.ndarray, removed: np.ndarray, z: np.ndarray, ju
         here = (slice(max(-dy, 0), H - max(dy, 0)), slice(max(-dx, 0), W - max(dx, 0)))
         there = (slice(max(dy, 0), H - max(-dy, 0)), slice(max(dx, 0), W - max(-dx, 0)))
         a, b, lab = z[here], z[there], labels[there]
-        take = (removed[here] & (out[here] == 0) & (lab > 0) & ~_farther(a, b, jump_m, jump_rel)
-                & ~_farther(b, a, jump_m, jump_rel))
+        take = removed[here] & (out[here] == 0) & (lab > 0) & _same_surface(a, b, jump_m, jump_rel)
         out[here][take] = lab[take]
     return out
 
@@ -253,16 +257,22 @@ def _beyond_outline(sel: np.ndarray, x: int, y: int, rows_away: int, n_rows: int
     return rows[inside], cols[inside]
 
 
+def _nearer_object(rows: np.ndarray, cols: np.ndarray, z: np.ndarray, obj: np.ndarray, depth_m: float,
+                   jump_m: float, jump_rel: float) -> np.ndarray:
+    """Per pixel (rows, cols): an object pixel nearer than a segment at depth_m by a depth jump."""
+    return obj[rows, cols] & _farther(np.float32(depth_m), z[rows, cols], jump_m, jump_rel)
+
+
 def _seen_over_nearer(sel: np.ndarray, x: int, y: int, z: np.ndarray, obj: np.ndarray, depth_m: float,
                       jump_m: float, jump_rel: float) -> bool:
     """Whether most of a segment's lower outline rests on a nearer object: the top of a truck seen
-    over the vehicle in front of it, not a trunk standing on the ground. The row just below the
-    outline is the segment's own pixel cut at the jump, so the object is looked for one row lower."""
+    over the vehicle in front of it, not a trunk standing on the ground. The object is looked for two
+    rows below the outline: one row may still be the segment's own pixel that the cut removed, where
+    :func:`_restore_outlines` found no neighbour of its surface to give it back to."""
     rows, cols = _beyond_outline(sel, x, y, 2, z.shape[0])
     if not len(rows):
         return False
-    nearer = obj[rows, cols] & _farther(np.float32(depth_m), z[rows, cols], jump_m, jump_rel)
-    return bool(nearer.mean() > 0.5)
+    return bool(_nearer_object(rows, cols, z, obj, depth_m, jump_m, jump_rel).mean() > 0.5)
 
 
 def _continues_above(sel: np.ndarray, x: int, y: int, z: np.ndarray, valid: np.ndarray, height: np.ndarray,
@@ -272,9 +282,7 @@ def _continues_above(sel: np.ndarray, x: int, y: int, z: np.ndarray, valid: np.n
     rows, cols = _beyond_outline(sel, x, y, -1, z.shape[0])
     if not len(rows):
         return 0.0
-    above, below = z[rows, cols], z[rows + 1, cols]
-    same = (valid[rows, cols] & ~_farther(above, below, jump_m, jump_rel)
-            & ~_farther(below, above, jump_m, jump_rel))
+    same = valid[rows, cols] & _same_surface(z[rows, cols], z[rows + 1, cols], jump_m, jump_rel)
     return float((same & (height[rows, cols] >= max_height_m)).mean())
 
 
@@ -307,8 +315,7 @@ def _on_a_stem(sel: np.ndarray, x: int, y: int, z: np.ndarray, obj: np.ndarray, 
     side_c = np.r_[first - 1, last + 1] + x
     inside = (side_c >= 0) & (side_c < z.shape[1])
     side_r, side_c = side_r[inside], side_c[inside]
-    nearer = obj[side_r, side_c] & _farther(np.float32(depth_m), z[side_r, side_c], jump_m, jump_rel)
-    return bool(len(side_r) == 0 or nearer.mean() < 0.5)
+    return bool(len(side_r) == 0 or _nearer_object(side_r, side_c, z, obj, depth_m, jump_m, jump_rel).mean() < 0.5)
 
 
 def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
@@ -331,9 +338,9 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     # only the rows holding object pixels (the sky and the road ahead hold none)
     y_lo, y_hi = int(rows[0]), int(rows[-1]) + 1
     y_lo = max(y_lo - 1, 0)  # and the row above them: what stands above a segment's top
-    obj, height, z, valid_c = obj[y_lo:y_hi], height[y_lo:y_hi], z[y_lo:y_hi], valid[y_lo:y_hi]
+    obj, height, z, valid = obj[y_lo:y_hi], height[y_lo:y_hi], z[y_lo:y_hi], valid[y_lo:y_hi]
     # cut at depth jumps: the farther pixel of each jumping neighbour pair leaves the mask
-    keep = obj & _jump_free(z, valid_c, refine.jump_m, refine.jump_rel)
+    keep = obj & _jump_free(z, valid, refine.jump_m, refine.jump_rel)
     n, labels = cv2.connectedComponents(keep.astype(np.uint8), connectivity=4)
     labels = _restore_outlines(labels, obj & ~keep, z, refine.jump_m, refine.jump_rel)
     areas = np.bincount(labels.ravel(), minlength=n)
@@ -371,7 +378,7 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         inside = iou * (area + existing_area) / ((1 + iou) * area)  # intersection / segment area, from the IoU
         if np.any((inside > 0.5) & not_in_front & (depth_m < surface + params.behind_m)):
             continue
-        if _continues_above(sel, x, y, z, valid_c, height, params.max_height_m, refine.jump_m,
+        if _continues_above(sel, x, y, z, valid, height, params.max_height_m, refine.jump_m,
                             refine.jump_rel) > params.max_top_continuing:
             continue  # a tree crown or a pole cut at the height cap, not a vehicle's roof
         if _on_a_stem(sel, x, y, z, obj, depth_m, params.max_stem_share, refine.jump_m, refine.jump_rel):
