@@ -248,17 +248,30 @@ def extrapolate_twins(twins: TwinStates, to_time: float, use_accel: bool = False
     )
 
 
+def body_points(x, y, z_ground, heading, length, width, height, along, across, up) -> np.ndarray:
+    """World points (N, P, 3) on each vehicle's box: ``along`` / ``across`` its length / width from the
+    footprint centre (x, y, z_ground) and ``up`` its height from the ground, as fractions, (P,) for
+    every vehicle or (N, P) per vehicle."""
+    c, s = np.cos(heading)[:, None], np.sin(heading)[:, None]
+    dl = np.asarray(along) * np.asarray(length)[:, None]
+    dw = np.asarray(across) * np.asarray(width)[:, None]
+    dz = np.asarray(up) * np.asarray(height)[:, None]
+    cx = np.asarray(x)[:, None] + dl * c - dw * s
+    cy = np.asarray(y)[:, None] + dl * s + dw * c
+    cz = np.asarray(z_ground)[:, None] + dz
+    return np.stack(np.broadcast_arrays(cx, cy, cz), axis=-1)
+
+
+CORNER_FRACTIONS = np.array([[sl, sw, sh] for sl in (-0.5, 0.5) for sw in (-0.5, 0.5) for sh in (0.0, 1.0)])
+
+
 def cuboid_corners(x, y, z_ground, heading, length, width, height) -> np.ndarray:
     """World corners (N, 8, 3) of each vehicle's box; (x, y, z_ground) is the footprint centre."""
-    c, s = np.cos(heading), np.sin(heading)
-    signs = np.array([[sl, sw, sh] for sl in (-0.5, 0.5) for sw in (-0.5, 0.5) for sh in (0.0, 1.0)])
-    dl = signs[None, :, 0] * np.asarray(length)[:, None]
-    dw = signs[None, :, 1] * np.asarray(width)[:, None]
-    dz = signs[None, :, 2] * np.asarray(height)[:, None]
-    cx = np.asarray(x)[:, None] + dl * c[:, None] - dw * s[:, None]
-    cy = np.asarray(y)[:, None] + dl * s[:, None] + dw * c[:, None]
-    cz = np.asarray(z_ground)[:, None] + dz
-    return np.stack([cx, cy, cz], axis=-1)
+    return body_points(x, y, z_ground, heading, length, width, height, *CORNER_FRACTIONS.T)
+
+
+def _in_image(uv: np.ndarray, camera: CameraView) -> np.ndarray:
+    return (uv[..., 0] >= 0) & (uv[..., 0] <= camera.width) & (uv[..., 1] >= 0) & (uv[..., 1] <= camera.height)
 
 
 def _nearest_in_view_z(ground, heading, length, width, height, camera: CameraView, default: np.ndarray,
@@ -267,16 +280,12 @@ def _nearest_in_view_z(ground, heading, length, width, height, camera: CameraVie
     up (where Algorithm 1 samples), or ``default`` where none of it is in view."""
     t = (np.arange(samples) + 0.5) / samples - 0.5
     # the footprint's outline: both sides along the length, rear and front across the width
-    dl = np.r_[t, t, np.full(samples, -0.5), np.full(samples, 0.5)]
-    dw = np.r_[np.full(samples, -0.5), np.full(samples, 0.5), t, t]
-    c, s = np.cos(heading)[:, None], np.sin(heading)[:, None]
-    along, across = dl[None, :] * length[:, None], dw[None, :] * width[:, None]
-    pts = np.stack([ground[:, 0, None] + along * c - across * s, ground[:, 1, None] + along * s + across * c,
-                    np.broadcast_to(ground[:, 2, None] + 0.25 * height[:, None], along.shape)], axis=-1)
+    along = np.r_[t, t, np.full(samples, -0.5), np.full(samples, 0.5)]
+    across = np.r_[np.full(samples, -0.5), np.full(samples, 0.5), t, t]
+    pts = body_points(*ground.T, heading, length, width, height, along, across, np.full(4 * samples, 0.25))
     uv, cz = camera.project(pts.reshape(-1, 3))
     uv, cz = np.asarray(uv).reshape(len(ground), -1, 2), np.asarray(cz).reshape(len(ground), -1)
-    seen = ((uv[..., 0] >= 0) & (uv[..., 0] <= camera.width) & (uv[..., 1] >= 0) & (uv[..., 1] <= camera.height)
-            & (cz > 0))
+    seen = _in_image(uv, camera) & (cz > 0)
     return np.where(seen.any(axis=1), np.where(seen, cz, np.inf).min(axis=1), default)
 
 
@@ -291,10 +300,10 @@ def project_twins(twins: TwinStates, camera: CameraView, min_z: float = 0.5) -> 
     gnss_range = np.linalg.norm(antenna - np.asarray(camera.position)[None, :], axis=1)
     height = np.asarray(twins.height, dtype=np.float64)
     length = np.asarray(twins.length, dtype=np.float64)
+    width = np.asarray(twins.width, dtype=np.float64)
     heading = np.asarray(twins.heading, dtype=np.float64)
     ground = antenna - np.stack([np.zeros(n), np.zeros(n), GNSS_HEIGHT_FRACTION * height], axis=1)  # footprint centre
-    corners = cuboid_corners(ground[:, 0], ground[:, 1], ground[:, 2], heading, length,
-                             np.asarray(twins.width, dtype=np.float64), height)
+    corners = cuboid_corners(*ground.T, heading, length, width, height)
     uv, cz = camera.project(corners.reshape(-1, 3))
     uv, cz = uv.reshape(n, 8, 2), cz.reshape(n, 8)
     in_front = (cz > min_z).all(axis=1) & np.isfinite(uv).all(axis=(1, 2))
@@ -307,18 +316,14 @@ def project_twins(twins: TwinStates, camera: CameraView, min_z: float = 0.5) -> 
     # taken a quarter of the height up, where Algorithm 1 samples (lower quarter of the box).
     direction = np.stack([np.cos(heading), np.sin(heading), np.zeros(n)], axis=1)
     away = np.einsum("ij,ij->i", direction, ground - np.asarray(camera.position)[None, :]) > 0
-    sign = np.where(away, -1.0, 1.0)
-    face = ground + sign[:, None] * 0.5 * length[:, None] * direction
-    face[:, 2] += 0.25 * height
+    face = body_points(*ground.T, heading, length, width, height, np.where(away, -0.5, 0.5)[:, None], 0.0, 0.25)[:, 0]
     face_uv, face_z = camera.project(face)
     face_z = np.asarray(face_z, float).copy()
     # A vehicle cut by the image border (beside the camera, close) may show only its side: the face
     # point then lies off the image, and depth sees the nearest part of the side that is in view.
-    off = in_front & ~((face_uv[:, 0] >= 0) & (face_uv[:, 0] <= camera.width)
-                       & (face_uv[:, 1] >= 0) & (face_uv[:, 1] <= camera.height))
+    off = in_front & ~_in_image(np.asarray(face_uv), camera)
     if off.any():
-        face_z[off] = _nearest_in_view_z(ground[off], heading[off], length[off],
-                                         np.asarray(twins.width, dtype=np.float64)[off], height[off], camera,
+        face_z[off] = _nearest_in_view_z(ground[off], heading[off], length[off], width[off], height[off], camera,
                                          face_z[off])
     anchor = np.asarray(anchor, float)
     in_view = in_front & overlaps & (np.asarray(anchor_z) > min_z) & np.isfinite(anchor).all(axis=1)
