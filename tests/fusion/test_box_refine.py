@@ -400,3 +400,45 @@ def test_a_proposal_the_detector_saw_below_its_threshold_ranks_above_one_it_did_
     scores = _proposal_scores(proposals, weak, np.array([0.12, 0.2, 0.25], np.float32), 0.3)
     np.testing.assert_allclose(scores, [0.5, 0.3], atol=1e-6)  # the best covering one; none for the second
     np.testing.assert_allclose(_proposal_scores(proposals, np.zeros((0, 4)), np.zeros(0, np.float32), 0.3), [0.3, 0.3])
+
+
+def test_a_car_box_standing_as_high_as_a_truck_is_a_truck_and_stays_one_box():
+    """At 80 m a truck seen from behind is a 10 px box, and the detector often calls it a car; depth
+    measures how high its surface stands. A car box on a 3.8 m high surface becomes a truck (and a
+    weaker truck box the detector put at the same place goes); a car 1.5 m high stays a car, and so
+    does a box on a surface higher than any vehicle (a tree)."""
+    from vcfusion.detection.detectors import Detections
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.fuse import CameraFrame, detect_frame
+    from vcfusion.fusion.stage import camera_view
+    from vcfusion.render.coco import category_id
+
+    K, T = default_camera()
+    depth = road_depth(K, T, 640, 480)
+    plates = {"truck": (80.0, -1.25, 1.25, 3.8), "car": (80.0, 2.6, 4.4, 1.5), "tree": (80.0, -6.0, -4.0, 7.0)}
+    for x, y0, y1, top in plates.values():
+        depth = _plate(depth, K, T, x, y0, y1, top)
+    truth = {}
+    road = road_depth(K, T, 640, 480)
+    for name, (x, y0, y1, top) in plates.items():
+        alone = _plate(road, K, T, x, y0, y1, top)
+        ys, xs = np.nonzero((alone < road) & np.isclose(depth, alone, rtol=0, atol=1e-4))
+        truth[name] = np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5])
+    car, truck = category_id("passenger"), category_id("truck")
+    # the detector's boxes a pixel off: all three called cars, and the truck a truck too, more weakly
+    boxes = np.array([truth["truck"], truth["car"], truth["tree"], truth["truck"]]) + [-1, 1, 1, 1]
+    seen = Detections.of(boxes, [0.8, 0.8, 0.8, 0.6], [car, car, car, truck])
+
+    class Fixed:
+        def detect(self, image):
+            return seen
+
+    frame = CameraFrame(time=0.0, image=np.zeros((480, 640, 3), np.uint8), depth=depth,
+                        camera=camera_view(K, T, 640, 480, 0.0))
+    out = detect_frame(frame, Fixed(), replace(BoxRefineParams(), proposals=None))
+    assert len(out) == 3  # the weaker truck box at the relabelled one's place is gone
+    owner = {name: int(np.argmax(box_iou(b[None], out.boxes)[0])) for name, b in truth.items()}
+    assert {name: int(out.classes[j]) for name, j in owner.items()} == {"truck": truck, "car": car, "tree": car}
+    assert out.scores[owner["truck"]] == np.float32(0.8)
+    # without the depth step nothing changes class
+    assert np.array_equal(detect_frame(frame, Fixed(), None).classes, seen.classes)

@@ -22,6 +22,8 @@ Per detected box (pixel-centre convention, as everywhere in the fusion stage):
    fullest row / column (so a rail or a sliver of road does not widen it).
 5. Of the segments touching the core, the one whose box overlaps the detected box most replaces
    it, when that IoU reaches ``min_iou``; otherwise the detected box is kept (and counted as kept).
+   How high that segment's top stands (``RefinedBoxes.top_m``) lets the fusion stage correct the
+   class: a car box standing as high as a truck is a truck (``fuse.detect_frame``).
 
 Then vehicles the detector missed (a car mostly hidden behind another, a far car in a chain) are
 proposed from the depth image alone (``depth_proposals``): the object pixels of the whole image
@@ -54,18 +56,17 @@ ROAD_Z_M = 0.0
 class ProposalParams:
     """Vehicles the detector missed, proposed from the depth image alone (module docstring)."""
     min_height_m: float = 0.3  # object pixels: above the road by more than this (no markings, kerbs)
-    max_height_m: float = 4.5  # and below this (tree crowns, gantries)
+    # and below BoxRefineParams.max_height_m (tree crowns, gantries)
     max_top_continuing: float = 0.3  # a segment whose top outline goes on, as the same surface,
     # above max_height_m over more than this share is part of a tree, a pole or a bridge
     min_pixels: int = 40  # a far car partly hidden shows as few (60 before the twelfth session)
     min_top_m: float = 1.0  # the segment's top stands at least this high (a car's roof line; rails are lower)
     min_width_m: float = 0.3  # wider than this (reflector posts, 0.12 m): a car mostly hidden
     # behind another shows a sliver as narrow as this
-    min_tall_width_m: float = 0.8  # a segment standing higher than truck_top_m: wider than this (tree trunks)
+    min_tall_width_m: float = 0.8  # a segment standing as high as a truck: wider than this (tree trunks)
     max_overlap: float = 0.5  # a segment whose box overlaps a detected box more than this is that box's
     behind_m: float = 3.0  # ... as is one mostly inside a box, unless this far behind the box's surface
     score: float = 0.3  # the proposals' score; detected boxes at least this confident explain segments
-    truck_top_m: float = 2.6  # a segment whose top stands higher is a truck
     max_stem_share: float = 0.25  # a segment whose lowest quarter of rows is one run narrower than
     # this share of its widest row stands on a stem: a tree
 
@@ -80,6 +81,9 @@ class BoxRefineParams:
     min_iou: float = 0.3  # a segment replaces the box only when its box overlaps the box this much
     jump_m: float = 0.5  # depth discontinuity between neighbours: more than this (+ jump_rel of the
     jump_rel: float = 0.05  # depth); the refinement's cut segments and the proposals both use it
+    truck_top_m: float = 2.6  # a segment whose top stands higher than this (cars: <= 2 m) is a truck,
+    max_height_m: float = 4.5  # unless it stands higher than this (no vehicle does: trees, poles, gantries)
+    duplicate_iou: float = 0.7  # a box made a truck that overlaps a truck box this much is one box (the detector's NMS IoU)
     proposals: ProposalParams | None = ProposalParams()  # None: refine the detected boxes only
 
     def __post_init__(self):
@@ -95,6 +99,7 @@ class BoxRefineParams:
 class RefinedBoxes:
     boxes: np.ndarray  # (N, 4) x1, y1, x2, y2: refined where `refined`, else the detected box
     refined: np.ndarray  # (N,) bool
+    top_m: np.ndarray  # (N,) height above the road of the refined segment's top (95th percentile), nan if not refined
 
 
 def _box_iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -193,6 +198,7 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
     H, W = depth.shape
     out = boxes.copy()
     refined = np.zeros(len(boxes), bool)
+    top_m = np.full(len(boxes), np.nan)
     p = params
     for i, b in enumerate(boxes):
         w, h = b[2] - b[0], b[3] - b[1]
@@ -206,7 +212,8 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
         z = depth[y0:y1, x0:x1].astype(np.float32)
         valid = np.isfinite(z) & (z > 0)
         z = np.where(valid, z, np.float32(0))
-        obj = valid & (heights.window(z, x0, y0) > p.min_height_m)
+        height = heights.window(z, x0, y0)
+        obj = valid & (height > p.min_height_m)
         jump_free = _jump_free(z, valid, p.jump_m, p.jump_rel)
         core = _core(b, x0, y0)  # at least one pixel
         core_z = z[core][obj[core]]
@@ -215,7 +222,7 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
         log_z = np.log(core_z)
         edges = np.arange(log_z.min(), log_z.max() + 0.05, 0.04)
         hist, edges = np.histogram(log_z, bins=edges)
-        best, best_iou = None, p.min_iou
+        best, best_iou, best_sel = None, p.min_iou, None
         for j in np.argsort(-hist, kind="stable")[: p.candidates]:
             if hist[j] == 0:
                 break
@@ -225,14 +232,16 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
             for segments in (band, cut) if (band > cut).any() else (band,):
                 _, labels = cv2.connectedComponents(segments.astype(np.uint8), connectivity=4)
                 for label in np.unique(labels[core][segments[core]]):
-                    candidate = _segment_box(labels == label, p.support, x0, y0)
+                    sel = labels == label
+                    candidate = _segment_box(sel, p.support, x0, y0)
                     iou = _box_iou(candidate, b)
                     if iou > best_iou:
-                        best, best_iou = candidate, iou
+                        best, best_iou, best_sel = candidate, iou, sel
         if best is not None:
             out[i] = best
             refined[i] = True
-    return RefinedBoxes(out, refined)
+            top_m[i] = float(np.percentile(height[best_sel], 95))
+    return RefinedBoxes(out, refined, top_m)
 
 
 def _surface_depth(z: np.ndarray, obj: np.ndarray, box: np.ndarray, y0: int) -> float:
@@ -331,7 +340,7 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     valid = np.isfinite(z) & (z > 0)
     z = np.where(valid, z, np.float32(0))
     height = _Heights(K, T_world_to_camera).window(z, 0, 0)
-    obj = valid & (height > params.min_height_m) & (height < params.max_height_m)
+    obj = valid & (height > params.min_height_m) & (height < refine.max_height_m)
     rows = np.flatnonzero(obj.any(axis=1))
     if not len(rows):
         return np.zeros((0, 4)), np.zeros(0, bool)
@@ -367,7 +376,7 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
             continue
         top = float(np.percentile(height[y:y + h, x:x + w][sel], 95))
         width_m = (box[2] - box[0]) * depth_m / fx
-        is_truck = top > params.truck_top_m
+        is_truck = top > refine.truck_top_m
         min_width = params.min_width_m
         if is_truck and width_m < params.min_tall_width_m and not _seen_over_nearer(
                 sel, x, y, z, obj, depth_m, refine.jump_m, refine.jump_rel):
@@ -378,7 +387,7 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         inside = iou * (area + existing_area) / ((1 + iou) * area)  # intersection / segment area, from the IoU
         if np.any((inside > 0.5) & not_in_front & (depth_m < surface + params.behind_m)):
             continue
-        if _continues_above(sel, x, y, z, valid, height, params.max_height_m, refine.jump_m,
+        if _continues_above(sel, x, y, z, valid, height, refine.max_height_m, refine.jump_m,
                             refine.jump_rel) > params.max_top_continuing:
             continue  # a tree crown or a pole cut at the height cap, not a vehicle's roof
         if _on_a_stem(sel, x, y, z, obj, depth_m, params.max_stem_share, refine.jump_m, refine.jump_rel):

@@ -96,17 +96,40 @@ def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams
     cam = frame.camera
     if cam.K is None or cam.T_world_to_camera is None:
         raise ValueError("box refinement: the camera has no intrinsics / pose (CameraView.K, T_world_to_camera)")
-    boxes = refine_boxes(detections.boxes, frame.depth, cam.K, cam.T_world_to_camera, refine).boxes
-    scores, classes = detections.scores, detections.classes
-    if refine.proposals is not None:
-        from vcfusion.render.coco import category_id  # the dataset's category ids, as every detector reports
+    from vcfusion.render.coco import category_id  # the dataset's category ids, as every detector reports
 
+    refined = refine_boxes(detections.boxes, frame.depth, cam.K, cam.T_world_to_camera, refine)
+    boxes, scores = refined.boxes, detections.scores
+    # depth measures how high a vehicle stands, which a 10 px box at 100 m does not show: a car box
+    # whose surface stands higher than any car (and not higher than any vehicle: a tree) is a truck
+    tall = (refined.top_m > refine.truck_top_m) & (refined.top_m <= refine.max_height_m)
+    relabelled = tall & (detections.classes == category_id("passenger"))
+    classes = np.where(relabelled, category_id("truck"), detections.classes)
+    if relabelled.any():
+        keep = _one_box_per_truck(boxes, scores, classes == category_id("truck"), relabelled, refine.duplicate_iou)
+        boxes, scores, classes = boxes[keep], scores[keep], classes[keep]
+    if refine.proposals is not None:
         confident = scores >= refine.proposals.score
         new, is_truck = depth_proposals(frame.depth, cam.K, cam.T_world_to_camera, boxes[confident], refine)
         new_scores = _proposal_scores(new, boxes[~confident], scores[~confident], refine.proposals.score)
         boxes, scores = np.vstack([boxes, new]), np.r_[scores, new_scores]
         classes = np.r_[classes, np.where(is_truck, category_id("truck"), category_id("passenger"))]
     return Detections.of(boxes, scores, classes)
+
+
+def _one_box_per_truck(boxes: np.ndarray, scores: np.ndarray, is_truck: np.ndarray, relabelled: np.ndarray,
+                       iou_threshold: float) -> np.ndarray:
+    """Mask of the boxes to keep: of two truck boxes overlapping by ``iou_threshold`` or more, one of
+    them relabelled from depth, the weaker goes (the detector, which suppresses within a class, may
+    have seen the same truck as a truck and as a car at one place)."""
+    keep = np.ones(len(boxes), bool)
+    iou = box_iou(boxes, boxes)
+    for i in np.argsort(-scores, kind="stable"):
+        if keep[i] and is_truck[i]:
+            weaker = is_truck & keep & (iou[i] >= iou_threshold) & (relabelled | relabelled[i])
+            weaker[i] = False
+            keep &= ~weaker
+    return keep
 
 
 def _proposal_scores(proposals: np.ndarray, weak_boxes: np.ndarray, weak_scores: np.ndarray,
