@@ -442,3 +442,42 @@ def test_a_car_box_standing_as_high_as_a_truck_is_a_truck_and_stays_one_box():
     assert out.scores[owner["truck"]] == np.float32(0.8)
     # without the depth step nothing changes class
     assert np.array_equal(detect_frame(frame, Fixed(), None).classes, seen.classes)
+
+
+def test_the_pieces_of_a_car_a_nearer_one_cuts_in_two_join_its_box_but_not_a_car_in_the_next_lane():
+    """A car 30 m ahead with a post 15 m ahead in front of its middle shows in two pieces at one
+    depth; a box on one piece grows over the other (the ground truth spans both). A car at the same
+    depth one lane over, seen past a nearer car, is not a piece of it (together wider than a
+    vehicle), nor is a piece of a car farther away."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import join_fragments, object_segments
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+
+    def shown(depth, alone):
+        ys, xs = np.nonzero((alone < road) & np.isclose(depth, alone, rtol=0, atol=1e-4))
+        return np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5])
+
+    def joined(depth, box):
+        segments = object_segments(depth, K, T, BoxRefineParams())
+        out, grown = join_fragments(box[None], np.array([True]), segments, K, BoxRefineParams())
+        return out[0], bool(grown[0])
+
+    car = _plate(road, K, T, 30.0, -1.0, 1.0, 1.5)
+    depth = _plate(car, K, T, 15.0, -0.15, 0.15, 2.5)  # the post
+    whole = shown(depth, car)
+    right = shown(np.where(np.arange(640)[None, :] < (whole[0] + whole[2]) / 2, np.inf, depth), car)  # the piece right of the post
+    assert box_iou(whole[None], right[None])[0, 0] < 0.6
+    out, grown = joined(depth, right)
+    assert grown and np.allclose(out, whole)
+    # a car one lane over at the same depth, its near side hidden by a nearer car: not a piece
+    pair = _plate(_plate(road, K, T, 30.0, -1.0, 1.0, 1.5), K, T, 30.0, 1.6, 3.6, 1.5)
+    depth = _plate(pair, K, T, 15.0, 0.45, 0.85, 1.6)
+    left = shown(depth, _plate(road, K, T, 30.0, -1.0, 1.0, 1.5))
+    out, grown = joined(depth, left)
+    assert not grown and np.allclose(out, left)
+    # the piece right of the post 5 m farther away: another vehicle
+    depth = _plate(_plate(_plate(road, K, T, 30.0, -1.0, 0.0, 1.5), K, T, 35.0, 0.0, 1.2, 1.5), K, T, 15.0, -0.15, 0.15, 2.5)
+    left = shown(depth, _plate(road, K, T, 30.0, -1.0, 0.0, 1.5))
+    assert not joined(depth, left)[1]

@@ -34,6 +34,11 @@ truck seen over the car in front rests on that car instead), whose top does not 
 (tree crowns and poles cut at the height cap), that does not stand on a narrow stem under its
 middle with nothing nearer beside it (a tree lower than the cap) and that no confident box explains becomes a box (a truck when it stands higher than a car).
 
+Last, a vehicle that a nearer one cuts into pieces (its roof above the nearer car, a corner beside
+it) gets one box over all of them (``join_fragments``): a segment at a box's surface depth, near
+it, that no other box owns, joins the box when what lies between them is mostly nearer and the two
+together are no wider than a vehicle.
+
 The band is one vehicle deep: a car behind another in the same lane is at least a car length plus
 the gap farther away, so it falls outside the band of the car in front. Depth quality sets what
 this can do: it was tuned on the renderer's exact depth (validation folders only; see
@@ -69,6 +74,11 @@ class ProposalParams:
     score: float = 0.3  # the proposals' score; detected boxes at least this confident explain segments
     max_stem_share: float = 0.25  # a segment whose lowest quarter of rows is one run narrower than
     # this share of its widest row stands on a stem: a tree
+    # the fragments of a vehicle that a nearer one cuts in two join its box (join_fragments): a segment
+    fragment_depth_m: float = 0.5  # at the box's surface depth (within this + 3 %),
+    fragment_gap: float = 0.5  # no farther from the box than this share of the box's larger side,
+    fragment_hidden: float = 0.5  # with at least this share of the pixels between them nearer (the cut),
+    max_width_m: float = 2.7  # and the two together no wider than a vehicle seen from behind
 
 
 @dataclass(frozen=True)
@@ -327,15 +337,27 @@ def _on_a_stem(sel: np.ndarray, x: int, y: int, z: np.ndarray, obj: np.ndarray, 
     return bool(len(side_r) == 0 or _nearer_object(side_r, side_c, z, obj, depth_m, jump_m, jump_rel).mean() < 0.5)
 
 
-def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
-                    refine: BoxRefineParams = BoxRefineParams()):
-    """Boxes of depth segments standing on the road that no detected box explains: (M, 4) boxes and
-    (M,) bool is_truck (``refine.proposals``; segments trimmed with ``refine.support``)."""
-    from vcfusion.fusion.matching import box_iou
+@dataclass(frozen=True)
+class ObjectSegments:
+    """The object pixels of a whole depth image cut at depth jumps into 4-connected segments (what
+    the proposals and the fragments work on), on the image rows ``y_lo`` onward that hold any."""
 
+    z: np.ndarray  # (h, W) camera-Z, 0 where no depth
+    valid: np.ndarray  # (h, W) bool: a depth
+    obj: np.ndarray  # (h, W) bool: an object pixel (between the proposals' min height and max_height_m)
+    height: np.ndarray  # (h, W) height above the road, m
+    labels: np.ndarray  # (h, W) segment label, 0 = none
+    areas: np.ndarray  # pixels per label
+    regions: list  # per label from 1, its (rows, columns) slices (scipy.ndimage.find_objects)
+    y_lo: int  # image row of row 0
+
+
+def object_segments(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray,
+                    refine: BoxRefineParams = BoxRefineParams()) -> ObjectSegments | None:
+    """The image's object pixels cut into segments (module docstring); None when it holds none."""
     params = refine.proposals
     if params is None:
-        raise ValueError("depth_proposals: the proposals are switched off (BoxRefineParams.proposals is None)")
+        raise ValueError("depth segments: the proposals are switched off (BoxRefineParams.proposals is None)")
     z = np.asarray(depth, np.float32)
     valid = np.isfinite(z) & (z > 0)
     z = np.where(valid, z, np.float32(0))
@@ -343,7 +365,7 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     obj = valid & (height > params.min_height_m) & (height < refine.max_height_m)
     rows = np.flatnonzero(obj.any(axis=1))
     if not len(rows):
-        return np.zeros((0, 4)), np.zeros(0, bool)
+        return None
     # only the rows holding object pixels (the sky and the road ahead hold none)
     y_lo, y_hi = int(rows[0]), int(rows[-1]) + 1
     y_lo = max(y_lo - 1, 0)  # and the row above them: what stands above a segment's top
@@ -352,13 +374,30 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     keep = obj & _jump_free(z, valid, refine.jump_m, refine.jump_rel)
     n, labels = cv2.connectedComponents(keep.astype(np.uint8), connectivity=4)
     labels = _restore_outlines(labels, obj & ~keep, z, refine.jump_m, refine.jump_rel)
-    areas = np.bincount(labels.ravel(), minlength=n)
+    return ObjectSegments(z, valid, obj, height, labels, np.bincount(labels.ravel(), minlength=n),
+                          find_objects(labels), y_lo)
+
+
+def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
+                    refine: BoxRefineParams = BoxRefineParams(), segments: ObjectSegments | None = None):
+    """Boxes of depth segments standing on the road that no detected box explains: (M, 4) boxes and
+    (M,) bool is_truck (``refine.proposals``; segments trimmed with ``refine.support``). ``segments``:
+    the image's :func:`object_segments`, when already computed."""
+    from vcfusion.fusion.matching import box_iou
+
+    params = refine.proposals
+    if segments is None:
+        segments = object_segments(depth, K, T_world_to_camera, refine)
+    if segments is None:
+        return np.zeros((0, 4)), np.zeros(0, bool)
+    z, valid, obj, height, labels, areas, y_lo = (segments.z, segments.valid, segments.obj, segments.height,
+                                                  segments.labels, segments.areas, segments.y_lo)
     fx = float(np.asarray(K, float)[0, 0])
     out, trucks = [], []
     existing = np.asarray(boxes, float).reshape(-1, 4)
     surface = np.array([_surface_depth(z, obj, e, y_lo) for e in existing])
     existing_area = (existing[:, 2] - existing[:, 0]) * (existing[:, 3] - existing[:, 1])
-    for label, region in enumerate(find_objects(labels), start=1):
+    for label, region in enumerate(segments.regions, start=1):
         if region is None or areas[label] < params.min_pixels:
             continue
         y, x = region[0].start, region[1].start
@@ -395,3 +434,85 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         out.append(box)
         trucks.append(is_truck)
     return np.array(out, float).reshape(-1, 4), np.array(trucks, bool)
+
+
+MIN_FRAGMENT_PIXELS = 4  # the roof line of a car behind a nearer one shows as little
+
+
+def _box_between(a: np.ndarray, b: np.ndarray, y_lo: int, shape: tuple[int, int]) -> tuple[slice, slice, np.ndarray]:
+    """Rows, columns (arrays starting at image row y_lo) of the box around a and b, and the mask of
+    its pixels inside neither: what lies between them."""
+    u = np.r_[np.minimum(a[:2], b[:2]), np.maximum(a[2:], b[2:])]
+    r0, r1 = min(max(int(u[1] + 0.5) - y_lo, 0), shape[0]), min(max(int(u[3] + 0.5) - y_lo, 0), shape[0])
+    c0, c1 = min(max(int(u[0] + 0.5), 0), shape[1]), min(max(int(u[2] + 0.5), 0), shape[1])
+    between = np.ones((r1 - r0, c1 - c0), bool)
+    for x in (a, b):
+        between[max(int(x[1] + 0.5) - y_lo - r0, 0):max(int(x[3] + 0.5) - y_lo - r0, 0),
+                max(int(x[0] + 0.5) - c0, 0):max(int(x[2] + 0.5) - c0, 0)] = False
+    return slice(r0, r1), slice(c0, c1), between
+
+
+def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegments | None, K: np.ndarray,
+                   refine: BoxRefineParams = BoxRefineParams()) -> tuple[np.ndarray, np.ndarray]:
+    """Each box grown over the other fragments of its vehicle: (N, 4) boxes and (N,) bool joined.
+
+    A vehicle partly hidden by a nearer one can show in pieces (its roof above the nearer car and a
+    corner beside it); the detector and the refinement box one piece, the ground truth spans all.
+    A segment joins a box when it stands at the box's surface depth, lies near it, is not the own
+    segment of one of the ``owners`` boxes (IoU > 0.5; an (N,) mask: the boxes the fusion uses),
+    what lies between the two is mostly nearer (the piece of the nearer vehicle that cuts them
+    apart) and the two together are no wider than a vehicle (a car beside it at the same depth in
+    the next lane is a lane width away)."""
+    from vcfusion.fusion.matching import box_iou
+
+    params = refine.proposals
+    boxes = np.asarray(boxes, float).reshape(-1, 4)
+    joined = np.zeros(len(boxes), bool)
+    if params is None:
+        raise ValueError("join_fragments: the proposals are switched off (BoxRefineParams.proposals is None)")
+    if segments is None or not len(boxes):
+        return boxes, joined
+    z, obj, y_lo = segments.z, segments.obj, segments.y_lo
+    labels = [k for k, r in enumerate(segments.regions, start=1) if r is not None and segments.areas[k] >= MIN_FRAGMENT_PIXELS]
+    if not labels:
+        return boxes, joined
+    seg_box = np.array([[r[1].start, r[0].start + y_lo, r[1].stop, r[0].stop + y_lo]
+                        for r in (segments.regions[k - 1] for k in labels)], float) - 0.5
+    # mean depth per segment, all at once: a first, loose sift (the test itself takes the median; the
+    # mean of a segment with a little of something farther at its edge lies off it)
+    seg_mean = (np.bincount(segments.labels.ravel(), weights=z.ravel(), minlength=len(segments.areas))[labels]
+                / segments.areas[labels])
+    owned = box_iou(seg_box, boxes[owners]) > 0.5 if owners.any() else np.zeros((len(labels), 0), bool)
+    owner_index = np.flatnonzero(owners)
+    fx = float(np.asarray(K, float)[0, 0])
+    out = boxes.copy()
+    for i, b in enumerate(boxes):
+        side = max(b[2] - b[0], b[3] - b[1])
+        gap = np.maximum.reduce([seg_box[:, 0] - b[2], b[0] - seg_box[:, 2], seg_box[:, 1] - b[3], b[1] - seg_box[:, 3]])
+        ix = np.clip(np.minimum(seg_box[:, 2], b[2]) - np.maximum(seg_box[:, 0], b[0]), 0, None)
+        iy = np.clip(np.minimum(seg_box[:, 3], b[3]) - np.maximum(seg_box[:, 1], b[1]), 0, None)
+        inside = ix * iy >= 0.9 * (seg_box[:, 2] - seg_box[:, 0]) * (seg_box[:, 3] - seg_box[:, 1])
+        near = (gap <= params.fragment_gap * side) & ~inside & ~owned[:, owner_index != i].any(axis=1)
+        if not near.any():
+            continue
+        surface = _surface_depth(z, obj, b, y_lo)
+        if not np.isfinite(surface):
+            continue
+        grown = b.copy()
+        tolerance = params.fragment_depth_m + 0.03 * surface
+        for k in np.flatnonzero(near & (np.abs(seg_mean - surface) <= 2 * tolerance + 1.0)):
+            r = segments.regions[labels[k] - 1]
+            if abs(float(np.median(z[r][segments.labels[r] == labels[k]])) - surface) > tolerance:
+                continue
+            rows, cols, between = _box_between(b, seg_box[k], y_lo, z.shape)
+            if not between.any():
+                continue  # touching the box: the refinement's segment, or one it did not want
+            nearer = _nearer_object(*np.nonzero(between), z[rows, cols], obj[rows, cols], surface,
+                                    refine.jump_m, refine.jump_rel)
+            width_m = (max(b[2], seg_box[k, 2]) - min(b[0], seg_box[k, 0])) * surface / fx
+            if nearer.mean() < params.fragment_hidden or width_m > params.max_width_m:
+                continue
+            grown = np.r_[np.minimum(grown[:2], seg_box[k, :2]), np.maximum(grown[2:], seg_box[k, 2:])]
+        joined[i] = not np.array_equal(grown, b)
+        out[i] = grown
+    return out, joined

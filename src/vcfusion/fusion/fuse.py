@@ -15,7 +15,7 @@ import numpy as np
 
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import GuidanceSet, TwinStates
-from vcfusion.fusion.box_refine import BoxRefineParams, depth_proposals, refine_boxes
+from vcfusion.fusion.box_refine import BoxRefineParams, depth_proposals, join_fragments, object_segments, refine_boxes
 from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector
 from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, box_iou, match_all_baseline,
@@ -109,11 +109,13 @@ def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams
         keep = _one_box_per_truck(boxes, scores, classes == category_id("truck"), relabelled, refine.duplicate_iou)
         boxes, scores, classes = boxes[keep], scores[keep], classes[keep]
     if refine.proposals is not None:
+        segments = object_segments(frame.depth, cam.K, cam.T_world_to_camera, refine)
         confident = scores >= refine.proposals.score
-        new, is_truck = depth_proposals(frame.depth, cam.K, cam.T_world_to_camera, boxes[confident], refine)
+        new, is_truck = depth_proposals(frame.depth, cam.K, cam.T_world_to_camera, boxes[confident], refine, segments)
         new_scores = _proposal_scores(new, boxes[~confident], scores[~confident], refine.proposals.score)
         boxes, scores = np.vstack([boxes, new]), np.r_[scores, new_scores]
         classes = np.r_[classes, np.where(is_truck, category_id("truck"), category_id("passenger"))]
+        boxes, _ = join_fragments(boxes, scores >= refine.proposals.score, segments, cam.K, refine)
     return Detections.of(boxes, scores, classes)
 
 
