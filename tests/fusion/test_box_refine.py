@@ -481,3 +481,39 @@ def test_the_pieces_of_a_car_a_nearer_one_cuts_in_two_join_its_box_but_not_a_car
     depth = _plate(_plate(_plate(road, K, T, 30.0, -1.0, 0.0, 1.5), K, T, 35.0, 0.0, 1.2, 1.5), K, T, 15.0, -0.15, 0.15, 2.5)
     left = shown(depth, _plate(road, K, T, 30.0, -1.0, 0.0, 1.5))
     assert not joined(depth, left)[1]
+
+
+def _side(depth, K, T, y, x0, x1, top):
+    """A vehicle's flat side seen from the lane beside it: the vertical plane at lateral y, from x0 to
+    x1 metres ahead and from the road up to `top`, drawn into the depth image."""
+    R, t = T[:3, :3], T[:3, 3]
+    centre = -R.T @ t
+    h, w = depth.shape
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    rays = R.T @ (np.linalg.inv(K) @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (y - centre[1]) / rays[1]
+    p = centre[:, None] + s * rays
+    hit = (s > 0) & (p[0] >= x0) & (p[0] <= x1) & (p[2] >= 0.0) & (p[2] <= top)
+    z = depth.ravel().copy()
+    z[hit & (s < z)] = s[hit & (s < z)]
+    return z.reshape(h, w).astype(np.float32)
+
+
+def test_the_side_of_a_truck_in_the_next_lane_is_refined_whole_however_deep_it_runs():
+    """A truck in the next lane seen along its side spans 6-20 m of depth, far more than the
+    one-vehicle band; the refinement also takes each surface whole (no depth jump inside it), so a
+    box a few pixels off snaps to all of the side, not to the 4 m of it nearest the box's centre."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    depth = _side(road, K, T, 2.5, 6.0, 20.0, 3.8)
+    ys, xs = np.nonzero(depth < road)
+    truth = np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5])
+    assert np.ptp(depth[depth < road]) > 10  # the side runs deep
+    w, h = truth[2] - truth[0], truth[3] - truth[1]
+    off = truth + [0.06 * w, -0.05 * h, 0.04 * w, 0.05 * h]
+    res = refine_boxes(off[None], depth, K, T, BoxRefineParams())
+    assert res.refined[0] and box_iou(truth[None], res.boxes)[0, 0] > 0.95
+    assert 3.5 < res.top_m[0] <= 3.8  # and it stands as high as a truck

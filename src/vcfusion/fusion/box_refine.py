@@ -18,7 +18,8 @@ Per detected box (pixel-centre convention, as everywhere in the fusion stage):
    ``jump_m`` + ``jump_rel`` of the depth removed). Why both: a near car touches, in the image,
    the side of a truck or the car beside it that lies within its band, and only the cut separates
    them; but the cut also takes a pixel off each occluded outline, which a small far box cannot
-   spare. A segment's box is the span of its rows and columns holding at least ``support`` of its
+   spare. Also, once per box, the object pixels of the window cut at depth jumps without any band:
+   a surface whole, however deep it runs (the side of a truck in the next lane spans 15 m). A segment's box is the span of its rows and columns holding at least ``support`` of its
    fullest row / column (so a rail or a sliver of road does not widen it).
 5. Of the segments touching the core, the one whose box overlaps the detected box most replaces
    it, when that IoU reaches ``min_iou``; otherwise the detected box is kept (and counted as kept).
@@ -232,21 +233,25 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
         log_z = np.log(core_z)
         edges = np.arange(log_z.min(), log_z.max() + 0.05, 0.04)
         hist, edges = np.histogram(log_z, bins=edges)
-        best, best_iou, best_sel = None, p.min_iou, None
+        masks = []
         for j in np.argsort(-hist, kind="stable")[: p.candidates]:
             if hist[j] == 0:
                 break
             z0 = float(np.exp(edges[j]))
             band = obj & (z > z0 - 0.3 * p.band_m - 0.03 * z0) & (z < z0 + p.band_m + 0.03 * z0)
             cut = band & jump_free
-            for segments in (band, cut) if (band > cut).any() else (band,):
-                _, labels = cv2.connectedComponents(segments.astype(np.uint8), connectivity=4)
-                for label in np.unique(labels[core][segments[core]]):
-                    sel = labels == label
-                    candidate = _segment_box(sel, p.support, x0, y0)
-                    iou = _box_iou(candidate, b)
-                    if iou > best_iou:
-                        best, best_iou, best_sel = candidate, iou, sel
+            masks += [band, cut] if (band > cut).any() else [band]
+        # and the surfaces whole, however deep (the side of a truck in the next lane runs 15 m away)
+        masks.append(obj & jump_free)
+        best, best_iou, best_sel = None, p.min_iou, None
+        for segments in masks:
+            _, labels = cv2.connectedComponents(segments.astype(np.uint8), connectivity=4)
+            for label in np.unique(labels[core][segments[core]]):
+                sel = labels == label
+                candidate = _segment_box(sel, p.support, x0, y0)
+                iou = _box_iou(candidate, b)
+                if iou > best_iou:
+                    best, best_iou, best_sel = candidate, iou, sel
         if best is not None:
             out[i] = best
             refined[i] = True
