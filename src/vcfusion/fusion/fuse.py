@@ -106,7 +106,8 @@ def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams
     relabelled = tall & (detections.classes == category_id("passenger"))
     classes = np.where(relabelled, category_id("truck"), detections.classes)
     if relabelled.any():
-        keep = _one_box_per_truck(boxes, scores, classes == category_id("truck"), relabelled, refine.duplicate_iou)
+        keep = _one_box_per_truck(detections.boxes, scores, classes == category_id("truck"), relabelled,
+                                  refine.duplicate_iou)
         boxes, scores, classes = boxes[keep], scores[keep], classes[keep]
     if refine.proposals is not None:
         segments = object_segments(frame.depth, cam.K, cam.T_world_to_camera, refine)
@@ -123,7 +124,9 @@ def _one_box_per_truck(boxes: np.ndarray, scores: np.ndarray, is_truck: np.ndarr
                        iou_threshold: float) -> np.ndarray:
     """Mask of the boxes to keep: of two truck boxes overlapping by ``iou_threshold`` or more, one of
     them relabelled from depth, the weaker goes (the detector, which suppresses within a class, may
-    have seen the same truck as a truck and as a car at one place)."""
+    have seen the same truck as a truck and as a car at one place). ``boxes`` are the detector's, not
+    the refined ones: at 90 m a car and the truck right behind it are one depth surface, both boxes
+    snap to it, and the car must keep its box."""
     keep = np.ones(len(boxes), bool)
     iou = box_iou(boxes, boxes)
     for i in np.argsort(-scores, kind="stable"):
