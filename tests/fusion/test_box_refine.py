@@ -167,9 +167,10 @@ def test_a_vehicle_without_a_box_is_proposed_from_depth(frames):
     print(f"left-out vehicles proposed at IoU >= 0.7: {(found >= 0.7).mean():.1%} of {len(found)}; "
           f"proposals on a given box: {extra}")
     assert len(found) >= 20
-    # (measured: 87 % of 23; without the 'behind the box's surface' rule 74 %: a car peeking over or
-    # beside a nearer one lies inside the nearer one's box)
-    assert (found >= 0.7).mean() >= 0.8 and np.median(found) >= 0.85
+    # (measured: 91 % of 23; without the 'behind the box's surface' rule 74 %: a car peeking over or
+    # beside a nearer one lies inside the nearer one's box; with that rule at 3 m, as before the
+    # fourteenth session, 87 %: a car 1-3 m behind a nearer one's surface counted as part of it)
+    assert (found >= 0.7).mean() >= 0.9 and np.median(found) >= 0.85
     assert extra == 0
 
 

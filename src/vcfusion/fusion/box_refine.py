@@ -71,7 +71,7 @@ class ProposalParams:
     # behind another shows a sliver as narrow as this
     min_tall_width_m: float = 0.8  # a segment standing as high as a truck: wider than this (tree trunks)
     max_overlap: float = 0.5  # a segment whose box overlaps a detected box more than this is that box's
-    behind_m: float = 3.0  # ... as is one mostly inside a box, unless this far behind the box's surface
+    behind_m: float = 1.0  # ... as is one mostly inside a box, unless this far behind the box's surface (3 before the fourteenth session)
     score: float = 0.3  # the proposals' score; detected boxes at least this confident explain segments
     max_stem_share: float = 0.25  # a segment whose lowest quarter of rows is one run narrower than
     # this share of its widest row stands on a stem: a tree
