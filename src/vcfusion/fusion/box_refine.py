@@ -84,7 +84,7 @@ class ProposalParams:
 
 @dataclass(frozen=True)
 class BoxRefineParams:
-    margin: float = 0.25  # search window: the box grown by this share of its width / height per side
+    margin: float = 0.4  # search window: the box grown by this share of its width / height per side (0.25 before the fourteenth session)
     min_height_m: float = 0.05  # above the road by more than this: an object pixel (tyres included)
     band_m: float = 4.0  # depth band of one vehicle's visible surface (see the module docstring)
     candidates: int = 3  # surface depths tried per box
