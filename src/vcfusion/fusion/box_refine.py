@@ -91,7 +91,7 @@ class BoxRefineParams:
     support: float = 0.05  # rows / columns with less than this share of the fullest one are trimmed
     min_iou: float = 0.3  # a segment replaces the box only when its box overlaps the box this much
     jump_m: float = 0.5  # depth discontinuity between neighbours: more than this (+ jump_rel of the
-    jump_rel: float = 0.05  # depth); the refinement's cut segments and the proposals both use it
+    jump_rel: float = 0.045  # depth; 0.05 before the fourteenth session); the refinement's cut segments and the proposals both use it
     truck_top_m: float = 2.6  # a segment whose top stands higher than this (cars: <= 2 m) is a truck,
     max_height_m: float = 4.5  # unless it stands higher than this (no vehicle does: trees, poles, gantries)
     duplicate_iou: float = 0.7  # a box made a truck that overlaps a truck box this much is one box (the detector's NMS IoU)
