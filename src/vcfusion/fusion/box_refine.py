@@ -19,8 +19,9 @@ Per detected box (pixel-centre convention, as everywhere in the fusion stage):
    the side of a truck or the car beside it that lies within its band, and only the cut separates
    them; but the cut also takes a pixel off each occluded outline, which a small far box cannot
    spare. Also, once per box, the object pixels of the window cut at depth jumps without any band:
-   a surface whole, however deep it runs (the side of a truck in the next lane spans 15 m). A segment's box is the span of its rows and columns holding at least ``support`` of its
-   fullest row / column (so a rail or a sliver of road does not widen it).
+   a surface whole, however deep it runs (the side of a truck in the next lane spans 15 m). A
+   segment's box is the span of its rows and columns holding at least ``support`` of its fullest
+   row / column (so a rail or a sliver of road does not widen it).
 5. Of the segments touching the core, the one whose box overlaps the detected box most replaces
    it, when that IoU reaches ``min_iou``; otherwise the detected box is kept (and counted as kept).
    How high that segment's top stands (``RefinedBoxes.top_m``) lets the fusion stage correct the
@@ -29,11 +30,12 @@ Per detected box (pixel-centre convention, as everywhere in the fusion stage):
 Then vehicles the detector missed (a car mostly hidden behind another, a far car in a chain) are
 proposed from the depth image alone (``depth_proposals``): the object pixels of the whole image
 cut at depth jumps into segments (the pixels the cut removed, a hidden vehicle's outline next to
-the nearer one, go back to their own surface's segment); a segment that stands as high as a car roof, is wider than a
-post (than a vehicle, when it stands on the road higher than a truck: tree trunks; the top of a
-truck seen over the car in front rests on that car instead), whose top does not go on upward
-(tree crowns and poles cut at the height cap), that does not stand on a narrow stem under its
-middle with nothing nearer beside it (a tree lower than the cap) and that no confident box explains becomes a box (a truck when it stands higher than a car).
+the nearer one, go back to their own surface's segment); a segment that stands as high as a car
+roof, is wider than a post (than a vehicle, when it stands on the road higher than a truck: tree
+trunks; the top of a truck seen over the car in front rests on that car instead), whose top does
+not go on upward (tree crowns and poles cut at the height cap), that does not stand on a narrow
+stem under its middle with nothing nearer beside it (a tree lower than the cap) and that no
+confident box explains becomes a box (a truck when it stands higher than a car).
 
 Last, a vehicle that a nearer one cuts into pieces (its roof above the nearer car, a corner beside
 it) gets one box over all of them (``join_fragments``): a segment at a box's surface depth, near
@@ -71,7 +73,8 @@ class ProposalParams:
     # behind another shows a sliver as narrow as this
     min_tall_width_m: float = 0.8  # a segment standing as high as a truck: wider than this (tree trunks)
     max_overlap: float = 0.5  # a segment whose box overlaps a detected box more than this is that box's
-    behind_m: float = 1.0  # ... as is one mostly inside a box, unless this far behind the box's surface (3 before the fourteenth session)
+    behind_m: float = 1.0  # ... as is one mostly inside a box, unless this far behind the box's surface
+    # (3 m before the fourteenth session)
     score: float = 0.3  # the proposals' score; detected boxes at least this confident explain segments
     max_stem_share: float = 0.25  # a segment whose lowest quarter of rows is one run narrower than
     # this share of its widest row stands on a stem: a tree
@@ -84,17 +87,20 @@ class ProposalParams:
 
 @dataclass(frozen=True)
 class BoxRefineParams:
-    margin: float = 0.4  # search window: the box grown by this share of its width / height per side (0.25 before the fourteenth session)
+    margin: float = 0.4  # search window: the box grown by this share of its width / height per side
+    # (0.25 before the fourteenth session)
     min_height_m: float = 0.05  # above the road by more than this: an object pixel (tyres included)
     band_m: float = 4.0  # depth band of one vehicle's visible surface (see the module docstring)
     candidates: int = 3  # surface depths tried per box
     support: float = 0.05  # rows / columns with less than this share of the fullest one are trimmed
     min_iou: float = 0.3  # a segment replaces the box only when its box overlaps the box this much
     jump_m: float = 0.5  # depth discontinuity between neighbours: more than this (+ jump_rel of the
-    jump_rel: float = 0.045  # depth; 0.05 before the fourteenth session); the refinement's cut segments and the proposals both use it
+    jump_rel: float = 0.045  # depth; 0.05 before the fourteenth session); the refinement's cut
+    # segments, the proposals and the fragments all use it
     truck_top_m: float = 2.6  # a segment whose top stands higher than this (cars: <= 2 m) is a truck,
     max_height_m: float = 4.5  # unless it stands higher than this (no vehicle does: trees, poles, gantries)
-    duplicate_iou: float = 0.7  # a box made a truck that overlaps a truck box this much is one box (the detector's NMS IoU)
+    duplicate_iou: float = 0.7  # a box made a truck whose detected box overlaps another truck's this
+    # much is one box with it (the detector's NMS IoU)
     proposals: ProposalParams | None = ProposalParams()  # None: refine the detected boxes only
 
     def __post_init__(self):
@@ -478,7 +484,8 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
     if segments is None or not len(boxes):
         return boxes, joined
     z, obj, y_lo = segments.z, segments.obj, segments.y_lo
-    labels = [k for k, r in enumerate(segments.regions, start=1) if r is not None and segments.areas[k] >= MIN_FRAGMENT_PIXELS]
+    labels = [k for k, r in enumerate(segments.regions, start=1)
+              if r is not None and segments.areas[k] >= MIN_FRAGMENT_PIXELS]
     if not labels:
         return boxes, joined
     seg_box = np.array([[r[1].start, r[0].start + y_lo, r[1].stop, r[0].stop + y_lo]
@@ -493,7 +500,8 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
     out = boxes.copy()
     for i, b in enumerate(boxes):
         side = max(b[2] - b[0], b[3] - b[1])
-        gap = np.maximum.reduce([seg_box[:, 0] - b[2], b[0] - seg_box[:, 2], seg_box[:, 1] - b[3], b[1] - seg_box[:, 3]])
+        gap = np.maximum.reduce([seg_box[:, 0] - b[2], b[0] - seg_box[:, 2],
+                                 seg_box[:, 1] - b[3], b[1] - seg_box[:, 3]])
         ix = np.clip(np.minimum(seg_box[:, 2], b[2]) - np.maximum(seg_box[:, 0], b[0]), 0, None)
         iy = np.clip(np.minimum(seg_box[:, 3], b[3]) - np.maximum(seg_box[:, 1], b[1]), 0, None)
         inside = ix * iy >= 0.9 * (seg_box[:, 2] - seg_box[:, 0]) * (seg_box[:, 3] - seg_box[:, 1])
