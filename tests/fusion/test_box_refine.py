@@ -468,8 +468,8 @@ def test_the_pieces_of_a_car_a_nearer_one_cuts_in_two_join_its_box_but_not_a_car
 
     def joined(depth, box):
         segments = object_segments(depth, K, T, BoxRefineParams())
-        out, grown = join_fragments(box[None], np.array([True]), segments, K, BoxRefineParams())
-        return out[0], bool(grown[0])
+        out = join_fragments(box[None], np.array([True]), segments, K, BoxRefineParams())[0]
+        return out, not np.array_equal(out, box)
 
     car = _plate(road, K, T, 30.0, -1.0, 1.0, 1.5)
     depth = _plate(car, K, T, 15.0, -0.15, 0.15, 2.5)  # the post

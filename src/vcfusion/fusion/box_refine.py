@@ -99,8 +99,8 @@ class BoxRefineParams:
     # segments, the proposals and the fragments all use it
     truck_top_m: float = 2.6  # a segment whose top stands higher than this (cars: <= 2 m) is a truck,
     max_height_m: float = 4.5  # unless it stands higher than this (no vehicle does: trees, poles, gantries)
-    duplicate_iou: float = 0.7  # a box made a truck whose detected box overlaps another truck's this
-    # much is one box with it (the detector's NMS IoU)
+    duplicate_iou: float = 0.7  # the detector's NMS IoU, applied again to the trucks after boxes
+    # became trucks
     proposals: ProposalParams | None = ProposalParams()  # None: refine the detected boxes only
 
     def __post_init__(self):
@@ -464,8 +464,8 @@ def _box_between(a: np.ndarray, b: np.ndarray, y_lo: int, shape: tuple[int, int]
 
 
 def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegments | None, K: np.ndarray,
-                   refine: BoxRefineParams = BoxRefineParams()) -> tuple[np.ndarray, np.ndarray]:
-    """Each box grown over the other fragments of its vehicle: (N, 4) boxes and (N,) bool joined.
+                   refine: BoxRefineParams = BoxRefineParams()) -> np.ndarray:
+    """Each box grown over the other fragments of its vehicle: (N, 4) boxes.
 
     A vehicle partly hidden by a nearer one can show in pieces (its roof above the nearer car and a
     corner beside it); the detector and the refinement box one piece, the ground truth spans all.
@@ -478,16 +478,15 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
 
     params = refine.proposals
     boxes = np.asarray(boxes, float).reshape(-1, 4)
-    joined = np.zeros(len(boxes), bool)
     if params is None:
         raise ValueError("join_fragments: the proposals are switched off (BoxRefineParams.proposals is None)")
     if segments is None or not len(boxes):
-        return boxes, joined
+        return boxes
     z, obj, y_lo = segments.z, segments.obj, segments.y_lo
     labels = [k for k, r in enumerate(segments.regions, start=1)
               if r is not None and segments.areas[k] >= MIN_FRAGMENT_PIXELS]
     if not labels:
-        return boxes, joined
+        return boxes
     seg_box = np.array([[r[1].start, r[0].start + y_lo, r[1].stop, r[0].stop + y_lo]
                         for r in (segments.regions[k - 1] for k in labels)], float) - 0.5
     # mean depth per segment, all at once: a first, loose sift (the test itself takes the median; the
@@ -526,6 +525,5 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
             if nearer.mean() < params.fragment_hidden or width_m > params.max_width_m:
                 continue
             grown = np.r_[np.minimum(grown[:2], seg_box[k, :2]), np.maximum(grown[2:], seg_box[k, 2:])]
-        joined[i] = not np.array_equal(grown, b)
         out[i] = grown
-    return out, joined
+    return out

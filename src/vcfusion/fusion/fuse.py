@@ -15,9 +15,10 @@ import numpy as np
 
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import GuidanceSet, TwinStates
-from vcfusion.fusion.box_refine import BoxRefineParams, depth_proposals, join_fragments, object_segments, refine_boxes
+from vcfusion.fusion.box_refine import (BoxRefineParams, depth_proposals, join_fragments, object_segments,
+                                       refine_boxes)
 from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
-from vcfusion.detection.detectors import Detections, Detector, OracleDetector
+from vcfusion.detection.detectors import Detections, Detector, OracleDetector, nms
 from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, box_iou, match_all_baseline,
                                       match_all_paper, point_in_boxes, project_twins)
 from vcfusion.fusion.overlay import Hud, OverlayRecorder, draw_overlay, make_guidance
@@ -106,35 +107,25 @@ def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams
     relabelled = tall & (detections.classes == category_id("passenger"))
     classes = np.where(relabelled, category_id("truck"), detections.classes)
     if relabelled.any():
-        keep = _one_box_per_truck(detections.boxes, scores, classes == category_id("truck"), relabelled,
-                                  refine.duplicate_iou)
+        # the detector's suppression within a class, again for the class that gained boxes (it may
+        # have seen one truck as a truck and as a car at one place); on the detector's boxes, not
+        # the refined ones: at 90 m a car and the truck right behind it are one depth surface, both
+        # boxes snap to it, and the car must keep its box
+        trucks = np.flatnonzero(classes == category_id("truck"))
+        keep = np.ones(len(boxes), bool)
+        keep[trucks] = False
+        keep[trucks[nms(detections.boxes[trucks], scores[trucks], refine.duplicate_iou)]] = True
         boxes, scores, classes = boxes[keep], scores[keep], classes[keep]
     if refine.proposals is not None:
         segments = object_segments(frame.depth, cam.K, cam.T_world_to_camera, refine)
         confident = scores >= refine.proposals.score
-        new, is_truck = depth_proposals(frame.depth, cam.K, cam.T_world_to_camera, boxes[confident], refine, segments)
+        new, is_truck = depth_proposals(frame.depth, cam.K, cam.T_world_to_camera, boxes[confident], refine,
+                                        segments)
         new_scores = _proposal_scores(new, boxes[~confident], scores[~confident], refine.proposals.score)
         boxes, scores = np.vstack([boxes, new]), np.r_[scores, new_scores]
         classes = np.r_[classes, np.where(is_truck, category_id("truck"), category_id("passenger"))]
-        boxes, _ = join_fragments(boxes, scores >= refine.proposals.score, segments, cam.K, refine)
+        boxes = join_fragments(boxes, scores >= refine.proposals.score, segments, cam.K, refine)
     return Detections.of(boxes, scores, classes)
-
-
-def _one_box_per_truck(boxes: np.ndarray, scores: np.ndarray, is_truck: np.ndarray, relabelled: np.ndarray,
-                       iou_threshold: float) -> np.ndarray:
-    """Mask of the boxes to keep: of two truck boxes overlapping by ``iou_threshold`` or more, one of
-    them relabelled from depth, the weaker goes (the detector, which suppresses within a class, may
-    have seen the same truck as a truck and as a car at one place). ``boxes`` are the detector's, not
-    the refined ones: at 90 m a car and the truck right behind it are one depth surface, both boxes
-    snap to it, and the car must keep its box."""
-    keep = np.ones(len(boxes), bool)
-    iou = box_iou(boxes, boxes)
-    for i in np.argsort(-scores, kind="stable"):
-        if keep[i] and is_truck[i]:
-            weaker = is_truck & keep & (iou[i] >= iou_threshold) & (relabelled | relabelled[i])
-            weaker[i] = False
-            keep &= ~weaker
-    return keep
 
 
 def _proposal_scores(proposals: np.ndarray, weak_boxes: np.ndarray, weak_scores: np.ndarray,
