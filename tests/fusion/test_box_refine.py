@@ -490,6 +490,41 @@ def test_the_pieces_of_a_car_a_nearer_one_cuts_in_two_join_its_box_but_not_a_car
     assert not joined(depth, left)[1]
 
 
+
+def test_a_box_on_part_of_a_car_grows_over_its_whole_segment_but_not_over_two_cars_or_another_box():
+    """A detector box that covers only the left part of a car 35 m ahead (the refinement keeps what
+    overlaps the detected box most, a part when the box was too small) grows over the car's whole
+    depth segment. It does not when that segment is two cars touching at one depth (wider than a
+    vehicle), nor when the segment is another box's own."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import join_fragments, object_segments
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+
+    def shown(depth):
+        ys, xs = np.nonzero(depth < road)
+        return np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5])
+
+    def joined(depth, boxes, owners):
+        segments = object_segments(depth, K, T, BoxRefineParams())
+        return join_fragments(boxes, owners, segments, K, BoxRefineParams())
+
+    car = _plate(road, K, T, 35.0, -0.9, 0.9, 1.5)
+    whole = shown(car)
+    # the left 55 %, its top a little low (the segment stands above the proposals' 0.3 m: the box
+    # keeps its own bottom, which the refinement found with the tyres)
+    part = whole + [0, 2, -0.45 * (whole[2] - whole[0]), 0]
+    assert box_iou(part[None], whole[None])[0, 0] < 0.6
+    np.testing.assert_allclose(joined(car, part[None], np.array([True]))[0], whole)
+    # two cars side by side touching at one depth (3.6 m together): one segment, wider than a vehicle
+    pair = _plate(car, K, T, 35.0, 0.9, 2.7, 1.5)
+    np.testing.assert_allclose(joined(pair, part[None], np.array([True]))[0], part)
+    # another box that the fusion uses owns the car's segment: the part stays a part
+    out = joined(car, np.array([part, whole + [0.2, 0, -0.2, 0]]), np.array([True, True]))
+    np.testing.assert_allclose(out[0], part)
+
+
 def _side(depth, K, T, y, x0, x1, top):
     """A vehicle's flat side seen from the lane beside it: the vertical plane at lateral y, from x0 to
     x1 metres ahead and from the road up to `top`, drawn into the depth image."""

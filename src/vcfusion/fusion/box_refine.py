@@ -465,15 +465,22 @@ def _box_between(a: np.ndarray, b: np.ndarray, y_lo: int, shape: tuple[int, int]
 
 def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegments | None, K: np.ndarray,
                    refine: BoxRefineParams = BoxRefineParams()) -> np.ndarray:
-    """Each box grown over the other fragments of its vehicle: (N, 4) boxes.
+    """Each box grown over its own segment whole and over the other fragments of its vehicle: (N, 4)
+    boxes.
 
-    A vehicle partly hidden by a nearer one can show in pieces (its roof above the nearer car and a
-    corner beside it); the detector and the refinement box one piece, the ground truth spans all.
-    A segment joins a box when it stands at the box's surface depth, lies near it, is not the own
-    segment of one of the ``owners`` boxes (IoU > 0.5; an (N,) mask: the boxes the fusion uses),
-    what lies between the two is mostly nearer (the piece of the nearer vehicle that cuts them
-    apart) and the two together are no wider than a vehicle (a car beside it at the same depth in
-    the next lane is a lane width away)."""
+    The refinement snaps a box to the segment of its search window that overlaps the detected box
+    most; when the detector's box was too small (a car half hidden at 30-45 m), that is a part of the
+    vehicle. So a box first grows over the whole-image segment that most of its core shows, when that
+    stands at the box's surface depth, is not another owner box's segment and the two together are no
+    wider than a vehicle.
+
+    Then its other fragments: a vehicle partly hidden by a nearer one can show in pieces (its roof
+    above the nearer car and a corner beside it); the detector and the refinement box one piece, the
+    ground truth spans all. A segment joins a box when it stands at the box's surface depth, lies
+    near it, is not the own segment of one of the ``owners`` boxes (IoU > 0.5; an (N,) mask: the
+    boxes the fusion uses), what lies between the two is mostly nearer (the piece of the nearer
+    vehicle that cuts them apart) and all together are no wider than a vehicle (a car beside it at
+    the same depth in the next lane is a lane width away)."""
     from vcfusion.fusion.matching import box_iou
 
     params = refine.proposals
@@ -496,34 +503,57 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
     owned = box_iou(seg_box, boxes[owners]) > 0.5 if owners.any() else np.zeros((len(labels), 0), bool)
     owner_index = np.flatnonzero(owners)
     fx = float(np.asarray(K, float)[0, 0])
+    index_of = np.full(len(segments.areas), -1)  # image label -> k (a place in `labels`), -1 for none
+    index_of[labels] = np.arange(len(labels))
+    medians: dict[int, float] = {}
+
+    def median_depth(k):  # of segment k (boxes share segments: computed once)
+        if k not in medians:
+            r = segments.regions[labels[k] - 1]
+            medians[k] = float(np.median(z[r][segments.labels[r] == labels[k]]))
+        return medians[k]
+
     out = boxes.copy()
     for i, b in enumerate(boxes):
+        surface = _surface_depth(z, obj, b, y_lo)
+        if not np.isfinite(surface):
+            continue
+        tolerance = params.fragment_depth_m + 0.03 * surface
+        others = owned[:, owner_index != i].any(axis=1)
+        grown = b.copy()
+
+        def joined(k):
+            """The box grown over segment k, or None when the two are wider than a vehicle."""
+            u = np.r_[np.minimum(grown[:2], seg_box[k, :2]), np.maximum(grown[2:], seg_box[k, 2:])]
+            return u if (u[2] - u[0]) * surface / fx <= params.max_width_m else None
+
+        # first the box's own segment whole (the one most of its core shows): the refinement chose
+        # within a window around the detected box and by overlap with it, so a detected box that
+        # was too small keeps part of its vehicle out
+        core = _core(b, 0, y_lo)
+        core_labels = segments.labels[core][obj[core]]
+        core_labels = index_of[core_labels[core_labels > 0]]
+        if (core_labels >= 0).any():
+            own = int(np.bincount(core_labels[core_labels >= 0]).argmax())
+            whole = joined(own) if not others[own] and abs(median_depth(own) - surface) <= tolerance else None
+            grown = grown if whole is None else whole
         side = max(b[2] - b[0], b[3] - b[1])
         gap = np.maximum.reduce([seg_box[:, 0] - b[2], b[0] - seg_box[:, 2],
                                  seg_box[:, 1] - b[3], b[1] - seg_box[:, 3]])
         ix = np.clip(np.minimum(seg_box[:, 2], b[2]) - np.maximum(seg_box[:, 0], b[0]), 0, None)
         iy = np.clip(np.minimum(seg_box[:, 3], b[3]) - np.maximum(seg_box[:, 1], b[1]), 0, None)
         inside = ix * iy >= 0.9 * (seg_box[:, 2] - seg_box[:, 0]) * (seg_box[:, 3] - seg_box[:, 1])
-        near = (gap <= params.fragment_gap * side) & ~inside & ~owned[:, owner_index != i].any(axis=1)
-        if not near.any():
-            continue
-        surface = _surface_depth(z, obj, b, y_lo)
-        if not np.isfinite(surface):
-            continue
-        grown = b.copy()
-        tolerance = params.fragment_depth_m + 0.03 * surface
+        near = (gap <= params.fragment_gap * side) & ~inside & ~others
         for k in np.flatnonzero(near & (np.abs(seg_mean - surface) <= 2 * tolerance + 1.0)):
-            r = segments.regions[labels[k] - 1]
-            if abs(float(np.median(z[r][segments.labels[r] == labels[k]])) - surface) > tolerance:
+            if abs(median_depth(k) - surface) > tolerance:
                 continue
             rows, cols, between = _box_between(b, seg_box[k], y_lo, z.shape)
             if not between.any():
-                continue  # touching the box: the refinement's segment, or one it did not want
+                continue  # touching the box: its own segment (above), or one the refinement did not want
             nearer = _nearer_object(*np.nonzero(between), z[rows, cols], obj[rows, cols], surface,
                                     refine.jump_m, refine.jump_rel)
-            width_m = (max(b[2], seg_box[k, 2]) - min(b[0], seg_box[k, 0])) * surface / fx
-            if nearer.mean() < params.fragment_hidden or width_m > params.max_width_m:
+            if nearer.mean() < params.fragment_hidden or joined(k) is None:
                 continue
-            grown = np.r_[np.minimum(grown[:2], seg_box[k, :2]), np.maximum(grown[2:], seg_box[k, 2:])]
+            grown = joined(k)
         out[i] = grown
     return out
