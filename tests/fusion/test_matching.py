@@ -381,3 +381,37 @@ def test_an_anchor_off_the_image_is_replaced_by_the_centre_of_the_twins_part_in_
     assert allowed[0, 0]
     np.testing.assert_allclose(cost, no_anchor)  # the anchor term is zero: the anchor used lies in the box
     assert [int(g) for g in JointMatcher().match(twins, box[None], samples, cam)] == [0]
+
+
+def test_a_twin_hidden_whole_by_the_expected_boxes_takes_a_box_within_its_own_at_its_depth():
+    """A car 27 m ahead right behind one 15 m ahead: by the expected boxes the near one hides all of
+    it, yet its roof line shows (the expected boxes are coarser than the vehicles: a roof rack, a
+    GNSS report's height a little low).
+    The roof box is under 5 % of the far car's expected box and its anchor lies below it: no visible
+    part to overlap, so only the rule for twins hidden whole lets the far car have it. A box at the
+    near car's depth, or one sticking out of the far car's expected box, is not the far car's."""
+    from vcfusion.fusion.matching import visible_boxes
+
+    cam = pinhole_camera()
+    twins = make_twins(["car", "far"], [15.0, 27.0], [0.0, 0.0])  # both 1.5 m high, at the camera's height
+    proj = project_twins(twins, cam)
+    _, _, hidden_share = visible_boxes(proj)
+    assert list(hidden_share) == [0.0, 1.0]
+    car_box, far = proj.expected_box[0].copy(), proj.expected_box[1]
+    roof = far + [2, 0, -2, -(1 - 0.04) * (far[3] - far[1])]  # its top rows
+    assert box_iou(far[None], roof[None])[0, 0] < JointMatcherParams().overlap_gate
+    assert not (roof[1] <= proj.anchor[1, 1] <= roof[3])
+    rear = {"car": 15.0 - 2.25, "far": 27.0 - 2.25}
+    boxes = np.stack([car_box, roof])
+    got = JointMatcher(JointMatcherParams(smoothing_alpha=None)).match(
+        twins, boxes, np.array([np.full(30, rear["car"]), np.full(30, rear["far"])]), cam)
+    assert [int(g) for g in got] == [0, 1]
+    # at the near car's depth the roof box measured the near car: not the far one's
+    got = JointMatcher(JointMatcherParams(smoothing_alpha=None)).match(
+        twins, boxes, np.array([np.full(30, rear["car"]), np.full(30, rear["car"])]), cam)
+    assert int(got[1]) == NO_MATCH
+    # half of it above the far car's expected box: not within it
+    high = roof - [0, roof[3] - roof[1], 0, 0]
+    got = JointMatcher(JointMatcherParams(smoothing_alpha=None)).match(
+        twins, np.stack([car_box, high]), np.array([np.full(30, rear["car"]), np.full(30, rear["far"])]), cam)
+    assert int(got[1]) == NO_MATCH

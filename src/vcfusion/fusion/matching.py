@@ -90,19 +90,31 @@ def point_to_box_distance(point, boxes) -> np.ndarray:
     return np.hypot(dx, dy)
 
 
+def _intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pairwise intersection areas of (N, 4) and (M, 4) boxes, (N, M)."""
+    ix = np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0])
+    iy = np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1])
+    return np.clip(ix, 0, None) * np.clip(iy, 0, None)
+
+
 def box_iou(a, b) -> np.ndarray:
     """Pairwise IoU, (len(a), len(b))."""
     a, b = as_boxes(a), as_boxes(b)
-    ix1 = np.maximum(a[:, None, 0], b[None, :, 0])
-    iy1 = np.maximum(a[:, None, 1], b[None, :, 1])
-    ix2 = np.minimum(a[:, None, 2], b[None, :, 2])
-    iy2 = np.minimum(a[:, None, 3], b[None, :, 3])
-    inter = np.clip(ix2 - ix1, 0, None) * np.clip(iy2 - iy1, 0, None)
+    inter = _intersection(a, b)
     area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
     area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
     union = area_a[:, None] + area_b[None, :] - inter
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(union > 0, inter / union, 0.0)
+
+
+def box_inside_share(a, b) -> np.ndarray:
+    """Pairwise share of each box of `a` that lies inside each box of `b`, (len(a), len(b)); 0 for an
+    empty box of `a`."""
+    a, b = as_boxes(a), as_boxes(b)
+    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(area_a[:, None] > 0, _intersection(a, b) / area_a[:, None], 0.0)
 
 
 def _fallback(anchor, boxes: np.ndarray, radius_px: float | None) -> int | None:
@@ -476,10 +488,14 @@ class JointMatcherParams:
     # cost of leaving a twin without a box (6: only pairs near the dearest allowed one, 1 overlap +
     # 0.5 anchor + 4 depth + 1 hidden = 6.5, lose to it); None: every twin with an allowed box gets one
     miss_cost: float | None = 6.0
+    hidden_within: float = 0.9  # a twin hidden whole by nearer ones: boxes with this share of their
+    # area inside its expected box are allowed (the visible-part overlap cannot gate them)
 
     def __post_init__(self):
         if self.depth_gate <= 0 or self.depth_sigma_abs_m <= 0 or self.depth_sigma_rel < 0:
             raise ValueError("depth_gate and depth_sigma_abs_m must be > 0, depth_sigma_rel >= 0")
+        if not 0 < self.hidden_within <= 1:
+            raise ValueError(f"hidden_within: expected a share in (0, 1], got {self.hidden_within}")
 
 
 class JointMatcher:
@@ -541,6 +557,13 @@ class JointMatcher:
                 + p.w_depth * np.minimum(depth_err, p.depth_gate) + p.w_hidden * hidden_share[:, None])
         cost = np.nan_to_num(cost, nan=10.0, posinf=10.0)  # twins out of view (nan anchors) are gated below
         allowed = ((iou >= p.overlap_gate) | inside) & (depth_err <= p.depth_gate)
+        # a twin that nearer twins' expected boxes hide whole has no visible part to overlap a box
+        # with, yet a roof above the car in front or a corner beside it often shows (the expected
+        # boxes are coarser than the vehicles): a box lying within its expected box is allowed too
+        hidden_whole = hidden_share >= 1.0
+        if hidden_whole.any() and m:
+            allowed |= (hidden_whole[:, None] & (depth_err <= p.depth_gate)
+                        & (box_inside_share(b, proj.expected_box).T >= p.hidden_within))
         allowed &= proj.in_view[:, None]
         return cost, allowed
 
