@@ -37,10 +37,12 @@ not go on upward (tree crowns and poles cut at the height cap), that does not st
 stem under its middle with nothing nearer beside it (a tree lower than the cap) and that no
 confident box explains becomes a box (a truck when it stands higher than a car).
 
-Last, a vehicle that a nearer one cuts into pieces (its roof above the nearer car, a corner beside
-it) gets one box over all of them (``join_fragments``): a segment at a box's surface depth, near
-it, that no other box owns, joins the box when what lies between them is mostly nearer and the two
-together are no wider than a vehicle.
+Last (``join_fragments``), each box grows over its own segment of that segmentation whole (the one
+most of its core shows: where the detector's box was too small, the refinement kept a part of
+the vehicle), and a vehicle that a nearer one cuts into pieces (its roof above the nearer car, a
+corner beside it) gets one box over all of them: a segment at a box's surface depth, near it, that
+no other box owns, joins the box when what lies between them is mostly nearer and all together
+are no wider than a vehicle.
 
 The band is one vehicle deep: a car behind another in the same lane is at least a car length plus
 the gap farther away, so it falls outside the band of the car in front. Depth quality sets what
