@@ -396,7 +396,7 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     """Boxes of depth segments standing on the road that no detected box explains: (M, 4) boxes and
     (M,) bool is_truck (``refine.proposals``; segments trimmed with ``refine.support``). ``segments``:
     the image's :func:`object_segments`, when already computed."""
-    from vcfusion.fusion.matching import box_iou
+    from vcfusion.fusion.matching import box_inside_share, box_iou
 
     params = refine.proposals
     if segments is None:
@@ -409,7 +409,6 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     out, trucks = [], []
     existing = np.asarray(boxes, float).reshape(-1, 4)
     surface = np.array([_surface_depth(z, obj, e, y_lo) for e in existing])
-    existing_area = (existing[:, 2] - existing[:, 0]) * (existing[:, 3] - existing[:, 1])
     for label, region in enumerate(segments.regions, start=1):
         if region is None or areas[label] < params.min_pixels:
             continue
@@ -435,8 +434,7 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
             min_width = params.min_tall_width_m  # standing on the ground as tall as this: a trunk or a pole
         if top < params.min_top_m or width_m < min_width:
             continue
-        area = (box[2] - box[0]) * (box[3] - box[1])
-        inside = iou * (area + existing_area) / ((1 + iou) * area)  # intersection / segment area, from the IoU
+        inside = box_inside_share(box[None], existing)[0]
         if np.any((inside > 0.5) & not_in_front & (depth_m < surface + params.behind_m)):
             continue
         if _continues_above(sel, x, y, z, valid, height, refine.max_height_m, refine.jump_m,
@@ -483,7 +481,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
     boxes the fusion uses), what lies between the two is mostly nearer (the piece of the nearer
     vehicle that cuts them apart) and all together are no wider than a vehicle (a car beside it at
     the same depth in the next lane is a lane width away)."""
-    from vcfusion.fusion.matching import box_iou
+    from vcfusion.fusion.matching import box_inside_share, box_iou
 
     params = refine.proposals
     boxes = np.asarray(boxes, float).reshape(-1, 4)
@@ -542,9 +540,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
         side = max(b[2] - b[0], b[3] - b[1])
         gap = np.maximum.reduce([seg_box[:, 0] - b[2], b[0] - seg_box[:, 2],
                                  seg_box[:, 1] - b[3], b[1] - seg_box[:, 3]])
-        ix = np.clip(np.minimum(seg_box[:, 2], b[2]) - np.maximum(seg_box[:, 0], b[0]), 0, None)
-        iy = np.clip(np.minimum(seg_box[:, 3], b[3]) - np.maximum(seg_box[:, 1], b[1]), 0, None)
-        inside = ix * iy >= 0.9 * (seg_box[:, 2] - seg_box[:, 0]) * (seg_box[:, 3] - seg_box[:, 1])
+        inside = box_inside_share(seg_box, b[None])[:, 0] >= 0.9
         near = (gap <= params.fragment_gap * side) & ~inside & ~others
         for k in np.flatnonzero(near & (np.abs(seg_mean - surface) <= 2 * tolerance + 1.0)):
             if abs(median_depth(k) - surface) > tolerance:
