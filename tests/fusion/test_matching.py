@@ -125,6 +125,16 @@ def test_box_iou_against_hand_values():
     np.testing.assert_allclose(iou, [[1.0, 50 / 150, 0.0]])
 
 
+def test_box_inside_share_against_hand_values():
+    from vcfusion.fusion.matching import box_inside_share
+
+    share = box_inside_share([[0, 0, 10, 10], [2, 2, 4, 4], [5, 5, 5, 9]],
+                             [[0, 0, 20, 20], [5, 0, 15, 10], [20, 20, 30, 30]])
+    # a box inside a larger one: all of it; half of it across an edge: half; an empty box: 0
+    np.testing.assert_allclose(share, [[1.0, 0.5, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    assert box_inside_share(np.zeros((0, 4)), [[0, 0, 1, 1]]).shape == (0, 1)
+
+
 def two_in_a_lane(order=(0, 1)):
     """Two cars ahead in the camera's lane (15 m and 27 m), the far one offset 0.9 m to the left so
     its box sticks out of the near one's; boxes and rear-face depths given by the test's own camera."""
