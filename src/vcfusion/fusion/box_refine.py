@@ -463,6 +463,12 @@ def _box_between(a: np.ndarray, b: np.ndarray, y_lo: int, shape: tuple[int, int]
     return slice(r0, r1), slice(c0, c1), between
 
 
+def _union_if_within(box: np.ndarray, other: np.ndarray, max_width_px: float) -> np.ndarray:
+    """The box around both, when it is no wider than ``max_width_px``; else ``box`` unchanged."""
+    u = np.r_[np.minimum(box[:2], other[:2]), np.maximum(box[2:], other[2:])]
+    return u if u[2] - u[0] <= max_width_px else box
+
+
 def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegments | None, K: np.ndarray,
                    refine: BoxRefineParams = BoxRefineParams()) -> np.ndarray:
     """Each box grown over its own segment whole and over the other fragments of its vehicle: (N, 4)
@@ -519,24 +525,19 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
         if not np.isfinite(surface):
             continue
         tolerance = params.fragment_depth_m + 0.03 * surface
+        max_width_px = params.max_width_m * fx / surface
         others = owned[:, owner_index != i].any(axis=1)
         grown = b.copy()
-
-        def joined(k):
-            """The box grown over segment k, or None when the two are wider than a vehicle."""
-            u = np.r_[np.minimum(grown[:2], seg_box[k, :2]), np.maximum(grown[2:], seg_box[k, 2:])]
-            return u if (u[2] - u[0]) * surface / fx <= params.max_width_m else None
-
         # first the box's own segment whole (the one most of its core shows): the refinement chose
         # within a window around the detected box and by overlap with it, so a detected box that
         # was too small keeps part of its vehicle out
         core = _core(b, 0, y_lo)
-        core_labels = segments.labels[core][obj[core]]
-        core_labels = index_of[core_labels[core_labels > 0]]
-        if (core_labels >= 0).any():
-            own = int(np.bincount(core_labels[core_labels >= 0]).argmax())
-            whole = joined(own) if not others[own] and abs(median_depth(own) - surface) <= tolerance else None
-            grown = grown if whole is None else whole
+        core_labels = index_of[segments.labels[core][obj[core]]]
+        core_labels = core_labels[core_labels >= 0]
+        if core_labels.size:
+            own = int(np.bincount(core_labels).argmax())
+            if not others[own] and abs(median_depth(own) - surface) <= tolerance:
+                grown = _union_if_within(grown, seg_box[own], max_width_px)
         side = max(b[2] - b[0], b[3] - b[1])
         gap = np.maximum.reduce([seg_box[:, 0] - b[2], b[0] - seg_box[:, 2],
                                  seg_box[:, 1] - b[3], b[1] - seg_box[:, 3]])
@@ -550,8 +551,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
                 continue  # touching the box: its own segment (above), or one the refinement did not want
             nearer = _nearer_object(*np.nonzero(between), z[rows, cols], obj[rows, cols], surface,
                                     refine.jump_m, refine.jump_rel)
-            if nearer.mean() < params.fragment_hidden or joined(k) is None:
-                continue
-            grown = joined(k)
+            if nearer.mean() >= params.fragment_hidden:
+                grown = _union_if_within(grown, seg_box[k], max_width_px)
         out[i] = grown
     return out
