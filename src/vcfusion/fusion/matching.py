@@ -560,10 +560,10 @@ class JointMatcher:
         # a twin that nearer twins' expected boxes hide whole has no visible part to overlap a box
         # with, yet a roof above the car in front or a corner beside it often shows (the expected
         # boxes are coarser than the vehicles): a box lying within its expected box is allowed too
-        hidden_whole = hidden_share >= 1.0
-        if hidden_whole.any() and m:
-            allowed |= (hidden_whole[:, None] & (depth_err <= p.depth_gate)
-                        & (box_inside_share(b, proj.expected_box).T >= p.hidden_within))
+        hidden_whole = np.flatnonzero(hidden_share >= 1.0)
+        if len(hidden_whole) and m:
+            allowed[hidden_whole] |= ((depth_err[hidden_whole] <= p.depth_gate)
+                                      & (box_inside_share(b, proj.expected_box[hidden_whole]).T >= p.hidden_within))
         allowed &= proj.in_view[:, None]
         return cost, allowed
 
@@ -576,13 +576,9 @@ class JointMatcher:
         gate = self.params.depth_gate
         lower = boxes.copy()
         lower[:, 1] = boxes[:, 3] - 0.25 * (boxes[:, 3] - boxes[:, 1])
-        area = np.maximum((lower[:, 2] - lower[:, 0]) * (lower[:, 3] - lower[:, 1]), 1e-9)
-        e = proj.expected_box
-        ix = np.clip(np.minimum(e[:, None, 2], lower[None, :, 2]) - np.maximum(e[:, None, 0], lower[None, :, 0]), 0, None)
-        iy = np.clip(np.minimum(e[:, None, 3], lower[None, :, 3]) - np.maximum(e[:, None, 1], lower[None, :, 1]), 0, None)
         # (K, D): twin k covers box j's sampled area and box j's depth is twin k's
-        explains = ((ix * iy / area[None, :] >= 0.8) & (depth_err <= gate) & proj.in_view[:, None]
-                    & (box_iou(e, boxes) < 0.5))
+        explains = ((box_inside_share(lower, proj.expected_box).T >= 0.8) & (depth_err <= gate)
+                    & proj.in_view[:, None] & (box_iou(proj.expected_box, boxes) < 0.5))
         expected = proj.face_z if self.params.face_offset else proj.anchor_z
         nearer = expected[None, :] < (expected[:, None] - gate * sigma)  # (I, K): k clearly nearer than i
         return (nearer.astype(np.int64) @ explains.astype(np.int64)) > 0
