@@ -194,6 +194,12 @@ def test_detect_frame_adds_proposals_to_the_detectors_boxes(frames):
     assert len(detect_frame(sky, Blind(), BoxRefineParams())) == 0
 
 
+def _mask_box(mask):
+    """The pixel-centre box (x1, y1, x2, y2) around a mask's pixels."""
+    ys, xs = np.nonzero(mask)
+    return np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5])
+
+
 def _plate(depth, K, T, x, y0, y1, top, bottom=0.0):
     """A flat upright rectangle facing the camera, x metres ahead, across y0..y1, from `bottom` (the
     road) up to `top`, drawn into the camera-Z depth image by exact ray-plane intersection."""
@@ -246,8 +252,7 @@ def test_a_sliver_between_two_nearer_cars_is_proposed_with_its_whole_outline():
     far = _plate(road, K, T, 30.0, -1.0, 1.0, 1.5)
     depth = _plate(_plate(far, K, T, 15.0, 0.3, 2.0, 1.6), K, T, 15.0, -2.0, -0.3, 1.6)
     shown = np.isclose(depth, far, rtol=0, atol=1e-4) & (depth < road)  # the far car's own pixels
-    ys, xs = np.nonzero(shown)
-    truth = np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5])
+    truth = _mask_box(shown)
     assert 8 <= truth[2] - truth[0] <= 20  # a sliver
     boxes, _ = depth_proposals(depth, K, T, np.zeros((0, 4)), BoxRefineParams())
     assert len(boxes) == 3  # the two near cars and the sliver
@@ -307,8 +312,7 @@ def test_a_near_car_touching_a_farther_truck_in_its_band_snaps_to_the_car_alone(
     scene = _plate(car_only, K, T, 8.0, 0.9, 3.4, 3.8)
     car = car_only < road
     truck = scene < car_only
-    ys, xs = np.nonzero(car)
-    truth = np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5])
+    truth = _mask_box(car)
     # the two touch in the image (a car pixel beside a truck pixel)
     assert (car[:, :-1] & truck[:, 1:]).any() or (car[:, 1:] & truck[:, :-1]).any()
     detected = truth + np.array([-6.0, 4.0, 5.0, -3.0])
@@ -329,8 +333,7 @@ def test_a_narrow_truck_top_seen_over_a_nearer_car_is_proposed_but_not_a_trunk_o
     K, T = default_camera()
     road = road_depth(K, T, 640, 480)
     car = _plate(road, K, T, 10.0, -1.0, 1.0, 1.5)
-    ys, xs = np.nonzero(car < road)
-    car_box = np.array([[xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5]])
+    car_box = _mask_box(car < road)[None]
     for y0, y1, over_car in ((0.2, 0.7, True), (-6.0, -5.5, False)):  # over the car / on the verge
         scene = _plate(car, K, T, 20.0, y0, y1, 3.6)
         strip = scene < car
@@ -338,8 +341,7 @@ def test_a_narrow_truck_top_seen_over_a_nearer_car_is_proposed_but_not_a_trunk_o
         boxes, is_truck = depth_proposals(scene, K, T, car_box, BoxRefineParams())
         if over_car:
             assert len(boxes) == 1 and is_truck[0]
-            ys, xs = np.nonzero(strip)
-            truth = np.array([[xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5]])
+            truth = _mask_box(strip)[None]
             assert box_iou(boxes, truth)[0, 0] > 0.85
         else:
             assert len(boxes) == 0  # the same strip standing on the road: a trunk
@@ -358,8 +360,7 @@ def test_a_car_in_front_of_the_surface_its_box_measured_is_proposed():
     scene = _plate(truck, K, T, 60.0, -0.9, 0.9, 1.5)
 
     def box_of(mask):
-        ys, xs = np.nonzero(mask)
-        return np.array([[xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5]])
+        return _mask_box(mask)[None]
 
     car_box = box_of(scene < truck)  # about 18 x 10 px: one row or column off is IoU 0.83
     union = box_of(scene < road)
@@ -423,8 +424,7 @@ def test_a_car_box_standing_as_high_as_a_truck_is_a_truck_and_stays_one_box():
     road = road_depth(K, T, 640, 480)
     for name, (x, y0, y1, top) in plates.items():
         alone = _plate(road, K, T, x, y0, y1, top)
-        ys, xs = np.nonzero((alone < road) & np.isclose(depth, alone, rtol=0, atol=1e-4))
-        truth[name] = np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5])
+        truth[name] = _mask_box((alone < road) & np.isclose(depth, alone, rtol=0, atol=1e-4))
     car, truck = category_id("passenger"), category_id("truck")
     # the detector's boxes a pixel off: all three called cars, and the truck a truck too, more weakly;
     # and a weak car box on the truck's upper half (another box to the detector: it snaps onto the
@@ -463,8 +463,7 @@ def test_the_pieces_of_a_car_a_nearer_one_cuts_in_two_join_its_box_but_not_a_car
     road = road_depth(K, T, 640, 480)
 
     def shown(depth, alone):
-        ys, xs = np.nonzero((alone < road) & np.isclose(depth, alone, rtol=0, atol=1e-4))
-        return np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5])
+        return _mask_box((alone < road) & np.isclose(depth, alone, rtol=0, atol=1e-4))
 
     def joined(depth, box):
         segments = object_segments(depth, K, T, BoxRefineParams())
@@ -502,16 +501,12 @@ def test_a_box_on_part_of_a_car_grows_over_its_whole_segment_but_not_over_two_ca
     K, T = default_camera()
     road = road_depth(K, T, 640, 480)
 
-    def shown(depth):
-        ys, xs = np.nonzero(depth < road)
-        return np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5])
-
     def joined(depth, boxes, owners):
         segments = object_segments(depth, K, T, BoxRefineParams())
         return join_fragments(boxes, owners, segments, K, BoxRefineParams())
 
     car = _plate(road, K, T, 35.0, -0.9, 0.9, 1.5)
-    whole = shown(car)
+    whole = _mask_box(car < road)
     # the left 55 %, its top a little low (the segment stands above the proposals' 0.3 m: the box
     # keeps its own bottom, which the refinement found with the tyres)
     part = whole + [0, 2, -0.45 * (whole[2] - whole[0]), 0]
@@ -551,8 +546,7 @@ def test_the_side_of_a_truck_in_the_next_lane_is_refined_whole_however_deep_it_r
     K, T = default_camera()
     road = road_depth(K, T, 640, 480)
     depth = _side(road, K, T, 2.5, 6.0, 20.0, 3.8)
-    ys, xs = np.nonzero(depth < road)
-    truth = np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5])
+    truth = _mask_box(depth < road)
     assert np.ptp(depth[depth < road]) > 10  # the side runs deep
     w, h = truth[2] - truth[0], truth[3] - truth[1]
     off = truth + [0.06 * w, -0.05 * h, 0.04 * w, 0.05 * h]
