@@ -178,13 +178,17 @@ def test_joint_matcher_leaves_an_occluded_twin_unmatched():
 class _GivenCosts(JointMatcher):
     """The joint matcher's assignment on hand-set costs (None: the pair is not allowed)."""
 
-    def __init__(self, costs, **params):
+    def __init__(self, costs, hidden_whole=None, **params):
         super().__init__(JointMatcherParams(**params))
         self.costs = costs
+        self.hidden = np.zeros(len(costs), bool) if hidden_whole is None else np.asarray(hidden_whole, bool)
 
     def cost_matrix(self, proj, boxes, box_depths):
         c = np.array([[np.inf if v is None else v for v in row] for row in self.costs])
         return np.where(np.isfinite(c), c, 10.0), np.isfinite(c)
+
+    def hidden_whole(self, proj):
+        return self.hidden
 
 
 def test_joint_matcher_lets_boxes_and_twins_go_unmatched_rather_than_shift_a_chain():
@@ -425,3 +429,29 @@ def test_a_twin_hidden_whole_by_the_expected_boxes_takes_a_box_within_its_own_at
     got = JointMatcher(JointMatcherParams(smoothing_alpha=None)).match(
         twins, np.stack([car_box, high]), np.array([np.full(30, rear["car"]), np.full(30, rear["far"])]), cam)
     assert int(got[1]) == NO_MATCH
+
+
+def test_a_twin_hidden_whole_is_assigned_from_the_boxes_the_visible_twins_leave():
+    """Jam dev seed 3078 (costs rounded): a visible car's own box (cost 0.18) was wanted by a car
+    hidden whole behind it (3.69), and one joint assignment gave it to the hidden car, pushing the
+    visible one onto a worse box (1.76): 3.69 + 1.76 < 0.18 + 6 (the hidden car without a box).
+    Assigned in two rounds, the visible car keeps its box and the hidden one gets what is left."""
+    from vcfusion.fusion.matching import visible_boxes
+
+    def assign(costs, hidden_whole):
+        m = len(costs[0])
+        got = _GivenCosts(costs, hidden_whole).assign(SimpleNamespace(anchor=np.zeros((len(costs), 2))),
+                                                      np.zeros((m, 4)), np.zeros(m))
+        return [int(g) for g in got]
+
+    swap = [[0.18, 1.76], [3.69, None]]
+    assert assign(swap, [False, False]) == [1, 0]  # one round: the swap
+    assert assign(swap, [False, True]) == [0, NO_MATCH]
+    # a box the visible car does not take still goes to the hidden one, at its own cost
+    assert assign([[0.18, None], [3.69, 2.5]], [False, True]) == [0, 1]
+    assert assign([[0.18, None], [3.69, 6.5]], [False, True]) == [0, NO_MATCH]
+    # which twins are hidden whole: by the expected boxes of nearer twins (a car right behind another)
+    cam = pinhole_camera()
+    proj = project_twins(make_twins(["car", "far"], [15.0, 27.0], [0.0, 0.0]), cam)
+    assert list(visible_boxes(proj)[2]) == [0.0, 1.0]
+    assert list(JointMatcher.hidden_whole(proj)) == [False, True]
