@@ -553,3 +553,61 @@ def test_the_side_of_a_truck_in_the_next_lane_is_refined_whole_however_deep_it_r
     res = refine_boxes(off[None], depth, K, T, BoxRefineParams())
     assert res.refined[0] and box_iou(truth[None], res.boxes)[0, 0] > 0.95
     assert 3.5 < res.top_m[0] <= 3.8  # and it stands as high as a truck
+
+
+def test_a_box_over_two_trucks_side_by_side_snaps_to_one_and_the_other_is_proposed():
+    """Jam dev seed 3102: two trucks in neighbouring lanes 2 m apart in depth, one box over both.
+    Both lie inside one depth band and touch in the image, so the band's segment (the pair, 4.4 m
+    across) overlaps the box best; a segment no wider than a vehicle that still overlaps it by half
+    (the nearer truck, cut from the farther one at the depth jump) takes its place, and the farther
+    truck is proposed. A truck's side running away from the camera in the
+    next lane is no wider than its rear, so it is refined whole (the test above)."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import _lateral_extent, depth_proposals
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    near_only = _plate(road, K, T, 18.0, -1.25, 1.25, 3.8)
+    scene = _plate(near_only, K, T, 20.0, 1.25, 3.2, 3.8)
+    near, far = near_only < road, (scene < near_only)
+    pair = _mask_box(near | far)
+    assert (near[:, 1:] & far[:, :-1]).any() or (near[:, :-1] & far[:, 1:]).any()  # they touch
+    out = refine_boxes(pair[None], scene, K, T, BoxRefineParams(proposals=None))
+    assert out.refined[0] and box_iou(out.boxes, _mask_box(near)[None])[0, 0] > 0.95
+    proposals, is_truck = depth_proposals(scene, K, T, out.boxes)
+    assert len(proposals) == 1 and is_truck[0] and box_iou(proposals, _mask_box(far)[None])[0, 0] > 0.9
+    # without the rule the box stays over the pair: the nearer truck has no box of its own (IoU 0.6)
+    wide = BoxRefineParams(proposals=None, pair_width_m=10.0)
+    stays = refine_boxes(pair[None], scene, K, T, wide).boxes
+    assert box_iou(stays, pair[None])[0, 0] > 0.95 and box_iou(stays, _mask_box(near)[None])[0, 0] < 0.7
+    # nor does a narrower segment that no longer explains the box (here overlapping it by 0.56) replace it
+    strict = refine_boxes(pair[None], scene, K, T, BoxRefineParams(proposals=None, pair_min_iou=0.6)).boxes
+    np.testing.assert_allclose(strict, stays)
+    # the width measured: the pair 4.45 m across, the nearer truck 2.5 m
+    z = scene.astype(np.float32)
+    assert _lateral_extent(near | far, z, 0, K, 0.05) == pytest.approx(4.45, abs=0.15)
+    assert _lateral_extent(near, z, 0, K, 0.05) == pytest.approx(2.5, abs=0.15)
+    with pytest.raises(ValueError, match="pair_width_m"):
+        BoxRefineParams(pair_width_m=0.0)
+
+
+def test_a_segment_inside_a_box_that_depth_did_not_confirm_is_proposed():
+    """A detected box over two trucks and the car in front of them snaps to no segment (none overlaps
+    it by 0.3): depth does not confirm it, so a truck lying inside it is not explained by it and is
+    proposed; inside a box that snapped, it is that box's."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import depth_proposals
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    scene = _plate(road, K, T, 20.0, -1.25, 1.25, 3.8)
+    truck = _mask_box(scene < road)
+    w, h = truck[2] - truck[0], truck[3] - truck[1]
+    loose = truck + [-0.3 * w, -0.1 * h, 0.6 * w, 0.4 * h]  # the truck mostly inside, IoU under 0.5
+    assert box_iou(loose[None], truck[None])[0, 0] < 0.5
+    assert len(depth_proposals(scene, K, T, loose[None])[0]) == 0
+    assert len(depth_proposals(scene, K, T, loose[None], snapped=np.array([True]))[0]) == 0
+    got, _ = depth_proposals(scene, K, T, loose[None], snapped=np.array([False]))
+    assert len(got) == 1 and box_iou(got, truck[None])[0, 0] > 0.9  # from 0.3 m above the road up
+    with pytest.raises(ValueError, match="snapped"):
+        depth_proposals(scene, K, T, loose[None], snapped=np.array([True, False]))

@@ -24,6 +24,9 @@ Per detected box (pixel-centre convention, as everywhere in the fusion stage):
    row / column (so a rail or a sliver of road does not widen it).
 5. Of the segments touching the core, the one whose box overlaps the detected box most replaces
    it, when that IoU reaches ``min_iou``; otherwise the detected box is kept (and counted as kept).
+   A segment wider across the view than any vehicle (``pair_width_m``; two trucks side by side a few
+   metres apart in depth share a band) gives way to the best one no wider that still overlaps the
+   box by ``pair_min_iou``: a box over the pair then holds one of them, and the other is proposed.
    How high that segment's top stands (``RefinedBoxes.top_m``) lets the fusion stage correct the
    class: a car box standing as high as a truck is a truck (``fuse.detect_frame``).
 
@@ -35,7 +38,9 @@ roof, is wider than a post (than a vehicle, when it stands on the road higher th
 trunks; the top of a truck seen over the car in front rests on that car instead), whose top does
 not go on upward (tree crowns and poles cut at the height cap), that does not stand on a narrow
 stem under its middle with nothing nearer beside it (a tree lower than the cap) and that no
-confident box explains becomes a box (a truck when it stands higher than a car).
+confident box explains becomes a box (a truck when it stands higher than a car). A box the
+refinement could not snap to any segment is not confirmed by depth and explains only the segments it
+overlaps, not those it merely holds.
 
 Last (``join_fragments``), each box grows over its own segment of that segmentation whole (the one
 most of its core shows: where the detector's box was too small, the refinement kept a part of
@@ -96,6 +101,8 @@ class BoxRefineParams:
     candidates: int = 3  # surface depths tried per box
     support: float = 0.05  # rows / columns with less than this share of the fullest one are trimmed
     min_iou: float = 0.3  # a segment replaces the box only when its box overlaps the box this much
+    pair_width_m: float = 3.0  # a segment laterally wider than any vehicle (2.55 m) is two side by side:
+    pair_min_iou: float = 0.5  # a narrower one overlapping the box at least this much replaces it
     jump_m: float = 0.5  # depth discontinuity between neighbours: more than this (+ jump_rel of the
     jump_rel: float = 0.045  # depth; 0.05 before the fourteenth session); the refinement's cut
     # segments, the proposals and the fragments all use it
@@ -106,10 +113,13 @@ class BoxRefineParams:
     proposals: ProposalParams | None = ProposalParams()  # None: refine the detected boxes only
 
     def __post_init__(self):
-        for name, low, high in (("margin", 0.0, 2.0), ("support", 0.0, 1.0), ("min_iou", 0.0, 1.0)):
+        for name, low, high in (("margin", 0.0, 2.0), ("support", 0.0, 1.0), ("min_iou", 0.0, 1.0),
+                                ("pair_min_iou", 0.0, 1.0)):
             v = getattr(self, name)
             if not low <= v <= high:
                 raise ValueError(f"{name}: expected a value in [{low}, {high}], got {v}")
+        if self.pair_width_m <= 0:
+            raise ValueError(f"pair_width_m: expected a positive width, got {self.pair_width_m}")
         if self.band_m <= 0 or self.candidates < 1:
             raise ValueError(f"band_m and candidates: expected positive values, got {self.band_m}, {self.candidates}")
 
@@ -206,6 +216,18 @@ def _segment_box(sel: np.ndarray, support: float, x0: int, y0: int) -> np.ndarra
     return np.array([x0 + xs[0] - 0.5, y0 + ys[0] - 0.5, x0 + xs[-1] + 0.5, y0 + ys[-1] + 0.5])
 
 
+def _lateral_extent(sel: np.ndarray, z: np.ndarray, x0: int, K: np.ndarray, support: float) -> float:
+    """How wide a segment is across the camera's view, in metres: camera X of its leftmost and
+    rightmost columns (those :func:`_segment_box` keeps) at their median depths. Unlike image width x
+    depth, the side of a vehicle in the next lane, which runs away from the camera, adds nothing."""
+    cols = sel.sum(axis=0)
+    xs = np.flatnonzero(cols >= support * cols.max())
+    ends = []
+    for c in (xs[0], xs[-1]):
+        ends.append((x0 + c - K[0, 2]) * float(np.median(z[sel[:, c], c])) / K[0, 0])
+    return ends[1] - ends[0]
+
+
 def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray,
                  params: BoxRefineParams = BoxRefineParams()) -> RefinedBoxes:
     """Each box snapped to the depth segment that explains it best (module docstring)."""
@@ -214,6 +236,7 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
     if depth.ndim != 2:
         raise ValueError(f"depth: expected a 2-D depth image (H, W), got shape {depth.shape}")
     heights = _Heights(K, T_world_to_camera)
+    K = np.asarray(K, float)
     H, W = depth.shape
     out = boxes.copy()
     refined = np.zeros(len(boxes), bool)
@@ -251,15 +274,30 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
             masks += [band, cut] if (band > cut).any() else [band]
         # and the surfaces whole, however deep (the side of a truck in the next lane runs 15 m away)
         masks.append(obj & jump_free)
-        best, best_iou, best_sel = None, p.min_iou, None
+        candidates = []  # (IoU with the detected box, segment box, segment mask)
         for segments in masks:
             _, labels = cv2.connectedComponents(segments.astype(np.uint8), connectivity=4)
             for label in np.unique(labels[core][segments[core]]):
                 sel = labels == label
                 candidate = _segment_box(sel, p.support, x0, y0)
                 iou = _box_iou(candidate, b)
-                if iou > best_iou:
-                    best, best_iou, best_sel = candidate, iou, sel
+                if iou > p.min_iou:
+                    candidates.append((iou, candidate, sel))
+        best = best_sel = None
+        if candidates:
+            candidates.sort(key=lambda c: -c[0])  # stable: of equal overlaps, the first found
+            _, best, best_sel = candidates[0]
+            # a box over two vehicles side by side (two trucks in neighbouring lanes a few metres
+            # apart in depth, inside one band) snaps best to the pair: a segment no wider than a
+            # vehicle that still explains the box takes its place, and the other vehicle's segment,
+            # no longer inside a box, becomes a proposal
+            if _lateral_extent(best_sel, z, x0, K, p.support) > p.pair_width_m:
+                for iou, candidate, sel in candidates[1:]:
+                    if iou < p.pair_min_iou:
+                        break
+                    if _lateral_extent(sel, z, x0, K, p.support) <= p.pair_width_m:
+                        best, best_sel = candidate, sel
+                        break
         if best is not None:
             out[i] = best
             refined[i] = True
@@ -392,10 +430,14 @@ def object_segments(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
 
 
 def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
-                    refine: BoxRefineParams = BoxRefineParams(), segments: ObjectSegments | None = None):
+                    refine: BoxRefineParams = BoxRefineParams(), segments: ObjectSegments | None = None,
+                    snapped: np.ndarray | None = None):
     """Boxes of depth segments standing on the road that no detected box explains: (M, 4) boxes and
     (M,) bool is_truck (``refine.proposals``; segments trimmed with ``refine.support``). ``segments``:
-    the image's :func:`object_segments`, when already computed."""
+    the image's :func:`object_segments`, when already computed. ``snapped``: per box, whether the
+    refinement snapped it to a depth segment (:attr:`RefinedBoxes.refined`; None: all were). A box
+    that found no segment to snap to (one over two trucks and the car in front of them) is not
+    confirmed by depth: a segment lying inside it is not explained by it, only one overlapping it."""
     from vcfusion.fusion.matching import box_inside_share, box_iou
 
     params = refine.proposals
@@ -408,6 +450,9 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     fx = float(np.asarray(K, float)[0, 0])
     out, trucks = [], []
     existing = np.asarray(boxes, float).reshape(-1, 4)
+    snapped = np.ones(len(existing), bool) if snapped is None else np.asarray(snapped, bool)
+    if snapped.shape != (len(existing),):
+        raise ValueError(f"snapped: expected one flag per box ({len(existing)}), got shape {snapped.shape}")
     surface = np.array([_surface_depth(z, obj, e, y_lo) for e in existing])
     for label, region in enumerate(segments.regions, start=1):
         if region is None or areas[label] < params.min_pixels:
@@ -435,7 +480,7 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         if top < params.min_top_m or width_m < min_width:
             continue
         inside = box_inside_share(box[None], existing)[0]
-        if np.any((inside > 0.5) & not_in_front & (depth_m < surface + params.behind_m)):
+        if np.any((inside > 0.5) & snapped & not_in_front & (depth_m < surface + params.behind_m)):
             continue
         if _continues_above(sel, x, y, z, valid, height, refine.max_height_m, refine.jump_m,
                             refine.jump_rel) > params.max_top_continuing:

@@ -100,7 +100,7 @@ def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams
     from vcfusion.render.coco import category_id  # the dataset's category ids, as every detector reports
 
     refined = refine_boxes(detections.boxes, frame.depth, cam.K, cam.T_world_to_camera, refine)
-    boxes, scores = refined.boxes, detections.scores
+    boxes, scores, snapped = refined.boxes, detections.scores, refined.refined
     # depth measures how high a vehicle stands, which a 10 px box at 100 m does not show: a car box
     # whose surface stands higher than any car (and not higher than any vehicle: a tree) is a truck
     tall = (refined.top_m > refine.truck_top_m) & (refined.top_m <= refine.max_height_m)
@@ -115,12 +115,12 @@ def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams
         keep = np.ones(len(boxes), bool)
         keep[trucks] = False
         keep[trucks[nms(detections.boxes[trucks], scores[trucks], refine.duplicate_iou)]] = True
-        boxes, scores, classes = boxes[keep], scores[keep], classes[keep]
+        boxes, scores, classes, snapped = boxes[keep], scores[keep], classes[keep], snapped[keep]
     if refine.proposals is not None:
         segments = object_segments(frame.depth, cam.K, cam.T_world_to_camera, refine)
         confident = scores >= refine.proposals.score
         new, is_truck = depth_proposals(frame.depth, cam.K, cam.T_world_to_camera, boxes[confident], refine,
-                                        segments)
+                                        segments, snapped[confident])
         new_scores = _proposal_scores(new, boxes[~confident], scores[~confident], refine.proposals.score)
         boxes, scores = np.vstack([boxes, new]), np.r_[scores, new_scores]
         classes = np.r_[classes, np.where(is_truck, category_id("truck"), category_id("passenger"))]
