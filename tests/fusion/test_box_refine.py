@@ -611,3 +611,34 @@ def test_a_segment_inside_a_box_that_depth_did_not_confirm_is_proposed():
     assert len(got) == 1 and box_iou(got, truck[None])[0, 0] > 0.9  # from 0.3 m above the road up
     with pytest.raises(ValueError, match="snapped"):
         depth_proposals(scene, K, T, loose[None], snapped=np.array([True, False]))
+
+
+def test_a_strip_of_a_far_truck_between_two_nearer_cars_goes_back_to_the_truck_whole():
+    """Jam dev seed 3002: a truck 40 m ahead shows its lower part as a strip 2 px wide between two
+    cars 10 m ahead. Every pixel of the strip is the farther one of a jumping pair (a car beside it),
+    so the cut removes all of them; given back pass after pass along their own surface, they join
+    the truck's segment down to the road, and the truck's box spans them (one pass gave back only
+    the strip's top row)."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import object_segments
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    truck = _plate(road, K, T, 40.0, -1.25, 1.25, 3.8)
+    gap = 2.0 * 10.0 / K[0, 0]  # 2 px at 10 m
+    scene = _plate(_plate(truck, K, T, 10.0, -3.0, -gap / 2, 1.5), K, T, 10.0, gap / 2, 3.0, 1.5)
+    seen = (truck < road) & (scene == truck)
+    rows = np.flatnonzero(seen.any(axis=1))
+    strip = seen[rows[-1]]
+    assert strip.sum() == 2 and seen[rows[0]].sum() > 20  # 2 px wide at the bottom, whole at the top
+    seg = object_segments(scene, K, T)
+    labels = np.zeros(scene.shape, seg.labels.dtype)
+    labels[seg.y_lo:seg.y_lo + len(seg.labels)] = seg.labels
+    truck_label = labels[rows[0] + 5, np.flatnonzero(strip)[0]]  # the truck above the cars
+    assert truck_label > 0
+    lowest_object_row = max(r for r in rows if (labels[r][strip] > 0).any())
+    assert (labels[lowest_object_row][strip] == truck_label).all()
+    # all of the strip above the proposals' 0.3 m is the truck's, so its box reaches down there
+    mine = labels == truck_label
+    assert np.flatnonzero(mine.any(axis=1))[-1] == lowest_object_row
+    assert lowest_object_row >= rows[-1] - 3  # 0.3 m at 40 m is 3.4 px

@@ -195,17 +195,30 @@ def _restore_outlines(labels: np.ndarray, removed: np.ndarray, z: np.ndarray, ju
                       jump_rel: float) -> np.ndarray:
     """Segment labels with the pixels the cut removed given back: each removed pixel (the farther of
     a jumping pair, so the outline of a vehicle a nearer one hides) takes the label of a 4-neighbour
-    on its own surface (no jump either way). Without this a sliver of a hidden car, 12 px wide,
-    loses a pixel on each hidden side and its box misses IoU 0.7 with the true one."""
+    on its own surface (no jump either way), pass after pass until no pixel changes, so a strip of
+    them (the lower part of a truck seen 1-2 px wide between two nearer vehicles, where every pixel
+    is the farther one of some pair) goes back to its surface whole, not one pixel deep. Without
+    this a sliver of a hidden car, 12 px wide, loses a pixel on each hidden side and its box misses
+    IoU 0.7 with the true one. Each pass reads the labels the previous one left; of several
+    neighbours, right, left, below, above is the order of preference."""
     out = labels.copy()
     H, W = labels.shape
-    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-        # this pixel's region and its neighbour's (dy, dx) away
-        here = (slice(max(-dy, 0), H - max(dy, 0)), slice(max(-dx, 0), W - max(dx, 0)))
-        there = (slice(max(dy, 0), H - max(-dy, 0)), slice(max(dx, 0), W - max(-dx, 0)))
-        a, b, lab = z[here], z[there], labels[there]
-        take = removed[here] & (out[here] == 0) & (lab > 0) & _same_surface(a, b, jump_m, jump_rel)
-        out[here][take] = lab[take]
+    ys, xs = np.nonzero(removed & (labels == 0))  # the pixels still to give back
+    zs = z[ys, xs]
+    steps = ((0, 1), (0, -1), (1, 0), (-1, 0))
+    while len(ys):
+        found = np.zeros(len(ys), out.dtype)
+        for dy, dx in steps:
+            ny, nx = np.clip(ys + dy, 0, H - 1), np.clip(xs + dx, 0, W - 1)
+            inside = (ys + dy == ny) & (xs + dx == nx)
+            lab = out[ny, nx]
+            take = (found == 0) & inside & (lab > 0) & _same_surface(zs, z[ny, nx], jump_m, jump_rel)
+            found[take] = lab[take]
+        given = found > 0
+        if not given.any():
+            break
+        out[ys[given], xs[given]] = found[given]
+        ys, xs, zs = ys[~given], xs[~given], zs[~given]
     return out
 
 
