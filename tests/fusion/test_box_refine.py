@@ -642,3 +642,30 @@ def test_a_strip_of_a_far_truck_between_two_nearer_cars_goes_back_to_the_truck_w
     mine = labels == truck_label
     assert np.flatnonzero(mine.any(axis=1))[-1] == lowest_object_row
     assert lowest_object_row >= rows[-1] - 3  # 0.3 m at 40 m is 3.4 px
+
+
+def test_a_segment_overlapping_a_box_of_a_nearer_surface_by_under_0_6_is_proposed():
+    """A car 10 m ahead hides the lower right of a truck 22 m ahead, which shows as an L (its top
+    above the car and its left side). A box over the truck's L and the top of the car measures the
+    car's depth in its core; the truck's segment overlaps it by 0.55-0.6, which made it that box's
+    (0.5 before the sixteenth session) and left the truck without a box of its own."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import ProposalParams, _surface_depth, depth_proposals, object_segments
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    truck_only = _plate(road, K, T, 22.0, -1.25, 1.25, 3.8)
+    scene = _plate(truck_only, K, T, 10.0, -0.5, 2.5, 1.6)
+    truck = _mask_box((truck_only < road) & (scene == truck_only))
+    box = truck + [-10.0, 0.0, 10.0, 24.0]
+    seg = object_segments(scene, K, T)
+    assert _surface_depth(seg.z, seg.obj, box, seg.y_lo) < 11  # the box's core is the car
+
+    def truck_proposed(params):
+        got, _ = depth_proposals(scene, K, T, box[None], params, seg)
+        return bool(len(got)) and box_iou(got, truck[None]).max() > 0.9, got
+
+    proposed, got = truck_proposed(BoxRefineParams())
+    assert proposed
+    assert 0.5 < box_iou(got, box[None]).max() <= 0.6
+    assert not truck_proposed(BoxRefineParams(proposals=ProposalParams(max_overlap=0.5)))[0]
