@@ -24,9 +24,10 @@ Per detected box (pixel-centre convention, as everywhere in the fusion stage):
    row / column (so a rail or a sliver of road does not widen it).
 5. Of the segments touching the core, the one whose box overlaps the detected box most replaces
    it, when that IoU reaches ``min_iou``; otherwise the detected box is kept (and counted as kept).
-   A segment wider across the view than any vehicle (``pair_width_m``; two trucks side by side a few
-   metres apart in depth share a band) gives way to the best one no wider that still overlaps the
-   box by ``pair_min_iou``: a box over the pair then holds one of them, and the other is proposed.
+   A segment that spans a depth jump and is wider across the view than any vehicle
+   (``pair_width_m``; two trucks side by side a few metres apart in depth share a band) gives way to
+   the best jump-free one no wider that still overlaps the box by ``pair_min_iou``: a box over the
+   pair then holds one of them, and the other is proposed.
    How high that segment's top stands (``RefinedBoxes.top_m``) lets the fusion stage correct the
    class: a car box standing as high as a truck is a truck (``fuse.detect_frame``).
 
@@ -103,8 +104,9 @@ class BoxRefineParams:
     candidates: int = 3  # surface depths tried per box
     support: float = 0.05  # rows / columns with less than this share of the fullest one are trimmed
     min_iou: float = 0.3  # a segment replaces the box only when its box overlaps the box this much
-    pair_width_m: float = 3.0  # a segment laterally wider than any vehicle (2.55 m) is two side by side:
-    pair_min_iou: float = 0.5  # a narrower one overlapping the box at least this much replaces it
+    pair_width_m: float = 3.0  # a segment across a depth jump laterally wider than any vehicle (2.55 m)
+    pair_min_iou: float = 0.5  # is two side by side: a jump-free one, narrower, overlapping the box at
+    # least this much replaces it
     jump_m: float = 0.5  # depth discontinuity between neighbours: more than this (+ jump_rel of the
     jump_rel: float = 0.045  # depth; 0.05 before the fourteenth session); the refinement's cut
     # segments, the proposals and the fragments all use it
@@ -303,14 +305,17 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
             candidates.sort(key=lambda c: -c[0])  # stable: of equal overlaps, the first found
             _, best, best_sel = candidates[0]
             # a box over two vehicles side by side (two trucks in neighbouring lanes a few metres
-            # apart in depth, inside one band) snaps best to the pair: a segment no wider than a
-            # vehicle that still explains the box takes its place, and the other vehicle's segment,
-            # no longer inside a box, becomes a proposal
-            if _lateral_extent(best_sel, z, x0, K, p.support) > p.pair_width_m:
+            # apart in depth, inside one band) snaps best to the pair: when that segment spans a depth
+            # jump and is wider than any vehicle, a jump-free segment no wider that still explains the
+            # box takes its place, and the other vehicle, no longer inside a box, becomes a proposal.
+            # Jump-free, because a car mid lane change, seen at an angle, is 3-4 m across the view
+            # with its side, one surface: its wheels and mirrors must not pass for a second vehicle
+            jump = ~jump_free
+            if (best_sel & jump).any() and _lateral_extent(best_sel, z, x0, K, p.support) > p.pair_width_m:
                 for iou, candidate, sel in candidates[1:]:
                     if iou < p.pair_min_iou:
                         break
-                    if _lateral_extent(sel, z, x0, K, p.support) <= p.pair_width_m:
+                    if not (sel & jump).any() and _lateral_extent(sel, z, x0, K, p.support) <= p.pair_width_m:
                         best, best_sel = candidate, sel
                         break
         if best is not None:
