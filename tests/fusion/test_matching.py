@@ -183,12 +183,17 @@ class _GivenCosts(JointMatcher):
         self.costs = costs
         self.hidden = np.zeros(len(costs), bool) if hidden_whole is None else np.asarray(hidden_whole, bool)
 
-    def cost_matrix(self, proj, boxes, box_depths):
+    def _cost_terms(self, proj, boxes, box_depths):
         c = np.array([[np.inf if v is None else v for v in row] for row in self.costs])
-        return np.where(np.isfinite(c), c, 10.0), np.isfinite(c)
+        return np.where(np.isfinite(c), c, 10.0), np.isfinite(c), self.hidden
 
-    def hidden_whole(self, proj):
-        return self.hidden
+
+def _assign_given(costs, hidden_whole=None, **params):
+    """The joint matcher's assignment on hand-set costs (rows: twins), as a list of box indices."""
+    m = len(costs[0])
+    got = _GivenCosts(costs, hidden_whole, **params).assign(SimpleNamespace(anchor=np.zeros((len(costs), 2))),
+                                                            np.zeros((m, 4)), np.zeros(m))
+    return [int(g) for g in got]
 
 
 def test_joint_matcher_lets_boxes_and_twins_go_unmatched_rather_than_shift_a_chain():
@@ -200,12 +205,7 @@ def test_joint_matcher_lets_boxes_and_twins_go_unmatched_rather_than_shift_a_cha
     costs = [[0.2, 3.3, 1.0],  # A
              [4.9, 1.3, None],  # B
              [None, 4.9, None]]  # H
-
-    def assign(costs, **params):
-        n, m = len(costs), len(costs[0])
-        got = _GivenCosts(costs, **params).assign(SimpleNamespace(anchor=np.zeros((n, 2))), np.zeros((m, 4)), np.zeros(m))
-        return [int(g) for g in got]
-
+    assign = _assign_given
     assert assign(costs, miss_cost=None) == [2, 0, 1]
     assert assign(costs) == [0, 1, NO_MATCH]
     # a pair dearer than leaving the twin out is never taken, however few boxes there are
@@ -437,13 +437,7 @@ def test_a_twin_hidden_whole_is_assigned_from_the_boxes_the_visible_twins_leave(
     visible one onto a worse box (1.76): 3.69 + 1.76 < 0.18 + 6 (the hidden car without a box).
     Assigned in two rounds, the visible car keeps its box and the hidden one gets what is left."""
     from vcfusion.fusion.matching import visible_boxes
-
-    def assign(costs, hidden_whole):
-        m = len(costs[0])
-        got = _GivenCosts(costs, hidden_whole).assign(SimpleNamespace(anchor=np.zeros((len(costs), 2))),
-                                                      np.zeros((m, 4)), np.zeros(m))
-        return [int(g) for g in got]
-
+    assign = _assign_given
     swap = [[0.18, 1.76], [3.69, None]]
     assert assign(swap, [False, False]) == [1, 0]  # one round: the swap
     assert assign(swap, [False, True]) == [0, NO_MATCH]

@@ -97,6 +97,12 @@ def _intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.clip(ix, 0, None) * np.clip(iy, 0, None)
 
 
+def _hidden_whole(hidden_share: np.ndarray) -> np.ndarray:
+    """Twins whose expected box nearer twins' expected boxes cover entirely (every cell of
+    :func:`visible_boxes`' raster)."""
+    return hidden_share >= 1.0
+
+
 def box_iou(a, b) -> np.ndarray:
     """Pairwise IoU, (len(a), len(b))."""
     a, b = as_boxes(a), as_boxes(b)
@@ -507,6 +513,11 @@ class JointMatcher:
 
     def cost_matrix(self, proj: TwinProjection, boxes, box_depths) -> tuple[np.ndarray, np.ndarray]:
         """(cost, allowed) over (twins, boxes)."""
+        return self._cost_terms(proj, boxes, box_depths)[:2]
+
+    def _cost_terms(self, proj: TwinProjection, boxes, box_depths) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(cost, allowed) over (twins, boxes) and (N,) whether each twin is hidden whole (the
+        assignment's second round; computed here with the rest of :func:`visible_boxes`)."""
         p = self.params
         b = as_boxes(boxes)
         depths = np.asarray(box_depths, dtype=np.float64)
@@ -560,12 +571,13 @@ class JointMatcher:
         # a twin that nearer twins' expected boxes hide whole has no visible part to overlap a box
         # with, yet a roof above the car in front or a corner beside it often shows (the expected
         # boxes are coarser than the vehicles): a box lying within its expected box is allowed too
-        hidden_whole = np.flatnonzero(hidden_share >= 1.0)
-        if len(hidden_whole) and m:
-            allowed[hidden_whole] |= ((depth_err[hidden_whole] <= p.depth_gate)
-                                      & (box_inside_share(b, proj.expected_box[hidden_whole]).T >= p.hidden_within))
+        hidden_whole = _hidden_whole(hidden_share)
+        whole = np.flatnonzero(hidden_whole)
+        if len(whole) and m:
+            allowed[whole] |= ((depth_err[whole] <= p.depth_gate)
+                               & (box_inside_share(b, proj.expected_box[whole]).T >= p.hidden_within))
         allowed &= proj.in_view[:, None]
-        return cost, allowed
+        return cost, allowed, hidden_whole
 
     def _depth_of_nearer_twin(self, proj: TwinProjection, boxes: np.ndarray, depth_err: np.ndarray,
                               sigma: np.ndarray) -> np.ndarray:
@@ -602,11 +614,10 @@ class JointMatcher:
         one joint assignment it took a visible twin's box at a cost under ``miss_cost`` and pushed that
         twin onto a worse box, because the two costs together were lower than one twin going without
         (e.g. 3.7 + 1.8 < 0.2 + 6)."""
-        cost, allowed = self.cost_matrix(proj, boxes, box_depths)
+        cost, allowed, hidden_whole = self._cost_terms(proj, boxes, box_depths)
         out = np.full(len(proj.anchor), NO_MATCH)
         if cost.size == 0:
             return out
-        hidden_whole = self.hidden_whole(proj)
         free = np.ones(cost.shape[1], bool)
         for group in (~hidden_whole, hidden_whole):
             if group.any():
@@ -618,7 +629,7 @@ class JointMatcher:
     @staticmethod
     def hidden_whole(proj: TwinProjection) -> np.ndarray:
         """(N,) whether nearer twins' expected boxes hide all of each twin's (:func:`visible_boxes`)."""
-        return visible_boxes(proj)[2] >= 1.0
+        return _hidden_whole(visible_boxes(proj)[2])
 
     def _assign_once(self, cost: np.ndarray, allowed: np.ndarray) -> np.ndarray:
         """One Hungarian assignment of (twins, boxes) cost under the allowed mask."""
