@@ -252,3 +252,33 @@ def test_shipped_weights_name_no_machine_paths():
     assert shipped.meta["train_data"], "the shipped weights say what they were trained on"
     for name in shipped.meta["train_data"]:
         assert "/" not in name and "\\" not in name, name
+
+
+def test_worker_processes_build_the_same_batches_as_the_main_thread(trained):
+    import torch
+
+    root, data, _, _ = trained
+    common = dict(epochs=2, max_iterations=6, batch_size=8, input_wh=(96, 64), widths=(8, 16, 16, 32, 16),
+                  val_fraction=0.0, lr=1e-2, threads=1, progress=False, seed=3)
+    alone, report = train_detector(data, None, **common)
+    helped, report_helped = train_detector(data, None, workers=2, **common)
+    assert report.iterations == report_helped.iterations == 6 and report.epochs == 2  # 32 images, 4 per epoch
+    assert report.first_losses == report_helped.first_losses
+    for (name, a), b in zip(alone.model.state_dict().items(), helped.model.state_dict().values()):
+        assert torch.equal(a, b), name
+
+
+def test_a_resized_folder_feeds_training_the_same_boxes_and_nearly_the_same_pixels(tmp_path):
+    from vcfusion.detection.detector_train import _cache, resize_dataset
+
+    data = make_synthetic_coco(tmp_path / "data", n_images=6, size=(192, 128), seed=4)
+    assert resize_dataset(data, tmp_path / "small", (96, 64), quality=95, progress=False) == 6
+    full, small = load_coco(data), load_coco(tmp_path / "small")
+    assert [im.name for im in small.images] == [f"{i:07d}.webp" for i in full.image_ids]
+    images_full, boxes_full = _cache(full, (96, 64), "", False)
+    images_small, boxes_small = _cache(small, (96, 64), "", False)
+    for a, b in zip(boxes_full, boxes_small):  # the boxes the network is trained on
+        np.testing.assert_allclose(b, a, atol=1e-9)
+    diff = np.abs(images_full.astype(int) - images_small.astype(int))
+    assert diff.mean() < 4 and np.percentile(diff, 99) < 30  # lossy WebP at 95 on noisy rectangles (renders: 1.2)
+    assert small.records[0]["width"] == 96 and not (tmp_path / "small.tmp-writing").exists()

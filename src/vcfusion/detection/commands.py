@@ -27,6 +27,8 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
     from vcfusion.detection.detector_train import train_detector
 
     input_wh = parse_size(args.input_size, "--input-size")
+    if args.workers < 0:
+        raise UsageError(f"--workers: expected 0 or more, got {args.workers}")
     for name in ("epochs", "batch_size", "checkpoint_every"):
         if getattr(args, name) is not None and getattr(args, name) < 1:
             raise UsageError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(args, name)}")
@@ -35,13 +37,26 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
         val_fraction=args.val_fraction, val_data=args.val, seed=args.seed, threads=args.threads,
         device=args.device, progress=sys.stderr.isatty(), max_iterations=args.iterations,
         min_train_area=args.min_train_area, eval_min_area=args.min_area, init=args.init,
-        checkpoint_every=args.checkpoint_every)
+        checkpoint_every=args.checkpoint_every, workers=args.workers)
     size_mb = Path(args.out).stat().st_size / 2**20
     print(f"trained {report.iterations} iterations ({report.epochs} epochs) on {report.n_train} images "
           f"in {report.wall_s:.0f} s; loss {report.first_losses[0]:.3f} -> {report.loss_history[-1]:.3f}")
     if report.val is not None:
         print(f"held-out ({report.n_val} images, boxes >= {args.min_area:g} px^2): mAP@0.5 {report.val.map_50:.3f}  mAP@0.5:0.95 {report.val.map_50_95:.3f}")
     print(f"weights: {args.out} ({size_mb:.1f} MB)")
+    return 0
+
+
+def cmd_resize_dataset(args: argparse.Namespace) -> int:
+    from vcfusion.detection.detector_train import resize_dataset
+
+    input_wh = parse_size(args.size, "--size")
+    if not 1 <= args.quality <= 100:
+        raise UsageError(f"--quality: expected 1 to 100, got {args.quality}")
+    if Path(args.out).exists():
+        raise UsageError(f"--out: {args.out} already exists; choose a new dataset folder")
+    n = resize_dataset(args.data, args.out, input_wh, args.quality, progress=sys.stderr.isatty())
+    print(f"resized {n} images to {input_wh[0]}x{input_wh[1]} -> {args.out}")
     return 0
 
 
@@ -176,6 +191,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    p.add_argument("--workers", type=int, default=0,
+                   help="processes building the batches ahead of the model (for a GPU; same batches for any number)")
     p.add_argument("--min-train-area", type=float, default=16.0, help="train only on boxes of at least this many px^2")
     p.add_argument("--min-area", type=float, default=100.0,
                    help="held-out mAP ignores ground truth below this many px^2 (COCOeval area range)")
@@ -213,6 +230,14 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", required=True, help="dataset folder to create")
     p.add_argument("--scenario", default="scenarios/overlap.yaml", help="scenario giving the road and the camera")
     p.set_defaults(func=cmd_render_scenes)
+
+    p = sub.add_parser("resize-dataset", help="shrink a COCO folder's images to the network input (WebP), "
+                                              "boxes scaled: a training set small enough to carry to a GPU")
+    p.add_argument("data", help="COCO folder")
+    p.add_argument("--out", required=True, help="dataset folder to create")
+    p.add_argument("--size", default="320x240", help="WIDTHxHEIGHT, the detector's input size (default 320x240)")
+    p.add_argument("--quality", type=int, default=95, help="WebP quality (default 95)")
+    p.set_defaults(func=cmd_resize_dataset)
 
     p = sub.add_parser("coco-check", help="share of clearly visible rendered vehicles a COCO detector (ONNX) finds")
     p.add_argument("data", nargs="+", help="`vcfusion render` folder(s)")
