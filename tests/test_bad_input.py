@@ -256,6 +256,11 @@ CASES = [
          ("--classes", "expected the category ids", "'1,car'")),
     # dataset folders
     Case("COCO folder missing", lambda t: ["eval-detector", "nope"], ("nope", "dataset folder not found")),
+    Case("resize quality out of range", lambda t: ["resize-dataset", "coco", "--out", "small", "--quality", "0"],
+         ("--quality", "expected 1 to 100", "got 0")),
+    Case("resize a corrupt COCO folder", lambda t: ((t / "coco").mkdir(), (t / "coco" / "annotations.json").write_text("{"),
+                                                    ["resize-dataset", "coco", "--out", "small"])[2],
+         ("annotations.json", "not valid JSON")),
     Case("COCO annotations corrupt", lambda t: ((t / "coco").mkdir(), (t / "coco" / "annotations.json").write_text("{"),
                                                 ["eval-detector", "coco"])[2],
          ("annotations.json", "not valid JSON")),
