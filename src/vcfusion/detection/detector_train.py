@@ -302,7 +302,7 @@ def train_detector(
                                          prefetch_factor=4 if workers else None)
     bar = tqdm(total=total_steps, desc="train detector", unit="it", disable=not progress)
     model.train()
-    losses, epoch_of = [], [k // steps_per_epoch for k in range(total_steps)]
+    losses = []
     for image_u8, gain, bias, *target_arrays in loader:
         # the brightness / contrast change runs where the model runs: the batch travels as bytes
         x = image_u8.to(device, non_blocking=True).float()
@@ -323,7 +323,7 @@ def train_detector(
         if checkpoint_every and step % checkpoint_every == 0 and step < total_steps:
             DetectorModel(model, tuple(input_wh), ds.class_ids, ds.class_names, tuple(widths),
                           meta(step, float(np.mean(losses)))).save(checkpoint_path(out, step))
-        if step == total_steps or epoch_of[step] != epoch_of[step - 1]:
+        if step == total_steps or step % steps_per_epoch == 0:  # an epoch ends
             history.append(float(np.mean(losses)))
             losses = []
     bar.close()
