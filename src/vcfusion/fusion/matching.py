@@ -97,12 +97,6 @@ def _intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.clip(ix, 0, None) * np.clip(iy, 0, None)
 
 
-def _hidden_whole(hidden_share: np.ndarray) -> np.ndarray:
-    """Twins whose expected box nearer twins' expected boxes cover entirely (every cell of
-    :func:`visible_boxes`' raster)."""
-    return hidden_share >= 1.0
-
-
 def box_iou(a, b) -> np.ndarray:
     """Pairwise IoU, (len(a), len(b))."""
     a, b = as_boxes(a), as_boxes(b)
@@ -571,7 +565,7 @@ class JointMatcher:
         # a twin that nearer twins' expected boxes hide whole has no visible part to overlap a box
         # with, yet a roof above the car in front or a corner beside it often shows (the expected
         # boxes are coarser than the vehicles): a box lying within its expected box is allowed too
-        hidden_whole = _hidden_whole(hidden_share)
+        hidden_whole = hidden_share >= 1.0  # every cell of visible_boxes' raster covered
         whole = np.flatnonzero(hidden_whole)
         if len(whole) and m:
             allowed[whole] |= ((depth_err[whole] <= p.depth_gate)
@@ -625,11 +619,6 @@ class JointMatcher:
                 out[group] = chosen
                 free[chosen[chosen != NO_MATCH]] = False
         return out
-
-    @staticmethod
-    def hidden_whole(proj: TwinProjection) -> np.ndarray:
-        """(N,) whether nearer twins' expected boxes hide all of each twin's (:func:`visible_boxes`)."""
-        return _hidden_whole(visible_boxes(proj)[2])
 
     def _assign_once(self, cost: np.ndarray, allowed: np.ndarray) -> np.ndarray:
         """One Hungarian assignment of (twins, boxes) cost under the allowed mask."""
