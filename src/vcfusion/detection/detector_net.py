@@ -122,11 +122,17 @@ class PostParams:
     max_detections: int = 100
 
 
+def resize_to_input(image: np.ndarray, input_wh: tuple[int, int]) -> np.ndarray:
+    """A frame as the network sees it: stretched to its input size by area interpolation, the same
+    in inference, in training and in `vcfusion resize-dataset`."""
+    return cv2.resize(image, tuple(input_wh), interpolation=cv2.INTER_AREA)
+
+
 def preprocess(image: np.ndarray, input_wh: tuple[int, int]) -> np.ndarray:
     """RGB uint8 (H, W, 3) -> float32 (1, 3, h, w), stretched to the network input size."""
     if image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"image: expected RGB (H, W, 3), got shape {image.shape}")
-    resized = cv2.resize(image, input_wh, interpolation=cv2.INTER_AREA)
+    resized = resize_to_input(image, input_wh)
     return np.ascontiguousarray(resized.transpose(2, 0, 1)[None].astype(np.float32))
 
 

@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from vcfusion.detection.detection_metrics import BoxMap, coco_map
 from vcfusion.detection.detector_net import (STRIDE, CenterNetLite, DetectorFileError, DetectorModel, PostParams,
-                                          TorchDetector)
+                                          TorchDetector, resize_to_input)
 
 
 @dataclass
@@ -215,7 +215,7 @@ def _cache(ds: CocoDataset, input_wh, desc: str, progress: bool):
     for path, b in tqdm(list(zip(ds.images, ds.boxes)), desc=desc, unit="img", disable=not progress, leave=False):
         rgb = read_rgb(path)
         sx, sy = input_wh[0] / rgb.shape[1], input_wh[1] / rgb.shape[0]
-        images.append(cv2.resize(rgb, tuple(input_wh), interpolation=cv2.INTER_AREA))
+        images.append(resize_to_input(rgb, input_wh))
         boxes.append((b + 0.5) * np.array([sx, sy, sx, sy]))  # pixel-edge coordinates of the network input
     return np.stack(images), boxes
 
@@ -298,8 +298,7 @@ def train_detector(
     batches = _Batches(images, boxes, classes, _batch_indices(n, batch_size, epochs, total_steps, rng), seed,
                        out_hw, len(ds.class_ids))
     loader = torch.utils.data.DataLoader(batches, batch_size=None, shuffle=False, num_workers=workers,
-                                         pin_memory=device.startswith("cuda"), persistent_workers=False,
-                                         prefetch_factor=4 if workers else None)
+                                         pin_memory=device.startswith("cuda"), prefetch_factor=4 if workers else None)
     bar = tqdm(total=total_steps, desc="train detector", unit="it", disable=not progress)
     model.train()
     losses = []
@@ -425,7 +424,7 @@ def resize_dataset(src, out, input_wh: tuple[int, int], quality: int = 95, progr
                                  disable=not progress):
             rgb = read_rgb(file)
             scale[int(record["id"])] = (input_wh[0] / rgb.shape[1], input_wh[1] / rgb.shape[0])
-            small = cv2.resize(rgb, tuple(input_wh), interpolation=cv2.INTER_AREA)
+            small = resize_to_input(rgb, input_wh)
             name = f"{int(record['id']):07d}.webp"
             if not cv2.imwrite(str(tmp / "images" / name), cv2.cvtColor(small, cv2.COLOR_RGB2BGR),
                                [cv2.IMWRITE_WEBP_QUALITY, int(quality)]):
