@@ -7,6 +7,7 @@ fails for its own defect.
 """
 
 import json
+import re
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -49,6 +50,14 @@ def run(tmp: Path, text: str) -> list[str]:
 def network(tmp: Path, xml: str) -> list[str]:
     (tmp / "bad.net.xml").write_text(xml)
     return run(tmp, BASE.replace("NET_DIR/highway.net.xml", "bad.net.xml"))
+
+
+def elevated_network(tmp: Path, z_m: float = 5.0) -> str:
+    """The shipped straight highway lifted to z = z_m: every lane shape point gets a height."""
+    xml = (REPO / "sumo_net" / "highway.net.xml").read_text()
+    lifted = re.sub(r'shape="([^"]*)"', lambda m: 'shape="' + " ".join(f"{p},{z_m:.2f}" for p in m.group(1).split()) + '"', xml)
+    (tmp / "hill.net.xml").write_text(lifted)
+    return BASE.replace("NET_DIR/highway.net.xml", "hill.net.xml")
 
 
 def vtypes(tmp: Path, xml: str) -> list[str]:
@@ -301,6 +310,16 @@ CASES = [
     Case("dataset output under a file", lambda t: ((t / "afile").write_text("x"),
                                                    ["dataset", scenario(t, BASE), "--seeds", "0", "--out", "afile/d"])[1],
          ("--out", "afile is a file; expected a folder path")),
+    Case("camera on a network with elevation",
+         lambda t: run(t, elevated_network(t) + "vision: {enabled: true}\n"),
+         ("s.yaml", "network (vision.enabled)", "hill.net.xml", "lies 5.00 m off z = 0", "--flatten")),
+    Case("render a network with elevation",
+         lambda t: ["render", scenario(t, elevated_network(t)), "--seeds", "0", "--out", "out"],
+         ("hill.net.xml", "lies 5.00 m off z = 0", "--flatten")),
+    Case("guidance camera arms on a network with elevation",
+         lambda t: ["study", "guidance", scenario(t, elevated_network(t)), "--trips", "2", "--arms", "none,fusion",
+                    "--out", "out"],
+         ("hill.net.xml", "lies 5.00 m off z = 0", "--flatten")),
     Case("render every", lambda t: ["render", scenario(t, BASE), "--seeds", "0", "--every", "0", "--out", "out"],
          ("--every", "expected a positive number of V2C ticks")),
 ]
@@ -345,6 +364,9 @@ def test_the_valid_inputs_the_cases_start_from_are_valid(tmp_path):
     onramp = load_scenario(write_scenario(tmp_path, ONRAMP, "onramp.yaml"))
     assert onramp.route == ["main_in", "accel", "main_out"]
     load_scenario(write_scenario(tmp_path, BASE.replace("highway.net.xml", "curved.net.xml"), "curved.yaml"))
+    # a network with elevation carries traffic (SUMO drives it); only the camera refuses it
+    lifted = load_scenario(write_scenario(tmp_path, elevated_network(tmp_path), "hill.yaml"))
+    assert lifted.network == tmp_path / "hill.net.xml"
     model_file(tmp_path, lambda a, m: None)
     weights_file(tmp_path, lambda b: None)
     (tmp_path / "sub").mkdir()

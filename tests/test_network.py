@@ -69,3 +69,32 @@ def test_records_keep_their_road_frame_and_selections_carry_it():
     np.testing.assert_array_equal(sub.road_frame(road)[1], want_d[[3, 1]])
     moved = replace(truth, x=truth.x + 5.0)
     np.testing.assert_allclose(moved.road_frame(road)[0] - s, 5.0 * road.direction[0])
+
+
+def test_elevation_is_found_in_a_netconvert_network_and_gone_after_flatten(tmp_path):
+    """netconvert carries the nodes' z into the lane shapes; the camera refuses such a network
+    until `netconvert --flatten` removes it (the command the error names)."""
+    import subprocess
+
+    import pytest
+
+    from vcfusion.traffic.network import NetworkFileError, netconvert_binary, network_elevation, require_flat_network
+
+    (tmp_path / "hill.nod.xml").write_text(
+        '<nodes><node id="a" x="0" y="0" z="0"/><node id="b" x="500" y="0" z="12.5"/>'
+        '<node id="c" x="1000" y="0" z="0"/></nodes>')
+    (tmp_path / "hill.edg.xml").write_text(
+        '<edges><edge id="up" from="a" to="b" numLanes="2" speed="30"/>'
+        '<edge id="down" from="b" to="c" numLanes="2" speed="30"/></edges>')
+    hill = build_network(tmp_path, "hill")
+    z, lane = network_elevation(hill)
+    assert z == pytest.approx(12.5) and lane.startswith((":b", "up", "down"))
+    with pytest.raises(NetworkFileError, match=r"lies 12\.50 m off z = 0.*--flatten"):
+        require_flat_network(hill)
+    flat = tmp_path / "flat.net.xml"
+    subprocess.run([netconvert_binary(), "-s", str(hill), "--flatten", "-o", str(flat)], check=True, capture_output=True)
+    assert network_elevation(flat) == (0.0, "")
+    require_flat_network(flat)
+    assert network_elevation(NET) == (0.0, "")  # the shipped networks are flat
+    for name in ("curved", "onramp"):
+        assert network_elevation(REPO / "sumo_net" / f"{name}.net.xml") == (0.0, "")

@@ -566,7 +566,7 @@ def _check_ego_lane(scenario: Scenario, road, origins: _Origins) -> None:
 def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
     """Read the files the scenario names and check the scenario against them (routes, lanes,
     positions, vehicle types), so a bad one stops the command before anything is written."""
-    from vcfusion.traffic.network import NetworkFileError, read_road, read_vehicle_types
+    from vcfusion.traffic.network import NetworkFileError, read_road, read_vehicle_types, require_flat_network
     from vcfusion.traffic.roadframe import RouteError
 
     try:
@@ -575,6 +575,11 @@ def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
         raise ScenarioError(f"{origins.label(('network',))}: network: {exc}") from None
     except RouteError as exc:
         raise _route_error(origins, (), exc) from None
+    if scenario.vision.enabled:
+        try:
+            require_flat_network(scenario.network)
+        except NetworkFileError as exc:
+            raise ScenarioError(f"{origins.label(('network',))}: network (vision.enabled): {exc}") from None
     try:
         vtypes = read_vehicle_types(scenario.vehicle_types)
     except NetworkFileError as exc:

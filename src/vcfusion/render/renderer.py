@@ -40,7 +40,7 @@ from pyrender.shader_program import ShaderProgram, ShaderProgramCache  # noqa: E
 
 from vcfusion.records import VehicleStates  # noqa: E402
 from vcfusion.scenario import CameraConfig  # noqa: E402
-from vcfusion.traffic.network import read_road  # noqa: E402
+from vcfusion.traffic.network import read_road, require_flat_network  # noqa: E402
 from vcfusion.traffic.roadframe import RoadFrame  # noqa: E402
 from vcfusion.records import EGO_ID  # noqa: E402
 from vcfusion.render.camera import Intrinsics, opengl_camera_pose, world_to_camera  # noqa: E402
@@ -124,6 +124,8 @@ class EgoCameraRenderer:
         self.ego_id = ego_id
         self.preset = preset or PRESETS[camera.render_preset]
         self.intrinsics = k = Intrinsics.from_fov(camera.hfov_deg, camera.width_px, camera.height_px)
+        if road.net_file is not None:
+            require_flat_network(road.net_file)  # the world below is flat (z = 0)
         self.traffic = TrafficScene(road, skip_ids=(ego_id,))
         # pyrender's window coordinates put integer values at pixel corners, OpenCV's at pixel
         # centres: the renderer's principal point is half a pixel further.

@@ -452,6 +452,7 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
                        progress: bool = True, arms: tuple[str, ...] = DEFAULT_ARMS) -> dict:
     """Run the paired trips, write OUT/trips.parquet|csv, summary.csv|json|txt and the figures."""
     from vcfusion.scenario import load_scenario
+    from vcfusion.traffic.network import require_flat_network
 
     arms = parse_arms(",".join(arms))
     scenario = load_scenario(scenario_path)
@@ -459,6 +460,8 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
         raise StudyError(f"{scenario_path}: the guidance study needs an ego (the scenario has no 'ego' block)")
     for spec in process_model_specs:  # fail fast, before any worker starts
         load_process_model(spec, scenario)
+    if any(arm in CAMERA_ARMS for arm in arms):
+        require_flat_network(scenario.network)  # the camera arms render a flat world
     started = wallclock.perf_counter()
     seeds = list(range(first_seed, first_seed + trips))
     rows: list[dict] = []

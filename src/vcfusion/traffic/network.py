@@ -224,6 +224,43 @@ def _straight_edge(net_file, edge: ET.Element) -> Road | None:
                 speed_limit_mps=speed, net_file=net_file)
 
 
+# The camera's world is flat: the road mesh, the ground and the depth step's road height are at
+# z = 0 (vcfusion.render.meshes, vcfusion.fusion.box_refine). Heights below this are the markings'
+# and kerbs' scale (the depth step's object pixels stand higher than 0.05 m).
+FLAT_WITHIN_M = 0.05
+
+
+def network_elevation(net_file: str | Path) -> tuple[float, str]:
+    """The largest height |z| (m) of any lane shape point of a network and the id of that lane
+    ((0.0, "") for a flat network: netconvert writes z only where it is not 0)."""
+    root = _parse_xml(net_file, "SUMO network (.net.xml)", ("net",))
+    highest, where = 0.0, ""
+    for lane in root.iter("lane"):
+        for point in (lane.get("shape") or "").split():
+            coords = point.split(",")
+            if len(coords) > 2:
+                try:
+                    z = abs(float(coords[2]))
+                except ValueError:
+                    raise NetworkFileError(f"{net_file}: lane {lane.get('id')!r}: shape: expected 'x,y[,z] ...' "
+                                           f"numbers, got {point!r}") from None
+                if z > highest:
+                    highest, where = z, lane.get("id")
+    return highest, where
+
+
+def require_flat_network(net_file: str | Path) -> None:
+    """NetworkFileError unless the network lies flat at z = 0, as the ego camera's world does: on a
+    network with elevation the camera, the vehicles and the road would not meet (vehicles drawn in
+    the sky over a flat road, every box and depth check wrong), so the camera refuses it."""
+    highest, lane = network_elevation(net_file)
+    if highest > FLAT_WITHIN_M:
+        raise NetworkFileError(
+            f"{net_file}: lane {lane!r} lies {highest:.2f} m off z = 0; the ego camera renders a flat world "
+            "(road at z = 0): flatten the network (netconvert -s NET --flatten -o FLAT.net.xml) "
+            "or run without the camera (vision.enabled: false)")
+
+
 # Frames already built, by (network file, its modification time, route): several stages of a run
 # (and every seed of a batch in one process) ask for the same one.
 _FRAMES: dict[tuple, RoadFrame] = {}
