@@ -116,6 +116,11 @@ def test_family_groups_best_iou_and_identification(families, tmp_path):
         assert sum(n for n, _ in bins.values()) == r.n_identified_targets
         pooled = sum(n * acc for n, acc in bins.values() if n) / r.n_identified_targets
         assert pooled == pytest.approx(r.identification["truth"])
+    # the intervals hold their accuracy; ground-truth boxes trail the oracle by exactly nothing
+    for r in results:
+        lo, hi = r.identification_interval["truth"]
+        assert lo <= r.identification["truth"] <= hi
+        assert r.identification_interval["gap_truth"] == (0.0, 0.0)
     # the jam hides cars behind cars: some of its targets are less than half visible
     assert sum(n for label, (n, _) in by["jam"].identification_by_visibility["oracle"].items() if label != ">=0.5") > 0
     # a detector that finds nothing: mAP 0, best IoU 0, identification 0
@@ -143,6 +148,9 @@ def test_eval_detector_cli_reports_families(families, tmp_path):
     assert 0 <= rows["jam"]["map_50"] <= 1 and "ident_0.7_oracle" in rows["jam"]
     assert "by the share of the target left visible" in proc.stdout
     assert rows["jam"]["ident_0.7_oracle_visible_>=0.5"]["targets"] > 0
+    assert "95 % intervals over scenes" in proc.stdout
+    lo, hi = rows["jam"]["ident_0.7_cnn_interval95"]
+    assert lo <= rows["jam"]["ident_0.7_cnn"] <= hi and "ident_0.7_gap_cnn_interval95" in rows["jam"]
     bad = subprocess.run([sys.executable, "-m", "vcfusion", "eval-detector", str(families[0]), "--onnx",
                           str(tmp_path / "none.onnx"), "--layout", "ultralytics"], capture_output=True, text=True)
     assert bad.returncode == 2 and "none.onnx: ONNX model not found" in bad.stderr
@@ -156,3 +164,31 @@ def test_identification_by_visible_fraction_against_hand_values():
     bins = _by_visibility(right, visible)
     assert bins["<0.25"] == (2, 0.5) and bins["0.25-0.5"] == (2, 1.0)
     assert bins[">=0.5"] == (1, 0.0)
+
+
+def test_scene_bootstrap_against_the_binomial_interval_and_pairing():
+    """One target per image: resampling images is the ordinary bootstrap of a proportion, whose
+    95 % interval is the normal one, p +- 1.96 sqrt(p (1 - p) / n), to within the resampling noise;
+    the gap to the oracle is paired (same draws), so a detector right wherever the oracle is has
+    an interval of exactly zero gap."""
+    from vcfusion.detection.family_eval import scene_bootstrap
+
+    n, p = 400, 0.9
+    right = np.zeros(n, bool)
+    right[: int(p * n)] = True
+    iv = scene_bootstrap({"oracle": [np.array([True])] * n, "cnn": [np.array([r]) for r in right]})
+    half = 1.96 * np.sqrt(p * (1 - p) / n)
+    assert iv["cnn"][0] == pytest.approx(p - half, abs=0.006) and iv["cnn"][1] == pytest.approx(p + half, abs=0.006)
+    assert iv["oracle"] == (1.0, 1.0)
+    assert iv["gap_cnn"][0] == pytest.approx(1 - iv["cnn"][1]) and iv["gap_cnn"][1] == pytest.approx(1 - iv["cnn"][0])
+    # seeded: the same figures again; another seed moves them only within the resampling noise
+    assert scene_bootstrap({"cnn": [np.array([r]) for r in right]}) == {"cnn": iv["cnn"]}
+    same = scene_bootstrap({"oracle": [np.array([r]) for r in right], "cnn": [np.array([r]) for r in right]}, seed=3)
+    assert same["gap_cnn"] == (0.0, 0.0)
+    # scenes, not targets, are the unit: ten targets per scene that fail together give a wider
+    # interval than the same 4,000 targets drawn independently
+    clustered = scene_bootstrap({"cnn": [np.full(10, r) for r in right]})["cnn"]
+    independent = scene_bootstrap({"cnn": [np.array([r]) for r in np.repeat(right, 10)]})["cnn"]
+    assert clustered[1] - clustered[0] > 2.5 * (independent[1] - independent[0])
+    assert scene_bootstrap({}) == {} and scene_bootstrap({"cnn": []}) == {}
+    assert scene_bootstrap({"cnn": [np.zeros(0, bool)] * 3}) == {}  # images without a target

@@ -84,7 +84,7 @@ def _make_detector(args):
 
 def cmd_eval_detector(args: argparse.Namespace) -> int:
     from vcfusion.detection.detector_train import load_coco_many
-    from vcfusion.detection.family_eval import evaluate_families, format_table, format_visibility_table
+    from vcfusion.detection.family_eval import evaluate_families, format_interval_table, format_table, format_visibility_table
 
     detector = _make_detector(args)
     ds = load_coco_many(args.data)
@@ -105,6 +105,9 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
     by_visibility = format_visibility_table(results)
     if by_visibility:
         print(by_visibility)
+    intervals = format_interval_table(results)
+    if intervals:
+        print(intervals)
     if args.report:
         from vcfusion.runio import write_json
 

@@ -12,7 +12,9 @@ frames of `vcfusion render` have none and form the group ``all``). Per group:
   (:func:`vcfusion.records.gnss_antenna_points`), no noise, no latency; the depth image is the
   rendered one. A target is a vehicle with a ground-truth box of at least ``min_area`` px^2;
 - the same identification per share of the target that nearer objects leave visible
-  (:data:`VISIBILITY_BINS` of the renderer's ``visible_fraction``), where the folder has it.
+  (:data:`VISIBILITY_BINS` of the renderer's ``visible_fraction``), where the folder has it;
+- 95 % intervals of the identification accuracies and of each detector's gap to the oracle, by
+  resampling the family's images (:func:`scene_bootstrap`).
 """
 
 from __future__ import annotations
@@ -34,6 +36,8 @@ IOU_QUANTILES = (0.1, 0.25, 0.5)
 # identification per how much of the target nearer objects leave visible (the renderer's
 # visible_fraction): the bins' lower edges and labels
 VISIBILITY_BINS = ((0.0, "<0.25"), (0.25, "0.25-0.5"), (0.5, ">=0.5"))
+BOOTSTRAP_RESAMPLES = 2000
+INTERVAL = (0.025, 0.975)  # a 95 % percentile interval
 
 
 @dataclass
@@ -47,6 +51,8 @@ class FamilyResult:
     n_identified_targets: int = 0
     # detector name -> {visibility bin label: (targets, accuracy at IoU 0.7)}; empty without visible_fraction
     identification_by_visibility: dict = field(default_factory=dict)
+    # detector name -> (low, high) 95 % interval of its accuracy; "gap_NAME": of oracle minus NAME
+    identification_interval: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         q = np.quantile(self.best_iou, IOU_QUANTILES) if len(self.best_iou) else [np.nan] * len(IOU_QUANTILES)
@@ -58,7 +64,8 @@ class FamilyResult:
                 "identification_targets": self.n_identified_targets,
                 **{f"ident_0.7_{k}": v for k, v in self.identification.items()},
                 **{f"ident_0.7_{k}_visible_{label}": {"targets": n, "accuracy": acc}
-                   for k, bins in self.identification_by_visibility.items() for label, (n, acc) in bins.items()}}
+                   for k, bins in self.identification_by_visibility.items() for label, (n, acc) in bins.items()},
+                **{f"ident_0.7_{k}_interval95": [float(lo), float(hi)] for k, (lo, hi) in self.identification_interval.items()}}
 
 
 class _Fixed:
@@ -207,8 +214,64 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
                 if np.isfinite(vis).any():
                     res.identification_by_visibility[name] = _by_visibility(right, vis)
             res.n_identified_targets = int(sum(len(ident[i]["oracle"][0]) for i in with_ident))
+            res.identification_interval = scene_bootstrap(
+                {name: [ident[i][name][0] >= IDENTIFICATION_IOU - 1e-12 for i in with_ident] for name in ident[with_ident[0]]})
         results.append(res)
     return results, dets
+
+
+def scene_bootstrap(right: dict[str, list[np.ndarray]], resamples: int = BOOTSTRAP_RESAMPLES,
+                    seed: int = 0) -> dict[str, tuple[float, float]]:
+    """95 % percentile intervals of identification accuracy, resampling images with replacement.
+
+    ``right``: detector name -> per image, whether each target was identified (the same targets,
+    in the same order, for every detector). Images, not targets, are resampled: one scene's targets
+    are not independent (one occluded cluster fails together), and a scene is what a seed draws.
+    Returns {name: (low, high)} and, for every detector but the oracle (when it is given),
+    {"gap_" + name: (low, high)} of the oracle's accuracy minus the detector's on the same draws
+    (paired: the oracle and the detector saw the same scenes). Seeded: the same inputs give the
+    same intervals.
+    """
+    names = list(right)
+    if not names or not sum(len(r) for r in right[names[0]]):
+        return {}  # no target: no accuracy to bound
+    n_images = len(right[names[0]])
+    targets = np.array([len(r) for r in right[names[0]]], float)
+    counts = {name: np.array([np.count_nonzero(r) for r in right[name]], float) for name in names}
+    rng = np.random.default_rng(seed)
+    # how often each image is drawn in each resample (resamples, images)
+    weights = rng.multinomial(n_images, np.full(n_images, 1.0 / n_images), size=resamples).astype(float)
+    total = weights @ targets
+    with np.errstate(invalid="ignore", divide="ignore"):
+        acc = {name: (weights @ c) / total for name, c in counts.items()}  # nan where a draw has no target
+    def interval(draws: np.ndarray) -> tuple[float, float]:
+        lo, hi = np.nanquantile(draws, INTERVAL)
+        return float(lo), float(hi)
+
+    out = {name: interval(a) for name, a in acc.items()}
+    if "oracle" in acc:
+        out.update({f"gap_{name}": interval(acc["oracle"] - a) for name, a in acc.items() if name != "oracle"})
+    return out
+
+
+def format_interval_table(results: list[FamilyResult], detector_name: str = "cnn") -> str:
+    """Identification at IoU 0.7 per family with 95 % intervals over scenes (:func:`scene_bootstrap`):
+    oracle, detector, and the oracle's lead over the detector in points."""
+    rows = [r for r in results if detector_name in r.identification_interval]
+    if not rows:
+        return ""
+    lines = [f"identification at IoU 0.7 with 95 % intervals over scenes ({BOOTSTRAP_RESAMPLES} resamples of the images)",
+             f"{'family':<16} {'oracle':>22} {detector_name:>22} {'oracle - ' + detector_name + ' (points)':>26}"]
+    for r in rows:
+        iv = r.identification_interval
+        def cell(name: str) -> str:
+            lo, hi = iv[name]
+            return f"{r.identification[name]:>7.1%} [{lo:>5.1%}, {hi:>5.1%}]"
+        lead = r.identification["oracle"] - r.identification[detector_name]
+        lo, hi = iv[f"gap_{detector_name}"]
+        lines.append(f"{r.family:<16} {cell('oracle'):>22} {cell(detector_name):>22} "
+                     f"{100 * lead:>10.1f} [{100 * lo:>5.1f}, {100 * hi:>5.1f}]")
+    return "\n".join(lines)
 
 
 def _by_visibility(right: np.ndarray, visible: np.ndarray) -> dict:
