@@ -7,7 +7,6 @@ fails for its own defect.
 """
 
 import json
-import re
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -18,7 +17,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from scenario_files import REPO, write_scenario
+from scenario_files import REPO, lifted_highway, write_scenario
 from vcfusion.cli import main
 from vcfusion.prediction.dataset import ID_COLUMNS, load_dataset
 from vcfusion.prediction.features import FEATURE_NAMES
@@ -52,11 +51,9 @@ def network(tmp: Path, xml: str) -> list[str]:
     return run(tmp, BASE.replace("NET_DIR/highway.net.xml", "bad.net.xml"))
 
 
-def elevated_network(tmp: Path, z_m: float = 5.0) -> str:
-    """The shipped straight highway lifted to z = z_m: every lane shape point gets a height."""
-    xml = (REPO / "sumo_net" / "highway.net.xml").read_text()
-    lifted = re.sub(r'shape="([^"]*)"', lambda m: 'shape="' + " ".join(f"{p},{z_m:.2f}" for p in m.group(1).split()) + '"', xml)
-    (tmp / "hill.net.xml").write_text(lifted)
+def elevated_network(tmp: Path) -> str:
+    """BASE on the shipped straight highway lifted to z = 5 m (scenario_files.lifted_highway)."""
+    lifted_highway(tmp, 5.0)
     return BASE.replace("NET_DIR/highway.net.xml", "hill.net.xml")
 
 

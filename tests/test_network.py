@@ -98,3 +98,24 @@ def test_elevation_is_found_in_a_netconvert_network_and_gone_after_flatten(tmp_p
     assert network_elevation(NET) == (0.0, "")  # the shipped networks are flat
     for name in ("curved", "onramp"):
         assert network_elevation(REPO / "sumo_net" / f"{name}.net.xml") == (0.0, "")
+
+
+def test_a_run_on_a_network_with_elevation_says_movestar_is_zero_grade(tmp_path):
+    """SUMO drives a network with elevation; the run's metrics say that MOVESTAR's rates ignore it
+    (its spec is zero grade) instead of passing them off as the road's. A flat network's run
+    carries no such field."""
+    from scenario_files import lifted_highway, write_scenario
+
+    from vcfusion.metrics.run_metrics import format_run_metrics
+    from vcfusion.run import build_cosimulation
+    from vcfusion.scenario import load_scenario
+
+    base = ("name: t\nnetwork: NET\nvehicle_types: NET_DIR/vtypes.add.xml\nsimulation: {max_time_s: 2.0}\n"
+            "ego: {lane: 2, depart_pos_m: 50, speed_mps: 19}\n"
+            "vehicles: [{name: car, count: 1, vtype: car, lanes: [1], pos_m: [80, 120]}]\n")
+    lifted_highway(tmp_path, 7.5)
+    lifted = build_cosimulation(load_scenario(write_scenario(tmp_path, base.replace("NET", "hill.net.xml", 1), "hill.yaml")), 0).run()
+    assert lifted.summary["network_max_height_m"] == 7.5
+    assert "zero grade, but this network has elevation (lanes up to 7.5 m off z = 0)" in format_run_metrics(lifted.summary)
+    flat = build_cosimulation(load_scenario(write_scenario(tmp_path, base.replace("NET", "NET_DIR/highway.net.xml", 1), "flat.yaml")), 0).run()
+    assert "network_max_height_m" not in flat.summary and "zero grade" not in format_run_metrics(flat.summary)

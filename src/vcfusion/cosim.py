@@ -37,6 +37,7 @@ from vcfusion.stages import WiringError, check_wiring, declared, stage_name
 from vcfusion.threads import one_blas_thread
 from vcfusion.traffic.lanechanges import (ego_lane_changes, lane_change_events, merge_changes, read_sumo_lanechanges,
                                           relate_to_ego)
+from vcfusion.traffic.network import FLAT_WITHIN_M, network_elevation
 from vcfusion.traffic.roadframe import RoadFrame
 from vcfusion.traffic.session import Collision, SumoSession
 
@@ -251,6 +252,9 @@ class CoSimulation:
             _finish(stage, tables, summary)
         if sc.metrics.enabled:  # per-vehicle safety, comfort and emissions (vcfusion.metrics)
             summary["metrics"] = add_run_metrics(sc, tables, session)
+            highest, _ = network_elevation(sc.network)
+            if highest > FLAT_WITHIN_M:  # MOVESTAR's rates are for zero grade: say so where the road climbs
+                summary["network_max_height_m"] = round(highest, 2)
         return RunResult(sc, self.seed, tables, summary, wallclock.perf_counter() - started, loop_wall)
 
     def _loop(self, session: SumoSession, sinks: dict[str, TableSink], progress: bool) -> dict:

@@ -185,6 +185,9 @@ def format_run_metrics(summary: dict) -> str:
              f"TTC 5th percentile {f(tr['ttc_p05_s'])} s, min time headway {f(tr['min_time_headway_s'])} s",
              f"    fuel {f(tr['fuel_g_per_km'])} g/km, CO2 {f(tr['co2_g_per_km'])} g/km, NOx {f(tr['nox_g_per_km'])} g/km "
              f"(MOVESTAR light-duty, SUMO's model for the rest)"]
+    if summary.get("network_max_height_m"):
+        lines.append(f"    MOVESTAR's rates are for zero grade, but this network has elevation (lanes up to "
+                     f"{summary['network_max_height_m']:g} m off z = 0)")
     ego = block.get("ego")
     if ego:
         lines.append(f"    ego: min TTC {f(ego['min_ttc_s'])} s, TET {f(ego['tet_s'])} s, mean |a| "

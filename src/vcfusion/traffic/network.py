@@ -8,6 +8,7 @@ parallel lanes of equal width, in closed form; :func:`read_road` gives the frame
 
 from __future__ import annotations
 
+import functools
 import shutil
 import subprocess
 import sys
@@ -232,7 +233,18 @@ FLAT_WITHIN_M = 0.05
 
 def network_elevation(net_file: str | Path) -> tuple[float, str]:
     """The largest height |z| (m) of any lane shape point of a network and the id of that lane
-    ((0.0, "") for a flat network: netconvert writes z only where it is not 0)."""
+    ((0.0, "") for a flat network: netconvert writes z only where it is not 0). Read once per
+    file version (every run of a batch asks)."""
+    path = Path(net_file)
+    try:
+        stamp = path.stat().st_mtime_ns
+    except OSError:
+        stamp = None  # _parse_xml names the problem
+    return _elevation(str(path), stamp)
+
+
+@functools.lru_cache(maxsize=16)
+def _elevation(net_file: str, stamp: int | None) -> tuple[float, str]:
     root = _parse_xml(net_file, "SUMO network (.net.xml)", ("net",))
     highest, where = 0.0, ""
     for lane in root.iter("lane"):
