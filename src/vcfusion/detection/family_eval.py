@@ -65,7 +65,7 @@ class FamilyResult:
                 **{f"ident_0.7_{k}": v for k, v in self.identification.items()},
                 **{f"ident_0.7_{k}_visible_{label}": {"targets": n, "accuracy": acc}
                    for k, bins in self.identification_by_visibility.items() for label, (n, acc) in bins.items()},
-                **{f"ident_0.7_{k}_interval95": [float(lo), float(hi)] for k, (lo, hi) in self.identification_interval.items()}}
+                **{f"ident_0.7_{k}_interval95": list(bounds) for k, bounds in self.identification_interval.items()}}
 
 
 class _Fixed:
@@ -206,16 +206,17 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
         res = FamilyResult(fam, len(ids), len(best_iou), bm, best_iou)
         with_ident = [i for i in ids if i in ident]
         if with_ident:
-            for name in ident[with_ident[0]]:
-                iou = np.concatenate([ident[i][name][0] for i in with_ident])
+            # per detector, per image: whether each target was identified (pooled, binned and resampled)
+            right_per_image = {name: [ident[i][name][0] >= IDENTIFICATION_IOU - 1e-12 for i in with_ident]
+                               for name in ident[with_ident[0]]}
+            for name, per_image in right_per_image.items():
+                right = np.concatenate(per_image)
                 vis = np.concatenate([ident[i][name][1] for i in with_ident])
-                right = iou >= IDENTIFICATION_IOU - 1e-12
-                res.identification[name] = float(right.mean()) if len(iou) else np.nan
+                res.identification[name] = float(right.mean()) if len(right) else np.nan
                 if np.isfinite(vis).any():
                     res.identification_by_visibility[name] = _by_visibility(right, vis)
             res.n_identified_targets = int(sum(len(ident[i]["oracle"][0]) for i in with_ident))
-            res.identification_interval = scene_bootstrap(
-                {name: [ident[i][name][0] >= IDENTIFICATION_IOU - 1e-12 for i in with_ident] for name in ident[with_ident[0]]})
+            res.identification_interval = scene_bootstrap(right_per_image)
         results.append(res)
     return results, dets
 
@@ -244,14 +245,15 @@ def scene_bootstrap(right: dict[str, list[np.ndarray]], resamples: int = BOOTSTR
     total = weights @ targets
     with np.errstate(invalid="ignore", divide="ignore"):
         acc = {name: (weights @ c) / total for name, c in counts.items()}  # nan where a draw has no target
-    def interval(draws: np.ndarray) -> tuple[float, float]:
-        lo, hi = np.nanquantile(draws, INTERVAL)
-        return float(lo), float(hi)
-
-    out = {name: interval(a) for name, a in acc.items()}
+    out = {name: _percentile_interval(a) for name, a in acc.items()}
     if "oracle" in acc:
-        out.update({f"gap_{name}": interval(acc["oracle"] - a) for name, a in acc.items() if name != "oracle"})
+        out.update({f"gap_{name}": _percentile_interval(acc["oracle"] - a) for name, a in acc.items() if name != "oracle"})
     return out
+
+
+def _percentile_interval(draws: np.ndarray) -> tuple[float, float]:
+    lo, hi = np.nanquantile(draws, INTERVAL)
+    return float(lo), float(hi)
 
 
 def format_interval_table(results: list[FamilyResult], detector_name: str = "cnn") -> str:
@@ -262,14 +264,14 @@ def format_interval_table(results: list[FamilyResult], detector_name: str = "cnn
         return ""
     lines = [f"identification at IoU 0.7 with 95 % intervals over scenes ({BOOTSTRAP_RESAMPLES} resamples of the images)",
              f"{'family':<16} {'oracle':>22} {detector_name:>22} {'oracle - ' + detector_name + ' (points)':>26}"]
+    def cell(r: FamilyResult, name: str) -> str:
+        lo, hi = r.identification_interval[name]
+        return f"{r.identification[name]:>7.1%} [{lo:>5.1%}, {hi:>5.1%}]"
+
     for r in rows:
-        iv = r.identification_interval
-        def cell(name: str) -> str:
-            lo, hi = iv[name]
-            return f"{r.identification[name]:>7.1%} [{lo:>5.1%}, {hi:>5.1%}]"
         lead = r.identification["oracle"] - r.identification[detector_name]
-        lo, hi = iv[f"gap_{detector_name}"]
-        lines.append(f"{r.family:<16} {cell('oracle'):>22} {cell(detector_name):>22} "
+        lo, hi = r.identification_interval[f"gap_{detector_name}"]
+        lines.append(f"{r.family:<16} {cell(r, 'oracle'):>22} {cell(r, detector_name):>22} "
                      f"{100 * lead:>10.1f} [{100 * lo:>5.1f}, {100 * hi:>5.1f}]")
     return "\n".join(lines)
 
