@@ -110,12 +110,15 @@ def test_a_run_on_a_network_with_elevation_says_movestar_is_zero_grade(tmp_path)
     from vcfusion.run import build_cosimulation
     from vcfusion.scenario import load_scenario
 
-    base = ("name: t\nnetwork: NET\nvehicle_types: NET_DIR/vtypes.add.xml\nsimulation: {max_time_s: 2.0}\n"
-            "ego: {lane: 2, depart_pos_m: 50, speed_mps: 19}\n"
-            "vehicles: [{name: car, count: 1, vtype: car, lanes: [1], pos_m: [80, 120]}]\n")
+    def run_on(network: str, name: str):
+        text = (f"name: t\nnetwork: {network}\nvehicle_types: NET_DIR/vtypes.add.xml\nsimulation: {{max_time_s: 2.0}}\n"
+                "ego: {lane: 2, depart_pos_m: 50, speed_mps: 19}\n"
+                "vehicles: [{name: car, count: 1, vtype: car, lanes: [1], pos_m: [80, 120]}]\n")
+        return build_cosimulation(load_scenario(write_scenario(tmp_path, text, name)), 0).run()
+
     lifted_highway(tmp_path, 7.5)
-    lifted = build_cosimulation(load_scenario(write_scenario(tmp_path, base.replace("NET", "hill.net.xml", 1), "hill.yaml")), 0).run()
+    lifted = run_on("hill.net.xml", "hill.yaml")
     assert lifted.summary["network_max_height_m"] == 7.5
     assert "zero grade, but this network has elevation (lanes up to 7.5 m off z = 0)" in format_run_metrics(lifted.summary)
-    flat = build_cosimulation(load_scenario(write_scenario(tmp_path, base.replace("NET", "NET_DIR/highway.net.xml", 1), "flat.yaml")), 0).run()
+    flat = run_on("NET_DIR/highway.net.xml", "flat.yaml")
     assert "network_max_height_m" not in flat.summary and "zero grade" not in format_run_metrics(flat.summary)

@@ -225,6 +225,15 @@ def _straight_edge(net_file, edge: ET.Element) -> Road | None:
                 speed_limit_mps=speed, net_file=net_file)
 
 
+def _file_version(path: str | Path) -> int | None:
+    """A file's modification time, the key under which what was read from it is kept (None for a
+    file that cannot be read: reading it names the problem)."""
+    try:
+        return Path(path).stat().st_mtime_ns
+    except OSError:
+        return None
+
+
 # The camera's world is flat: the road mesh, the ground and the depth step's road height are at
 # z = 0 (vcfusion.render.meshes, vcfusion.fusion.box_refine). Heights below this are the markings'
 # and kerbs' scale (the depth step's object pixels stand higher than 0.05 m).
@@ -235,12 +244,7 @@ def network_elevation(net_file: str | Path) -> tuple[float, str]:
     """The largest height |z| (m) of any lane shape point of a network and the id of that lane
     ((0.0, "") for a flat network: netconvert writes z only where it is not 0). Read once per
     file version (every run of a batch asks)."""
-    path = Path(net_file)
-    try:
-        stamp = path.stat().st_mtime_ns
-    except OSError:
-        stamp = None  # _parse_xml names the problem
-    return _elevation(str(path), stamp)
+    return _elevation(str(Path(net_file)), _file_version(net_file))
 
 
 @functools.lru_cache(maxsize=16)
@@ -287,11 +291,7 @@ def read_road(net_file: str | Path, route: list[str] | tuple[str, ...] | None = 
     `.where`, e.g. "route[2]") for a route the network cannot carry.
     """
     path = Path(net_file)
-    try:
-        stamp = path.stat().st_mtime_ns
-    except OSError:
-        stamp = None  # _parse_xml names the problem
-    key = (str(path.resolve()), stamp, tuple(route) if route is not None else None)
+    key = (str(path.resolve()), _file_version(path), tuple(route) if route is not None else None)
     if key in _FRAMES:
         return _FRAMES[key]
     root = _parse_xml(net_file, "SUMO network (.net.xml)", ("net",))
