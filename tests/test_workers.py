@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from vcfusion.errors import is_ctrl_c
 from vcfusion.workers import JobFailed, death_cause, run_jobs
 
 
@@ -20,6 +21,8 @@ def _job(k: int, how: str, folder: str):
         os._exit(3)
     if how == "raise":
         raise ValueError(f"job {k} refused")
+    if how == "numba-interrupted":
+        _numba_interrupted()
     if how == "sleep":
         try:
             Path(folder, "started").write_text(str(os.getpid()))
@@ -27,6 +30,44 @@ def _job(k: int, how: str, folder: str):
         finally:  # an interrupted job still cleans up
             Path(folder, "cleaned-up").write_text("yes")
     return k, os.getpid(), tempfile.gettempdir()
+
+
+# Ctrl-C landing while numba loads a compiled function's constants: numba's C code raises a
+# SystemError whose cause is a SystemError whose cause is the KeyboardInterrupt (checked against
+# real numba by the test below, in a fresh process: numba's C side keeps its loader once called).
+NUMBA_LOADS_AN_INTERRUPTED_FUNCTION = """
+import numba, numpy as np
+from numba.core import serialize
+from vcfusion.errors import is_ctrl_c
+
+@numba.njit
+def scaled(x):
+    return np.ones(3) * x, (x, "a")  # the tuple's string is loaded through serialize
+
+def interrupted(*args):  # what a SIGINT landing in the loader does
+    raise KeyboardInterrupt
+
+serialize._numba_unpickle = interrupted
+try:
+    scaled(1.0)
+except SystemError as exc:
+    chain = []
+    while exc is not None:
+        chain.append(type(exc).__name__)
+        exc = exc.__cause__
+    print(" <- ".join(chain))
+"""
+
+
+def _numba_interrupted():
+    """Raise the chain that numba raises (see NUMBA_LOADS_AN_INTERRUPTED_FUNCTION)."""
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as interrupt:
+            raise SystemError("<function _numba_unpickle> returned a result with an exception set") from interrupt
+    except SystemError as loader:
+        raise SystemError("CPUDispatcher(<function scaled>) returned a result with an exception set") from loader
 
 
 @pytest.fixture
@@ -73,6 +114,36 @@ def test_ctrl_c_stops_the_pool_and_busy_jobs_clean_up(tmp_path, scratch_root):
     with pytest.raises(ProcessLookupError):
         os.kill(pids[0], 0)
     assert list(scratch_root.glob("vcfusion-worker-*")) == []
+
+
+def test_numba_raises_a_system_error_caused_by_the_interrupt():
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", NUMBA_LOADS_AN_INTERRUPTED_FUNCTION], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["SystemError", "<-", "SystemError", "<-", "KeyboardInterrupt"]
+    with pytest.raises(SystemError) as raised:
+        _numba_interrupted()
+    assert is_ctrl_c(raised.value)
+    assert not is_ctrl_c(SystemError("a bug in an extension")) and not is_ctrl_c(ValueError("bad input"))
+
+
+def test_ctrl_c_inside_numba_in_a_worker_stops_the_worker_not_fails_the_job(tmp_path, scratch_root):
+    # the worker exits as after SIGINT (a batch's parent, which got the SIGINT too, then stops the pool)
+    results = dict(run_jobs(_job, [(0, "numba-interrupted", str(tmp_path)), (1, "ok", str(tmp_path))], 1))
+    assert results[0] == JobFailed("worker process interrupted (SIGINT)")
+    assert results[1][0] == 1  # a fresh worker ran the next job
+
+
+def test_ctrl_c_inside_numba_in_a_command_exits_130_with_the_hint(tmp_path, monkeypatch, capsys):
+    from vcfusion import cli
+
+    monkeypatch.setattr(cli, "cmd_run", lambda args: _numba_interrupted())
+    assert cli.main(["run", str(tmp_path / "any.yaml")]) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        "interrupted: no run folder was written; run the same command again to redo the run")
 
 
 def test_death_cause_names_the_signal():

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from vcfusion.errors import InputError, UsageError
+from vcfusion.errors import InputError, UsageError, is_ctrl_c
 from vcfusion.scenario import load_scenario
 
 
@@ -436,7 +436,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, SystemError) as exc:
+        if not is_ctrl_c(exc):
+            raise
         # What Ctrl-C left and how to go on: the command's set_defaults(interrupted=...).
         # The workers were stopped and temporary folders removed on the way up.
         hint = getattr(args, "interrupted", None)

@@ -32,6 +32,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing.connection import wait
 
+from vcfusion.errors import is_ctrl_c
+
 # A worker still busy this long after being asked to stop (Ctrl-C) is killed.
 STOP_GRACE_S = 10.0
 INTERRUPTED_EXIT = 130  # a worker's exit status after SIGINT, as a shell's
@@ -91,6 +93,8 @@ def _serve(task: Callable, conn, scratch: str) -> None:
             try:
                 result = task(*job)
             except Exception as exc:  # the job fails, the worker goes on
+                if is_ctrl_c(exc):  # numba's SystemError around a Ctrl-C: the worker stops
+                    raise KeyboardInterrupt from exc
                 result = JobFailed(f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}")
             try:
                 conn.send(result)

@@ -32,6 +32,14 @@ def _tiny(tmp_path: Path, max_time_s: float = 100) -> Path:
     return write_scenario(tmp_path, TINY.replace("MAX_TIME", str(max_time_s)), "tiny.yaml")
 
 
+def _endless(tmp_path: Path) -> Path:
+    """A run that is still going whenever a signal comes: an inflow keeps the road busy for an
+    hour of simulated time (the tiny scenario's 20 cars leave the road after ~1 s of wall time, so
+    a late SIGINT on a loaded machine would find the process already shutting down)."""
+    return write_scenario(tmp_path, TINY.replace("MAX_TIME", "3600")
+                          + "flows:\n  - {vehs_per_hour: 1800, lanes: [0, 1, 2], speed_mps: 25}\n", "tiny.yaml")
+
+
 def _vcfusion(*args, **kwargs) -> subprocess.Popen:
     # its own session: a signal sent to it reaches it alone, not this test's process group
     return subprocess.Popen([sys.executable, "-m", "vcfusion", *map(str, args)], stdout=subprocess.PIPE,
@@ -93,7 +101,7 @@ def test_ctrl_c_during_a_run_leaves_no_folder_and_says_how_to_go_on(tmp_path):
     scratch = tmp_path / "tmp"
     scratch.mkdir()
     out = tmp_path / "run"
-    proc = _vcfusion("run", _tiny(tmp_path, max_time_s=3000), "--out", out, env=os.environ | {"TMPDIR": str(scratch)})
+    proc = _vcfusion("run", _endless(tmp_path), "--out", out, env=os.environ | {"TMPDIR": str(scratch)})
     while not list(scratch.glob("vcfusion-run-*")):  # the run's tables are being written
         assert proc.poll() is None, proc.communicate()
         time.sleep(0.01)
@@ -107,7 +115,6 @@ def test_ctrl_c_during_a_run_leaves_no_folder_and_says_how_to_go_on(tmp_path):
     assert list(scratch.iterdir()) == []  # its temporary tables are gone too
 
 
-@pytest.mark.slow
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -116,6 +123,7 @@ def _alive(pid: int) -> bool:
     return True
 
 
+@pytest.mark.slow
 def test_ctrl_c_during_a_batch_stops_its_workers_and_keeps_complete_seeds(tmp_path):
     scratch = tmp_path / "tmp"
     scratch.mkdir()
