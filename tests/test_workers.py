@@ -1,5 +1,6 @@
 """The worker pool (vcfusion.workers.run_jobs) with real worker processes that die."""
 
+import ctypes
 import os
 import signal
 import tempfile
@@ -9,7 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from vcfusion.errors import is_ctrl_c
+from vcfusion import interrupts
+from vcfusion.interrupts import is_interrupt
 from vcfusion.workers import JobFailed, death_cause, run_jobs
 
 
@@ -38,7 +40,6 @@ def _job(k: int, how: str, folder: str):
 NUMBA_LOADS_AN_INTERRUPTED_FUNCTION = """
 import numba, numpy as np
 from numba.core import serialize
-from vcfusion.errors import is_ctrl_c
 
 @numba.njit
 def scaled(x):
@@ -57,6 +58,16 @@ except SystemError as exc:
         exc = exc.__cause__
     print(" <- ".join(chain))
 """
+
+
+def _ctrl_c_swallowed_in_a_ctypes_callback():
+    """What happens to a Ctrl-C that lands while numba compiles on a cold cache: LLVM calls back into
+    Python through ctypes, and ctypes prints and drops the callback's KeyboardInterrupt."""
+    def callback():
+        os.kill(os.getpid(), signal.SIGINT)
+        sum(range(1000))  # the handler runs at the next bytecode check, inside the callback
+
+    ctypes.CFUNCTYPE(None)(callback)()
 
 
 def _numba_interrupted():
@@ -126,8 +137,8 @@ def test_numba_raises_a_system_error_caused_by_the_interrupt():
     assert out.stdout.split() == ["SystemError", "<-", "SystemError", "<-", "KeyboardInterrupt"]
     with pytest.raises(SystemError) as raised:
         _numba_interrupted()
-    assert is_ctrl_c(raised.value)
-    assert not is_ctrl_c(SystemError("a bug in an extension")) and not is_ctrl_c(ValueError("bad input"))
+    assert is_interrupt(raised.value)
+    assert not is_interrupt(SystemError("a bug in an extension")) and not is_interrupt(ValueError("bad input"))
 
 
 def test_ctrl_c_inside_numba_in_a_worker_stops_the_worker_not_fails_the_job(tmp_path, scratch_root):
@@ -144,6 +155,47 @@ def test_ctrl_c_inside_numba_in_a_command_exits_130_with_the_hint(tmp_path, monk
     assert cli.main(["run", str(tmp_path / "any.yaml")]) == 130
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
         "interrupted: no run folder was written; run the same command again to redo the run")
+
+
+def test_ctrl_c_swallowed_on_its_way_up_still_exits_130(tmp_path, monkeypatch, capsys):
+    from vcfusion import cli
+
+    def swallowed_then_failed(args):  # as numba, whose cache then has no compiled object
+        _ctrl_c_swallowed_in_a_ctypes_callback()
+        raise RuntimeError("no compiled object yet")
+
+    monkeypatch.setattr(cli, "cmd_run", swallowed_then_failed)
+    assert cli.main(["run", str(tmp_path / "any.yaml")]) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith("interrupted: no run folder was written")
+    # the record is the command's: the next command in this process starts afresh
+    assert not interrupts.is_interrupt(RuntimeError("no compiled object yet"))
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_a_run_stops_at_the_next_tick_after_a_swallowed_ctrl_c(tmp_path):
+    from scenario_files import write_scenario
+    from vcfusion.cosim import CoSimulation
+    from vcfusion.scenario import load_scenario
+
+    scenario = load_scenario(write_scenario(tmp_path, """
+name: busy
+network: NET_DIR/highway.net.xml
+vehicle_types: NET_DIR/vtypes.add.xml
+simulation: {step_s: 0.1, max_time_s: 60}
+vehicles:
+  - {name: cars, count: 10, lanes: [0, 1, 2], pos_m: [10, 600], speed_mps: 15, min_spacing_m: 40}
+"""))
+    ticks = []
+
+    def swallows_ctrl_c_once(twins, store):
+        ticks.append(len(twins))
+        if len(ticks) == 3:
+            _ctrl_c_swallowed_in_a_ctypes_callback()
+        return {}
+
+    with interrupts.recorded(), pytest.raises(KeyboardInterrupt):
+        CoSimulation(scenario, 0, process_models=[("swallows", swallows_ctrl_c_once)]).run()
+    assert len(ticks) == 3  # not the run's 600 ticks
 
 
 def test_death_cause_names_the_signal():

@@ -6,7 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from vcfusion.errors import InputError, UsageError, is_ctrl_c
+from vcfusion import interrupts
+from vcfusion.errors import InputError, UsageError
 from vcfusion.scenario import load_scenario
 
 
@@ -434,30 +435,28 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        return args.func(args)
-    except (KeyboardInterrupt, SystemError) as exc:
-        if not is_ctrl_c(exc):
+    with interrupts.recorded():  # Ctrl-C stops the command even when numba swallowed its KeyboardInterrupt
+        try:
+            return args.func(args)
+        except SystemExit:
             raise
-        # What Ctrl-C left and how to go on: the command's set_defaults(interrupted=...).
-        # The workers were stopped and temporary folders removed on the way up.
-        hint = getattr(args, "interrupted", None)
-        print("interrupted" + (f": {hint}" if hint else ""), file=sys.stderr)
-        return 130
-    except InputError as exc:  # scenario, model, dataset and command-line values (vcfusion.errors)
-        for line in str(exc).splitlines():  # one line per problem (a scenario file may have several)
-            print(f"error: {line}", file=sys.stderr)
-        return 2
-    except FileExistsError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except Exception as exc:
-        from vcfusion.traffic.session import RunError
+        except BaseException as exc:
+            if interrupts.is_interrupt(exc):  # also when numba mangled it on its way up
+                # What Ctrl-C left and how to go on: the command's set_defaults(interrupted=...).
+                # The workers were stopped and temporary folders removed on the way up.
+                hint = getattr(args, "interrupted", None)
+                print("interrupted" + (f": {hint}" if hint else ""), file=sys.stderr)
+                return 130
+            if isinstance(exc, (InputError, FileExistsError)):  # scenario, model, dataset, command-line values
+                for line in str(exc).splitlines():  # one line per problem (a scenario file may have several)
+                    print(f"error: {line}", file=sys.stderr)
+                return 2
+            from vcfusion.traffic.session import RunError
 
-        if isinstance(exc, RunError):
-            print(f"error: {exc}", file=sys.stderr)
-            return 1
-        raise
+            if isinstance(exc, RunError):
+                print(f"error: {exc}", file=sys.stderr)
+                return 1
+            raise
 
 
 if __name__ == "__main__":

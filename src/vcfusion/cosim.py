@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from vcfusion.cloud.channel import V2CChannel
 from vcfusion.cloud.twins import ProcessModel, TwinStore, neighbours
+from vcfusion.interrupts import raise_if_received
 from vcfusion.metrics.run_metrics import add_run_metrics
 from vcfusion.metrics.traffic import sumo_model_rates
 from vcfusion.records import EGO_ID, GuidanceSet, TwinStates, VehicleStates
@@ -299,6 +300,7 @@ class CoSimulation:
                     end_reason = "trip_complete"
                     break
             if is_tick:
+                raise_if_received()  # a Ctrl-C that numba swallowed while compiling (vcfusion.interrupts)
                 now = truth.time
                 channel.send(channel.measure(truth))
                 for batch in channel.deliver(now):

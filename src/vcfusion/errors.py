@@ -17,17 +17,3 @@ class UsageError(InputError):
 class ScenarioError(InputError):
     """A scenario file (or a file it names) that cannot be used. The message is meant for the user as is."""
 
-
-def is_ctrl_c(exc: BaseException) -> bool:
-    """Whether `exc` is Ctrl-C on its way up: a KeyboardInterrupt, or the SystemError that numba
-    raises in its place when the signal lands while it loads a compiled function from its cache
-    (the interrupt is then the error's cause)."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, KeyboardInterrupt):
-            return True
-        if not isinstance(exc, SystemError):
-            return False
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return False

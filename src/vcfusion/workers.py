@@ -32,7 +32,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing.connection import wait
 
-from vcfusion.errors import is_ctrl_c
+from vcfusion import interrupts
 
 # A worker still busy this long after being asked to stop (Ctrl-C) is killed.
 STOP_GRACE_S = 10.0
@@ -72,6 +72,7 @@ def _interrupt_once(signum, frame):
     # The first SIGINT (the terminal's Ctrl-C, or the parent stopping the pool) interrupts the
     # job; a second one must not interrupt the clean-up that follows (partial folders removed).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    interrupts.note_received()
     raise KeyboardInterrupt
 
 
@@ -87,25 +88,26 @@ def _serve(task: Callable, conn, scratch: str) -> None:
     from tqdm import tqdm
 
     tqdm.set_lock(threading.RLock())
-    try:
-        while True:
-            job = conn.recv()
-            try:
-                result = task(*job)
-            except Exception as exc:  # the job fails, the worker goes on
-                if is_ctrl_c(exc):  # numba's SystemError around a Ctrl-C: the worker stops
-                    raise KeyboardInterrupt from exc
-                result = JobFailed(f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}")
-            try:
-                conn.send(result)
-            except (EOFError, OSError):
-                raise
-            except Exception as exc:  # a result that cannot be pickled (nothing was sent yet)
-                conn.send(JobFailed(f"the job's result could not be sent back: {type(exc).__name__}: {exc}"))
-    except (EOFError, OSError):
-        pass  # the parent closed the pipe or went away: exit quietly
-    except KeyboardInterrupt:
-        sys.exit(INTERRUPTED_EXIT)  # quietly, and telling the parent why
+    with interrupts.recorded():  # a SIGINT that numba swallows still stops the job (vcfusion.interrupts)
+        try:
+            while True:
+                job = conn.recv()
+                try:
+                    result = task(*job)
+                except Exception as exc:  # the job fails, the worker goes on
+                    if interrupts.is_interrupt(exc):  # SIGINT mangled on its way up (numba): the worker stops
+                        raise KeyboardInterrupt from exc
+                    result = JobFailed(f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}")
+                try:
+                    conn.send(result)
+                except (EOFError, OSError):
+                    raise
+                except Exception as exc:  # a result that cannot be pickled (nothing was sent yet)
+                    conn.send(JobFailed(f"the job's result could not be sent back: {type(exc).__name__}: {exc}"))
+        except (EOFError, OSError):
+            pass  # the parent closed the pipe or went away: exit quietly
+        except KeyboardInterrupt:
+            sys.exit(INTERRUPTED_EXIT)  # quietly, and telling the parent why
 
 
 class _Worker:
