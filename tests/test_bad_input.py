@@ -180,6 +180,14 @@ CASES = [
          ("s.yaml", "v2c.period_s", "whole multiple of simulation.step_s")),
     Case("AR period not a multiple of the V2C period", lambda t: run(t, BASE + "ar: {period_s: 0.15}\n" + FUSION.replace("WEIGHTS", "null")),
          ("s.yaml", "ar.period_s", "whole multiple of v2c.period_s (0.1)", "got 0.15")),
+    Case("time infinite", lambda t: run(t, BASE.replace("max_time_s: 2.0", "max_time_s: .inf")),
+         ("s.yaml", "simulation.max_time_s", "finite number")),
+    Case("step SUMO would round", lambda t: run(t, BASE.replace("{max_time_s: 2.0}", "{max_time_s: 2.0, step_s: 0.0015}")),
+         ("s.yaml", "simulation.step_s", "whole number of milliseconds", "0.0015")),
+    Case("run shorter than a step", lambda t: run(t, BASE.replace("max_time_s: 2.0", "max_time_s: 0.001")),
+         ("s.yaml", "simulation.max_time_s", "at least one step", "got 0.001")),
+    Case("departure faster than the type allows", lambda t: run(t, BASE.replace("pos_m: [80, 120]}", "pos_m: [80, 120], speed_mps: 41}")),
+         ("s.yaml", "vehicles[0].speed_mps", "maxSpeed of vehicle type 'car' in vtypes.add.xml (40 m/s)", "got 41")),
     Case("lane not on the road", lambda t: run(t, BASE.replace("lane: 2", "lane: 5")),
          ("s.yaml", "ego.lane", "0 to 2", "got 5")),
     Case("position beyond the road", lambda t: run(t, BASE + "accident: {pos_m: 5000, lanes: [0]}\n"),
@@ -382,3 +390,20 @@ def test_a_subprocess_gets_one_line_and_exit_2(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
     assert "bad.net.xml: line 1, column" in proc.stderr and not (tmp_path / "out").exists()
+
+
+def test_a_vehicle_sumo_refuses_is_one_line_and_exit_1(tmp_path, monkeypatch, capsys):
+    """A departure speed above the vehicle class's default maxSpeed (the type names none, so only
+    SUMO knows the limit: 200 km/h for passenger cars): SUMO's refusal, one line, nothing written."""
+    (tmp_path / "types.add.xml").write_text('<additional><vType id="car" vClass="passenger" length="4.6" '
+                                            'width="1.8" height="1.5"/>'
+                                            '<vType id="ego" vClass="passenger" length="4.6" width="1.8" '
+                                            'height="1.5"/></additional>')
+    text = BASE.replace("NET_DIR/vtypes.add.xml", "types.add.xml").replace("pos_m: [80, 120]}",
+                                                                          "pos_m: [80, 120], speed_mps: 60}")
+    monkeypatch.chdir(tmp_path)
+    assert main(run(tmp_path, text)) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: SUMO refused the scenario's vehicles: Departure speed "
+                                                   "for vehicle 'car0' is too high for the vehicle type 'car'")
+    assert not (tmp_path / "out").exists()

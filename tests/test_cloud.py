@@ -82,6 +82,17 @@ def test_history_bounded_and_at_least_history_s():
     assert len(hist) == store.capacity
 
 
+def test_history_longer_than_the_run_is_not_allocated():
+    # a day of history in a minute's run: the ring holds the run's reports, not 2 x 864,000 per twin
+    store = TwinStore(V2CConfig(history_s=86400.0), ROAD, run_s=60.0)
+    assert store.capacity == 2 * 600 + 1
+    ch = V2CChannel(V2CConfig(), np.random.default_rng(0))
+    for k in range(601):  # the whole run's reports are kept
+        store.ingest(ch.measure(states(k * 0.1, n=1)))
+    assert len(store.history("v0")) == 601
+    assert TwinStore(V2CConfig(history_s=30.0), ROAD, run_s=3600.0).capacity == 601  # history_s when shorter
+
+
 def test_snapshot_lane_matching_process_models_and_staleness():
     cfg = V2CConfig(twin_timeout_s=1.0)
     store = TwinStore(cfg, ROAD)

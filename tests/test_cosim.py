@@ -155,6 +155,18 @@ def test_lane_change_events_from_tracks_and_without_changes():
     assert len(frame) == 0 and frame["from_lane"].dtype == np.int64 and frame["start_time"].dtype == np.float64
 
 
+def test_an_error_in_the_loop_is_not_replaced_by_the_parked_vehicles_rating(tmp_path):
+    # the accident's parked trucks are rated when the run ends; a run that fails before they have
+    # stopped must report its own error, not "left its stop"
+    def fails(twins, store):
+        raise ValueError("the process model failed")
+
+    sc = _scenario(tmp_path, seconds=5.0)
+    assert sc.metrics.enabled and sc.accident is not None
+    with pytest.raises(ValueError, match="the process model failed"):
+        CoSimulation(sc, 0, controller=IdmController.for_scenario(sc), process_models=[("fails", fails)]).run()
+
+
 # -- wiring of the stages (vcfusion.stages) ------------------------------------------------------
 
 def _scenario(tmp_path, seconds=1.0, **blocks):

@@ -222,6 +222,7 @@ class CoSimulation:
             with one_blas_thread():  # small per-tick arrays: BLAS threads only cost hand-offs
                 out = self._loop(session, sinks, progress)
             loop_wall = wallclock.perf_counter() - loop_started
+            session.finish()
         finally:
             session.close()
         sumo_changes = read_sumo_lanechanges(lc_file, session.road)
@@ -264,7 +265,7 @@ class CoSimulation:
         tick_every = sc.steps(sc.v2c.period_s)
         traj_every = sc.steps(sc.simulation.trajectory_period_s)
         channel = V2CChannel(sc.v2c, self.rng)
-        store = TwinStore(sc.v2c, session.road)
+        store = TwinStore(sc.v2c, session.road, sc.simulation.max_time_s)
         for name, model in self.process_models:
             store.add_process_model(name, model)
 

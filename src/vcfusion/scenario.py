@@ -30,7 +30,7 @@ Probability = Annotated[float, Field(ge=0.0, le=1.0)]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # inf: a period or a time that never ends
 
 
 class SimulationConfig(_Strict):
@@ -40,6 +40,15 @@ class SimulationConfig(_Strict):
     lanechange_duration_s: Positive = 3.0
     # Period of the all-vehicle trajectory table (the ego is also logged every SUMO step).
     trajectory_period_s: Positive = 0.1
+
+    @field_validator("step_s")
+    @classmethod
+    def _whole_milliseconds(cls, v: float) -> float:
+        # SUMO keeps time in milliseconds: it rounds another step (0.0015 s runs as 0.002 s) and
+        # refuses one under 1 ms, and every time stamp here would disagree with SUMO's
+        if v < 0.001 - 1e-12 or abs(v * 1000 - round(v * 1000)) > 1e-6:
+            raise ValueError("expected a whole number of milliseconds, at least 0.001 (SUMO's time resolution)")
+        return v
 
 
 class V2CConfig(_Strict):
@@ -301,6 +310,9 @@ class Scenario(_Strict):
     @model_validator(mode="after")
     def _consistent(self) -> "Scenario":
         step = self.simulation.step_s
+        if self.simulation.max_time_s < step - 1e-12:
+            raise ValueError(f"simulation.max_time_s: expected at least one step (simulation.step_s, {step:g} s), "
+                             f"got {self.simulation.max_time_s:g}")
         for name, period in (
             ("v2c.period_s", self.v2c.period_s),
             ("ar.period_s", self.ar.period_s),
@@ -641,6 +653,18 @@ def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
                 raise ScenarioError(f"{origins.label(loc + (field,))}: {where}.{field}: lane {lane} does not exist "
                                     f"{at} along {on} (lanes there: {present.tolist()}); expected a lane "
                                     "present there (lanes are indexed from the right)")
+    # departure speeds SUMO would refuse ("too high for the vehicle type") where the type sets maxSpeed
+    departing = [(("vehicles", i), g.vtype, g.speed_mps) for i, g in enumerate(scenario.vehicles)]
+    departing += [(("ego",), scenario.ego.vtype, scenario.ego.speed_mps)] if scenario.ego is not None else []
+    for loc, vtype, speed in departing:
+        try:
+            max_speed = float(vtypes[vtype]["maxSpeed"])
+        except (KeyError, ValueError):
+            continue  # SUMO's default for the vehicle class, or SUMO's own error on a bad value
+        if speed > max_speed:
+            raise ScenarioError(f"{origins.label(loc + ('speed_mps',))}: {_format_location(loc)}.speed_mps: expected "
+                                f"at most the maxSpeed of vehicle type {vtype!r} in {scenario.vehicle_types.name} "
+                                f"({max_speed:g} m/s), got {speed:g}")
     if scenario.ego is not None:
         _check_ego_lane(scenario, road, origins)
     if scenario.prediction.enabled:

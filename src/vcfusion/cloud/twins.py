@@ -56,11 +56,12 @@ class TwinStore:
     twins, so ingest and snapshot are array operations over slots, not Python loops over twins.
     """
 
-    def __init__(self, config: V2CConfig, road: RoadFrame):
+    def __init__(self, config: V2CConfig, road: RoadFrame, run_s: float = math.inf):
+        """`run_s`: the run's length; a twin never holds more history than that."""
         self.config = config
         self.road = road
         # Twice the nominal number of reports, so jittered or duplicated arrivals never cut history short.
-        self.capacity = 2 * math.ceil(config.history_s / config.period_s) + 1
+        self.capacity = 2 * math.ceil(min(config.history_s, run_s) / config.period_s) + 1
         self._slot: dict[str, int] = {}  # twin id -> slot
         self._free: list[int] = []
         self._data = np.full((0, self.capacity, len(HISTORY_FIELDS)), np.nan)  # (slots, ring, fields)

@@ -154,7 +154,7 @@ class SumoSession:
         """`emissions`: (tripinfo file, rated(vtype, vclass)): SUMO's emission model on the vehicles
         whose type `rated` names (the metrics). Moving vehicles carry SUMO's emissions device, their
         trip totals written to the tripinfo file (`tripinfo_file`; None when no moving vehicle is
-        rated); the parked accident vehicles are rated without it (`parked_emissions`, at close)."""
+        rated); the parked accident vehicles are rated without it (`parked_emissions`, by finish())."""
         self.scenario = scenario
         self.seed = seed
         self.road = read_road(scenario.network, scenario.route)
@@ -173,7 +173,7 @@ class SumoSession:
         # parked accident vehicles SUMO's model rates: id -> (vtype, rates at their insertion step)
         self._parked_rated: dict[str, tuple[str, tuple[float, ...]]] = {}
         self._steps = 0  # SUMO steps taken (a parked vehicle is on the road from the first)
-        # their rows of the sumo_emissions table (SUMO's units), filled by close()
+        # their rows of the sumo_emissions table (SUMO's units), filled by finish()
         self.parked_emissions: list[tuple] = []
         self.sumo_args = [
             "sumo",
@@ -191,7 +191,10 @@ class SumoSession:
             *(self._emission_args(*emissions) if emissions else []),
             *(extra_sumo_args or []),
         ]
-        libsumo.start(self.sumo_args)
+        try:
+            libsumo.start(self.sumo_args)
+        except libsumo.TraCIException as exc:  # SUMO printed its reason ("Error: ...") just before
+            raise RunError(f"SUMO did not start ({exc}; SUMO's own message is the line above)") from None
         self._open = True
         self.time = 0.0
         self._static: dict[str, tuple] = {}
@@ -203,6 +206,9 @@ class SumoSession:
             # SUMO's emission model of each vehicle type (HBEFA/PHEMlight; SUMO's default where the type names none)
             self.emission_classes = {vt: libsumo.vehicletype.getEmissionClass(vt) for vt in self.vtypes}
             self._populate()
+        except libsumo.TraCIException as exc:  # e.g. a departure speed above the vehicle type's maxSpeed
+            self.close()
+            raise RunError(f"SUMO refused the scenario's vehicles: {exc}") from None
         except Exception:
             self.close()
             raise
@@ -391,14 +397,17 @@ class SumoSession:
                             for vid in columns["vehicle_id"]]
         return pd.DataFrame(columns, columns=[*names, "group"])
 
+    def finish(self) -> None:
+        """The run went to its end: rate the parked accident vehicles (`parked_emissions`) while
+        SUMO still holds them. Not part of close(), which also runs on the way up from an error
+        that a rating error must not replace."""
+        if self._open and self._parked_rated and all(rates for _, rates in self._parked_rated.values()):
+            self.parked_emissions = self._parked_totals()
+
     def close(self) -> None:
         if self._open:
-            try:
-                if self._parked_rated and all(rates for _, rates in self._parked_rated.values()):
-                    self.parked_emissions = self._parked_totals()
-            finally:
-                libsumo.close()
-                self._open = False
+            libsumo.close()
+            self._open = False
 
     def _parked_totals(self) -> list[tuple]:
         """The parked rated vehicles' rows of the sumo_emissions table: SUMO's per-step values (what
