@@ -33,6 +33,11 @@ def run(tmp_path, lat=0.0, loss=0.0, noise=0.0, seed=1, **kw):
     return CoSimulation(sc, seed, **kw).run()
 
 
+def run_text(tmp_path, text, seed=1):
+    sc = load_scenario(write_scenario(tmp_path, text))
+    return CoSimulation(sc, seed, controller=IdmController.for_scenario(sc)).run()
+
+
 def antenna_truth(result) -> pd.DataFrame:
     traj = result.tables["trajectories"].merge(result.tables["vehicles"][["vehicle_id", "height"]], on="vehicle_id")
     pts = gnss_antenna_points(traj.x.to_numpy(), traj.y.to_numpy(), traj.z.to_numpy(), traj.height.to_numpy())
@@ -128,8 +133,21 @@ def test_collisions_are_reported(tmp_path):
     sc = load_scenario(write_scenario(tmp_path, text))
     result = CoSimulation(sc, 0, controller=Reckless()).run()
     col = result.tables["collisions"]
-    assert len(col) >= 1 and result.summary["collisions"] == len(col)
+    assert len(col) >= 1 and result.summary["collisions"] == len(col[["collider", "victim"]].drop_duplicates())
     assert col.iloc[0].collider == "ego" and col.iloc[0].victim.startswith("accident")
+
+
+def test_stopping_short_of_a_stopped_vehicle_is_not_a_collision(tmp_path):
+    # every lane closed: the ego's IDM (s0 = 2 m) stops in the queue, closer to its leader than the
+    # car type's minGap (2.5 m), which SUMO by default reports as a collision every step
+    text = ACCIDENT.replace("LAT", "0").replace("LOSS", "0").replace("NOISE", "0").replace("max_time_s: 20", "max_time_s: 40")
+    text = text.replace("accident: {pos_m: 380, lanes: [0, 1]}", "accident: {pos_m: 300, lanes: [0, 1, 2]}")
+    result = run_text(tmp_path, text)
+    ego = result.tables["ego"]
+    stopped = ego[ego.speed < 0.01]
+    assert len(stopped) > 100
+    assert 0.0 < stopped.leader_gap_m.min() < 2.5
+    assert len(result.tables["collisions"]) == 0 and result.summary["collisions"] == 0
 
 
 def test_lane_change_events_from_tracks_and_without_changes():

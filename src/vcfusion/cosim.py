@@ -400,7 +400,8 @@ def summarize(sc: Scenario, seed: int, tables, lc: dict[str, np.ndarray], channe
         "lane_changes": int(len(lc["event_id"])),
         "lane_changes_by_target_lane": {int(k): int(v) for k, v in zip(to_lanes, per_lane)},
         "lane_changes_by_reason": {str(k): int(v) for k, v in zip(reasons, per_reason)},
-        "collisions": int(len(tables["collisions"])),
+        # a pair in contact is reported every step it stays so: count pairs, as the metrics do
+        "collisions": int(len(tables["collisions"][["collider", "victim"]].drop_duplicates())),
         "v2c_reports_sent": channel.sent,
         "v2c_reports_lost": channel.lost,
     }
@@ -426,7 +427,7 @@ def format_summary(summary: dict, wall_s: float | None = None) -> str:
     lines = [f"scenario {summary['scenario']}, seed {summary['seed']}: "
              f"{summary['simulated_s']:.1f} s simulated ({summary['end_reason']})"
              + (f" in {wall_s:.1f} s wall" if wall_s is not None else "")]
-    lines.append(f"  vehicles: {summary['vehicles']}, collisions: {summary['collisions']}")
+    lines.append(f"  vehicles: {summary['vehicles']}, collisions: {summary['collisions']} (vehicle pairs)")
     by_lane = ", ".join(f"into lane {k}: {v}" for k, v in summary["lane_changes_by_target_lane"].items()) or "none"
     lines.append(f"  lane changes: {summary['lane_changes']} ({by_lane})")
     if summary["lane_changes_by_reason"]:

@@ -41,6 +41,7 @@ def test_parked_vehicles_are_rated_without_tripinfo_as_the_sum_of_sumo_steps(tmp
         for _ in range(300):
             session.step()
         on_road = set(libsumo.vehicle.getIDList())
+        session.finish()  # the run went to its end: the parked trucks are rated
     finally:
         session.close()
     assert session.tripinfo_file is None and not (tmp_path / "tripinfo.xml").exists()
@@ -74,6 +75,7 @@ def test_moving_rated_vehicles_alone_are_in_the_tripinfo_file(tmp_path):
             session.step()
         on_road = set(libsumo.vehicle.getIDList())
         types = {vid: libsumo.vehicle.getTypeID(vid) for vid in on_road}
+        session.finish()
     finally:
         session.close()
     listed = {trip.get("id") for trip in ET.parse(session.tripinfo_file).getroot().iter("tripinfo")}

@@ -183,6 +183,9 @@ class SumoSession:
             "--seed", str(seed),
             "--lanechange.duration", repr(scenario.simulation.lanechange_duration_s),
             "--collision.action", "warn",
+            # contact only: SUMO's default also calls a gap under the vType's minGap (2.5 m) a
+            # collision, which the ego's driver (IDM s0 = 2 m, or a person) keeps when stopping
+            "--collision.mingap-factor", "0",
             "--collision.check-junctions", "true",
             "--lanechange-output", str(lanechange_file),
             "--no-step-log", "true",
