@@ -294,7 +294,9 @@ class SumoSession:
         missing = [p.vehicle_id for p in self.placements
                    if p.depart_s == 0.0 and p.vehicle_id not in libsumo.vehicle.getIDList()]
         if missing:
-            raise RunError(f"SUMO could not insert {missing} at their departure positions")
+            raise RunError(f"SUMO could not insert {missing} at their departure positions: SUMO refuses a "
+                           "vehicle whose gap to the vehicle ahead or behind is below the safe gap at their "
+                           "departure speeds (raise the group's min_spacing_m or lower its speed_mps)")
 
     # -- stepping -----------------------------------------------------------------------
     def step(self) -> None:
