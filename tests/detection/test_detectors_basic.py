@@ -69,6 +69,24 @@ def test_coco_map_equals_pycocotools(seed, min_area):
     assert ours.map_50_95 == pytest.approx(ref, abs=1e-9)
 
 
+def test_a_class_whose_ground_truth_is_all_below_min_area_is_left_out_as_pycocotools_does():
+    # a far truck in every frame (8 x 11 px, below 100 px^2) and detections of it labelled truck:
+    # the class has nothing to find, so it is no class of the mean (it was counted as AP 0,
+    # halving the mAP of a render of scenarios/overlap.yaml)
+    pytest.importorskip("pycocotools")
+    gt, det = random_dataset(np.random.default_rng(5), n_cats=1)
+    far = np.array([[316.0, 209.0, 324.0, 220.0]])
+    for img, (boxes, cls) in gt.items():
+        gt[img] = (np.concatenate([boxes, far]), np.concatenate([cls, [2]]))
+        d_boxes, d_scores, d_cls = det[img]
+        det[img] = (np.concatenate([d_boxes, far + 0.5]), np.concatenate([d_scores, [0.6]]), np.concatenate([d_cls, [2]]))
+    ours = coco_map(gt, det, min_area=100.0)
+    ref50, ref = pycocotools_map(gt, det, min_area=100.0)
+    assert ours.map_50 == pytest.approx(ref50, abs=1e-9) and ours.map_50_95 == pytest.approx(ref, abs=1e-9)
+    assert 2 not in ours.ap_per_category and ours.map_50_95 == pytest.approx(coco_map(
+        {i: (b[c == 1], c[c == 1]) for i, (b, c) in gt.items()}, det, min_area=100.0).map_50_95)
+
+
 def test_perfect_detections_score_one():
     gt = {0: (np.array([[0, 0, 10, 10], [20, 20, 40, 40]], float), np.array([1, 1]))}
     det = {0: (gt[0][0], np.array([0.9, 0.8]), np.array([1, 1]))}

@@ -46,7 +46,7 @@ def coco_map(ground_truth: dict, detections: dict, max_dets: int = 100, min_area
     """
     categories = sorted({int(c) for _, cls in ground_truth.values() for c in np.asarray(cls).reshape(-1)})
     n_t = len(IOU_THRESHOLDS)
-    ap = np.zeros((len(categories), n_t))
+    ap = np.full((len(categories), n_t), np.nan)  # NaN: a category with nothing to find (COCOeval's -1)
     for k, cat in enumerate(categories):
         scores_all, tp_all = [], []
         n_pos = 0
@@ -97,9 +97,10 @@ def coco_map(ground_truth: dict, detections: dict, max_dets: int = 100, min_area
             scores_all.append(ds)
             tp_all.append(np.where(ignored, -1, tp.astype(np.int8)))
         if n_pos == 0:
-            continue
+            continue  # all its ground truth is below min_area: no category of the mean, as in COCOeval
+        ap[k] = 0.0
         if not scores_all or sum(len(s) for s in scores_all) == 0:
-            continue  # AP 0
+            continue  # nothing detected: AP 0
         scores = np.concatenate(scores_all)
         tps = np.concatenate(tp_all, axis=1)  # 1 true positive, 0 false positive, -1 ignored
         order = np.argsort(-scores, kind="mergesort")
@@ -117,6 +118,8 @@ def coco_map(ground_truth: dict, detections: dict, max_dets: int = 100, min_area
             ap[k, t] = sampled.mean()
     if not categories:
         raise ValueError("coco_map: the ground truth has no boxes")
-    per_iou = ap.mean(axis=0)
+    scored = ~np.isnan(ap[:, 0])
+    # no category with ground truth of at least min_area: NaN (COCOeval: -1)
+    per_iou = ap[scored].mean(axis=0) if scored.any() else np.full(n_t, np.nan)
     return BoxMap(float(per_iou[0]), float(per_iou.mean()), per_iou,
-                  {c: float(ap[k].mean()) for k, c in enumerate(categories)})
+                  {c: float(ap[k].mean()) for k, c in enumerate(categories) if scored[k]})

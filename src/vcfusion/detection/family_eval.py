@@ -318,5 +318,10 @@ def format_table(results: list[FamilyResult], detector_name: str = "cnn") -> str
             f"{r.family:<16} {r.n_images:>6} {r.n_targets:>7} {s['map_50']:>7.3f} {s['map_50_95']:>10.3f} "
             f"{s['best_iou_p10']:>7.3f} {s['best_iou_p25']:>5.3f} {s['best_iou_p50']:>6.3f} "
             f"{s['best_iou_ge_0.7']:>6.1%} "
-            f"{s.get('ident_0.7_oracle', np.nan):>16.1%} {s.get(f'ident_0.7_{detector_name}', np.nan):>6.1%}")
+            f"{_share(s.get('ident_0.7_oracle')):>16} {_share(s.get(f'ident_0.7_{detector_name}')):>6}")
     return "\n".join(lines)
+
+
+def _share(value: float | None) -> str:
+    """A percentage, or '-' where there is none (--no-identification, or no target)."""
+    return "-" if value is None or np.isnan(value) else f"{value:.1%}"
