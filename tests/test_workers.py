@@ -201,3 +201,23 @@ vehicles:
 def test_death_cause_names_the_signal():
     assert death_cause(-signal.SIGSEGV) == "worker process died (signal 11: SIGSEGV)"
     assert death_cause(1) == "worker process died (exit code 1)"
+
+
+def test_ctrl_c_while_a_worker_starts_leaves_no_scratch_folder(tmp_path, scratch_root, monkeypatch):
+    # a fresh fork server takes ~1 s to start the first worker, so a Ctrl-C often lands inside
+    # Process.start(), before the worker is in the pool that the clean-up walks
+    from multiprocessing.process import BaseProcess
+
+    started = []
+    real_start = BaseProcess.start
+
+    def start_then_ctrl_c(process):
+        real_start(process)
+        started.append(process)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(BaseProcess, "start", start_then_ctrl_c)
+    with pytest.raises(KeyboardInterrupt):
+        list(run_jobs(_job, [(0, "ok", str(tmp_path))], 1))
+    assert len(started) == 1 and not started[0].is_alive()
+    assert list(scratch_root.glob("vcfusion-worker-*")) == []

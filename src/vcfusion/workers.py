@@ -116,8 +116,19 @@ class _Worker:
         self.conn, child_end = ctx.Pipe()
         # not daemonic, as a concurrent.futures worker: a job may start processes of its own
         self.process = ctx.Process(target=_serve, args=(task, child_end, self.scratch))
-        self.process.start()
-        child_end.close()
+        try:
+            self.process.start()  # ~1 s when the fork server starts: a Ctrl-C often lands here
+        except BaseException:
+            # not in the pool yet, so _stop would not see it: a started worker reads the end of
+            # its pipe and exits; its scratch folder goes now
+            self.conn.close()
+            if self.process.pid is not None:
+                self.process.kill()
+                self.process.join()
+            shutil.rmtree(self.scratch, ignore_errors=True)
+            raise
+        finally:
+            child_end.close()
         self.job: int | None = None  # index of the job it runs
         self.pipe_closed = False  # the worker's end is gone: it died (its exit code follows)
 
