@@ -8,7 +8,7 @@ from pathlib import Path
 
 from vcfusion import interrupts
 from vcfusion.errors import InputError, UsageError
-from vcfusion.scenario import load_scenario
+from vcfusion.scenario import SHIPPED_SCENARIOS, load_scenario
 
 
 def check_seed(seed: int, option: str = "--seed") -> int:
@@ -386,7 +386,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", required=True, help="e.g. 0-9 or 1,4,7-9")
     p.add_argument("--every", type=int, default=5, help="render every K-th V2C tick (default 5)")
     p.add_argument("--out", help="dataset folder to create (default: renders/NAME-dataset)")
-    p.set_defaults(func=cmd_render)
+    p.set_defaults(func=cmd_render, interrupted="no dataset folder was written; run the same command again")
 
     p = sub.add_parser("drive", help="drive the ego yourself (keyboard, wheel, game pad) or replay a drive")
     p.add_argument("scenario", nargs="?", help="scenario YAML file (not needed with --calibrate)")
@@ -406,13 +406,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_drive, interrupted="the trip was not written")
 
     p = sub.add_parser("bench-render", help="time RGB + depth + instance rendering (median ms per frame)")
-    p.add_argument("--scenario", default="scenarios/accident.yaml")
+    p.add_argument("--scenario", default=str(SHIPPED_SCENARIOS / "accident.yaml"))
     p.add_argument("--frames", type=int, default=100)
     p.add_argument("--preset", choices=("fast", "quality"), help="render preset (default: the scenario's camera.render_preset)")
     p.set_defaults(func=cmd_bench_render)
 
     p = sub.add_parser("demo", help="the main job on the default scenario")
-    p.add_argument("--scenario", default="scenarios/accident.yaml")
+    p.add_argument("--scenario", default=str(SHIPPED_SCENARIOS / "accident.yaml"))
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--trips", type=int, default=8, help="paired trips of the closing guidance study")
     p.add_argument("--process-model", action="append", default=[], metavar="MODULE:FACTORY",

@@ -22,6 +22,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from vcfusion.errors import ScenarioError  # the loader's error; importable from here as before
 
+# the repository's scenario files (the package is installed from the checkout), for defaults that
+# must work from any working directory
+SHIPPED_SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
+
 NonNegative = Annotated[float, Field(ge=0.0)]
 # A route: edge ids of the network in driving order (vcfusion.traffic.roadframe).
 Route = Annotated[list[Annotated[str, Field(min_length=1)]], Field(min_length=1)]

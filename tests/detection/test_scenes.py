@@ -137,3 +137,15 @@ def test_render_scenes_refuses_a_road_it_cannot_place_scenes_on(tmp_path):
     with pytest.raises(InputError, match="network: procedural scenes need a straight road"):
         render_scenes(load_scenario(path), "train", [0], tmp_path / "out", progress=False)
     assert not (tmp_path / "out").exists()
+
+
+def test_render_scenes_works_from_any_folder_with_its_default_scenario(tmp_path):
+    """The default --scenario is the shipped scenarios/overlap.yaml, not a path under the working
+    directory (from another folder it was 'scenario file not found')."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "vcfusion", "render-scenes", "--family", "jam", "--seeds", "0-0",
+                           "--out", "scenes"], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((tmp_path / "scenes" / "annotations.json").read_text())["images"][0]["family"] == "jam"

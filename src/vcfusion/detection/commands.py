@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from vcfusion.errors import UsageError
+from vcfusion.scenario import SHIPPED_SCENARIOS
 
 
 def parse_size(text: str, option: str) -> tuple[int, int]:
@@ -199,7 +200,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--min-train-area", type=float, default=16.0, help="train only on boxes of at least this many px^2")
     p.add_argument("--min-area", type=float, default=100.0,
                    help="held-out mAP ignores ground truth below this many px^2 (COCOeval area range)")
-    p.set_defaults(func=cmd_train_detector)
+    p.set_defaults(func=cmd_train_detector, interrupted="the weights file was not written (checkpoints written so far are kept: "
+                                                   "--init one to go on from it)")
 
     for name, func, helptext in (("eval-detector", cmd_eval_detector, "COCO mAP of a detector on a dataset folder"),):
         p = sub.add_parser(name, help=helptext)
@@ -231,8 +233,9 @@ def add_parsers(sub) -> None:
                    help="train (the training sampler) or a held-out family: jam, far_chain, cut_in, truck_occlusion")
     p.add_argument("--seeds", required=True, help="scene seeds, e.g. 0-1999 (each family has its own scenes per seed)")
     p.add_argument("--out", required=True, help="dataset folder to create")
-    p.add_argument("--scenario", default="scenarios/overlap.yaml", help="scenario giving the road and the camera")
-    p.set_defaults(func=cmd_render_scenes)
+    p.add_argument("--scenario", default=str(SHIPPED_SCENARIOS / "overlap.yaml"),
+                   help="scenario giving the road and the camera (default: the shipped scenarios/overlap.yaml)")
+    p.set_defaults(func=cmd_render_scenes, interrupted="no dataset folder was written; run the same command again")
 
     p = sub.add_parser("resize-dataset", help="shrink a COCO folder's images to the network input (WebP), "
                                               "boxes scaled: a training set small enough to carry to a GPU")
@@ -240,7 +243,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", required=True, help="dataset folder to create")
     p.add_argument("--size", default="320x240", help="WIDTHxHEIGHT, the detector's input size (default 320x240)")
     p.add_argument("--quality", type=int, default=95, help="WebP quality (default 95)")
-    p.set_defaults(func=cmd_resize_dataset)
+    p.set_defaults(func=cmd_resize_dataset, interrupted="no dataset folder was written; run the same command again")
 
     p = sub.add_parser("coco-check", help="share of clearly visible rendered vehicles a COCO detector (ONNX) finds")
     p.add_argument("data", nargs="+", help="`vcfusion render` folder(s)")

@@ -202,7 +202,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--privileged", action="store_true",
                    help="the privileged ceiling: also feed SUMO's lane-change state (a dataset built with "
                         "--privileged); such a model cannot run in the cloud")
-    p.set_defaults(func=cmd_train)
+    p.set_defaults(func=cmd_train, interrupted="the model file was not written; run the same command again")
 
     p = sub.add_parser("evaluate", help="frame- and event-level evaluation of a model on a dataset's test seeds")
     p.add_argument("model", help="model file from `vcfusion train`")

@@ -21,7 +21,9 @@ import numpy as np
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m vcfusion.render.bench", description=__doc__.splitlines()[0])
-    parser.add_argument("--scenario", default="scenarios/accident.yaml")
+    from vcfusion.scenario import SHIPPED_SCENARIOS
+
+    parser.add_argument("--scenario", default=str(SHIPPED_SCENARIOS / "accident.yaml"))
     parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--preset", choices=("fast", "quality"), help="render preset (default: the scenario's)")

@@ -16,8 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-SHOTS = (("scenarios/accident.yaml", 0, (3.0, 9.0)), ("scenarios/overlap.yaml", 0, (4.0,)),
-         ("scenarios/onramp_camera.yaml", 0, (2.0,)))
+SHOTS = (("accident.yaml", 0, (3.0, 9.0)), ("overlap.yaml", 0, (4.0,)), ("onramp_camera.yaml", 0, (2.0,)))
 PANEL_W = 480
 
 
@@ -47,14 +46,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from vcfusion.cosim import CoSimulation
     from vcfusion.driver.idm import IdmController
-    from vcfusion.scenario import load_scenario
+    from vcfusion.scenario import SHIPPED_SCENARIOS, load_scenario
     from vcfusion.render.gt_boxes import ground_truth_boxes
     from vcfusion.render.hook import CameraHook
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for path, seed, times in SHOTS:
-        scenario = load_scenario(path)
+        scenario = load_scenario(SHIPPED_SCENARIOS / path)
         scenario = scenario.model_copy(update={"simulation": scenario.simulation.model_copy(
             update={"max_time_s": min(scenario.simulation.max_time_s, max(times) + 0.5)})})
 
