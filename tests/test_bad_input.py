@@ -62,6 +62,13 @@ def vtypes(tmp: Path, xml: str) -> list[str]:
     return run(tmp, BASE.replace("NET_DIR/vtypes.add.xml", "bad.add.xml"))
 
 
+def bicycles(tmp: Path) -> None:
+    """The shipped vehicle types and a bicycle type 'bike', in bikes.add.xml."""
+    shipped = (REPO / "sumo_net" / "vtypes.add.xml").read_text()
+    (tmp / "bikes.add.xml").write_text(shipped.replace(
+        "</additional>", '<vType id="bike" vClass="bicycle" length="1.8" width="0.6" height="1.7"/></additional>'))
+
+
 SHIPPED_MLP = default_model_path().with_name("lane_change_mlp.npz")  # the MLP file's checks
 
 
@@ -315,6 +322,15 @@ CASES = [
     Case("dataset output under a file", lambda t: ((t / "afile").write_text("x"),
                                                    ["dataset", scenario(t, BASE), "--seeds", "0", "--out", "afile/d"])[1],
          ("--out", "afile is a file; expected a folder path")),
+    Case("camera on a vehicle class it cannot draw",
+         lambda t: (bicycles(t), run(t, BASE.replace("vtype: car,", "vtype: bike,").replace(
+             "NET_DIR/vtypes.add.xml", "bikes.add.xml") + "vision: {enabled: true}\n"))[1],
+         ("s.yaml", "vehicles[0].vtype (vision.enabled)", "'bike' of bikes.add.xml", "vClass 'bicycle'",
+          "expected one of: passenger, truck")),
+    Case("render a vehicle class it cannot draw",
+         lambda t: (bicycles(t), ["render", scenario(t, BASE.replace("vtype: car,", "vtype: bike,").replace(
+             "NET_DIR/vtypes.add.xml", "bikes.add.xml")), "--seeds", "0", "--out", "out"])[1],
+         ("s.yaml", "vehicles[0].vtype", "vClass 'bicycle'", "neither draw nor label")),
     Case("camera on a network with elevation",
          lambda t: run(t, elevated_network(t) + "vision: {enabled: true}\n"),
          ("s.yaml", "network (vision.enabled)", "hill.net.xml", "lies 5.00 m off z = 0", "--flatten")),
@@ -369,6 +385,11 @@ def test_the_valid_inputs_the_cases_start_from_are_valid(tmp_path):
     onramp = load_scenario(write_scenario(tmp_path, ONRAMP, "onramp.yaml"))
     assert onramp.route == ["main_in", "accel", "main_out"]
     load_scenario(write_scenario(tmp_path, BASE.replace("highway.net.xml", "curved.net.xml"), "curved.yaml"))
+    # bicycles ride in a traffic-only run; only the camera refuses them
+    bicycles(tmp_path)
+    biked = load_scenario(write_scenario(tmp_path, BASE.replace("vtype: car,", "vtype: bike,").replace(
+        "NET_DIR/vtypes.add.xml", "bikes.add.xml"), "bikes.yaml"))
+    assert biked.vehicles[0].vtype == "bike"
     # a network with elevation carries traffic (SUMO drives it); only the camera refuses it
     lifted = load_scenario(write_scenario(tmp_path, elevated_network(tmp_path), "hill.yaml"))
     assert lifted.network == tmp_path / "hill.net.xml"

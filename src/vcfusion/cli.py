@@ -246,9 +246,9 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise UsageError(f"--every: expected a positive number of V2C ticks, got {args.every}")
     if scenario.ego is None:
         raise UsageError(f"{args.scenario}: ego: the camera rides on the ego; the scenario has no ego block")
-    from vcfusion.traffic.network import require_flat_network
+    from vcfusion.scenario import require_camera_world
 
-    require_flat_network(scenario.network)  # the camera's world is flat
+    require_camera_world(scenario)  # a flat world of road vehicles
     out = check_new_folder(Path(args.out) if args.out else Path("renders") / f"{scenario.name}-dataset")
     from vcfusion.render.export import render_dataset
 
@@ -271,10 +271,10 @@ def cmd_drive(args: argparse.Namespace) -> int:
         raise UsageError("drive: give a SCENARIO file (or --calibrate)")
     from vcfusion.cosim import format_summary
     from vcfusion.hitl.drive import drive
-    from vcfusion.traffic.network import require_flat_network
+    from vcfusion.scenario import require_camera_world
 
     scenario = load_scenario(args.scenario)
-    require_flat_network(scenario.network)  # the driver sees the camera's (flat) world
+    require_camera_world(scenario)  # the driver sees the camera's world
     if args.speed not in ("1", "max"):
         raise UsageError(f"--speed: expected 1 or max, got {args.speed!r}")
     if args.fps <= 0:

@@ -23,6 +23,14 @@ import numpy as np
 # The ego's vehicle id, in SUMO and in every table (one definition for all stages).
 EGO_ID = "ego"
 
+# The camera's vehicle categories (SUMO vehicle classes; dataset and detector ids are index + 1,
+# fixed so datasets of different scenarios share them), and the SUMO classes each one covers.
+# Other classes (bicycle, pedestrian, tram, rail, ship, ...) the camera can neither draw nor label.
+VEHICLE_CATEGORIES = ("passenger", "truck", "bus", "coach", "delivery", "trailer", "motorcycle", "emergency", "taxi")
+CATEGORY_OF_VCLASS = {c: c for c in VEHICLE_CATEGORIES} | {
+    "private": "passenger", "evehicle": "passenger", "hov": "passenger", "vip": "passenger",
+    "authority": "passenger", "moped": "motorcycle"}
+
 _FIELD_NAMES: dict[type, tuple[str, ...]] = {}
 
 

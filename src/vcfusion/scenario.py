@@ -549,6 +549,44 @@ def load_scenario(path: str | Path) -> Scenario:
     return scenario
 
 
+def camera_unknown_vclass(scenario: Scenario, vtypes: dict) -> tuple[tuple, str, str] | None:
+    """(where in the scenario, vType, its vClass) of the first vehicle type the scenario uses whose
+    class the ego camera can neither draw nor label (records.CATEGORY_OF_VCLASS), else None."""
+    from vcfusion.records import CATEGORY_OF_VCLASS
+
+    used = [(("ego", "vtype"), scenario.ego.vtype)] if scenario.ego is not None else []
+    used += [(("vehicles", i, "vtype"), g.vtype) for i, g in enumerate(scenario.vehicles)]
+    used += [(("flows", i, "vtype"), f.vtype) for i, f in enumerate(scenario.flows)]
+    used += [(("accident", "vtype"), scenario.accident.vtype)] if scenario.accident is not None else []
+    for loc, vtype in used:
+        vclass = vtypes.get(vtype, {}).get("vClass", "passenger")  # SUMO's default class
+        if vclass not in CATEGORY_OF_VCLASS:
+            return loc, vtype, vclass
+    return None
+
+
+def _camera_vclass_message(scenario: Scenario, vtype: str, vclass: str) -> str:
+    from vcfusion.records import CATEGORY_OF_VCLASS
+
+    return (f"vehicle type {vtype!r} of {scenario.vehicle_types.name} has vClass {vclass!r}, which the ego camera "
+            f"can neither draw nor label; expected one of: {', '.join(CATEGORY_OF_VCLASS)} (or run without the "
+            "camera)")
+
+
+def require_camera_world(scenario: Scenario) -> None:
+    """InputError unless the ego camera can render this scenario: a flat network
+    (traffic.network.require_flat_network) and road vehicle classes it has categories for. For the
+    commands that render whatever the scenario's vision block says (render, drive, the studies)."""
+    from vcfusion.traffic.network import NetworkFileError, read_vehicle_types, require_flat_network
+
+    require_flat_network(scenario.network)
+    unknown = camera_unknown_vclass(scenario, read_vehicle_types(scenario.vehicle_types))
+    if unknown is not None:
+        loc, vtype, vclass = unknown
+        raise NetworkFileError(f"{scenario.source or scenario.name}: {_format_location(loc)}: "
+                               + _camera_vclass_message(scenario, vtype, vclass))
+
+
 def _route_error(origins: _Origins, loc: tuple, exc) -> ScenarioError:
     """A RouteError of the frame of the route at `loc` (e.g. ("vehicles", 1)), naming its field."""
     where = _format_location(loc)
@@ -657,6 +695,12 @@ def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
                 raise ScenarioError(f"{origins.label(loc + (field,))}: {where}.{field}: lane {lane} does not exist "
                                     f"{at} along {on} (lanes there: {present.tolist()}); expected a lane "
                                     "present there (lanes are indexed from the right)")
+    if scenario.vision.enabled:
+        unknown = camera_unknown_vclass(scenario, vtypes)
+        if unknown is not None:
+            loc, vtype, vclass = unknown
+            raise ScenarioError(f"{origins.label(loc)}: {_format_location(loc)} (vision.enabled): "
+                                + _camera_vclass_message(scenario, vtype, vclass))
     # departure speeds SUMO would refuse ("too high for the vehicle type") where the type sets maxSpeed
     departing = [(("vehicles", i), g.vtype, g.speed_mps) for i, g in enumerate(scenario.vehicles)]
     departing += [(("ego",), scenario.ego.vtype, scenario.ego.speed_mps)] if scenario.ego is not None else []

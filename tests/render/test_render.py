@@ -189,3 +189,13 @@ def test_vision_enabled_run_puts_frames_on_ticks():
     result = cosim.run()
     assert len(frames) == len(result.tables["camera"]) == 5
     assert frames[0].rgb.shape == (120, 160, 3)
+
+
+def test_sumo_vehicle_classes_map_to_the_camera_categories():
+    from vcfusion.render.coco import CATEGORIES, category_id
+
+    assert [category_id(c) for c in CATEGORIES] == list(range(1, len(CATEGORIES) + 1))  # fixed ids
+    assert category_id("evehicle") == category_id("private") == category_id("passenger") == 1
+    assert category_id("moped") == category_id("motorcycle")
+    with pytest.raises(ValueError, match="vehicle class 'bicycle' has no COCO category"):
+        category_id("bicycle")

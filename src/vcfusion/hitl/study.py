@@ -110,8 +110,7 @@ def run_hitl_study(scenario_path: Path, participant: str, pairs: int, out: Path,
     from vcfusion.hitl.drive import drive
     from vcfusion.hitl.sdl import init_sdl
     from vcfusion.runio import write_json
-    from vcfusion.scenario import load_scenario
-    from vcfusion.traffic.network import require_flat_network
+    from vcfusion.scenario import load_scenario, require_camera_world
 
     if not participant:
         raise UsageError("--participant: give the participant's id")
@@ -120,7 +119,7 @@ def run_hitl_study(scenario_path: Path, participant: str, pairs: int, out: Path,
     if first_seed <= practice_seed < first_seed + pairs:
         raise UsageError(f"--practice-seed {practice_seed}: one of the study's seeds; choose another")
     scenario = load_scenario(scenario_path)
-    require_flat_network(scenario.network)  # the driver sees the camera's (flat) world
+    require_camera_world(scenario)  # the driver sees the camera's world
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     order = order or default_order(participant)

@@ -18,11 +18,10 @@ from __future__ import annotations
 import numpy as np
 from pycocotools import mask as mask_utils
 
-from vcfusion.records import gnss_antenna_points
+from vcfusion.records import CATEGORY_OF_VCLASS, VEHICLE_CATEGORIES, gnss_antenna_points
 from vcfusion.render.camera import project_points
 
-# Fixed ids so datasets from different scenarios share categories (SUMO vehicle classes).
-CATEGORIES = ("passenger", "truck", "bus", "coach", "delivery", "trailer", "motorcycle", "emergency", "taxi")
+CATEGORIES = VEHICLE_CATEGORIES  # fixed ids (index + 1) shared by every dataset
 DEPTH_SCALE_M = 0.01
 
 CONVENTIONS = {
@@ -38,9 +37,10 @@ CONVENTIONS = {
 
 def category_id(vclass: str) -> int:
     try:
-        return CATEGORIES.index(vclass) + 1
-    except ValueError:
-        raise ValueError(f"vehicle class {vclass!r} has no COCO category (known: {', '.join(CATEGORIES)})") from None
+        return CATEGORIES.index(CATEGORY_OF_VCLASS[vclass]) + 1
+    except KeyError:  # load_scenario and require_camera_world refuse such a scenario before a run
+        raise ValueError(f"vehicle class {vclass!r} has no COCO category (known: "
+                         f"{', '.join(CATEGORY_OF_VCLASS)})") from None
 
 
 def depth_to_png16(depth: np.ndarray) -> np.ndarray:

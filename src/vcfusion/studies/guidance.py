@@ -451,8 +451,7 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
                        first_seed: int = 0, process_model_specs: tuple[str, ...] = (),
                        progress: bool = True, arms: tuple[str, ...] = DEFAULT_ARMS) -> dict:
     """Run the paired trips, write OUT/trips.parquet|csv, summary.csv|json|txt and the figures."""
-    from vcfusion.scenario import load_scenario
-    from vcfusion.traffic.network import require_flat_network
+    from vcfusion.scenario import load_scenario, require_camera_world
 
     arms = parse_arms(",".join(arms))
     scenario = load_scenario(scenario_path)
@@ -461,7 +460,7 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
     for spec in process_model_specs:  # fail fast, before any worker starts
         load_process_model(spec, scenario)
     if any(arm in CAMERA_ARMS for arm in arms):
-        require_flat_network(scenario.network)  # the camera arms render a flat world
+        require_camera_world(scenario)  # what the camera arms render
     started = wallclock.perf_counter()
     seeds = list(range(first_seed, first_seed + trips))
     rows: list[dict] = []

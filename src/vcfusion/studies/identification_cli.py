@@ -20,8 +20,7 @@ def _float_list(text: str, option: str) -> list[float]:
 
 
 def cmd_study_identification(args: argparse.Namespace) -> int:
-    from vcfusion.scenario import load_scenario
-    from vcfusion.traffic.network import require_flat_network
+    from vcfusion.scenario import load_scenario, require_camera_world
     from vcfusion.studies.batch import parse_seeds
     from vcfusion.detection.detector_net import DetectorFileError, TorchDetector, default_weights_path
     from vcfusion.detection.detectors import OracleDetector
@@ -31,7 +30,7 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
 
     scenarios = [load_scenario(path) for path in args.scenario]
     for scenario in scenarios:
-        require_flat_network(scenario.network)  # every frame is rendered in a flat world
+        require_camera_world(scenario)  # every frame is rendered
     names = [sc.name for sc in scenarios]
     if len(set(names)) != len(names):
         raise UsageError(f"scenario: expected scenarios with distinct names, got {names}")
