@@ -178,6 +178,41 @@ def test_ngsim_headerless_gz_and_missing_columns(ngsim_dataset, tmp_path):
     assert lc.loc["6", "from_lane"] == 1 and lc.loc["6", "to_lane"] == 0
 
 
+def test_ngsim_combined_release_one_site_its_periods_apart(ngsim_dataset, tmp_path, capsys):
+    """The combined release: every site in one CSV (Location), a site's periods with their own
+    Vehicle_IDs and Frame_IDs (told apart by Global_Time - 100 ms x Frame_ID), numbers written with
+    thousands separators. One site's import equals its periods imported as separate files."""
+    _, _, out = ngsim_dataset
+    period1 = ngsim_rows().assign(Location="us-101")
+    period2 = period1.assign(Global_Time=period1["Global_Time"] + 15 * 60 * 1000)  # 15 min later, same ids
+    other = period1.assign(Location="i-80", Local_Y=period1["Local_Y"] + 50.0)
+    combined = pd.concat([other, period1, period2], ignore_index=True)
+    for column in ("Global_Time", "Global_X"):
+        combined[column] = combined[column].map(lambda v: f"{v:,.1f}" if column == "Global_X" else f"{v:,}")
+    csv = tmp_path / "Next_Generation_Simulation.csv"
+    combined.to_csv(csv, index=False)
+    assert '"1,118,846,980,200"' in csv.read_text()[:2000]
+    # without a site: one line naming the sites and the option
+    assert main(["dataset", "--from-ngsim", str(csv), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert "Location: the file mixes ['i-80', 'us-101']" in err and "--ngsim-location" in err
+    assert main(["dataset", "--from-ngsim", str(csv), "--ngsim-location", "lankershim", "--out",
+                 str(tmp_path / "x")]) == 2
+    assert "no such Location; the file has ['i-80', 'us-101']" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+    data = tmp_path / "us101"
+    assert main(["dataset", "--from-ngsim", str(csv), "--ngsim-location", "US-101", "--out", str(data),
+                 "--chunk", "30"]) == 0
+    meta = json.loads((data / "dataset.json").read_text())
+    assert [r["name"] for r in meta["recordings"]] == ["ngsim Next_Generation_Simulation-us-101-period1",
+                                                       "ngsim Next_Generation_Simulation-us-101-period2"]
+    # each period is the single-period file's recording: the same lane changes, twice
+    lc = _tables(data, "lane_changes")
+    one = _tables(out, "lane_changes")
+    assert len(lc) == 2 * len(one) and sorted(lc["vehicle_id"]) == sorted(list(one["vehicle_id"]) * 2)
+    assert meta["recordings"][0]["quality"] == json.loads((out / "dataset.json").read_text())["recordings"][0]["quality"]
+
+
 @pytest.mark.parametrize("mutate, needle", [
     (lambda df: df.drop(columns=["Lane_ID"]), "Lane_ID"),
     (lambda df: df.assign(v_Vel=df["v_Vel"].astype(object).where(df.index != 3, "fast")), "v_Vel: expected a number"),

@@ -58,8 +58,9 @@ def _import_recordings(args: argparse.Namespace) -> int:
         from vcfusion.prediction.sources.ngsim import parse_main_lanes, read_ngsim
 
         lanes = parse_main_lanes(args.main_lanes)
-        recordings = [read_ngsim(f, lanes) for f in args.from_ngsim]
-        source = {"format": "ngsim", "files": [str(f) for f in args.from_ngsim], "main_lanes": list(lanes)}
+        recordings = [rec for f in args.from_ngsim for rec in read_ngsim(f, lanes, args.ngsim_location)]
+        source = {"format": "ngsim", "files": [str(f) for f in args.from_ngsim], "main_lanes": list(lanes),
+                  "location": args.ngsim_location}
     else:
         from vcfusion.prediction.sources.highd import read_highd_path
 
@@ -163,6 +164,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--main-lanes", dest="main_lanes", default="1-5",
                    help="NGSIM Lane_IDs of the main lanes (1 = leftmost); others (ramps, auxiliary) are off the "
                         "road. US-101: 1-5, I-80: 1-6")
+    p.add_argument("--ngsim-location", dest="ngsim_location", metavar="NAME",
+                   help="the combined NGSIM release (all sites in one CSV): import the rows of this Location, "
+                        "e.g. us-101 or i-80")
     p.add_argument("--chunk", type=float, default=300.0,
                    help="imports: seconds of a recording per seed (the unit of the train/validation/test split)")
     p.add_argument("--workers", type=int, default=2)

@@ -7,6 +7,13 @@ header (names matched without regard to case; extra columns such as the combined
 Location are allowed), or the original headerless whitespace-separated `.txt` with the 18
 columns in this order; either may be gzip-compressed (`.gz`).
 
+The combined release (data.transportation.gov, every site in one CSV with a Location column)
+is read one site at a time (`location`, e.g. "us-101"; a file that mixes sites without one is
+refused, naming them). Its periods (US-101's 7:50-8:05, 8:05-8:20 and 8:20-8:35, each with its
+own Vehicle_IDs and Frame_IDs) are told apart by Global_Time - 100 ms x Frame_ID, constant within
+a period's file, and become recordings of their own. Numbers written with thousands separators
+("1,113,433,136,100", as spreadsheet exports write them) are read as numbers.
+
 How the fields are used (and the documented defaults for gaps of real releases):
 - time = (Frame_ID - first Frame_ID) x 0.1 s;
 - s = Local_Y (front centre, along the direction of travel) - length / 2: the footprint centre;
@@ -62,8 +69,9 @@ def _open_text(path: Path):
     return gzip.open(path, "rt") if path.suffix == ".gz" else open(path)
 
 
-def read_ngsim_table(path: Path) -> pd.DataFrame:
-    """The file's columns under NGSIM's names (numeric); RealDataError naming what is wrong."""
+def read_ngsim_table(path: Path, location: str | None = None) -> pd.DataFrame:
+    """The file's columns under NGSIM's names (numeric); RealDataError naming what is wrong.
+    `location`: the combined release's rows of that Location only (case and spaces ignored)."""
     if not path.is_file():
         raise RealDataError(f"{path}: no such NGSIM file")
     try:
@@ -91,10 +99,20 @@ def read_ngsim_table(path: Path) -> pd.DataFrame:
     if missing:
         raise RealDataError(f"{path}: column(s) {', '.join(missing)} missing; expected NGSIM's columns "
                             f"{', '.join(NGSIM_COLUMNS)} (at least {', '.join(REQUIRED)})")
+    if location is not None:
+        if "Location" not in table.columns:
+            raise RealDataError(f"{path}: --ngsim-location {location!r}: the file has no Location column (it holds "
+                                "one site: leave the option out)")
+        names = table["Location"].astype(str).str.strip().str.lower()
+        if not (names == location.strip().lower()).any():
+            raise RealDataError(f"{path}: --ngsim-location {location!r}: no such Location; the file has "
+                                f"{sorted(set(names))}")
+        table = table[names == location.strip().lower()].reset_index(drop=True)
     for column in ("Location", "Direction"):  # columns of the combined release (all sites in one file)
         if column in table.columns and table[column].nunique() > 1:
+            option = " (--ngsim-location NAME)" if column == "Location" else ""
             raise RealDataError(f"{path}: {column}: the file mixes {sorted(map(str, table[column].unique()))}; "
-                                f"import one location and one direction of travel at a time")
+                                f"import one location{option} and one direction of travel at a time")
     if not len(table):
         raise RealDataError(f"{path}: no rows")
     for c in NGSIM_COLUMNS:
@@ -103,7 +121,10 @@ def read_ngsim_table(path: Path) -> pd.DataFrame:
         if pd.api.types.is_numeric_dtype(table[c]):  # read as numbers (empty fields: NaN)
             values, bad = table[c], pd.Series(False, index=table.index)
         else:
-            values = pd.to_numeric(table[c], errors="coerce")
+            text = table[c].astype(str).str.strip()
+            if text.str.fullmatch(r"-?\d{1,3}(,\d{3})+(\.\d*)?|-?\d*(\.\d*)?|nan|").all():
+                text = text.str.replace(",", "", regex=False)  # thousands separators
+            values = pd.to_numeric(text.where(table[c].notna()), errors="coerce")
             bad = values.isna() & table[c].notna() & (table[c].astype(str).str.strip() != "")
         if c in REQUIRED:
             bad |= values.isna()
@@ -115,9 +136,28 @@ def read_ngsim_table(path: Path) -> pd.DataFrame:
     return table
 
 
-def read_ngsim(path: str | Path, main_lanes: tuple[int, int] = DEFAULT_MAIN_LANES) -> Recording:
+def read_ngsim(path: str | Path, main_lanes: tuple[int, int] = DEFAULT_MAIN_LANES,
+               location: str | None = None) -> list[Recording]:
+    """The file's recordings: one per period (see the module's notes), in time order."""
     path = Path(path)
-    table = read_ngsim_table(path)
+    table = read_ngsim_table(path, location)
+    name = path.name
+    for suffix in (".gz", ".csv", ".txt"):
+        name = name.removesuffix(suffix)
+    if location is not None:
+        name += f"-{location.strip().lower()}"
+    if "Global_Time" not in table or table["Global_Time"].isna().any():
+        return [_recording(table, path, name, main_lanes)]
+    offset = table["Global_Time"].to_numpy(float) - 100.0 * table["Frame_ID"].to_numpy(float)
+    periods = np.unique(np.round(offset, -3))  # ms; the same period's rows agree to the ms
+    if len(periods) == 1:
+        return [_recording(table, path, name, main_lanes)]
+    key = np.round(offset, -3)
+    return [_recording(table[key == p].reset_index(drop=True), path, f"{name}-period{k + 1}", main_lanes)
+            for k, p in enumerate(periods)]
+
+
+def _recording(table: pd.DataFrame, path: Path, name: str, main_lanes: tuple[int, int]) -> Recording:
     first, last = main_lanes
     n = len(table)
     lane_id = table["Lane_ID"].to_numpy(np.int64)
@@ -142,16 +182,13 @@ def read_ngsim(path: str | Path, main_lanes: tuple[int, int] = DEFAULT_MAIN_LANE
     })
     off = pd.Series(lane_id[~on_main]).value_counts().sort_index()
     source = {
-        "format": "ngsim", "file": path.name, "main_lanes": [first, last],
+        "format": "ngsim", "file": path.name, "recording": name, "main_lanes": [first, last],
         "quality_reader": {
             "rows": n, "sizes_filled_by_class": sizes["filled"],
             "lateral_unknown_rows": int(np.isnan(d).sum()),
             "rows_by_lane_outside_main": {str(k): int(v) for k, v in off.items()},
         },
     }
-    name = path.name
-    for suffix in (".gz", ".csv", ".txt"):
-        name = name.removesuffix(suffix)
     road = straight_road(f"ngsim-{name}", last - first + 1, LANE_WIDTH_FT * FT_M,
                          float(np.nanmax(samples["s"])) + 1.0, float("nan"))
     return Recording(f"ngsim {name}", road, samples, FRAME_S, source)
