@@ -322,6 +322,10 @@ CASES = [
     Case("dataset output under a file", lambda t: ((t / "afile").write_text("x"),
                                                    ["dataset", scenario(t, BASE), "--seeds", "0", "--out", "afile/d"])[1],
          ("--out", "afile is a file; expected a folder path")),
+    Case("guidance study without an ego",
+         lambda t: ["study", "guidance", scenario(t, BASE.replace("ego: {lane: 2, depart_pos_m: 50, speed_mps: 19}\n", "")),
+                    "--trips", "2", "--out", "out"],
+         ("s.yaml", "ego: the guidance study needs an ego")),
     Case("camera on a vehicle class it cannot draw",
          lambda t: (bicycles(t), run(t, BASE.replace("vtype: car,", "vtype: bike,").replace(
              "NET_DIR/vtypes.add.xml", "bikes.add.xml") + "vision: {enabled: true}\n"))[1],

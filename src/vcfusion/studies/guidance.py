@@ -451,12 +451,12 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
                        first_seed: int = 0, process_model_specs: tuple[str, ...] = (),
                        progress: bool = True, arms: tuple[str, ...] = DEFAULT_ARMS) -> dict:
     """Run the paired trips, write OUT/trips.parquet|csv, summary.csv|json|txt and the figures."""
-    from vcfusion.scenario import load_scenario, require_camera_world
+    from vcfusion.scenario import ScenarioError, load_scenario, require_camera_world
 
     arms = parse_arms(",".join(arms))
     scenario = load_scenario(scenario_path)
     if scenario.ego is None:
-        raise StudyError(f"{scenario_path}: the guidance study needs an ego (the scenario has no 'ego' block)")
+        raise ScenarioError(f"{scenario_path}: ego: the guidance study needs an ego; the scenario has no ego block")
     for spec in process_model_specs:  # fail fast, before any worker starts
         load_process_model(spec, scenario)
     if any(arm in CAMERA_ARMS for arm in arms):
