@@ -66,6 +66,27 @@ def test_placements_follow_each_route():
         assert (p.edges, p.sumo_lane, p.sumo_pos_m) == (("hw",), p.lane, p.pos_m)
 
 
+def test_no_vehicle_departs_where_its_lane_ends_before_it_can_stop(tmp_path):
+    """SUMO refuses a departure on a lane that ends closer than the vehicle can stop ("will not be
+    able to depart ... junction too close"): such draws are drawn again, and the run goes."""
+    scenario = load_scenario(ONRAMP)
+    road = read_road(scenario.network, scenario.route)
+    vtypes = read_vehicle_types(scenario.vehicle_types)
+    lane_end = float(road.lane_spans(0)[0, 1])
+    group = scenario.vehicles[0].model_copy(update={"lanes": [0], "count": 1, "speed_mps": 18.0,
+                                                    "pos_m": (lane_end - 60.0, lane_end - 1.0), "min_spacing_m": 5.0})
+    only = scenario.model_copy(update={"vehicles": [group], "flows": [], "ego": None})
+    stopping = 18.0 ** 2 / (2 * float(vtypes[group.vtype].get("decel", 4.5)))
+    for seed in range(10):
+        placed = plan_placements(only, road, vtypes, np.random.default_rng(seed))
+        assert all(lane_end - p.pos_m >= stopping for p in placed)
+    short = only.model_copy(update={"simulation": only.simulation.model_copy(update={"max_time_s": 1.0}),
+                                    "metrics": only.metrics.model_copy(update={"enabled": False})})
+    for seed in range(4):  # before, some of these seeds ended with "SUMO could not insert"
+        result = build_cosimulation(short, seed).run()
+        assert set(result.tables["vehicles"]["vehicle_id"]) == {"main0"}
+
+
 def test_lane_end_ahead_feature():
     """Distance to the end of the own lane: the acceleration lane ends at `accel`'s end; the main
     line's lanes do not end (the cap); off the road 0."""

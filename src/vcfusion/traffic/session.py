@@ -70,6 +70,10 @@ def frame_of(scenario: Scenario, road: RoadFrame, route: list[str] | None) -> Ro
     return read_road(scenario.network, route)
 
 
+# metres to spare, beyond the stopping distance, between a vehicle's departure and the end of its lane
+STOP_MARGIN_M = 5.0
+
+
 def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.random.Generator) -> list[Placement]:
     """Draw the initial vehicles and flow arrivals of one seed. A draw of a lane absent at the
     drawn position (an acceleration lane, a lane drop) is drawn again, like one too close to
@@ -111,17 +115,22 @@ def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.r
     for group in scenario.vehicles:
         length = length_of(group.vtype)
         frame = frame_of(scenario, road, group.route)
+        # SUMO refuses a departure on a lane that ends (an acceleration lane, a lane drop) closer
+        # than the vehicle can stop from its departure speed: such a draw is drawn again
+        stopping_m = group.speed_mps ** 2 / (2.0 * float(vtypes[group.vtype].get("decel", 4.5))) + STOP_MARGIN_M
         for k in range(group.count):
             for _attempt in range(200):
                 lane = int(rng.choice(group.lanes))
                 front = float(rng.uniform(*group.pos_m))
                 place = sumo_place(frame, lane, front)
-                if place is not None and free(place, length, group.min_spacing_m):
+                if (place is not None and free(place, length, group.min_spacing_m)
+                        and not frame.lane_end_ahead(lane, front) - front < stopping_m):
                     break
             else:
                 raise RunError(
                     f"vehicles.{group.name}: could not place vehicle {k + 1} of {group.count} in lanes "
-                    f"{group.lanes} within {list(group.pos_m)} m with {group.min_spacing_m} m spacing")
+                    f"{group.lanes} within {list(group.pos_m)} m with {group.min_spacing_m} m spacing (and "
+                    f"{stopping_m:.0f} m of its lane ahead, to stop from {group.speed_mps:g} m/s)")
             if front - length < 0 or front > frame.length_m:
                 raise RunError(
                     f"vehicles.{group.name}: vehicle {k + 1} drawn at {front:.1f} m, outside the road "
@@ -296,7 +305,8 @@ class SumoSession:
         if missing:
             raise RunError(f"SUMO could not insert {missing} at their departure positions: SUMO refuses a "
                            "vehicle whose gap to the vehicle ahead or behind is below the safe gap at their "
-                           "departure speeds (raise the group's min_spacing_m or lower its speed_mps)")
+                           "departure speeds (raise the group's min_spacing_m or lower its speed_mps; a reason "
+                           "SUMO gives itself is on the line above)")
 
     # -- stepping -----------------------------------------------------------------------
     def step(self) -> None:
