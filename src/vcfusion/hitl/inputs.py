@@ -159,8 +159,8 @@ class ReplayInput:
             bad = ~np.isfinite(values) | (values < lo) | (values > hi)
             if bad.any():
                 row = int(np.flatnonzero(bad)[0])
-                raise UsageError(f"{self.path}: column {name!r}, row {row + 1}: {values[row]!r} is outside "
-                                 f"[{lo}, {hi}]")
+                raise UsageError(f"{self.path}: column {name!r}, row {row + 1}: {float(values[row]):g} is outside "
+                                 f"[{lo:g}, {hi:g}]")
             cols[name] = values
         if (np.diff(cols["time_s"]) < 0).any():
             row = int(np.flatnonzero(np.diff(cols["time_s"]) < 0)[0]) + 1
