@@ -116,9 +116,9 @@ def cmd_metrics(args: argparse.Namespace) -> int:
             rebuild_batch_summary(path, folders)
             print_batch_metrics(path)
     if missing_sumo:
-        print(f"note: {len(missing_sumo)} run folder(s) have no sumo_emissions.parquet (written before SUMO's "
-              "emission totals were recorded): their SUMO emission columns are empty; rerun those seeds to get them. "
-              "First: " + str(missing_sumo[0]))
+        print(f"note: {len(missing_sumo)} run folder(s) have no sumo_emissions.parquet (run with metrics.enabled "
+              "false, or written before SUMO's emission totals were recorded): their SUMO emission columns are "
+              "empty; rerun those seeds with metrics enabled to get them. First: " + str(missing_sumo[0]))
     return 0
 
 
