@@ -99,7 +99,15 @@ def load_process_model(spec: str, scenario):
         factory = getattr(importlib.import_module(module_name), attr)
     except (ImportError, AttributeError) as exc:
         raise ValueError(f"--process-model: cannot load {spec!r}: {exc}") from None
-    return (f"{module_name}:{attr}", factory(scenario))
+    try:
+        model = factory(scenario)
+    except Exception as exc:  # the user's factory: say which one and what it raised, in one line
+        raise ValueError(f"--process-model: {spec}(scenario {scenario.name!r}) raised {type(exc).__name__}: "
+                         f"{exc}") from None
+    if not callable(model):
+        raise ValueError(f"--process-model: {spec}(scenario) returned a {type(model).__name__}; expected a process "
+                         "model, a callable model(twins, store) -> {column: values}")
+    return (f"{module_name}:{attr}", model)
 
 
 def arm_scenario(scenario, arm: str):
