@@ -30,6 +30,7 @@ from vcfusion.cloud.channel import V2CChannel
 from vcfusion.cloud.twins import ProcessModel, TwinStore, neighbours
 from vcfusion.interrupts import raise_if_received
 from vcfusion.metrics.run_metrics import add_run_metrics
+from vcfusion.metrics.safety import colliding_pairs
 from vcfusion.metrics.traffic import sumo_model_rates
 from vcfusion.records import EGO_ID, GuidanceSet, TwinStates, VehicleStates
 from vcfusion.runio import RunTables, TableSink, vehicle_tracks
@@ -400,8 +401,7 @@ def summarize(sc: Scenario, seed: int, tables, lc: dict[str, np.ndarray], channe
         "lane_changes": int(len(lc["event_id"])),
         "lane_changes_by_target_lane": {int(k): int(v) for k, v in zip(to_lanes, per_lane)},
         "lane_changes_by_reason": {str(k): int(v) for k, v in zip(reasons, per_reason)},
-        # a pair in contact is reported every step it stays so: count pairs, as the metrics do
-        "collisions": int(len(tables["collisions"][["collider", "victim"]].drop_duplicates())),
+        "collisions": len(colliding_pairs(tables["collisions"])),
         "v2c_reports_sent": channel.sent,
         "v2c_reports_lost": channel.lost,
     }

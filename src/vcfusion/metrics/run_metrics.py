@@ -18,6 +18,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from vcfusion.metrics.safety import colliding_pairs
 from vcfusion.metrics.sumo_emissions import emission_table
 from vcfusion.runio import write_json
 from vcfusion.metrics.traffic import (EGO_ID, HEADWAY_EDGES, MOVESTAR_KEYS, SUMO_KEYS, TTC_EDGES, RunMetrics,
@@ -90,11 +91,8 @@ def _ratio(num: float, den: float) -> float | None:
 def summary_block(cfg, result: RunMetrics, collisions: pd.DataFrame | None, sumo_available: bool) -> dict:
     """summary.json's `metrics`: the ego, the traffic (counted vehicles) and the settings used."""
     col = result.columns
-    pairs = ego_collisions = 0
-    if collisions is not None and len(collisions):
-        distinct = set(zip(collisions["collider"].tolist(), collisions["victim"].tolist()))
-        pairs = len(distinct)
-        ego_collisions = sum(EGO_ID in pair for pair in distinct)
+    distinct = colliding_pairs(collisions)
+    pairs, ego_collisions = len(distinct), sum(EGO_ID in pair for pair in distinct)
     block: dict = {"settings": {"ttc_threshold_s": cfg.ttc_threshold_s, "jerk_window_s": cfg.jerk_window_s,
                                 "leader_range_m": cfg.leader_range_m, "movestar": dict(cfg.movestar),
                                 "exclude_groups": list(cfg.exclude_groups),

@@ -40,6 +40,14 @@ import pandas as pd
 from vcfusion.records import EGO_ID
 
 
+def colliding_pairs(collisions: pd.DataFrame | None) -> set[tuple[str, str]]:
+    """The (collider, victim) pairs of a collisions table: SUMO reports a pair every step it stays
+    in contact, so a collision is a pair, not a row."""
+    if collisions is None or not len(collisions):
+        return set()
+    return set(zip(collisions["collider"].tolist(), collisions["victim"].tolist()))
+
+
 def acceleration_from_speed(speed: np.ndarray, dt: float) -> np.ndarray:
     """Forward difference: a[i] applies over [t_i, t_i + dt]."""
     v = np.asarray(speed, dtype=float)
@@ -130,12 +138,7 @@ def trip_metrics(tables: dict[str, pd.DataFrame], ego_lane: int, dt: float,
     The thresholds come from the scenario's `metrics:` block (MetricsConfig)."""
     ego = tables["ego"].sort_values("time")
     out = kinematics(ego["time"].to_numpy(), ego["s"].to_numpy(), ego["speed"].to_numpy(), dt, jerk_window_s)
-    collisions = tables.get("collisions")
-    if collisions is not None and len(collisions):
-        mine = collisions[(collisions["collider"] == EGO_ID) | (collisions["victim"] == EGO_ID)]
-        out["collisions"] = int(len(mine.drop_duplicates(subset=["collider", "victim"])))
-    else:
-        out["collisions"] = 0
+    out["collisions"] = sum(EGO_ID in pair for pair in colliding_pairs(tables.get("collisions")))
     target = cut_in_target(tables.get("lane_changes"))
     out.update({"target_id": None, "target_mid_time_s": math.nan, "target_gap_at_mid_m": math.nan,
                 "avg_ttc_s": math.nan, "avg_ttc_clipped_s": math.nan, "min_ttc_s": math.nan, "ttc_samples": 0,
