@@ -16,4 +16,3 @@ class UsageError(InputError):
 
 class ScenarioError(InputError):
     """A scenario file (or a file it names) that cannot be used. The message is meant for the user as is."""
-

@@ -34,7 +34,8 @@ Probability = Annotated[float, Field(ge=0.0, le=1.0)]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # inf: a period or a time that never ends
+    # no inf or nan: a period or a time that never ends
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class SimulationConfig(_Strict):
@@ -549,9 +550,9 @@ def load_scenario(path: str | Path) -> Scenario:
     return scenario
 
 
-def camera_unknown_vclass(scenario: Scenario, vtypes: dict) -> tuple[tuple, str, str] | None:
-    """(where in the scenario, vType, its vClass) of the first vehicle type the scenario uses whose
-    class the ego camera can neither draw nor label (records.CATEGORY_OF_VCLASS), else None."""
+def camera_vclass_problem(scenario: Scenario, vtypes: dict) -> tuple[tuple, str] | None:
+    """(where in the scenario, message) for the first vehicle type the scenario uses whose class the
+    ego camera can neither draw nor label (records.CATEGORY_OF_VCLASS), else None."""
     from vcfusion.records import CATEGORY_OF_VCLASS
 
     used = [(("ego", "vtype"), scenario.ego.vtype)] if scenario.ego is not None else []
@@ -561,16 +562,10 @@ def camera_unknown_vclass(scenario: Scenario, vtypes: dict) -> tuple[tuple, str,
     for loc, vtype in used:
         vclass = vtypes.get(vtype, {}).get("vClass", "passenger")  # SUMO's default class
         if vclass not in CATEGORY_OF_VCLASS:
-            return loc, vtype, vclass
+            return loc, (f"vehicle type {vtype!r} of {scenario.vehicle_types.name} has vClass {vclass!r}, which the "
+                         f"ego camera can neither draw nor label; expected one of: {', '.join(CATEGORY_OF_VCLASS)} "
+                         "(or run without the camera)")
     return None
-
-
-def _camera_vclass_message(scenario: Scenario, vtype: str, vclass: str) -> str:
-    from vcfusion.records import CATEGORY_OF_VCLASS
-
-    return (f"vehicle type {vtype!r} of {scenario.vehicle_types.name} has vClass {vclass!r}, which the ego camera "
-            f"can neither draw nor label; expected one of: {', '.join(CATEGORY_OF_VCLASS)} (or run without the "
-            "camera)")
 
 
 def require_camera_world(scenario: Scenario) -> None:
@@ -580,11 +575,10 @@ def require_camera_world(scenario: Scenario) -> None:
     from vcfusion.traffic.network import NetworkFileError, read_vehicle_types, require_flat_network
 
     require_flat_network(scenario.network)
-    unknown = camera_unknown_vclass(scenario, read_vehicle_types(scenario.vehicle_types))
-    if unknown is not None:
-        loc, vtype, vclass = unknown
-        raise NetworkFileError(f"{scenario.source or scenario.name}: {_format_location(loc)}: "
-                               + _camera_vclass_message(scenario, vtype, vclass))
+    problem = camera_vclass_problem(scenario, read_vehicle_types(scenario.vehicle_types))
+    if problem is not None:
+        loc, message = problem
+        raise NetworkFileError(f"{scenario.source or scenario.name}: {_format_location(loc)}: {message}")
 
 
 def _route_error(origins: _Origins, loc: tuple, exc) -> ScenarioError:
@@ -696,11 +690,10 @@ def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
                                     f"{at} along {on} (lanes there: {present.tolist()}); expected a lane "
                                     "present there (lanes are indexed from the right)")
     if scenario.vision.enabled:
-        unknown = camera_unknown_vclass(scenario, vtypes)
-        if unknown is not None:
-            loc, vtype, vclass = unknown
-            raise ScenarioError(f"{origins.label(loc)}: {_format_location(loc)} (vision.enabled): "
-                                + _camera_vclass_message(scenario, vtype, vclass))
+        problem = camera_vclass_problem(scenario, vtypes)
+        if problem is not None:
+            loc, message = problem
+            raise ScenarioError(f"{origins.label(loc)}: {_format_location(loc)} (vision.enabled): {message}")
     # departure speeds SUMO would refuse ("too high for the vehicle type") where the type sets maxSpeed
     departing = [(("vehicles", i), g.vtype, g.speed_mps) for i, g in enumerate(scenario.vehicles)]
     departing += [(("ego",), scenario.ego.vtype, scenario.ego.speed_mps)] if scenario.ego is not None else []

@@ -192,7 +192,8 @@ def test_vision_enabled_run_puts_frames_on_ticks():
 
 
 def test_sumo_vehicle_classes_map_to_the_camera_categories():
-    from vcfusion.render.coco import CATEGORIES, category_id
+    from vcfusion.records import VEHICLE_CATEGORIES as CATEGORIES
+    from vcfusion.render.coco import category_id
 
     assert [category_id(c) for c in CATEGORIES] == list(range(1, len(CATEGORIES) + 1))  # fixed ids
     assert category_id("evehicle") == category_id("private") == category_id("passenger") == 1

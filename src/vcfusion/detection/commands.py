@@ -85,7 +85,8 @@ def _make_detector(args):
 
 def cmd_eval_detector(args: argparse.Namespace) -> int:
     from vcfusion.detection.detector_train import load_coco_many
-    from vcfusion.detection.family_eval import evaluate_families, format_interval_table, format_table, format_visibility_table
+    from vcfusion.detection.family_eval import (evaluate_families, format_interval_table, format_table,
+                                                format_visibility_table)
 
     detector = _make_detector(args)
     ds = load_coco_many(args.data)
@@ -200,8 +201,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--min-train-area", type=float, default=16.0, help="train only on boxes of at least this many px^2")
     p.add_argument("--min-area", type=float, default=100.0,
                    help="held-out mAP ignores ground truth below this many px^2 (COCOeval area range)")
-    p.set_defaults(func=cmd_train_detector, interrupted="the weights file was not written (checkpoints written so far are kept: "
-                                                   "--init one to go on from it)")
+    p.set_defaults(func=cmd_train_detector, interrupted="the weights file was not written (checkpoints written so "
+                                                        "far are kept: --init one to go on from it)")
 
     for name, func, helptext in (("eval-detector", cmd_eval_detector, "COCO mAP of a detector on a dataset folder"),):
         p = sub.add_parser(name, help=helptext)

@@ -95,14 +95,14 @@ COCO80_NAMES = (
     "toothbrush")
 assert len(COCO80_NAMES) == 80
 YOLO_DEFAULT_CLASSES = ("car", "bus", "truck")
-# COCO class names whose vcfusion category (vcfusion.render.coco.CATEGORIES) has another name
+# COCO class names whose vcfusion category (vcfusion.records.VEHICLE_CATEGORIES) has another name
 _CATEGORY_OF_COCO = {"car": "passenger"}
 
 
 def coco_column_categories(keep=YOLO_DEFAULT_CLASSES, names=COCO80_NAMES) -> list[int]:
     """Category id per score column of a COCO-trained YOLO: our id for the kept classes, -1 for
     the others (their candidates are dropped)."""
-    from vcfusion.render.coco import CATEGORIES  # the dataset's fixed category ids
+    from vcfusion.records import VEHICLE_CATEGORIES as CATEGORIES  # the datasets' fixed category ids
 
     keep = list(keep)
     unknown = [k for k in keep if k not in names]

@@ -21,7 +21,6 @@ from pycocotools import mask as mask_utils
 from vcfusion.records import CATEGORY_OF_VCLASS, VEHICLE_CATEGORIES, gnss_antenna_points
 from vcfusion.render.camera import project_points
 
-CATEGORIES = VEHICLE_CATEGORIES  # fixed ids (index + 1) shared by every dataset
 DEPTH_SCALE_M = 0.01
 
 CONVENTIONS = {
@@ -37,7 +36,7 @@ CONVENTIONS = {
 
 def category_id(vclass: str) -> int:
     try:
-        return CATEGORIES.index(CATEGORY_OF_VCLASS[vclass]) + 1
+        return VEHICLE_CATEGORIES.index(CATEGORY_OF_VCLASS[vclass]) + 1
     except KeyError:  # load_scenario and require_camera_world refuse such a scenario before a run
         raise ValueError(f"vehicle class {vclass!r} has no COCO category (known: "
                          f"{', '.join(CATEGORY_OF_VCLASS)})") from None
@@ -121,7 +120,8 @@ class CocoBuilder:
         return {
             "info": self.info,
             "licenses": [],
-            "categories": [{"id": i + 1, "name": name, "supercategory": "vehicle"} for i, name in enumerate(CATEGORIES)],
+            "categories": [{"id": i + 1, "name": name, "supercategory": "vehicle"}
+                           for i, name in enumerate(VEHICLE_CATEGORIES)],
             "images": self.images,
             "annotations": self.annotations,
         }
