@@ -247,7 +247,8 @@ def scene_bootstrap(right: dict[str, list[np.ndarray]], resamples: int = BOOTSTR
         acc = {name: (weights @ c) / total for name, c in counts.items()}  # nan where a draw has no target
     out = {name: _percentile_interval(a) for name, a in acc.items()}
     if "oracle" in acc:
-        out.update({f"gap_{name}": _percentile_interval(acc["oracle"] - a) for name, a in acc.items() if name != "oracle"})
+        out.update({f"gap_{name}": _percentile_interval(acc["oracle"] - a)
+                    for name, a in acc.items() if name != "oracle"})
     return out
 
 
@@ -262,18 +263,20 @@ def format_interval_table(results: list[FamilyResult], detector_name: str = "cnn
     rows = [r for r in results if detector_name in r.identification_interval]
     if not rows:
         return ""
-    lines = [f"identification at IoU 0.7 with 95 % intervals over scenes ({BOOTSTRAP_RESAMPLES} resamples of the images)",
+    lines = [f"identification at IoU 0.7 with 95 % intervals over scenes ({BOOTSTRAP_RESAMPLES} resamples of "
+             "the images)",
              f"{'family':<16} {'oracle':>22} {detector_name:>22} {'oracle - ' + detector_name + ' (points)':>26}"]
-    def cell(r: FamilyResult, name: str) -> str:
-        lo, hi = r.identification_interval[name]
-        return f"{r.identification[name]:>7.1%} [{lo:>5.1%}, {hi:>5.1%}]"
-
     for r in rows:
         lead = r.identification["oracle"] - r.identification[detector_name]
         lo, hi = r.identification_interval[f"gap_{detector_name}"]
-        lines.append(f"{r.family:<16} {cell(r, 'oracle'):>22} {cell(r, detector_name):>22} "
+        lines.append(f"{r.family:<16} {_interval_cell(r, 'oracle'):>22} {_interval_cell(r, detector_name):>22} "
                      f"{100 * lead:>10.1f} [{100 * lo:>5.1f}, {100 * hi:>5.1f}]")
     return "\n".join(lines)
+
+
+def _interval_cell(r: FamilyResult, name: str) -> str:
+    lo, hi = r.identification_interval[name]
+    return f"{r.identification[name]:>7.1%} [{lo:>5.1%}, {hi:>5.1%}]"
 
 
 def _by_visibility(right: np.ndarray, visible: np.ndarray) -> dict:

@@ -122,10 +122,11 @@ def read_ngsim_table(path: Path, location: str | None = None) -> pd.DataFrame:
             values, bad = table[c], pd.Series(False, index=table.index)
         else:
             text = table[c].astype(str).str.strip()
+            numbers = text
             if text.str.fullmatch(r"-?\d{1,3}(,\d{3})+(\.\d*)?|-?\d*(\.\d*)?|nan|").all():
-                text = text.str.replace(",", "", regex=False)  # thousands separators
-            values = pd.to_numeric(text.where(table[c].notna()), errors="coerce")
-            bad = values.isna() & table[c].notna() & (table[c].astype(str).str.strip() != "")
+                numbers = text.str.replace(",", "", regex=False)  # thousands separators
+            values = pd.to_numeric(numbers.where(table[c].notna()), errors="coerce")
+            bad = values.isna() & table[c].notna() & (text != "")
         if c in REQUIRED:
             bad |= values.isna()
         if bad.any():
@@ -146,15 +147,15 @@ def read_ngsim(path: str | Path, main_lanes: tuple[int, int] = DEFAULT_MAIN_LANE
         name = name.removesuffix(suffix)
     if location is not None:
         name += f"-{location.strip().lower()}"
-    if "Global_Time" not in table or table["Global_Time"].isna().any():
+    period = np.zeros(len(table))  # without Global_Time: one period
+    if "Global_Time" in table and table["Global_Time"].notna().all():
+        # the period's start (ms): a period's rows agree on it to the ms, so rounded to the second
+        period = np.round(table["Global_Time"].to_numpy(float) - 100.0 * table["Frame_ID"].to_numpy(float), -3)
+    starts = np.unique(period)
+    if len(starts) == 1:
         return [_recording(table, path, name, main_lanes)]
-    offset = table["Global_Time"].to_numpy(float) - 100.0 * table["Frame_ID"].to_numpy(float)
-    periods = np.unique(np.round(offset, -3))  # ms; the same period's rows agree to the ms
-    if len(periods) == 1:
-        return [_recording(table, path, name, main_lanes)]
-    key = np.round(offset, -3)
-    return [_recording(table[key == p].reset_index(drop=True), path, f"{name}-period{k + 1}", main_lanes)
-            for k, p in enumerate(periods)]
+    return [_recording(table[period == p].reset_index(drop=True), path, f"{name}-period{k + 1}", main_lanes)
+            for k, p in enumerate(starts)]
 
 
 def _recording(table: pd.DataFrame, path: Path, name: str, main_lanes: tuple[int, int]) -> Recording:
