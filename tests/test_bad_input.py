@@ -62,11 +62,13 @@ def vtypes(tmp: Path, xml: str) -> list[str]:
     return run(tmp, BASE.replace("NET_DIR/vtypes.add.xml", "bad.add.xml"))
 
 
-def bicycles(tmp: Path) -> None:
-    """The shipped vehicle types and a bicycle type 'bike', in bikes.add.xml."""
+def bicycles(tmp: Path) -> str:
+    """BASE with its car group on bicycles: the shipped vehicle types and a type 'bike' of vClass
+    bicycle, in bikes.add.xml."""
     shipped = (REPO / "sumo_net" / "vtypes.add.xml").read_text()
     (tmp / "bikes.add.xml").write_text(shipped.replace(
         "</additional>", '<vType id="bike" vClass="bicycle" length="1.8" width="0.6" height="1.7"/></additional>'))
+    return BASE.replace("vtype: car,", "vtype: bike,").replace("NET_DIR/vtypes.add.xml", "bikes.add.xml")
 
 
 SHIPPED_MLP = default_model_path().with_name("lane_change_mlp.npz")  # the MLP file's checks
@@ -335,13 +337,11 @@ CASES = [
                     "--trips", "2", "--out", "out"],
          ("s.yaml", "ego: the guidance study needs an ego")),
     Case("camera on a vehicle class it cannot draw",
-         lambda t: (bicycles(t), run(t, BASE.replace("vtype: car,", "vtype: bike,").replace(
-             "NET_DIR/vtypes.add.xml", "bikes.add.xml") + "vision: {enabled: true}\n"))[1],
+         lambda t: run(t, bicycles(t) + "vision: {enabled: true}\n"),
          ("s.yaml", "vehicles[0].vtype (vision.enabled)", "'bike' of bikes.add.xml", "vClass 'bicycle'",
           "expected one of: passenger, truck")),
     Case("render a vehicle class it cannot draw",
-         lambda t: (bicycles(t), ["render", scenario(t, BASE.replace("vtype: car,", "vtype: bike,").replace(
-             "NET_DIR/vtypes.add.xml", "bikes.add.xml")), "--seeds", "0", "--out", "out"])[1],
+         lambda t: ["render", scenario(t, bicycles(t)), "--seeds", "0", "--out", "out"],
          ("s.yaml", "vehicles[0].vtype", "vClass 'bicycle'", "neither draw nor label")),
     Case("camera on a network with elevation",
          lambda t: run(t, elevated_network(t) + "vision: {enabled: true}\n"),
@@ -398,9 +398,7 @@ def test_the_valid_inputs_the_cases_start_from_are_valid(tmp_path):
     assert onramp.route == ["main_in", "accel", "main_out"]
     load_scenario(write_scenario(tmp_path, BASE.replace("highway.net.xml", "curved.net.xml"), "curved.yaml"))
     # bicycles ride in a traffic-only run; only the camera refuses them
-    bicycles(tmp_path)
-    biked = load_scenario(write_scenario(tmp_path, BASE.replace("vtype: car,", "vtype: bike,").replace(
-        "NET_DIR/vtypes.add.xml", "bikes.add.xml"), "bikes.yaml"))
+    biked = load_scenario(write_scenario(tmp_path, bicycles(tmp_path), "bikes.yaml"))
     assert biked.vehicles[0].vtype == "bike"
     # a network with elevation carries traffic (SUMO drives it); only the camera refuses it
     lifted = load_scenario(write_scenario(tmp_path, elevated_network(tmp_path), "hill.yaml"))
