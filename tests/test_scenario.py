@@ -1,3 +1,4 @@
+import re
 import subprocess
 import sys
 
@@ -156,3 +157,34 @@ def test_extends_refuses_cycles_missing_bases_and_bad_values(tmp_path, files, st
         (tmp_path / name).write_text(text)
     with pytest.raises(ScenarioError, match=expected):
         load_scenario(tmp_path / start)
+
+
+def test_ids_are_the_text_written_even_where_yaml_would_read_a_boolean_or_a_number(tmp_path):
+    """OSM and netconvert name edges `123456` or `0123`, and a ramp may be called `off`: YAML 1.1
+    reads those as 123456, 83 (octal) and False. A route or vType id is the text written; a
+    true/false field still takes yes / off."""
+    net = (REPO / "sumo_net" / "onramp.net.xml").read_text()
+    for old, new in (("main_in", "0123"), ("main_out", "1e3"), ("accel", "off")):
+        net = re.sub(rf"\b{old}\b", new, net)
+    (tmp_path / "n.net.xml").write_text(net)
+    vtypes = (REPO / "sumo_net" / "vtypes.add.xml").read_text().replace('id="car"', 'id="7"')
+    (tmp_path / "v.add.xml").write_text(vtypes)
+    path = write_scenario(tmp_path, """
+name: 2026
+network: n.net.xml
+vehicle_types: v.add.xml
+route: [0123, off, 1e3]
+simulation: {max_time_s: 60}
+vehicles:
+  - {name: 1, count: 2, vtype: 7, lanes: [1], pos_m: [10, 300], speed_mps: 20.0}
+  - {name: ramp, count: 1, vtype: 7, route: [ramp, off, 1e3], lanes: [0], pos_m: [10, 200], speed_mps: 20.0}
+metrics: {enabled: off, exclude_groups: [1]}
+prediction: {enabled: no}
+""")
+    s = load_scenario(path)
+    assert s.name == "2026"
+    assert s.route == ["0123", "off", "1e3"]
+    assert s.vehicles[1].route == ["ramp", "off", "1e3"]
+    assert (s.vehicles[0].name, s.vehicles[0].vtype, s.metrics.exclude_groups) == ("1", "7", ["1"])
+    assert s.metrics.enabled is False and s.prediction.enabled is False
+    assert s.simulation.max_time_s == 60.0 and type(s.vehicles[0].count) is int

@@ -12,13 +12,14 @@ lists included, replaces the base's); a base may extend another. Paths inside a 
 
 from __future__ import annotations
 
+import re
 import typing
 from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from vcfusion.errors import ScenarioError  # the loader's error; importable from here as before
 
@@ -27,8 +28,37 @@ from vcfusion.errors import ScenarioError  # the loader's error; importable from
 SHIPPED_SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
 
 NonNegative = Annotated[float, Field(ge=0.0)]
+
+
+class _NumberText:
+    """A number YAML read from a plain scalar, with the text it was written as: an id such as an
+    OSM edge `123456` or `0123` is text to SUMO, and str(number) would lose a leading zero."""
+
+    text: str
+
+
+class _IntWithText(int, _NumberText):
+    pass
+
+
+class _FloatWithText(float, _NumberText):
+    pass
+
+
+def _id_text(value):
+    """An id (edge, vType, group, scenario name) written without quotes is the text written: YAML
+    reads `123` or `1.5` as numbers, which SUMO's ids are not."""
+    if isinstance(value, _NumberText):
+        return value.text
+    if isinstance(value, int) and not isinstance(value, bool):
+        return str(value)
+    return value
+
+
+# An id of SUMO's (edge, vType) or of the scenario's (group, name): text, even when it looks like a number.
+Name = Annotated[str, BeforeValidator(_id_text), Field(min_length=1)]
 # A route: edge ids of the network in driving order (vcfusion.traffic.roadframe).
-Route = Annotated[list[Annotated[str, Field(min_length=1)]], Field(min_length=1)]
+Route = Annotated[list[Name], Field(min_length=1)]
 Positive = Annotated[float, Field(gt=0.0)]
 Probability = Annotated[float, Field(ge=0.0, le=1.0)]
 
@@ -163,7 +193,7 @@ class VisionConfig(_Strict):
 
 
 class EgoConfig(_Strict):
-    vtype: str = "ego"
+    vtype: Name = "ego"
     # the ego's route (default: the scenario's); lane: a track of it (index from the right), and
     # depart_pos_m (front bumper) along it
     route: Route | None = None
@@ -191,9 +221,9 @@ class DriverConfig(_Strict):
 class VehicleGroup(_Strict):
     """Vehicles placed at t = 0 at random positions (drawn per seed) in the given lanes."""
 
-    name: str
+    name: Name
     count: Annotated[int, Field(ge=1)]
-    vtype: str = "car"
+    vtype: Name = "car"
     # the group's route (default: the scenario's); lanes are its tracks (index from the right) and
     # pos_m the front bumpers' range along it
     route: Route | None = None
@@ -216,7 +246,7 @@ class Flow(_Strict):
     """Poisson arrivals at the start of the route (the flow's, default the scenario's) over the
     whole run, in the given tracks of that route's first edge."""
 
-    vtype: str = "car"
+    vtype: Name = "car"
     route: Route | None = None
     vehs_per_hour: Positive
     lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1)
@@ -227,10 +257,10 @@ class AccidentConfig(_Strict):
     """Stopped vehicles closing lanes (SUMO <stop parking="false">): tracks of the scenario's
     route at pos_m (front bumper) along `edge`, or along the route when no edge is given."""
 
-    edge: str | None = None
+    edge: Name | None = None
     pos_m: NonNegative
     lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1)
-    vtype: str = "truck"
+    vtype: Name = "truck"
 
 
 class PredictionConfig(_Strict):
@@ -275,7 +305,7 @@ class MetricsConfig(_Strict):
     leader_range_m: Positive = 250.0
     # MOVESTAR source type (1 light-duty passenger car, 2 light-duty truck) by SUMO vType id or vClass
     # (the vType id wins); vehicles of other types (trucks, buses) get SUMO's emission model only.
-    movestar: dict[str, Literal[1, 2]] = {"passenger": 1}
+    movestar: dict[Name, Literal[1, 2]] = {"passenger": 1}
     # The vehicles SUMO's own emission model rates (HBEFA/PHEMlight, the class their vType sets):
     # "others" = those without a MOVESTAR type (trucks, buses: every vehicle gets one model), "all"
     # (the cars too, a second opinion; SUMO then rates every vehicle every step, which costs the run
@@ -283,11 +313,11 @@ class MetricsConfig(_Strict):
     sumo_emissions: Literal["others", "all", "none"] = "others"
     # Vehicles of these placement groups (vehicles.parquet `group`) keep their rows and still lead
     # others, but are left out of the traffic-wide figures (the parked accident vehicles are obstacles).
-    exclude_groups: list[str] = ["accident"]
+    exclude_groups: list[Name] = ["accident"]
 
 
 class Scenario(_Strict):
-    name: str
+    name: Name
     description: str = ""
     network: Path
     # the road frame's route (edge ids in driving order) and every vehicle's default route; a
@@ -360,7 +390,27 @@ PATH_FIELDS = (("network",), ("vehicle_types",), ("prediction", "model"), ("fusi
 class _UniqueKeyLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
     """YAML's safe loader (libyaml's parser where installed: a batch loads its scenario once per
     seed), refusing a key given twice in one mapping (YAML would keep the last silently, so a
-    second `v2c:` block would drop the first)."""
+    second `v2c:` block would drop the first).
+
+    Booleans are YAML 1.2's (true / false only): YAML 1.1 also reads yes / no / on / off / y / n as
+    booleans, which turned an edge called `off` into False (a true/false field still takes "yes" or
+    "on": the schema reads them). Numbers keep the text they were written as, for ids (`_id_text`)."""
+
+    yaml_implicit_resolvers = {
+        first: [(tag, regexp) for tag, regexp in resolvers if tag != "tag:yaml.org,2002:bool"]
+        for first, resolvers in getattr(yaml, "CSafeLoader", yaml.SafeLoader).yaml_implicit_resolvers.items()}
+
+    def construct_yaml_int(self, node):
+        value = super().construct_yaml_int(node)
+        out = _IntWithText(value)
+        out.text = node.value
+        return out
+
+    def construct_yaml_float(self, node):
+        value = super().construct_yaml_float(node)
+        out = _FloatWithText(value)
+        out.text = node.value
+        return out
 
     def construct_mapping(self, node, deep=False):
         seen = set()
@@ -371,6 +421,12 @@ class _UniqueKeyLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
                                                         key_node.start_mark)
             seen.add(key)
         return super().construct_mapping(node, deep)
+
+
+_UniqueKeyLoader.add_implicit_resolver("tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"),
+                                       list("tTfF"))
+_UniqueKeyLoader.add_constructor("tag:yaml.org,2002:int", _UniqueKeyLoader.construct_yaml_int)
+_UniqueKeyLoader.add_constructor("tag:yaml.org,2002:float", _UniqueKeyLoader.construct_yaml_float)
 
 
 def _read_mapping(path: Path) -> dict:
