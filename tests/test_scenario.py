@@ -38,6 +38,7 @@ def test_accident_is_table_ii(accident_path):
         ("v2c: {loss_probability: 1.5}\n", "v2c.loss_probability", "less than or equal to 1"),
         ("vehicles: [{name: a, count: 2, lanes: [0], pos_m: [90, 10]}]\n", "vehicles[0].pos_m", "low <= high"),
         ("simulation: {step_s: 0.03}\n", "v2c.period_s", "whole multiple"),
+        ("simulation: {trajectory_period_s: 2.0}\n", "simulation.trajectory_period_s", "at most 1 s"),
     ],
 )
 def test_malformed_scenario_names_file_and_field(tmp_path, extra, field, expected):

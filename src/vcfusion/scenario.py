@@ -356,6 +356,10 @@ class Scenario(_Strict):
             ratio = period / step
             if abs(ratio - round(ratio)) > 1e-6:
                 raise ValueError(f"{name}: expected a whole multiple of simulation.step_s ({step}), got {period}")
+        if self.metrics.enabled and self.simulation.trajectory_period_s > 1.0:
+            raise ValueError("simulation.trajectory_period_s: expected at most 1 s with metrics enabled (MOVESTAR "
+                             f"rates every second of the trajectory; or metrics.enabled: false), got "
+                             f"{self.simulation.trajectory_period_s:g}")
         # the AR stage (fusion) runs on V2C ticks: another period would skip ticks unevenly (and
         # the video's frame rate, 1 / ar.period_s, would not match its frames)
         ratio = self.ar.period_s / self.v2c.period_s

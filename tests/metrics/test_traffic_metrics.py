@@ -9,6 +9,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from vcfusion.metrics import traffic
+from vcfusion.metrics.movestar import movestar, resample_to_1hz
 from vcfusion.metrics.run_metrics import summary_block
 from vcfusion.metrics.traffic import compute_run_metrics, conflict_episodes, histogram_percentile, leaders
 from vcfusion.scenario import MetricsConfig
@@ -221,3 +222,35 @@ metrics: {ttc_threshold_s: -1, movestar: {passenger: 3}, sumo_emissions: some, c
                      "should be 1 or 2", "metrics.sumo_emissions: Input should be 'others', 'all' or 'none'",
                      "metrics.colour: unknown key"):
         assert expected in text
+
+
+def test_a_short_stretch_without_a_movestar_rating_adds_nothing_to_its_vehicle():
+    # A drives 10 s, is gone 70 s (a new stretch), then is back for 0.5 s: under a whole second,
+    # that stretch has no MOVESTAR rating; A keeps the first stretch's totals, and so does the run
+    t1 = _times(100)
+    t2 = np.round(80 + np.arange(5) * DT, 6)
+    t = np.concatenate((t1, t2))
+    both = _metrics({"A": (t, np.zeros(len(t)), 20.0 * t, np.full(len(t), 20.0))})
+    first = _metrics({"A": (t1, np.zeros(100), 20.0 * t1, np.full(100, 20.0))})
+    a, a1 = (r.vehicles.to_pandas().set_index("vehicle_id").loc["A"] for r in (both, first))
+    assert a["samples"] == 105 and a["movestar_seconds"] == a1["movestar_seconds"] == 10
+    for k in ("movestar_fuel_g", "movestar_co2_g", "movestar_distance_m"):
+        assert np.isfinite(a[k]) and a[k] == pytest.approx(a1[k])
+    fuel = summary_block(MetricsConfig(), both, None, sumo_available=False)["traffic"]["movestar_fuel_g_per_km"]
+    assert fuel == pytest.approx(a1["movestar_fuel_g"] / a1["movestar_distance_m"] * 1000.0)
+
+
+@pytest.mark.parametrize("dt", [0.15, 0.6])
+def test_movestar_rates_every_second_at_a_period_that_does_not_divide_one_second(dt):
+    # 60 s at 20 m/s sampled every 0.15 s (6 or 7 samples a second) or 0.6 s (1 or 2): every
+    # second is whole (rounding 1 / dt to 7 or 2 dropped the seconds holding one sample fewer)
+    n = int(round(60 / dt))
+    t = np.round(np.arange(n) * dt, 6)
+    table = _trajectories({"A": (t, np.zeros(n), 20.0 * t, np.full(n, 20.0))})
+    a = compute_run_metrics(MetricsConfig(), dt, dt, table, _vehicles(["A"]), None, None, None).vehicles
+    a = a.to_pandas().iloc[0]
+    reference = movestar(np.full(int(a["movestar_seconds"]), 20.0), 1)["totals"]["Fuel"]
+    assert a["movestar_seconds"] >= 59
+    assert a["movestar_fuel_g"] == pytest.approx(reference)
+    assert np.allclose(resample_to_1hz(t, np.full(n, 20.0), dt), 20.0)
+    assert len(resample_to_1hz(t, np.full(n, 20.0), dt)) >= 59

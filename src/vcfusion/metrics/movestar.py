@@ -211,13 +211,19 @@ def movestar(speeds_mps: Sequence[float], vehicle_type: int = 1) -> dict:
             "opmodes": modes.tolist(), "vsp": power.tolist(), "vehicle_type": vehicle_type}
 
 
+def samples_per_second(step_s: float) -> int:
+    """The fewest samples a whole second holds at this period (0 < step_s <= 1): rounding down,
+    so that at 0.15 s (6 or 7 per second) or 0.6 s (1 or 2) no whole second counts as partial."""
+    return max(1, math.floor(1.0 / step_s + 1e-9))
+
+
 def resample_to_1hz(time_s: Sequence[float], values: Sequence[float], step_s: float | None = None) -> np.ndarray:
     """Mean of the samples within each whole second, counted from the first sample.
 
     For samples every 0.01 s (or 0.1 s) starting at t0, second k is [t0 + k, t0 + k + 1).
-    A trailing partial second (fewer samples than a full second holds) is dropped, so that
-    every 1 Hz value is a full-second mean and rightly counts 1 s in MOVESTAR. A trajectory
-    shorter than one second raises ValueError.
+    A trailing partial second (fewer samples than every whole second holds: samples_per_second)
+    is dropped, so that every 1 Hz value is a full-second mean and rightly counts 1 s in MOVESTAR.
+    A trajectory shorter than one second raises ValueError.
     """
     t = np.asarray(time_s, dtype=float).reshape(-1)
     x = np.asarray(values, dtype=float).reshape(-1)
@@ -229,7 +235,7 @@ def resample_to_1hz(time_s: Sequence[float], values: Sequence[float], step_s: fl
         step_s = float(np.median(np.diff(t))) if t.size > 1 else 1.0
     if not 0 < step_s <= 1:
         raise ValueError(f"resample_to_1hz: expected a sample period in (0, 1] s, got {step_s}")
-    per_second = int(round(1.0 / step_s))
+    per_second = samples_per_second(step_s)
     # The epsilon keeps float times such as 0.99999999 (for 1.0) in the right second.
     sec = np.floor(t - t[0] + 1e-6).astype(int) if t.size else np.zeros(0, dtype=int)
     counts = np.bincount(sec, minlength=1)

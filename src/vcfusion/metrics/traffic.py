@@ -50,7 +50,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from vcfusion.metrics.movestar import (KM_PER_MILE, METERS_PER_MILE, OUTPUT_KEYS, check_speeds,
-                                      movestar_trips, resample_to_1hz)
+                                      movestar_trips, resample_to_1hz, samples_per_second)
 from vcfusion.metrics.safety import kinematics
 from vcfusion.records import EGO_ID
 
@@ -365,7 +365,7 @@ def _movestar_stretches(t, v, seg, starts, ends, dt, movestar_types: list[int | 
     counts = np.bincount(bucket, minlength=int(nsec.sum()))
     sums = np.bincount(bucket, weights=v, minlength=int(nsec.sum()))
     owner = np.repeat(np.arange(m), nsec)
-    keep = (counts >= int(round(1.0 / dt))) & (types[owner] > 0)
+    keep = (counts >= samples_per_second(dt)) & (types[owner] > 0)
     if not keep.any():
         return out
     trips = owner[keep]
@@ -418,6 +418,7 @@ class _VehicleFacts:
 _SUMMED = ("samples", "travel_time_s", "distance_m", "speed_sum", "abs_accel_sum", "accel_samples", "ttc_samples",
            "tet_s", "tit_s2", "conflicts", *(f"movestar_{k}" for k in MOVESTAR_KEYS.values()),
            "movestar_distance_m", "movestar_seconds")
+_MOVESTAR_TOTALS = (*(f"movestar_{k}" for k in MOVESTAR_KEYS.values()), "movestar_distance_m")
 _LOWEST = ("first_time", "min_ttc_s", "min_time_headway_s", "min_gap_m")
 _HIGHEST = ("max_decel_mps2", "max_abs_jerk_mps3", "max_drac_mps2")
 # the metrics table's columns before those added per vehicle (counted, lane changes, SUMO, per km)
@@ -439,7 +440,12 @@ def _per_vehicle(cfg, stretches: list[tuple[np.ndarray, dict[str, np.ndarray]]],
     vehicles, row = np.unique(codes, return_inverse=True)
     if len(vehicles) < len(codes):  # several stretches of a vehicle: combine them
         m = len(vehicles)
-        combined = {k: np.bincount(row, weights=fig[k], minlength=m).astype(fig[k].dtype) for k in _SUMMED}
+        # a stretch MOVESTAR did not rate (under a whole second) has NaN totals: it adds nothing
+        combined = {k: np.bincount(row, weights=np.nan_to_num(fig[k], nan=0.0), minlength=m).astype(fig[k].dtype)
+                    for k in _SUMMED}
+        unrated = combined["movestar_seconds"] == 0
+        for k in _MOVESTAR_TOTALS:
+            combined[k][unrated] = np.nan
         for keys, fn, start in ((_LOWEST, np.fmin, np.inf), (_HIGHEST, np.fmax, -np.inf)):
             for k in keys:
                 out = np.full(m, start)
