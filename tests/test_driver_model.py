@@ -298,3 +298,54 @@ def test_perception_kernel_equals_the_plain_python_rules():
         seen_counts.append(int(got.sum()))
     # the scenes exercise both outcomes: some vehicles seen, some hidden or out of view
     assert 0 < np.mean(seen_counts) < 12
+
+
+def _lateral_trace(driver, d_of_t, until=8.0, ahead_m=40.0, speed=19.0):
+    """Ego at 19 m/s; another car `ahead_m` ahead at `speed`, its lateral position d_of_t(t)."""
+    ego_s, other_s = 100.0, 100.0 + ahead_m + 4.6
+    for k in range(int(until / 0.1) + 1):
+        t = round(k * 0.1, 6)
+        tick = Tick(t, _truth(t, ego_s, 19.0, other_s, d_of_t(t), speed), None, None, None,
+                    guidance=GuidanceSet((), "none"))
+        driver.acceleration(tick)
+        ego_s += 1.9
+        other_s += speed * 0.1
+    return driver
+
+
+def test_a_car_leaving_the_ego_lane_is_no_cut_in_cue_and_never_a_prospective_leader():
+    # the leader moves from the ego lane to the lane on its right at 1.2 m/s: it crosses the band
+    # where a cut-in is noticed, moving away
+    leave = _lateral_trace(_driver(False, lateral_notice_m=0.4, cutin_reaction_s=1.2),
+                           lambda t: ROAD.lane_centre_d(2) - min(W, 1.2 * max(0.0, t - 0.5)))
+    assert [e for e in leave.events if e["cue"] == "lateral"] == []
+    kinds = {r["leader_kind"] for r in leave.log_rows if r["leader_id"] == "cutter"}
+    assert kinds == {"lane"}  # followed while its centre was in the ego lane, then let go
+    assert leave.log_rows[-1]["leader_id"] == ""
+
+
+def test_a_car_that_moves_over_again_after_going_back_is_a_new_cue():
+    # drifts 1 m toward the ego lane from t = 1, goes back to its lane centre by t = 3.3, and
+    # moves over again from t = 5: two lateral cues, and no prospective leader while it is back
+    def d(t):
+        toward = 1.2 * (t - 1.0) if 1.0 <= t < 1.9 else max(0.0, 1.08 - 0.8 * (t - 1.9)) if t < 5.0 else 1.2 * (t - 5.0)
+        return ROAD.lane_centre_d(1) + min(W, toward)
+    drv = _lateral_trace(_driver(False, lateral_notice_m=0.4, cutin_reaction_s=1.2), d)
+    cues = [e["time"] for e in drv.events if e["cue"] == "lateral"]
+    assert cues == pytest.approx([1.4, 5.4])
+    back = [r for r in drv.log_rows if 3.4 <= r["time"] < 5.0]
+    assert back and all(r["leader_id"] == "" for r in back)
+
+
+def test_the_gap_is_not_extrapolated_past_the_age_of_the_first_views():
+    # closing in at 5 m/s from 20 m: in the trip's first follow_reaction_s the driver's only view is
+    # younger than the delay, and the gap it perceives is the true one (not 5 m short)
+    drv = _driver(False, follow_reaction_s=1.0)
+    ego_s, lead_s = 100.0, 100.0 + 20.0 + 4.6
+    for k in range(4):
+        t = round(k * 0.1, 6)
+        drv.acceleration(Tick(t, _truth(t, ego_s, 19.0, lead_s, ROAD.lane_centre_d(2), 14.0), None, None, None,
+                              guidance=GuidanceSet((), "none")))
+        assert drv.log_rows[-1]["perceived_gap_m"] == pytest.approx(20.0 - 0.5 * k)
+        ego_s += 1.9
+        lead_s += 1.4

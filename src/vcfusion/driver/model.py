@@ -6,7 +6,9 @@ Every V2C tick (0.1 s) the driver:
    that car following can use a delayed view;
 2. **notices cues** (each logged to ``driver_events``):
    - *lateral*: a seen neighbour ahead (within ``notice_range_m``) in an adjacent lane whose
-     centre has moved ``lateral_notice_m`` toward the ego lane; response ``cutin_reaction_s``
+     centre has moved ``lateral_notice_m`` toward the ego lane and is still moving toward it (not
+     a car leaving the ego lane; the cue ends when the car is back at its lane centre, in the ego
+     lane or further away, so its next move over is a new cue); response ``cutin_reaction_s``
      later (an unexpected event), or ``guidance_reaction_s`` later (an expected event, Green
      2000) when the driver was already attending to that vehicle: it is highlighted, or the
      driver *anticipates* its merge;
@@ -29,7 +31,8 @@ Every V2C tick (0.1 s) the driver:
    the ego lane, and highlighted vehicles whose gap closes while their warning is active;
 5. **computes the IDM acceleration** for each leader from the view ``follow_reaction_s`` ago,
    with the gap extrapolated over the delay at the then closing speed (the anticipation of the
-   Human Driver Model), and takes the smallest. A prospective leader not yet in the lane only
+   Human Driver Model; over the view's age in a trip's first ``follow_reaction_s``), and takes
+   the smallest. A prospective leader not yet in the lane only
    asks for up to the comfortable deceleration ``b``;
 6. **moves the pedal**: the applied acceleration follows the desired one with a first-order
    lag (``pedal_time_constant_s``), bounded by the car's acceleration and jerk limits.
@@ -54,6 +57,9 @@ from vcfusion.traffic.network import Road
 
 # A vehicle slower than this is "stopped" for the anticipation cue (the accident's trucks).
 STOPPED_MPS = 0.5
+# A neighbour whose centre is off its lane's centre toward the ego lane by more than this is still
+# moving over (a prospective leader once responded to); back within it, its lateral cue has ended.
+DISPLACED_M = 0.1
 
 
 @dataclass
@@ -99,6 +105,7 @@ class DriverModel:
         self.applied = 0.0
         self._last_time: float | None = None
         self.visual_response: dict[str, float] = {}  # vid -> time the driver responds (lateral cue)
+        self._lateral_before: dict[str, float] = {}  # vid -> distance from the ego lane's centre, last tick
         self.anticipated: set[str] = set()  # vehicles the driver expects to merge
         self.warnings: dict[str, _Warning] = {}  # active warnings by the vehicle seen highlighted
         self.events: list[dict] = []
@@ -181,15 +188,23 @@ class DriverModel:
             if any(ln == lane[vid] and rear > seen.rear[vid] for ln, rear in stopped):
                 self.anticipated.add(vid)
                 self._event(now, vid, "anticipation", math.nan)
+        # a lateral cue ends once its vehicle is back at its lane centre (an aborted move), in the
+        # ego lane (a leader now) or beyond the adjacent lane: its next move over is a new cue
+        for vid in [v for v, due in self.visual_response.items() if due <= now and v in lateral
+                    and not (policy.in_adjacent_lane(lateral[v]) and lateral[v] < w - DISPLACED_M)]:
+            del self.visual_response[vid]
         for vid in ahead:
             if vid in self.visual_response:
                 continue
-            # an adjacent-lane neighbour that has moved toward the ego lane by the noticed amount
-            if policy.in_adjacent_lane(lateral[vid]) and lateral[vid] <= w - self.p.lateral_notice_m:
+            # an adjacent-lane neighbour that has moved toward the ego lane by the noticed amount and
+            # is still moving toward it (a car leaving the ego lane crosses the same band moving away)
+            toward = lateral[vid] < self._lateral_before.get(vid, -math.inf)
+            if toward and policy.in_adjacent_lane(lateral[vid]) and lateral[vid] <= w - self.p.lateral_notice_m:
                 expected = vid in self.anticipated or vid in self.warnings
                 delay = self.p.guidance_reaction_s if expected else self.p.cutin_reaction_s
                 self.visual_response[vid] = now + delay
                 self._event(now, vid, "lateral", now + delay)
+        self._lateral_before = lateral
 
     # -- control ----------------------------------------------------------------------
     def acceleration(self, tick) -> float:
@@ -217,7 +232,7 @@ class DriverModel:
             gap_now = seen.rear[vid] - seen.ego_front
             # prospective: responded to after it moved over (still displaced toward the lane), or
             # highlighted, responded to, and the gap to it closes
-            moved_over = self.visual_response.get(vid, math.inf) <= now and dist < w - 0.1
+            moved_over = self.visual_response.get(vid, math.inf) <= now and dist < w - DISPLACED_M
             gap_closes = (vid in responding and policy.in_adjacent_lane(dist)
                           and gap_now < desired_gap and seen.speed[vid] < ego_speed)
             prospective = not in_lane and (moved_over or gap_closes)
@@ -225,7 +240,8 @@ class DriverModel:
                 continue
             if vid in past.rear:
                 dv = past.ego_speed - past.speed[vid]
-                gap = past.rear[vid] - past.ego_front - self.p.follow_reaction_s * dv
+                # over the delay, or over the view's age where the trip is younger than the delay
+                gap = past.rear[vid] - past.ego_front - min(self.p.follow_reaction_s, now - past.time) * dv
                 v_lead = past.speed[vid]
             else:  # not seen as long ago as the delay: the first look
                 gap, v_lead = gap_now, seen.speed[vid]
