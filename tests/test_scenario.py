@@ -39,6 +39,7 @@ def test_accident_is_table_ii(accident_path):
         ("vehicles: [{name: a, count: 2, lanes: [0], pos_m: [90, 10]}]\n", "vehicles[0].pos_m", "low <= high"),
         ("simulation: {step_s: 0.03}\n", "v2c.period_s", "whole multiple"),
         ("simulation: {trajectory_period_s: 2.0}\n", "simulation.trajectory_period_s", "at most 1 s"),
+        ("v2c: {latency_s: 2.8, jitter_s: 0.2}\n", "v2c.twin_timeout_s", "more than latency_s + 3 jitter_s"),
     ],
 )
 def test_malformed_scenario_names_file_and_field(tmp_path, extra, field, expected):

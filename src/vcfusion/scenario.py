@@ -101,6 +101,16 @@ class V2CConfig(_Strict):
     twin_timeout_s: Positive = 3.0
     neighbour_range_m: Positive = 150.0
 
+    @model_validator(mode="after")
+    def _timeout_outlasts_latency(self) -> "V2CConfig":
+        # the timeout counts from the newest report's measurement time, and a report is latency (plus
+        # jitter) old when it arrives: with less room every twin would vanish, or flicker, on arrival
+        oldest = self.latency_s + 3.0 * self.jitter_s + self.period_s
+        if self.twin_timeout_s <= oldest:
+            raise ValueError(f"v2c.twin_timeout_s: expected more than latency_s + 3 jitter_s + period_s ({oldest:g} s: "
+                             f"the age of a report when the next one is due), got {self.twin_timeout_s:g}")
+        return self
+
 
 class AROverlayConfig(_Strict):
     period_s: Positive = 0.1
