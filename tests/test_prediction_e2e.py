@@ -39,6 +39,7 @@ def test_dataset_train_evaluate_on_real_sumo(tmp_path, capsys):
                  "--tau", "4", "--tau-g", "2"]) == 0
     meta = json.loads((data / "dataset.json").read_text())
     assert meta["splits"] == {"train": [0], "validation": [1], "test": [2]}
+    assert meta["lanechange_end_after_mid_s"] == load_scenario(scenario).simulation.lanechange_duration_s / 2
     assert meta["counts"]["window_positive"] > 100 and meta["counts"]["window_negative"] > 100
     samples = pd.read_parquet(data / "runs" / "seed_0000" / "samples.parquet")
     for col in ["seed", "time", "vehicle_id", "event_id", "time_to_lc", "window_label", "stream_label", *FEATURE_NAMES]:

@@ -12,7 +12,8 @@ import pytest
 from vcfusion.cli import main
 from vcfusion.prediction.features import FEATURE_NAMES, SEQUENCE_EXTRA_NAMES
 from vcfusion.prediction.sources.ngsim import NGSIM_COLUMNS
-from vcfusion.prediction.sources.trajectories import END_AFTER_MID_S, clean_lane_flicker
+from vcfusion.prediction.sources.trajectories import (END_AFTER_MID_S, SAMPLE_COLUMNS, Recording, clean_lane_flicker,
+                                                      straight_road, twin_tracks)
 
 FT = 0.3048
 SHIPPED_MODEL = Path(__file__).resolve().parents[1] / "src" / "vcfusion" / "assets" / "lane_change_mlp.npz"
@@ -235,6 +236,28 @@ def test_ngsim_bad_files_exit_2_and_write_nothing(tmp_path, capsys, mutate, need
 def test_lane_flicker_only_between_equal_lanes():
     lane, removed = clean_lane_flicker(np.array([2] * 20 + [3] * 3 + [2] * 20 + [3] * 3 + [4] * 20), 10)
     assert removed == 1 and list(lane[20:23]) == [2, 2, 2] and list(lane[43:46]) == [3, 3, 3]
+
+
+def test_a_moment_on_a_lane_off_the_main_road_is_flicker_not_an_exit():
+    # 0.3 s on an auxiliary lane's id (lane -1: off the modelled road) between two stretches of
+    # lane 0: one twin, its labels kept; a real exit (the rest of the track off the road) still cuts
+    t = np.round(np.arange(0, 8, 0.1), 6)
+
+    def twins_of(lane):
+        samples = pd.DataFrame({"vehicle_id": "7", "time": t, "s": 25 * t, "d": np.full(len(t), 1.83), "lane": lane,
+                                "speed": 25.0, "accel": 0.0, "length": 4.5, "width": 1.8, "height": 1.5,
+                                "vclass": "passenger"})[SAMPLE_COLUMNS]
+        rec = Recording("r", straight_road("r", 5, 3.66, 300, 30), samples, 0.1, {"format": "ngsim"})
+        return twin_tracks(rec)
+
+    blip = np.zeros(len(t), int)
+    blip[30:33] = -1
+    twins, vehicles, changes, quality = twins_of(blip)
+    assert vehicles["vehicle_id"].tolist() == ["7"] and len(twins) == len(t) and len(changes) == 0
+    assert quality["lane_flicker_removed"] == 1
+    leaves = np.zeros(len(t), int)
+    leaves[50:] = -1
+    assert twins_of(leaves)[1]["vehicle_id"].tolist() == ["7"] and len(twins_of(leaves)[0]) == 50
 
 
 # ---------------------------------------------------------------- highD files

@@ -307,6 +307,9 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
     meta_file = out / DATASET_JSON
     params = {"scenario": scenario.name, "scenario_file": str(Path(scenario_path).resolve()),
               "tau": tau, "tau_g": tau_g, "period_s": scenario.v2c.period_s,
+              # a change whose end the run did not see ends this long after its midpoint: the labels
+              # use it, and so must the evaluation and the tuning (vcfusion.prediction.train)
+              "lanechange_end_after_mid_s": scenario.simulation.lanechange_duration_s / 2,
               "feature_names": list(FEATURE_NAMES)}
     if privileged:  # only then: datasets built before keep comparing equal
         from vcfusion.prediction.privileged import PRIVILEGED_NAMES
@@ -315,6 +318,8 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
     if meta_file.is_file():
         old = read_dataset_json(meta_file)
         free = {"scenario_file"} | ({"feature_names"} if refeature else set())
+        if "lanechange_end_after_mid_s" not in old:  # a folder from before the key was written
+            free.add("lanechange_end_after_mid_s")
         keys = [*params, *({"privileged_names"} - set(params))]  # a privileged folder stays privileged
         clash = {k: (old.get(k), params.get(k)) for k in keys if k not in free and old.get(k) != params.get(k)}
         if clash:

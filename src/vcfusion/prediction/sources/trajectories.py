@@ -193,7 +193,10 @@ def twin_tracks(rec: Recording, period_s: float = PERIOD_S) -> tuple[pd.DataFram
                 continue
             grid = np.round(grid, 6)
             held = a + p0 + np.searchsorted(tp, grid + 1e-6, side="right") - 1  # last raw sample at or before
-            lane = cols["lane"][held].astype(np.int64)
+            # flicker first, off the main lanes too: a moment on a ramp's or a shoulder's lane id is
+            # not a vehicle leaving the road (cut there, it became two twins and lost its labels)
+            lane, removed = clean_lane_flicker(cols["lane"][held].astype(np.int64), min_dwell)
+            quality["lane_flicker_removed"] += removed
             interp = {c: np.interp(grid, tp, cols[c][a + p0:a + p1].astype(float)) for c in ("s", "d", "speed", "accel")}
             # split where the vehicle is off the main lanes (it left the modelled road there)
             on = lane >= 0
@@ -201,8 +204,6 @@ def twin_tracks(rec: Recording, period_s: float = PERIOD_S) -> tuple[pd.DataFram
             for q0, q1 in zip(edges[::2], edges[1::2]):
                 pieces.append((grid[q0:q1], lane[q0:q1], {c: v[q0:q1] for c, v in interp.items()}, held[q0:q1]))
         for twin_id, (tg, lane, vals, held) in zip(_piece_ids(str(vid[a]), len(pieces)), pieces):
-            lane, removed = clean_lane_flicker(lane, min_dwell)
-            quality["lane_flicker_removed"] += removed
             accel = vals["accel"]
             if np.isnan(accel).any():  # not recorded: from the speed
                 accel = np.gradient(vals["speed"], period_s) if len(tg) > 1 else np.zeros(len(tg))
