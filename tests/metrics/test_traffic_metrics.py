@@ -111,6 +111,15 @@ def test_leaders_by_lane_and_position_at_each_time():
     assert leaders(time, lane, s).tolist() == [3, -1, -1, 1, 5, -1]
 
 
+def test_vehicles_off_the_routes_lanes_have_no_leader_and_lead_no_one():
+    # lane -1 holds every road off the route (an on-ramp, an exit, the other carriageway): two
+    # vehicles there are not in one lane, and a route vehicle never follows one
+    time = np.zeros(4)
+    lane = np.array([-1, -1, 0, 0])
+    s = np.array([100.0, 106.0, 90.0, 130.0])
+    assert leaders(time, lane, s).tolist() == [-1, -1, 3, -1]
+
+
 def test_streaming_in_small_pieces_gives_the_same_table(tmp_path, monkeypatch):
     rng = np.random.default_rng(3)
     tracks = {}
@@ -145,6 +154,17 @@ def test_a_vehicle_that_comes_back_after_a_long_absence_keeps_one_row(monkeypatc
     assert m.loc["V", "travel_time_s"] == pytest.approx(20.0)
     assert m.loc["V", "distance_m"] == pytest.approx(2 * 15 * 9.9)
     assert m.loc["V", "movestar_seconds"] == 20  # ten whole seconds in each stretch
+
+
+def test_no_acceleration_or_jerk_spans_a_short_absence():
+    # a short teleport: 20 m/s for 5 s, gone for 5 s, back at 10 m/s; each stretch is at constant
+    # speed (read as one period apart, the two samples around the absence made -100 m/s^2)
+    t1, t2 = _times(50), np.round(_times(50) + 10.0, 6)
+    tracks = {"A": (np.r_[t1, t2], np.zeros(100), np.r_[20 * t1, 200 + 10 * (t2 - 10)],
+                    np.r_[np.full(50, 20.0), np.full(50, 10.0)])}
+    a = _metrics(tracks).vehicles.to_pandas().iloc[0]
+    assert a["samples"] == 100 and a["travel_time_s"] == pytest.approx(10.0)
+    assert a["mean_abs_accel_mps2"] == 0 and a["max_abs_jerk_mps3"] == 0 and abs(a["max_decel_mps2"]) == 0
 
 
 def test_movestar_and_sumo_model_by_type_and_class():

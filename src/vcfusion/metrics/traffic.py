@@ -33,7 +33,8 @@ Definitions (per vehicle; dt = the trajectory period, the ego's kinematics use i
 
 Streaming: the trajectories are read one record batch (<= one Parquet row group) at a time;
 a vehicle's samples are kept only while it is on the road and turned into its row once it has
-been absent for `_GONE_AFTER_S`, so memory follows the vehicles on the road, not the run length.
+been absent for more than one sample (`_GONE_AFTER_PERIODS`), so memory follows the vehicles on
+the road, not the run length.
 """
 
 from __future__ import annotations
@@ -55,9 +56,11 @@ from vcfusion.metrics.safety import kinematics
 from vcfusion.records import EGO_ID
 
 BATCH_ROWS = 65_536
-# A vehicle missing from the trajectories this long has left (a SUMO teleport can bring it back:
-# its later samples are a second segment, combined into the same row).
-_GONE_AFTER_S = 60.0
+# A vehicle missing from the trajectories for more than this many periods has left the road (every
+# vehicle on the road has a row every period). A SUMO teleport can bring it back: its later samples
+# are a second stretch, combined into the same row, and no acceleration, jerk or conflict spans
+# the absence (as one period apart, a 5 s absence read as a 100 m/s^2 deceleration).
+_GONE_AFTER_PERIODS = 1.5
 TRAJECTORY_COLUMNS = ["time", "vehicle_id", "lane", "s", "speed"]
 # Distribution bins (histograms in metric_histograms.parquet; percentiles read from them).
 TTC_EDGES = np.round(np.linspace(0.0, 60.0, 1201), 6)  # 0.05 s
@@ -137,14 +140,16 @@ def _time_slices(source, columns: list[str]):
 
 def leaders(time: np.ndarray, lane: np.ndarray, s: np.ndarray) -> np.ndarray:
     """Row index of each row's leader (nearest ahead by s in the same lane at the same time), -1 if
-    none; the rows in time order (as a run's tables are)."""
+    none; the rows in time order (as a run's tables are). A vehicle off the route's lanes (lane -1:
+    on a ramp before it joins, on an exit after it leaves) has no leader and leads no one: its
+    lane is unknown, and every road off the route shares that -1."""
     if len(time) == 0:
         return np.zeros(0, dtype=np.int64)
     # one integer key per (time, lane): two sort keys instead of three
     group = np.cumsum(np.concatenate(([0], time[1:] != time[:-1]))) * 65536 + lane.astype(np.int64)
     order = np.lexsort((s, group))
     follower, ahead = order[:-1], order[1:]
-    same = group[ahead] == group[follower]
+    same = (group[ahead] == group[follower]) & (lane[follower] >= 0)
     found = np.full(len(time), -1, dtype=np.int64)
     found[follower[same]] = ahead[same]
     return found
@@ -176,6 +181,7 @@ def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajecto
                         sumo_emissions: pd.DataFrame | pa.Table | None) -> RunMetrics:
     """The per-vehicle table, the conflict episodes and the distributions of one run (streamed)."""
     dt = trajectory_period_s
+    gone_after_s = _GONE_AFTER_PERIODS * dt
     info = _VehicleFacts(vehicles)
     codes: dict[str, int] = {}
     ids: list[str] = []
@@ -220,16 +226,16 @@ def compute_run_metrics(cfg, trajectory_period_s: float, step_s: float, trajecto
         order = np.argsort(code, kind="stable")
         by_vehicle = {k: v[order] for k, v in columns.items()}
         sorted_code, sorted_time = code[order], by_vehicle["time"]
-        cut = (sorted_code[1:] != sorted_code[:-1]) | (np.diff(sorted_time) > _GONE_AFTER_S)
+        cut = (sorted_code[1:] != sorted_code[:-1]) | (np.diff(sorted_time) > gone_after_s)
         bounds = np.flatnonzero(cut) + 1
         for a, b in zip(np.concatenate(([0], bounds)).tolist(), np.concatenate((bounds, [len(order)])).tolist()):
             c = int(sorted_code[a])
-            if c in buffers.chunks and buffers.last_time[c] < sorted_time[a] - _GONE_AFTER_S:
+            if c in buffers.chunks and buffers.last_time[c] < sorted_time[a] - gone_after_s:
                 finish([c])  # back after a long absence: the stretch so far is finished
             # copies: a view would keep the whole batch alive as long as this vehicle is on the road
             buffers.add(c, {k: v[a:b].copy() for k, v in by_vehicle.items()})
         now = float(time[-1])
-        finish([c for c, last in buffers.last_time.items() if last < now - _GONE_AFTER_S])
+        finish([c for c, last in buffers.last_time.items() if last < now - gone_after_s])
     finish(list(buffers.chunks))
 
     columns = _per_vehicle(cfg, stretches, ids, info)
