@@ -5,14 +5,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from scenario_files import REPO, SCENARIOS
+from scenario_files import REPO, SCENARIOS, write_scenario
 from vcfusion.prediction.dataset import build_samples
 from vcfusion.prediction.features import features_from_twins_table, lane_end_ahead_m
 from vcfusion.prediction.model import load_model
 from vcfusion.run import build_cosimulation
 from vcfusion.scenario import load_scenario
 from vcfusion.traffic.network import Road, read_road, read_vehicle_types
-from vcfusion.traffic.session import plan_placements
+from vcfusion.traffic.session import RunError, plan_placements
 
 ONRAMP = SCENARIOS / "onramp.yaml"
 CURVED = SCENARIOS / "curved.yaml"
@@ -85,6 +85,30 @@ def test_no_vehicle_departs_where_its_lane_ends_before_it_can_stop(tmp_path):
     for seed in range(4):  # before, some of these seeds ended with "SUMO could not insert"
         result = build_cosimulation(short, seed).run()
         assert set(result.tables["vehicles"]["vehicle_id"]) == {"main0"}
+
+
+def test_a_refused_departure_names_the_vehicle_its_neighbour_and_the_group_to_change(tmp_path):
+    # b0 departs at 10 m/s 10.4 m ahead of a0 at 30 m/s: within b's spacing, but a0 could not brake
+    # in time, so SUMO refuses b0 (silently), and holds back c0, which departs after it in that lane
+    scenario = write_scenario(tmp_path, """
+name: refused
+network: NET_DIR/highway.net.xml
+vehicle_types: NET_DIR/vtypes.add.xml
+simulation: {max_time_s: 1.0}
+metrics: {enabled: false}
+prediction: {enabled: false}
+vehicles:
+  - {name: a, count: 1, lanes: [0], pos_m: [100, 100], speed_mps: 30.0}
+  - {name: b, count: 1, lanes: [0], pos_m: [115, 115], speed_mps: 10.0, min_spacing_m: 5.0}
+  - {name: c, count: 1, lanes: [0], pos_m: [300, 300], speed_mps: 10.0}
+""")
+    with pytest.raises(RunError) as err:
+        build_cosimulation(load_scenario(scenario), 0).run()
+    msg = str(err.value)
+    assert msg.startswith("SUMO could not insert 'b0' (vehicles.b, lane 0 at 115.0 m, 10 m/s): ")
+    assert "10.4 m ahead of 'a0' (vehicles.a, 30 m/s)." in msg
+    assert "raise vehicles.b.min_spacing_m" in msg and "Also not inserted: ['c0']" in msg
+    assert "line above" not in msg
 
 
 def test_lane_end_ahead_feature():

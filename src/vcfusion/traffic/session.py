@@ -74,6 +74,17 @@ def frame_of(scenario: Scenario, road: RoadFrame, route: list[str] | None) -> Ro
 STOP_MARGIN_M = 5.0
 
 
+def lane_slot(road: RoadFrame, place: tuple[tuple[str, ...], int, float]) -> tuple[tuple, float]:
+    """(lane key, front position) of a SUMO placement (edges, lane index, lane position): a track of
+    the scenario's route with the position along it (so vehicles on other routes through the same
+    lane compare), or a SUMO lane off that route with its lane position."""
+    edges, index, pos = place
+    track = road.track_of.get(f"{edges[0]}_{index}")
+    if track is None:
+        return ("lane", f"{edges[0]}_{index}"), pos
+    return ("track", track), road.edge_start_s[edges[0]] + pos
+
+
 def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.random.Generator) -> list[Placement]:
     """Draw the initial vehicles and flow arrivals of one seed. A draw of a lane absent at the
     drawn position (an acceleration lane, a lane drop) is drawn again, like one too close to
@@ -87,20 +98,13 @@ def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.r
     def length_of(vtype: str) -> float:
         return float(vtypes[vtype].get("length", 5.0))
 
-    def slot(place) -> tuple[tuple, float]:
-        edges, index, pos = place
-        track = road.track_of.get(f"{edges[0]}_{index}")
-        if track is None:
-            return ("lane", f"{edges[0]}_{index}"), pos
-        return ("track", track), road.edge_start_s[edges[0]] + pos
-
     def free(place, length: float, spacing: float) -> bool:
-        lane, front = slot(place)
+        lane, front = lane_slot(road, place)
         return all(front + spacing <= rear or front - length - spacing >= other_front
                    for rear, other_front in occupied.get(lane, []))
 
     def occupy(place, length: float) -> None:
-        lane, front = slot(place)
+        lane, front = lane_slot(road, place)
         occupied.setdefault(lane, []).append((front - length, front))
 
     if scenario.accident is not None:
@@ -300,13 +304,50 @@ class SumoSession:
             # Our code drives the ego: no SUMO safety checks, no SUMO lane changes.
             libsumo.vehicle.setSpeedMode(EGO_ID, 0)
             libsumo.vehicle.setLaneChangeMode(EGO_ID, 0)
-        missing = [p.vehicle_id for p in self.placements
-                   if p.depart_s == 0.0 and p.vehicle_id not in libsumo.vehicle.getIDList()]
+        on_road = set(libsumo.vehicle.getIDList())
+        missing = [p for p in self.placements if p.depart_s == 0.0 and p.vehicle_id not in on_road]
         if missing:
-            raise RunError(f"SUMO could not insert {missing} at their departure positions: SUMO refuses a "
-                           "vehicle whose gap to the vehicle ahead or behind is below the safe gap at their "
-                           "departure speeds (raise the group's min_spacing_m or lower its speed_mps; a reason "
-                           "SUMO gives itself is on the line above)")
+            raise RunError(self._insertion_problem(missing))
+
+    def _insertion_problem(self, missing: list[Placement]) -> str:
+        """Why SUMO refused the first vehicle it could not insert: its nearest neighbours in its lane
+        at t = 0 (SUMO says nothing itself), and the others it held back."""
+        sc = self.scenario
+        first = missing[0]
+        # every vehicle placed at t = 0: (id, group, lane key, front, length, speed)
+        placed = [(p.vehicle_id, f"vehicles.{p.group}", *lane_slot(self.road, (p.edges, p.sumo_lane, p.sumo_pos_m)),
+                   self._length(p.vtype), p.speed_mps) for p in self.placements if p.depart_s == 0.0]
+        if sc.ego is not None:
+            placed.append((EGO_ID, "ego", *lane_slot(self.road, sumo_place(self.ego_frame, sc.ego.lane,
+                                                                           sc.ego.depart_pos_m)),
+                           self._length(sc.ego.vtype), sc.ego.speed_mps))
+        if sc.accident is not None:
+            acc = sc.accident
+            s = self.road.edge_start_s[acc.edge] + acc.pos_m if acc.edge is not None else acc.pos_m
+            placed += [(f"accident{i}", "accident", *lane_slot(self.road, sumo_place(self.road, lane, s)),
+                        self._length(acc.vtype), 0.0) for i, lane in enumerate(acc.lanes)]
+        me = next(v for v in placed if v[0] == first.vehicle_id)
+        _, group, lane, front, length, speed = me
+        near = []
+        ahead = [v for v in placed if v[2] == lane and v[3] > front]
+        behind = [v for v in placed if v[2] == lane and v[3] < front and v[0] != me[0]]
+        if ahead:
+            v = min(ahead, key=lambda v: v[3])
+            near.append(f"{v[3] - v[4] - front:.1f} m behind {v[0]!r} ({v[1]}, {v[5]:g} m/s)")
+        if behind:
+            v = max(behind, key=lambda v: v[3])
+            near.append(f"{front - length - v[3]:.1f} m ahead of {v[0]!r} ({v[1]}, {v[5]:g} m/s)")
+        where = "; ".join(near) if near else "no other vehicle in its lane"
+        held = [p.vehicle_id for p in missing[1:]]
+        return (f"SUMO could not insert {first.vehicle_id!r} ({group}, lane {first.lane} at {first.pos_m:.1f} m, "
+                f"{first.speed_mps:g} m/s): {where}. SUMO refuses a departure whose gap to the vehicle ahead or "
+                f"behind is below the gap the follower needs to brake safely at their departure speeds: raise "
+                f"{group}.min_spacing_m (a group keeps it to every vehicle placed before it) or lower its speed_mps"
+                + (f". Also not inserted: {held} (SUMO holds back the vehicles that depart after a refused one "
+                   "in its lane)" if held else ""))
+
+    def _length(self, vtype: str) -> float:
+        return float(self.vtypes[vtype].get("length", 5.0))
 
     # -- stepping -----------------------------------------------------------------------
     def step(self) -> None:
