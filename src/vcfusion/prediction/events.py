@@ -2,7 +2,8 @@
 
 For each lane change of a vehicle (end E, the previous change of the same vehicle ending at P):
 - it is *predicted* when some decision of that vehicle is positive at a tick t with
-  max(P, E - horizon) < t <= E;
+  P < t and E - horizon <= t <= E (a positive exactly one horizon before the end counts, as it
+  does for the false alarms below: a run ending there has the change within its horizon);
 - advance (final run) = E - the first tick of the uninterrupted positive run that holds the
   last positive decision in that window (the run may start before the horizon, not before P);
 - advance (first positive) = E - the first positive decision after P at all;
