@@ -57,6 +57,16 @@ def test_ttc_undefined_when_not_closing_and_interval_starts_at_mid_time():
     assert m["ttc_samples"] == 0
 
 
+def test_a_trip_without_a_cut_in_has_no_exposure_to_measure():
+    # TET / TIT are NaN like TTC (0 would pair the trip in the study's TET row only)
+    n = 101
+    t = np.arange(n) * DT
+    tables = _tables(np.full(n, 20.0), 52.0 + 15.0 * t, np.full(n, 15.0))
+    tables["lane_changes"] = tables["lane_changes"].iloc[0:0]
+    m = trip_metrics(tables, ego_lane=2, dt=DT)
+    assert m["target_id"] is None and math.isnan(m["tet_s"]) and math.isnan(m["tit_s2"])
+
+
 def test_tet_tit_below_threshold():
     ttc = np.array([5.0, 2.0, 1.0, np.nan, 4.0])
     tet, tit = exposure(ttc, 0.1, 3.0)

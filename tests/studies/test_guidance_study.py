@@ -103,3 +103,13 @@ def test_paired_summary_ci_on_known_differences():
     assert s["ci95_low"] == pytest.approx(1.0 - half) and s["ci95_high"] == pytest.approx(1.0 + half)
     assert s["rel_change_pct"] == pytest.approx(100 * (3.0 - 2.0) / 2.0)
     assert s["mean_ref"] == pytest.approx(2.0) and s["mean_arm"] == pytest.approx(3.0)
+
+
+def test_paired_summary_of_a_constant_difference_is_certain_unless_it_is_zero():
+    # every pair differs by 0.5: no spread, a zero-width interval, and p = 0 (was 1); by 0: p = 1
+    trips = pd.DataFrame({"seed": [0, 0, 1, 1, 2, 2], "arm": ["none", "fusion"] * 3,
+                          "x": [1.0, 1.5, 2.0, 2.5, 4.0, 4.5], "y": [1.0, 1.0, 2.0, 2.0, 3.0, 3.0]})
+    s = paired_summary(trips, [("x", "x", "", None, None, None), ("y", "y", "", None, None, None)])
+    x, y = s.iloc[0], s.iloc[1]
+    assert (x["mean_diff"], x["ci95_low"], x["ci95_high"], x["p_value"]) == pytest.approx((0.5, 0.5, 0.5, 0.0))
+    assert (y["mean_diff"], y["p_value"]) == (0.0, 1.0)

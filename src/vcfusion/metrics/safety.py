@@ -26,7 +26,8 @@ Definitions (the same for both arms of the guidance study):
 - **TET / TIT** (Minderhoud & Bovy 2001) on that same TTC series: TET = time with
   TTC < threshold (s); TIT = integral of (threshold - TTC) over that time (s^2). The threshold
   and the jerk window are the scenario's ``metrics:`` block (default 1.5 s, SSAM), shared with
-  the per-vehicle run metrics (vcfusion.metrics.traffic).
+  the per-vehicle run metrics (vcfusion.metrics.traffic). NaN, like TTC, for a trip without a
+  cut-in ahead of the ego.
 - **Collisions**: SUMO collisions involving the ego.
 """
 
@@ -142,7 +143,9 @@ def trip_metrics(tables: dict[str, pd.DataFrame], ego_lane: int, dt: float,
     target = cut_in_target(tables.get("lane_changes"))
     out.update({"target_id": None, "target_mid_time_s": math.nan, "target_gap_at_mid_m": math.nan,
                 "avg_ttc_s": math.nan, "avg_ttc_clipped_s": math.nan, "min_ttc_s": math.nan, "ttc_samples": 0,
-                "tet_s": 0.0, "tit_s2": 0.0, "min_gap_to_target_m": math.nan})
+                # no cut-in ahead: no exposure to measure (0 would pair a trip without a cut-in with
+                # one that had it, where TTC and gap are left out)
+                "tet_s": math.nan, "tit_s2": math.nan, "min_gap_to_target_m": math.nan})
     if target is not None:
         vehicles = tables["vehicles"].set_index("vehicle_id")
         series = target_ttc(ego, tables["trajectories"], target["vehicle_id"],

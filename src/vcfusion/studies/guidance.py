@@ -328,8 +328,10 @@ def paired_summary(trips: pd.DataFrame, metrics=SAFETY_METRICS + EMISSION_METRIC
             if n >= 2 and diff.std(ddof=1) > 0:
                 half = stats.t.ppf(0.975, n - 1) * diff.std(ddof=1) / math.sqrt(n)
                 p = float(stats.ttest_rel(wide[arm], wide[reference]).pvalue)
+            elif n >= 2:  # every pair differs by the same amount: no spread, so p is 0 unless that is 0
+                half, p = 0.0, (1.0 if diff.iloc[0] == 0 else 0.0)
             else:
-                half, p = (0.0 if n >= 2 else math.nan), (1.0 if n >= 2 else math.nan)
+                half, p = math.nan, math.nan
             rows.append({
                 "metric": col, "label": label, "unit": unit, "arm": arm, "reference": reference, "n_pairs": n,
                 "mean_ref": mean_ref, "mean_arm": mean_arm,
