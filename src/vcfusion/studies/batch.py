@@ -164,6 +164,7 @@ def run_batch(scenario_path: Path, seeds: list[int], out: Path, workers: int = 1
     out.mkdir(parents=True, exist_ok=True)
     executor = executor or Executor(workers=workers)
     todo = [s for s in seeds if not is_complete_run(seed_folder(out, s))]
+    _check_kept_runs(scenario_path, [s for s in seeds if s not in set(todo)], out)
     skipped = len(seeds) - len(todo)
     outcomes: list[SeedOutcome] = []
     bar = tqdm(total=len(todo), unit="run", desc=f"batch {Path(scenario_path).stem}", disable=not progress)
@@ -191,6 +192,37 @@ def run_batch(scenario_path: Path, seeds: list[int], out: Path, workers: int = 1
     failed = sorted((o for o in outcomes if not o.ok), key=lambda o: o.seed)
     _write_index(out, seeds, failed)
     return {"done": len(todo) - len(failed), "skipped": skipped, "failed": [(o.seed, o.error) for o in failed]}
+
+
+def _check_kept_runs(scenario_path: Path, seeds: list[int], out: Path) -> None:
+    """UsageError unless every complete run folder the batch would keep is this scenario's run of
+    its seed: a re-run into a folder of another (or an edited) scenario would mix its old runs into
+    the batch's summary."""
+    import json
+
+    from vcfusion.run import manifest_for
+    from vcfusion.scenario import load_scenario
+
+    if not seeds:
+        return
+    expected = manifest_for(load_scenario(scenario_path), 0)["scenario"]
+    for seed in seeds:
+        folder = seed_folder(out, seed)
+        try:
+            manifest = json.loads((folder / "manifest.json").read_text())
+        except (OSError, ValueError):
+            manifest = {}
+        if not isinstance(manifest, dict):
+            manifest = {}
+        kept = manifest.get("scenario") if isinstance(manifest.get("scenario"), dict) else {}
+        differs = [k for k in sorted(expected.keys() | kept.keys()) if expected.get(k) != kept.get(k)]
+        if manifest.get("seed") != seed:
+            differs.insert(0, "seed")
+        if differs:
+            what = ", ".join(differs[:4]) + (" ..." if len(differs) > 4 else "")
+            raise UsageError(f"{folder}: holds a run that is not this scenario's run of seed {seed} (it differs in: "
+                             f"{what}); a batch resumes only its own runs: choose another output folder, or "
+                             "remove that one")
 
 
 def _write_index(out: Path, seeds: list[int], failed: list[SeedOutcome]) -> None:
