@@ -133,6 +133,12 @@ def test_from_runs_gives_the_model_study_rows_and_pairs_human_trips(tmp_path, ca
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "scenario.simulation.max_time_s differs" in err[0], err
     assert not (tmp_path / "s3").exists()
+    # one folder of the other scenario, which pairs with nothing: refused too (was left out as unpaired)
+    assert main(["study", "guidance", "--from-runs", str(runs / "batch"), str(runs / "off0"),
+                 str(tmp_path / "other" / "l_off"), "--out", str(tmp_path / "s4")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "scenario.simulation.max_time_s differs" in err[0], err
+    assert not (tmp_path / "s4").exists()
 
 
 def test_from_runs_refuses_what_is_not_a_run_folder(tmp_path, capsys):

@@ -206,6 +206,16 @@ def study_of_runs(paths: list[Path], out: Path, renders: Path) -> dict:
     `run_guidance_study` writes. Every folder is read and checked before anything is written."""
     folders, skipped = find_run_folders(paths)
     trips = [load_run_folder(f) for f in folders]
+    # every folder, paired or not: a folder of another scenario is a mistake to say, not a trip to leave out
+    scenarios: dict[str, RunTrip] = {}
+    for trip in trips:
+        scenarios.setdefault(trip.trip_key, trip)
+    if len(scenarios) > 1:
+        first, other = list(scenarios.values())[:2]
+        raise RunFolderError(f"{other.folder}: a trip of another scenario than {first.folder} (scenario."
+                             f"{_first_difference(json.loads(first.trip_key), json.loads(other.trip_key))} differs; "
+                             f"{len(scenarios)} scenarios in all): a study compares trips of one scenario; "
+                             "give the folders of one")
     by_pair: dict[tuple, dict[str, RunTrip]] = {}
     for trip in trips:
         slots = by_pair.setdefault(trip.pair, {})
@@ -224,15 +234,6 @@ def study_of_runs(paths: list[Path], out: Path, renders: Path) -> dict:
     if not paired:
         raise InputError(f"--from-runs: no trip (driver and seed) has a run folder in every arm ({', '.join(arms)}); "
                          f"{len(unpaired)} unpaired folders, e.g. {unpaired[0][0]}")
-    scenarios: dict[str, RunTrip] = {}
-    for key, v in paired.items():
-        scenarios.setdefault(key[2], next(iter(v.values())))
-    if len(scenarios) > 1:
-        first, other = list(scenarios.values())[:2]
-        raise RunFolderError(f"{other.folder}: a trip of another scenario than {first.folder} (scenario."
-                             f"{_first_difference(json.loads(first.trip_key), json.loads(other.trip_key))} differs; "
-                             f"{len(scenarios)} scenarios in all): a study compares trips of one scenario; "
-                             "give the folders of one")
     rows = []
     for key in sorted(paired, key=lambda k: (k[0], k[1], k[3])):
         runs = [paired[key][a].run for a in arms]
