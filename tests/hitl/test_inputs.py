@@ -85,6 +85,42 @@ def test_untouched_pedals_read_released_and_touched_ones_follow_the_map(sdl):
         js.detach()
 
 
+def test_an_unplugged_wheel_releases_the_pedals_and_is_taken_back_when_plugged_in(sdl):
+    js = VirtualJoystick(axes=4, buttons=6)
+    try:
+        device = JoystickInput(js.pygame_joystick, PRESETS["G29"])
+        js.set_axis(2, -1.0)  # throttle floored
+        for event in sdl.event.get():
+            device.handle(event)
+        assert device.sample(0.0, 0.01)[0].throttle == pytest.approx(1.0, abs=1e-4)
+    finally:
+        js.detach()
+    for event in sdl.event.get():
+        device.handle(event)
+    # SDL would read the lost axes as 0: both Logitech pedals half pressed
+    lost = [device.sample(t, 0.01)[0] for t in (0.01, 0.02)]
+    assert all((c.throttle, c.brake, c.steer) == (0.0, 0.0, 0.0) for c in lost)
+    assert device.disconnects == [0.01]
+    again = VirtualJoystick(axes=4, buttons=6)
+    try:
+        for event in sdl.event.get():
+            device.handle(event)
+        assert device.connected and device.sample(0.03, 0.01)[0].throttle == 0.0  # untouched again
+        again.set_axis(3, -1.0)  # brake floored on the device plugged back in
+        for event in sdl.event.get():
+            device.handle(event)
+        assert device.sample(0.04, 0.01)[0].brake == pytest.approx(1.0, abs=1e-4)
+        assert device.disconnects == [0.01]
+    finally:
+        again.detach()
+
+
+def test_a_pedal_within_its_dead_zone_reads_released():
+    brake = AxisRange(axis=3, min=-1.0, max=1.0, inverted=True, deadzone=0.1)  # +1 released, -1 floored
+    assert brake.pedal(0.95) == 0.0 and brake.pedal(0.85) == 0.0
+    assert brake.pedal(-1.0) == pytest.approx(1.0) and brake.pedal(0.0) == pytest.approx((0.5 - 0.1) / 0.9)
+
+
 def test_replay_files_are_checked_and_sampled_and_held(tmp_path):
     path = tmp_path / "r.csv"
     path.write_text("time_s,throttle,brake,steer,lane_change\n0.0,0.5,0,0,0\n1.0,0,0.2,-0.3,1\n")
@@ -104,16 +140,22 @@ def test_replay_files_are_checked_and_sampled_and_held(tmp_path):
 def test_calibrate_reads_a_virtual_wheel_held_in_each_position(sdl, tmp_path):
     from vcfusion.hitl.drive import calibrate
 
-    js = VirtualJoystick(axes=4, buttons=2)
+    js = VirtualJoystick(axes=4, buttons=3)
     # what the person does in each phase: wheel on axis 0, throttle axis 2, brake axis 3 (pedals
-    # +1 released, -1 floored, as Logitech pedals)
+    # +1 released, -1 floored, as Logitech pedals); the left paddle is button 2, no right paddle
     positions = {"steer_left": {0: -1.0}, "steer_right": {0: 1.0}, "throttle": {0: 0.0, 2: -1.0},
-                 "brake": {2: 1.0, 3: -1.0}, "rest": {3: 1.0}}
+                 "brake": {2: 1.0, 3: -1.0}, "lane_left": {3: 1.0}, "lane_right": {}, "rest": {}}
+
+    def act(phase):
+        for a, v in positions[phase].items():
+            js.set_axis(a, v)
+        js.set_button(2, phase == "lane_left")
+
     try:
-        axis_map = calibrate(tmp_path / "wheel.json", headless=True, phase_s=0.6, size=(160, 120),
-                             on_phase=lambda phase: [js.set_axis(a, v) for a, v in positions[phase].items()])
+        axis_map = calibrate(tmp_path / "wheel.json", headless=True, phase_s=0.6, size=(160, 120), on_phase=act)
     finally:
         js.detach()
+    assert (axis_map.lane_left_button, axis_map.lane_right_button) == (2, None)
     assert (axis_map.steer.axis, axis_map.throttle.axis, axis_map.brake.axis) == (0, 2, 3)
     assert not axis_map.steer.inverted and axis_map.throttle.inverted and axis_map.brake.inverted
     assert (axis_map.throttle.min, axis_map.throttle.max) == pytest.approx((-1.0, 1.0), abs=1e-3)

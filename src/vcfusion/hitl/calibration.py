@@ -60,7 +60,9 @@ class AxisRange(BaseModel):
 
     def pedal(self, raw: float) -> float:
         t = self.unit(raw)
-        return 1.0 - t if self.inverted else t
+        t = 1.0 - t if self.inverted else t
+        # a pedal resting slightly pressed (a worn spring, a foot on it) reads released
+        return 0.0 if t <= self.deadzone else (t - self.deadzone) / (1.0 - self.deadzone)
 
 
 class AxisMap(BaseModel):

@@ -122,12 +122,14 @@ def calibrate(out_path: Path, *, headless: bool = False, phase_s: float = 4.0, j
     """Ask the person to hold each control in turn and write the axis map to `out_path`.
 
     Phases (each `phase_s`; the reading is the median of its second half): wheel full left, full
-    right, throttle floored, brake floored, then everything released. The rest reading comes last
-    because SDL reports an axis that sent nothing yet as 0: after each pedal was pressed once, the
-    released pedals report their true rest value. `on_phase(name)` is called as each phase starts."""
+    right, throttle floored, brake floored, the lane-change paddles (or buttons) left and right,
+    then everything released. The rest reading comes last because SDL reports an axis that sent
+    nothing yet as 0: after each pedal was pressed once, the released pedals report their true rest
+    value. A paddle is the button held through most of its phase; with none held, the device's
+    preset's button (if any) is kept. `on_phase(name)` is called as each phase starts."""
     import numpy as np
 
-    from vcfusion.hitl.calibration import axis_map_from_phases
+    from vcfusion.hitl.calibration import axis_map_from_phases, preset_for
     from vcfusion.hitl.display import Window, text_screen
     from vcfusion.hitl.sdl import init_sdl
 
@@ -140,11 +142,14 @@ def calibrate(out_path: Path, *, headless: bool = False, phase_s: float = 4.0, j
     win = Window(pygame, size, "vcfusion drive --calibrate")
     prompts = {"steer_left": "Turn the wheel fully LEFT and hold it", "steer_right": "Turn the wheel fully RIGHT and hold it",
                "throttle": "Floor the THROTTLE pedal and hold it", "brake": "Press the BRAKE pedal fully and hold it",
+               "lane_left": "Hold the LEFT paddle (lane change left); no paddle: wait",
+               "lane_right": "Hold the RIGHT paddle (lane change right); no paddle: wait",
                "rest": "Centre the wheel; feet off all pedals"}
     readings: dict[str, list[float]] = {}
+    held_buttons: dict[str, int | None] = {}
     try:
         for phase, prompt in prompts.items():
-            samples = []
+            samples, buttons = [], []
             if on_phase is not None:
                 on_phase(phase)
             started = wallclock.perf_counter()
@@ -153,11 +158,20 @@ def calibrate(out_path: Path, *, headless: bool = False, phase_s: float = 4.0, j
                 win.show(text_screen(size, [js.get_name(), "", prompt, f"{phase_s - elapsed:.0f}"]))
                 if elapsed >= phase_s / 2:
                     samples.append([js.get_axis(i) for i in range(js.get_numaxes())])
+                    buttons.append([js.get_button(i) for i in range(js.get_numbuttons())])
                 wallclock.sleep(0.02)
-            readings[phase] = [float(v) for v in np.median(np.array(samples), axis=0)]
+            if phase.startswith("lane_"):
+                share = np.mean(np.array(buttons, dtype=float), axis=0) if buttons and buttons[0] else np.zeros(0)
+                held_buttons[phase] = int(np.argmax(share)) if len(share) and share.max() > 0.5 else None
+            else:
+                readings[phase] = [float(v) for v in np.median(np.array(samples), axis=0)]
     finally:
         win.close()
     rest = readings.pop("rest")
     axis_map = axis_map_from_phases(rest, readings, device=js.get_name())
+    preset = preset_for(js.get_name(), js.get_numaxes())
+    paddles = {f"{phase}_button": held if held is not None else getattr(preset, f"{phase}_button", None)
+               for phase, held in held_buttons.items()}
+    axis_map = axis_map.model_copy(update=paddles)
     axis_map.save(Path(out_path))
     return axis_map

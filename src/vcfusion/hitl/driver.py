@@ -171,7 +171,9 @@ class HumanDriver:
         tables["frames"] = pd.DataFrame(self.frame_rows)
         summary["realtime"] = realtime_summary(self.frame_rows, r["lag_s"], self.speed)
         summary["hitl"] = self.info | {"guidance": "on" if self.guidance_on else "off",
-                                      "speed": "max" if self.speed is None else self.speed}
+                                      "speed": "max" if self.speed is None else self.speed,
+                                      # when the wheel was found unplugged (the car coasted, wheel centred)
+                                      "device_disconnects": list(getattr(self.device, "disconnects", []))}
 
 
 def realtime_summary(frames: dict[str, list], step_lags: list[float], speed: float | None) -> dict:

@@ -94,7 +94,8 @@ class JoystickInput:
         self.joystick.init()
         self.instance_id = joystick.get_instance_id()
         self.map = axis_map
-        self.name = f"joystick:{joystick.get_name()}"
+        self.device_name = joystick.get_name()
+        self.name = f"joystick:{self.device_name}"
         n = joystick.get_numaxes()
         used = max(axis_map.steer.axis, axis_map.throttle.axis, axis_map.brake.axis)
         if used >= n:
@@ -103,9 +104,32 @@ class JoystickInput:
         self.opened = [joystick.get_axis(i) for i in range(n)]
         self.touched = [False] * n
         self._lane_change = 0
+        self.connected = True
+        self._loss_recorded = False
+        self.disconnects: list[float] = []  # simulated times the device was found unplugged (summary)
+
+    def _adopt(self, joystick) -> None:
+        """Read `joystick` from now on (the same device plugged back in): its axes count as untouched
+        again, so pedals read released until they move."""
+        joystick.init()
+        self.joystick = joystick
+        self.instance_id = joystick.get_instance_id()
+        self.opened = [joystick.get_axis(i) for i in range(joystick.get_numaxes())]
+        self.touched = [False] * len(self.opened)
+        self.connected = True
+        self._loss_recorded = False
 
     def handle(self, event) -> None:
+        if event.type == self.pg.JOYDEVICEADDED and not self.connected:
+            js = self.pg.joystick.Joystick(event.device_index)
+            # (the unplugged joystick object must not be asked anything: pygame crashes on it)
+            if js.get_name() == self.device_name and js.get_numaxes() == len(self.opened):
+                self._adopt(js)
+            return
         if getattr(event, "instance_id", None) != self.instance_id:
+            return
+        if event.type == self.pg.JOYDEVICEREMOVED:
+            self.connected = False
             return
         if event.type == self.pg.JOYAXISMOTION:
             if abs(event.value - self.opened[event.axis]) > TOUCH_EPS:
@@ -117,6 +141,13 @@ class JoystickInput:
                 self._lane_change = -1
 
     def sample(self, time: float, dt: float) -> tuple[ControlSample, dict]:
+        if not self.connected:
+            # unplugged: SDL would read its axes as 0 (both Logitech pedals half pressed); the car
+            # coasts with the wheel centred until the device is back, and the trip records when
+            if not self._loss_recorded:
+                self.disconnects.append(round(time, 6))
+                self._loss_recorded = True
+            return ControlSample(0.0, 0.0, 0.0, 0), {"axes": [], "buttons": []}
         js, m = self.joystick, self.map
         axes = [float(js.get_axis(i)) for i in range(js.get_numaxes())]
         buttons = [int(js.get_button(i)) for i in range(js.get_numbuttons())]
