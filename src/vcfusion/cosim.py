@@ -295,7 +295,7 @@ class CoSimulation:
             if ego_cfg is not None:
                 state = session.ego_state()
                 if state is None:
-                    end_reason = "ego_left"
+                    end_reason = "ego_off_route" if session.ego_off_route else "ego_left"
                     break
                 s_front, ego_speed_now, sumo_acc, leader = state
                 if s_front >= trip_end_s:

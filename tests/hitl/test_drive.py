@@ -223,3 +223,28 @@ def test_a_drive_in_a_real_x11_window(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     frames = pd.read_parquet(tmp_path / "run" / "frames.parquet")
     assert frames.shown.all() and len(frames) >= 40  # 1.5 s at 30 frames/s
+
+
+def test_the_car_stays_on_the_lanes_present_where_it_is_and_stops_at_its_top_speed():
+    from vcfusion.hitl.vehicle import ControlSample, VehicleModel
+    from vcfusion.traffic.network import read_road
+
+    sc = load_scenario(SCENARIOS / "onramp_camera.yaml")
+    road = read_road(sc.network, sc.route)  # track 0, the acceleration lane, only along `accel`
+    accel_lane = road.lane_spans(0)[0]
+    before, inside = accel_lane[0] - 150.0, accel_lane[0] + 50.0
+    # full right lock before the acceleration lane: at the barrier of track 1 (it steered the car
+    # onto the ramp, where SUMO put it off its route and the trip was lost)
+    car = VehicleModel(road, 20.0, float(road.lane_centre_d(1, before)), 1.8, max_speed_mps=40.0)
+    for _ in range(100):
+        d = car.update(ControlSample(-1.0, 0.0, 0.0), 0.1, before).d
+    assert d == pytest.approx(float(road.road_bounds(before)[0]) + 0.9)
+    assert car.update(ControlSample(0.0, 0.0, 0.0, lane_change=-1), 0.1, before).target_lane is None  # no lane there
+    # where the acceleration lane is, the same lock takes the car into it
+    for _ in range(100):
+        d = car.update(ControlSample(-1.0, 0.0, 0.0), 0.1, inside).d
+    assert int(road.lane_of(inside, d)) == 0
+    # throttle floored: the vType's maxSpeed is the top speed
+    for _ in range(600):
+        top = car.update(ControlSample(0.0, 1.0, 0.0), 0.1, inside).speed
+    assert top == pytest.approx(40.0)

@@ -59,8 +59,9 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
     cosim = build_cosimulation(scenario, seed, guidance_enabled=guidance_on)
     road = read_road(scenario.network, scenario.route)
     ego = scenario.ego
-    width = float(read_vehicle_types(scenario.vehicle_types)[ego.vtype].get("width", 1.8))
-    vehicle = VehicleModel(road, ego.speed_mps, float(road.lane_centre_d(ego.lane)), width)
+    vtype = read_vehicle_types(scenario.vehicle_types)[ego.vtype]
+    vehicle = VehicleModel(road, ego.speed_mps, float(road.lane_centre_d(ego.lane, ego.depart_pos_m)),
+                           float(vtype.get("width", 1.8)), max_speed_mps=float(vtype.get("maxSpeed", 55.56)))
     renderer = win = video = staging = None
     owns_renderer = False
     if window:

@@ -103,7 +103,7 @@ class HumanDriver:
                     raise DriveAborted("the driver ended the trip (Escape / window closed)")
                 self.device.handle(event)
         control, raw = self.device.sample(st.time, self.dt)
-        state = self.vehicle.update(control, self.dt)
+        state = self.vehicle.update(control, self.dt, st.s_front)
         r = self.rows
         r["wall_s"].append(now - self._wall0)
         r["sim_time"].append(round(st.time, 6))

@@ -14,8 +14,10 @@ relative to the road, steer * MAX_YAW_RAD, reached with a first-order lag (YAW_T
 the front bumper's lateral position moves at v * sin(yaw). A centred wheel drives straight along
 the road, so a lane change is "turn, hold, return", without the counter-steering a bicycle model
 would ask of a keyboard. At 19 m/s full lock crosses a 3.5 m lane in about 2 s. The car stays on
-the road: its lateral position is clamped to the outer lanes' centres +- (lane width - car
-width) / 2 (the barrier), and the yaw drops to zero there.
+the road: its lateral position is clamped to the edges of the lanes present where its front
+bumper is, less half the car's width (the barrier; where a lane ends, an acceleration lane or a
+lane drop, the car is pushed into the next lane), and the yaw drops to zero there. Speed stops at
+the vehicle type's maxSpeed (a limiter: the acceleration drops to what reaches it).
 
 A discrete lane change (keyboard key, or `lane_change` in a replay file) sets a target lane; the
 model then steers itself toward that lane's centre (wanted lateral speed 0.8 /s x the distance,
@@ -61,21 +63,28 @@ class VehicleState:
 
 
 class VehicleModel:
-    def __init__(self, road: Road, speed: float, d: float, car_width_m: float, limits: CarLimits = CarLimits()):
+    def __init__(self, road: Road, speed: float, d: float, car_width_m: float, limits: CarLimits = CarLimits(),
+                 max_speed_mps: float = math.inf):
         self.road = road
         self.limits = limits
         self.state = VehicleState(speed=speed, accel=0.0, d=d, yaw=0.0)
-        margin = (road.lane_width_m - car_width_m) / 2
-        self.d_min = float(road.lane_centre_d(0)) - margin
-        self.d_max = float(road.lane_centre_d(road.num_lanes - 1)) + margin
+        self.half_width = car_width_m / 2
+        self.max_speed = max_speed_mps
+
+    def bounds(self, s: float) -> tuple[float, float]:
+        """The lateral range of the front bumper's centre at s: the edges of the lanes present there,
+        less half the car."""
+        right, left = self.road.road_bounds(s)
+        return float(right) + self.half_width, float(left) - self.half_width
 
     def wanted_accel(self, c: ControlSample, speed: float) -> float:
         coast = ROLLING_MPS2 + DRAG_PER_M * speed * speed if speed > 0 else 0.0
         return c.throttle * self.limits.max_accel_mps2 - c.brake * self.limits.max_decel_mps2 - coast
 
-    def update(self, c: ControlSample, dt: float) -> VehicleState:
-        """Advance the controls by one step; returns the state commanded for the next step (the
-        acceleration to apply and where to put the front bumper laterally)."""
+    def update(self, c: ControlSample, dt: float, s_front: float = 0.0) -> VehicleState:
+        """Advance the controls by one step with the front bumper at `s_front` along the road;
+        returns the state commanded for the next step (the acceleration to apply and where to put
+        the front bumper laterally)."""
         st = self.state
         lim = self.limits
         wanted = self.wanted_accel(c, st.speed)
@@ -84,21 +93,22 @@ class VehicleModel:
         accel = min(max(accel, -lim.max_decel_mps2), lim.max_accel_mps2)
         if st.speed <= 0.0 and accel < 0.0:
             accel = 0.0  # standing still: brakes hold, no reverse
+        accel = min(accel, max(0.0, (self.max_speed - st.speed) / dt))  # the limiter
         st.accel = accel
         st.speed = max(0.0, st.speed + accel * dt)  # the loop integrates the same way
 
         steer = c.steer
         if c.lane_change:
-            # s = 0: the model does not know s; the lanes at the route's start are right wherever
-            # every lane runs the whole route (straight and curved roads), not beside a merge
-            current = int(self.road.lane_of(0.0, st.d)) if 0 <= st.d < self.road.width_m else 0
+            current = int(self.road.lane_of(s_front, st.d))
             base = st.target_lane if st.target_lane is not None else current
-            st.target_lane = min(max(base + int(c.lane_change), 0), self.road.num_lanes - 1)
+            target = base + int(c.lane_change)
+            if base >= 0 and int(self.road.lane_of(s_front, self.road.lane_centre_d(target, s_front))) == target:
+                st.target_lane = target  # a lane present here; else (the road's edge) the key does nothing
         if st.target_lane is not None:
             if abs(steer) > STEER_TAKES_OVER:
                 st.target_lane = None  # the driver steers: the automatic change stops
             else:
-                error = float(self.road.lane_centre_d(st.target_lane)) - st.d
+                error = float(self.road.lane_centre_d(st.target_lane, s_front)) - st.d
                 if abs(error) < LANE_CHANGE_DONE_M and abs(st.yaw) < 0.01:
                     st.target_lane = None
                 lateral = max(-LANE_CHANGE_MAX_LATERAL_MPS, min(LANE_CHANGE_MAX_LATERAL_MPS, LANE_CHANGE_GAIN * error))
@@ -107,7 +117,8 @@ class VehicleModel:
         wanted_yaw = max(-1.0, min(1.0, steer)) * MAX_YAW_RAD
         st.yaw += (wanted_yaw - st.yaw) * min(1.0, dt / YAW_TIME_CONSTANT_S)
         st.d += st.speed * math.sin(st.yaw) * dt
-        if st.d <= self.d_min or st.d >= self.d_max:
-            st.d = min(max(st.d, self.d_min), self.d_max)
+        d_min, d_max = self.bounds(s_front)
+        if st.d <= d_min or st.d >= d_max:
+            st.d = min(max(st.d, d_min), d_max)
             st.yaw = 0.0  # against the barrier: along the road
         return st

@@ -146,6 +146,11 @@ class Road(RoadFrame):
             t = np.broadcast_to(t, np.broadcast(t, np.asarray(s)).shape)
         return (t + 0.5) * self.lane_width_m
 
+    def road_bounds(self, s) -> tuple[np.ndarray, np.ndarray]:
+        """d of the rightmost and leftmost road edge at s (every lane runs the whole edge)."""
+        zero = 0.0 * np.asarray(s, dtype=float)
+        return zero, zero + self.width_m
+
 
 class NetworkFileError(InputError):
     """A network or vehicle-types file that cannot be used; the message names the file and the problem."""

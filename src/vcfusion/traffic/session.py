@@ -218,6 +218,7 @@ class SumoSession:
         self._static_of: tuple[tuple, tuple] = ((), ((), (), np.zeros(0), np.zeros(0), np.zeros(0)))
         self.collisions: list[Collision] = []  # every collision SUMO reported, in step order
         self._ego_min_gap: float | None = None
+        self.ego_off_route = False  # the trip ended because the ego left its route (ego_state)
         try:
             # SUMO's emission model of each vehicle type (HBEFA/PHEMlight; SUMO's default where the type names none)
             self.emission_classes = {vt: libsumo.vehicletype.getEmissionClass(vt) for vt in self.vtypes}
@@ -386,6 +387,9 @@ class SumoSession:
             if not self._ego_single_edge:
                 pos = float(self.ego_frame.route_position(v.getLaneID(EGO_ID), pos))
         except libsumo.TraCIException:
+            return None
+        except KeyError:  # SUMO put the ego on an edge off its route (a person steered it onto a ramp)
+            self.ego_off_route = True
             return None
         found = v.getLeader(EGO_ID, horizon_m)
         if not found or not found[0]:
