@@ -175,7 +175,8 @@ def cmd_study_hitl(args: argparse.Namespace) -> int:
                                   axis_map_file=Path(args.axis_map) if args.axis_map else None,
                                   first_seed=args.first_seed, practice_seed=args.practice_seed, order=args.order,
                                   ssq=args.ssq, headless=args.headless,
-                                  speed=None if args.speed == "max" else 1.0)
+                                  speed=None if args.speed == "max" else 1.0,
+                                  screen_timeout_s=0.0 if args.headless else None)  # headless: nobody to press a key
     except DriveAborted as exc:
         print(f"{exc}: finished trips are kept in {out}; run the same command again to go on", file=sys.stderr)
         return 130

@@ -5,7 +5,8 @@ import json
 import pytest
 from scenario_files import write_scenario
 
-from vcfusion.hitl.study import SSQ_SYMPTOMS, ask_ssq, default_order, run_hitl_study, ssq_scores, trip_plan
+from vcfusion.cli import main
+from vcfusion.hitl.study import SSQ_SYMPTOMS, ask_ssq, default_order, ssq_scores, trip_plan
 
 
 def test_the_plan_pairs_seeds_alternates_conditions_and_balances_positions():
@@ -65,10 +66,13 @@ vehicles:
 """)
     (tmp_path / "in.csv").write_text("time_s,throttle,brake,steer\n0,0.3,0,0\n")
     out = tmp_path / "session"
-    protocol = run_hitl_study(path, "P01", 1, out, input_spec="replay:" + str(tmp_path / "in.csv"), order="off-first",
-                              headless=True, speed=None, screen_timeout_s=0.0, display_fps=5.0)
+    # through the command, as a person runs it: --headless must not wait for a key on its screens
+    # (there is no one to press one: it hung)
+    assert main(["study", "hitl", str(path), "--participant", "P01", "--trips", "1", "--order", "off-first",
+                 "--input", "replay:" + str(tmp_path / "in.csv"), "--speed", "max", "--headless",
+                 "--out", str(out)]) == 0
+    protocol = json.loads((out / "protocol.json").read_text())
     assert [(t["seed"], t["guidance"]) for t in protocol["trips"]] == [(0, "off"), (0, "on")]
-    assert json.loads((out / "protocol.json").read_text())["trips"] == protocol["trips"]
     for name in ["practice"] + [t["run"] for t in protocol["trips"]]:
         summary = json.loads((out / name / "summary.json").read_text())
         assert summary["hitl"]["participant"] == "P01"
