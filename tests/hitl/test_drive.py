@@ -248,3 +248,16 @@ def test_the_car_stays_on_the_lanes_present_where_it_is_and_stops_at_its_top_spe
     for _ in range(600):
         top = car.update(ControlSample(0.0, 1.0, 0.0), 0.1, inside).speed
     assert top == pytest.approx(40.0)
+
+
+def test_frames_due_between_two_long_steps_count_as_dropped(tmp_path):
+    # a 0.1 s SUMO step under a 30 frames/s display: one frame per step can be drawn, the two due
+    # in between are dropped frames (they were not counted, and the summary said nothing was lost)
+    text = SCENARIO.replace("MAX_TIME", "2.0").replace("VEHICLES", FAR_AHEAD).replace("step_s: 0.01", "step_s: 0.1")
+    sc = load_scenario(write_scenario(tmp_path, text))
+    (tmp_path / "in.csv").write_text("time_s,throttle,brake,steer\n0,0.2,0,0\n")
+    result = drive(sc, tmp_path / "run", input_spec=f"replay:{tmp_path / 'in.csv'}", speed=None, window=True,
+                   display_fps=30.0)
+    rt = result.summary["realtime"]
+    assert rt["frames_shown"] == 20 and rt["frames_due"] == pytest.approx(60, abs=3)
+    assert rt["dropped_frames"] == rt["frames_due"] - rt["frames_shown"]

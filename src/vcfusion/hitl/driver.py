@@ -12,7 +12,9 @@ Every SUMO step (`step`):
    camera (at a tick, the camera stage's render of that tick is the same image: reused), draws
    the overlay and HUD and shows it. Frames are dropped before the simulation is
    slowed: when the step is already later than one frame period, the frame is not drawn (unless
-   no frame was shown for MAX_FRAME_GAP frame periods).
+   no frame was shown for MAX_FRAME_GAP frame periods). A SUMO step longer than a frame period
+   (step_s 0.1 s against 30 frames/s) shows one frame per step: the frames due in between are
+   counted as dropped (the display cannot be faster than the simulation's step).
 Every step's wall time, simulated time, lag, raw readings and mapped controls go to the
 `inputs` table; every displayed or dropped frame to `frames`; `finish` adds both and the
 summary's `realtime` block (display_fps_median, late_frames, dropped_frames, max_lag_s,
@@ -117,24 +119,34 @@ class HumanDriver:
         r["d"].append(state.d)
         r["yaw"].append(state.yaw)
         if self.renderer is not None and st.time >= self._next_frame - 1e-9:
+            skipped = []
             while self._next_frame <= st.time + 1e-9:
+                skipped.append(self._next_frame)
                 self._next_frame += self.frame_period
+            # frames due between two SUMO steps (a step longer than a frame period) cannot be
+            # drawn: the display has nothing new to show; they count as dropped
+            for due in skipped[:-1]:
+                self._dropped(due, lag)
             self._frame(st, lag)
         self._last_poll = now
         return EgoCommand(state.accel, state.d, state.yaw)
 
-    def _frame(self, st: EgoStep, lag: float) -> None:
+    def _dropped(self, sim_time: float, lag: float) -> None:
         f = self.frame_rows
-        f["sim_time"].append(round(st.time, 6))
+        f["sim_time"].append(round(sim_time, 6))
+        f["wall_s"].append(wallclock.perf_counter() - self._wall0)
+        f["shown"].append(False)
+        f["lag_s"].append(lag)
+        f["render_ms"].append(np.nan)
+        f["input_to_display_ms"].append(np.nan)
+
+    def _frame(self, st: EgoStep, lag: float) -> None:
         starved = self._last_shown is None or wallclock.perf_counter() - self._last_shown > MAX_FRAME_GAP * self.frame_period
         if self.speed is not None and lag > self.frame_period and not starved:
-            # behind the clock: drop the frame rather than slow the simulation further
-            f["wall_s"].append(wallclock.perf_counter() - self._wall0)
-            f["shown"].append(False)
-            f["lag_s"].append(lag)
-            f["render_ms"].append(np.nan)
-            f["input_to_display_ms"].append(np.nan)
+            self._dropped(st.time, lag)  # behind the clock: drop the frame rather than slow the simulation further
             return
+        f = self.frame_rows
+        f["sim_time"].append(round(st.time, 6))
         started = wallclock.perf_counter()
         tick_frame = self._tick_frame
         frame = tick_frame if tick_frame is not None and abs(tick_frame.time - st.time) < 1e-9 \
@@ -169,21 +181,22 @@ class HumanDriver:
                                 "brake", "lane_change", "accel", "d", "yaw"])
         tables["inputs"] = inputs.to_pandas()
         tables["frames"] = pd.DataFrame(self.frame_rows)
-        summary["realtime"] = realtime_summary(self.frame_rows, r["lag_s"], self.speed)
+        summary["realtime"] = realtime_summary(self.frame_rows, r["lag_s"], self.speed, self.frame_period)
         summary["hitl"] = self.info | {"guidance": "on" if self.guidance_on else "off",
                                       "speed": "max" if self.speed is None else self.speed,
                                       # when the wheel was found unplugged (the car coasted, wheel centred)
                                       "device_disconnects": list(getattr(self.device, "disconnects", []))}
 
 
-def realtime_summary(frames: dict[str, list], step_lags: list[float], speed: float | None) -> dict:
+def realtime_summary(frames: dict[str, list], step_lags: list[float], speed: float | None,
+                     frame_period: float = 1.0 / 30.0) -> dict:
     """How well the trip kept to the wall clock (see the module doc)."""
     shown = np.array(frames["shown"], dtype=bool)
     wall = np.array(frames["wall_s"], dtype=float)[shown]
     intervals = np.diff(wall)
     period_lag = np.array(frames["lag_s"], dtype=float)
     to_display = np.array(frames["input_to_display_ms"], dtype=float)[shown]
-    late_limit = 1.0 / 30.0  # a frame more than one 30-Hz frame behind its simulated time
+    late_limit = frame_period  # a frame more than one frame period behind its simulated time
     return {
         "frames_due": int(len(shown)),
         "frames_shown": int(shown.sum()),
