@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -258,6 +259,19 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _recorded_guidance(input_spec: str) -> str | None:
+    """The guidance condition of the trip whose inputs a replay reads (its summary beside the file),
+    so that a replayed trip lands in its own arm of the guidance study; None when there is none."""
+    if not input_spec.startswith("replay:"):
+        return None
+    summary = Path(input_spec[len("replay:"):]).parent / "summary.json"
+    try:
+        guidance = json.loads(summary.read_text()).get("hitl", {}).get("guidance")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return guidance if guidance in ("on", "off") else None
+
+
 def cmd_drive(args: argparse.Namespace) -> int:
     if args.calibrate:
         from vcfusion.hitl.drive import calibrate
@@ -283,8 +297,9 @@ def cmd_drive(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else _default_run_dir(f"{scenario.name}-{args.participant or 'drive'}", args.seed)
     from vcfusion.hitl.driver import DriveAborted
 
+    guidance = args.guidance or _recorded_guidance(args.input) or "on"
     try:
-        result = drive(scenario, args.seed, input_spec=args.input, guidance_on=args.guidance == "on",
+        result = drive(scenario, args.seed, input_spec=args.input, guidance_on=guidance == "on",
                        speed=None if args.speed == "max" else 1.0, out_dir=out, participant=args.participant,
                        axis_map_file=Path(args.axis_map) if args.axis_map else None, record_video=args.record_video,
                        window=not args.no_window, headless=args.headless, display_fps=args.fps,
@@ -392,7 +407,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("drive", help="drive the ego yourself (keyboard, wheel, game pad) or replay a drive")
     p.add_argument("scenario", nargs="?", help="scenario YAML file (not needed with --calibrate)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--guidance", choices=("on", "off"), default="on", help="show the AR guidance (default on)")
+    p.add_argument("--guidance", choices=("on", "off"), default=None,
+                   help="show the AR guidance (default on; replaying a trip's inputs.parquet: that trip's)")
     p.add_argument("--input", default="keyboard", help="keyboard, joystick or replay:FILE (CSV / Parquet)")
     p.add_argument("--speed", default="1", help="1 (real time) or max (replay only)")
     p.add_argument("--participant", default="", help="participant id, stored with the trip")

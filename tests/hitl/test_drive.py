@@ -261,3 +261,22 @@ def test_frames_due_between_two_long_steps_count_as_dropped(tmp_path):
     rt = result.summary["realtime"]
     assert rt["frames_shown"] == 20 and rt["frames_due"] == pytest.approx(60, abs=3)
     assert rt["dropped_frames"] == rt["frames_due"] - rt["frames_shown"]
+
+
+def test_a_replayed_trip_keeps_its_guidance_condition(tmp_path):
+    # replaying a guidance-off trip's inputs without --guidance: the replay is a guidance-off trip
+    # (labelled "on" it went to the wrong arm of the guidance study)
+    import json
+
+    from vcfusion.cli import main
+
+    path = write_scenario(tmp_path, SCENARIO.replace("MAX_TIME", "1.0").replace("VEHICLES", FAR_AHEAD))
+    trip = tmp_path / "trip"
+    trip.mkdir()
+    (trip / "inputs.csv").write_text("time_s,throttle,brake,steer\n0,0.2,0,0\n")
+    (trip / "summary.json").write_text(json.dumps({"hitl": {"guidance": "off"}}))
+    for extra, expected in (([], "off"), (["--guidance", "on"], "on")):
+        out = tmp_path / f"replayed-{expected}"
+        assert main(["drive", str(path), "--input", f"replay:{trip / 'inputs.csv'}", "--speed", "max", "--headless",
+                     "--no-window", "--out", str(out), *extra]) == 0
+        assert json.loads((out / "summary.json").read_text())["hitl"]["guidance"] == expected
