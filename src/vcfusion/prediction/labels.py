@@ -4,7 +4,11 @@ For a vehicle whose next lane change ends at time E, a sample at time t has the
 time-to-lane-change ttl = E - t (ttl >= 0). With window size tau and gap tau_g:
 - positive window: 0 <= ttl < tau (the tau seconds up to and including the end point);
 - gap: tau <= ttl <= tau + tau_g (left out of training);
-- negative window (the positive one moved back by tau + tau_g): tau + tau_g < ttl <= 2 tau + tau_g;
+- negative window: tau + tau_g < ttl <= 2 tau + tau_g. The paper moves the positive window back
+  by tau + tau_g, which gives tau + tau_g <= ttl < 2 tau + tau_g: ours lies one tick (0.1 s of
+  5 s) later at both ends. A known deviation, kept because the shipped models were trained on
+  these labels (their commands reproduce them bit for bit); it also means that with tau_g = 0
+  the tick at ttl = tau is in neither window;
 - everything else is outside the windows (`window_label` = -1) and is used only by the
   every-tick stream (`stream_label`: 1 in the positive window, 0 elsewhere), which is what a
   deployed model sees.
