@@ -23,3 +23,19 @@ def lifted_highway(tmp_path: Path, z_m: float = 5.0) -> Path:
     path = tmp_path / "hill.net.xml"
     path.write_text(lifted)
     return path
+
+
+# 20 cars on the highway, no ego: a run of about a second of wall time per 100 s simulated
+TINY = """
+name: tiny
+network: NET_DIR/highway.net.xml
+vehicle_types: NET_DIR/vtypes.add.xml
+simulation: {step_s: 0.1, max_time_s: MAX_TIME}
+vehicles:
+  - {name: cars, count: 20, lanes: [0, 1, 2], pos_m: [10, 1200], speed_mps: 15, min_spacing_m: 40}
+"""
+
+
+def tiny_scenario(tmp_path: Path, max_time_s: float = 100, extra: str = "") -> Path:
+    """The TINY scenario (with `extra` YAML appended) as tmp_path/tiny.yaml."""
+    return write_scenario(tmp_path, TINY.replace("MAX_TIME", str(max_time_s)) + extra, "tiny.yaml")

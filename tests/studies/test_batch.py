@@ -7,7 +7,7 @@ import sys
 import pandas as pd
 import pytest
 
-from scenario_files import write_scenario
+from scenario_files import tiny_scenario, write_scenario
 from vcfusion.errors import UsageError
 from vcfusion.studies.batch import parse_seeds, run_batch, seed_folder
 
@@ -41,20 +41,12 @@ def test_batch_resumes_and_runs_identically(tmp_path, accident_path):
 
 
 def test_a_batch_resumes_only_its_own_runs(tmp_path):
-    text = """
-name: tiny
-network: NET_DIR/highway.net.xml
-vehicle_types: NET_DIR/vtypes.add.xml
-simulation: {step_s: 0.1, max_time_s: MAX}
-vehicles:
-  - {name: cars, count: 3, lanes: [0, 1], pos_m: [50, 400]}
-"""
-    path = write_scenario(tmp_path, text.replace("MAX", "2"))
+    path = tiny_scenario(tmp_path, 2)
     out = tmp_path / "b"
     assert run_batch(path, [0, 1], out, workers=1, progress=False)["done"] == 2
     assert run_batch(path, [0, 1], out, workers=1, progress=False) == {"done": 0, "skipped": 2, "failed": []}
     # the same file edited: its old runs are not this scenario's; nothing is run or written
-    write_scenario(tmp_path, text.replace("MAX", "3"))
+    tiny_scenario(tmp_path, 3)
     before = sorted(p.name for p in out.iterdir())
     with pytest.raises(UsageError, match=r"seed_0000: holds a run that is not this scenario's run of seed 0 "
                                          r"\(it differs in: simulation\)"):

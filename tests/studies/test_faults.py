@@ -13,31 +13,19 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from scenario_files import REPO, write_scenario
+from scenario_files import REPO, tiny_scenario
 from support.dying_workers import run_seed_or_die, wait_for
 from vcfusion.studies.batch import Executor, run_batch
 
-# 20 cars on the highway; long enough (~1 s a seed) for a test to catch a seed while it runs
-TINY = """
-name: tiny
-network: NET_DIR/highway.net.xml
-vehicle_types: NET_DIR/vtypes.add.xml
-simulation: {step_s: 0.1, max_time_s: MAX_TIME}
-vehicles:
-  - {name: cars, count: 20, lanes: [0, 1, 2], pos_m: [10, 1200], speed_mps: 15, min_spacing_m: 40}
-"""
-
-
 def _tiny(tmp_path: Path, max_time_s: float = 100) -> Path:
-    return write_scenario(tmp_path, TINY.replace("MAX_TIME", str(max_time_s)), "tiny.yaml")
+    return tiny_scenario(tmp_path, max_time_s)  # long enough (~1 s a seed) to catch a seed while it runs
 
 
 def _endless(tmp_path: Path) -> Path:
     """A run that is still going whenever a signal comes: an inflow keeps the road busy for an
     hour of simulated time (the tiny scenario's 20 cars leave the road after ~1 s of wall time, so
     a late SIGINT on a loaded machine would find the process already shutting down)."""
-    return write_scenario(tmp_path, TINY.replace("MAX_TIME", "3600")
-                          + "flows:\n  - {vehs_per_hour: 1800, lanes: [0, 1, 2], speed_mps: 25}\n", "tiny.yaml")
+    return tiny_scenario(tmp_path, 3600, "flows:\n  - {vehs_per_hour: 1800, lanes: [0, 1, 2], speed_mps: 25}\n")
 
 
 def _vcfusion(*args, **kwargs) -> subprocess.Popen:
