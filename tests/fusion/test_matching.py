@@ -449,3 +449,23 @@ def test_a_twin_hidden_whole_is_assigned_from_the_boxes_the_visible_twins_leave(
     proj = project_twins(make_twins(["car", "far"], [15.0, 27.0], [0.0, 0.0]), cam)
     assert list(visible_boxes(proj)[2]) == [0.0, 1.0]
     assert list(JointMatcher()._cost_terms(proj, np.zeros((0, 4)), np.zeros(0))[2]) == [False, True]
+
+
+def test_a_twin_the_joint_matcher_matched_after_latency_compensation_is_in_view():
+    """A car 8 m ahead in the next lane; its report is 0.3 s old at 30 m/s, so as received it lies
+    behind the camera. The joint matcher moves it on and matches its box: the twin is in view (the
+    fusion stage dropped it: no guidance, no fusion row, not even a missed warning)."""
+    from vcfusion.detection.detectors import OracleDetector
+    from vcfusion.fusion.fuse import CameraFrame, fuse_frame
+
+    cam = pinhole_camera(time=10.3)
+    box = vehicle_box(cam, 8.0, 2.0)
+    depth = np.full((480, 640), np.inf, np.float32)
+    x1, y1, x2, y2 = np.round(box).astype(int)
+    depth[y1:y2, max(x1, 0):x2] = 8.0 - 4.5 / 2
+    frame = CameraFrame(10.3, np.zeros((480, 640, 3), np.uint8), depth, cam, gt_boxes=box[None], gt_ids=("car",),
+                        gt_classes=np.array([3]))
+    stale = make_twins(["car"], [8.0 - 30.0 * 0.3], [2.0], measured_time=10.0, speed=30.0)
+    assert not project_twins(stale, cam).in_view[0]
+    result = fuse_frame(frame, stale, OracleDetector(), np.random.default_rng(0), methods=("joint",))
+    assert result.choice["joint"][0] == 0 and result.in_view[0]

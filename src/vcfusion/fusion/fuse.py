@@ -75,7 +75,7 @@ class FusionResult:
     detections: Detections
     box_depths: np.ndarray  # (D,) Algorithm 1 distances
     choice: dict  # method -> (N,) box index per twin, NO_MATCH where none
-    in_view: np.ndarray  # (N,) twins projected into the image
+    in_view: np.ndarray  # (N,) twins projected into the image (as received) or matched by a method
     timings_s: dict  # stage -> seconds
     # (N,) boxes containing each twin's anchor (0 out of view): >= 2 is the ambiguous case of Fig. 3
     n_anchor_boxes: np.ndarray | None = None
@@ -173,7 +173,10 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
     n_anchor_boxes = np.zeros(len(twins), np.int64)
     for i in np.flatnonzero(proj.in_view):
         n_anchor_boxes[i] = int(point_in_boxes(proj.anchor[i], detections.boxes).sum()) if len(detections) else 0
-    return FusionResult(frame.time, twins.ids, detections, depths, choice, proj.in_view, timings, n_anchor_boxes)
+    # in view: projected into the image as received, or matched (the joint matcher projects the
+    # twins moved on by their latency: a stale report can lie behind the camera, its vehicle not)
+    in_view = proj.in_view | np.any([c != NO_MATCH for c in choice.values()], axis=0) if choice else proj.in_view
+    return FusionResult(frame.time, twins.ids, detections, depths, choice, in_view, timings, n_anchor_boxes)
 
 
 class VisionFusionHook:
