@@ -469,3 +469,19 @@ def test_a_twin_the_joint_matcher_matched_after_latency_compensation_is_in_view(
     assert not project_twins(stale, cam).in_view[0]
     result = fuse_frame(frame, stale, OracleDetector(), np.random.default_rng(0), methods=("joint",))
     assert result.choice["joint"][0] == 0 and result.in_view[0]
+
+
+def test_a_truck_alongside_reaching_behind_the_camera_is_in_view_with_its_part_in_front():
+    """A 12 m truck in the next lane, its rear 2 m behind the camera, its cab 10 m ahead: most of
+    the image's left side. With every corner required in front of the near plane it was out of
+    view (no box, no guidance, no fusion row); clipped at the plane, its box runs from the image's
+    left border to its front's far corner."""
+    cam = pinhole_camera()
+    truck = make_twins(["truck"], [4.0], [3.5], length=12.0, width=2.5, height=3.6, z_ground=-1.8)  # antenna 1.8 m up
+    proj = project_twins(truck, cam)
+    assert proj.in_view[0]
+    front = vehicle_box(cam, 10.0 - 0.01, 3.5, length=0.02, width=2.5, height=3.6)  # the front face alone
+    x1, y1, x2, y2 = proj.expected_box[0]
+    assert x1 == -0.5 and y1 == -0.5 and y2 == 479.5  # cut by the image's borders
+    assert x2 == pytest.approx(front[2], abs=0.5)  # the front's inner edge: the box's right side
+    assert 0.5 < proj.face_z[0] < 10.0  # depth sees the side in view, not the rear behind the camera

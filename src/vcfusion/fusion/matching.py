@@ -231,7 +231,7 @@ class TwinProjection:
     anchor: np.ndarray  # (N, 2) GNSS antenna projected, px
     anchor_z: np.ndarray  # (N,) camera-Z of the antenna, m
     gnss_range: np.ndarray  # (N,) Euclidean camera-to-antenna distance, m (D_g taken raw)
-    expected_box: np.ndarray  # (N, 4) projected cuboid, clipped to the image
+    expected_box: np.ndarray  # (N, 4) projected cuboid (clipped at the near plane), clipped to the image
     face_z: np.ndarray  # (N,) camera-Z of the face nearest the camera (what depth sees; Alg. 2's D_g), m
     in_view: np.ndarray  # (N,) bool: in front of the camera and overlapping the image
 
@@ -275,6 +275,8 @@ def body_points(x, y, z_ground, heading, length, width, height, along, across, u
 
 
 CORNER_FRACTIONS = np.array([[sl, sw, sh] for sl in (-0.5, 0.5) for sw in (-0.5, 0.5) for sh in (0.0, 1.0)])
+# the box's 12 edges: corner pairs that differ in one of length, width, height (bits 4, 2, 1 of the index)
+CUBOID_EDGES = np.array([(i, i | bit) for bit in (4, 2, 1) for i in range(8) if not i & bit])
 
 
 def cuboid_corners(x, y, z_ground, heading, length, width, height) -> np.ndarray:
@@ -283,7 +285,28 @@ def cuboid_corners(x, y, z_ground, heading, length, width, height) -> np.ndarray
 
 
 def _in_image(uv: np.ndarray, camera: CameraView) -> np.ndarray:
-    return (uv[..., 0] >= 0) & (uv[..., 0] <= camera.width) & (uv[..., 1] >= 0) & (uv[..., 1] <= camera.height)
+    # pixel-centre convention (pixel (0, 0) is centred on (0, 0)): the image spans [-0.5, W - 0.5]
+    return ((uv[..., 0] >= -0.5) & (uv[..., 0] <= camera.width - 0.5)
+            & (uv[..., 1] >= -0.5) & (uv[..., 1] <= camera.height - 0.5))
+
+
+def _clipped_cuboid_pixels(corners: np.ndarray, camera: CameraView, near: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (N, 20, 2) of each box clipped at the plane camera-Z = near, and which of them are
+    points of the clipped box (N, 20): its corners in front of the plane, and the points where its
+    edges cross it. A vehicle beside the camera (a truck alongside, its rear behind the camera) is
+    in view with the part of it in front."""
+    n = len(corners)
+    uv, cz = camera.project(corners.reshape(-1, 3))
+    uv, cz = np.asarray(uv, float).reshape(n, 8, 2), np.asarray(cz, float).reshape(n, 8)
+    a, b = CUBOID_EDGES.T
+    za, zb = cz[:, a], cz[:, b]
+    crosses = (za - near) * (zb - near) < 0
+    t = np.where(crosses, (near - za) / np.where(crosses, zb - za, 1.0), 0.0)
+    cut = corners[:, a] + t[..., None] * (corners[:, b] - corners[:, a])
+    cut_uv, _ = camera.project(cut.reshape(-1, 3))
+    points = np.concatenate([uv, np.asarray(cut_uv, float).reshape(n, len(a), 2)], axis=1)
+    valid = np.concatenate([cz > near, crosses], axis=1) & np.isfinite(points).all(axis=2)
+    return points, valid
 
 
 def _nearest_in_view_z(ground, heading, length, width, height, camera: CameraView, default: np.ndarray,
@@ -316,13 +339,14 @@ def project_twins(twins: TwinStates, camera: CameraView, min_z: float = 0.5) -> 
     heading = np.asarray(twins.heading, dtype=np.float64)
     ground = antenna - np.stack([np.zeros(n), np.zeros(n), GNSS_HEIGHT_FRACTION * height], axis=1)  # footprint centre
     corners = cuboid_corners(*ground.T, heading, length, width, height)
-    uv, cz = camera.project(corners.reshape(-1, 3))
-    uv, cz = uv.reshape(n, 8, 2), cz.reshape(n, 8)
-    in_front = (cz > min_z).all(axis=1) & np.isfinite(uv).all(axis=(1, 2))
-    uv = np.where(in_front[:, None, None], uv, 0.0)  # out-of-view twins get an empty box, never nan
-    box = np.concatenate([uv.min(axis=1), uv.max(axis=1)], axis=1)
-    box[:, [0, 2]] = np.clip(box[:, [0, 2]], 0, camera.width)
-    box[:, [1, 3]] = np.clip(box[:, [1, 3]], 0, camera.height)
+    points, valid = _clipped_cuboid_pixels(corners, camera, min_z)
+    in_front = valid.any(axis=1)
+    # out-of-view twins get an empty box, never nan
+    lo = np.where(valid[..., None], points, np.inf).min(axis=1)
+    hi = np.where(valid[..., None], points, -np.inf).max(axis=1)
+    box = np.where(in_front[:, None], np.concatenate([lo, hi], axis=1), 0.0)
+    box[:, [0, 2]] = np.clip(box[:, [0, 2]], -0.5, camera.width - 0.5)
+    box[:, [1, 3]] = np.clip(box[:, [1, 3]], -0.5, camera.height - 0.5)
     overlaps = (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
     # The face the camera sees: the rear if the vehicle drives away from the camera, else the front;
     # taken a quarter of the height up, where Algorithm 1 samples (lower quarter of the box).
@@ -333,7 +357,7 @@ def project_twins(twins: TwinStates, camera: CameraView, min_z: float = 0.5) -> 
     face_z = np.asarray(face_z, float).copy()
     # A vehicle cut by the image border (beside the camera, close) may show only its side: the face
     # point then lies off the image, and depth sees the nearest part of the side that is in view.
-    off = in_front & ~_in_image(np.asarray(face_uv), camera)
+    off = in_front & (~_in_image(np.asarray(face_uv), camera) | (face_z <= min_z))
     if off.any():
         face_z[off] = _nearest_in_view_z(ground[off], heading[off], length[off], width[off], height[off], camera,
                                          face_z[off])
