@@ -244,3 +244,27 @@ def test_lane_features_count_the_lanes_present():
     a = tick_features(s, np.array([0, 1, 2]), np.full(3, 20.0), np.zeros(3), np.full(3, 4.6), straight)
     b = tick_features(s, np.array([0, 1, 2]), np.full(3, 20.0), np.zeros(3), np.full(3, 4.6), 3)
     assert all(np.array_equal(a[k], b[k]) for k in b)
+
+
+def test_an_ego_on_its_own_route_is_placed_along_that_route(tmp_path):
+    # the ego's route is the scenario's from `accel` on: a position along it is not one along the
+    # scenario's route (placed with the scenario's frame, it jumped 700 m back onto main_in)
+    import libsumo
+
+    from vcfusion.traffic.session import SumoSession
+
+    path = write_scenario(tmp_path, f"""
+extends: {ONRAMP.as_posix()}
+ego: {{vtype: ego, route: [accel, main_out], lane: 2, depart_pos_m: 50.0, speed_mps: 20.0, trip_distance_m: 300.0}}
+vehicles: []
+flows: []
+""")
+    session = SumoSession(load_scenario(path), 0, tmp_path / "lc.xml", np.random.default_rng(0))
+    try:
+        s_front, *_ = session.ego_state()
+        session.place_ego(s_front + 2.0, float(session.ego_frame.lane_centre_d(2, s_front + 2.0)), 0.0)
+        session.step()
+        assert libsumo.vehicle.getRoadID("ego") == "accel"
+        assert session.ego_state()[0] == pytest.approx(s_front + 2.0, abs=0.5)
+    finally:
+        session.close()

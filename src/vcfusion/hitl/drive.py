@@ -43,6 +43,7 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
     from vcfusion.run import build_cosimulation, manifest_for
     from vcfusion.runio import write_run_folder
     from vcfusion.traffic.network import read_road, read_vehicle_types
+    from vcfusion.traffic.session import frame_of
 
     if scenario.ego is None:
         raise UsageError(f"{scenario.source}: ego: a person drives the ego; the scenario has no ego block")
@@ -57,8 +58,9 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
     device = open_input(input_spec, axis_map_file)
 
     cosim = build_cosimulation(scenario, seed, guidance_enabled=guidance_on)
-    road = read_road(scenario.network, scenario.route)
     ego = scenario.ego
+    # the ego's own route (a scenario may give it one): its positions and the loop's s_front are along it
+    road = frame_of(scenario, read_road(scenario.network, scenario.route), ego.route)
     vtype = read_vehicle_types(scenario.vehicle_types)[ego.vtype]
     vehicle = VehicleModel(road, ego.speed_mps, float(road.lane_centre_d(ego.lane, ego.depart_pos_m)),
                            float(vtype.get("width", 1.8)), max_speed_mps=float(vtype.get("maxSpeed", 55.56)))

@@ -366,12 +366,13 @@ class SumoSession:
         libsumo.vehicle.setSpeed(EGO_ID, max(0.0, speed_mps))
 
     def place_ego(self, s_front: float, d: float, yaw: float) -> None:
-        """Put the ego's front bumper centre at road position (`s_front`, `d`) (d: m left of the
-        right road edge), yawed `yaw` rad (left positive) from the road, for the next step.
+        """Put the ego's front bumper centre at position (`s_front`, `d`) of its route (d: m left of
+        the right road edge), yawed `yaw` rad (left positive) from the road, for the next step.
         keepRoute=2: the ego stays on its edge, in the lane under its front bumper, so SUMO's
         followers and lane changers see it there and its collision check includes it."""
-        x, y = self.road.to_world(s_front, d)
-        angle = 90.0 - np.degrees(float(self.road.heading(s_front, d)) + yaw)
+        # s_front is along the ego's own route (ego_state), which may be a part of the scenario's
+        x, y = self.ego_frame.to_world(s_front, d)
+        angle = 90.0 - np.degrees(float(self.ego_frame.heading(s_front, d)) + yaw)
         libsumo.vehicle.moveToXY(EGO_ID, "", -1, float(x), float(y), angle=float(angle), keepRoute=2)
 
     def vehicle_count(self) -> int:
