@@ -4,8 +4,8 @@ class filtering and NMS. The network round trip (torch vs OpenCV DNN) is in test
 import numpy as np
 import pytest
 
-from vcfusion.detection.detector_net import (COCO80_NAMES, DetectorFileError, PostParams, coco_column_categories,
-                                          decode_yolo_output, letterbox)
+from vcfusion.detection.detector_net import (COCO80_NAMES, DetectorFileError, Letterbox, PostParams,
+                                          coco_column_categories, decode_yolo_output, letterbox)
 from vcfusion.render.coco import category_id
 
 
@@ -106,3 +106,22 @@ def test_scenario_onnx_yolo_builds_the_ultralytics_detector(tmp_path):
                                           "yolo_classes: [lorry]}\n", "c.yaml")
     with pytest.raises(ScenarioError, match="lorry"):
         load_scenario(bad)
+
+
+def test_every_object_of_a_raw_yolo_output_survives_its_many_duplicates():
+    """30 cars, each seen by 40 candidates (neighbouring cells, three strides), as a raw Ultralytics
+    head gives them: all 30 reach NMS (a cap of 4 x max_detections = 400 candidates kept 11 cars'
+    duplicates only and lost 19 cars)."""
+    rng = np.random.default_rng(0)
+    out = np.zeros((1, 84, 8400), np.float32)
+    centres = np.array([(40 + (k % 6) * 110, 60 + (k // 6) * 120) for k in range(30)], float)
+    for k, (cx, cy) in enumerate(centres):
+        for j in range(40):
+            col = 40 * k + j
+            out[0, :4, col] = [cx + rng.normal(0, 2), cy + rng.normal(0, 2), 60 + rng.normal(0, 2), 40 + rng.normal(0, 2)]
+            out[0, 4 + 2, col] = (0.9 - 0.4 * k / 30) * (1 - 0.3 * j / 40)  # COCO 'car'
+    params = PostParams(score_threshold=0.01, nms_iou=0.7, max_detections=100)
+    det = decode_yolo_output(out, coco_column_categories(), (640, 640), (640, 640), params,
+                             box=Letterbox(1.0, 1.0, 0, 0))
+    found = {int(np.argmin(np.hypot(*(centres - ((b[:2] + b[2:]) / 2 + 0.5)).T))) for b in det.boxes}
+    assert found == set(range(30))

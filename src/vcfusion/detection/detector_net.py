@@ -136,15 +136,22 @@ def preprocess(image: np.ndarray, input_wh: tuple[int, int]) -> np.ndarray:
     return np.ascontiguousarray(resized.transpose(2, 0, 1)[None].astype(np.float32))
 
 
+# Candidates that reach NMS at most (Ultralytics' max_nms): a raw YOLO output has tens of near
+# duplicates per object, so a cap near the number of detections kept loses whole objects
+MAX_NMS_CANDIDATES = 30_000
+
+
 def postprocess(dense: np.ndarray, image_hw: tuple[int, int], input_wh: tuple[int, int], class_ids,
-                params: PostParams) -> Detections:
-    """Dense (N, 4 + C) rows (cx, cy, w, h in input px, class scores) -> detections in image px."""
+                params: PostParams, max_candidates: int | None = None) -> Detections:
+    """Dense (N, 4 + C) rows (cx, cy, w, h in input px, class scores) -> detections in image px.
+    Before NMS the `max_candidates` best rows are kept (default 4 x max_detections: our network's
+    rows are heatmap peaks, one per object, already)."""
     dense = np.asarray(dense, dtype=np.float32)
     cls_scores = dense[:, 4:]
     cls = cls_scores.argmax(axis=1)
     score = cls_scores[np.arange(len(dense)), cls]
     keep = np.flatnonzero(score >= params.score_threshold)
-    keep = keep[np.argsort(-score[keep], kind="stable")][: 4 * params.max_detections]
+    keep = keep[np.argsort(-score[keep], kind="stable")][: max_candidates or 4 * params.max_detections]
     sx, sy = image_hw[1] / input_wh[0], image_hw[0] / input_wh[1]
     cx, cy, w, h = (dense[keep, k] for k in range(4))
     # the network works in pixel-edge coordinates (pixel c spans [c, c + 1), exact under resizing);
@@ -379,7 +386,7 @@ def decode_yolo_output(out: np.ndarray, columns, image_hw: tuple[int, int], inpu
     rows = np.concatenate([out[wanted, :4], cls_scores[wanted] * (columns >= 0)], axis=1)
     kept = columns.copy()
     kept[kept < 0] = 0  # never chosen: their scores were zeroed above
-    return postprocess(rows, image_hw, input_wh, kept, params)
+    return postprocess(rows, image_hw, input_wh, kept, params, MAX_NMS_CANDIDATES)
 
 
 class OnnxDetector:
