@@ -118,7 +118,7 @@ def test_every_object_of_a_raw_yolo_output_survives_its_many_duplicates():
     for k, (cx, cy) in enumerate(centres):
         for j in range(40):
             col = 40 * k + j
-            out[0, :4, col] = [cx + rng.normal(0, 2), cy + rng.normal(0, 2), 60 + rng.normal(0, 2), 40 + rng.normal(0, 2)]
+            out[0, :4, col] = np.array([cx, cy, 60.0, 40.0]) + rng.normal(0, 2, 4)
             out[0, 4 + 2, col] = (0.9 - 0.4 * k / 30) * (1 - 0.3 * j / 40)  # COCO 'car'
     params = PostParams(score_threshold=0.01, nms_iou=0.7, max_detections=100)
     det = decode_yolo_output(out, coco_column_categories(), (640, 640), (640, 640), params,
