@@ -268,3 +268,28 @@ flows: []
         assert session.ego_state()[0] == pytest.approx(s_front + 2.0, abs=0.5)
     finally:
         session.close()
+
+
+def test_vehicles_off_a_one_edge_route_of_a_larger_network_are_off_the_route(tmp_path):
+    # the route is `accel` alone: vehicles on main_in and on the ramp are on no lane of it (SUMO's
+    # lane index made them lanes 2 and 0 of `accel`)
+    from vcfusion.traffic.session import SumoSession
+
+    path = write_scenario(tmp_path, f"""
+name: one_edge
+network: {(REPO / "sumo_net" / "onramp.net.xml").as_posix()}
+vehicle_types: NET_DIR/vtypes.add.xml
+route: [accel]
+simulation: {{step_s: 0.1, max_time_s: 5.0}}
+prediction: {{enabled: false}}
+vehicles:
+  - {{name: on, count: 1, lanes: [1], pos_m: [100, 100], speed_mps: 20.0}}
+  - {{name: main, count: 1, route: [main_in, accel], lanes: [2], pos_m: [300, 300], speed_mps: 20.0}}
+  - {{name: ramp, count: 1, route: [ramp, accel], lanes: [0], pos_m: [100, 100], speed_mps: 20.0}}
+""")
+    session = SumoSession(load_scenario(path), 0, tmp_path / "lc.xml", np.random.default_rng(0))
+    try:
+        lanes = dict(zip(*(lambda st: (st.ids, st.lane.tolist()))(session.states())))
+    finally:
+        session.close()
+    assert lanes == {"on0": 1, "main0": -1, "ramp0": -1}

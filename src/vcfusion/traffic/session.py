@@ -18,7 +18,7 @@ import numpy as np
 
 from vcfusion.records import EGO_ID, VehicleStates
 from vcfusion.scenario import Scenario
-from vcfusion.traffic.network import read_road, read_vehicle_types, sumo_place
+from vcfusion.traffic.network import Road, read_road, read_vehicle_types, sumo_place
 from vcfusion.traffic.roadframe import RoadFrame
 
 # A stop longer than any run: the accident vehicles never leave.
@@ -174,8 +174,9 @@ class SumoSession:
         # the ego's own route (its s: the ego table, the trip), and whether positions need its edge
         self.ego_frame = frame_of(scenario, self.road, scenario.ego.route) if scenario.ego is not None else None
         self._ego_single_edge = self.ego_frame is not None and len(self.ego_frame.route) == 1
-        # a vehicle's lane is its track: on one edge SUMO's lane index, elsewhere from its lane id
-        self._lane_by_index = len(self.road.route) == 1
+        # a vehicle's lane is its track: on a network of one straight edge (a Road) SUMO's lane index,
+        # elsewhere from its lane id (a route of one edge of a larger network has vehicles off it)
+        self._lane_by_index = isinstance(self.road, Road)
         self.vtypes = read_vehicle_types(scenario.vehicle_types)
         self.step_s = scenario.simulation.step_s
         # (load_scenario checked the vehicle types, lanes and positions against these files)
