@@ -122,3 +122,22 @@ def test_a_run_on_a_network_with_elevation_says_movestar_is_zero_grade(tmp_path)
     assert "zero grade, but this network has elevation (lanes up to 7.5 m off z = 0)" in format_run_metrics(lifted.summary)
     flat = run_on("NET_DIR/highway.net.xml", "flat.yaml")
     assert "network_max_height_m" not in flat.summary and "zero grade" not in format_run_metrics(flat.summary)
+
+
+def test_an_edge_whose_length_is_set_apart_from_its_geometry_follows_sumos_positions(tmp_path):
+    # `length="600"` on 500 m of straight geometry: SUMO's positions run to 600 m, and so must s
+    # (the closed-form Road measured the geometry: s = 250 where SUMO says 300)
+    import libsumo
+
+    (tmp_path / "n.nod.xml").write_text('<nodes><node id="a" x="0" y="0"/><node id="b" x="500" y="0"/></nodes>')
+    (tmp_path / "n.edg.xml").write_text('<edges><edge id="e" from="a" to="b" numLanes="3" speed="25" width="3.5" '
+                                        'length="600"/></edges>')
+    net = build_network(tmp_path, "n")
+    road = read_road(net)
+    libsumo.start(["sumo", "-n", str(net), "--no-step-log", "--no-warnings"])
+    try:
+        edge, pos, lane = libsumo.simulation.convertRoad(250.0, -5.25)
+    finally:
+        libsumo.close()
+    s, d = road.to_frame(250.0, -5.25)
+    assert road.length_m == 600.0 and float(s) == pos == 300.0 and int(road.lane_of(s, d)) == lane == 1

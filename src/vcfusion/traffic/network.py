@@ -216,6 +216,10 @@ def _straight_edge(net_file, edge: ET.Element) -> Road | None:
     length = float(np.hypot(x1 - x0, y1 - y0))
     if length <= 0.0:
         raise NetworkFileError(f"{net_file}: lane {lanes[-1].get('id')!r} has zero length")
+    stated = {_lane_attr(net_file, lane, "length", lambda v: float(v if v is not None else length), "a length in m")
+              for lane in lanes}
+    if any(abs(v - length) > 0.05 for v in stated):
+        return None  # a length set apart from the geometry (SUMO's positions follow it): the general frame
     direction = np.array([x1 - x0, y1 - y0]) / length
     normal = np.array([-direction[1], direction[0]])
     for i, points in enumerate(shapes):
