@@ -293,3 +293,41 @@ vehicles:
     finally:
         session.close()
     assert lanes == {"on0": 1, "main0": -1, "ramp0": -1}
+
+
+def test_a_lane_closed_to_the_vehicles_class_is_refused_or_drawn_around(tmp_path):
+    # lane 0 of e1 is a bus lane, open to all on e2: SUMO refuses a car's departure on the bus lane
+    # ("Invalid departLane"), which a scenario that loads must never meet
+    from vcfusion.scenario import ScenarioError
+    from vcfusion.traffic.network import build_network
+
+    (tmp_path / "n.nod.xml").write_text('<nodes><node id="a" x="0" y="0"/><node id="b" x="500" y="0"/>'
+                                        '<node id="c" x="1000" y="0"/></nodes>')
+    (tmp_path / "n.edg.xml").write_text('<edges><edge id="e1" from="a" to="b" numLanes="3" speed="25" width="3.5">'
+                                        '<lane index="0" allow="bus"/></edge>'
+                                        '<edge id="e2" from="b" to="c" numLanes="3" speed="25" width="3.5"/></edges>')
+    net = build_network(tmp_path, "n")
+
+    def scenario(block):
+        return write_scenario(tmp_path, f"""
+name: shoulder
+network: {net.as_posix()}
+vehicle_types: NET_DIR/vtypes.add.xml
+route: [e1, e2]
+simulation: {{step_s: 0.1, max_time_s: 1.0}}
+prediction: {{enabled: false}}
+{block}
+""")
+    with pytest.raises(ScenarioError, match=r"vehicles\[0\]\.lanes: lane 0 is closed to passenger vehicles"):
+        load_scenario(scenario("vehicles: [{name: a, count: 1, lanes: [0], pos_m: [50, 400]}]"))
+    with pytest.raises(ScenarioError, match=r"flows\[0\]\.lanes: lane 0 is closed to passenger vehicles"):
+        load_scenario(scenario("flows: [{vehs_per_hour: 600, lanes: [0]}]"))
+    # a range reaching the open part: the vehicles are drawn there, and the run goes
+    sc = load_scenario(scenario("vehicles: [{name: a, count: 3, lanes: [0], pos_m: [50, 900], min_spacing_m: 5}]"))
+    road = read_road(sc.network, sc.route)
+    for seed in range(5):
+        placed = plan_placements(sc, road, read_vehicle_types(sc.vehicle_types), np.random.default_rng(seed))
+        assert all(p.edges[0] == "e2" for p in placed)
+    result = build_cosimulation(sc.model_copy(update={"metrics": sc.metrics.model_copy(update={"enabled": False})}),
+                                0).run()
+    assert set(result.tables["vehicles"]["vehicle_id"]) == {"a0", "a1", "a2"}

@@ -620,6 +620,19 @@ def load_scenario(path: str | Path) -> Scenario:
     return scenario
 
 
+def _open_somewhere(frame, track: int, positions: list[float], is_range: bool, closed: frozenset[str]) -> bool:
+    """Whether the track has a SUMO lane not in `closed` at the position, or somewhere in the range
+    (every metre: a placement draws again where the lane is closed)."""
+    from vcfusion.traffic.network import sumo_place
+
+    lo, hi = (positions[0], min(positions[1], frame.length_m)) if is_range else (positions[0], positions[0])
+    for s in np.unique(np.r_[np.arange(lo, hi, 1.0), hi]):
+        place = sumo_place(frame, track, float(s))
+        if place is not None and f"{place[0][0]}_{place[1]}" not in closed:
+            return True
+    return False
+
+
 def camera_vclass_problem(scenario: Scenario, vtypes: dict) -> tuple[tuple, str] | None:
     """(where in the scenario, message) for the first vehicle type the scenario uses whose class the
     ego camera can neither draw nor label (records.CATEGORY_OF_VCLASS), else None."""
@@ -684,7 +697,8 @@ def _check_ego_lane(scenario: Scenario, road, origins: _Origins) -> None:
 def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
     """Read the files the scenario names and check the scenario against them (routes, lanes,
     positions, vehicle types), so a bad one stops the command before anything is written."""
-    from vcfusion.traffic.network import NetworkFileError, read_road, read_vehicle_types, require_flat_network
+    from vcfusion.traffic.network import (NetworkFileError, closed_lanes, read_road, read_vehicle_types,
+                                          require_flat_network)
     from vcfusion.traffic.roadframe import RouteError
 
     try:
@@ -759,6 +773,12 @@ def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
                 raise ScenarioError(f"{origins.label(loc + (field,))}: {where}.{field}: lane {lane} does not exist "
                                     f"{at} along {on} (lanes there: {present.tolist()}); expected a lane "
                                     "present there (lanes are indexed from the right)")
+            vclass = vtypes[vtype].get("vClass", "passenger")
+            closed = closed_lanes(scenario.network, vclass)
+            if closed and not _open_somewhere(frame, lane, positions, is_range, closed):
+                raise ScenarioError(f"{origins.label(loc + (field,))}: {where}.{field}: lane {lane} is closed to "
+                                    f"{vclass} vehicles (vehicle type {vtype!r}) {at} along {on} (the network's "
+                                    "allow / disallow); expected a lane they may drive in")
     if scenario.vision.enabled:
         problem = camera_vclass_problem(scenario, vtypes)
         if problem is not None:

@@ -274,6 +274,27 @@ def _elevation(net_file: str, stamp: int | None) -> tuple[float, str]:
     return highest, where
 
 
+def closed_lanes(net_file: str | Path, vclass: str) -> frozenset[str]:
+    """Ids of the normal lanes that vehicles of SUMO class `vclass` may not use (a lane's `allow`
+    without the class, or `disallow` with it; "all" stands for every class): a shoulder, a bus or
+    bicycle lane. SUMO refuses a departure there."""
+    return _closed_lanes(str(Path(net_file)), _file_version(net_file), vclass)
+
+
+@functools.lru_cache(maxsize=64)
+def _closed_lanes(net_file: str, stamp: int | None, vclass: str) -> frozenset[str]:
+    root = _parse_xml(net_file, "SUMO network (.net.xml)", ("net",))
+    closed = set()
+    for edge in root.iter("edge"):
+        if edge.get("function") not in (None, "normal"):
+            continue
+        for lane in edge.iter("lane"):
+            allow, disallow = (set((lane.get(k) or "").split()) for k in ("allow", "disallow"))
+            if (allow and not allow & {"all", vclass}) or disallow & {"all", vclass}:
+                closed.add(lane.get("id"))
+    return frozenset(closed)
+
+
 def require_flat_network(net_file: str | Path) -> None:
     """NetworkFileError unless the network lies flat at z = 0, as the ego camera's world does: on a
     network with elevation the camera, the vehicles and the road would not meet (vehicles drawn in

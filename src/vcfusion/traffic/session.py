@@ -18,7 +18,7 @@ import numpy as np
 
 from vcfusion.records import EGO_ID, VehicleStates
 from vcfusion.scenario import Scenario
-from vcfusion.traffic.network import Road, read_road, read_vehicle_types, sumo_place
+from vcfusion.traffic.network import Road, closed_lanes, read_road, read_vehicle_types, sumo_place
 from vcfusion.traffic.roadframe import RoadFrame
 
 # A stop longer than any run: the accident vehicles never leave.
@@ -119,6 +119,8 @@ def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.r
     for group in scenario.vehicles:
         length = length_of(group.vtype)
         frame = frame_of(scenario, road, group.route)
+        # a lane closed to the group's class (a shoulder, a bus lane) is drawn again too
+        closed = closed_lanes(scenario.network, vtypes[group.vtype].get("vClass", "passenger"))
         # SUMO refuses a departure on a lane that ends (an acceleration lane, a lane drop) closer
         # than the vehicle can stop from its departure speed: such a draw is drawn again
         stopping_m = group.speed_mps ** 2 / (2.0 * float(vtypes[group.vtype].get("decel", 4.5))) + STOP_MARGIN_M
@@ -128,7 +130,8 @@ def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.r
                 front = float(rng.uniform(*group.pos_m))
                 place = sumo_place(frame, lane, front)
                 if (place is not None and free(place, length, group.min_spacing_m)
-                        and not frame.lane_end_ahead(lane, front) - front < stopping_m):
+                        and not frame.lane_end_ahead(lane, front) - front < stopping_m
+                        and f"{place[0][0]}_{place[1]}" not in closed):
                     break
             else:
                 raise RunError(
