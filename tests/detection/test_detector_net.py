@@ -190,6 +190,10 @@ def test_bad_files_get_one_clear_error(tmp_path):
                                                        "categories": [{"id": 1}]}))
     with pytest.raises(DetectorFileError, match=r"annotations\[0\]"):
         load_coco(data)
+    (data / "annotations.json").write_text(json.dumps({"images": [], "categories": [{"id": 1}], "annotations": [
+        {"image_id": 1, "bbox": [1, 2, 30, 20], "category_id": 1, "iscrowd": 1}]}))
+    with pytest.raises(DetectorFileError, match=r"annotations\[0\]: iscrowd: crowd regions are not supported"):
+        load_coco(data)
 
 
 def test_ultralytics_layout_through_opencv_equals_the_torch_model(trained, tmp_path):

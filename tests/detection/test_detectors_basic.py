@@ -87,6 +87,18 @@ def test_a_class_whose_ground_truth_is_all_below_min_area_is_left_out_as_pycocot
         {i: (b[c == 1], c[c == 1]) for i, (b, c) in gt.items()}, det, min_area=100.0).map_50_95)
 
 
+def test_equal_scores_rank_in_image_id_order_as_pycocotools_does_whatever_order_images_come_in():
+    # a hit in image 1 and a miss in image 2 with the same score, the ground truth listed 2, 1:
+    # COCOeval ranks image 1's first (AP@0.5 0.505); taken in the dict's order it was 0.2525
+    pytest.importorskip("pycocotools")
+    box = np.array([[10.0, 10.0, 50.0, 40.0]])
+    gt = {1: (box, np.array([1])), 0: (box, np.array([1]))}
+    det = {0: (box, np.array([1.0]), np.array([1])), 1: (box + 100, np.array([1.0]), np.array([1]))}
+    ref50, ref = pycocotools_map(gt, det, n_cats=1)
+    ours = coco_map(gt, det)
+    assert ours.map_50 == pytest.approx(ref50, abs=1e-9) == pytest.approx(0.505, abs=1e-3)
+
+
 def test_perfect_detections_score_one():
     gt = {0: (np.array([[0, 0, 10, 10], [20, 20, 40, 40]], float), np.array([1, 1]))}
     det = {0: (gt[0][0], np.array([0.9, 0.8]), np.array([1, 1]))}

@@ -45,12 +45,17 @@ def coco_map(ground_truth: dict, detections: dict, max_dets: int = 100, min_area
     (a detection matched to it counts neither way), as are unmatched detections smaller than it.
     """
     categories = sorted({int(c) for _, cls in ground_truth.values() for c in np.asarray(cls).reshape(-1)})
+    try:  # images in id order, as COCOeval takes them: detections of equal score rank in that order
+        image_ids = sorted(ground_truth)
+    except TypeError:  # ids of mixed kinds: as given
+        image_ids = list(ground_truth)
     n_t = len(IOU_THRESHOLDS)
     ap = np.full((len(categories), n_t), np.nan)  # NaN: a category with nothing to find (COCOeval's -1)
     for k, cat in enumerate(categories):
         scores_all, tp_all = [], []
         n_pos = 0
-        for image_id, (gt_boxes, gt_cls) in ground_truth.items():
+        for image_id in image_ids:
+            gt_boxes, gt_cls = ground_truth[image_id]
             gt = np.asarray(gt_boxes, float).reshape(-1, 4)[np.asarray(gt_cls).reshape(-1) == cat]
             n_pos += int((((gt[:, 2] - gt[:, 0]) * (gt[:, 3] - gt[:, 1])) >= min_area).sum())
             if image_id not in detections:

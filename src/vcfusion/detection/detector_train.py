@@ -92,6 +92,10 @@ def load_coco(folder) -> CocoDataset:
         if not (isinstance(bbox, list) and len(bbox) == 4) or ann.get("category_id") not in class_ids:
             raise DetectorFileError(f"{path}: annotations[{k}]: expected bbox [x, y, w, h] and a category_id "
                                     f"among {class_ids}")
+        if ann.get("iscrowd"):
+            # COCOeval ignores detections on a crowd region; read as one vehicle it would score them wrong
+            raise DetectorFileError(f"{path}: annotations[{k}]: iscrowd: crowd regions are not supported; expected "
+                                    "one annotation per vehicle (iscrowd 0 or absent)")
         x, y, w, h = map(float, bbox)
         if w > 0 and h > 0:
             # COCO's pixel c spans [c, c + 1); our boxes put integer coordinates at pixel centres
