@@ -484,3 +484,29 @@ def test_records_cache_a_frame_like_a_road(frames):
     np.testing.assert_allclose(s, [100.0, 600.0, 1300.0], atol=1e-9)
     np.testing.assert_allclose(d, [1.75, 5.25, 8.75], atol=1e-9)
     assert truth.road_frame(RoadFrame.from_net(CURVED))[0] is s  # an equal frame: no recomputation
+
+
+def test_a_lane_drop_on_centre_spread_edges_as_osm_imports_them(tmp_path):
+    """OpenStreetMap roads come as centre-spread edges: where a motorway drops from 3 lanes to 2, the
+    lanes that continue swerve half a lane sideways in the junction. Each piece offset along its own
+    end normal left 0.5 m between them and the route was refused; offset along the bend's miter,
+    the lanes are lines of constant d on both sides, and the junction lanes stay in their tracks."""
+    from vcfusion.traffic.network import build_network
+
+    (tmp_path / "t.nod.xml").write_text('<nodes><node id="a" x="0" y="0"/><node id="b" x="500" y="0"/>'
+                                        '<node id="c" x="1000" y="0"/></nodes>')
+    (tmp_path / "t.edg.xml").write_text(
+        '<edges><edge id="e1" from="a" to="b" numLanes="3" speed="33" width="3.5" spreadType="center"/>'
+        '<edge id="e2" from="b" to="c" numLanes="2" speed="33" width="3.5" spreadType="center"/></edges>')
+    net = build_network(tmp_path, "t")
+    frame = RoadFrame.from_net(net)
+    assert frame.max_join_gap_m < 0.2
+    sumo = sumolib.net.readNet(str(net), withInternal=True)
+    for lane_id, track in frame.track_of.items():
+        xy = np.array(sumo.getLane(lane_id).getShape())
+        if lane_id.startswith(":"):
+            mid = 0.5 * (xy[1:] + xy[:-1])
+            assert (frame.lane_of(*frame.to_frame(mid[:, 0], mid[:, 1])) == track).all(), lane_id
+        else:
+            s, d = frame.to_frame(xy[:, 0], xy[:, 1])
+            np.testing.assert_allclose(d, frame.lane_centre_d(track, s), atol=0.05, err_msg=lane_id)
