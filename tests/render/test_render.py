@@ -200,3 +200,11 @@ def test_sumo_vehicle_classes_map_to_the_camera_categories():
     assert category_id("moped") == category_id("motorcycle")
     with pytest.raises(ValueError, match="vehicle class 'bicycle' has no COCO category"):
         category_id("bicycle")
+
+
+def test_depth_beyond_the_png_formats_range_reads_as_no_depth():
+    # uint16 centimetres reach 655.35 m; a far plane set further must not write 655.35 m for 700 m
+    from vcfusion.render.coco import depth_to_png16
+
+    png = depth_to_png16(np.array([599.0, 655.35, 700.0, 999.0, np.inf, 0.0]))
+    assert png.tolist() == [59900, 65535, 0, 0, 0, 0]

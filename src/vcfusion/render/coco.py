@@ -9,7 +9,8 @@ Conventions of the JSON (also written to its ``info``):
   x <= u + 0.5 < x + w and y <= v + 0.5 < y + h;
 - ``vehicles`` lists every vehicle whose GNSS point (body centre) projects into the
   image in front of the camera, seen or hidden (``visible`` says which);
-- depth PNGs are uint16 camera Z / ``depth_scale_m`` (0 = sky or beyond the far plane);
+- depth PNGs are uint16 camera Z / ``depth_scale_m`` (0 = sky, beyond the far plane or beyond the
+  format's range, 655.35 m: a far plane set further would otherwise read as 655.35 m);
   instance PNGs are uint16, value k + 1 for ``instance_vehicle_ids[k]`` of the image, 0 = none.
 """
 
@@ -29,7 +30,8 @@ CONVENTIONS = {
               "(u, v, 1) ~ K (R p + t); integer (u, v) at pixel centres",
     "anchor_in_bbox": "x <= u + 0.5 < x + w and y <= v + 0.5 < y + h",
     "gnss_world": "body centre: footprint centre raised by half the vehicle height",
-    "depth_png": f"uint16 camera Z / {DEPTH_SCALE_M} m; 0 = sky or beyond the far plane",
+    "depth_png": f"uint16 camera Z / {DEPTH_SCALE_M} m; 0 = sky, beyond the far plane or beyond "
+                 f"{65535 * DEPTH_SCALE_M:g} m",
     "instance_png": "uint16 k + 1 for instance_vehicle_ids[k]; 0 = no vehicle",
 }
 
@@ -45,7 +47,7 @@ def category_id(vclass: str) -> int:
 def depth_to_png16(depth: np.ndarray) -> np.ndarray:
     finite = np.isfinite(depth)
     scaled = np.where(finite, np.round(np.where(finite, depth, 0.0) / DEPTH_SCALE_M), 0.0)
-    return np.clip(scaled, 0, 65535).astype(np.uint16)
+    return np.where(scaled > 65535, 0, np.clip(scaled, 0, None)).astype(np.uint16)  # out of range: no depth
 
 
 def vehicle_anchors(frame, truth, ego_id: str) -> list[dict]:
