@@ -1,7 +1,8 @@
 """Per-family evaluation of a detector on rendered COCO folders (`vcfusion eval-detector`).
 
 Images are grouped by their ``family`` (procedural scenes, :mod:`vcfusion.detection.scenes`;
-frames of `vcfusion render` have none and form the group ``all``). Per group:
+frames of `vcfusion render` have none and form the group ``frames``; with several groups, ``all``
+pools them). Per group:
 - COCO mAP@0.5 and mAP@0.5:0.95 (:func:`coco_map`, ground truth below ``min_area`` px^2 ignored);
 - the IoU of the best-matching detected box per target (class-agnostic, detections at the
   detector's operating score threshold): quantiles and the shares >= 0.5 and >= 0.7;
@@ -14,7 +15,8 @@ frames of `vcfusion render` have none and form the group ``all``). Per group:
 - the same identification per share of the target that nearer objects leave visible
   (:data:`VISIBILITY_BINS` of the renderer's ``visible_fraction``), where the folder has it;
 - 95 % intervals of the identification accuracies and of each detector's gap to the oracle, by
-  resampling the family's images (:func:`scene_bootstrap`).
+  resampling the family's scenes (:func:`scene_bootstrap`): a seed of a folder is one scene, the
+  one image of a procedural scene, the many frames of a `vcfusion render` seed.
 """
 
 from __future__ import annotations
@@ -79,7 +81,7 @@ class _Fixed:
 
 
 def family_of(record: dict) -> str:
-    return str(record.get("family", "all"))
+    return str(record.get("family", "frames"))
 
 
 def _dataset_file(image: Path, record: dict, name: str) -> Path | None:
@@ -216,18 +218,23 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
                 if np.isfinite(vis).any():
                     res.identification_by_visibility[name] = _by_visibility(right, vis)
             res.n_identified_targets = int(sum(len(ident[i]["oracle"][0]) for i in with_ident))
-            res.identification_interval = scene_bootstrap(right_per_image)
+            where = {ds.image_ids[k]: k for k in index}
+            scenes = [(str(Path(ds.images[where[i]]).parent), records[where[i]].get("seed", f"image {i}"))
+                      for i in with_ident]
+            res.identification_interval = scene_bootstrap(right_per_image, scenes)
         results.append(res)
     return results, dets
 
 
-def scene_bootstrap(right: dict[str, list[np.ndarray]], resamples: int = BOOTSTRAP_RESAMPLES,
-                    seed: int = 0) -> dict[str, tuple[float, float]]:
-    """95 % percentile intervals of identification accuracy, resampling images with replacement.
+def scene_bootstrap(right: dict[str, list[np.ndarray]], scenes: list | None = None,
+                    resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> dict[str, tuple[float, float]]:
+    """95 % percentile intervals of identification accuracy, resampling scenes with replacement.
 
     ``right``: detector name -> per image, whether each target was identified (the same targets,
-    in the same order, for every detector). Images, not targets, are resampled: one scene's targets
-    are not independent (one occluded cluster fails together), and a scene is what a seed draws.
+    in the same order, for every detector). ``scenes``: per image, the scene it shows (default:
+    each image its own); the images of one scene are resampled together. Scenes, not targets or
+    frames, are resampled: one scene's targets are not independent (one occluded cluster fails
+    together; the frames of one SUMO seed show the same vehicles), and a scene is what a seed draws.
     Returns {name: (low, high)} and, for every detector but the oracle (when it is given),
     {"gap_" + name: (low, high)} of the oracle's accuracy minus the detector's on the same draws
     (paired: the oracle and the detector saw the same scenes). Seeded: the same inputs give the
@@ -236,12 +243,15 @@ def scene_bootstrap(right: dict[str, list[np.ndarray]], resamples: int = BOOTSTR
     names = list(right)
     if not names or not sum(len(r) for r in right[names[0]]):
         return {}  # no target: no accuracy to bound
-    n_images = len(right[names[0]])
-    targets = np.array([len(r) for r in right[names[0]]], float)
-    counts = {name: np.array([np.count_nonzero(r) for r in right[name]], float) for name in names}
+    scenes = list(range(len(right[names[0]]))) if scenes is None else list(scenes)
+    cluster = {key: c for c, key in enumerate(dict.fromkeys(scenes))}
+    of = np.array([cluster[key] for key in scenes])
+    n_scenes = len(cluster)
+    targets = np.bincount(of, [len(r) for r in right[names[0]]], n_scenes)
+    counts = {name: np.bincount(of, [np.count_nonzero(r) for r in right[name]], n_scenes) for name in names}
     rng = np.random.default_rng(seed)
-    # how often each image is drawn in each resample (resamples, images)
-    weights = rng.multinomial(n_images, np.full(n_images, 1.0 / n_images), size=resamples).astype(float)
+    # how often each scene is drawn in each resample (resamples, scenes)
+    weights = rng.multinomial(n_scenes, np.full(n_scenes, 1.0 / n_scenes), size=resamples).astype(float)
     total = weights @ targets
     with np.errstate(invalid="ignore", divide="ignore"):
         acc = {name: (weights @ c) / total for name, c in counts.items()}  # nan where a draw has no target
