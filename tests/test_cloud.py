@@ -107,3 +107,17 @@ def test_snapshot_lane_matching_process_models_and_staleness():
     assert near.outputs["double_speed"].tolist() == [40.0]
     store.forget_stale(1.5)
     assert store.snapshot(1.5).ids == ()
+
+
+def test_two_process_models_writing_one_output_are_refused():
+    # a stand-in's lc_prob beside the shipped predictor's: the later one replaced the earlier one's
+    # probability, while the earlier one's decision still chose the highlights
+    import pytest
+
+    store = TwinStore(V2CConfig(), ROAD)
+    store.add_process_model("predictor", lambda twins, _store: {"lc_prob": np.full(len(twins), 0.1),
+                                                                "lc_decision": np.zeros(len(twins))})
+    store.add_process_model("stand_in", lambda twins, _store: {"lc_prob": np.full(len(twins), 0.99)})
+    store.ingest(V2CChannel(V2CConfig(), np.random.default_rng(0)).measure(states(0.0, n=3)))
+    with pytest.raises(ValueError, match="process models 'predictor' and 'stand_in' both write 'lc_prob'"):
+        store.snapshot(0.0)

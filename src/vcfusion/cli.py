@@ -367,7 +367,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--renders", default="renders", help="folder for the figures (default: renders)")
     p.add_argument("--process-model", action="append", default=[], metavar="MODULE:FACTORY",
                    help="extra cloud twin process model: FACTORY(scenario) returns fn(twins, store) -> "
-                        "{'lc_prob': ...}; repeatable (e.g. a stand-in before the predictor is wired)")
+                        "{'lc_prob': ...}; repeatable; one writer per output (a stand-in predictor needs "
+                        "prediction.enabled: false in the scenario)")
     p.set_defaults(func=cmd_study_guidance,
                    interrupted="the study wrote nothing; run the same command again (its trips start over)")
 

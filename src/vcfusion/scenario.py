@@ -289,7 +289,7 @@ class PredictionConfig(_Strict):
     # None = the values stored in the model file (tuned on validation seeds by `vcfusion train`).
     tau_a_ticks: Annotated[int, Field(ge=0)] | None = None
     tau_c_ticks: Annotated[int, Field(ge=0)] | None = None
-    conservative_threshold: Probability = 0.5
+    conservative_threshold: Probability | None = None  # None = the model file's (0.5 in the shipped ones)
 
 
 class MetricsConfig(_Strict):

@@ -145,12 +145,19 @@ class TwinStore:
             **cols, **{f: static[:, k] for k, f in enumerate(_STATIC_FIELDS)},
         )
         keep_road_frame(twins, self.road, s, d)  # the process models and the ego's stages reuse them
+        written: dict[str, str] = {}  # output -> the process model that wrote it
         for name, model in self.process_models:
             out = model(twins, self)
             for key, value in out.items():
                 value = np.asarray(value)
                 if value.shape[:1] != (len(ids),):
                     raise ValueError(f"process model {name!r} returned {key!r} of shape {value.shape} for {len(ids)} twins")
+                if key in written:
+                    # the later one would replace it silently (a stand-in's lc_prob beside the
+                    # predictor's lc_decision: one model's probability, the other's highlights)
+                    raise ValueError(f"process models {written[key]!r} and {name!r} both write {key!r}; expected "
+                                     "one writer per output (turn the other off, e.g. prediction.enabled: false)")
+                written[key] = name
                 twins.outputs[key] = value
         return twins
 
