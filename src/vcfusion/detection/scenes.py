@@ -12,10 +12,11 @@ Training distribution (``train``; all draws uniform unless said otherwise, per s
 - 2-7 *patterns*, each one of (weights in brackets): a single vehicle [3], a same-lane chain of 2-4
   vehicles with bumper gaps 0.8-8 m [2], a side-by-side pair in adjacent lanes at the same
   distance (+- 0.5 m) [2], a truck in front of a car (same lane, gap 1-15 m; the car's lateral
-  offset from the truck's within +- 0.35 m, so it is hidden, or the truck further than 35 m) [1],
+  offset from the truck's within +- 1.5 m: hidden, or peeking out beside it) [1],
   a truck beside a car (adjacent lanes, same distance +- 2 m) [1], a vehicle mid lane change
   (yaw 2-9 deg towards a neighbouring lane, centre 0.3-1.7 m off its lane centre) [1.5], a near
-  vehicle (rear 3-12 m ahead) in a neighbouring lane, truncated at the image border [1];
+  vehicle (rear 3-12 m ahead) in a neighbouring lane, often truncated at the image border (about
+  two in five with the default camera) [1];
 - a pattern's nearest rear face is 3-150 m ahead of the camera, log-uniform (as many near as far
   vehicles per metre of image height); lanes uniform over all lanes (patterns needing a
   neighbour lane pick one that exists);
@@ -232,8 +233,9 @@ class _Builder:
     def vehicle(self, vclass: str, lane: int, rear_m: float | None, lateral_m: float | None = None,
                 yaw: float | None = None, speed: float | None = None,
                 centre_m: float | None = None) -> PlacedVehicle | None:
-        """Place a vehicle by its rear (or its centre); None (nothing placed) where it would collide or
-        leave the road or the 3-150 m range."""
+        """Place a vehicle by its rear (or its centre); None (nothing placed) where it would collide,
+        where its lane is not a lane of the road, or outside the 3-150 m range (a lateral offset is
+        not checked against the road's edge: a body may reach over it, as in a lane change)."""
         length, width, height = self.size(vclass)
         if rear_m is None:
             rear_m = centre_m - length / 2
