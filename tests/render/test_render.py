@@ -208,3 +208,17 @@ def test_depth_beyond_the_png_formats_range_reads_as_no_depth():
 
     png = depth_to_png16(np.array([599.0, 655.35, 700.0, 999.0, np.inf, 0.0]))
     assert png.tolist() == [59900, 65535, 0, 0, 0, 0]
+
+
+def test_a_vehicle_cut_by_the_image_border_is_listed_as_a_twin(renderer):
+    # a truck alongside, its centre 3.4 m ahead of the camera and right of the image: its cab is
+    # in view, its GNSS point is not; listed only where the point projects into the image, it was
+    # no twin, and eval-detector's identification left it out (the hard, truncated cases)
+    from vcfusion.render.coco import vehicle_anchors
+
+    truth = states([SCENE[0], ("truck", "truck", 104.0, LANE1, 0.0, 12.0, 2.5, 3.6), SCENE[1], SCENE[4]])
+    frame = renderer.render(truth)
+    listed = {v["vehicle_id"]: v for v in vehicle_anchors(frame, truth, "ego")}
+    assert "truck" in frame.vehicle_ids and set(listed) == {"truck", "lead"}  # 'behind' is behind the camera
+    assert listed["truck"]["in_image"] is False and listed["truck"]["anchor_uv"][0] > 319.5
+    assert listed["truck"]["visible"] and listed["lead"]["in_image"] is True

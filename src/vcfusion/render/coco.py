@@ -7,8 +7,10 @@ Conventions of the JSON (also written to its ``info``):
   metres) -> camera (x right, y down, z forward); (u, v, 1) ~ K (R p + t) with integer (u, v) at
   pixel centres. ``vehicles[].anchor_uv`` uses this convention: the anchor lies in a box iff
   x <= u + 0.5 < x + w and y <= v + 0.5 < y + h;
-- ``vehicles`` lists every vehicle whose GNSS point (body centre) projects into the
-  image in front of the camera, seen or hidden (``visible`` says which);
+- ``vehicles`` lists every vehicle whose GNSS point (body centre) lies in front of the camera,
+  seen or hidden (``visible`` says which), its point in the image or not (``in_image``: a vehicle
+  beside the camera, cut by the image border, has its centre outside: it is still a vehicle the
+  cloud knows, a twin to match);
 - depth PNGs are uint16 camera Z / ``depth_scale_m`` (0 = sky, beyond the far plane or beyond the
   format's range, 655.35 m: a far plane set further would otherwise read as 655.35 m);
   instance PNGs are uint16, value k + 1 for ``instance_vehicle_ids[k]`` of the image, 0 = none.
@@ -51,7 +53,7 @@ def depth_to_png16(depth: np.ndarray) -> np.ndarray:
 
 
 def vehicle_anchors(frame, truth, ego_id: str) -> list[dict]:
-    """GNSS anchors of every vehicle (not the ego) whose GNSS point projects into the image."""
+    """GNSS anchors of every vehicle (not the ego) whose GNSS point lies in front of the camera."""
     keep = np.array([vid != ego_id for vid in truth.ids])
     ids = [vid for vid, k in zip(truth.ids, keep) if k]
     rows = np.flatnonzero(keep)
@@ -59,12 +61,13 @@ def vehicle_anchors(frame, truth, ego_id: str) -> list[dict]:
     proj = project_points(pts, frame.K, frame.T_world_to_camera, frame.width, frame.height)
     seen = set(frame.vehicle_ids[k] for k in np.unique(frame.instances) if k >= 0)
     out = []
-    for j in np.flatnonzero(proj.in_image):
+    for j in np.flatnonzero(~proj.behind):
         out.append({
             "vehicle_id": ids[j],
             "gnss_world": [float(v) for v in pts[j]],
             "anchor_uv": [float(proj.uv[j, 0]), float(proj.uv[j, 1])],
             "anchor_depth": float(proj.depth[j]),
+            "in_image": bool(proj.in_image[j]),
             "visible": ids[j] in seen,
             # The full pose, so the vehicle's 3D box can be rebuilt: footprint centre, yaw, size.
             "footprint_world": [float(truth.x[rows[j]]), float(truth.y[rows[j]]), float(truth.z[rows[j]])],
