@@ -274,7 +274,7 @@ def format_interval_table(results: list[FamilyResult], detector_name: str = "cnn
     if not rows:
         return ""
     lines = [f"identification at IoU 0.7 with 95 % intervals over scenes ({BOOTSTRAP_RESAMPLES} resamples of "
-             "the images)",
+             "the scenes: a folder's seeds)",
              f"{'family':<16} {'oracle':>22} {detector_name:>22} {'oracle - ' + detector_name + ' (points)':>26}"]
     for r in rows:
         lead = r.identification["oracle"] - r.identification[detector_name]
