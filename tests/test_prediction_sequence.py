@@ -2,6 +2,7 @@
 one go, model files (round trip, bad files), and the multi-dataset mixing."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -164,3 +165,36 @@ def test_decision_tuning_meets_the_false_alarm_budget_it_is_given():
     # 0.5 / veh-h none of them (the highest bump is 0.95, and a decision is prob > threshold)
     assert chosen == {MAX_FALSE_ALARMS_PER_VH: 0.90, 0.5: 0.95}
     assert SequenceConfig().false_alarm_budget < MAX_FALSE_ALARMS_PER_VH  # the margin the shipped GRU is tuned with
+
+
+def test_a_tick_without_any_twin_leaves_the_predictors_memory_as_the_replay_does():
+    # every report of one tick lost: the cloud called the extractor and the smoother with no twin,
+    # which forgot every twin's averages and runs; the replay of the logged twins table, which has
+    # no rows at that tick, keeps them: the two disagreed from the next tick on
+    import dataclasses
+
+    from vcfusion.prediction.bench import _twins
+    from vcfusion.prediction.cloud import LaneChangePredictor
+    from vcfusion.prediction.model import load_model
+    from vcfusion.traffic.network import Road
+
+    road = Road("hw", (0.0, 0.0), (2000.0, 0.0), 3, 3.5, 25.0)
+    base = _twins(12, road, np.random.default_rng(1))
+
+    def at(k):
+        return dataclasses.replace(base, time=0.1 * k, x=base.x + base.speed * 0.1 * k)
+
+    for path in (None, "mlp"):
+        model = load_model(None) if path is None else load_model(
+            Path(__file__).resolve().parents[1] / "src" / "vcfusion" / "assets" / "lane_change_mlp.npz")
+        live, replay = LaneChangePredictor(model, road, 0.1), LaneChangePredictor(model, road, 0.1)
+        for k in range(30):
+            snapshot = at(k)
+            if k == 12:
+                empty = dataclasses.replace(snapshot, ids=(), **{f: getattr(snapshot, f)[:0] for f in (
+                    "measured_time", "x", "y", "z", "heading", "speed", "accel", "lane", "length", "width", "height")})
+                assert len(live(empty)["lc_prob"]) == 0
+                continue
+            a, b = live(snapshot), replay(snapshot)
+            np.testing.assert_array_equal(a["lc_prob"], b["lc_prob"])
+            np.testing.assert_array_equal(a["lc_decision"], b["lc_decision"])

@@ -54,6 +54,11 @@ class LaneChangePredictor:
             threshold=model.conservative_threshold if conservative_threshold is None else conservative_threshold)
 
     def __call__(self, twins: TwinStates, store=None) -> dict[str, np.ndarray]:
+        if not len(twins):
+            # no twin this tick (every report lost or timed out): nothing to predict, and every
+            # twin's memory waits, as in the replay of the twins table, which has no rows here
+            # (called, the extractor and the smoother forgot every twin)
+            return {"lc_prob": np.zeros(0), "lc_decision": np.zeros(0, np.int8)}
         if self.sequence is not None:  # the GRU: one step per twin, its state carried to the next tick
             features = self.extractor.from_twins(twins, extras=True)
             prob = self.sequence(twins.ids, twins.time, features)
