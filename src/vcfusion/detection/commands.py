@@ -34,7 +34,8 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
         if getattr(args, name) is not None and getattr(args, name) < 1:
             raise UsageError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(args, name)}")
     if not 0.0 <= args.val_fraction < 1.0:
-        raise UsageError(f"--val-fraction: expected a share in [0, 1) (the rest is trained on), got {args.val_fraction}")
+        raise UsageError(f"--val-fraction: expected a share in [0, 1) (the rest is trained on), "
+                         f"got {args.val_fraction}")
     net, report = train_detector(
         args.data, args.out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, input_wh=input_wh,
         val_fraction=args.val_fraction, val_data=args.val, seed=args.seed, threads=args.threads,

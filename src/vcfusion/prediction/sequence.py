@@ -15,8 +15,9 @@ Run time (:class:`SequenceState`): one GRU step per tick for all twins of the sn
 in NumPy float32; a twin's state is created (zeros) when it appears, carried while it is seen,
 and dropped when it has been absent for `reset_gap_ticks` ticks or more, i.e. when it reappears
 more than `reset_gap_ticks` periods after it was last seen (it then starts again from zeros, as
-a new twin; after a shorter gap its last state is kept). Offline (datasets, evaluation) the same rule splits a vehicle's samples into
-segments at time gaps longer than reset_gap_ticks periods (:func:`segment_bounds`), and
+a new twin; after a shorter gap its last state is kept). Offline (datasets, evaluation) the same
+rule splits a vehicle's samples into segments at time gaps longer than reset_gap_ticks periods
+(:func:`segment_bounds`), and
 :meth:`SequenceModel.sequence_logits` runs the same NumPy step over all segments at once, so the
 offline probabilities are the run-time ones (tested).
 """
