@@ -210,8 +210,14 @@ def realtime_summary(frames: dict[str, list], step_lags: list[float], speed: flo
 
 def forward_axes(pygame, device):
     """An event handler for the start screen: axis motions reach the device (a pedal pressed
-    while reading the instructions counts as touched); buttons and keys do not (they start)."""
+    while reading the instructions counts as touched), and so do the driving keys pressed or
+    released there (a key already held when the trip starts drives from its first step: SDL sends
+    no repeat); buttons, the start keys and the lane-change keys do not (they start, or would
+    queue a lane change)."""
+    skipped = {pygame.K_RETURN, pygame.K_SPACE, pygame.K_ESCAPE, *getattr(device, "lane_keys", {})}
+
     def handle(event) -> None:
-        if event.type == pygame.JOYAXISMOTION:
+        if event.type == pygame.JOYAXISMOTION or (event.type in (pygame.KEYDOWN, pygame.KEYUP)
+                                                 and event.key not in skipped):
             device.handle(event)
     return handle
