@@ -138,6 +138,7 @@ class EgoCameraRenderer:
         self._platform = self._offscreen._platform
         self._gl._program_cache = _CameraShaders()
         self._single_pass = not self._platform.supports_framebuffers()
+        self.traffic.separate_shadows = not self._single_pass  # see TrafficScene.separate_shadows
         self._sky_cache: tuple[bytes, np.ndarray] | None = None
         self.last_timings_ms: dict[str, float] = {}
         # Half-extents of the view frustum per unit depth, for culling vehicles out of view.
