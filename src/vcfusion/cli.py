@@ -170,6 +170,10 @@ def cmd_study_hitl(args: argparse.Namespace) -> int:
 
     if args.speed not in ("1", "max"):
         raise UsageError(f"--speed: expected 1 or max, got {args.speed!r}")
+    check_seed(args.first_seed, "--first-seed")
+    check_seed(args.first_seed + max(args.trips, 1) - 1, "--first-seed + --trips - 1")
+    if args.practice_seed is not None:
+        check_seed(args.practice_seed, "--practice-seed")
     out = Path(args.out) if args.out else Path("runs") / f"hitl-{args.participant}"
     try:
         protocol = run_hitl_study(Path(args.scenario), args.participant, args.trips, out, input_spec=args.input,
@@ -294,6 +298,7 @@ def cmd_drive(args: argparse.Namespace) -> int:
         raise UsageError(f"--speed: expected 1 or max, got {args.speed!r}")
     if args.fps <= 0:
         raise UsageError(f"--fps: expected a positive frame rate, got {args.fps}")
+    check_seed(args.seed)
     out = Path(args.out) if args.out else _default_run_dir(f"{scenario.name}-{args.participant or 'drive'}", args.seed)
     from vcfusion.hitl.driver import DriveAborted
 
@@ -317,6 +322,13 @@ def cmd_drive(args: argparse.Namespace) -> int:
 
 def cmd_bench_render(args: argparse.Namespace) -> int:
     from vcfusion.render.bench import main as bench_main
+
+    if args.frames < 1:
+        raise UsageError(f"--frames: expected a positive number of frames, got {args.frames}")
+    if args.scenario:
+        scenario = load_scenario(args.scenario)
+        if scenario.ego is None:
+            raise UsageError(f"{args.scenario}: ego: the camera rides on the ego; the scenario has no ego block")
 
     return bench_main(["--scenario", args.scenario, "--frames", str(args.frames)]
                       + (["--preset", args.preset] if args.preset else []))
@@ -465,9 +477,19 @@ def main(argv: list[str] | None = None) -> int:
                 hint = getattr(args, "interrupted", None)
                 print("interrupted" + (f": {hint}" if hint else ""), file=sys.stderr)
                 return 130
-            if isinstance(exc, (InputError, FileExistsError)):  # scenario, model, dataset, command-line values
+            # scenario, model, dataset, command-line values; an output that exists (our own message)
+            if isinstance(exc, InputError) or (isinstance(exc, FileExistsError) and exc.filename is None):
                 for line in str(exc).splitlines():  # one line per problem (a scenario file may have several)
                     print(f"error: {line}", file=sys.stderr)
+                return 2
+            if isinstance(exc, OSError) and exc.filename is not None:
+                # a path the command could not write or read (no permission, a folder where a file
+                # goes, a missing parent, a file where a folder goes): the path and the reason
+                what = f" (-> {exc.filename2})" if exc.filename2 else ""
+                reason = exc.strerror or str(exc)
+                if isinstance(exc, FileExistsError) and Path(exc.filename).is_file():
+                    reason = "is a file; expected a folder (or a path that does not exist yet)"
+                print(f"error: {exc.filename}{what}: {reason}", file=sys.stderr)
                 return 2
             from vcfusion.traffic.session import RunError
 

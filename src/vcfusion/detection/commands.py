@@ -33,6 +33,16 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
     for name in ("epochs", "batch_size", "checkpoint_every", "iterations"):
         if getattr(args, name) is not None and getattr(args, name) < 1:
             raise UsageError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(args, name)}")
+    if not args.lr > 0:
+        raise UsageError(f"--lr: expected a positive learning rate, got {args.lr}")
+    if args.device not in ("auto", "cpu", "cuda"):
+        raise UsageError(f"--device: expected auto, cpu or cuda, got {args.device!r}")
+    if args.device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise UsageError("--device cuda: torch sees no CUDA device here (this torch is the CPU build, or "
+                             "no GPU); use --device cpu or auto")
     if not 0.0 <= args.val_fraction < 1.0:
         raise UsageError(f"--val-fraction: expected a share in [0, 1) (the rest is trained on), "
                          f"got {args.val_fraction}")

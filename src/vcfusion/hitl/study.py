@@ -114,12 +114,24 @@ def run_hitl_study(scenario_path: Path, participant: str, pairs: int, out: Path,
 
     if not participant:
         raise UsageError("--participant: give the participant's id")
+    if "/" in participant or "\\" in participant or participant in (".", ".."):
+        raise UsageError(f"--participant: expected an id without path separators (it names folders), got "
+                         f"{participant!r}")
     if pairs < 1:
         raise UsageError(f"--trips: expected at least 1 paired trip, got {pairs}")
     if first_seed <= practice_seed < first_seed + pairs:
         raise UsageError(f"--practice-seed {practice_seed}: one of the study's seeds; choose another")
     scenario = load_scenario(scenario_path)
     require_camera_world(scenario)  # the driver sees the camera's world
+    if scenario.ego is None:
+        raise UsageError(f"{scenario_path}: ego: a person drives the ego; the scenario has no ego block")
+    # the input is checked before the session's folder exists (nothing is written for a bad one)
+    if input_spec.startswith("replay:"):
+        from vcfusion.hitl.inputs import ReplayInput
+
+        ReplayInput(Path(input_spec[len("replay:"):]))
+    elif input_spec not in ("keyboard", "joystick"):
+        raise UsageError(f"--input: expected keyboard, joystick or replay:FILE, got {input_spec!r}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     order = order or default_order(participant)

@@ -98,7 +98,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     for option in ("hidden", "epochs", "patience", "threads", "bptt_ticks"):
         if getattr(args, option) < 1:
             raise UsageError(f"--{option.replace('_', '-')}: expected a positive number, got {getattr(args, option)}")
-    if args.learning_rate <= 0 or args.weight_decay < 0 or args.background_negatives < 0:
+    if not (args.learning_rate > 0 and args.weight_decay >= 0 and args.background_negatives >= 0):  # NaN too
         raise UsageError("--learning-rate / --weight-decay / --background-negatives: expected a positive rate and "
                          f"non-negative others, got {args.learning_rate}, {args.weight_decay}, "
                          f"{args.background_negatives}")
@@ -145,6 +145,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from vcfusion.prediction.bench import run_bench
 
+    for option in ("twins", "repeats"):
+        if getattr(args, option) < 1:
+            raise UsageError(f"--{option}: expected a positive number, got {getattr(args, option)}")
     print(run_bench(args.twins, args.repeats))
     return 0
 
