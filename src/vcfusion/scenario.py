@@ -623,12 +623,12 @@ def load_scenario(path: str | Path) -> Scenario:
 def _open_somewhere(frame, track: int, positions: list[float], is_range: bool, closed: frozenset[str]) -> bool:
     """Whether the track has a SUMO lane not in `closed` at the position, or somewhere in the range
     (every metre: a placement draws again where the lane is closed)."""
-    from vcfusion.traffic.network import sumo_place
+    from vcfusion.traffic.network import sumo_lane_id, sumo_place
 
     lo, hi = (positions[0], min(positions[1], frame.length_m)) if is_range else (positions[0], positions[0])
     for s in np.unique(np.r_[np.arange(lo, hi, 1.0), hi]):
         place = sumo_place(frame, track, float(s))
-        if place is not None and f"{place[0][0]}_{place[1]}" not in closed:
+        if place is not None and sumo_lane_id(place) not in closed:
             return True
     return False
 
@@ -697,7 +697,7 @@ def _check_ego_lane(scenario: Scenario, road, origins: _Origins) -> None:
 def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
     """Read the files the scenario names and check the scenario against them (routes, lanes,
     positions, vehicle types), so a bad one stops the command before anything is written."""
-    from vcfusion.traffic.network import (NetworkFileError, closed_lanes, read_road, read_vehicle_types,
+    from vcfusion.traffic.network import (NetworkFileError, accident_s, closed_lanes, read_road, read_vehicle_types,
                                           require_flat_network)
     from vcfusion.traffic.roadframe import RouteError
 
@@ -729,13 +729,10 @@ def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
     uses += [(("flows", i), f.vtype, f.route, f.lanes, "", [0.0], False) for i, f in enumerate(scenario.flows)]
     acc = scenario.accident
     if acc is not None:
-        acc_s = acc.pos_m
-        if acc.edge is not None:
-            if acc.edge not in road.route:
-                raise ScenarioError(f"{origins.label(('accident', 'edge'))}: accident.edge: expected an edge of "
-                                    f"the route {list(road.route)}, got {acc.edge!r}")
-            acc_s = road.edge_start_s[acc.edge] + acc.pos_m
-        uses.append((("accident",), acc.vtype, None, acc.lanes, "pos_m", [acc_s], False))
+        if acc.edge is not None and acc.edge not in road.route:
+            raise ScenarioError(f"{origins.label(('accident', 'edge'))}: accident.edge: expected an edge of "
+                                f"the route {list(road.route)}, got {acc.edge!r}")
+        uses.append((("accident",), acc.vtype, None, acc.lanes, "pos_m", [accident_s(acc, road)], False))
     for loc, vtype, route, lanes, pos_field, positions, is_range in uses:
         where = _format_location(loc)
         if vtype not in vtypes:

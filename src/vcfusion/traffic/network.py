@@ -356,6 +356,17 @@ def sumo_place(frame: RoadFrame, track: int, front: float) -> tuple[tuple[str, .
     return frame.route[k:], int(index), front - frame.edge_start_s[edge]
 
 
+def sumo_lane_id(place: tuple[tuple[str, ...], int, float]) -> str:
+    """The SUMO lane id of a placement from :func:`sumo_place`."""
+    edges, index, _ = place
+    return f"{edges[0]}_{index}"
+
+
+def accident_s(accident, frame) -> float:
+    """The accident's front bumper along the frame's route (its pos_m along `edge` when it names one)."""
+    return frame.edge_start_s[accident.edge] + accident.pos_m if accident.edge is not None else accident.pos_m
+
+
 def read_vehicle_types(vtype_file: str | Path) -> dict[str, dict[str, str]]:
     """The <vType> attributes of an additional file, by type id (NetworkFileError when unreadable)."""
     root = _parse_xml(vtype_file, "SUMO additional file with <vType> elements", ("additional", "routes"))

@@ -18,7 +18,8 @@ import numpy as np
 
 from vcfusion.records import EGO_ID, VehicleStates
 from vcfusion.scenario import Scenario
-from vcfusion.traffic.network import Road, closed_lanes, read_road, read_vehicle_types, sumo_place
+from vcfusion.traffic.network import (Road, accident_s, closed_lanes, read_road, read_vehicle_types, sumo_lane_id,
+                                      sumo_place)
 from vcfusion.traffic.roadframe import RoadFrame
 
 # A stop longer than any run: the accident vehicles never leave.
@@ -78,10 +79,11 @@ def lane_slot(road: RoadFrame, place: tuple[tuple[str, ...], int, float]) -> tup
     """(lane key, front position) of a SUMO placement (edges, lane index, lane position): a track of
     the scenario's route with the position along it (so vehicles on other routes through the same
     lane compare), or a SUMO lane off that route with its lane position."""
-    edges, index, pos = place
-    track = road.track_of.get(f"{edges[0]}_{index}")
+    edges, _, pos = place
+    lane_id = sumo_lane_id(place)
+    track = road.track_of.get(lane_id)
     if track is None:
-        return ("lane", f"{edges[0]}_{index}"), pos
+        return ("lane", lane_id), pos
     return ("track", track), road.edge_start_s[edges[0]] + pos
 
 
@@ -109,7 +111,7 @@ def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.r
 
     if scenario.accident is not None:
         acc = scenario.accident
-        s = road.edge_start_s[acc.edge] + acc.pos_m if acc.edge is not None else acc.pos_m
+        s = accident_s(acc, road)
         for lane in acc.lanes:
             occupy(sumo_place(road, lane, s), length_of(acc.vtype))
     if scenario.ego is not None:
@@ -131,7 +133,7 @@ def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.r
                 place = sumo_place(frame, lane, front)
                 if (place is not None and free(place, length, group.min_spacing_m)
                         and not frame.lane_end_ahead(lane, front) - front < stopping_m
-                        and f"{place[0][0]}_{place[1]}" not in closed):
+                        and sumo_lane_id(place) not in closed):
                     break
             else:
                 raise RunError(
@@ -279,7 +281,7 @@ class SumoSession:
         self._routes: dict[tuple[str, ...], str] = {}
         if sc.accident is not None:
             acc = sc.accident
-            s = self.road.edge_start_s[acc.edge] + acc.pos_m if acc.edge is not None else acc.pos_m
+            s = accident_s(acc, self.road)
             for i, lane in enumerate(acc.lanes):
                 vid = f"accident{i}"
                 edges, index, pos = sumo_place(self.road, lane, s)
@@ -328,7 +330,7 @@ class SumoSession:
                            self._length(sc.ego.vtype), sc.ego.speed_mps))
         if sc.accident is not None:
             acc = sc.accident
-            s = self.road.edge_start_s[acc.edge] + acc.pos_m if acc.edge is not None else acc.pos_m
+            s = accident_s(acc, self.road)
             placed += [(f"accident{i}", "accident", *lane_slot(self.road, sumo_place(self.road, lane, s)),
                         self._length(acc.vtype), 0.0) for i, lane in enumerate(acc.lanes)]
         me = next(v for v in placed if v[0] == first.vehicle_id)
