@@ -218,7 +218,7 @@ def test_a_driving_key_held_before_the_start_key_drives_from_the_first_step(sdl)
     # swallowed key-down left the throttle at 0 for the whole trip; a lane key pressed there does
     # not queue a lane change
     from vcfusion.hitl.display import Window
-    from vcfusion.hitl.driver import forward_axes
+    from vcfusion.hitl.driver import forward_controls
     from vcfusion.hitl.inputs import KeyboardInput
 
     window = Window(sdl, (160, 120))
@@ -227,7 +227,7 @@ def test_a_driving_key_held_before_the_start_key_drives_from_the_first_step(sdl)
         keyboard = KeyboardInput()
         for key in (sdl.K_UP, sdl.K_q, sdl.K_RETURN):
             sdl.event.post(sdl.event.Event(sdl.KEYDOWN, key=key, mod=0, unicode="", scancode=0))
-        window.wait_for_start(["start"], forward_axes(sdl, keyboard), timeout_s=1.0)
+        window.wait_for_start(["start"], forward_controls(sdl, keyboard), timeout_s=1.0)
         controls = [keyboard.sample(0.1 * k, 0.1)[0] for k in range(10)]
         assert controls[-1].throttle > 0.5 and not any(c.lane_change for c in controls)
     finally:

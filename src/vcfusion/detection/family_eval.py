@@ -206,7 +206,8 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
         bm = coco_map({i: gt_all[i] for i in ids}, {i: dets[i] for i in ids}, min_area=min_area)
         best_iou = np.concatenate([best[i] for i in ids]) if ids else np.zeros(0)
         res = FamilyResult(fam, len(ids), len(best_iou), bm, best_iou)
-        with_ident = [i for i in ids if i in ident]
+        with_k = [k for k in index if ds.image_ids[k] in ident]
+        with_ident = [ds.image_ids[k] for k in with_k]
         if with_ident:
             # per detector, per image: whether each target was identified (pooled, binned and resampled)
             right_per_image = {name: [ident[i][name][0] >= IDENTIFICATION_IOU - 1e-12 for i in with_ident]
@@ -218,9 +219,7 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
                 if np.isfinite(vis).any():
                     res.identification_by_visibility[name] = _by_visibility(right, vis)
             res.n_identified_targets = int(sum(len(ident[i]["oracle"][0]) for i in with_ident))
-            where = {ds.image_ids[k]: k for k in index}
-            scenes = [(str(Path(ds.images[where[i]]).parent), records[where[i]].get("seed", f"image {i}"))
-                      for i in with_ident]
+            scenes = [(str(Path(ds.images[k]).parent), records[k].get("seed", f"image {k}")) for k in with_k]
             res.identification_interval = scene_bootstrap(right_per_image, scenes)
         results.append(res)
     return results, dets

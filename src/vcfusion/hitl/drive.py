@@ -95,10 +95,10 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
                                    on_start=on_start)
     try:
         if win is not None and not replay:
-            from vcfusion.hitl.driver import forward_axes
+            from vcfusion.hitl.driver import forward_controls
 
             win.wait_for_start(INSTRUCTIONS + [f"guidance: {'on' if guidance_on else 'off'}"],
-                               forward_axes(pygame, device), start_screen_s)
+                               forward_controls(pygame, device), start_screen_s)
         result = cosim.run()
         if out_dir is not None:
             extra = {}

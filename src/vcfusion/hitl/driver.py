@@ -208,7 +208,7 @@ def realtime_summary(frames: dict[str, list], step_lags: list[float], speed: flo
     }
 
 
-def forward_axes(pygame, device):
+def forward_controls(pygame, device):
     """An event handler for the start screen: axis motions reach the device (a pedal pressed
     while reading the instructions counts as touched), and so do the driving keys pressed or
     released there (a key already held when the trip starts drives from its first step: SDL sends

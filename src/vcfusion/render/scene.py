@@ -103,7 +103,7 @@ class TrafficScene:
         self.nodes: dict[str, pyrender.Node] = {}
         self.codes: dict[str, int] = {}
         self._free_codes = list(range(MAX_INSTANCE_CODES, 0, -1))
-        self._models: dict[tuple, trimesh.Trimesh] = {}
+        self._models: dict[tuple, tuple[trimesh.Trimesh, trimesh.Trimesh | None]] = {}  # style -> body, shadow
         # Each vehicle's contact shadow a node of its own, under the vehicle's: for a renderer whose
         # instance map and depth come from pyrender's segmentation pass (EGL), which draws only the
         # nodes it is given codes for and would draw the shadow as the box it is (our vertex shader,
@@ -114,15 +114,18 @@ class TrafficScene:
                     code: int) -> tuple[pyrender.Mesh, pyrender.Mesh | None]:
         """The vehicle's mesh and, with separate_shadows, its contact shadow's (else inside the first)."""
         style = vehicle_style(vid, vclass, length, width, height)
-        model = self._models.get(style)
-        if model is None:
-            model = self._models[style] = vehicle_mesh(style)
-        if not self.separate_shadows:
-            return pyrender.Mesh([flat_primitive(model, alpha=code / 255.0, glossy=True)]), None
-        shadow = face_materials(model) == SHADOW
-        body, cast = (model.submesh([np.flatnonzero(m)], append=True) for m in (~shadow, shadow))
+        parts = self._models.get(style)
+        if parts is None:  # built (and split) once per style: many vehicles share one
+            model = vehicle_mesh(style)
+            if self.separate_shadows:
+                shadow = face_materials(model) == SHADOW
+                parts = tuple(model.submesh([np.flatnonzero(m)], append=True) for m in (~shadow, shadow))
+            else:
+                parts = (model, None)
+            self._models[style] = parts
+        body, cast = parts
         return (pyrender.Mesh([flat_primitive(body, alpha=code / 255.0, glossy=True)]),
-                pyrender.Mesh([flat_primitive(cast, alpha=0.0, glossy=True)]))
+                None if cast is None else pyrender.Mesh([flat_primitive(cast, alpha=0.0, glossy=True)]))
 
     def update(self, truth: VehicleStates, in_view: np.ndarray) -> list[str]:
         """Add, move, hide and remove vehicle nodes; returns the drawn vehicle ids in record order.
