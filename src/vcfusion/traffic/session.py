@@ -87,6 +87,26 @@ def lane_slot(road: RoadFrame, place: tuple[tuple[str, ...], int, float]) -> tup
     return ("track", track), road.edge_start_s[edges[0]] + pos
 
 
+def vtype_length(vtypes: dict, vtype: str) -> float:
+    return float(vtypes[vtype].get("length", 5.0))  # SUMO's default
+
+
+def fixed_vehicles(scenario: Scenario, road: RoadFrame) -> list[tuple[str, str, str, tuple, float]]:
+    """The vehicles whose place the scenario fixes, before any drawn: (id, what it is in the scenario,
+    vType, SUMO placement, departure speed) of the parked accident vehicles and the ego."""
+    out = []
+    if scenario.accident is not None:
+        acc = scenario.accident
+        s = accident_s(acc, road)
+        out += [(f"accident{i}", "accident", acc.vtype, sumo_place(road, lane, s), 0.0)
+                for i, lane in enumerate(acc.lanes)]
+    if scenario.ego is not None:
+        ego = scenario.ego
+        out.append((EGO_ID, "ego", ego.vtype, sumo_place(frame_of(scenario, road, ego.route), ego.lane,
+                                                          ego.depart_pos_m), ego.speed_mps))
+    return out
+
+
 def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.random.Generator) -> list[Placement]:
     """Draw the initial vehicles and flow arrivals of one seed. A draw of a lane absent at the
     drawn position (an acceleration lane, a lane drop) is drawn again, like one too close to
@@ -97,9 +117,6 @@ def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.r
     # lane positions
     occupied: dict[tuple, list[tuple[float, float]]] = {}
 
-    def length_of(vtype: str) -> float:
-        return float(vtypes[vtype].get("length", 5.0))
-
     def free(place, length: float, spacing: float) -> bool:
         lane, front = lane_slot(road, place)
         return all(front + spacing <= rear or front - length - spacing >= other_front
@@ -109,17 +126,11 @@ def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.r
         lane, front = lane_slot(road, place)
         occupied.setdefault(lane, []).append((front - length, front))
 
-    if scenario.accident is not None:
-        acc = scenario.accident
-        s = accident_s(acc, road)
-        for lane in acc.lanes:
-            occupy(sumo_place(road, lane, s), length_of(acc.vtype))
-    if scenario.ego is not None:
-        ego = scenario.ego
-        occupy(sumo_place(frame_of(scenario, road, ego.route), ego.lane, ego.depart_pos_m), length_of(ego.vtype))
+    for _, _, vtype, place, _ in fixed_vehicles(scenario, road):
+        occupy(place, vtype_length(vtypes, vtype))
 
     for group in scenario.vehicles:
-        length = length_of(group.vtype)
+        length = vtype_length(vtypes, group.vtype)
         frame = frame_of(scenario, road, group.route)
         # a lane closed to the group's class (a shoulder, a bus lane) is drawn again too
         closed = closed_lanes(scenario.network, vtypes[group.vtype].get("vClass", "passenger"))
@@ -151,7 +162,7 @@ def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.r
     for f_idx, flow in enumerate(scenario.flows):
         rate = flow.vehs_per_hour / 3600.0
         frame = frame_of(scenario, road, flow.route)
-        length = length_of(flow.vtype)
+        length = vtype_length(vtypes, flow.vtype)
         t = float(rng.exponential(1.0 / rate))
         n = 0
         while t < scenario.simulation.max_time_s:
@@ -319,20 +330,12 @@ class SumoSession:
     def _insertion_problem(self, missing: list[Placement]) -> str:
         """Why SUMO refused the first vehicle it could not insert: its nearest neighbours in its lane
         at t = 0 (SUMO says nothing itself), and the others it held back."""
-        sc = self.scenario
         first = missing[0]
         # every vehicle placed at t = 0: (id, group, lane key, front, length, speed)
         placed = [(p.vehicle_id, f"vehicles.{p.group}", *lane_slot(self.road, (p.edges, p.sumo_lane, p.sumo_pos_m)),
-                   self._length(p.vtype), p.speed_mps) for p in self.placements if p.depart_s == 0.0]
-        if sc.ego is not None:
-            placed.append((EGO_ID, "ego", *lane_slot(self.road, sumo_place(self.ego_frame, sc.ego.lane,
-                                                                           sc.ego.depart_pos_m)),
-                           self._length(sc.ego.vtype), sc.ego.speed_mps))
-        if sc.accident is not None:
-            acc = sc.accident
-            s = accident_s(acc, self.road)
-            placed += [(f"accident{i}", "accident", *lane_slot(self.road, sumo_place(self.road, lane, s)),
-                        self._length(acc.vtype), 0.0) for i, lane in enumerate(acc.lanes)]
+                   vtype_length(self.vtypes, p.vtype), p.speed_mps) for p in self.placements if p.depart_s == 0.0]
+        placed += [(vid, what, *lane_slot(self.road, place), vtype_length(self.vtypes, vtype), speed)
+                   for vid, what, vtype, place, speed in fixed_vehicles(self.scenario, self.road)]
         me = next(v for v in placed if v[0] == first.vehicle_id)
         _, group, lane, front, length, speed = me
         near = []
@@ -352,9 +355,6 @@ class SumoSession:
                 f"{group}.min_spacing_m (a group keeps it to every vehicle placed before it) or lower its speed_mps"
                 + (f". Also not inserted: {held} (SUMO holds back the vehicles that depart after a refused one "
                    "in its lane)" if held else ""))
-
-    def _length(self, vtype: str) -> float:
-        return float(self.vtypes[vtype].get("length", 5.0))
 
     # -- stepping -----------------------------------------------------------------------
     def step(self) -> None:
