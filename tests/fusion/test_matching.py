@@ -3,7 +3,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from support.fusion_helpers import make_twins, pinhole_camera, vehicle_box
+from support.fusion_helpers import CX, FX, make_twins, pinhole_camera, vehicle_box
 from vcfusion.fusion.depth_eval import DepthEvalParams, evaluate_box_depths
 from vcfusion.fusion.matching import (
     NO_MATCH, JointMatcher, JointMatcherParams, box_iou, extrapolate_twins, match_all_paper,
@@ -449,6 +449,41 @@ def test_a_twin_hidden_whole_is_assigned_from_the_boxes_the_visible_twins_leave(
     proj = project_twins(make_twins(["car", "far"], [15.0, 27.0], [0.0, 0.0]), cam)
     assert list(visible_boxes(proj)[2]) == [0.0, 1.0]
     assert list(JointMatcher()._cost_terms(proj, np.zeros((0, 4)), np.zeros(0))[2]) == [False, True]
+
+
+def test_a_weak_first_round_pair_is_decided_again_with_the_hidden_twins():
+    """Jam dev seed 3170 (costs rounded): a far car visible by a corner kept, in the first round, the
+    box of the car in front of it at 5.97 (just under the miss cost), which that car, hidden whole
+    but for its roof, fits at 2.03: decided together, the hidden car gets it (2.03 + 6 < 5.97 + 6)."""
+    assign = _assign_given
+    steal = [[5.97, None], [2.03, None]]
+    assert assign(steal, [False, True]) == [NO_MATCH, 0]
+    # the far car keeps another box it can take, and a pair under weak_cost is never reopened
+    assert assign([[5.97, 5.5], [2.03, None]], [False, True]) == [1, 0]
+    assert assign([[2.4, None], [0.5, None]], [False, True]) == [0, NO_MATCH]
+    # a weak pair that no hidden twin may take stays; without the rule the first round would stand
+    assert assign([[5.97, None], [None, 2.03]], [False, True]) == [0, 1]
+    assert assign(steal, [False, True], weak_cost=6.0) == [0, NO_MATCH]
+
+
+def test_a_twin_all_but_beyond_the_image_side_does_not_take_the_box_beside_it():
+    """Jam dev seed 3194: a car beside the camera, nearer than the car cut by the image's left side,
+    shows less than a pixel column (its expected box 0.8 px wide at the border). Its anchor lies off
+    the image, so its stand-in is its visible part's centre, which lay inside the box of the car
+    beside it: that pair was allowed at 1.84, and it pushed the car onto a box over half of it."""
+    cam = pinhole_camera()
+    ahead = 6.0
+    front_right = (CX - 0.3) * (ahead + 2.25) / FX  # lateral offset of its front right corner at u = 0.3
+    proj = project_twins(make_twins(["beside", "edge"], [7.0, ahead], [3.0, front_right + 0.9]), cam)
+    assert proj.in_view.all() and proj.expected_box[1, 2] - proj.expected_box[1, 0] < 1.0
+    own = proj.expected_box[0]
+    half = own.copy()
+    half[0] = (own[0] + own[2]) / 2
+    boxes = np.array([own, half])
+    depths = np.full(2, proj.face_z[0])
+    matcher = JointMatcher(JointMatcherParams(smoothing_alpha=None))
+    assert not matcher.cost_matrix(proj, boxes, depths)[1][1].any()
+    assert list(matcher.assign(proj, boxes, depths)) == [0, NO_MATCH]
 
 
 def test_a_twin_the_joint_matcher_matched_after_latency_compensation_is_in_view():

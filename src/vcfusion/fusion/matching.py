@@ -514,6 +514,8 @@ class JointMatcherParams:
     miss_cost: float | None = 6.0
     hidden_within: float = 0.9  # a twin hidden whole by nearer ones: boxes with this share of their
     # area inside its expected box are allowed (the visible-part overlap cannot gate them)
+    weak_cost: float = 2.5  # a first-round pair dearer than this that a hidden-whole twin also wants
+    # is decided again together with the hidden twins (JointMatcher.assign)
 
     def __post_init__(self):
         if self.depth_gate <= 0 or self.depth_sigma_abs_m <= 0 or self.depth_sigma_rel < 0:
@@ -563,7 +565,10 @@ class JointMatcher:
         diag = np.hypot(b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]) if m else np.zeros(0)
         for i in range(n):
             anchor_dist[i] = point_to_box_distance(anchors[i], b) / np.maximum(diag, 1.0)
-            inside[i] = point_in_boxes(anchors[i], b)
+            # a hidden anchor's stand-in (the visible part's centre) admits no box by lying in it: a
+            # car all but beyond the image's side (expected box 0.8 px wide at the border) took the
+            # box of the car beside it, which the stand-in lay in, and pushed that car off its box
+            inside[i] = point_in_boxes(anchors[i], b) & (not anchor_hidden[i])
         expected = proj.face_z if p.face_offset else proj.anchor_z
         sigma = p.depth_sigma_rel * expected[:, None] + p.depth_sigma_abs_m
         with np.errstate(invalid="ignore"):
@@ -631,17 +636,29 @@ class JointMatcher:
         whole. Why: such a twin rarely has a box (a roof line above the car in front at most), yet in
         one joint assignment it took a visible twin's box at a cost under ``miss_cost`` and pushed that
         twin onto a worse box, because the two costs together were lower than one twin going without
-        (e.g. 3.7 + 1.8 < 0.2 + 6)."""
+        (e.g. 3.7 + 1.8 < 0.2 + 6).
+
+        A first-round pair dearer than ``weak_cost`` whose box a hidden twin is also allowed goes into
+        the second round with the hidden twins: a far car in a chain, visible by a corner, otherwise kept
+        the box of the car in front of it at 5.97 (just under ``miss_cost``), which that car, hidden but
+        for its roof, fitted at 2.03."""
         cost, allowed, hidden_whole = self._cost_terms(proj, boxes, box_depths)
         out = np.full(len(proj.anchor), NO_MATCH)
         if cost.size == 0:
             return out
-        free = np.ones(cost.shape[1], bool)
-        for group in (~hidden_whole, hidden_whole):
-            if group.any():
-                chosen = self._assign_once(cost[group], allowed[group] & free[None, :])
-                out[group] = chosen
-                free[chosen[chosen != NO_MATCH]] = False
+        first = ~hidden_whole
+        if first.any():
+            out[first] = self._assign_once(cost[first], allowed[first])
+        second = hidden_whole.copy()
+        if second.any():
+            wanted = allowed[hidden_whole].any(axis=0)  # (D,) boxes some hidden twin may take
+            for i in np.flatnonzero(out != NO_MATCH):
+                if cost[i, out[i]] > self.params.weak_cost and wanted[out[i]]:
+                    second[i] = True
+                    out[i] = NO_MATCH
+            free = np.ones(cost.shape[1], bool)
+            free[out[out != NO_MATCH]] = False
+            out[second] = self._assign_once(cost[second], allowed[second] & free[None, :])
         return out
 
     def _assign_once(self, cost: np.ndarray, allowed: np.ndarray) -> np.ndarray:
