@@ -218,15 +218,15 @@ def _plate(depth, K, T, x, y0, y1, top, bottom=0.0):
 
 
 def test_a_narrow_car_sliver_is_proposed_but_not_a_post_or_a_tree_trunk():
-    """What is left of a car mostly hidden behind another is as narrow as 0.3 m; reflector posts
-    (0.12 m) are narrower, and a segment standing higher than a truck's roof line must be as wide as
-    a vehicle (tree trunks)."""
+    """What is left of a car mostly hidden behind another is as narrow as 0.27 m (jam development
+    seed 3122: 0.28 m at 13 m); reflector posts (0.12 m) are narrower, and a segment standing higher
+    than a truck's roof line must be as wide as a vehicle (tree trunks)."""
     from vcfusion.fusion.bench import default_camera, road_depth
     from vcfusion.fusion.box_refine import depth_proposals
 
     K, T = default_camera()
     road = road_depth(K, T, 640, 480)
-    cases = {"car sliver": (2.0, 2.45, 1.5), "post": (5.0, 5.12, 1.4), "trunk": (-6.0, -5.55, 4.0)}
+    cases = {"car sliver": (2.0, 2.27, 1.5), "post": (5.0, 5.12, 1.4), "trunk": (-6.0, -5.55, 4.0)}
     proposed = {}
     for name, (y0, y1, top) in cases.items():
         depth = _plate(road, K, T, 20.0, y0, y1, top)
@@ -237,6 +237,41 @@ def test_a_narrow_car_sliver_is_proposed_but_not_a_post_or_a_tree_trunk():
     # the same sliver 0.8 m wide stands for any vehicle; the trunk that wide is a (truck-high) vehicle
     wide = _plate(road, K, T, 20.0, -6.0, -5.1, 4.0)
     assert len(depth_proposals(wide, K, T, np.zeros((0, 4)), BoxRefineParams())[0]) == 1
+
+
+def test_a_far_sliver_of_30_to_40_object_pixels_is_proposed():
+    """The roof line of a car behind the next one in a jam shows as 20 x 5 px at 30 m (jam development
+    seed 3207): a 0.5 m strip at 60 m holds about as few object pixels, and is a vehicle."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import depth_proposals, object_segments
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    depth = _plate(road, K, T, 60.0, 2.0, 2.5, 1.4)
+    segments = object_segments(depth, K, T)
+    assert 30 <= segments.areas[1:].max() < 40
+    boxes, _ = depth_proposals(depth, K, T, np.zeros((0, 4)), BoxRefineParams(), segments)
+    assert len(boxes) == 1 and box_iou(boxes, _mask_box(depth < road)[None])[0, 0] > 0.6
+
+
+def test_a_truck_cut_by_the_image_side_is_proposed_however_narrow_it_shows():
+    """Beside the camera in a jam, a truck in the next lane shows a strip at the image's side as
+    narrow as a tree trunk (jam development seed 3233: 0.73 m of a truck's side): its width is what the
+    image cuts, not the vehicle's. The same strip inside the image is still a trunk."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import depth_proposals
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    camera = -T[:3, :3].T @ T[:3, 3]
+    for ahead in (8.0, 12.0):
+        side = camera[1] + K[0, 2] * (ahead - camera[0]) / K[0, 0]  # the left image side's lateral offset
+        cut = _plate(road, K, T, ahead, side - 0.3, side + 3.0, 3.8)
+        boxes, is_truck = depth_proposals(cut, K, T, np.zeros((0, 4)), BoxRefineParams())
+        assert len(boxes) == 1 and is_truck[0] and boxes[0, 0] == -0.5
+        assert box_iou(boxes, _mask_box(cut < road)[None])[0, 0] > 0.85
+        inside = _plate(road, K, T, ahead, 1.0, 1.3, 3.8)
+        assert len(depth_proposals(inside, K, T, np.zeros((0, 4)), BoxRefineParams())[0]) == 0
 
 
 def test_a_sliver_between_two_nearer_cars_is_proposed_with_its_whole_outline():

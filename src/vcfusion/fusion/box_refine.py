@@ -75,10 +75,11 @@ class ProposalParams:
     # and below BoxRefineParams.max_height_m (tree crowns, gantries)
     max_top_continuing: float = 0.3  # a segment whose top outline goes on, as the same surface,
     # above max_height_m over more than this share is part of a tree, a pole or a bridge
-    min_pixels: int = 40  # a far car partly hidden shows as few (60 before the twelfth session)
+    min_pixels: int = 30  # a far car partly hidden shows as few (60 before the twelfth session, 40
+    # before the twenty-first: the roof line of a car behind the next one, 20 x 5 px at 30 m)
     min_top_m: float = 1.0  # the segment's top stands at least this high (a car's roof line; rails are lower)
-    min_width_m: float = 0.3  # wider than this (reflector posts, 0.12 m): a car mostly hidden
-    # behind another shows a sliver as narrow as this
+    min_width_m: float = 0.25  # wider than this (reflector posts, 0.12 m): a car mostly hidden
+    # behind another shows a sliver as narrow as this (0.3 before the twenty-first session)
     min_tall_width_m: float = 0.8  # a segment standing as high as a truck: wider than this (tree trunks)
     max_overlap: float = 0.6  # a segment whose box overlaps a detected box more than this is that box's
     # (0.5 before the sixteenth session: a whole car's segment overlapping a box that held a part of
@@ -494,7 +495,9 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         width_m = (box[2] - box[0]) * depth_m / fx
         is_truck = top > refine.truck_top_m
         min_width = params.min_width_m
-        if is_truck and width_m < params.min_tall_width_m and not _seen_over_nearer(
+        # cut by the image's side, a truck's side shows as narrow as a trunk: its width is unknown
+        truncated = (box[0] <= 0.0 or box[2] >= z.shape[1] - 1.0)
+        if is_truck and width_m < params.min_tall_width_m and not truncated and not _seen_over_nearer(
                 sel, x, y, z, obj, depth_m, refine.jump_m, refine.jump_rel):
             min_width = params.min_tall_width_m  # standing on the ground as tall as this: a trunk or a pole
         if top < params.min_top_m or width_m < min_width:
