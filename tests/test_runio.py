@@ -90,3 +90,55 @@ def test_run_folder_moves_extra_files_in_and_its_summary_lists_them(tmp_path):
     assert summary["files"] == sorted(p.name + "/" * p.is_dir() for p in out.iterdir())
     assert (out / "frames" / "000000.png").read_bytes() == b"png" and not list(staging.iterdir())
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run", "staging"]  # no temporary folder left
+
+
+def test_a_writer_killed_before_its_rename_leaves_no_run(tmp_path):
+    """A worker killed (OOM, SIGKILL) between writing its manifest and the rename that completes the
+    folder leaves seed_0001.tmp-writing with a manifest: it matches seed_*, and `vcfusion metrics`
+    counted it as a run of the batch."""
+    from vcfusion.errors import UsageError
+    from vcfusion.metrics.commands import run_folders
+
+    batch = tmp_path / "batch"
+    write_run_folder(batch / "seed_0000", {"vehicles": pd.DataFrame({"a": [1]})}, {"seed": 0}, {"seed": 0})
+    write_run_folder(batch / "seed_0001", {"vehicles": pd.DataFrame({"a": [1]})}, {"seed": 1}, {"seed": 1})
+    (batch / "seed_0001").rename(batch / "seed_0001.tmp-writing")  # as the killed writer left it
+    assert (batch / "seed_0001.tmp-writing" / "manifest.json").is_file()
+    assert not is_complete_run(batch / "seed_0001.tmp-writing")
+    assert [p.name for p in run_folders(batch)[0]] == ["seed_0000"]
+    (batch / "seed_0000").rename(batch / "seed_0000.tmp-writing")
+    with pytest.raises(UsageError, match="complete seed_NNNN run folders"):
+        run_folders(batch)
+
+
+def test_a_file_replaced_through_a_temporary_one_survives_a_failed_write(tmp_path):
+    from vcfusion.runio import replace_file, write_table
+
+    path = tmp_path / "batch_summary.parquet"
+    write_table(path, pd.DataFrame({"seed": [0, 1]}))
+
+    def killed(tmp):
+        tmp.write_bytes(b"PAR1")  # a truncated Parquet file
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        replace_file(path, killed)
+    assert pd.read_parquet(path)["seed"].tolist() == [0, 1]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["batch_summary.parquet"]
+    replace_file(path, lambda tmp: write_table(tmp, pd.DataFrame({"seed": [5]})))
+    assert pd.read_parquet(path)["seed"].tolist() == [5]
+
+
+def test_what_a_killed_writer_left_goes_but_nothing_else(tmp_path):
+    """A run killed mid-way left its partial folder and, with the AR video on, the staging folder of
+    its frames beside it: only the first was ever removed."""
+    from vcfusion.runio import discard_partial_folder, video_staging_prefix
+
+    out = tmp_path / "seed_0001"
+    left = [tmp_path / "seed_0001.tmp-writing", tmp_path / (video_staging_prefix(out) + "k3j2")]
+    kept = [tmp_path / "seed_00011.tmp-writing", tmp_path / (video_staging_prefix(tmp_path / "seed_00011") + "x"),
+            tmp_path / "seed_0002"]
+    for folder in left + kept:
+        (folder / "frames").mkdir(parents=True)
+    discard_partial_folder(out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(p.name for p in kept)

@@ -9,7 +9,7 @@ from pathlib import Path
 from vcfusion.cloud.twins import ProcessModel
 from vcfusion.cosim import CoSimulation, RunResult
 from vcfusion.guidance import GuidancePolicy
-from vcfusion.runio import package_versions, write_run_folder
+from vcfusion.runio import discard_partial_folder, package_versions, video_staging_prefix, write_run_folder
 from vcfusion.scenario import Scenario
 
 
@@ -90,8 +90,10 @@ def execute_run(scenario: Scenario, seed: int, out_dir: Path | None, progress: b
 
         out_dir = Path(out_dir)
         out_dir.parent.mkdir(parents=True, exist_ok=True)
-        # beside the run folder (same file system: moved in, not copied); removed whatever happens
-        staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.video-", dir=out_dir.parent))
+        # beside the run folder (same file system: moved in, not copied); removed whatever happens,
+        # and what a killed writer of this folder left goes first
+        discard_partial_folder(out_dir)
+        staging = Path(tempfile.mkdtemp(prefix=video_staging_prefix(out_dir), dir=out_dir.parent))
         recorder = OverlayRecorder(staging / "video", fps=1.0 / scenario.ar.period_s)
     try:
         result = build_cosimulation(scenario, seed, recorder=recorder).run(progress=progress)

@@ -7,6 +7,7 @@ once complete, so a run folder either is whole or does not exist.
 from __future__ import annotations
 
 import json
+import os
 import platform
 import shutil
 from collections.abc import Mapping
@@ -41,6 +42,19 @@ def write_json(path: Path, data: dict) -> None:
 def write_table(path: Path, frame: pd.DataFrame) -> None:
     # Fixed writer settings so that the same table gives the same bytes.
     frame.reset_index(drop=True).to_parquet(path, engine="pyarrow", index=False, compression="zstd")
+
+
+def replace_file(path: Path, write) -> None:
+    """`write(tmp)` into a sibling temporary file renamed over `path`: a kill in the middle leaves the
+    previous file whole instead of a truncated one under the final name."""
+    path = Path(path)
+    tmp = path.with_name(path.name + PARTIAL_SUFFIX)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 class TableSink:
@@ -231,13 +245,25 @@ def write_run_folder(out_dir: Path, tables: Mapping[str, pd.DataFrame | Path], m
     return Path(out_dir)
 
 
+PARTIAL_SUFFIX = ".tmp-writing"  # what a writer writes into before the rename that completes it
+
+
 def _partial(out: Path) -> Path:
-    return Path(out).with_name(Path(out).name + ".tmp-writing")
+    return Path(out).with_name(Path(out).name + PARTIAL_SUFFIX)
+
+
+def video_staging_prefix(out: Path) -> str:
+    """Name prefix of the folder beside `out` where a run stages its AR video before moving it in."""
+    return f".{Path(out).name}.video-"
 
 
 def discard_partial_folder(out: Path) -> None:
-    """Remove what a writer of `out` killed before it completed (SIGKILL) left behind."""
+    """Remove what a writer of `out` killed before it completed (SIGKILL) left behind: its partial
+    folder and its AR video's staging folders (their frames stayed forever before)."""
+    out = Path(out)
     shutil.rmtree(_partial(out), ignore_errors=True)
+    for staging in out.parent.glob(video_staging_prefix(out) + "*"):
+        shutil.rmtree(staging, ignore_errors=True)
 
 
 @contextmanager
@@ -260,4 +286,6 @@ def atomic_folder(out: Path, kind: str = "folder"):
 
 
 def is_complete_run(folder: Path) -> bool:
-    return (Path(folder) / MANIFEST).is_file()
+    # a writer killed between its manifest and the rename leaves SEED.tmp-writing with a manifest:
+    # that folder matches seed_* but is no run
+    return not Path(folder).name.endswith(PARTIAL_SUFFIX) and (Path(folder) / MANIFEST).is_file()

@@ -78,6 +78,18 @@ vehicles:
     assert not list(out.glob("*.tmp-writing"))
 
 
+def test_a_batch_without_a_complete_seed_keeps_no_summary_of_an_earlier_one(tmp_path):
+    """Seeds 0-2 of an earlier batch into the same folder left batch_summary.parquet; a re-run of
+    seeds 10-11 that all failed kept it, and the batch's metrics then reported seeds 0-2."""
+    from vcfusion.studies.batch import SeedOutcome, _write_index
+
+    pd.DataFrame({"seed": [0, 1, 2]}).to_parquet(tmp_path / "batch_summary.parquet")
+    _write_index(tmp_path, [10, 11], [SeedOutcome(10, False, None, "RunError: x"),
+                                      SeedOutcome(11, False, None, "RunError: y")])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["failures.json"]
+    assert json.loads((tmp_path / "failures.json").read_text()) == {"10": "RunError: x", "11": "RunError: y"}
+
+
 @pytest.mark.slow
 def test_accident_cut_ins_ahead_of_ego(tmp_path, accident_path):
     """Acceptance: >= 90 % of seeds 0-49 have a neighbour change into the ego lane ahead of the ego."""

@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from vcfusion.errors import UsageError
 from vcfusion.metrics.run_metrics import batch_row
-from vcfusion.runio import discard_partial_folder, is_complete_run, write_json, write_table
+from vcfusion.runio import discard_partial_folder, is_complete_run, replace_file, write_json, write_table
 from vcfusion.workers import JobFailed, run_jobs
 
 # On Dask: how many times a seed is run again after the worker running it was lost (Dask's
@@ -164,7 +164,8 @@ def run_batch(scenario_path: Path, seeds: list[int], out: Path, workers: int = 1
     out.mkdir(parents=True, exist_ok=True)
     executor = executor or Executor(workers=workers)
     todo = [s for s in seeds if not is_complete_run(seed_folder(out, s))]
-    _check_kept_runs(scenario_path, [s for s in seeds if s not in set(todo)], out)
+    waiting = set(todo)
+    _check_kept_runs(scenario_path, [s for s in seeds if s not in waiting], out)
     skipped = len(seeds) - len(todo)
     outcomes: list[SeedOutcome] = []
     bar = tqdm(total=len(todo), unit="run", desc=f"batch {Path(scenario_path).stem}", disable=not progress)
@@ -235,10 +236,15 @@ def _write_index(out: Path, seeds: list[int], failed: list[SeedOutcome]) -> None
         if is_complete_run(folder):
             summary = json.loads((folder / "summary.json").read_text())
             rows.append(batch_row(summary))
+    # each file whole or not at all, and none left from an earlier batch into this folder: a summary
+    # of other seeds next to this batch's failures was reported as this batch's metrics
+    summary_file = out / "batch_summary.parquet"
     if rows:
-        write_table(out / "batch_summary.parquet", pd.DataFrame(rows).sort_values("seed"))
+        replace_file(summary_file, lambda tmp: write_table(tmp, pd.DataFrame(rows).sort_values("seed")))
+    else:
+        summary_file.unlink(missing_ok=True)
     failures_file = out / "failures.json"
     if failed:
-        write_json(failures_file, {str(o.seed): o.error for o in failed})
-    elif failures_file.exists():
-        failures_file.unlink()
+        replace_file(failures_file, lambda tmp: write_json(tmp, {str(o.seed): o.error for o in failed}))
+    else:
+        failures_file.unlink(missing_ok=True)
