@@ -25,6 +25,12 @@ def _job(k: int, how: str, folder: str):
         raise ValueError(f"job {k} refused")
     if how == "numba-interrupted":
         _numba_interrupted()
+    if how == "swallowed":  # Ctrl-C reaches the job, which reports it as a failure of its own and
+        try:  # returns (batch._run_seed catching numba's SystemError as a failed seed)
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)
+        except KeyboardInterrupt:
+            return k, "failed on its own", tempfile.gettempdir()
     if how == "sleep":
         try:
             Path(folder, "started").write_text(str(os.getpid()))
@@ -148,6 +154,17 @@ def test_ctrl_c_inside_numba_in_a_worker_stops_the_worker_not_fails_the_job(tmp_
     assert results[1][0] == 1  # a fresh worker ran the next job
 
 
+def test_a_worker_whose_job_swallowed_ctrl_c_stops_and_runs_no_other_job(tmp_path, scratch_root):
+    """A SIGINT to one worker that its job caught and reported as a failure of its own: the seed was
+    recorded as failed for another reason, and the worker went on with the interrupt recorded, so
+    its next seed, never interrupted, died at its first tick."""
+    pids = {}
+    jobs = [(0, "swallowed", str(tmp_path)), (1, "ok", str(tmp_path))]
+    results = dict(run_jobs(_job, jobs, 1, on_start=lambda i, pid: pids.setdefault(i, pid)))
+    assert results[0] == JobFailed("worker process interrupted (SIGINT)")
+    assert results[1][0] == 1 and pids[1] != pids[0]  # a fresh worker ran the next job
+
+
 def test_ctrl_c_inside_numba_in_a_command_exits_130_with_the_hint(tmp_path, monkeypatch, capsys):
     from vcfusion import cli
 
@@ -196,6 +213,23 @@ vehicles:
     with interrupts.recorded(), pytest.raises(KeyboardInterrupt):
         CoSimulation(scenario, 0, process_models=[("swallows", swallows_ctrl_c_once)]).run()
     assert len(ticks) == 3  # not the run's 600 ticks
+
+
+def _threads_of_this_worker():
+    import cv2
+    import torch
+
+    return torch.get_num_threads(), cv2.getNumThreads(), os.environ.get("OMP_NUM_THREADS")
+
+
+def test_workers_share_the_cores_for_torch_and_opencv(scratch_root):
+    """Each worker took every core for torch and OpenCV: W workers ran W x cores threads."""
+    from vcfusion.workers import worker_threads
+
+    cores = os.cpu_count() or 1
+    assert worker_threads(1) == cores and worker_threads(cores) == 1 and worker_threads(2 * cores) == 1
+    results = dict(run_jobs(_threads_of_this_worker, [()] * 2, cores))
+    assert set(results.values()) == {(1, 1, "1")}
 
 
 def test_death_cause_names_the_signal():

@@ -17,13 +17,26 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 _received = False
+_terminated = False  # the signal was SIGTERM (a scheduler, `timeout`, `kill`): exit 143, not 130
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def record_and_raise(signum, frame) -> None:
-    """SIGINT handler: Python's own (raise KeyboardInterrupt), which also remembers the signal."""
-    global _received
+    """SIGINT / SIGTERM handler: Python's own for SIGINT (raise KeyboardInterrupt), which also
+    remembers the signal. SIGTERM is handled as Ctrl-C so that the command stops its workers and
+    removes its partial outputs: by default it killed the command alone, and the worker pool's
+    processes (children of the fork server, not of the command) ran on, writing run folders that
+    nobody tracked."""
+    global _received, _terminated
     _received = True
+    _terminated = _terminated or signum == signal.SIGTERM
     raise KeyboardInterrupt
+
+
+def terminated() -> bool:
+    """Whether the stop that was received came as SIGTERM."""
+    return _terminated
 
 
 @contextmanager
@@ -31,11 +44,15 @@ def recorded() -> Iterator[None]:
     """Within: SIGINT is recorded as well as raised (unless SIGINT is ignored, as in a background
     job, or handled by an application embedding vcfusion). Afterwards the handler and the record
     are as before, so that a process calling several commands (a test session) starts each afresh."""
-    global _received
+    global _received, _terminated
     previous = signal.getsignal(signal.SIGINT)
     ours = previous is signal.default_int_handler
     if ours:
         signal.signal(signal.SIGINT, record_and_raise)
+    previous_term = signal.getsignal(signal.SIGTERM)
+    ours_term = previous_term is signal.SIG_DFL
+    if ours_term:
+        signal.signal(signal.SIGTERM, record_and_raise)
     previous_hook = sys.unraisablehook
 
     def drop_swallowed_interrupt(unraisable) -> None:
@@ -45,14 +62,16 @@ def recorded() -> Iterator[None]:
             previous_hook(unraisable)
 
     sys.unraisablehook = drop_swallowed_interrupt
-    _received = False
+    _received = _terminated = False
     try:
         yield
     finally:
         if ours:
             signal.signal(signal.SIGINT, previous)
+        if ours_term:
+            signal.signal(signal.SIGTERM, previous_term)
         sys.unraisablehook = previous_hook
-        _received = False
+        _received = _terminated = False
 
 
 def note_received() -> None:

@@ -69,20 +69,46 @@ def death_cause(exitcode: int | None) -> str:
 
 
 def _interrupt_once(signum, frame):
-    # The first SIGINT (the terminal's Ctrl-C, or the parent stopping the pool) interrupts the
-    # job; a second one must not interrupt the clean-up that follows (partial folders removed).
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # The first SIGINT (the terminal's Ctrl-C, or the parent stopping the pool) or SIGTERM (sent to
+    # the whole process group) interrupts the job; a second one must not interrupt the clean-up
+    # that follows (partial folders removed).
+    for stop in interrupts.STOP_SIGNALS:
+        signal.signal(stop, signal.SIG_IGN)
     interrupts.note_received()
     raise KeyboardInterrupt
 
 
-def _serve(task: Callable, conn, scratch: str) -> None:
-    """A worker: run task(*job) for each job received until the parent closes the pipe."""
+def worker_threads(workers: int) -> int:
+    """Threads each of `workers` worker processes may use for torch and OpenCV: their share of the
+    cores. Each took every core before, so W workers ran W x cores threads (the CNN of a fusion
+    batch, the renderer's image work) and contended on every tick."""
+    return max(1, (os.cpu_count() or 1) // max(1, workers))
+
+
+def _limit_threads(threads: int) -> None:
+    import cv2  # its thread pool ignores the variables below: set here (a fast import)
+
+    cv2.setNumThreads(threads)
+    # torch when the fork server loaded it; the variables cover it and the BLAS libraries when a
+    # job loads them later (OpenMP reads them when it starts)
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[name] = str(threads)
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(threads)
+
+
+def _serve(task: Callable, conn, scratch: str, threads: int | None = None) -> None:
+    """A worker: run task(*job) for each job received until the parent closes the pipe, with at
+    most `threads` threads for torch and OpenCV (None: as they come)."""
     if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:  # as the parent's (a background job ignores it)
         signal.signal(signal.SIGINT, _interrupt_once)
+    if signal.getsignal(signal.SIGTERM) is not signal.SIG_IGN:
+        signal.signal(signal.SIGTERM, _interrupt_once)
     # Temporary files of the jobs go to a folder the parent removes, even after a SIGKILL here.
     tempfile.tempdir = scratch
     os.environ["TMPDIR"] = scratch
+    if threads is not None:
+        _limit_threads(threads)
     # tqdm's default lock is a multiprocessing semaphore, which a killed worker would leak (and
     # the resource tracker warn about at exit); a worker's bars are its own: a thread lock does.
     from tqdm import tqdm
@@ -94,6 +120,9 @@ def _serve(task: Callable, conn, scratch: str) -> None:
                 job = conn.recv()
                 try:
                     result = task(*job)
+                    # a SIGINT that the job caught (a seed reported failed for numba's SystemError)
+                    # still stops the worker: it is recorded, and the next job would die of it
+                    interrupts.raise_if_received()
                 except Exception as exc:  # the job fails, the worker goes on
                     if interrupts.is_interrupt(exc):  # SIGINT mangled on its way up (numba): the worker stops
                         raise KeyboardInterrupt from exc
@@ -111,11 +140,11 @@ def _serve(task: Callable, conn, scratch: str) -> None:
 
 
 class _Worker:
-    def __init__(self, ctx, task: Callable):
+    def __init__(self, ctx, task: Callable, threads: int | None = None):
         self.scratch = tempfile.mkdtemp(prefix="vcfusion-worker-")
         self.conn, child_end = ctx.Pipe()
         # not daemonic, as a concurrent.futures worker: a job may start processes of its own
-        self.process = ctx.Process(target=_serve, args=(task, child_end, self.scratch))
+        self.process = ctx.Process(target=_serve, args=(task, child_end, self.scratch, threads))
         try:
             self.process.start()  # ~1 s when the fork server starts: a Ctrl-C often lands here
         except BaseException:
@@ -152,7 +181,7 @@ def run_jobs(task: Callable, jobs: Sequence[tuple], workers: int,
                 if pending:
                     _hand_over(w, pending, jobs, on_start)
             while pending and len(pool) < max(1, workers):
-                w = _Worker(ctx, task)
+                w = _Worker(ctx, task, worker_threads(workers))
                 pool.append(w)
                 _hand_over(w, pending, jobs, on_start)
             wait([w.conn for w in pool if not w.pipe_closed] + [w.process.sentinel for w in pool])
@@ -207,20 +236,21 @@ def _discard(w: _Worker) -> None:
 
 
 @contextmanager
-def _sigint_ignored():
-    """While stopping the pool, a second Ctrl-C must not abandon its workers."""
+def _stop_signals_ignored():
+    """While stopping the pool, a second Ctrl-C (or SIGTERM) must not abandon its workers."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    previous = {stop: signal.signal(stop, signal.SIG_IGN) for stop in interrupts.STOP_SIGNALS}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for stop, handler in previous.items():
+            signal.signal(stop, handler)
 
 
 def _stop(pool: list[_Worker]) -> None:
-    with _sigint_ignored():
+    with _stop_signals_ignored():
         for w in pool:
             if w.job is not None and w.process.is_alive():
                 try:

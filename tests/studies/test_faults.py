@@ -112,7 +112,11 @@ def _alive(pid: int) -> bool:
 
 
 @pytest.mark.slow
-def test_ctrl_c_during_a_batch_stops_its_workers_and_keeps_complete_seeds(tmp_path):
+@pytest.mark.parametrize("stop, code, word", [(signal.SIGINT, 130, "interrupted"),
+                                              # a scheduler's, `timeout`'s or `kill`'s stop: by default it
+                                              # killed the batch alone, and its workers ran on, untracked
+                                              (signal.SIGTERM, 143, "terminated")])
+def test_ctrl_c_during_a_batch_stops_its_workers_and_keeps_complete_seeds(tmp_path, stop, code, word):
     scratch = tmp_path / "tmp"
     scratch.mkdir()
     out = tmp_path / "batch"
@@ -125,11 +129,11 @@ def test_ctrl_c_during_a_batch_stops_its_workers_and_keeps_complete_seeds(tmp_pa
             workers.append(int(pid_file.read_text()))
         except FileNotFoundError:  # that seed ended meanwhile
             pass
-    os.kill(proc.pid, signal.SIGINT)  # the batch passes it on to its workers
+    os.kill(proc.pid, stop)  # the batch passes it on to its workers
     stdout, stderr = proc.communicate(timeout=120)
-    assert proc.returncode == 130
+    assert proc.returncode == code
     assert "Traceback" not in stderr
-    assert stderr.strip().splitlines()[-1].startswith("interrupted: complete seeds are kept, partial ones removed; "
+    assert stderr.strip().splitlines()[-1].startswith(f"{word}: complete seeds are kept, partial ones removed; "
                                                       "run the same command again to resume")
     # the worker is gone once its fork server has reaped it (a zombie still answers kill(pid, 0))
     deadline = time.monotonic() + 30
