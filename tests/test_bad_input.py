@@ -135,6 +135,24 @@ def dataset(tmp: Path) -> Path:
     return root
 
 
+def coco_folder(tmp: Path, change: Callable[[dict], object] = lambda c: None, name: str = "coco",
+                n_images: int = 6) -> str:
+    """A small valid COCO folder with `change(annotations)` applied to its annotations.json."""
+    from support.synthetic_coco import make_synthetic_coco
+
+    folder = make_synthetic_coco(tmp / name, n_images=n_images, size=(64, 48))
+    coco = json.loads((folder / "annotations.json").read_text())
+    coco = change(coco) or coco
+    (folder / "annotations.json").write_text(json.dumps(coco))
+    return name
+
+
+def _set(path: str, value):
+    """A change setting coco[key][index][field] = value, path 'key.index.field'."""
+    key, index, field = path.split(".")
+    return lambda coco: coco[key][int(index)].__setitem__(field, value)
+
+
 def train_on(tmp: Path, change: Callable[[Path], None]) -> list[str]:
     root = dataset(tmp)
     change(root)
@@ -316,6 +334,28 @@ CASES = [
     Case("train-detector nothing to train on",
          lambda t: ["train-detector", "coco", "--out", "d.pt", "--val-fraction", "1"],
          ("--val-fraction", "expected a share in [0, 1)", "got 1.0")),
+    Case("train-detector negative seed", lambda t: ["train-detector", "coco", "--out", "d.pt", "--seed", "-1"],
+         ("--seed", "expected 0 or more", "got -1")),
+    Case("train-detector out is a folder", lambda t: ((t / "w").mkdir(), ["train-detector", "coco", "--out", "w"])[1],
+         ("--out w", "expected a weights file in an existing folder")),
+    Case("train-detector validation without boxes",
+         lambda t: ["train-detector", coco_folder(t), "--out", "d.pt", "--val",
+                    coco_folder(t, lambda c: c.__setitem__("annotations", []), "empty")],
+         ("empty", "the validation images hold no boxes", "--val-fraction 0")),
+    Case("COCO two images with one id", lambda t: ["eval-detector", coco_folder(t, _set("images.1.id", 1))],
+         ("annotations.json", "images[1].id", "1 is the id of an earlier image")),
+    Case("COCO box of no image", lambda t: ["eval-detector", coco_folder(t, _set("annotations.0.image_id", 999))],
+         ("annotations.json", "annotations[0].image_id", "999 is the id of no image")),
+    Case("COCO negative box width", lambda t: ["eval-detector", coco_folder(t, _set("annotations.0.bbox", [1, 1, -3, 4]))],
+         ("annotations[0].bbox", "width, height >= 0", "[1, 1, -3, 4]")),
+    Case("COCO file not an object", lambda t: ["eval-detector", coco_folder(t, lambda c: [c])],
+         ("annotations.json", "expected a COCO object")),
+    Case("ultralytics input size", lambda t: ["eval-detector", "coco", "--onnx", "m.onnx", "--layout", "ultralytics",
+                                              "--input-size", "640x600"],
+         ("error: --input-size", "multiples of 16", "'640x600'")),  # not blamed on --keep
+    Case("weights input size not a multiple of 16",
+         lambda t: with_weights(t, lambda blob: blob.__setitem__("input_wh", [100, 100])),
+         ("bad.pt", "input_wh", "expected multiples of 16")),
     Case("COCO annotations corrupt", lambda t: ((t / "coco").mkdir(), (t / "coco" / "annotations.json").write_text("{"),
                                                 ["eval-detector", "coco"])[2],
          ("annotations.json", "not valid JSON")),

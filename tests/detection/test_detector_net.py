@@ -286,3 +286,37 @@ def test_a_resized_folder_feeds_training_the_same_boxes_and_nearly_the_same_pixe
     diff = np.abs(images_full.astype(int) - images_small.astype(int))
     assert diff.mean() < 4 and np.percentile(diff, 99) < 30  # lossy WebP at 95 on noisy rectangles (renders: 1.2)
     assert small.records[0]["width"] == 96 and not (tmp_path / "small.tmp-writing").exists()
+
+
+def test_the_validation_split_takes_whole_scenes_and_never_an_image_trained_on():
+    """`vcfusion render` writes several frames per seed: split by image, consecutive frames of one
+    seed were in training and validation both; a folder listed twice (as the shipped weights'
+    recipe lists the accident frames) put the same images in both."""
+    from pathlib import Path
+
+    from vcfusion.detection.detector_train import CocoDataset, split_by_scene
+
+    def folder(name, seeds, frames):
+        images = [Path(f"/data/{name}/frame_{s}_{f}.png") for s in seeds for f in range(frames)]
+        records = [{"seed": s} for s in seeds for f in range(frames)]
+        return images, records
+
+    a, b = folder("acc", range(6), 5), folder("plat", range(4), 3)
+    images = a[0] + b[0] + a[0]  # acc listed twice
+    records = a[1] + b[1] + a[1]
+    n = len(images)
+    ds = CocoDataset(Path("/data"), images, list(range(n)), [np.zeros((0, 4))] * n, [np.zeros(0, np.int64)] * n,
+                     [1, 2], ["car", "truck"], records)
+    for seed in range(5):
+        train, val = split_by_scene(ds, 0.2, np.random.default_rng(seed))
+        assert len(train) + len(val) == n and len(val) >= round(0.2 * n)
+        assert not set(train.scenes()) & set(val.scenes())
+        assert not {str(p) for p in train.images} & {str(p) for p in val.images}
+    one = ds.subset(range(5))  # five frames of one seed: nothing to split
+    with pytest.raises(DetectorFileError, match="holds one scene"):
+        split_by_scene(one, 0.2, np.random.default_rng(0))
+    # images without a seed (a COCO folder from elsewhere) are each a scene of their own
+    loose = CocoDataset(Path("/x"), [Path(f"/x/{k}.png") for k in range(10)], list(range(10)),
+                        [np.zeros((0, 4))] * 10, [np.zeros(0, np.int64)] * 10, [1], ["car"])
+    train, val = split_by_scene(loose, 0.3, np.random.default_rng(0))
+    assert (len(train), len(val)) == (7, 3)

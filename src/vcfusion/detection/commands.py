@@ -28,6 +28,14 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
     from vcfusion.detection.detector_train import train_detector
 
     input_wh = parse_size(args.input_size, "--input-size")
+    if args.seed < 0:
+        raise UsageError(f"--seed: expected 0 or more, got {args.seed}")
+    if args.threads < 0:
+        raise UsageError(f"--threads: expected 0 (torch's default) or more, got {args.threads}")
+    out = Path(args.out)
+    if out.is_dir() or not out.parent.is_dir():
+        # checked before loading and training, not when the weights are written at the end
+        raise UsageError(f"--out {out}: expected a weights file in an existing folder")
     if args.workers < 0:
         raise UsageError(f"--workers: expected 0 or more, got {args.workers}")
     for name in ("epochs", "batch_size", "checkpoint_every", "iterations"):
@@ -79,8 +87,9 @@ def _make_detector(args):
 
     if args.onnx and args.layout == "ultralytics":
         keep = tuple(c.strip() for c in args.keep.split(","))
+        input_wh = parse_size(args.input_size or "640x640", "--input-size")  # its own message, not --keep's
         try:
-            return OnnxDetector.ultralytics(args.onnx, parse_size(args.input_size or "640x640", "--input-size"), keep)
+            return OnnxDetector.ultralytics(args.onnx, input_wh, keep)
         except ValueError as exc:
             if isinstance(exc, DetectorFileError):
                 raise
@@ -197,7 +206,8 @@ def add_parsers(sub) -> None:
     p.add_argument("data", nargs="+", help="COCO folder(s): images + annotations.json (e.g. renders of several scenarios)")
     p.add_argument("--out", required=True, help="weights file to write (e.g. src/vcfusion/assets/detector.pt)")
     p.add_argument("--val", nargs="+", help="held-out COCO folder(s) (e.g. other seeds); default: --val-fraction of DATA")
-    p.add_argument("--val-fraction", type=float, default=0.1)
+    p.add_argument("--val-fraction", type=float, default=0.1,
+                   help="without --val: this share of DATA's scenes (a render seed's frames together) is held out")
     p.add_argument("--epochs", type=int, default=20)
     p.add_argument("--init", help="weights file to fine-tune from (same categories, input size and widths)")
     p.add_argument("--iterations", type=int, default=None, help="stop after this many iterations")
@@ -215,7 +225,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--min-area", type=float, default=100.0,
                    help="held-out mAP ignores ground truth below this many px^2 (COCOeval area range)")
     p.set_defaults(func=cmd_train_detector, interrupted="the weights file was not written (checkpoints written so "
-                                                        "far are kept: --init one to go on from it)")
+                                                        "far are kept: --init one to fine-tune from it; "
+                                                        "the learning-rate schedule starts anew)")
 
     for name, func, helptext in (("eval-detector", cmd_eval_detector, "COCO mAP of a detector on a dataset folder"),):
         p = sub.add_parser(name, help=helptext)

@@ -229,6 +229,8 @@ def _checked_header(path: Path, blob: dict) -> tuple[list[int], tuple[int, ...],
     class_ids = ints("class_ids", None, "a list of category ids")
     widths = ints("widths", 5, "5 positive layer widths")
     input_wh = ints("input_wh", 2, "[width, height] in pixels")
+    if input_wh[0] % 16 or input_wh[1] % 16:  # the network's stride: any other size fails at inference
+        raise DetectorFileError(f"{path}: input_wh: expected multiples of 16, got {blob['input_wh']!r}")
     names = blob["class_names"]
     if not isinstance(names, (list, tuple)) or len(names) != len(class_ids):
         raise DetectorFileError(f"{path}: class_names: expected one name per class id ({len(class_ids)}), "

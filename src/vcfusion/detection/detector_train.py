@@ -56,6 +56,13 @@ class CocoDataset:
     def ground_truth(self) -> dict:
         return {iid: (b, c) for iid, b, c in zip(self.image_ids, self.boxes, self.classes)}
 
+    def scenes(self) -> list[tuple[str, object]]:
+        """Per image, the scene it shows: a seed of a folder (`vcfusion render` writes several frames
+        per seed), else the image file itself (one folder listed twice: the same scenes)."""
+        records = self.records or [{} for _ in self.images]
+        return [(str(Path(image).resolve().parent), record.get("seed", Path(image).resolve().name))
+                for image, record in zip(self.images, records)]
+
 
 def _find_json(folder: Path) -> Path:
     for name in ("annotations.json", "coco.json"):
@@ -68,6 +75,18 @@ def _find_json(folder: Path) -> Path:
     return found[0]
 
 
+def _coco_int(value, where: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise DetectorFileError(f"{where}: expected an integer id, got {value!r}")
+    try:
+        number = float(value)
+    except ValueError:
+        raise DetectorFileError(f"{where}: expected an integer id, got {value!r}") from None
+    if not number.is_integer():
+        raise DetectorFileError(f"{where}: expected an integer id, got {value!r}")
+    return int(number)
+
+
 def load_coco(folder) -> CocoDataset:
     folder = Path(folder)
     if not folder.is_dir():
@@ -77,13 +96,27 @@ def load_coco(folder) -> CocoDataset:
         coco = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise DetectorFileError(f"{path}: not valid JSON: {exc}") from None
+    if not isinstance(coco, dict):
+        raise DetectorFileError(f"{path}: expected a COCO object with images, annotations and categories")
     for key in ("images", "annotations", "categories"):
         if not isinstance(coco.get(key), list):
             raise DetectorFileError(f"{path}: {key}: expected a list")
+        for k, item in enumerate(coco[key]):
+            if not isinstance(item, dict):
+                raise DetectorFileError(f"{path}: {key}[{k}]: expected an object, got {item!r}")
+    for k, cat in enumerate(coco["categories"]):
+        cat["id"] = _coco_int(cat.get("id"), f"{path}: categories[{k}].id")
     cats = sorted(coco["categories"], key=lambda c: c["id"])
     if not cats:
         raise DetectorFileError(f"{path}: categories: expected at least one category")
-    class_ids = [int(c["id"]) for c in cats]
+    class_ids = [c["id"] for c in cats]
+    image_ids = set()
+    for k, img in enumerate(coco["images"]):
+        iid = _coco_int(img.get("id"), f"{path}: images[{k}].id")
+        if iid in image_ids:  # the second image got the first one's boxes, and its own were lost
+            raise DetectorFileError(f"{path}: images[{k}].id: {iid} is the id of an earlier image; expected "
+                                    "one id per image")
+        image_ids.add(iid)
     per_image: dict[int, list] = {}
     vids: dict[int, list] = {}
     visible: dict[int, list] = {}
@@ -96,7 +129,17 @@ def load_coco(folder) -> CocoDataset:
             # COCOeval ignores detections on a crowd region; read as one vehicle it would score them wrong
             raise DetectorFileError(f"{path}: annotations[{k}]: iscrowd: crowd regions are not supported; expected "
                                     "one annotation per vehicle (iscrowd 0 or absent)")
-        x, y, w, h = map(float, bbox)
+        try:
+            x, y, w, h = map(float, bbox)
+        except (TypeError, ValueError):
+            raise DetectorFileError(f"{path}: annotations[{k}].bbox: expected four numbers, got {bbox!r}") from None
+        if not np.isfinite([x, y, w, h]).all() or w < 0 or h < 0:  # dropped silently before
+            raise DetectorFileError(f"{path}: annotations[{k}].bbox: expected [x, y, width, height] with finite "
+                                    f"values and width, height >= 0, got {bbox!r}")
+        image_id = _coco_int(ann.get("image_id"), f"{path}: annotations[{k}].image_id")
+        if image_id not in image_ids:  # silently dropped before
+            raise DetectorFileError(f"{path}: annotations[{k}].image_id: {image_id} is the id of no image")
+        ann["image_id"] = image_id
         if w > 0 and h > 0:
             # COCO's pixel c spans [c, c + 1); our boxes put integer coordinates at pixel centres
             x, y = x - 0.5, y - 0.5
@@ -254,17 +297,22 @@ def train_detector(
     if threads:
         torch.set_num_threads(threads)
     device = _pick_device(device)
+    base = DetectorModel.load(init) if init is not None else None  # before the data: a bad file fails fast
     ds = load_coco_many(data)
     if val_data is not None:
         train_ds, val_ds = ds, load_coco_many(val_data)
         if val_ds.class_ids != ds.class_ids:
             raise DetectorFileError(f"{val_data}: categories: expected the training categories {ds.class_ids}")
     elif val_fraction > 0 and len(ds) >= 5:
-        perm = rng.permutation(len(ds))
-        n_val = max(1, int(round(val_fraction * len(ds))))
-        train_ds, val_ds = ds.subset(sorted(perm[n_val:])), ds.subset(sorted(perm[:n_val]))
+        train_ds, val_ds = split_by_scene(ds, val_fraction, rng)
     else:
         train_ds, val_ds = ds, None
+    if val_ds is not None and not any(len(b) for b in val_ds.boxes):
+        # checked before training: COCO mAP is undefined without boxes, and the trained weights were lost
+        source = val_data if val_data is not None else data
+        source = " ".join(map(str, [source] if isinstance(source, (str, Path)) else source))
+        raise DetectorFileError(f"{source}: the validation images hold no boxes; give validation folders with "
+                                "vehicles (--val), or --val-fraction 0")
     cls_index = {c: k for k, c in enumerate(ds.class_ids)}
     # boxes of a few pixels (far away or nearly hidden vehicles) are not learnable targets
     keep = [(b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1]) >= min_train_area for b in train_ds.boxes]
@@ -274,8 +322,7 @@ def train_detector(
     images, boxes = _cache(train_ds, input_wh, "load train", progress)
     classes = [np.array([cls_index[int(c)] for c in cs], np.int64) for cs in train_ds.classes]
 
-    if init is not None:
-        base = DetectorModel.load(init)
+    if base is not None:
         for what, theirs, ours in (("class_ids", base.class_ids, ds.class_ids),
                                    ("input_wh", tuple(base.input_wh), tuple(input_wh)),
                                    ("widths", tuple(base.widths), tuple(widths))):
@@ -342,6 +389,29 @@ def train_detector(
     if out is not None:
         net.save(Path(out))
     return net, report
+
+
+def split_by_scene(ds: CocoDataset, val_fraction: float, rng) -> tuple[CocoDataset, CocoDataset]:
+    """(train, validation): whole scenes drawn for validation until they hold `val_fraction` of the
+    images. Split by image, consecutive frames of one seed (and the images of a folder listed
+    twice) were in both: the validation figure measured frames trained on."""
+    scenes = ds.scenes()
+    keys = list(dict.fromkeys(scenes))
+    if len(keys) < 2:
+        raise DetectorFileError(f"{ds.folder}: the data holds one scene, which cannot be split into training and "
+                                "validation; give validation folders (--val), or --val-fraction 0")
+    of = {key: k for k, key in enumerate(keys)}
+    scene_of = np.array([of[key] for key in scenes])
+    size = np.bincount(scene_of, minlength=len(keys))
+    want = max(1, int(round(val_fraction * len(ds))))
+    chosen, n_val = [], 0
+    for k in rng.permutation(len(keys)):
+        if n_val >= want or len(chosen) == len(keys) - 1:  # at least one scene stays to train on
+            break
+        chosen.append(k)
+        n_val += int(size[k])
+    val = np.isin(scene_of, chosen)
+    return ds.subset(np.flatnonzero(~val)), ds.subset(np.flatnonzero(val))
 
 
 def _batch_indices(n: int, batch_size: int, epochs: int, total_steps: int, rng) -> list[np.ndarray]:

@@ -219,7 +219,8 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
                 if np.isfinite(vis).any():
                     res.identification_by_visibility[name] = _by_visibility(right, vis)
             res.n_identified_targets = int(sum(len(ident[i]["oracle"][0]) for i in with_ident))
-            scenes = [(str(Path(ds.images[k]).parent), records[k].get("seed", f"image {k}")) for k in with_k]
+            scene_of = ds.scenes()
+            scenes = [scene_of[k] for k in with_k]
             res.identification_interval = scene_bootstrap(right_per_image, scenes)
         results.append(res)
     return results, dets
