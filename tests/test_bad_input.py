@@ -342,6 +342,9 @@ CASES = [
          lambda t: ["train-detector", coco_folder(t), "--out", "d.pt", "--val",
                     coco_folder(t, lambda c: c.__setitem__("annotations", []), "empty")],
          ("empty", "the validation images hold no boxes", "--val-fraction 0")),
+    Case("train-detector one scene to split",  # trained without validation, without a word, before
+         lambda t: ["train-detector", coco_folder(t, n_images=1), "--out", "d.pt", "--iterations", "1"],
+         ("holds one scene", "cannot be split", "--val-fraction 0")),
     Case("COCO two images with one id", lambda t: ["eval-detector", coco_folder(t, _set("images.1.id", 1))],
          ("annotations.json", "images[1].id", "1 is the id of an earlier image")),
     Case("COCO box of no image", lambda t: ["eval-detector", coco_folder(t, _set("annotations.0.image_id", 999))],

@@ -303,7 +303,7 @@ def train_detector(
         train_ds, val_ds = ds, load_coco_many(val_data)
         if val_ds.class_ids != ds.class_ids:
             raise DetectorFileError(f"{val_data}: categories: expected the training categories {ds.class_ids}")
-    elif val_fraction > 0 and len(ds) >= 5:
+    elif val_fraction > 0:  # any size: a single scene is refused, never trained on without a word
         train_ds, val_ds = split_by_scene(ds, val_fraction, rng)
     else:
         train_ds, val_ds = ds, None
