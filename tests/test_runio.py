@@ -112,7 +112,7 @@ def test_a_writer_killed_before_its_rename_leaves_no_run(tmp_path):
 
 
 def test_a_file_replaced_through_a_temporary_one_survives_a_failed_write(tmp_path):
-    from vcfusion.runio import replace_file, write_table
+    from vcfusion.runio import atomic_write, write_table
 
     path = tmp_path / "batch_summary.parquet"
     write_table(path, pd.DataFrame({"seed": [0, 1]}))
@@ -122,10 +122,10 @@ def test_a_file_replaced_through_a_temporary_one_survives_a_failed_write(tmp_pat
         raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        replace_file(path, killed)
+        atomic_write(path, killed)
     assert pd.read_parquet(path)["seed"].tolist() == [0, 1]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["batch_summary.parquet"]
-    replace_file(path, lambda tmp: write_table(tmp, pd.DataFrame({"seed": [5]})))
+    atomic_write(path, lambda tmp: write_table(tmp, pd.DataFrame({"seed": [5]})))
     assert pd.read_parquet(path)["seed"].tolist() == [5]
 
 

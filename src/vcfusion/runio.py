@@ -10,7 +10,8 @@ import json
 import os
 import platform
 import shutil
-from collections.abc import Mapping
+import tempfile
+from collections.abc import Callable, Mapping
 from contextlib import contextmanager
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -44,16 +45,18 @@ def write_table(path: Path, frame: pd.DataFrame) -> None:
     frame.reset_index(drop=True).to_parquet(path, engine="pyarrow", index=False, compression="zstd")
 
 
-def replace_file(path: Path, write) -> None:
-    """`write(tmp)` into a sibling temporary file renamed over `path`: a kill in the middle leaves the
-    previous file whole instead of a truncated one under the final name."""
+def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+    """`write(tmp)` into a temporary file of its own beside `path` (same suffix: writers that go by
+    it still do), renamed over `path` when complete: a kill in the middle leaves the previous file
+    whole instead of a truncated one under the final name."""
     path = Path(path)
-    tmp = path.with_name(path.name + PARTIAL_SUFFIX)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
     try:
-        write(tmp)
+        write(Path(tmp))
         os.replace(tmp, path)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        Path(tmp).unlink(missing_ok=True)
         raise
 
 

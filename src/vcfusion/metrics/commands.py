@@ -71,7 +71,7 @@ def recompute_folder(folder: Path, scenario_file: str | None = None) -> bool:
 def rebuild_batch_summary(batch: Path, folders: list[Path]) -> pd.DataFrame:
     """batch_summary.parquet from its seeds' summaries (the seeds it listed, else every complete one)."""
     from vcfusion.metrics.run_metrics import batch_row
-    from vcfusion.runio import replace_file, write_table
+    from vcfusion.runio import atomic_write, write_table
 
     path = batch / BATCH_SUMMARY
     listed = set(pd.read_parquet(path, columns=["seed"])["seed"]) if path.is_file() else None
@@ -81,7 +81,7 @@ def rebuild_batch_summary(batch: Path, folders: list[Path]) -> pd.DataFrame:
         if listed is None or summary["seed"] in listed:
             rows.append(batch_row(summary))
     frame = pd.DataFrame(rows).sort_values("seed")
-    replace_file(path, lambda tmp: write_table(tmp, frame))
+    atomic_write(path, lambda tmp: write_table(tmp, frame))
     return frame
 
 

@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from vcfusion.errors import UsageError
 from vcfusion.metrics.run_metrics import batch_row
-from vcfusion.runio import discard_partial_folder, is_complete_run, replace_file, write_json, write_table
+from vcfusion.runio import atomic_write, discard_partial_folder, is_complete_run, write_json, write_table
 from vcfusion.workers import JobFailed, run_jobs
 
 # On Dask: how many times a seed is run again after the worker running it was lost (Dask's
@@ -240,11 +240,11 @@ def _write_index(out: Path, seeds: list[int], failed: list[SeedOutcome]) -> None
     # of other seeds next to this batch's failures was reported as this batch's metrics
     summary_file = out / "batch_summary.parquet"
     if rows:
-        replace_file(summary_file, lambda tmp: write_table(tmp, pd.DataFrame(rows).sort_values("seed")))
+        atomic_write(summary_file, lambda tmp: write_table(tmp, pd.DataFrame(rows).sort_values("seed")))
     else:
         summary_file.unlink(missing_ok=True)
     failures_file = out / "failures.json"
     if failed:
-        replace_file(failures_file, lambda tmp: write_json(tmp, {str(o.seed): o.error for o in failed}))
+        atomic_write(failures_file, lambda tmp: write_json(tmp, {str(o.seed): o.error for o in failed}))
     else:
         failures_file.unlink(missing_ok=True)

@@ -21,11 +21,8 @@ noise) with a frame source (the renderer), runs every detector on the same frame
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pandas as pd
@@ -34,6 +31,7 @@ from tqdm import tqdm
 from vcfusion.fusion.depth_eval import DepthEvalParams
 from vcfusion.fusion.fuse import METHODS, CameraFrame, FusionResult, fuse_frame
 from vcfusion.fusion.matching import JointMatcher, JointMatcherParams, box_iou
+from vcfusion.runio import atomic_write
 
 IOU_THRESHOLDS = np.round(np.arange(0.5, 0.951, 0.05), 2)
 ROW_COLUMNS = ["scenario", "seed", "latency_s", "gnss_noise_m", "detector", "time", "vehicle_id", "method", "n_anchor_boxes", "matched", "iou",
@@ -87,17 +85,6 @@ def accuracy_at(rows: pd.DataFrame, threshold: float = 0.7,
     return g["ok"].agg(accuracy="mean", n="size").reset_index()
 
 
-def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_study_outputs(rows: pd.DataFrame, out_dir, threshold: float = 0.7) -> dict[str, Path]:
     """CSV tables and plots of a study's rows (each file written atomically)."""
     import matplotlib
@@ -112,11 +99,11 @@ def write_study_outputs(rows: pd.DataFrame, out_dir, threshold: float = 0.7) -> 
     curve = accuracy_vs_iou(clean)
     sweep = accuracy_at(rows, threshold)
     paths["rows"] = out_dir / "identification_rows.parquet"
-    _atomic_write(paths["rows"], lambda p: rows.to_parquet(p, index=False))
+    atomic_write(paths["rows"], lambda p: rows.to_parquet(p, index=False))
     paths["accuracy_iou"] = out_dir / "identification_accuracy_iou.csv"
-    _atomic_write(paths["accuracy_iou"], lambda p: curve.to_csv(p, index=False, float_format="%.4f"))
+    atomic_write(paths["accuracy_iou"], lambda p: curve.to_csv(p, index=False, float_format="%.4f"))
     paths["latency_noise"] = out_dir / "identification_latency_noise.csv"
-    _atomic_write(paths["latency_noise"], lambda p: sweep.to_csv(p, index=False, float_format="%.4f"))
+    atomic_write(paths["latency_noise"], lambda p: sweep.to_csv(p, index=False, float_format="%.4f"))
 
     styles = {"baseline": ("tab:blue", "RGB only (paper's baseline)"),
               "baseline_centre": ("tab:purple", "RGB only, nearest centre (ours)"),
@@ -140,7 +127,7 @@ def write_study_outputs(rows: pd.DataFrame, out_dir, threshold: float = 0.7) -> 
     ax.legend(fontsize=7)
     fig.tight_layout()
     paths["accuracy_iou_plot"] = out_dir / "identification_accuracy_iou.png"
-    _atomic_write(paths["accuracy_iou_plot"], lambda p: fig.savefig(p, dpi=120, format="png"))
+    atomic_write(paths["accuracy_iou_plot"], lambda p: fig.savefig(p, dpi=120, format="png"))
     plt.close(fig)
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
@@ -159,7 +146,7 @@ def write_study_outputs(rows: pd.DataFrame, out_dir, threshold: float = 0.7) -> 
     axes[1].legend(fontsize=7)
     fig.tight_layout()
     paths["latency_noise_plot"] = out_dir / "identification_latency_noise.png"
-    _atomic_write(paths["latency_noise_plot"], lambda p: fig.savefig(p, dpi=120, format="png"))
+    atomic_write(paths["latency_noise_plot"], lambda p: fig.savefig(p, dpi=120, format="png"))
     plt.close(fig)
     return paths
 
