@@ -320,3 +320,22 @@ def test_the_validation_split_takes_whole_scenes_and_never_an_image_trained_on()
                         [np.zeros((0, 4))] * 10, [np.zeros(0, np.int64)] * 10, [1], ["car"])
     train, val = split_by_scene(loose, 0.3, np.random.default_rng(0))
     assert (len(train), len(val)) == (7, 3)
+
+
+def test_ids_written_as_floats_or_text_read_as_the_integers_they_are(tmp_path):
+    """The id check accepts 5.0 and "5.0" as image 5; the rest of the loader and resize-dataset then
+    read the raw ids again with int(), which refused "5.0" in a traceback."""
+    from vcfusion.detection.detector_train import resize_dataset
+
+    folder = make_synthetic_coco(tmp_path / "c", n_images=3, size=(64, 48))
+    coco = json.loads((folder / "annotations.json").read_text())
+    boxes_before = [len(b) for b in load_coco(folder).boxes]
+    for image in coco["images"]:
+        image["id"] = f"{image['id']}.0"
+    for ann in coco["annotations"]:
+        ann["image_id"] = float(ann["image_id"])
+    (folder / "annotations.json").write_text(json.dumps(coco))
+    ds = load_coco(folder)
+    assert ds.image_ids == [1, 2, 3] and [len(b) for b in ds.boxes] == boxes_before
+    resize_dataset(folder, tmp_path / "small", (32, 32), 90, progress=False)
+    assert [len(b) for b in load_coco(tmp_path / "small").boxes] == boxes_before

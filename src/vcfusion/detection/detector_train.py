@@ -60,8 +60,8 @@ class CocoDataset:
         """Per image, the scene it shows: a seed of a folder (`vcfusion render` writes several frames
         per seed), else the image file itself (one folder listed twice: the same scenes)."""
         records = self.records or [{} for _ in self.images]
-        return [(str(Path(image).resolve().parent), record.get("seed", Path(image).resolve().name))
-                for image, record in zip(self.images, records)]
+        files = [Path(image).resolve() for image in self.images]
+        return [(str(file.parent), record.get("seed", file.name)) for file, record in zip(files, records)]
 
 
 def _find_json(folder: Path) -> Path:
@@ -117,6 +117,7 @@ def load_coco(folder) -> CocoDataset:
             raise DetectorFileError(f"{path}: images[{k}].id: {iid} is the id of an earlier image; expected "
                                     "one id per image")
         image_ids.add(iid)
+        img["id"] = iid  # as read from here on (the records keep it)
     per_image: dict[int, list] = {}
     vids: dict[int, list] = {}
     visible: dict[int, list] = {}
@@ -139,32 +140,31 @@ def load_coco(folder) -> CocoDataset:
         image_id = _coco_int(ann.get("image_id"), f"{path}: annotations[{k}].image_id")
         if image_id not in image_ids:  # silently dropped before
             raise DetectorFileError(f"{path}: annotations[{k}].image_id: {image_id} is the id of no image")
-        ann["image_id"] = image_id
         if w > 0 and h > 0:
             # COCO's pixel c spans [c, c + 1); our boxes put integer coordinates at pixel centres
             x, y = x - 0.5, y - 0.5
-            per_image.setdefault(int(ann["image_id"]), []).append((x, y, x + w, y + h, int(ann["category_id"])))
-            vids.setdefault(int(ann["image_id"]), []).append(ann.get("vehicle_id"))
+            per_image.setdefault(image_id, []).append((x, y, x + w, y + h, int(ann["category_id"])))
+            vids.setdefault(image_id, []).append(ann.get("vehicle_id"))
             vis = ann.get("visible_fraction")
-            visible.setdefault(int(ann["image_id"]), []).append(np.nan if vis is None else float(vis))
+            visible.setdefault(image_id, []).append(np.nan if vis is None else float(vis))
     images, ids, boxes, classes = [], [], [], []
     for k, img in enumerate(coco["images"]):
         name = img.get("file_name")
-        if not name or "id" not in img:
-            raise DetectorFileError(f"{path}: images[{k}]: expected id and file_name")
+        if not name:
+            raise DetectorFileError(f"{path}: images[{k}]: expected a file_name")
         file = folder / name if (folder / name).is_file() else folder / "images" / name
         if not file.is_file():
             raise DetectorFileError(f"{path}: images[{k}].file_name: image not found: {name}")
-        rows = np.array(per_image.get(int(img["id"]), []), dtype=np.float64).reshape(-1, 5)
+        rows = np.array(per_image.get(img["id"], []), dtype=np.float64).reshape(-1, 5)
         images.append(file)
-        ids.append(int(img["id"]))
+        ids.append(img["id"])
         boxes.append(rows[:, :4])
         classes.append(rows[:, 4].astype(np.int64))
     if not images:
         raise DetectorFileError(f"{path}: images: expected at least one image")
     return CocoDataset(folder, images, ids, boxes, classes, class_ids, [str(c.get("name", c["id"])) for c in cats],
-                       list(coco["images"]), [vids.get(int(img["id"]), []) for img in coco["images"]],
-                       [np.array(visible.get(int(img["id"]), []), float) for img in coco["images"]])
+                       list(coco["images"]), [vids.get(img["id"], []) for img in coco["images"]],
+                       [np.array(visible.get(img["id"], []), float) for img in coco["images"]])
 
 
 def load_coco_many(folders) -> CocoDataset:
@@ -494,18 +494,19 @@ def resize_dataset(src, out, input_wh: tuple[int, int], quality: int = 95, progr
     scale: dict[int, tuple[float, float]] = {}
     with atomic_folder(Path(out), "dataset folder") as tmp:
         (tmp / "images").mkdir()
-        for record, file in tqdm(list(zip(coco["images"], ds.images)), desc=f"resize {src.name}", unit="img",
-                                 disable=not progress):
+        # ds.image_ids: the ids as load_coco read them (a 5.0 or "5" is 5), in the file's order
+        for record, file, iid in tqdm(list(zip(coco["images"], ds.images, ds.image_ids)), desc=f"resize {src.name}",
+                                      unit="img", disable=not progress):
             rgb = read_rgb(file)
-            scale[int(record["id"])] = (input_wh[0] / rgb.shape[1], input_wh[1] / rgb.shape[0])
+            scale[iid] = (input_wh[0] / rgb.shape[1], input_wh[1] / rgb.shape[0])
             small = resize_to_input(rgb, input_wh)
-            name = f"{int(record['id']):07d}.webp"
+            name = f"{iid:07d}.webp"
             if not cv2.imwrite(str(tmp / "images" / name), cv2.cvtColor(small, cv2.COLOR_RGB2BGR),
                                [cv2.IMWRITE_WEBP_QUALITY, int(quality)]):
                 raise DetectorFileError(f"{out}: cannot write {name}")
             record.update(file_name=name, width=int(input_wh[0]), height=int(input_wh[1]))
-        for ann in coco["annotations"]:
-            sx, sy = scale[int(ann["image_id"])]
+        for k, ann in enumerate(coco["annotations"]):
+            sx, sy = scale[_coco_int(ann["image_id"], f"{path}: annotations[{k}].image_id")]
             x, y, w, h = map(float, ann["bbox"])
             # COCO pixel edges scale with the image (what _cache does with the pixel-centre boxes)
             ann["bbox"] = [x * sx, y * sy, w * sx, h * sy]

@@ -199,6 +199,7 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
         groups.append(("all", list(range(len(ds)))))
     results = []
     gt_all = ds.ground_truth()
+    scene_of = ds.scenes() if ident else []  # the bootstrap's clusters, once for every family
     for fam, index in groups:
         ids = [ds.image_ids[k] for k in index]
         if not any(len(gt_all[i][0]) for i in ids):
@@ -219,9 +220,7 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
                 if np.isfinite(vis).any():
                     res.identification_by_visibility[name] = _by_visibility(right, vis)
             res.n_identified_targets = int(sum(len(ident[i]["oracle"][0]) for i in with_ident))
-            scene_of = ds.scenes()
-            scenes = [scene_of[k] for k in with_k]
-            res.identification_interval = scene_bootstrap(right_per_image, scenes)
+            res.identification_interval = scene_bootstrap(right_per_image, [scene_of[k] for k in with_k])
         results.append(res)
     return results, dets
 
