@@ -290,19 +290,11 @@ class SumoSession:
         for vt in self._untracked_types:
             libsumo.vehicletype.setParameter(vt, "has.tripinfo.device", "false")
         self._routes: dict[tuple[str, ...], str] = {}
-        if sc.accident is not None:
-            acc = sc.accident
-            s = accident_s(acc, self.road)
-            for i, lane in enumerate(acc.lanes):
-                vid = f"accident{i}"
-                edges, index, pos = sumo_place(self.road, lane, s)
-                libsumo.vehicle.add(vid, self._route_id(edges), acc.vtype, depart="0", departLane=str(index),
-                                    departPos=repr(pos), departSpeed="0")
+        for vid, what, vtype, (edges, index, pos), speed in fixed_vehicles(sc, self.road):
+            libsumo.vehicle.add(vid, self._route_id(edges), vtype, depart="0", departLane=str(index),
+                                departPos=repr(pos), departSpeed=repr(speed))
+            if what == "accident":
                 libsumo.vehicle.setStop(vid, edges[0], pos=pos, laneIndex=index, duration=ACCIDENT_STOP_S, flags=0)
-        if sc.ego is not None:
-            edges, index, pos = sumo_place(self.ego_frame, sc.ego.lane, sc.ego.depart_pos_m)
-            libsumo.vehicle.add(EGO_ID, self._route_id(edges), sc.ego.vtype, depart="0", departLane=str(index),
-                                departPos=repr(pos), departSpeed=repr(sc.ego.speed_mps))
         for p in self.placements:
             depart_speed = repr(p.speed_mps) if p.depart_s == 0.0 else "desired"
             libsumo.vehicle.add(p.vehicle_id, self._route_id(p.edges), p.vtype, depart=repr(round(p.depart_s, 2)),
