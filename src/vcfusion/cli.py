@@ -323,13 +323,7 @@ def cmd_drive(args: argparse.Namespace) -> int:
 def cmd_bench_render(args: argparse.Namespace) -> int:
     from vcfusion.render.bench import main as bench_main
 
-    if args.frames < 1:
-        raise UsageError(f"--frames: expected a positive number of frames, got {args.frames}")
-    if args.scenario:
-        scenario = load_scenario(args.scenario)
-        if scenario.ego is None:
-            raise UsageError(f"{args.scenario}: ego: the camera rides on the ego; the scenario has no ego block")
-
+    # the bench checks its frames and the scenario's ego when it loads the scenario
     return bench_main(["--scenario", args.scenario, "--frames", str(args.frames)]
                       + (["--preset", args.preset] if args.preset else []))
 

@@ -251,6 +251,13 @@ def open_input(spec: str, axis_map_file: Path | None = None):
             raise UsageError(f"--input joystick: no preset for {js.get_name()!r} ({js.get_numaxes()} axes); "
                              "run `vcfusion drive --calibrate --axis-map FILE` and pass --axis-map FILE")
         return JoystickInput(js, axis_map)
+    return check_input_spec(spec)  # replay:FILE, read and checked; anything else is refused
+
+
+def check_input_spec(spec: str) -> "ReplayInput | None":
+    """UsageError unless `spec` is keyboard, joystick or replay:FILE with a readable replay file,
+    before anything is opened or written; the replay's input when it names one."""
     if spec.startswith("replay:"):
         return ReplayInput(Path(spec[len("replay:"):]))
-    raise UsageError(f"--input: expected keyboard, joystick or replay:FILE, got {spec!r}")
+    if spec not in ("keyboard", "joystick"):
+        raise UsageError(f"--input: expected keyboard, joystick or replay:FILE, got {spec!r}")

@@ -126,12 +126,9 @@ def run_hitl_study(scenario_path: Path, participant: str, pairs: int, out: Path,
     if scenario.ego is None:
         raise UsageError(f"{scenario_path}: ego: a person drives the ego; the scenario has no ego block")
     # the input is checked before the session's folder exists (nothing is written for a bad one)
-    if input_spec.startswith("replay:"):
-        from vcfusion.hitl.inputs import ReplayInput
+    from vcfusion.hitl.inputs import check_input_spec
 
-        ReplayInput(Path(input_spec[len("replay:"):]))
-    elif input_spec not in ("keyboard", "joystick"):
-        raise UsageError(f"--input: expected keyboard, joystick or replay:FILE, got {input_spec!r}")
+    check_input_spec(input_spec)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     order = order or default_order(participant)

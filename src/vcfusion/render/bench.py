@@ -31,10 +31,15 @@ def main(argv: list[str] | None = None) -> int:
 
     from vcfusion.cosim import CoSimulation
     from vcfusion.driver.idm import IdmController
+    from vcfusion.errors import UsageError
     from vcfusion.scenario import load_scenario
     from vcfusion.render.renderer import EgoCameraRenderer
 
+    if args.frames < 1:
+        raise UsageError(f"--frames: expected a positive number of frames, got {args.frames}")
     scenario = load_scenario(args.scenario)
+    if scenario.ego is None:
+        raise UsageError(f"{args.scenario}: ego: the camera rides on the ego; the scenario has no ego block")
     states = []
 
     class Collect:
@@ -43,8 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         def __call__(self, tick):
             states.append(tick.truth)
 
-    controller = IdmController.for_scenario(scenario) if scenario.ego is not None else None
-    CoSimulation(scenario, args.seed, controller=controller, hooks=[Collect()]).run()
+    CoSimulation(scenario, args.seed, controller=IdmController.for_scenario(scenario), hooks=[Collect()]).run()
     states = [s for s in states if "ego" in s.ids]
     picks = [states[i] for i in np.linspace(0, len(states) - 1, args.frames).astype(int)]
     camera = scenario.camera if args.preset is None else scenario.camera.model_copy(update={"render_preset": args.preset})
