@@ -153,10 +153,7 @@ def _worker_resources(scenario):
     if f.detector == "oracle":
         return renderer, None  # cheap and stateful per frame: a fresh one per run
     dkey = ("detector", f.detector, str(f.weights))
-    if dkey not in _WORKER:
-        import torch
-
-        torch.set_num_threads(1)  # one worker process per core: intra-op threads only contend
+    if dkey not in _WORKER:  # its threads: the worker's share of the cores (workers.worker_threads)
         _WORKER[dkey] = build_detector(scenario, 0)
     return renderer, _WORKER[dkey]
 
