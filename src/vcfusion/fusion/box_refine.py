@@ -496,7 +496,7 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         is_truck = top > refine.truck_top_m
         min_width = params.min_width_m
         # cut by the image's side, a truck's side shows as narrow as a trunk: its width is unknown
-        truncated = (box[0] <= 0.0 or box[2] >= z.shape[1] - 1.0)
+        truncated = box[0] <= 0.0 or box[2] >= z.shape[1] - 1.0
         if is_truck and width_m < params.min_tall_width_m and not truncated and not _seen_over_nearer(
                 sel, x, y, z, obj, depth_m, refine.jump_m, refine.jump_rel):
             min_width = params.min_tall_width_m  # standing on the ground as tall as this: a trunk or a pole

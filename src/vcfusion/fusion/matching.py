@@ -568,7 +568,8 @@ class JointMatcher:
             # a hidden anchor's stand-in (the visible part's centre) admits no box by lying in it: a
             # car all but beyond the image's side (expected box 0.8 px wide at the border) took the
             # box of the car beside it, which the stand-in lay in, and pushed that car off its box
-            inside[i] = point_in_boxes(anchors[i], b) & (not anchor_hidden[i])
+            if not anchor_hidden[i]:
+                inside[i] = point_in_boxes(anchors[i], b)
         expected = proj.face_z if p.face_offset else proj.anchor_z
         sigma = p.depth_sigma_rel * expected[:, None] + p.depth_sigma_abs_m
         with np.errstate(invalid="ignore"):
@@ -646,16 +647,14 @@ class JointMatcher:
         out = np.full(len(proj.anchor), NO_MATCH)
         if cost.size == 0:
             return out
-        first = ~hidden_whole
-        if first.any():
-            out[first] = self._assign_once(cost[first], allowed[first])
-        second = hidden_whole.copy()
-        if second.any():
+        out[~hidden_whole] = self._assign_once(cost[~hidden_whole], allowed[~hidden_whole])
+        if hidden_whole.any():
+            matched = np.flatnonzero(out != NO_MATCH)
             wanted = allowed[hidden_whole].any(axis=0)  # (D,) boxes some hidden twin may take
-            for i in np.flatnonzero(out != NO_MATCH):
-                if cost[i, out[i]] > self.params.weak_cost and wanted[out[i]]:
-                    second[i] = True
-                    out[i] = NO_MATCH
+            weak = matched[(cost[matched, out[matched]] > self.params.weak_cost) & wanted[out[matched]]]
+            out[weak] = NO_MATCH
+            second = hidden_whole.copy()
+            second[weak] = True
             free = np.ones(cost.shape[1], bool)
             free[out[out != NO_MATCH]] = False
             out[second] = self._assign_once(cost[second], allowed[second] & free[None, :])
