@@ -469,9 +469,9 @@ def main(argv: list[str] | None = None) -> int:
                 # What Ctrl-C left and how to go on: the command's set_defaults(interrupted=...).
                 # The workers were stopped and temporary folders removed on the way up.
                 hint = getattr(args, "interrupted", None)
-                stopped = "terminated" if interrupts.terminated() else "interrupted"
-                print(stopped + (f": {hint}" if hint else ""), file=sys.stderr)
-                return 143 if interrupts.terminated() else 130
+                terminated = interrupts.terminated()  # SIGTERM, else Ctrl-C
+                print(("terminated" if terminated else "interrupted") + (f": {hint}" if hint else ""), file=sys.stderr)
+                return 143 if terminated else 130
             # scenario, model, dataset, command-line values; an output that exists (our own message)
             if isinstance(exc, InputError) or (isinstance(exc, FileExistsError) and exc.filename is None):
                 for line in str(exc).splitlines():  # one line per problem (a scenario file may have several)

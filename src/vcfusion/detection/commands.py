@@ -60,7 +60,7 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
         device=args.device, progress=sys.stderr.isatty(), max_iterations=args.iterations,
         min_train_area=args.min_train_area, eval_min_area=args.min_area, init=args.init,
         checkpoint_every=args.checkpoint_every, workers=args.workers)
-    size_mb = Path(args.out).stat().st_size / 2**20
+    size_mb = out.stat().st_size / 2**20
     print(f"trained {report.iterations} iterations ({report.epochs} epochs) on {report.n_train} images "
           f"in {report.wall_s:.0f} s; loss {report.first_losses[0]:.3f} -> {report.loss_history[-1]:.3f}")
     if report.val is not None:
