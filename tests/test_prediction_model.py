@@ -100,3 +100,28 @@ def test_file_without_calibration_is_uncalibrated(tmp_path):
     assert loaded.calibration == (1.0, 0.0)
     x = rng.normal(0, 3, (50, len(FEATURE_NAMES))).astype(np.float32)
     np.testing.assert_allclose(loaded.predict_proba(x), 1 / (1 + np.exp(-loaded.logits(x))), rtol=1e-5)
+
+
+@pytest.mark.parametrize("kind", ["mlp", "gru"])
+def test_a_model_write_cut_off_leaves_the_old_file_whole_and_nothing_else(tmp_path, monkeypatch, kind):
+    # a writer killed (here: failing) after its first bytes: the file under the final name is still the
+    # previous model, and no half-written temporary file stays beside it
+    from test_prediction_sequence import _model
+
+    from vcfusion.prediction.sequence import save_sequence_model
+
+    save = save_model if kind == "mlp" else save_sequence_model
+    model = _random_model(np.random.default_rng(0)) if kind == "mlp" else _model()
+    path = save(model, tmp_path / "m.npz")
+    before = path.read_bytes()
+
+    def cut_off(file, **arrays):
+        with open(file, "wb") as fh:
+            fh.write(b"PK\x03\x04 half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(np, "savez", cut_off)
+    with pytest.raises(KeyboardInterrupt):
+        save(model, path)
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.npz"]

@@ -84,9 +84,10 @@ class AxisMap(BaseModel):
 
     def save(self, path: Path) -> None:
         path = Path(path)
-        tmp = path.with_name(path.name + ".tmp-writing")
-        tmp.write_text(json.dumps(self.model_dump(), indent=2) + "\n")
-        tmp.replace(path)
+        text = json.dumps(self.model_dump(), indent=2) + "\n"
+        from vcfusion.runio import atomic_write
+
+        atomic_write(path, lambda tmp: tmp.write_text(text))
 
 
 def load_axis_map(path: Path) -> AxisMap:

@@ -99,7 +99,7 @@ def _dataset_seed(scenario_path: str, seed: int, out: str, tau: float, tau_g: fl
 def _refeature_seed(folder: str, scenario_path: str, seed: int, tau: float, tau_g: float) -> int:
     """Recompute one run folder's samples.parquet from its twins / vehicles / lane_changes tables
     (no simulation: the twins table holds exactly the snapshots the cloud saw). Atomic."""
-    from vcfusion.runio import write_table
+    from vcfusion.runio import atomic_write, write_table
     from vcfusion.scenario import load_scenario
 
     scenario = load_scenario(scenario_path)
@@ -112,9 +112,7 @@ def _refeature_seed(folder: str, scenario_path: str, seed: int, tau: float, tau_
 
     if (folder / f"{LC_STATE_TABLE}.parquet").is_file():  # a privileged dataset keeps its SUMO columns
         samples = add_privileged(samples, pd.read_parquet(folder / f"{LC_STATE_TABLE}.parquet"))
-    tmp = folder / (SAMPLES + ".tmp-writing")
-    write_table(tmp, samples)
-    tmp.replace(folder / SAMPLES)
+    atomic_write(folder / SAMPLES, lambda tmp: write_table(tmp, samples))
     return seed
 
 
@@ -297,7 +295,7 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
     privileged: log SUMO's lane-change state every tick and add the privileged columns to the
     samples (vcfusion.prediction.privileged; for the ceiling, never a run-time input).
     """
-    from vcfusion.runio import write_json
+    from vcfusion.runio import atomic_write, write_json
     from vcfusion.scenario import load_scenario
 
     if tau <= 0 or tau_g < 0:
@@ -328,9 +326,7 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
                                f"({', '.join(f'{k}: {a!r} vs {b!r}' for k, (a, b) in clash.items())}); "
                                f"choose a new --out{hint}")
     out.mkdir(parents=True, exist_ok=True)
-    tmp = meta_file.with_name(DATASET_JSON + ".tmp-writing")
-    write_json(tmp, params)
-    tmp.replace(meta_file)
+    atomic_write(meta_file, lambda tmp: write_json(tmp, params))
     refeatured, stale = [], []
     if refeature:
         refeatured, stale = refeature_runs(Path(scenario_path), seeds, out / "runs", workers, tau, tau_g, progress)
@@ -348,9 +344,6 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
         counts["lane_changes"] += int(len(pd.read_parquet(seed_folder(out / "runs", s) / "lane_changes.parquet",
                                                          columns=["event_id"])))
     params |= {"splits": split_seeds(done), "counts": counts}
-    write_json(tmp, params)
-    tmp.replace(meta_file)
-    readme_tmp = out / "README.md.tmp-writing"
-    readme_tmp.write_text(README.format(features=", ".join(FEATURE_NAMES)))
-    readme_tmp.replace(out / "README.md")
+    atomic_write(meta_file, lambda tmp: write_json(tmp, params))
+    atomic_write(out / "README.md", lambda tmp: tmp.write_text(README.format(features=", ".join(FEATURE_NAMES))))
     return report | {"counts": counts, "splits": params["splits"], "refeatured": len(refeatured)}

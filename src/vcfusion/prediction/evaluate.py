@@ -40,6 +40,7 @@ from vcfusion.prediction.features import SEQUENCE_EXTRA_NAMES
 from vcfusion.prediction.model import LaneChangeModel, load_model, model_feature_names, model_kind
 from vcfusion.prediction.train_sequence import check_sequence_columns
 from vcfusion.prediction.privileged import SumoWantsRule
+from vcfusion.runio import atomic_write
 from vcfusion.prediction.train import TrainConfig, _fit_torch, stream_with_events, training_rows, tune_decisions
 
 VARIANTS = ("original", "aggressive", "conservative")
@@ -211,9 +212,8 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
     (out / "settings.json").write_text(json.dumps(settings, indent=2) + "\n")
     summary = evaluation_summary(table, info, split, model_path, horizon_s, default, stream, events,
                                  per_event_all[default], baselines)
-    tmp = out / (EVALUATION_JSON + ".tmp-writing")
-    tmp.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
-    tmp.replace(out / EVALUATION_JSON)
+    text = json.dumps(summary, indent=2, allow_nan=False) + "\n"
+    atomic_write(out / EVALUATION_JSON, lambda tmp: tmp.write_text(text))
     return out / "report.md"
 
 
@@ -319,7 +319,7 @@ def _plot(table: pd.DataFrame, per_event: dict, default, path: Path) -> None:
     axes[2].set_ylabel("lane changes")
     axes[2].set_title(f"{default[0]} {default[1]}")
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp-writing.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
+    try:
+        atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110))
+    finally:
+        plt.close(fig)

@@ -173,9 +173,9 @@ def save_model(model: LaneChangeModel, path: str | Path) -> Path:
         arrays[f"w{k}"] = w
         arrays[f"b{k}"] = b
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp-writing.npz")
-    np.savez(tmp, **arrays)
-    tmp.replace(path)
+    from vcfusion.runio import atomic_write
+
+    atomic_write(path, lambda tmp: np.savez(tmp, **arrays))
     return path
 
 

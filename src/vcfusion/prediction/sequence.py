@@ -203,9 +203,9 @@ def save_sequence_model(model: SequenceModel, path) -> "Path":
             "hidden": model.hidden, "reset_gap_ticks": model.reset_gap_ticks, **model.decision_meta()}
     arrays = {name: getattr(model, name) for name in _ARRAYS}
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp-writing.npz")
-    np.savez(tmp, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays)
-    tmp.replace(path)
+    from vcfusion.runio import atomic_write
+
+    atomic_write(path, lambda tmp: np.savez(tmp, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays))
     return path
 
 
