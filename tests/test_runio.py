@@ -142,3 +142,40 @@ def test_what_a_killed_writer_left_goes_but_nothing_else(tmp_path):
         (folder / "frames").mkdir(parents=True)
     discard_partial_folder(out)
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(p.name for p in kept)
+
+
+def test_a_writer_that_still_runs_keeps_its_partial_folder(tmp_path):
+    """The same command started twice writes the same folder: the second may clear what a killed writer
+    left, but not the folder (or the AR video staging) of a writer that is still running."""
+    import subprocess
+    import sys
+
+    from vcfusion.runio import discard_partial_folder
+
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    try:
+        out = tmp_path / "seed_0001"
+        kept = [tmp_path / f"seed_0001.tmp-writing-{live.pid}", tmp_path / f".seed_0001.video-{live.pid}-ab12"]
+        gone = [tmp_path / f"seed_0001.tmp-writing-{dead.pid}", tmp_path / f".seed_0001.video-{dead.pid}-cd34"]
+        for folder in kept + gone:
+            (folder / "frames").mkdir(parents=True)
+        discard_partial_folder(out)
+        assert sorted(p.name for p in tmp_path.iterdir()) == sorted(p.name for p in kept)
+    finally:
+        live.kill()
+        live.wait()
+
+
+def test_two_writers_of_one_folder_the_later_one_is_refused_and_the_first_stays(tmp_path):
+    from vcfusion.runio import atomic_folder
+
+    out = tmp_path / "data"
+    with pytest.raises(FileExistsError, match="written by another process meanwhile"):
+        with atomic_folder(out, "dataset folder") as tmp:
+            (tmp / "mine.txt").write_text("second")
+            out.mkdir()  # the other writer's rename lands first
+            (out / "theirs.txt").write_text("first")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
+    assert [p.name for p in out.iterdir()] == ["theirs.txt"]

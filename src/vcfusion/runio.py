@@ -6,6 +6,7 @@ once complete, so a run folder either is whole or does not exist.
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import platform
@@ -252,21 +253,42 @@ PARTIAL_SUFFIX = ".tmp-writing"  # what a writer writes into before the rename t
 
 
 def _partial(out: Path) -> Path:
-    return Path(out).with_name(Path(out).name + PARTIAL_SUFFIX)
+    # one per writing process: a second writer of the same folder (the same command started twice)
+    # must not delete or fill the first one's
+    return Path(out).with_name(f"{Path(out).name}{PARTIAL_SUFFIX}-{os.getpid()}")
 
 
 def video_staging_prefix(out: Path) -> str:
-    """Name prefix of the folder beside `out` where a run stages its AR video before moving it in."""
-    return f".{Path(out).name}.video-"
+    """Name prefix of the folder beside `out` where this process stages its AR video before moving it in."""
+    return f".{Path(out).name}.video-{os.getpid()}-"
+
+
+def _writer_alive(pid: str) -> bool:
+    """Whether the process that named a partial folder after itself still runs (so may still write it)."""
+    if not pid.isdigit() or int(pid) == os.getpid():  # no pid (older layout), or this process's own leftover
+        return False
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
 
 
 def discard_partial_folder(out: Path) -> None:
-    """Remove what a writer of `out` killed before it completed (SIGKILL) left behind: its partial
-    folder and its AR video's staging folders (their frames stayed forever before)."""
+    """Remove what writers of `out` killed before they completed (SIGKILL) left behind: their partial
+    folders and their AR videos' staging folders (their frames stayed forever before). A writer that
+    still runs keeps its own."""
     out = Path(out)
-    shutil.rmtree(_partial(out), ignore_errors=True)
-    for staging in out.parent.glob(video_staging_prefix(out) + "*"):
-        shutil.rmtree(staging, ignore_errors=True)
+    partial = out.name + PARTIAL_SUFFIX
+    staging = f".{out.name}.video-"
+    for path in out.parent.glob(glob.escape(partial) + "*"):
+        if path.name == partial or (path.name[len(partial)] == "-" and not _writer_alive(path.name[len(partial) + 1:])):
+            shutil.rmtree(path, ignore_errors=True)
+    for path in out.parent.glob(glob.escape(staging) + "*"):
+        if not _writer_alive(path.name[len(staging):].split("-", 1)[0]):
+            shutil.rmtree(path, ignore_errors=True)
 
 
 @contextmanager
@@ -282,13 +304,18 @@ def atomic_folder(out: Path, kind: str = "folder"):
     tmp.mkdir()
     try:
         yield tmp
-        tmp.rename(out)
+        try:
+            tmp.rename(out)
+        except OSError:
+            if out.exists():  # another writer completed it meanwhile: theirs stays
+                raise FileExistsError(f"{out}: {kind} already exists (written by another process meanwhile)") from None
+            raise
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
 
 
 def is_complete_run(folder: Path) -> bool:
-    # a writer killed between its manifest and the rename leaves SEED.tmp-writing with a manifest:
+    # a writer killed between its manifest and the rename leaves SEED.tmp-writing-PID with a manifest:
     # that folder matches seed_* but is no run
-    return not Path(folder).name.endswith(PARTIAL_SUFFIX) and (Path(folder) / MANIFEST).is_file()
+    return PARTIAL_SUFFIX not in Path(folder).name and (Path(folder) / MANIFEST).is_file()

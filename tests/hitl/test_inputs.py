@@ -25,7 +25,7 @@ def test_calibration_finds_axes_ranges_and_inversion_and_round_trips(tmp_path):
     path = tmp_path / "wheel.json"
     m.save(path)
     assert load_axis_map(path) == m
-    assert not list(tmp_path.glob("*.tmp-writing"))
+    assert not list(tmp_path.glob("*.tmp-writing*"))
 
 
 def test_calibration_refuses_a_control_that_moved_nothing():

@@ -149,7 +149,7 @@ def test_render_dataset_end_to_end(tmp_path):
     out = tmp_path / "ds"
     counts = render_dataset(sc, [0], every=10, out=out, progress=False)
     assert counts["images"] == 6 and counts["annotations"] > 0
-    assert not list(tmp_path.glob("*.tmp-writing"))
+    assert not list(tmp_path.glob("*.tmp-writing*"))
     stats = check_dataset(out)
     assert stats["anchor_max_abs_diff_px"] < 1e-6
     assert stats["unoccluded_vehicles"] >= 5 and stats["body_point_in_mask_rate"] >= 0.99

@@ -75,7 +75,7 @@ vehicles:
     done = sorted(p.name for p in out.glob("seed_*") if (p / "manifest.json").exists())
     assert len(done) == 10 - len(failures)
     assert f"{len(failures)} failed" in proc.stdout
-    assert not list(out.glob("*.tmp-writing"))
+    assert not list(out.glob("*.tmp-writing*"))
 
 
 def test_a_batch_without_a_complete_seed_keeps_no_summary_of_an_earlier_one(tmp_path):

@@ -483,7 +483,7 @@ def resize_dataset(src, out, input_wh: tuple[int, int], quality: int = 95, progr
     """``src``'s images shrunk to the network input as the training loop shrinks them (area
     interpolation), stored as lossy WebP at ``quality``, and its boxes scaled with them, into the new COCO
     folder ``out`` (other keys of the file kept): the training batches nearly unchanged in a tenth of
-    the bytes, to carry a dataset to a training machine. Written into OUT.tmp-writing and renamed
+    the bytes, to carry a dataset to a training machine. Written into OUT.tmp-writing-PID and renamed
     when complete. Returns the number of images."""
     from vcfusion.runio import atomic_folder
 

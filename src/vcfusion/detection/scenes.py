@@ -442,7 +442,7 @@ def render_scenes(scenario, family: str, seeds, out, progress: bool = True) -> d
     """Render the scenes ``seeds`` of ``family`` on the scenario's road with its camera (mount jittered
     per scene) into a COCO dataset folder laid out as `vcfusion render` writes it (rgb/, depth/,
     instances/, annotations.json, manifest.json); each image also records ``family``, ``seed``, its
-    ``scene`` (the recipe) and ``twins`` (every placed vehicle, seen or not, with its world pose). Written into OUT.tmp-writing and
+    ``scene`` (the recipe) and ``twins`` (every placed vehicle, seen or not, with its world pose). Written into OUT.tmp-writing-PID and
     renamed when complete. Returns counts."""
     import json
     from pathlib import Path

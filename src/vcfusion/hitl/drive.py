@@ -82,10 +82,11 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
             import tempfile
 
             from vcfusion.fusion.overlay import OverlayRecorder
+            from vcfusion.runio import video_staging_prefix
 
             # staged beside the run folder (same file system) and moved into it with the tables
             Path(out_dir).parent.mkdir(parents=True, exist_ok=True)
-            staging = Path(tempfile.mkdtemp(prefix=f".{Path(out_dir).name}.video-", dir=Path(out_dir).parent))
+            staging = Path(tempfile.mkdtemp(prefix=video_staging_prefix(out_dir), dir=Path(out_dir).parent))
             video = OverlayRecorder(staging / "video", fps=display_fps, write_png=False, video_name="drive.mp4")
     info = {"participant": participant, "input": device.name, "seed": seed,
             "axis_map": device.map.model_dump() if hasattr(device, "map") else None}

@@ -7,7 +7,7 @@ OUT/
   annotations.json                  COCO: images with camera K, T_world_to_camera, time and the
                                     vehicles' GNSS anchors; one annotation per visible vehicle
   manifest.json                     scenario, seeds, every, versions
-Written into OUT.tmp-writing and renamed when complete.
+Written into OUT.tmp-writing-PID and renamed when complete.
 """
 
 from __future__ import annotations
