@@ -222,6 +222,28 @@ def _threads_of_this_worker():
     return torch.get_num_threads(), cv2.getNumThreads(), os.environ.get("OMP_NUM_THREADS")
 
 
+def _rasteriser_threads_of_this_worker():
+    # one frame through OSMesa, as a run's camera renders: llvmpipe starts its threads with the context
+    import numpy as np
+    import trimesh
+
+    import vcfusion.render  # noqa: F401  (PYOPENGL_PLATFORM)
+    import pyrender
+
+    scene = pyrender.Scene()
+    scene.add(pyrender.Mesh.from_trimesh(trimesh.creation.box()))
+    pose = np.eye(4)
+    pose[2, 3] = 3.0
+    scene.add(pyrender.PerspectiveCamera(yfov=1.0), pose=pose)
+    renderer = pyrender.OffscreenRenderer(32, 24)
+    try:
+        renderer.render(scene)
+        names = [Path(f"/proc/self/task/{t}/comm").read_text().strip() for t in os.listdir("/proc/self/task")]
+    finally:
+        renderer.delete()
+    return sum(name.startswith("llvmpipe") for name in names)
+
+
 def test_workers_share_the_cores_for_torch_and_opencv(scratch_root):
     """Each worker took every core for torch and OpenCV: W workers ran W x cores threads."""
     from vcfusion.workers import worker_threads
@@ -230,6 +252,14 @@ def test_workers_share_the_cores_for_torch_and_opencv(scratch_root):
     assert worker_threads(1) == cores and worker_threads(cores) == 1 and worker_threads(2 * cores) == 1
     results = dict(run_jobs(_threads_of_this_worker, [()] * 2, cores))
     assert set(results.values()) == {(1, 1, "1")}
+
+
+@pytest.mark.skipif(os.environ.get("PYOPENGL_PLATFORM", "osmesa" if not os.path.exists("/dev/nvidiactl") else "egl")
+                    != "osmesa", reason="llvmpipe is OSMesa's rasteriser; with EGL the GPU renders")
+def test_workers_share_the_cores_for_the_software_rasteriser(scratch_root):
+    """OSMesa's llvmpipe started a thread per core in every worker rendering a camera."""
+    results = dict(run_jobs(_rasteriser_threads_of_this_worker, [()] * 2, os.cpu_count()))
+    assert set(results.values()) == {1}
 
 
 def test_death_cause_names_the_signal():

@@ -91,7 +91,8 @@ def _limit_threads(threads: int) -> None:
     cv2.setNumThreads(threads)
     # torch when the fork server loaded it; the variables cover it and the BLAS libraries when a
     # job loads them later (OpenMP reads them when it starts)
-    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+    # LP_NUM_THREADS: OSMesa's llvmpipe rasteriser, read when a worker creates its GL context
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "LP_NUM_THREADS"):
         os.environ[name] = str(threads)
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(threads)
