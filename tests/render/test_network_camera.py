@@ -302,3 +302,20 @@ def test_an_exit_lane_leaves_without_a_taper_an_ending_lane_tapers(tmp_path):
     assert taper.any()
     s_taper = route.grid[np.append(taper, False)]
     assert s_taper.min() == pytest.approx(946.0) and s_taper.max() < 946.0 + TAPER_M
+
+
+@pytest.mark.parametrize("net, route, from_ramp", [
+    ("onramp.net.xml", ["main_in", "accel", "main_out"], False), ("onramp.net.xml", ["ramp", "accel", "main_out"], True),
+    ("osm_example.net.xml", ["10", "11-AddedOnRampEdge", "11"], False),
+    ("osm_example.net.xml", ["20", "11-AddedOnRampEdge", "11"], True),
+], ids=["onramp-main", "onramp-ramp", "osm-main", "osm-ramp"])
+def test_only_the_acceleration_lane_gets_the_block_marking(net, route, from_ramp):
+    """The road builder (no OpenGL). On a route that starts on the ramp the main line's lanes begin
+    where the ramp joins them, and every lane counted as auxiliary: block markings between the main
+    lanes. The acceleration lane (track 0) is the only auxiliary lane on either route."""
+    from vcfusion.render.meshes import road_layouts
+    from vcfusion.traffic.network import read_road
+
+    road = read_road(SCENARIOS.parent / "sumo_net" / net, route)
+    assert (road.lane_spans(1)[0, 0] > 0) == from_ramp  # from the ramp, the main lanes begin along the route
+    assert road_layouts(road)[0].auxiliary == [True, False, False, False]

@@ -162,6 +162,23 @@ def _runs(ok: np.ndarray, joined: np.ndarray) -> list[tuple[int, int]]:
     return runs
 
 
+def _auxiliary_tracks(spans: list[np.ndarray], s_lo: float, s_hi: float, step_m: float = 1.0) -> list[bool]:
+    """Per track: an auxiliary lane (acceleration, deceleration, dropped lane), which a block marking
+    separates from the through lanes. Such a lane begins (or ends) along the road beside lanes on its
+    left that are already there before it (or go on after it). Only beginning or ending is not
+    enough: on a route that starts on a ramp, the main line's lanes begin where the ramp joins them
+    and are the through lanes there."""
+    def covered(track: int, s: float) -> bool:
+        return bool(np.any((spans[track][:, 0] <= s) & (s <= spans[track][:, 1])))
+
+    out = []
+    for t, sp in enumerate(spans):
+        left = range(t + 1, len(spans))
+        out.append(any((a > s_lo + 1e-6 and any(covered(u, a - step_m) for u in left))
+                       or (b < s_hi - 1e-6 and any(covered(u, b + step_m) for u in left)) for a, b in sp))
+    return out
+
+
 class RoadLayout:
     """Where a road frame has lanes, edges and markings over [s_lo, s_hi], per segment of a grid
     of s; built once, then cut into pieces by :meth:`piece`.
@@ -174,15 +191,14 @@ class RoadLayout:
 
     def __init__(self, road: RoadFrame, s_lo: float, s_hi: float, name: str = ""):
         self.road, self.s_lo, self.s_hi, self.name = road, s_lo, s_hi, name
-        spans, extended = [], []
+        spans = []
         for t in range(road.num_tracks):
             sp = road.lane_spans(t).copy()
             # beyond the route's ends its end pieces' lanes continue (the frame's convention)
             sp[sp[:, 0] <= 1e-9, 0] = s_lo
             sp[sp[:, 1] >= road.length_m - 1e-9, 1] = s_hi
             spans.append(sp)
-            extended.append(len(sp) == 1 and sp[0, 0] <= s_lo and sp[0, 1] >= s_hi)
-        self.auxiliary = [not e for e in extended]  # lanes that begin or end along the road
+        self.auxiliary = _auxiliary_tracks(spans, s_lo, s_hi)
         cuts = [s_lo, s_hi, *np.arange(s_lo, s_hi, ROAD_PIECE_M)]
         for sp in spans:
             cuts += [*sp.ravel(), *(sp[:, 1] + TAPER_M)]
