@@ -15,7 +15,7 @@ from vcfusion.traffic.network import read_road
 
 SHADERS = Path(vehicles.__file__).parent / "shaders"
 CAR_SIZES = [(4.6, 1.8, 1.5), (4.0, 1.7, 1.45), (5.2, 2.0, 1.9)]  # SUMO's passenger default first
-TRUCK_SIZES = [(12.0, 2.5, 3.6), (16.5, 2.55, 4.0), (7.1, 2.4, 2.4)]
+TRUCK_SIZES = [(12.0, 2.5, 3.6), (16.5, 2.55, 4.0), (7.1, 2.4, 2.4), (4.5, 2.1, 2.8), (3.6, 1.9, 2.4)]  # and short ones
 
 
 def _models():

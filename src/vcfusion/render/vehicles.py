@@ -327,7 +327,10 @@ def truck_mesh(shape: str, length: float, width: float, height: float, cab_rgb, 
     parts.append(_box(xr, xr + 0.16, -PLATE_W / 2, PLATE_W / 2, 0.5 * r - 0.13, 0.5 * r - 0.13 + PLATE_H, PLATE))
     # Wheels: steer axle under the cab, two (rigid) or three (semi) axles at the back, twin tyres.
     axles = [xf - 0.55 * cab_len]
-    axles += [xr + 2.2, xr + 3.5] if shape == "rigid" else [x_cab - 0.9, xr + 1.6, xr + 2.9, xr + 4.2]
+    rear = [xr + 2.2, xr + 3.5] if shape == "rigid" else [x_cab - 0.9, xr + 1.6, xr + 2.9, xr + 4.2]
+    # a short truck (a user's vtype under ~5 m) has room for fewer axles: one that would put its wheel
+    # beyond the body made the model longer than the vehicle
+    axles += [xa for xa in rear if xr + r <= xa <= xf - r and abs(xa - axles[0]) >= 2 * r + 0.05]
     tw = 0.3
     for k, xa in enumerate(axles):
         for s in (1.0, -1.0):
