@@ -339,3 +339,18 @@ def test_ids_written_as_floats_or_text_read_as_the_integers_they_are(tmp_path):
     assert ds.image_ids == [1, 2, 3] and [len(b) for b in ds.boxes] == boxes_before
     resize_dataset(folder, tmp_path / "small", (32, 32), 90, progress=False)
     assert [len(b) for b in load_coco(tmp_path / "small").boxes] == boxes_before
+
+
+def test_a_folder_and_its_resized_copy_train_on_the_same_boxes(tmp_path):
+    """--min-train-area was in the folder's pixels: a 192x128 folder kept boxes 4x smaller than its
+    96x64 copy made for the same network input."""
+    from vcfusion.detection.detector_train import resize_dataset
+
+    data = make_synthetic_coco(tmp_path / "data", n_images=8, size=(192, 128), seed=5)
+    resize_dataset(data, tmp_path / "small", (96, 64), progress=False)
+    areas = np.concatenate([(b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1]) / 4 for b in load_coco(data).boxes])
+    threshold = float(np.median(areas))  # at the input: half the boxes go
+    common = dict(epochs=1, max_iterations=1, batch_size=4, input_wh=(96, 64), widths=(8, 16, 16, 32, 16),
+                  val_fraction=0.0, threads=1, progress=False, min_train_area=threshold)
+    kept = [train_detector(folder, None, **common)[0].meta["n_train_boxes"] for folder in (data, tmp_path / "small")]
+    assert kept[0] == kept[1] == int(np.sum(areas >= threshold - 1e-6)) and 0 < kept[0] < len(areas)

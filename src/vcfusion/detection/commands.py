@@ -221,7 +221,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--device", default="auto", help="auto, cpu or cuda")
     p.add_argument("--workers", type=int, default=0,
                    help="processes building the batches ahead of the model (for a GPU; same batches for any number)")
-    p.add_argument("--min-train-area", type=float, default=16.0, help="train only on boxes of at least this many px^2")
+    p.add_argument("--min-train-area", type=float, default=16.0, help="train only on boxes of at least this many px^2 at the network input (16 at 320x240: 64 px^2 of a 640x480 image)")
     p.add_argument("--min-area", type=float, default=100.0,
                    help="held-out mAP ignores ground truth below this many px^2 (COCOeval area range)")
     p.set_defaults(func=cmd_train_detector, interrupted="the weights file was not written (checkpoints written so "

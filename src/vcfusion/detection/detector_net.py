@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import copy
 import functools
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -179,14 +178,15 @@ class DetectorModel:
 
     def save(self, path: Path) -> None:
         """Atomic: written next to the target and renamed when complete."""
+        from vcfusion.runio import atomic_write
+
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
         state = {k: v.detach().cpu() for k, v in self.model.state_dict().items()}
-        torch.save({"format": WEIGHTS_FORMAT, "state_dict": state, "input_wh": list(self.input_wh),
-                    "class_ids": self.class_ids, "class_names": self.class_names, "widths": list(self.widths),
-                    "meta": self.meta}, tmp)
-        os.replace(tmp, path)
+        blob = {"format": WEIGHTS_FORMAT, "state_dict": state, "input_wh": list(self.input_wh),
+                "class_ids": self.class_ids, "class_names": self.class_names, "widths": list(self.widths),
+                "meta": self.meta}
+        atomic_write(path, lambda tmp: torch.save(blob, tmp))
 
     @staticmethod
     def load(path) -> "DetectorModel":
@@ -313,16 +313,20 @@ def export_onnx(net: DetectorModel, path, opset: int = 17) -> Path:
     output 'detections' (1, N, 4 + C)); atomic. Needs the ``onnx`` package (dev extra)."""
     import warnings
 
+    from vcfusion.runio import atomic_write
+
     path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
     w, h = net.input_wh
     wrapper = _DenseExport(net.model.cpu().eval()).eval()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        # the TorchScript exporter: its graph (Conv, Resize, MaxPool, Exp, Equal) is what OpenCV DNN reads
-        torch.onnx.export(wrapper, torch.zeros(1, 3, h, w), str(tmp), dynamo=False, opset_version=opset,
-                          input_names=["images"], output_names=["detections"])
-    os.replace(tmp, path)
+
+    def write(tmp: Path) -> None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            # the TorchScript exporter: its graph (Conv, Resize, MaxPool, Exp, Equal) is what OpenCV DNN reads
+            torch.onnx.export(wrapper, torch.zeros(1, 3, h, w), str(tmp), dynamo=False, opset_version=opset,
+                              input_names=["images"], output_names=["detections"])
+
+    atomic_write(path, write)
     return path
 
 

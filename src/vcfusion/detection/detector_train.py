@@ -314,13 +314,14 @@ def train_detector(
         raise DetectorFileError(f"{source}: the validation images hold no boxes; give validation folders with "
                                 "vehicles (--val), or --val-fraction 0")
     cls_index = {c: k for k, c in enumerate(ds.class_ids)}
-    # boxes of a few pixels (far away or nearly hidden vehicles) are not learnable targets
-    keep = [(b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1]) >= min_train_area for b in train_ds.boxes]
-    train_ds = CocoDataset(train_ds.folder, train_ds.images, train_ds.image_ids,
-                           [b[k] for b, k in zip(train_ds.boxes, keep)], [c[k] for c, k in zip(train_ds.classes, keep)],
-                           train_ds.class_ids, train_ds.class_names)
     images, boxes = _cache(train_ds, input_wh, "load train", progress)
     classes = [np.array([cls_index[int(c)] for c in cs], np.int64) for cs in train_ds.classes]
+    # boxes of a few pixels (far away or nearly hidden vehicles) are not learnable targets; measured
+    # at the network input, so a folder and its resize-dataset copy train on the same boxes (in the
+    # folder's pixels a 640x480 render kept 4x smaller boxes than its 320x240 copy)
+    keep = [(b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1]) >= min_train_area for b in boxes]
+    boxes = [b[k] for b, k in zip(boxes, keep)]
+    classes = [c[k] for c, k in zip(classes, keep)]
 
     if base is not None:
         for what, theirs, ours in (("class_ids", base.class_ids, ds.class_ids),
@@ -344,7 +345,8 @@ def train_detector(
         # folder names only: the weights are shipped, and a machine path means nothing elsewhere
         return {"train_data": [Path(d).name for d in data_list], "iterations": iterations, "seed": seed,
                 "init": None if init is None else Path(init).name, "final_loss": final_loss,
-                "n_train": len(train_ds), "min_train_area": min_train_area, "eval_min_area": eval_min_area}
+                "n_train": len(train_ds), "n_train_boxes": sum(len(b) for b in boxes),
+                "min_train_area": min_train_area, "eval_min_area": eval_min_area}
 
     batches = _Batches(images, boxes, classes, _batch_indices(n, batch_size, epochs, total_steps, rng), seed,
                        out_hw, len(ds.class_ids))
