@@ -329,6 +329,8 @@ CASES = [
                                                   ["render-scenes", "--family", "jam", "--seeds", "0-0",
                                                    "--out", "afile/x"])[1],
          ("afile", "is a file; expected a folder")),
+    Case("render-scenes no workers", lambda t: ["render-scenes", "--seeds", "0-1", "--out", "x", "--workers", "0"],
+         ("--workers", "expected at least 1", "got 0")),
     Case("train-detector no iterations", lambda t: ["train-detector", "coco", "--out", "d.pt", "--iterations", "0"],
          ("--iterations", "expected a positive number", "got 0")),
     Case("train-detector nothing to train on",

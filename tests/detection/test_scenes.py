@@ -120,6 +120,29 @@ def test_rendered_scenes_are_a_coco_folder_with_the_recipe(tmp_path):
         render_scenes(sc, "cut_in", [0], tmp_path / "cut", progress=False)
 
 
+@pytest.mark.slow
+def test_workers_render_the_same_folder_as_one_process(tmp_path):
+    """render-scenes in two processes (two chunks of consecutive seeds, merged in seed order) writes
+    the folder one process writes: the same images and byte-identical annotations."""
+    from scenario_files import SCENARIOS
+    from vcfusion.detection.scenes import _chunks, render_scenes
+    from vcfusion.scenario import load_scenario
+
+    sc = load_scenario(SCENARIOS / "overlap.yaml")
+    seeds = list(range(3, 15))
+    assert len(_chunks(seeds, 2)) == 2
+    for workers in (1, 2):
+        render_scenes(sc, "truck_occlusion", seeds, tmp_path / f"w{workers}", progress=False, workers=workers)
+    one, two = tmp_path / "w1", tmp_path / "w2"
+    assert (one / "annotations.json").read_bytes() == (two / "annotations.json").read_bytes()
+    data = json.loads((one / "annotations.json").read_text())
+    assert [im["seed"] for im in data["images"]] == seeds and len(data["annotations"]) > len(seeds)
+    for kind in ("rgb", "depth", "instances"):
+        names = sorted(p.name for p in (one / kind).iterdir())
+        assert names == sorted(p.name for p in (two / kind).iterdir()) and len(names) == len(seeds)
+        assert all((one / kind / n).read_bytes() == (two / kind / n).read_bytes() for n in names)
+
+
 def test_unknown_family_is_refused():
     with pytest.raises(ValueError, match="family: expected one of train, jam"):
         sample_scene("rain", 0)

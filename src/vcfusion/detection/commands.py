@@ -169,7 +169,10 @@ def cmd_render_scenes(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     if Path(args.out).exists():
         raise UsageError(f"--out: {args.out} already exists; choose a new dataset folder")
-    counts = render_scenes(scenario, args.family, seeds, Path(args.out), progress=sys.stderr.isatty())
+    if args.workers < 1:
+        raise UsageError(f"--workers: expected at least 1, got {args.workers}")
+    counts = render_scenes(scenario, args.family, seeds, Path(args.out), progress=sys.stderr.isatty(),
+                           workers=args.workers)
     print(f"rendered {counts['images']} {args.family} scenes, {counts['annotations']} boxes -> {args.out}")
     return 0
 
@@ -260,6 +263,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", required=True, help="dataset folder to create")
     p.add_argument("--scenario", default=str(SHIPPED_SCENARIOS / "overlap.yaml"),
                    help="scenario giving the road and the camera (default: the shipped scenarios/overlap.yaml)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="processes rendering consecutive runs of seeds (default 2; the folder is the same for any number)")
     p.set_defaults(func=cmd_render_scenes, interrupted="no dataset folder was written; run the same command again")
 
     p = sub.add_parser("resize-dataset", help="shrink a COCO folder's images to the network input (WebP), "

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -438,49 +439,106 @@ def _twin_rows(truth: VehicleStates) -> list[dict]:
              "speed": float(truth.speed[i])} for i, vid in enumerate(truth.ids) if vid != EGO_ID]
 
 
-def render_scenes(scenario, family: str, seeds, out, progress: bool = True) -> dict:
+def _render_scene(renderer, road, scenario, family: str, seed: int, folder: Path, coco) -> None:
+    """Render one scene into ``folder``'s rgb/, depth/ and instances/ and add it to ``coco``."""
+    import cv2
+
+    from vcfusion.render.camera import world_to_camera
+    from vcfusion.render.coco import depth_to_png16, vehicle_anchors
+    from vcfusion.render.gt_boxes import ground_truth_boxes
+
+    recipe = sample_scene(family, seed, road.num_lanes, road.lane_width_m)
+    truth = scene_states(recipe, road)
+    camera = mounted_camera(scenario.camera, recipe.mount)
+    T = world_to_camera(float(truth.x[0]), float(truth.y[0]), 0.0, float(truth.heading[0]), camera)
+    frame = renderer.render(truth, T)
+    stem = f"{family}_{seed:06d}"
+    files = {kind: f"{kind}/{stem}.png" for kind in ("rgb", "depth", "instances")}
+    cv2.imwrite(str(folder / files["rgb"]), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(folder / files["depth"]), depth_to_png16(frame.depth))
+    cv2.imwrite(str(folder / files["instances"]), (frame.instances + 1).astype("uint16"))
+    boxes = ground_truth_boxes(frame, truth, renderer, near=scenario.camera.near_m)
+    coco.add(frame, boxes, vehicle_anchors(frame, truth, EGO_ID), files,
+             extra={"seed": seed, "family": family, "scene": recipe.to_dict(), "twins": _twin_rows(truth)})
+
+
+def _render_chunk(scenario, family: str, seeds: list[int], folder: str) -> tuple[list[dict], list[dict]]:
+    """A worker's share of :func:`render_scenes`: these seeds into ``folder``, with their COCO records
+    (image and annotation ids counted from 1; the parent renumbers them)."""
+    from vcfusion.render.coco import CocoBuilder
+    from vcfusion.render.renderer import EgoCameraRenderer
+    from vcfusion.traffic.network import read_road
+
+    road = read_road(scenario.network)
+    coco = CocoBuilder("")
+    with EgoCameraRenderer(road, scenario.camera) as renderer:
+        for seed in seeds:
+            _render_scene(renderer, road, scenario, family, seed, Path(folder), coco)
+    return coco.images, coco.annotations
+
+
+def _chunks(seeds: list[int], workers: int) -> list[list[int]]:
+    # consecutive seeds, several chunks per worker (an even load and a moving progress bar); each
+    # chunk opens its own GL context, so not too small
+    size = max(10, min(200, -(-len(seeds) // (4 * workers))))
+    return [seeds[k:k + size] for k in range(0, len(seeds), size)]
+
+
+def render_scenes(scenario, family: str, seeds, out, progress: bool = True, workers: int = 1) -> dict:
     """Render the scenes ``seeds`` of ``family`` on the scenario's road with its camera (mount jittered
     per scene) into a COCO dataset folder laid out as `vcfusion render` writes it (rgb/, depth/,
     instances/, annotations.json, manifest.json); each image also records ``family``, ``seed``, its
     ``scene`` (the recipe) and ``twins`` (every placed vehicle, seen or not, with its world pose). Written into OUT.tmp-writing-PID and
-    renamed when complete. Returns counts."""
+    renamed when complete. ``workers`` > 1 renders consecutive runs of seeds in that many processes
+    (each with its GL context); the folder is the same as one process writes. Returns counts."""
     import json
-    from pathlib import Path
 
-    import cv2
     from tqdm import tqdm
 
-    from vcfusion.render.camera import world_to_camera
-    from vcfusion.render.coco import CocoBuilder, depth_to_png16, vehicle_anchors
-    from vcfusion.render.gt_boxes import ground_truth_boxes
+    from vcfusion.render.coco import CocoBuilder
     from vcfusion.render.renderer import EgoCameraRenderer
     from vcfusion.runio import atomic_folder, package_versions, write_json
     from vcfusion.traffic.network import read_road
+    from vcfusion.workers import JobFailed, run_jobs
 
     road = read_road(scenario.network)  # the road the camera stage draws (as its hook reads it)
     if not road.is_straight or road.length_m < EGO_S_RANGE_M[1] + MAX_AHEAD_M + 10.0:
         raise InputError(f"{scenario.source}: network: procedural scenes need a straight road of at least "
                          f"{EGO_S_RANGE_M[1] + MAX_AHEAD_M + 10.0:.0f} m (ego positions up to {EGO_S_RANGE_M[1]:.0f} m, "
                          f"vehicles up to {MAX_AHEAD_M:.0f} m ahead), got {road!r}")
+    if workers < 1:
+        raise ValueError(f"workers: expected at least 1, got {workers}")
     seeds = list(seeds)
     coco = CocoBuilder(f"vcfusion procedural scenes, family {family}, road of scenario {scenario.name}")
-    with atomic_folder(Path(out), "dataset folder") as tmp, EgoCameraRenderer(road, scenario.camera) as renderer:
+    bar = tqdm(total=len(seeds), desc=f"render {family} scenes", unit="scene", disable=not progress)
+    with atomic_folder(Path(out), "dataset folder") as tmp:
         for sub in ("rgb", "depth", "instances"):
             (tmp / sub).mkdir()
-        for seed in tqdm(seeds, desc=f"render {family} scenes", unit="scene", disable=not progress):
-            recipe = sample_scene(family, seed, road.num_lanes, road.lane_width_m)
-            truth = scene_states(recipe, road)
-            camera = mounted_camera(scenario.camera, recipe.mount)
-            T = world_to_camera(float(truth.x[0]), float(truth.y[0]), 0.0, float(truth.heading[0]), camera)
-            frame = renderer.render(truth, T)
-            stem = f"{family}_{seed:06d}"
-            files = {kind: f"{kind}/{stem}.png" for kind in ("rgb", "depth", "instances")}
-            cv2.imwrite(str(tmp / files["rgb"]), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
-            cv2.imwrite(str(tmp / files["depth"]), depth_to_png16(frame.depth))
-            cv2.imwrite(str(tmp / files["instances"]), (frame.instances + 1).astype("uint16"))
-            boxes = ground_truth_boxes(frame, truth, renderer, near=scenario.camera.near_m)
-            coco.add(frame, boxes, vehicle_anchors(frame, truth, EGO_ID), files,
-                     extra={"seed": seed, "family": family, "scene": recipe.to_dict(), "twins": _twin_rows(truth)})
+        if workers == 1:
+            with EgoCameraRenderer(road, scenario.camera) as renderer:
+                for seed in seeds:
+                    _render_scene(renderer, road, scenario, family, seed, tmp, coco)
+                    bar.update()
+        else:
+            chunks = _chunks(seeds, workers)
+            done: dict[int, tuple[list[dict], list[dict]]] = {}
+            for index, result in run_jobs(_render_chunk, [(scenario, family, c, str(tmp)) for c in chunks], workers):
+                if isinstance(result, JobFailed):
+                    raise RuntimeError(f"render-scenes: seeds {chunks[index][0]}-{chunks[index][-1]} failed: "
+                                       f"{result.cause}")
+                done[index] = result
+                bar.update(len(chunks[index]))
+            for index in range(len(chunks)):  # in seed order: the ids one process gives
+                images, annotations = done[index]
+                first_image, first_annotation = len(coco.images), len(coco.annotations)
+                for image in images:
+                    image["id"] += first_image
+                for ann in annotations:
+                    ann["id"] += first_annotation
+                    ann["image_id"] += first_image
+                coco.images += images
+                coco.annotations += annotations
+        bar.close()
         data = coco.to_dict()
         (tmp / "annotations.json").write_text(json.dumps(data))
         write_json(tmp / "manifest.json", {
