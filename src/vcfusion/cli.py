@@ -250,6 +250,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     seeds = parse_seeds(args.seeds)  # UsageError on a bad range
     if args.every < 1:
         raise UsageError(f"--every: expected a positive number of V2C ticks, got {args.every}")
+    if args.workers < 1:
+        raise UsageError(f"--workers: expected at least 1, got {args.workers}")
     if scenario.ego is None:
         raise UsageError(f"{args.scenario}: ego: the camera rides on the ego; the scenario has no ego block")
     from vcfusion.scenario import require_camera_world
@@ -258,7 +260,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     out = check_new_folder(Path(args.out) if args.out else Path("renders") / f"{scenario.name}-dataset")
     from vcfusion.render.export import render_dataset
 
-    counts = render_dataset(scenario, seeds, args.every, out, progress=sys.stderr.isatty())
+    counts = render_dataset(scenario, seeds, args.every, out, progress=sys.stderr.isatty(),
+                            workers=min(args.workers, len(seeds)))
     print(f"rendered {counts['images']} frames, {counts['annotations']} boxes -> {out}")
     return 0
 
@@ -409,6 +412,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", required=True, help="e.g. 0-9 or 1,4,7-9")
     p.add_argument("--every", type=int, default=5, help="render every K-th V2C tick (default 5)")
     p.add_argument("--out", help="dataset folder to create (default: renders/NAME-dataset)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="processes, one seed each (default 2; the folder is the same for any number)")
     p.set_defaults(func=cmd_render, interrupted="no dataset folder was written; run the same command again")
 
     p = sub.add_parser("drive", help="drive the ego yourself (keyboard, wheel, game pad) or replay a drive")

@@ -168,6 +168,26 @@ def test_render_dataset_end_to_end(tmp_path):
         render_dataset(sc, [0], every=10, out=out, progress=False)
 
 
+@pytest.mark.slow
+def test_render_in_workers_writes_the_folder_one_process_writes(tmp_path):
+    """`vcfusion render --workers 2`: the seeds run in two processes and their records merge in seed
+    order: the same annotations byte for byte and the same images as one process (which reuses one
+    renderer for every seed)."""
+    from vcfusion.render.export import render_dataset
+
+    sc = _short(load_scenario("scenarios/overlap.yaml"), 4.0, width_px=320, height_px=240)
+    for workers in (1, 2):
+        render_dataset(sc, [2, 0, 1], every=10, out=tmp_path / f"w{workers}", progress=False, workers=workers)
+    one, two = tmp_path / "w1", tmp_path / "w2"
+    assert (one / "annotations.json").read_bytes() == (two / "annotations.json").read_bytes()
+    data = json.loads((one / "annotations.json").read_text())
+    assert [im["seed"] for im in data["images"]] == [2] * 4 + [0] * 4 + [1] * 4  # the order asked for
+    for kind in ("rgb", "depth", "instances"):
+        names = sorted(p.name for p in (one / kind).iterdir())
+        assert len(names) == 12 and names == sorted(p.name for p in (two / kind).iterdir())
+        assert all((one / kind / n).read_bytes() == (two / kind / n).read_bytes() for n in names)
+
+
 def test_vision_enabled_run_puts_frames_on_ticks():
     from vcfusion.cosim import CoSimulation
     from vcfusion.run import build_cosimulation

@@ -26,14 +26,55 @@ from vcfusion.scenario import Scenario
 from vcfusion.records import EGO_ID
 
 
-def render_dataset(scenario: Scenario, seeds: list[int], every: int, out: Path, progress: bool = True) -> dict:
-    """Render every `every`-th V2C tick of each seed into a dataset folder; returns counts."""
-    from vcfusion.render.coco import CocoBuilder, depth_to_png16, vehicle_anchors
+def _seed_frames(scenario: Scenario, seed: int, every: int, folder: Path, coco, renderer=None, on_frame=None):
+    """Run one seed and write every `every`-th V2C tick's frame into `folder`, adding it to `coco`;
+    returns the camera hook (its renderer can serve the next seed; the caller closes it)."""
+    from vcfusion.render.coco import depth_to_png16, vehicle_anchors
     from vcfusion.render.gt_boxes import ground_truth_boxes
     from vcfusion.render.hook import CameraHook
 
+    def save(frame, tick):
+        stem = f"seed{seed:04d}_t{frame.time:07.2f}"
+        files = {kind: f"{kind}/{stem}.png" for kind in ("rgb", "depth", "instances")}
+        cv2.imwrite(str(folder / files["rgb"]), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(folder / files["depth"]), depth_to_png16(frame.depth))
+        cv2.imwrite(str(folder / files["instances"]), (frame.instances + 1).astype("uint16"))
+        boxes = ground_truth_boxes(frame, tick.truth, hook.renderer, near=scenario.camera.near_m)
+        coco.add(frame, boxes, vehicle_anchors(frame, tick.truth, EGO_ID), files, extra={"seed": seed})
+        if on_frame is not None:
+            on_frame()
+
+    hook = CameraHook(scenario, every_ticks=every, on_frame=save, **({"renderer": renderer} if renderer else {}))
+    try:
+        CoSimulation(scenario, seed, controller=IdmController.for_scenario(scenario), hooks=[hook]).run()
+    except BaseException:
+        if renderer is None:  # a renderer handed in is the caller's to close
+            hook.close()
+        raise
+    return hook
+
+
+def _render_seed_job(scenario: Scenario, seed: int, every: int, folder: str) -> tuple[list[dict], list[dict]]:
+    """A worker's seed: its frames into `folder` and their COCO records (ids from 1; the parent renumbers)."""
+    from vcfusion.render.coco import CocoBuilder
+
+    coco = CocoBuilder("")
+    _seed_frames(scenario, seed, every, Path(folder), coco).close()
+    return coco.images, coco.annotations
+
+
+def render_dataset(scenario: Scenario, seeds: list[int], every: int, out: Path, progress: bool = True,
+                   workers: int = 1) -> dict:
+    """Render every `every`-th V2C tick of each seed into a dataset folder; returns counts.
+    ``workers`` > 1 runs the seeds in that many processes; the folder is the same as one process
+    writes (records merged in seed order)."""
+    from vcfusion.render.coco import CocoBuilder
+    from vcfusion.workers import JobFailed, run_jobs
+
     if scenario.ego is None:
         raise ValueError(f"{scenario.source}: ego: the camera rides on the ego; expected an ego block")
+    if workers < 1:
+        raise ValueError(f"workers: expected at least 1, got {workers}")
     coco = CocoBuilder(f"vcfusion ego-camera frames of scenario {scenario.name}")
     bar = tqdm(total=len(seeds), unit="seed", desc=f"render {scenario.name}", disable=not progress)
     hook = None
@@ -41,22 +82,29 @@ def render_dataset(scenario: Scenario, seeds: list[int], every: int, out: Path, 
         with atomic_folder(Path(out), "dataset folder") as tmp:
             for sub in ("rgb", "depth", "instances"):
                 (tmp / sub).mkdir()
-            for seed in seeds:
-                def save(frame, tick, seed=seed):
-                    stem = f"seed{seed:04d}_t{frame.time:07.2f}"
-                    files = {kind: f"{kind}/{stem}.png" for kind in ("rgb", "depth", "instances")}
-                    cv2.imwrite(str(tmp / files["rgb"]), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
-                    cv2.imwrite(str(tmp / files["depth"]), depth_to_png16(frame.depth))
-                    cv2.imwrite(str(tmp / files["instances"]), (frame.instances + 1).astype("uint16"))
-                    boxes = ground_truth_boxes(frame, tick.truth, hook.renderer, near=scenario.camera.near_m)
-                    coco.add(frame, boxes, vehicle_anchors(frame, tick.truth, EGO_ID), files, extra={"seed": seed})
-                    bar.set_postfix(frames=len(coco.images), refresh=False)
-
-                # One renderer (and its scene) for all seeds.
-                hook = CameraHook(scenario, every_ticks=every, on_frame=save,
-                                  **({"renderer": hook.renderer} if hook is not None else {}))
-                CoSimulation(scenario, seed, controller=IdmController.for_scenario(scenario), hooks=[hook]).run()
-                bar.update(1)
+            if workers == 1:
+                for seed in seeds:
+                    # one renderer (and its scene) for all seeds
+                    hook = _seed_frames(scenario, seed, every, tmp, coco, hook.renderer if hook else None,
+                                        lambda: bar.set_postfix(frames=len(coco.images), refresh=False))
+                    bar.update(1)
+            else:
+                done = {}
+                for index, result in run_jobs(_render_seed_job, [(scenario, s, every, str(tmp)) for s in seeds], workers):
+                    if isinstance(result, JobFailed):
+                        raise RuntimeError(f"render: seed {seeds[index]} failed: {result.cause}")
+                    done[index] = result
+                    bar.update(1)
+                for index in range(len(seeds)):  # in seed order: the ids one process gives
+                    images, annotations = done[index]
+                    first_image, first_annotation = len(coco.images), len(coco.annotations)
+                    for image in images:
+                        image["id"] += first_image
+                    for ann in annotations:
+                        ann["id"] += first_annotation
+                        ann["image_id"] += first_image
+                    coco.images += images
+                    coco.annotations += annotations
             bar.close()
             data = coco.to_dict()
             (tmp / "annotations.json").write_text(json.dumps(data))
