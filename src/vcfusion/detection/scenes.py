@@ -529,15 +529,7 @@ def render_scenes(scenario, family: str, seeds, out, progress: bool = True, work
                 done[index] = result
                 bar.update(len(chunks[index]))
             for index in range(len(chunks)):  # in seed order: the ids one process gives
-                images, annotations = done[index]
-                first_image, first_annotation = len(coco.images), len(coco.annotations)
-                for image in images:
-                    image["id"] += first_image
-                for ann in annotations:
-                    ann["id"] += first_annotation
-                    ann["image_id"] += first_image
-                coco.images += images
-                coco.annotations += annotations
+                coco.extend(*done[index])
         bar.close()
         data = coco.to_dict()
         (tmp / "annotations.json").write_text(json.dumps(data))

@@ -121,6 +121,18 @@ class CocoBuilder:
             })
         return image_id
 
+    def extend(self, images: list[dict], annotations: list[dict]) -> None:
+        """Append another builder's records (its ids counted from 1), renumbered to follow these: a
+        worker's share of a dataset, merged in order, gets the ids one builder would have given."""
+        first_image, first_annotation = len(self.images), len(self.annotations)
+        for image in images:
+            image["id"] += first_image
+        for ann in annotations:
+            ann["id"] += first_annotation
+            ann["image_id"] += first_image
+        self.images += images
+        self.annotations += annotations
+
     def to_dict(self) -> dict:
         return {
             "info": self.info,

@@ -96,15 +96,7 @@ def render_dataset(scenario: Scenario, seeds: list[int], every: int, out: Path, 
                     done[index] = result
                     bar.update(1)
                 for index in range(len(seeds)):  # in seed order: the ids one process gives
-                    images, annotations = done[index]
-                    first_image, first_annotation = len(coco.images), len(coco.annotations)
-                    for image in images:
-                        image["id"] += first_image
-                    for ann in annotations:
-                        ann["id"] += first_annotation
-                        ann["image_id"] += first_image
-                    coco.images += images
-                    coco.annotations += annotations
+                    coco.extend(*done[index])
             bar.close()
             data = coco.to_dict()
             (tmp / "annotations.json").write_text(json.dumps(data))
