@@ -491,9 +491,10 @@ def main(argv: list[str] | None = None) -> int:
                     reason = "is a file; expected a folder (or a path that does not exist yet)"
                 print(f"error: {exc.filename}{what}: {reason}", file=sys.stderr)
                 return 2
+            from vcfusion.errors import JobError
             from vcfusion.traffic.session import RunError
 
-            if isinstance(exc, RunError):
+            if isinstance(exc, (RunError, JobError)):
                 print(f"error: {exc}", file=sys.stderr)
                 return 1
             raise

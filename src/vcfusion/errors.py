@@ -16,3 +16,13 @@ class UsageError(InputError):
 
 class ScenarioError(InputError):
     """A scenario file (or a file it names) that cannot be used. The message is meant for the user as is."""
+
+
+class JobError(RuntimeError):
+    """Work handed to a worker process failed: its task raised, or the worker died. The message
+    names the work and gives the first line of the cause; the CLI prints it and exits with 1, as
+    for the same failure in the parent process."""
+
+    def __init__(self, what: str, cause: str):
+        super().__init__(f"{what} failed: {cause.splitlines()[0] if cause else 'no cause given'}")
+        self.details = cause

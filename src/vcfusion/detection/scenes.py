@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vcfusion.errors import InputError
+from vcfusion.errors import InputError, JobError
 from vcfusion.records import EGO_ID, VehicleStates
 
 CAR, TRUCK = "passenger", "truck"
@@ -524,8 +524,7 @@ def render_scenes(scenario, family: str, seeds, out, progress: bool = True, work
             done: dict[int, tuple[list[dict], list[dict]]] = {}
             for index, result in run_jobs(_render_chunk, [(scenario, family, c, str(tmp)) for c in chunks], workers):
                 if isinstance(result, JobFailed):
-                    raise RuntimeError(f"render-scenes: seeds {chunks[index][0]}-{chunks[index][-1]} failed: "
-                                       f"{result.cause}")
+                    raise JobError(f"render-scenes: seeds {chunks[index][0]}-{chunks[index][-1]}", result.cause)
                 done[index] = result
                 bar.update(len(chunks[index]))
             for index in range(len(chunks)):  # in seed order: the ids one process gives

@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from vcfusion.cosim import CoSimulation
 from vcfusion.driver.idm import IdmController
+from vcfusion.errors import JobError
 from vcfusion.runio import atomic_folder, package_versions, write_json
 from vcfusion.scenario import Scenario
 from vcfusion.records import EGO_ID
@@ -92,7 +93,7 @@ def render_dataset(scenario: Scenario, seeds: list[int], every: int, out: Path, 
                 done = {}
                 for index, result in run_jobs(_render_seed_job, [(scenario, s, every, str(tmp)) for s in seeds], workers):
                     if isinstance(result, JobFailed):
-                        raise RuntimeError(f"render: seed {seeds[index]} failed: {result.cause}")
+                        raise JobError(f"render: seed {seeds[index]}", result.cause)
                     done[index] = result
                     bar.update(1)
                 for index in range(len(seeds)):  # in seed order: the ids one process gives
