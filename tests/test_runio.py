@@ -132,12 +132,19 @@ def test_a_file_replaced_through_a_temporary_one_survives_a_failed_write(tmp_pat
 def test_what_a_killed_writer_left_goes_but_nothing_else(tmp_path):
     """A run killed mid-way left its partial folder and, with the AR video on, the staging folder of
     its frames beside it: only the first was ever removed."""
+    import subprocess
+    import sys
+
     from vcfusion.runio import discard_partial_folder, video_staging_prefix
 
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
     out = tmp_path / "seed_0001"
-    left = [tmp_path / "seed_0001.tmp-writing", tmp_path / (video_staging_prefix(out) + "k3j2")]
+    left = [tmp_path / "seed_0001.tmp-writing", tmp_path / f"seed_0001.tmp-writing-{dead.pid}",
+            tmp_path / f".seed_0001.video-{dead.pid}-k3j2"]
+    # this process's own staging folder holds the video its run folder is about to take in
     kept = [tmp_path / "seed_00011.tmp-writing", tmp_path / (video_staging_prefix(tmp_path / "seed_00011") + "x"),
-            tmp_path / "seed_0002"]
+            tmp_path / "seed_0002", tmp_path / (video_staging_prefix(out) + "own")]
     for folder in left + kept:
         (folder / "frames").mkdir(parents=True)
     discard_partial_folder(out)
@@ -179,3 +186,19 @@ def test_two_writers_of_one_folder_the_later_one_is_refused_and_the_first_stays(
             (out / "theirs.txt").write_text("first")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
     assert [p.name for p in out.iterdir()] == ["theirs.txt"]
+
+
+def test_a_rerun_clears_what_a_killed_writer_of_the_folder_left(tmp_path):
+    """The partial folder is named after its writer's pid, so a rerun (another pid) no longer wrote
+    over it: the killed command's folder stayed beside the new one for good."""
+    import subprocess
+    import sys
+
+    from vcfusion.runio import atomic_folder
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (tmp_path / f"data.tmp-writing-{dead.pid}" / "rgb").mkdir(parents=True)
+    with atomic_folder(tmp_path / "data", "dataset folder") as tmp:
+        (tmp / "annotations.json").write_text("{}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]

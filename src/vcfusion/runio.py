@@ -264,7 +264,8 @@ def video_staging_prefix(out: Path) -> str:
 
 
 def _writer_alive(pid: str) -> bool:
-    """Whether the process that named a partial folder after itself still runs (so may still write it)."""
+    """Whether the process that named a partial folder after itself still runs (so may still write it).
+    A dead writer's pid taken by another process keeps its folder until that process ends."""
     if not pid.isdigit() or int(pid) == os.getpid():  # no pid (older layout), or this process's own leftover
         return False
     try:
@@ -287,7 +288,9 @@ def discard_partial_folder(out: Path) -> None:
         if path.name == partial or (path.name[len(partial)] == "-" and not _writer_alive(path.name[len(partial) + 1:])):
             shutil.rmtree(path, ignore_errors=True)
     for path in out.parent.glob(glob.escape(staging) + "*"):
-        if not _writer_alive(path.name[len(staging):].split("-", 1)[0]):
+        pid = path.name[len(staging):].split("-", 1)[0]
+        # this process's staging holds the video that the run folder being written moves in
+        if pid != str(os.getpid()) and not _writer_alive(pid):
             shutil.rmtree(path, ignore_errors=True)
 
 
@@ -298,9 +301,8 @@ def atomic_folder(out: Path, kind: str = "folder"):
     if out.exists():
         raise FileExistsError(f"{out}: {kind} already exists")
     out.parent.mkdir(parents=True, exist_ok=True)
+    discard_partial_folder(out)  # what killed writers of `out` left (a rerun of the command clears it)
     tmp = _partial(out)
-    if tmp.exists():
-        shutil.rmtree(tmp)
     tmp.mkdir()
     try:
         yield tmp
