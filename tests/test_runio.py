@@ -202,3 +202,26 @@ def test_a_rerun_clears_what_a_killed_writer_of_the_folder_left(tmp_path):
     with atomic_folder(tmp_path / "data", "dataset folder") as tmp:
         (tmp / "annotations.json").write_text("{}")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
+
+
+def test_a_file_write_clears_what_killed_writers_of_that_file_left(tmp_path):
+    """atomic_write's temporary files carry the writer's pid: the next write of the file removes a
+    killed writer's (SIGKILL runs no clean-up), and leaves a live writer's and other files alone."""
+    import subprocess
+    import sys
+
+    from vcfusion.runio import atomic_write
+
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    try:
+        for name in (f".m.npz.{dead.pid}.x1.npz", f".m.npz.{live.pid}.y2.npz", ".m.npz.backup", "other.npz"):
+            (tmp_path / name).write_bytes(b"x")
+        atomic_write(tmp_path / "m.npz", lambda tmp: tmp.write_bytes(b"model"))
+        assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+            ["m.npz", f".m.npz.{live.pid}.y2.npz", ".m.npz.backup", "other.npz"])
+        assert (tmp_path / "m.npz").read_bytes() == b"model"
+    finally:
+        live.kill()
+        live.wait()

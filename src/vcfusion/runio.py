@@ -51,7 +51,12 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     it still do), renamed over `path` when complete: a kill in the middle leaves the previous file
     whole instead of a truncated one under the final name."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    # what killed writers of this file left (SIGKILL: no clean-up ran), named after their pid
+    for left in path.parent.glob(glob.escape(f".{path.name}.") + "*"):
+        pid = left.name[len(path.name) + 2:].split(".", 1)[0]
+        if pid.isdigit() and left.is_file() and not _writer_alive(pid):
+            left.unlink(missing_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
     try:
         write(Path(tmp))
