@@ -7,6 +7,22 @@ REPO = Path(__file__).resolve().parents[1]
 SCENARIOS = REPO / "scenarios"
 
 
+# b0 departs at 10 m/s 10.4 m ahead of a0 at 30 m/s: within b's spacing, but a0 could not brake in
+# time, so SUMO refuses b0 (silently), and holds back c0, which departs after it in that lane
+REFUSED_DEPARTURE = """
+name: refused
+network: NET_DIR/highway.net.xml
+vehicle_types: NET_DIR/vtypes.add.xml
+simulation: {max_time_s: 1.0}
+metrics: {enabled: false}
+prediction: {enabled: false}
+vehicles:
+  - {name: a, count: 1, lanes: [0], pos_m: [100, 100], speed_mps: 30.0}
+  - {name: b, count: 1, lanes: [0], pos_m: [115, 115], speed_mps: 10.0, min_spacing_m: 5.0}
+  - {name: c, count: 1, lanes: [0], pos_m: [300, 300], speed_mps: 10.0}
+"""
+
+
 def write_scenario(tmp_path: Path, text: str, name: str = "s.yaml") -> Path:
     """A scenario file in tmp_path whose relative paths point at the repo's sumo_net."""
     path = tmp_path / name

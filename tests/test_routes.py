@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from scenario_files import REPO, SCENARIOS, write_scenario
+from scenario_files import REFUSED_DEPARTURE, REPO, SCENARIOS, write_scenario
 from vcfusion.prediction.dataset import build_samples
 from vcfusion.prediction.features import features_from_twins_table, lane_end_ahead_m
 from vcfusion.prediction.model import load_model
@@ -88,20 +88,7 @@ def test_no_vehicle_departs_where_its_lane_ends_before_it_can_stop(tmp_path):
 
 
 def test_a_refused_departure_names_the_vehicle_its_neighbour_and_the_group_to_change(tmp_path):
-    # b0 departs at 10 m/s 10.4 m ahead of a0 at 30 m/s: within b's spacing, but a0 could not brake
-    # in time, so SUMO refuses b0 (silently), and holds back c0, which departs after it in that lane
-    scenario = write_scenario(tmp_path, """
-name: refused
-network: NET_DIR/highway.net.xml
-vehicle_types: NET_DIR/vtypes.add.xml
-simulation: {max_time_s: 1.0}
-metrics: {enabled: false}
-prediction: {enabled: false}
-vehicles:
-  - {name: a, count: 1, lanes: [0], pos_m: [100, 100], speed_mps: 30.0}
-  - {name: b, count: 1, lanes: [0], pos_m: [115, 115], speed_mps: 10.0, min_spacing_m: 5.0}
-  - {name: c, count: 1, lanes: [0], pos_m: [300, 300], speed_mps: 10.0}
-""")
+    scenario = write_scenario(tmp_path, REFUSED_DEPARTURE)
     with pytest.raises(RunError) as err:
         build_cosimulation(load_scenario(scenario), 0).run()
     msg = str(err.value)

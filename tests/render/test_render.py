@@ -192,22 +192,12 @@ def test_render_in_workers_writes_the_folder_one_process_writes(tmp_path):
 def test_a_seed_sumo_refuses_is_one_error_line_in_workers_too(tmp_path, capsys, workers):
     """In worker processes a failing seed raised a RuntimeError with the worker's traceback; one
     process printed SUMO's refusal on one line and exited with 1. Now both do the same."""
-    from scenario_files import write_scenario
+    from scenario_files import REFUSED_DEPARTURE, write_scenario
 
     from vcfusion.cli import main
 
-    scenario = write_scenario(tmp_path, """
-name: refused
-network: NET_DIR/highway.net.xml
-vehicle_types: NET_DIR/vtypes.add.xml
-simulation: {max_time_s: 1.0}
-metrics: {enabled: false}
-prediction: {enabled: false}
-ego: {vtype: ego, lane: 1, depart_pos_m: 20.0, speed_mps: 20.0, trip_distance_m: 200.0}
-vehicles:
-  - {name: a, count: 1, lanes: [0], pos_m: [100, 100], speed_mps: 30.0}
-  - {name: b, count: 1, lanes: [0], pos_m: [115, 115], speed_mps: 10.0, min_spacing_m: 5.0}
-""")
+    ego = "ego: {vtype: ego, lane: 1, depart_pos_m: 20.0, speed_mps: 20.0, trip_distance_m: 200.0}\n"
+    scenario = write_scenario(tmp_path, REFUSED_DEPARTURE + ego)
     rc = main(["render", str(scenario), "--seeds", "0-1", "--every", "5", "--out", str(tmp_path / "ds"),
                "--workers", workers])
     err = capsys.readouterr().err.strip().splitlines()
