@@ -250,7 +250,7 @@ def test_workers_share_the_cores_for_torch_and_opencv(scratch_root):
 
     cores = os.cpu_count() or 1
     assert worker_threads(1) == cores and worker_threads(cores) == 1 and worker_threads(2 * cores) == 1
-    results = dict(run_jobs(_threads_of_this_worker, [()] * 2, cores))
+    results = dict(run_jobs(_threads_of_this_worker, [()] * cores, cores))  # a job per worker
     assert set(results.values()) == {(1, 1, "1")}
 
 
@@ -258,7 +258,8 @@ def test_workers_share_the_cores_for_torch_and_opencv(scratch_root):
                     != "osmesa", reason="llvmpipe is OSMesa's rasteriser; with EGL the GPU renders")
 def test_workers_share_the_cores_for_the_software_rasteriser(scratch_root):
     """OSMesa's llvmpipe started a thread per core in every worker rendering a camera."""
-    results = dict(run_jobs(_rasteriser_threads_of_this_worker, [()] * 2, os.cpu_count()))
+    cores = os.cpu_count() or 1
+    results = dict(run_jobs(_rasteriser_threads_of_this_worker, [()] * cores, cores))  # a job per worker
     assert set(results.values()) == {1}
 
 
@@ -285,3 +286,11 @@ def test_ctrl_c_while_a_worker_starts_leaves_no_scratch_folder(tmp_path, scratch
         list(run_jobs(_job, [(0, "ok", str(tmp_path))], 1))
     assert len(started) == 1 and not started[0].is_alive()
     assert list(scratch_root.glob("vcfusion-worker-*")) == []
+
+
+def test_fewer_jobs_than_workers_leave_the_cores_to_fewer_processes(scratch_root):
+    """Each worker's thread share counted the workers asked for, not those that run: one job with
+    two workers asked ran in one process on half the cores."""
+    cores = os.cpu_count() or 1
+    results = dict(run_jobs(_threads_of_this_worker, [()], 2 * cores))
+    assert results == {0: (cores, cores, str(cores))}

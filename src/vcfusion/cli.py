@@ -260,8 +260,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     out = check_new_folder(Path(args.out) if args.out else Path("renders") / f"{scenario.name}-dataset")
     from vcfusion.render.export import render_dataset
 
-    counts = render_dataset(scenario, seeds, args.every, out, progress=sys.stderr.isatty(),
-                            workers=min(args.workers, len(seeds)))
+    counts = render_dataset(scenario, seeds, args.every, out, progress=sys.stderr.isatty(), workers=args.workers)
     print(f"rendered {counts['images']} frames, {counts['annotations']} boxes -> {out}")
     return 0
 

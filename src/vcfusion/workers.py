@@ -176,12 +176,14 @@ def run_jobs(task: Callable, jobs: Sequence[tuple], workers: int,
     ctx = worker_context()
     pending = deque(range(len(jobs)))
     pool: list[_Worker] = []
+    # the workers that will run: fewer jobs than workers leave the cores to fewer processes
+    workers = max(1, min(workers, len(jobs)))
     try:
         while pending or any(w.job is not None for w in pool):
             for w in [w for w in pool if w.job is None]:
                 if pending:
                     _hand_over(w, pending, jobs, on_start)
-            while pending and len(pool) < max(1, workers):
+            while pending and len(pool) < workers:
                 w = _Worker(ctx, task, worker_threads(workers))
                 pool.append(w)
                 _hand_over(w, pending, jobs, on_start)
@@ -229,6 +231,23 @@ def _collect(w: _Worker) -> tuple[int, object] | None:
         return None
     index, w.job = w.job, None
     return index, value
+
+
+def results_in_order(task: Callable, jobs: Sequence[tuple], workers: int, what: Callable[[int], str],
+                     on_result: Callable[[int], None] | None = None) -> list:
+    """The results of task(*job) for every job, in the jobs' order, from `workers` processes; the
+    first job that fails raises JobError naming it (`what(index)`) and stops the pool. For work
+    whose parts must all succeed (a dataset folder written whole); `on_result(index)` as each ends."""
+    from vcfusion.errors import JobError
+
+    done = {}
+    for index, result in run_jobs(task, jobs, workers):
+        if isinstance(result, JobFailed):
+            raise JobError(what(index), result.cause)
+        done[index] = result
+        if on_result is not None:
+            on_result(index)
+    return [done[index] for index in range(len(jobs))]
 
 
 def _discard(w: _Worker) -> None:

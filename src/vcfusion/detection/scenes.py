@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vcfusion.errors import InputError, JobError
+from vcfusion.errors import InputError
 from vcfusion.records import EGO_ID, VehicleStates
 
 CAR, TRUCK = "passenger", "truck"
@@ -441,10 +441,8 @@ def _twin_rows(truth: VehicleStates) -> list[dict]:
 
 def _render_scene(renderer, road, scenario, family: str, seed: int, folder: Path, coco) -> None:
     """Render one scene into ``folder``'s rgb/, depth/ and instances/ and add it to ``coco``."""
-    import cv2
-
     from vcfusion.render.camera import world_to_camera
-    from vcfusion.render.coco import depth_to_png16, vehicle_anchors
+    from vcfusion.render.coco import vehicle_anchors, write_frame_files
     from vcfusion.render.gt_boxes import ground_truth_boxes
 
     recipe = sample_scene(family, seed, road.num_lanes, road.lane_width_m)
@@ -452,11 +450,7 @@ def _render_scene(renderer, road, scenario, family: str, seed: int, folder: Path
     camera = mounted_camera(scenario.camera, recipe.mount)
     T = world_to_camera(float(truth.x[0]), float(truth.y[0]), 0.0, float(truth.heading[0]), camera)
     frame = renderer.render(truth, T)
-    stem = f"{family}_{seed:06d}"
-    files = {kind: f"{kind}/{stem}.png" for kind in ("rgb", "depth", "instances")}
-    cv2.imwrite(str(folder / files["rgb"]), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
-    cv2.imwrite(str(folder / files["depth"]), depth_to_png16(frame.depth))
-    cv2.imwrite(str(folder / files["instances"]), (frame.instances + 1).astype("uint16"))
+    files = write_frame_files(folder, f"{family}_{seed:06d}", frame)
     boxes = ground_truth_boxes(frame, truth, renderer, near=scenario.camera.near_m)
     coco.add(frame, boxes, vehicle_anchors(frame, truth, EGO_ID), files,
              extra={"seed": seed, "family": family, "scene": recipe.to_dict(), "twins": _twin_rows(truth)})
@@ -495,11 +489,11 @@ def render_scenes(scenario, family: str, seeds, out, progress: bool = True, work
 
     from tqdm import tqdm
 
-    from vcfusion.render.coco import CocoBuilder
+    from vcfusion.render.coco import FRAME_KINDS, CocoBuilder
     from vcfusion.render.renderer import EgoCameraRenderer
     from vcfusion.runio import atomic_folder, package_versions, write_json
     from vcfusion.traffic.network import read_road
-    from vcfusion.workers import JobFailed, run_jobs
+    from vcfusion.workers import results_in_order
 
     road = read_road(scenario.network)  # the road the camera stage draws (as its hook reads it)
     if not road.is_straight or road.length_m < EGO_S_RANGE_M[1] + MAX_AHEAD_M + 10.0:
@@ -509,26 +503,23 @@ def render_scenes(scenario, family: str, seeds, out, progress: bool = True, work
     if workers < 1:
         raise ValueError(f"workers: expected at least 1, got {workers}")
     seeds = list(seeds)
+    chunks = _chunks(seeds, workers)
     coco = CocoBuilder(f"vcfusion procedural scenes, family {family}, road of scenario {scenario.name}")
     bar = tqdm(total=len(seeds), desc=f"render {family} scenes", unit="scene", disable=not progress)
     with atomic_folder(Path(out), "dataset folder") as tmp:
-        for sub in ("rgb", "depth", "instances"):
+        for sub in FRAME_KINDS:
             (tmp / sub).mkdir()
-        if workers == 1:
+        if min(workers, len(chunks)) == 1:
             with EgoCameraRenderer(road, scenario.camera) as renderer:
                 for seed in seeds:
                     _render_scene(renderer, road, scenario, family, seed, tmp, coco)
                     bar.update()
         else:
-            chunks = _chunks(seeds, workers)
-            done: dict[int, tuple[list[dict], list[dict]]] = {}
-            for index, result in run_jobs(_render_chunk, [(scenario, family, c, str(tmp)) for c in chunks], workers):
-                if isinstance(result, JobFailed):
-                    raise JobError(f"render-scenes: seeds {chunks[index][0]}-{chunks[index][-1]}", result.cause)
-                done[index] = result
-                bar.update(len(chunks[index]))
-            for index in range(len(chunks)):  # in seed order: the ids one process gives
-                coco.extend(*done[index])
+            parts = results_in_order(_render_chunk, [(scenario, family, c, str(tmp)) for c in chunks], workers,
+                                     lambda k: f"render-scenes: seeds {chunks[k][0]}-{chunks[k][-1]}",
+                                     lambda k: bar.update(len(chunks[k])))
+            for images, annotations in parts:  # in seed order: the ids one process gives
+                coco.extend(images, annotations)
         bar.close()
         data = coco.to_dict()
         (tmp / "annotations.json").write_text(json.dumps(data))

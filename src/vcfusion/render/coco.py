@@ -52,6 +52,21 @@ def depth_to_png16(depth: np.ndarray) -> np.ndarray:
     return np.where(scaled > 65535, 0, np.clip(scaled, 0, None)).astype(np.uint16)  # out of range: no depth
 
 
+FRAME_KINDS = ("rgb", "depth", "instances")  # a dataset folder's image subfolders
+
+
+def write_frame_files(folder, stem: str, frame) -> dict[str, str]:
+    """A frame's RGB, depth and instance PNGs as FOLDER/KIND/STEM.png; their paths relative to the
+    folder, as the COCO records name them."""
+    import cv2
+
+    files = {kind: f"{kind}/{stem}.png" for kind in FRAME_KINDS}
+    cv2.imwrite(str(folder / files["rgb"]), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(folder / files["depth"]), depth_to_png16(frame.depth))
+    cv2.imwrite(str(folder / files["instances"]), (frame.instances + 1).astype("uint16"))
+    return files
+
+
 def vehicle_anchors(frame, truth, ego_id: str) -> list[dict]:
     """GNSS anchors of every vehicle (not the ego) whose GNSS point lies in front of the camera."""
     keep = np.array([vid != ego_id for vid in truth.ids])

@@ -16,12 +16,10 @@ import json
 import sys
 from pathlib import Path
 
-import cv2
 from tqdm import tqdm
 
 from vcfusion.cosim import CoSimulation
 from vcfusion.driver.idm import IdmController
-from vcfusion.errors import JobError
 from vcfusion.runio import atomic_folder, package_versions, write_json
 from vcfusion.scenario import Scenario
 from vcfusion.records import EGO_ID
@@ -30,16 +28,12 @@ from vcfusion.records import EGO_ID
 def _seed_frames(scenario: Scenario, seed: int, every: int, folder: Path, coco, renderer=None, on_frame=None):
     """Run one seed and write every `every`-th V2C tick's frame into `folder`, adding it to `coco`;
     returns the camera hook (its renderer can serve the next seed; the caller closes it)."""
-    from vcfusion.render.coco import depth_to_png16, vehicle_anchors
+    from vcfusion.render.coco import vehicle_anchors, write_frame_files
     from vcfusion.render.gt_boxes import ground_truth_boxes
     from vcfusion.render.hook import CameraHook
 
     def save(frame, tick):
-        stem = f"seed{seed:04d}_t{frame.time:07.2f}"
-        files = {kind: f"{kind}/{stem}.png" for kind in ("rgb", "depth", "instances")}
-        cv2.imwrite(str(folder / files["rgb"]), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
-        cv2.imwrite(str(folder / files["depth"]), depth_to_png16(frame.depth))
-        cv2.imwrite(str(folder / files["instances"]), (frame.instances + 1).astype("uint16"))
+        files = write_frame_files(folder, f"seed{seed:04d}_t{frame.time:07.2f}", frame)
         boxes = ground_truth_boxes(frame, tick.truth, hook.renderer, near=scenario.camera.near_m)
         coco.add(frame, boxes, vehicle_anchors(frame, tick.truth, EGO_ID), files, extra={"seed": seed})
         if on_frame is not None:
@@ -69,8 +63,8 @@ def render_dataset(scenario: Scenario, seeds: list[int], every: int, out: Path, 
     """Render every `every`-th V2C tick of each seed into a dataset folder; returns counts.
     ``workers`` > 1 runs the seeds in that many processes; the folder is the same as one process
     writes (records merged in seed order)."""
-    from vcfusion.render.coco import CocoBuilder
-    from vcfusion.workers import JobFailed, run_jobs
+    from vcfusion.render.coco import FRAME_KINDS, CocoBuilder
+    from vcfusion.workers import results_in_order
 
     if scenario.ego is None:
         raise ValueError(f"{scenario.source}: ego: the camera rides on the ego; expected an ego block")
@@ -81,23 +75,19 @@ def render_dataset(scenario: Scenario, seeds: list[int], every: int, out: Path, 
     hook = None
     try:
         with atomic_folder(Path(out), "dataset folder") as tmp:
-            for sub in ("rgb", "depth", "instances"):
+            for sub in FRAME_KINDS:
                 (tmp / sub).mkdir()
-            if workers == 1:
+            if min(workers, len(seeds)) == 1:
                 for seed in seeds:
                     # one renderer (and its scene) for all seeds
                     hook = _seed_frames(scenario, seed, every, tmp, coco, hook.renderer if hook else None,
                                         lambda: bar.set_postfix(frames=len(coco.images), refresh=False))
                     bar.update(1)
             else:
-                done = {}
-                for index, result in run_jobs(_render_seed_job, [(scenario, s, every, str(tmp)) for s in seeds], workers):
-                    if isinstance(result, JobFailed):
-                        raise JobError(f"render: seed {seeds[index]}", result.cause)
-                    done[index] = result
-                    bar.update(1)
-                for index in range(len(seeds)):  # in seed order: the ids one process gives
-                    coco.extend(*done[index])
+                parts = results_in_order(_render_seed_job, [(scenario, s, every, str(tmp)) for s in seeds], workers,
+                                         lambda k: f"render: seed {seeds[k]}", lambda k: bar.update(1))
+                for images, annotations in parts:  # in seed order: the ids one process gives
+                    coco.extend(images, annotations)
             bar.close()
             data = coco.to_dict()
             (tmp / "annotations.json").write_text(json.dumps(data))
