@@ -9,7 +9,7 @@ from pathlib import Path
 from vcfusion.cloud.twins import ProcessModel
 from vcfusion.cosim import CoSimulation, RunResult
 from vcfusion.guidance import GuidancePolicy
-from vcfusion.runio import discard_partial_folder, package_versions, video_staging_prefix, write_run_folder
+from vcfusion.runio import package_versions, video_staging_prefix, write_run_folder
 from vcfusion.scenario import Scenario
 
 
@@ -90,9 +90,8 @@ def execute_run(scenario: Scenario, seed: int, out_dir: Path | None, progress: b
 
         out_dir = Path(out_dir)
         out_dir.parent.mkdir(parents=True, exist_ok=True)
-        # beside the run folder (same file system: moved in, not copied); removed whatever happens,
-        # and what a killed writer of this folder left goes first
-        discard_partial_folder(out_dir)
+        # beside the run folder (same file system: moved in, not copied); removed whatever happens
+        # (what killed writers of this folder left goes when the folder is written: atomic_folder)
         staging = Path(tempfile.mkdtemp(prefix=video_staging_prefix(out_dir), dir=out_dir.parent))
         recorder = OverlayRecorder(staging / "video", fps=1.0 / scenario.ar.period_s)
     try:
