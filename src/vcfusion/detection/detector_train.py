@@ -88,6 +88,12 @@ def _coco_int(value, where: str) -> int:
 
 
 def load_coco(folder) -> CocoDataset:
+    return _read_coco(folder)[0]
+
+
+def _read_coco(folder) -> tuple[CocoDataset, dict]:
+    """The dataset and the checked COCO object it was read from, its ids as integers (an image's
+    ``id``, an annotation's ``image_id``, a category's ``id``: a 5.0 or "5" is 5)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise DetectorFileError(f"{folder}: dataset folder not found")
@@ -140,6 +146,7 @@ def load_coco(folder) -> CocoDataset:
         image_id = _coco_int(ann.get("image_id"), f"{path}: annotations[{k}].image_id")
         if image_id not in image_ids:  # silently dropped before
             raise DetectorFileError(f"{path}: annotations[{k}].image_id: {image_id} is the id of no image")
+        ann["image_id"] = image_id
         if w > 0 and h > 0:
             # COCO's pixel c spans [c, c + 1); our boxes put integer coordinates at pixel centres
             x, y = x - 0.5, y - 0.5
@@ -164,7 +171,7 @@ def load_coco(folder) -> CocoDataset:
         raise DetectorFileError(f"{path}: images: expected at least one image")
     return CocoDataset(folder, images, ids, boxes, classes, class_ids, [str(c.get("name", c["id"])) for c in cats],
                        list(coco["images"]), [vids.get(img["id"], []) for img in coco["images"]],
-                       [np.array(visible.get(img["id"], []), float) for img in coco["images"]])
+                       [np.array(visible.get(img["id"], []), float) for img in coco["images"]]), coco
 
 
 def load_coco_many(folders) -> CocoDataset:
@@ -490,25 +497,22 @@ def resize_dataset(src, out, input_wh: tuple[int, int], quality: int = 95, progr
     from vcfusion.runio import atomic_folder
 
     src = Path(src)
-    path = _find_json(src)
-    ds = load_coco(src)  # checks the file and finds each image
-    coco = json.loads(path.read_text())
+    ds, coco = _read_coco(src)  # checked, each image found, the ids integers
     scale: dict[int, tuple[float, float]] = {}
     with atomic_folder(Path(out), "dataset folder") as tmp:
         (tmp / "images").mkdir()
-        # ds.image_ids: the ids as load_coco read them (a 5.0 or "5" is 5), in the file's order
-        for record, file, iid in tqdm(list(zip(coco["images"], ds.images, ds.image_ids)), desc=f"resize {src.name}",
-                                      unit="img", disable=not progress):
+        for record, file in tqdm(list(zip(coco["images"], ds.images)), desc=f"resize {src.name}", unit="img",
+                                 disable=not progress):
             rgb = read_rgb(file)
-            scale[iid] = (input_wh[0] / rgb.shape[1], input_wh[1] / rgb.shape[0])
+            scale[record["id"]] = (input_wh[0] / rgb.shape[1], input_wh[1] / rgb.shape[0])
             small = resize_to_input(rgb, input_wh)
-            name = f"{iid:07d}.webp"
+            name = f"{record['id']:07d}.webp"
             if not cv2.imwrite(str(tmp / "images" / name), cv2.cvtColor(small, cv2.COLOR_RGB2BGR),
                                [cv2.IMWRITE_WEBP_QUALITY, int(quality)]):
                 raise DetectorFileError(f"{out}: cannot write {name}")
             record.update(file_name=name, width=int(input_wh[0]), height=int(input_wh[1]))
-        for k, ann in enumerate(coco["annotations"]):
-            sx, sy = scale[_coco_int(ann["image_id"], f"{path}: annotations[{k}].image_id")]
+        for ann in coco["annotations"]:
+            sx, sy = scale[ann["image_id"]]
             x, y, w, h = map(float, ann["bbox"])
             # COCO pixel edges scale with the image (what _cache does with the pixel-centre boxes)
             ann["bbox"] = [x * sx, y * sy, w * sx, h * sy]
