@@ -83,11 +83,10 @@ class AxisMap(BaseModel):
         return self
 
     def save(self, path: Path) -> None:
-        path = Path(path)
-        text = json.dumps(self.model_dump(), indent=2) + "\n"
         from vcfusion.runio import atomic_write
 
-        atomic_write(path, lambda tmp: tmp.write_text(text))
+        text = json.dumps(self.model_dump(), indent=2) + "\n"
+        atomic_write(Path(path), lambda tmp: tmp.write_text(text))
 
 
 def load_axis_map(path: Path) -> AxisMap:

@@ -40,8 +40,8 @@ from vcfusion.prediction.features import SEQUENCE_EXTRA_NAMES
 from vcfusion.prediction.model import LaneChangeModel, load_model, model_feature_names, model_kind
 from vcfusion.prediction.train_sequence import check_sequence_columns
 from vcfusion.prediction.privileged import SumoWantsRule
-from vcfusion.runio import atomic_write
 from vcfusion.prediction.train import TrainConfig, _fit_torch, stream_with_events, training_rows, tune_decisions
+from vcfusion.runio import atomic_write
 
 VARIANTS = ("original", "aggressive", "conservative")
 _METHOD = {"original": "none", "aggressive": "aggressive", "conservative": "conservative"}
