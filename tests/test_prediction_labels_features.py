@@ -195,6 +195,39 @@ def test_history_is_kept_per_absolute_lane_so_a_lane_flip_leaves_no_trace():
     assert f["gap_foll_right_mean"][0] == pytest.approx(before["gap_foll_own"][0], abs=0.5)
 
 
+def test_history_of_a_lane_starts_when_the_twin_has_it():
+    """Off the road (a ramp) or before its lane begins, a twin has no gap to average: the averages
+    of that lane start at the first value once it has the lane, not at the sentinel 0 averaged in
+    (before the fix a ramp vehicle's gap_lead_own_mean read 27 m behind a 150 m gap)."""
+    ex = FeatureExtractor(ROAD, 0.1)
+    for k in range(30):  # 'r' on the ramp (lane -1), 'm' on the main line 60 m ahead of it
+        f = _col(ex.from_twins(_twins([-1, 0], [100 + 2.0 * k, 160 + 2.0 * k], [20, 20], ids=["r", "m"])))
+    assert f["gap_lead_own_mean"][0] == 0.0  # the sentinel while off the road
+    f = _col(ex.from_twins(_twins([0, 0], [160.0, 220.0], [20, 20], ids=["r", "m"])))
+    assert f["gap_lead_own"][0] == pytest.approx(56.0)
+    assert f["gap_lead_own_mean"][0] == pytest.approx(56.0)
+    assert f["gap_lead_own_trend"][0] == 0.0
+
+    class RightLaneBeginsAt200:  # the road frame's interface: lane 0 exists from s = 200 on
+        num_lanes = num_tracks = 3
+        all_lanes_everywhere = False
+
+        @staticmethod
+        def lanes_present(s):
+            return np.column_stack([np.asarray(s) >= 200, np.ones(len(s)), np.ones(len(s))]).astype(bool)
+
+    ex = FeatureExtractor(RightLaneBeginsAt200(), 0.1)
+    ones = np.ones(2)
+    for k in range(30):  # 'a' in lane 1 passes s = 200 at k = 25; 'b' in lane 0 beyond, 30 m ahead
+        f = _col(ex(("a", "b"), np.array([175 + 1.0 * k, 205 + 1.0 * k]), np.array([1, 0]), 10 * ones,
+                    0 * ones, 4 * ones))
+        if k == 24:
+            assert f["gap_lead_right_mean"][0] == 0.0 and f["right_lane_exists"][0] == 0.0
+        if k == 25:
+            assert f["gap_lead_right"][0] == pytest.approx(26.0)
+            assert f["gap_lead_right_mean"][0] == pytest.approx(26.0)
+
+
 def _reference_history(steps, num_lanes=3, period_s=0.1):
     """The per-twin memory update written out with NumPy, one twin at a time: speed EMA, leaky
     maximum, fast/slow EMAs of speed and per-lane quantities; then the history columns."""
@@ -209,8 +242,12 @@ def _reference_history(steps, num_lanes=3, period_s=0.1):
         out = np.zeros((len(ids), len(FEATURE_NAMES) - _N_TICK + 2))
         new_memory = {}
         for i, vid in enumerate(ids):
-            current = np.concatenate([[speed[i]], per_lane[i].ravel()])
+            # off the road the twin has no lanes: no per-lane quantities, whose averages start
+            # again at the current values once it is back on a lane (this road has every lane everywhere)
+            lanes = per_lane[i].ravel() if lane[i] >= 0 else np.full(per_lane[i].size, np.nan)
+            current = np.concatenate([[speed[i]], lanes])
             ema, vmax, fast, slow = memory.get(vid, (speed[i], speed[i], current, current))
+            fast, slow = np.where(np.isnan(fast), current, fast), np.where(np.isnan(slow), current, slow)
             ema = ema + a_speed * (speed[i] - ema)
             vmax = max(speed[i], vmax - SPEED_MAX_DECAY_MPS2 * period_s)
             fast = fast + a_fast * (current - fast)

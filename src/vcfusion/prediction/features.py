@@ -54,7 +54,9 @@ SPEED_MAX_DECAY_MPS2 = 0.05  # the leaky maximum forgets this fast: a slow estim
 # with the current map-matched lane: when a twin's lane flips at the middle of a lane change,
 # its "own lane" history continues with the history of the new lane (which it watched as a
 # neighbour lane), so the flip leaves no jump in the history features (no back door for the
-# lateral position); a side lane that does not exist gives trend 0 and mean 0 (the sentinel).
+# lateral position); a side lane that does not exist gives trend 0 and mean 0 (the sentinel), and
+# the averages of a lane start afresh when it appears (a ramp vehicle joining the main line, an
+# acceleration lane beginning): the sentinel is never averaged in.
 HISTORY_FAST_S = 0.5
 HISTORY_SLOW_S = 2.0
 _LANE_QUANTITIES = ("gap_lead", "dv_lead", "gap_foll", "dv_foll")  # order of tick_features' `_per_lane`
@@ -197,10 +199,16 @@ def _history(out: np.ndarray, lanes_q: np.ndarray, speed: np.ndarray, lane: np.n
     for i in range(n):
         fresh[0] = fresh[1] = fresh[2] = fresh[2 + h] = speed[i]
         for t in range(num_lanes):
+            # a lane the twin does not have (off the road, or absent at its s) has no quantities:
+            # NaN, so that its averages start afresh when the lane is there again, instead of
+            # averaging the sentinel 0 in (a ramp vehicle's gap means read ~0 for seconds after it joined)
+            known = lane[i] >= 0 and present[i, t] != 0
             for q in range(4):
-                fresh[3 + t * 4 + q] = fresh[3 + h + t * 4 + q] = lanes_q[i, t, q]
+                fresh[3 + t * 4 + q] = fresh[3 + h + t * 4 + q] = lanes_q[i, t, q] if known else np.nan
         for c in range(2 + 2 * h):
             prev = fresh[c] if previous[i] < 0 else memory[previous[i], c]
+            if np.isnan(prev):
+                prev = fresh[c]
             state[i, c] = prev + alphas[c] * (fresh[c] - prev)
         prev_max = state[i, 1] - decay  # column 1 has rate 0 above: the previous leaky maximum
         state[i, 1] = speed[i] if speed[i] >= prev_max else prev_max  # leaky maximum, not an average
@@ -273,7 +281,9 @@ class FeatureExtractor:
     Memory per twin (one row of a :class:`TwinMemory`): the speed EMA (SPEED_EMA_S) and leaky maximum speed,
     then the fast and slow EMAs of the speed and of the per-lane quantities (see
     HISTORY_FAST_S). A twin seen for the first time starts every average at its current value
-    (zero trend); a twin missing from a snapshot is forgotten.
+    (zero trend); a twin missing from a snapshot is forgotten; a lane the twin does not have at a
+    tick (off the road, or absent at its s) has no averages, which start at the current values
+    when it has the lane again.
     """
 
     def __init__(self, road: RoadFrame, period_s: float):
