@@ -16,15 +16,19 @@ def _events(rows):
 
 
 def test_fig5_windows_on_a_hand_made_event():
-    # One change of v1 ending at t = 20 s; tau = 3, tau_g = 2 -> positive [17, 20], negative (22..25] before.
+    # One change of v1 ending at t = 20 s; tau = 3, tau_g = 2 -> positive 0 <= ttl < 3 (t in (17, 20]),
+    # gap 3 <= ttl < 5, negative 5 <= ttl < 8 (t in (12, 15]): the positive window moved back by 5 s.
     t = np.round(np.arange(0.0, 25.0, 0.5), 6)
     ev = _events([(7, "v1", 18.5, 20.0)])
     lab = label_samples(t, np.full(len(t), "v1"), ev, tau=3.0, tau_g=2.0)
     by_t = dict(zip(t, lab["window_label"]))
     assert [by_t[x] for x in (20.0, 19.5, 17.5, 17.0 + 0.5)] == [1, 1, 1, 1]
     assert by_t[17.0] == -1  # ttl == tau: first tick of the gap (windows are half-open)
-    assert by_t[15.0] == -1 and by_t[16.0] == -1  # the gap tau_g
-    assert by_t[14.5] == 0 and by_t[12.0] == 0 and by_t[11.5] == -1  # negative: 5 < ttl <= 8
+    assert by_t[15.5] == -1 and by_t[16.0] == -1  # the gap tau_g
+    assert by_t[15.0] == 0 and by_t[12.5] == 0 and by_t[12.0] == -1  # negative: 5 <= ttl < 8
+    # each negative tick is a positive tick moved back by tau + tau_g
+    pos_t = np.sort(t[lab["window_label"] == 1])
+    np.testing.assert_allclose(np.sort(t[lab["window_label"] == 0]), pos_t - 5.0)
     assert by_t[20.5] == -1 and by_t[24.5] == -1  # after the change: no next change
     # equal window sizes (the paper balances positives and negatives this way)
     assert (lab["window_label"] == 1).sum() == (lab["window_label"] == 0).sum() == 6
@@ -40,8 +44,8 @@ def test_next_change_wins_and_other_vehicles_untouched():
     vids = np.array(["a"] * len(t) + ["b"] * len(t))
     lab = label_samples(np.concatenate([t, t]), vids, ev, tau=3.0, tau_g=1.0)
     a = lab.iloc[: len(t)]
-    # t = 11..13 are 7..9 s before the second change: its negative window (4 < ttl <= 7) -> t = 13..15
-    assert list(a["window_label"].iloc[13:16]) == [0, 0, 0]
+    # the second change's negative window 4 <= ttl < 7 -> t = 14..16 (t = 13, ttl = 7, is not in it)
+    assert list(a["window_label"].iloc[13:18]) == [-1, 0, 0, 0, -1]
     assert list(a["window_label"].iloc[8:11]) == [1, 1, 1]  # positive of the first change
     assert a["time_since_lc"].iloc[12] == pytest.approx(2.0)
     assert (lab.iloc[len(t):]["window_label"] == -1).all()

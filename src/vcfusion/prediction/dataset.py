@@ -269,7 +269,7 @@ split of seeds into train / validation / test are in `dataset.json`.
 | lc_reason | SUMO's reason of that change ('' if none) |
 | time_to_lc | end time of that change minus time, s (NaN if none) |
 | time_since_lc | time since the end of the vehicle's previous change, s (NaN if none) |
-| window_label | Fig. 5 time windows: 1 positive (0 <= time_to_lc < tau), 0 negative (tau + tau_g < time_to_lc <= 2 tau + tau_g), -1 neither (not used in training) |
+| window_label | Fig. 5 time windows: 1 positive (0 <= time_to_lc < tau), 0 negative (tau + tau_g <= time_to_lc < 2 tau + tau_g), -1 neither (not used in training) |
 | stream_label | every-tick truth: 1 when 0 <= time_to_lc < tau, else 0 |
 | FEATURES... | float32, see vcfusion/prediction/features.py: longitudinal only, no lateral position/speed, heading, steering, blinker or SUMO lane-change state |
 | lane_end_ahead_m | float32: distance to where the own lane ends ahead (400 m when it does not end within that); an input of the sequence model only |

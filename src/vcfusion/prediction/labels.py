@@ -3,12 +3,10 @@
 For a vehicle whose next lane change ends at time E, a sample at time t has the
 time-to-lane-change ttl = E - t (ttl >= 0). With window size tau and gap tau_g:
 - positive window: 0 <= ttl < tau (the tau seconds up to and including the end point);
-- gap: tau <= ttl <= tau + tau_g (left out of training);
-- negative window: tau + tau_g < ttl <= 2 tau + tau_g. The paper moves the positive window back
-  by tau + tau_g, which gives tau + tau_g <= ttl < 2 tau + tau_g: ours lies one tick (0.1 s of
-  5 s) later at both ends. A known deviation, kept because the shipped models were trained on
-  these labels (their commands reproduce them bit for bit); it also means that with tau_g = 0
-  the tick at ttl = tau is in neither window;
+- gap: tau <= ttl < tau + tau_g (left out of training);
+- negative window: tau + tau_g <= ttl < 2 tau + tau_g, the positive window moved back by
+  tau + tau_g as in the paper (so with tau_g = 0 the windows are adjacent and every tick of the
+  2 tau before the end is in one of them);
 - everything else is outside the windows (`window_label` = -1) and is used only by the
   every-tick stream (`stream_label`: 1 in the positive window, 0 elsewhere), which is what a
   deployed model sees.
@@ -71,7 +69,7 @@ def label_samples(time: np.ndarray, vehicle_id: np.ndarray, events: pd.DataFrame
             since[rows] = np.where(prev >= 0, t - e_end[np.maximum(prev, 0)], np.nan)
     with np.errstate(invalid="ignore"):
         pos = (ttl >= -_EPS) & (ttl < tau - _EPS)
-        neg = (ttl > tau + tau_g + _EPS) & (ttl <= 2 * tau + tau_g + _EPS)
+        neg = (ttl >= tau + tau_g - _EPS) & (ttl < 2 * tau + tau_g - _EPS)
     window = np.where(pos, WINDOW_POSITIVE, np.where(neg, WINDOW_NEGATIVE, WINDOW_NONE)).astype(np.int8)
     return pd.DataFrame({
         "event_id": event_id, "time_to_lc": ttl, "time_since_lc": since,
