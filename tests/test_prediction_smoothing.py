@@ -61,3 +61,38 @@ def test_streaming_equals_batch(method, kw):
         else:
             expected = conservative(raw[vid], kw["tau_c"], kw.get("threshold", 0.5))
         assert streamed[vid] == expected.tolist()
+
+
+@pytest.mark.parametrize("method,tau", [("aggressive", 4), ("conservative", 3)])
+def test_offline_smoothing_restarts_where_the_cloud_forgot_the_twin(method, tau):
+    """A dataset stream smoothed offline (tuning, evaluation) gives the decisions the cloud drew:
+    the streaming smoother forgets a twin absent from a snapshot, so the offline smoothing starts
+    that twin afresh there too; a tick without any twin (every report lost) is no snapshot: the
+    cloud does not call the smoother, and the offline smoothing carries on across it."""
+    import pandas as pd
+
+    from vcfusion.prediction.events import smooth_stream, smoothing_bounds
+
+    rng = np.random.default_rng(3)
+    ticks = np.round(np.arange(80) * 0.1, 6)
+    empty = {40, 41}  # every report lost: no twin at all
+    present = {"a": [k for k in range(80) if k not in empty and not 20 <= k < 23],  # away 3 ticks
+               "b": [k for k in range(80) if k not in empty and k != 60],  # away 1 tick
+               "c": [k for k in range(10, 70) if k not in empty]}
+    raw = {vid: {k: int(rng.random() < 0.35) for k in ks} for vid, ks in present.items()}
+    raw["a"].update({17: 1, 18: 1, 19: 1, 23: 0, 24: 0, 25: 0})  # a warning held over the absence, offline
+    kw = {"tau_a": tau} if method == "aggressive" else {"tau_c": tau}
+    smoother = StreamingSmoother(method, **kw)
+    cloud = {}
+    for k in range(80):
+        ids = [v for v in present if k in raw[v]]
+        if not ids:
+            continue  # LaneChangePredictor returns before the smoother
+        for v, d in zip(ids, smoother(ids, np.array([raw[v][k] for v in ids], np.int8))):
+            cloud[(v, k)] = int(d)
+    rows = [(7, v, ticks[k], raw[v][k], cloud[(v, k)]) for v in present for k in present[v]]
+    stream = pd.DataFrame(rows, columns=["seed", "vehicle_id", "time", "raw", "cloud"])
+    bounds = smoothing_bounds(stream)
+    assert len(bounds) == 2 + 2 + 1  # a and b are split once each where they were away; c is whole
+    offline = smooth_stream(bounds, stream["raw"].to_numpy(np.int8), method, tau_a=tau, tau_c=tau)
+    np.testing.assert_array_equal(offline, stream["cloud"].to_numpy())

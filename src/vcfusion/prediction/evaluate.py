@@ -35,7 +35,7 @@ import pandas as pd
 from scipy.stats import rankdata
 
 from vcfusion.prediction.dataset import DatasetError, load_dataset, load_samples
-from vcfusion.prediction.events import event_scores, smooth_stream, track_bounds
+from vcfusion.prediction.events import event_scores, smooth_stream, smoothing_bounds, track_bounds
 from vcfusion.prediction.features import SEQUENCE_EXTRA_NAMES
 from vcfusion.prediction.model import LaneChangeModel, load_model, model_feature_names, model_kind
 from vcfusion.prediction.train_sequence import check_sequence_columns
@@ -164,7 +164,7 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
     stream, events = stream_with_events(info, split, columns=["seed", "vehicle_id", "time", "window_label",
                                                                "stream_label", *dict.fromkeys([*names, *privileged,
                                                                                                *model_names])])
-    bounds = track_bounds(stream)
+    bounds, stretches = track_bounds(stream), smoothing_bounds(stream)
     in_window = stream["window_label"].to_numpy() >= 0
     y_window = stream["window_label"].to_numpy()[in_window] == 1
     y_stream = stream["stream_label"].to_numpy() == 1
@@ -186,14 +186,14 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
         for variant in VARIANTS:
             t = tuned[_METHOD[variant]]
             raw = (prob > t["threshold"]).astype(np.int8)
-            dec = smooth_stream(bounds, raw, _METHOD[variant], tau_a=t["tau_ticks"], tau_c=t["tau_ticks"],
+            dec = smooth_stream(stretches, raw, _METHOD[variant], tau_a=t["tau_ticks"], tau_c=t["tau_ticks"],
                                 threshold=model.conservative_threshold)
             if variant == "original":
                 score = prob
             elif variant == "aggressive":
-                score = _running(bounds, prob, t["tau_ticks"] + 1, "max")
+                score = _running(stretches, prob, t["tau_ticks"] + 1, "max")
             else:
-                score = _running(bounds, raw, t["tau_ticks"] + 1, "mean")
+                score = _running(stretches, raw, t["tau_ticks"] + 1, "mean")
             fw = frame_metrics(y_window, dec[in_window], score[in_window])
             fs = frame_metrics(y_stream, dec, score)
             ev, per_event = event_scores(stream, dec, events, info.period_s, horizon_s, bounds)

@@ -40,9 +40,31 @@ def track_bounds(stream: pd.DataFrame) -> list[tuple[int, int]]:
     return list(zip(starts.tolist(), stops.tolist())) if len(seeds) else []
 
 
+def smoothing_bounds(stream: pd.DataFrame) -> list[tuple[int, int]]:
+    """(start, stop) row ranges of each track's stretches of consecutive snapshots, in a stream
+    sorted by seed, vehicle, time that holds every twin of every snapshot (a dataset split).
+
+    Why: the cloud's smoother forgets a twin absent from a snapshot
+    (:class:`vcfusion.prediction.smoothing.StreamingSmoother`), so the decisions it draws after
+    the twin is back start afresh; offline tuning and evaluation smooth the same stretches. A tick
+    without any twin (every report lost) is no snapshot and has no rows: there the cloud's memory
+    waits (:class:`vcfusion.prediction.cloud.LaneChangePredictor`), and so does this."""
+    if not len(stream):
+        return []
+    # the snapshot count of each row's time within its seed (dense rank: 1, 2, ...)
+    snapshot = stream.groupby("seed", sort=False)["time"].rank(method="dense").to_numpy()
+    seeds = stream["seed"].to_numpy()
+    vids = stream["vehicle_id"].to_numpy()
+    change = np.flatnonzero((seeds[1:] != seeds[:-1]) | (vids[1:] != vids[:-1])
+                            | (np.diff(snapshot) != 1)) + 1
+    starts = np.concatenate([[0], change]).astype(int)
+    stops = np.concatenate([change, [len(seeds)]]).astype(int)
+    return list(zip(starts.tolist(), stops.tolist()))
+
+
 def smooth_stream(bounds: list[tuple[int, int]], decisions: np.ndarray, method: str, tau_a: int, tau_c: int,
                   threshold: float = 0.5) -> np.ndarray:
-    """Apply a smoothing per vehicle track (bounds from :func:`track_bounds`)."""
+    """Apply a smoothing per stretch of a track (bounds from :func:`smoothing_bounds`)."""
     out = np.empty(len(decisions), dtype=np.int8)
     for a, b in bounds:
         out[a:b] = smooth(decisions[a:b], method, tau_a=tau_a, tau_c=tau_c, threshold=threshold)

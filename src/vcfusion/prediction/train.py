@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 
 from vcfusion.prediction.dataset import DatasetError, DatasetInfo, load_dataset, load_samples
-from vcfusion.prediction.events import event_scores, smooth_stream, track_bounds
+from vcfusion.prediction.events import event_scores, smooth_stream, smoothing_bounds, track_bounds
 from vcfusion.prediction.model import LaneChangeModel, build_torch_mlp, fit_platt, save_model
 
 # Run-time settings searched on the validation stream. Thresholds are calibrated probabilities
@@ -193,7 +193,7 @@ def tune_decisions(prob: np.ndarray, stream: pd.DataFrame, events: pd.DataFrame,
     The default smoothing is then picked by :func:`choose_default`.
     """
     best: dict = {}
-    bounds = track_bounds(stream)
+    bounds, stretches = track_bounds(stream), smoothing_bounds(stream)
     for method, taus in (("none", (0,)), ("aggressive", TAU_A_TICKS), ("conservative", TAU_C_TICKS)):
         candidates = []
         for tau in taus:
@@ -202,7 +202,8 @@ def tune_decisions(prob: np.ndarray, stream: pd.DataFrame, events: pd.DataFrame,
             def score(i: int) -> dict:
                 if i not in cache:
                     raw = (prob > THRESHOLDS[i]).astype(np.int8)
-                    dec = smooth_stream(bounds, raw, method, tau_a=tau, tau_c=tau, threshold=conservative_threshold)
+                    dec = smooth_stream(stretches, raw, method, tau_a=tau, tau_c=tau,
+                                        threshold=conservative_threshold)
                     cache[i] = event_scores(stream, dec, events, period_s, horizon_s, bounds)[0]
                 return cache[i]
 
