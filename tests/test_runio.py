@@ -129,6 +129,26 @@ def test_a_file_replaced_through_a_temporary_one_survives_a_failed_write(tmp_pat
     assert pd.read_parquet(path)["seed"].tolist() == [5]
 
 
+def test_a_file_written_through_a_temporary_one_gets_a_plain_writes_permissions(tmp_path):
+    """A new file: 0o666 less the umask (the temporary file was 0o600, so a shipped model or a
+    study's table was unreadable to the user's group); an existing file keeps its own."""
+    import os
+    import stat
+
+    from vcfusion.runio import atomic_write
+
+    old = os.umask(0o022)
+    try:
+        atomic_write(tmp_path / "model.npz", lambda tmp: tmp.write_bytes(b"model"))
+        assert stat.S_IMODE((tmp_path / "model.npz").stat().st_mode) == 0o644
+        os.chmod(tmp_path / "model.npz", 0o640)
+        atomic_write(tmp_path / "model.npz", lambda tmp: tmp.write_bytes(b"model 2"))
+        assert stat.S_IMODE((tmp_path / "model.npz").stat().st_mode) == 0o640
+        assert (tmp_path / "model.npz").read_bytes() == b"model 2"
+    finally:
+        os.umask(old)
+
+
 def test_what_a_killed_writer_left_goes_but_nothing_else(tmp_path):
     """A run killed mid-way left its partial folder and, with the AR video on, the staging folder of
     its frames beside it: only the first was ever removed."""

@@ -11,7 +11,6 @@ import json
 import os
 import platform
 import shutil
-import tempfile
 from collections.abc import Callable, Mapping
 from contextlib import contextmanager
 from importlib.metadata import PackageNotFoundError, version
@@ -46,6 +45,20 @@ def write_table(path: Path, frame: pd.DataFrame) -> None:
     frame.reset_index(drop=True).to_parquet(path, engine="pyarrow", index=False, compression="zstd")
 
 
+def _new_temporary_file(path: Path) -> Path:
+    """An empty file of our own beside `path`, named .NAME.PID.RANDOM.SUFFIX, created with the
+    permissions a plain write of a new file gets (0o666 less the umask; tempfile.mkstemp's 0o600
+    would make a model or table written this way unreadable to the user's group)."""
+    for _ in range(100):
+        tmp = path.parent / f".{path.name}.{os.getpid()}.{os.urandom(4).hex()}{path.suffix}"
+        try:
+            os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
+            return tmp
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"{path}: no free temporary name beside it")
+
+
 def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     """`write(tmp)` into a temporary file of its own beside `path` (same suffix: writers that go by
     it still do), renamed over `path` when complete: a kill in the middle leaves the previous file
@@ -56,10 +69,11 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
         pid = left.name[len(path.name) + 2:].split(".", 1)[0]
         if pid.isdigit() and left.is_file() and not _writer_alive(pid):
             left.unlink(missing_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
+    tmp = _new_temporary_file(path)
     try:
-        write(Path(tmp))
+        write(tmp)
+        if path.exists():  # as an overwrite in place would: the file keeps its permissions
+            shutil.copymode(path, tmp)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
