@@ -278,8 +278,8 @@ def train_model(datasets: Path | list[Path], out: Path, cfg: TrainConfig, progre
     model.tau_a_ticks = int(tuned["aggressive"]["tau_ticks"])
     model.tau_c_ticks = int(tuned["conservative"]["tau_ticks"])
     model.info = {
-        "dataset": str(Path(datasets[0]).resolve()), "scenario": info.meta.get("scenario"), "kind": cfg.kind,
-        "datasets": [str(Path(d).resolve()) for d in datasets], "scenarios": [i.meta.get("scenario") for i in infos],
+        "dataset": str(Path(datasets[0]).absolute()), "scenario": info.meta.get("scenario"), "kind": cfg.kind,
+        "datasets": [str(Path(d).absolute()) for d in datasets], "scenarios": [i.meta.get("scenario") for i in infos],
         "config": asdict(cfg), "fit": fit, "train_samples": int(len(tr)), "train_positives": int(y_tr.sum()),
         "splits": info.splits if len(infos) == 1 else [i.splits for i in infos], "tuning": tuned, "calibration": list(model.calibration),
         "command": f"vcfusion train {' '.join(map(str, datasets))} --out {out.name} --hidden {cfg.hidden} --epochs {cfg.epochs} "

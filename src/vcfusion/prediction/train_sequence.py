@@ -193,7 +193,7 @@ def train_sequence_model(datasets: list[Path], out: Path, cfg: SequenceConfig, p
     model.tau_a_ticks = int(tuned["aggressive"]["tau_ticks"])
     model.tau_c_ticks = int(tuned["conservative"]["tau_ticks"])
     model.info = {
-        "kind": "gru", "datasets": [str(Path(d).resolve()) for d in datasets],
+        "kind": "gru", "datasets": [str(Path(d).absolute()) for d in datasets],
         "scenarios": [i.meta.get("scenario") for i in infos], "config": asdict(cfg), "fit": fit,
         "train_rows": int(len(tr)), "train_segments": len(b_tr), "splits": [i.splits for i in infos],
         "tuning": tuned, "calibration": list(model.calibration),
