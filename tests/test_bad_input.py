@@ -19,7 +19,7 @@ import pytest
 
 from scenario_files import REPO, lifted_highway, write_scenario
 from vcfusion.cli import main
-from vcfusion.prediction.dataset import ID_COLUMNS, load_dataset
+from vcfusion.prediction.dataset import ID_COLUMNS, SAMPLES_VERSION, load_dataset
 from vcfusion.prediction.features import FEATURE_NAMES
 from vcfusion.prediction.model import default_model_path
 from vcfusion.scenario import load_scenario
@@ -130,7 +130,7 @@ def dataset(tmp: Path) -> Path:
             frame[name] = rng.normal(size=n).astype(np.float32)
         frame.to_parquet(folder / "samples.parquet", index=False)
     meta = {"scenario": "t", "tau": 5.0, "tau_g": 2.0, "period_s": 0.1, "feature_names": list(FEATURE_NAMES),
-            "splits": {"train": [0], "validation": [1], "test": [2]}}
+            "samples_version": SAMPLES_VERSION, "splits": {"train": [0], "validation": [1], "test": [2]}}
     (root / "dataset.json").write_text(json.dumps(meta))
     return root
 
@@ -373,6 +373,8 @@ CASES = [
          ("dataset.json", "line 1", "not valid JSON")),
     Case("dataset.json missing key", lambda t: train_on(t, set_meta(tau=None)),
          ("dataset.json", "tau: expected a number", "None")),
+    Case("dataset of older labels and features", lambda t: train_on(t, set_meta(samples_version=None)),
+         ("dataset.json", "samples_version: 1", f"version {SAMPLES_VERSION}", "--refeature")),
     Case("samples not Parquet", lambda t: train_on(t, lambda r: samples_of(0, r).write_bytes(b"PAR1 junk")),
          ("seed_0000/samples.parquet", "not a readable Parquet file")),
     Case("samples missing a column", lambda t: train_on(t, drop_column),

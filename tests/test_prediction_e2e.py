@@ -10,6 +10,7 @@ import pytest
 import yaml
 
 from vcfusion.cli import main
+from vcfusion.prediction.dataset import SAMPLES_VERSION
 from vcfusion.prediction.features import FEATURE_NAMES, features_from_twins_table
 from vcfusion.prediction.model import load_model
 from vcfusion.prediction.smoothing import smooth
@@ -52,9 +53,13 @@ def test_dataset_train_evaluate_on_real_sumo(tmp_path, capsys):
     ok = ~np.isnan(ends)
     assert np.all((ends[ok] - pos["time"].to_numpy()[ok] < 4.0 + 1e-6) & (ends[ok] >= pos["time"].to_numpy()[ok] - 1e-6))
 
-    # a feature change: refused without --refeature; with it, samples recomputed from the twins tables
+    # a feature change (names, or meaning: a folder from before the samples version): refused without
+    # --refeature, also by training; with it, samples recomputed from the twins tables
     meta["feature_names"] = meta["feature_names"][:-1]
+    assert meta.pop("samples_version") == SAMPLES_VERSION
     (data / "dataset.json").write_text(json.dumps(meta))
+    assert main(["train", str(data), "--out", str(tmp_path / "stale.npz")]) == 2
+    assert "samples_version: 1" in capsys.readouterr().err and not (tmp_path / "stale.npz").exists()
     (data / "runs" / "seed_0001" / "samples.parquet").unlink()
     capsys.readouterr()
     assert main(["dataset", str(scenario), "--seeds", "0-2", "--out", str(data), "--workers", "1",
@@ -64,6 +69,7 @@ def test_dataset_train_evaluate_on_real_sumo(tmp_path, capsys):
                  "--tau", "4", "--tau-g", "2", "--refeature"]) == 0
     assert "recomputed the features of 3 existing runs" in capsys.readouterr().out
     assert json.loads((data / "dataset.json").read_text())["feature_names"] == list(FEATURE_NAMES)
+    assert json.loads((data / "dataset.json").read_text())["samples_version"] == SAMPLES_VERSION
     pd.testing.assert_frame_equal(pd.read_parquet(data / "runs" / "seed_0000" / "samples.parquet"), samples)
     assert (data / "runs" / "seed_0001" / "samples.parquet").is_file()
 

@@ -33,6 +33,11 @@ SAMPLES = "samples.parquet"
 ID_COLUMNS = ["seed", "time", "vehicle_id", "event_id", "lc_reason", "time_to_lc", "time_since_lc",
               "window_label", "stream_label"]
 SPLIT_FRACTIONS = (0.7, 0.15, 0.15)  # train, validation, test, in seed order
+# What the samples mean beyond their column names: raised when the labels or the features change
+# meaning under the same names, so that a dataset built before is refused instead of training or
+# scoring a model on what the cloud no longer computes. 1 (absent in dataset.json): until the
+# twenty-third session; 2: the paper's negative window, lane histories that start afresh.
+SAMPLES_VERSION = 2
 
 
 class DatasetError(InputError):
@@ -204,6 +209,12 @@ def load_dataset(root: str | Path) -> DatasetInfo:
                                 ("splits", dict, "{split: [seeds]}")):
         if not isinstance(meta.get(key), kind) or isinstance(meta.get(key), bool):
             raise DatasetError(f"{meta_file}: {key}: expected {expected}, got {meta.get(key)!r}")
+    version = meta.get("samples_version", 1)
+    if version != SAMPLES_VERSION:
+        raise DatasetError(f"{meta_file}: samples_version: {version!r}, this vcfusion computes version "
+                           f"{SAMPLES_VERSION} (labels and features changed meaning); bring the folder up to date "
+                           "without simulating: the `vcfusion dataset` command that built it, with --refeature "
+                           "(an imported recording: import it again)")
     splits = meta["splits"]
     for split, seeds in splits.items():
         if not (isinstance(seeds, list) and all(isinstance(x, int) and x >= 0 for x in seeds)):
@@ -253,8 +264,9 @@ def load_samples(info: DatasetInfo, split: str, window_only: bool = False, colum
 
 README = """# Lane-change prediction dataset
 
-Built by `vcfusion dataset` (vcfusion.prediction.dataset). Parameters, feature names and the
-split of seeds into train / validation / test are in `dataset.json`.
+Built by `vcfusion dataset` (vcfusion.prediction.dataset). Parameters, feature names, the
+version of what labels and features mean (`samples_version`) and the split of seeds into
+train / validation / test are in `dataset.json`.
 
 `runs/seed_NNNN/` is the complete run folder of one seed (see the run-folder tables:
 `twins.parquet` is what the cloud saw, `lane_changes.parquet` the ground-truth events).
@@ -308,20 +320,21 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
               # a change whose end the run did not see ends this long after its midpoint: the labels
               # use it, and so must the evaluation and the tuning (vcfusion.prediction.train)
               "lanechange_end_after_mid_s": scenario.simulation.lanechange_duration_s / 2,
-              "feature_names": list(FEATURE_NAMES)}
+              "feature_names": list(FEATURE_NAMES), "samples_version": SAMPLES_VERSION}
     if privileged:  # only then: datasets built before keep comparing equal
         from vcfusion.prediction.privileged import PRIVILEGED_NAMES
 
         params["privileged_names"] = list(PRIVILEGED_NAMES)
     if meta_file.is_file():
         old = read_dataset_json(meta_file)
-        free = {"scenario_file"} | ({"feature_names"} if refeature else set())
+        free = {"scenario_file"} | ({"feature_names", "samples_version"} if refeature else set())
         if "lanechange_end_after_mid_s" not in old:  # a folder from before the key was written
             free.add("lanechange_end_after_mid_s")
         keys = [*params, *({"privileged_names"} - set(params))]  # a privileged folder stays privileged
         clash = {k: (old.get(k), params.get(k)) for k in keys if k not in free and old.get(k) != params.get(k)}
         if clash:
-            hint = " (or --refeature, when only the features differ)" if set(clash) == {"feature_names"} else ""
+            hint = (" (or --refeature, when only the features differ)"
+                    if set(clash) <= {"feature_names", "samples_version"} else "")
             raise DatasetError(f"{meta_file}: the folder holds a dataset with other parameters "
                                f"({', '.join(f'{k}: {a!r} vs {b!r}' for k, (a, b) in clash.items())}); "
                                f"choose a new --out{hint}")

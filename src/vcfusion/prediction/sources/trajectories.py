@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from vcfusion.prediction.dataset import DATASET_JSON, README, DatasetError, build_samples, split_seeds
+from vcfusion.prediction.dataset import (DATASET_JSON, README, SAMPLES_VERSION, DatasetError, build_samples,
+                                         split_seeds)
 from vcfusion.prediction.features import FEATURE_NAMES
 from vcfusion.studies.batch import seed_folder
 from vcfusion.traffic.lanechanges import LANE_CHANGE_COLUMNS
@@ -321,6 +322,7 @@ def import_recordings(recordings: list[Recording], out: Path, tau: float, tau_g:
         counts["seeds"] = len(seeds)
         meta = {"scenario": (source or {}).get("format", "recorded"), "source": source or {},
                 "tau": tau, "tau_g": tau_g, "period_s": PERIOD_S, "feature_names": list(FEATURE_NAMES),
+                "samples_version": SAMPLES_VERSION,
                 "lanechange_end_after_mid_s": END_AFTER_MID_S, "chunk_s": chunk_s,
                 "import": {"max_gap_s": MAX_GAP_S, "min_lane_dwell_s": MIN_LANE_DWELL_S,
                            "lateral_smooth_s": LATERAL_SMOOTH_S, "lateral_settled_mps": LATERAL_SETTLED_MPS},
