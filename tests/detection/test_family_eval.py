@@ -207,3 +207,34 @@ def test_the_frames_of_one_seed_are_resampled_as_one_scene():
     assert by_scene[0] <= 0.76 and by_scene[1] == 1.0
     low, high = scene_bootstrap({"cnn": right})["cnn"]
     assert high - low < 0.05  # resampled as if 224 scenes
+
+
+@pytest.mark.slow
+def test_identification_scores_the_boxes_the_fusion_stage_gets(families):
+    """With the depth step, eval-detector identifies with exactly the run-time fusion path (the
+    detector at its operating threshold, then refinement and proposals), whatever that threshold:
+    at 0.5 a selection of the evaluation-threshold boxes had dropped every depth proposal (0.3)."""
+    from vcfusion.detection.detector_net import PostParams, TorchDetector, default_weights_path
+    from vcfusion.detection.detector_train import load_coco
+    from vcfusion.detection.family_eval import _camera_frame, _twins, evaluate_families, read_rgb
+    from vcfusion.fusion.box_refine import BoxRefineParams
+    from vcfusion.fusion.depth_eval import DepthEvalParams
+    from vcfusion.fusion.fuse import fuse_frame
+    from vcfusion.fusion.matching import JointMatcher, JointMatcherParams
+    from vcfusion.studies.identification import identification_rows
+
+    ds = load_coco(families[1])  # the jam: hidden cars, which the depth step proposes
+    detector = TorchDetector(default_weights_path())
+    detector.params = PostParams(score_threshold=0.5)
+    refine = BoxRefineParams()
+    results, _ = evaluate_families(detector, ds, min_area=100.0, refine=refine)
+    assert detector.params == PostParams(score_threshold=0.5)  # left as it was
+    right = []
+    for k in range(len(ds)):
+        frame = _camera_frame(ds, k, read_rgb(ds.images[k]))
+        fused = fuse_frame(frame, _twins(ds.records[k], frame.time), detector, np.random.default_rng(k),
+                           DepthEvalParams(), JointMatcher(JointMatcherParams(smoothing_alpha=None)), ("joint",),
+                           refine=refine)
+        right += [r["iou"] >= 0.7 - 1e-12 for r in identification_rows(frame, fused, 100.0)]
+    assert results[0].n_identified_targets == len(right) > 0
+    assert results[0].identification["cnn"] == pytest.approx(np.mean(right))

@@ -160,7 +160,8 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
     operating = getattr(detector, "params", PostParams()).score_threshold
     if hasattr(detector, "params"):
         saved = detector.params
-        detector.params = PostParams(score_threshold=0.01, nms_iou=saved.nms_iou, max_detections=100)
+        evaluation = PostParams(score_threshold=0.01, nms_iou=saved.nms_iou, max_detections=100)
+        detector.params = evaluation
     records = ds.records or [{} for _ in ds.images]
     dets, best, ident = {}, {}, {}
     try:
@@ -177,7 +178,18 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
             else:
                 d = detector.detect(image)
             dets[iid] = (d.boxes, d.scores, d.classes)
-            working = d.select(d.scores >= operating)
+            if refine is not None and hasattr(detector, "params"):
+                # the boxes the fusion stage works with: the detector at its operating threshold, then
+                # the depth step, whose proposals and refinements depend on which boxes it gets (at
+                # the evaluation threshold it gets weak ones too; and a proposal scores 0.3, which a
+                # higher operating threshold would cut from a selection of these boxes)
+                detector.params = saved
+                try:
+                    working = detect_frame(frame, detector, refine)
+                finally:
+                    detector.params = evaluation
+            else:
+                working = d.select(d.scores >= operating)
             gt = ds.boxes[k]
             big = (gt[:, 2] - gt[:, 0]) * (gt[:, 3] - gt[:, 1]) >= min_area
             iou = box_iou(gt[big], working.boxes) if len(working) and big.any() else np.zeros((int(big.sum()), 0))
