@@ -4,8 +4,9 @@ Images are grouped by their ``family`` (procedural scenes, :mod:`vcfusion.detect
 frames of `vcfusion render` have none and form the group ``frames``; with several groups, ``all``
 pools them). Per group:
 - COCO mAP@0.5 and mAP@0.5:0.95 (:func:`coco_map`, ground truth below ``min_area`` px^2 ignored);
-- the IoU of the best-matching detected box per target (class-agnostic, detections at the
-  detector's operating score threshold): quantiles and the shares >= 0.5 and >= 0.7;
+- the IoU of the best-matching detected box per target (class-agnostic; the boxes the fusion
+  stage gets: the detector at its operating score threshold, then the depth step when refining):
+  quantiles and the shares >= 0.5 and >= 0.7;
 - identification accuracy at IoU 0.7 of the joint matcher (share of targets whose matched box has
   IoU >= 0.7 with the target's box), with the detector's boxes and with ground-truth boxes
   (oracle). The twins are the image's vehicles as the renderer placed them (the recipe's
