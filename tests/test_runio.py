@@ -149,6 +149,33 @@ def test_a_file_written_through_a_temporary_one_gets_a_plain_writes_permissions(
         os.umask(old)
 
 
+def test_a_file_written_through_a_temporary_one_is_on_disk_before_its_name(tmp_path, monkeypatch):
+    """The temporary file's data is flushed before the rename and the folder's entry after it: a
+    power cut after the rename cannot leave the name pointing at an empty file."""
+    import os
+
+    import vcfusion.runio as runio
+
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        real_fsync(fd)
+
+    def replace(src, dst):
+        events.append(("replace", str(dst)))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(runio.os, "fsync", fsync)
+    monkeypatch.setattr(runio.os, "replace", replace)
+    runio.atomic_write(tmp_path / "model.npz", lambda tmp: tmp.write_bytes(b"model"))
+    assert [e[0] for e in events] == ["fsync", "replace", "fsync"]
+    folder = os.path.realpath(tmp_path)
+    assert events[0][1].startswith(os.path.join(folder, ".model.npz."))  # the temporary file, before
+    assert events[2][1] == folder  # the folder, after
+
+
 def test_what_a_killed_writer_left_goes_but_nothing_else(tmp_path):
     """A run killed mid-way left its partial folder and, with the AR video on, the staging folder of
     its frames beside it: only the first was ever removed."""

@@ -59,6 +59,15 @@ def _new_temporary_file(path: Path) -> Path:
     raise FileExistsError(f"{path}: no free temporary name beside it")
 
 
+def _fsync(path: Path) -> None:
+    """Flush a file's (or a folder's: its entries') data to the disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     """`write(tmp)` into a temporary file of its own beside `path` (same suffix: writers that go by
     it still do), renamed over `path` when complete: a kill in the middle leaves the previous file
@@ -74,7 +83,10 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
         write(tmp)
         if path.exists():  # as an overwrite in place would: the file keeps its permissions
             shutil.copymode(path, tmp)
+        _fsync(tmp)  # the content on disk before the name points at it: a power cut leaves old or new
         os.replace(tmp, path)
+        if os.name == "posix":  # and the rename itself (a folder cannot be opened for it elsewhere)
+            _fsync(path.parent)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
