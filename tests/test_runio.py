@@ -175,6 +175,16 @@ def test_a_file_written_through_a_temporary_one_is_on_disk_before_its_name(tmp_p
     assert events[0][1].startswith(os.path.join(folder, ".model.npz."))  # the temporary file, before
     assert events[2][1] == folder  # the folder, after
 
+    # a file system that refuses a folder's fsync: the write still succeeds
+    def no_folder_fsync(fd):
+        if os.path.isdir(os.readlink(f"/proc/self/fd/{fd}")):
+            raise OSError(22, "Invalid argument")
+        real_fsync(fd)
+
+    monkeypatch.setattr(runio.os, "fsync", no_folder_fsync)
+    runio.atomic_write(tmp_path / "model.npz", lambda tmp: tmp.write_bytes(b"model 2"))
+    assert (tmp_path / "model.npz").read_bytes() == b"model 2"
+
 
 def test_what_a_killed_writer_left_goes_but_nothing_else(tmp_path):
     """A run killed mid-way left its partial folder and, with the AR video on, the staging folder of

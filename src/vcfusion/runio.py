@@ -86,7 +86,10 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
         _fsync(tmp)  # the content on disk before the name points at it: a power cut leaves old or new
         os.replace(tmp, path)
         if os.name == "posix":  # and the rename itself (a folder cannot be opened for it elsewhere)
-            _fsync(path.parent)
+            try:
+                _fsync(path.parent)
+            except OSError:  # some file systems refuse a folder's fsync; the file is in place all the same
+                pass
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
