@@ -154,15 +154,14 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
     more than one family) and the detections at COCO-evaluation threshold per image id. ``refine``
     (BoxRefineParams): score the boxes as the fusion stage uses them, snapped to each image's depth
     (every image then needs its depth image and camera record)."""
-    from vcfusion.fusion.fuse import detect_frame
+    from vcfusion.fusion.fuse import depth_step
     from vcfusion.detection.detector_net import PostParams
     from vcfusion.fusion.matching import box_iou
 
     operating = getattr(detector, "params", PostParams()).score_threshold
     if hasattr(detector, "params"):
         saved = detector.params
-        evaluation = PostParams(score_threshold=0.01, nms_iou=saved.nms_iou, max_detections=100)
-        detector.params = evaluation
+        detector.params = PostParams(score_threshold=0.01, nms_iou=saved.nms_iou, max_detections=100)
     records = ds.records or [{} for _ in ds.images]
     dets, best, ident = {}, {}, {}
     try:
@@ -170,27 +169,19 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
                                              disable=not progress, leave=False)):
             image = read_rgb(path)
             frame = _camera_frame(ds, k, image) if ds.records and (refine is not None or identification) else None
+            if refine is not None and frame is None:
+                raise DetectorFileError(f"{path}: box refinement needs the image's depth image and camera record "
+                                        "(a folder written by vcfusion render / render-scenes); "
+                                        "score the boxes as detected instead (--no-refine)")
+            raw = detector.detect(image)  # at the evaluation threshold
+            # the boxes the fusion stage works with: the detector's above its operating threshold (the
+            # same boxes as a detection at that threshold: suppression only removes a box for a more
+            # confident one), then the depth step, whose refinements and proposals depend on which
+            # boxes it gets (a proposal scores 0.3, which a higher threshold would cut after it)
+            working = raw.select(raw.scores >= operating)
             if refine is not None:
-                if frame is None:
-                    raise DetectorFileError(f"{path}: box refinement needs the image's depth image and camera record "
-                                            "(a folder written by vcfusion render / render-scenes); "
-                                            "score the boxes as detected instead (--no-refine)")
-                d = detect_frame(frame, detector, refine)
-            else:
-                d = detector.detect(image)
-            dets[iid] = (d.boxes, d.scores, d.classes)
-            if refine is not None and hasattr(detector, "params"):
-                # the boxes the fusion stage works with: the detector at its operating threshold, then
-                # the depth step, whose proposals and refinements depend on which boxes it gets (at
-                # the evaluation threshold it gets weak ones too; and a proposal scores 0.3, which a
-                # higher operating threshold would cut from a selection of these boxes)
-                detector.params = saved
-                try:
-                    working = detect_frame(frame, detector, refine)
-                finally:
-                    detector.params = evaluation
-            else:
-                working = d.select(d.scores >= operating)
+                raw, working = depth_step(frame, raw, refine), depth_step(frame, working, refine)
+            dets[iid] = (raw.boxes, raw.scores, raw.classes)
             gt = ds.boxes[k]
             big = (gt[:, 2] - gt[:, 0]) * (gt[:, 3] - gt[:, 1]) >= min_area
             iou = box_iou(gt[big], working.boxes) if len(working) and big.any() else np.zeros((int(big.sum()), 0))

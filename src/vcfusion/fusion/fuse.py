@@ -92,8 +92,12 @@ def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams
         detector.set_truth(frame.gt_boxes, frame.gt_classes)
         return detector.detect(frame.image)
     detections = detector.detect(frame.image)
-    if refine is None:
-        return detections
+    return detections if refine is None else depth_step(frame, detections, refine)
+
+
+def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefineParams) -> Detections:
+    """The detector's boxes snapped to the frame's depth image, relabelled by how high they stand,
+    and the vehicles it missed proposed from depth (vcfusion.fusion.box_refine)."""
     cam = frame.camera
     if cam.K is None or cam.T_world_to_camera is None:
         raise ValueError("box refinement: the camera has no intrinsics / pose (CameraView.K, T_world_to_camera)")
