@@ -30,14 +30,21 @@ def _runs(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.flatnonzero(diff == 1), np.flatnonzero(diff == -1) - 1
 
 
-def track_bounds(stream: pd.DataFrame) -> list[tuple[int, int]]:
-    """(start, stop) row ranges of each (seed, vehicle) track of a stream sorted by seed, vehicle, time."""
+def _bounds(stream: pd.DataFrame, breaks: np.ndarray | None = None) -> list[tuple[int, int]]:
+    """(start, stop) row ranges of a stream sorted by seed, vehicle, time: a new range where the seed
+    or the vehicle changes, or where `breaks` (one per pair of neighbouring rows) is set."""
     seeds = stream["seed"].to_numpy()
     vids = stream["vehicle_id"].to_numpy()
-    change = np.flatnonzero((seeds[1:] != seeds[:-1]) | (vids[1:] != vids[:-1])) + 1
+    new = (seeds[1:] != seeds[:-1]) | (vids[1:] != vids[:-1])
+    change = np.flatnonzero(new if breaks is None else new | breaks) + 1
     starts = np.concatenate([[0], change]).astype(int)
     stops = np.concatenate([change, [len(seeds)]]).astype(int)
     return list(zip(starts.tolist(), stops.tolist())) if len(seeds) else []
+
+
+def track_bounds(stream: pd.DataFrame) -> list[tuple[int, int]]:
+    """(start, stop) row ranges of each (seed, vehicle) track of a stream sorted by seed, vehicle, time."""
+    return _bounds(stream)
 
 
 def smoothing_bounds(stream: pd.DataFrame) -> list[tuple[int, int]]:
@@ -53,13 +60,7 @@ def smoothing_bounds(stream: pd.DataFrame) -> list[tuple[int, int]]:
         return []
     # the snapshot count of each row's time within its seed (dense rank: 1, 2, ...)
     snapshot = stream.groupby("seed", sort=False)["time"].rank(method="dense").to_numpy()
-    seeds = stream["seed"].to_numpy()
-    vids = stream["vehicle_id"].to_numpy()
-    change = np.flatnonzero((seeds[1:] != seeds[:-1]) | (vids[1:] != vids[:-1])
-                            | (np.diff(snapshot) != 1)) + 1
-    starts = np.concatenate([[0], change]).astype(int)
-    stops = np.concatenate([change, [len(seeds)]]).astype(int)
-    return list(zip(starts.tolist(), stops.tolist()))
+    return _bounds(stream, np.diff(snapshot) != 1)
 
 
 def smooth_stream(bounds: list[tuple[int, int]], decisions: np.ndarray, method: str, tau_a: int, tau_c: int,
