@@ -29,7 +29,7 @@ Per detected box (pixel-centre convention, as everywhere in the fusion stage):
    the best jump-free one no wider that still overlaps the box by ``pair_min_iou``: a box over the
    pair then holds one of them, and the other is proposed.
    How high that segment's top stands (``RefinedBoxes.top_m``) lets the fusion stage correct the
-   class: a car box standing as high as a truck is a truck (``fuse.detect_frame``).
+   class: a car box standing as high as a truck is a truck (``fuse.depth_step``).
 
 Then vehicles the detector missed (a car mostly hidden behind another, a far car in a chain) are
 proposed from the depth image alone (``depth_proposals``): the object pixels of the whole image
