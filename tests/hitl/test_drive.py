@@ -250,6 +250,46 @@ def test_the_car_stays_on_the_lanes_present_where_it_is_and_stops_at_its_top_spe
     assert top == pytest.approx(40.0)
 
 
+def test_where_a_lane_ends_the_barrier_pushes_the_car_out_of_it_gradually_before_the_end():
+    # the car left in the acceleration lane: at its end it was pushed 2.65 m across in one step (and
+    # SUMO, asked to place it past the end of its lane, dropped it from its route: the trip ended)
+    from vcfusion.hitl.vehicle import BARRIER_SLOPE, ControlSample, VehicleModel
+    from vcfusion.traffic.network import read_road
+
+    sc = load_scenario(SCENARIOS / "onramp_camera.yaml")
+    road = read_road(sc.network, sc.route)
+    start, end = road.lane_spans(0)[0]
+    s, dt, speed = start + 20.0, 0.01, 20.0
+    car = VehicleModel(road, speed, float(road.lane_centre_d(0, s)), 1.8, max_speed_mps=speed)
+    d = car.state.d
+    steps = []
+    while s < end + 30.0:
+        new_d = car.update(ControlSample(0.0, 0.0, 0.0), dt, s).d  # wheel centred, no pedals
+        steps.append(abs(new_d - d))
+        d, s = new_d, s + speed * dt
+        if s < end - 3.5 / BARRIER_SLOPE - 1.0:
+            assert int(road.lane_of(s, d)) == 0  # far from the end the lane is the car's to keep
+        if s >= end:
+            assert int(road.lane_of(s, d)) == 1 and d >= float(road.road_bounds(s)[0]) + 0.9 - 1e-9
+    assert max(steps) <= BARRIER_SLOPE * speed * dt + 1e-6  # never faster across than the taper
+
+
+@pytest.mark.slow
+def test_a_trip_that_stays_in_the_acceleration_lane_goes_on_past_its_end(tmp_path):
+    # two lane changes to the right take the ego into the acceleration lane and it holds its wheel:
+    # the trip ended "off route" where that lane ends (SUMO dropped the ego), now it goes on
+    sc = load_scenario(SCENARIOS / "onramp_camera.yaml")
+    sc = sc.model_copy(update={"simulation": sc.simulation.model_copy(update={"max_time_s": 30.0})})
+    replay = tmp_path / "in.csv"
+    replay.write_text("time_s,throttle,brake,steer,lane_change\n0,0,0,0,0\n8.0,0,0,0,-1\n8.01,0,0,0,0\n"
+                      "12.0,0,0,0,-1\n12.01,0,0,0,0\n")
+    result = drive(sc, tmp_path / "run", input_spec=f"replay:{replay}", speed=None)
+    assert result.summary["end_reason"] == "max_time"
+    ego = ego_trace(tmp_path / "run")
+    assert (ego.lane == 0).any()  # it did drive in the acceleration lane
+    assert ego.s.max() > 1000.0  # and past its end (about 946 m)
+
+
 def test_frames_due_between_two_long_steps_count_as_dropped(tmp_path):
     # a 0.1 s SUMO step under a 30 frames/s display: one frame per step can be drawn, the two due
     # in between are dropped frames (they were not counted, and the summary said nothing was lost)

@@ -15,9 +15,12 @@ the front bumper's lateral position moves at v * sin(yaw). A centred wheel drive
 the road, so a lane change is "turn, hold, return", without the counter-steering a bicycle model
 would ask of a keyboard. At 19 m/s full lock crosses a 3.5 m lane in about 2 s. The car stays on
 the road: its lateral position is clamped to the edges of the lanes present where its front
-bumper is, less half the car's width (the barrier; where a lane ends, an acceleration lane or a
-lane drop, the car is pushed into the next lane), and the yaw drops to zero there. Speed stops at
-the vehicle type's maxSpeed (a limiter: the acceleration drops to what reaches it).
+bumper is, less half the car's width (the barrier), and the yaw drops to zero there. Where a lane
+ends ahead (an acceleration lane, a lane drop) the barrier closes in on it before its end, at
+BARRIER_SLOPE (the drawn taper's: 3.5 m over 60 m): a car left in that lane is pushed into the
+next one gradually, and is out of it where SUMO's lane ends (SUMO cannot place a vehicle past the
+end of a lane, and the trip was lost as "off route"). Speed stops at the vehicle type's maxSpeed
+(a limiter: the acceleration drops to what reaches it).
 
 A discrete lane change (keyboard key, or `lane_change` in a replay file) sets a target lane; the
 model then steers itself toward that lane's centre (wanted lateral speed 0.8 /s x the distance,
@@ -30,6 +33,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from vcfusion.driver.params import CarLimits
 from vcfusion.traffic.network import Road
 
@@ -41,6 +46,8 @@ LANE_CHANGE_GAIN = 0.8  # 1/s: wanted lateral speed per metre from the target la
 LANE_CHANGE_MAX_LATERAL_MPS = 1.2
 LANE_CHANGE_DONE_M = 0.05
 STEER_TAKES_OVER = 0.05  # |steer| above this cancels an automatic lane change
+BARRIER_SLOPE = 3.5 / 60.0  # m across per m along: how fast the barrier closes in where a lane ends
+BARRIER_LOOKAHEAD_M = 300.0  # narrowings this far ahead shape it (17.5 m of road width at the slope)
 
 
 @dataclass(frozen=True)
@@ -73,9 +80,14 @@ class VehicleModel:
 
     def bounds(self, s: float) -> tuple[float, float]:
         """The lateral range of the front bumper's centre at s: the edges of the lanes present there,
-        less half the car."""
-        right, left = self.road.road_bounds(s)
-        return float(right) + self.half_width, float(left) - self.half_width
+        less half the car, closing in at BARRIER_SLOPE towards where the road narrows ahead (the
+        edges at each place x m ahead where the lanes present change, less x times the slope)."""
+        breaks = np.asarray(getattr(self.road, "breaks_s", ()), dtype=float)  # a one-edge road has none
+        x = np.r_[0.0, breaks[(breaks > s) & (breaks <= s + BARRIER_LOOKAHEAD_M)] - s]
+        right, left = self.road.road_bounds(s + x)
+        right = float(np.max(np.asarray(right) - BARRIER_SLOPE * x))
+        left = float(np.min(np.asarray(left) + BARRIER_SLOPE * x))
+        return right + self.half_width, left - self.half_width
 
     def wanted_accel(self, c: ControlSample, speed: float) -> float:
         coast = ROLLING_MPS2 + DRAG_PER_M * speed * speed if speed > 0 else 0.0
@@ -104,6 +116,9 @@ class VehicleModel:
             target = base + int(c.lane_change)
             if base >= 0 and int(self.road.lane_of(s_front, self.road.lane_centre_d(target, s_front))) == target:
                 st.target_lane = target  # a lane present here; else (the road's edge) the key does nothing
+        if st.target_lane is not None and int(self.road.lane_of(
+                s_front, self.road.lane_centre_d(st.target_lane, s_front))) != st.target_lane:
+            st.target_lane = None  # the lane ended (the barrier took the car out of it)
         if st.target_lane is not None:
             if abs(steer) > STEER_TAKES_OVER:
                 st.target_lane = None  # the driver steers: the automatic change stops
@@ -117,7 +132,7 @@ class VehicleModel:
         wanted_yaw = max(-1.0, min(1.0, steer)) * MAX_YAW_RAD
         st.yaw += (wanted_yaw - st.yaw) * min(1.0, dt / YAW_TIME_CONSTANT_S)
         st.d += st.speed * math.sin(st.yaw) * dt
-        d_min, d_max = self.bounds(s_front)
+        d_min, d_max = self.bounds(s_front + st.speed * dt)  # where the step puts the front bumper
         if st.d <= d_min or st.d >= d_max:
             st.d = min(max(st.d, d_min), d_max)
             st.yaw = 0.0  # against the barrier: along the road
