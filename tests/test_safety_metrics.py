@@ -10,9 +10,10 @@ from vcfusion.metrics.safety import (acceleration_from_speed, exposure, jerk_fro
                                      ttc_series)
 
 DT = 0.01
+RANGE = 250.0  # metrics.leader_range_m's default: how far ahead a change into the ego's lane is a cut-in
 
 
-def _tables(ego_speed, target_s_centre, target_speed, target_lane=2, mid_time=0.0, length=4.0):
+def _tables(ego_speed, target_s_centre, target_speed, target_lane=2, mid_time=0.0, length=4.0, gap_at_mid=10.0):
     n = len(ego_speed)
     t = np.round(np.arange(n) * DT, 6)
     ego_s = np.concatenate([[0.0], np.cumsum(ego_speed[:-1] * DT)])
@@ -22,7 +23,7 @@ def _tables(ego_speed, target_s_centre, target_speed, target_lane=2, mid_time=0.
     traj = pd.DataFrame({"time": t[every], "vehicle_id": "cutter", "s": target_s_centre[every],
                          "speed": target_speed[every], "lane": target_lane})
     lc = pd.DataFrame([{"vehicle_id": "cutter", "mid_time": mid_time, "into_ego_lane": True,
-                        "ahead_of_ego": True, "gap_to_ego_m": 10.0}])
+                        "ahead_of_ego": True, "gap_to_ego_m": gap_at_mid}])
     vehicles = pd.DataFrame([{"vehicle_id": "cutter", "length": length}, {"vehicle_id": "ego", "length": length}])
     collisions = pd.DataFrame(columns=["collider", "victim"])
     return {"ego": ego, "trajectories": traj, "lane_changes": lc, "vehicles": vehicles, "collisions": collisions}
@@ -34,7 +35,7 @@ def test_constant_speed_closing_ttc_is_gap_over_closing_speed():
     ego_v = np.full(n, 20.0)
     # target rear starts 50 m ahead of the ego front; centre = rear + 2 m
     target_s = 50.0 + 15.0 * t + 2.0
-    m = trip_metrics(_tables(ego_v, target_s, np.full(n, 15.0)), ego_lane=2, dt=DT)
+    m = trip_metrics(_tables(ego_v, target_s, np.full(n, 15.0)), ego_lane=2, dt=DT, cut_in_range_m=RANGE)
     # gap(t) = 50 - 5 t, TTC = 10 - t on t in [0, 5]: mean 7.5, min 5
     assert m["avg_ttc_s"] == pytest.approx(7.5, abs=1e-6)
     assert m["min_ttc_s"] == pytest.approx(5.0, abs=1e-6)
@@ -46,14 +47,14 @@ def test_constant_speed_closing_ttc_is_gap_over_closing_speed():
 def test_ttc_undefined_when_not_closing_and_interval_starts_at_mid_time():
     n = 301
     t = np.arange(n) * DT
-    m = trip_metrics(_tables(np.full(n, 15.0), 30.0 + 20.0 * t, np.full(n, 20.0)), ego_lane=2, dt=DT)
+    m = trip_metrics(_tables(np.full(n, 15.0), 30.0 + 20.0 * t, np.full(n, 20.0)), ego_lane=2, dt=DT, cut_in_range_m=RANGE)
     assert m["ttc_samples"] == 0 and math.isnan(m["avg_ttc_s"])
     # closing, but only from t = 2 s on: samples before the mid time do not count
-    m = trip_metrics(_tables(np.full(n, 20.0), 52.0 + 15.0 * t, np.full(n, 15.0), mid_time=2.0), ego_lane=2, dt=DT)
+    m = trip_metrics(_tables(np.full(n, 20.0), 52.0 + 15.0 * t, np.full(n, 15.0), mid_time=2.0), ego_lane=2, dt=DT, cut_in_range_m=RANGE)
     assert m["ttc_samples"] == 101
     assert m["min_ttc_s"] == pytest.approx(10 - 3.0, abs=1e-6)
     # not in the ego lane: no TTC
-    m = trip_metrics(_tables(np.full(n, 20.0), 52.0 + 15.0 * t, np.full(n, 15.0), target_lane=1), ego_lane=2, dt=DT)
+    m = trip_metrics(_tables(np.full(n, 20.0), 52.0 + 15.0 * t, np.full(n, 15.0), target_lane=1), ego_lane=2, dt=DT, cut_in_range_m=RANGE)
     assert m["ttc_samples"] == 0
 
 
@@ -63,8 +64,21 @@ def test_a_trip_without_a_cut_in_has_no_exposure_to_measure():
     t = np.arange(n) * DT
     tables = _tables(np.full(n, 20.0), 52.0 + 15.0 * t, np.full(n, 15.0))
     tables["lane_changes"] = tables["lane_changes"].iloc[0:0]
-    m = trip_metrics(tables, ego_lane=2, dt=DT)
+    m = trip_metrics(tables, ego_lane=2, dt=DT, cut_in_range_m=RANGE)
     assert m["target_id"] is None and math.isnan(m["tet_s"]) and math.isnan(m["tit_s2"])
+
+
+def test_a_change_into_the_ego_lane_beyond_the_leader_range_is_no_cut_in():
+    # on a long network the first change into the ego's lane was taken 1.4 km ahead, and the study
+    # reported TTC and gaps to it ("minimum gap 856 m") as those of the lane-change vehicle
+    n = 101
+    t = np.arange(n) * DT
+    far = _tables(np.full(n, 20.0), 1400.0 + 15.0 * t, np.full(n, 15.0), gap_at_mid=1398.0)
+    m = trip_metrics(far, ego_lane=2, dt=DT, cut_in_range_m=RANGE)
+    assert m["target_id"] is None and math.isnan(m["min_gap_to_target_m"]) and math.isnan(m["tet_s"])
+    near = _tables(np.full(n, 20.0), 52.0 + 15.0 * t, np.full(n, 15.0), gap_at_mid=50.0)
+    assert trip_metrics(near, ego_lane=2, dt=DT, cut_in_range_m=RANGE)["target_id"] == "cutter"
+    assert trip_metrics(near, ego_lane=2, dt=DT, cut_in_range_m=40.0)["target_id"] is None
 
 
 def test_tet_tit_below_threshold():
@@ -80,7 +94,7 @@ def test_constant_deceleration():
     a = acceleration_from_speed(v, DT)
     assert np.allclose(a, -3.0)
     assert np.allclose(jerk_from_acceleration(a, DT), 0.0, atol=1e-9)
-    m = trip_metrics(_tables(v, 200.0 + 20.0 * np.arange(n) * DT, np.full(n, 20.0)), 2, DT)
+    m = trip_metrics(_tables(v, 200.0 + 20.0 * np.arange(n) * DT, np.full(n, 20.0)), 2, DT, RANGE)
     assert m["avg_abs_accel_mps2"] == pytest.approx(3.0)
     assert m["max_decel_mps2"] == pytest.approx(3.0)
     assert m["max_abs_jerk_mps3"] == pytest.approx(0.0, abs=1e-6)

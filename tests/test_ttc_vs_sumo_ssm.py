@@ -35,7 +35,7 @@ def test_ttc_matches_sumo_ssm_device(tmp_path):
     # Without guidance the driver closes in on the cut-in vehicle: TTC is finite and meaningful.
     result = build_cosimulation(scenario, seed=0, guidance_enabled=False).run()
     tables = result.tables
-    target = cut_in_target(tables["lane_changes"])
+    target = cut_in_target(tables["lane_changes"], scenario.metrics.leader_range_m)
     assert target is not None
     length = float(tables["vehicles"].set_index("vehicle_id").loc[target["vehicle_id"], "length"])
     ours = target_ttc(tables["ego"], tables["trajectories"], target["vehicle_id"], length,

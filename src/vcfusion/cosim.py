@@ -30,7 +30,7 @@ from vcfusion.cloud.channel import V2CChannel
 from vcfusion.cloud.twins import ProcessModel, TwinStore, neighbours
 from vcfusion.interrupts import raise_if_received
 from vcfusion.metrics.run_metrics import add_run_metrics
-from vcfusion.metrics.safety import colliding_pairs
+from vcfusion.metrics.safety import colliding_pairs, cut_ins
 from vcfusion.metrics.traffic import sumo_model_rates
 from vcfusion.records import EGO_ID, GuidanceSet, TwinStates, VehicleStates
 from vcfusion.runio import RunTables, TableSink, vehicle_tracks
@@ -406,7 +406,7 @@ def summarize(sc: Scenario, seed: int, tables, lc: dict[str, np.ndarray], channe
         "v2c_reports_lost": channel.lost,
     }
     if sc.ego is not None and "into_ego_lane" in lc:
-        cut = lc["into_ego_lane"] & lc["ahead_of_ego"]
+        cut = cut_ins(lc, sc.metrics.leader_range_m)
         ego = tables.arrow("ego", ["s", "speed", "leader_gap_m"])
         s, speed, gap = (ego.column(c).to_numpy() for c in ("s", "speed", "leader_gap_m"))
         summary.update({

@@ -11,8 +11,9 @@ Definitions (the same for both arms of the guidance study):
   pedal), then differentiated: j = diff(a_smooth) / dt. A continuous jerk ramp passes
   unchanged. ``max_abs_jerk_mps3`` = max |j|.
 - **TTC to the lane-change vehicle** (the paper's "silver vehicle"): the first cut-in ahead of
-  the ego (``lane_changes`` rows with ``into_ego_lane`` and ``ahead_of_ego``, earliest
-  ``mid_time``). From its mid time (the moment its centre enters the ego lane) until the trip
+  the ego (``lane_changes`` rows with ``into_ego_lane`` whose rear is ahead of the ego's front by at
+  most ``cut_in_range_m`` at its mid time, the scenario's ``metrics.leader_range_m``: a change into
+  the ego's lane a kilometre ahead is nobody's cut-in; earliest ``mid_time``). From its mid time (the moment its centre enters the ego lane) until the trip
   ends, at every ego sample while it is ahead of the ego and still in the ego lane:
   gap = its rear bumper - the ego's front bumper (along the road), closing speed =
   v_ego - v_target; TTC = gap / closing, defined only where closing > 0 (constant-velocity
@@ -82,11 +83,19 @@ def exposure(ttc: np.ndarray, dt: float, threshold_s: float) -> tuple[float, flo
     return float(below.sum() * dt), float(np.sum(threshold_s - t[below]) * dt)
 
 
-def cut_in_target(lane_changes: pd.DataFrame) -> pd.Series | None:
-    """The first lane change into the ego lane ahead of the ego (None if there is none)."""
+def cut_ins(lane_changes, range_m: float):
+    """Per lane change (a DataFrame, or a dict of column arrays): whether it is a cut-in, into the
+    ego's lane with its rear ahead of the ego's front by at most range_m (bumper to bumper along the
+    road at its mid time)."""
+    gap = lane_changes["gap_to_ego_m"]
+    return lane_changes["into_ego_lane"] & lane_changes["ahead_of_ego"] & (gap <= range_m)
+
+
+def cut_in_target(lane_changes: pd.DataFrame, range_m: float) -> pd.Series | None:
+    """The first cut-in (:func:`cut_ins`) ahead of the ego (None if there is none)."""
     if lane_changes is None or lane_changes.empty or "into_ego_lane" not in lane_changes:
         return None
-    cut = lane_changes[lane_changes["into_ego_lane"] & lane_changes["ahead_of_ego"]]
+    cut = lane_changes[cut_ins(lane_changes, range_m)]
     if cut.empty:
         return None
     return cut.sort_values("mid_time").iloc[0]
@@ -133,14 +142,14 @@ def kinematics(time: np.ndarray, s: np.ndarray, speed: np.ndarray, dt: float, je
     }
 
 
-def trip_metrics(tables: dict[str, pd.DataFrame], ego_lane: int, dt: float,
+def trip_metrics(tables: dict[str, pd.DataFrame], ego_lane: int, dt: float, cut_in_range_m: float,
                  ttc_threshold_s: float = 1.5, jerk_window_s: float = 0.1, ttc_clip_s: float = 20.0) -> dict:
     """Safety/comfort metrics of one run's tables (see the module doc for the definitions).
     The thresholds come from the scenario's `metrics:` block (MetricsConfig)."""
     ego = tables["ego"].sort_values("time")
     out = kinematics(ego["time"].to_numpy(), ego["s"].to_numpy(), ego["speed"].to_numpy(), dt, jerk_window_s)
     out["collisions"] = sum(EGO_ID in pair for pair in colliding_pairs(tables.get("collisions")))
-    target = cut_in_target(tables.get("lane_changes"))
+    target = cut_in_target(tables.get("lane_changes"), cut_in_range_m)
     out.update({"target_id": None, "target_mid_time_s": math.nan, "target_gap_at_mid_m": math.nan,
                 "avg_ttc_s": math.nan, "avg_ttc_clipped_s": math.nan, "min_ttc_s": math.nan, "ttc_samples": 0,
                 # no cut-in ahead: no exposure to measure (0 would pair a trip without a cut-in with

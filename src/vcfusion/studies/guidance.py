@@ -218,15 +218,15 @@ def arm_metrics(run: dict, target_id: str | None) -> dict:
     from vcfusion.metrics.traffic import ego_movestar_type
 
     sc, tables, arm = run["scenario"], dict(run["tables"]), run["arm"]
-    own = cut_in_target(tables.get("lane_changes"))
+    own = cut_in_target(tables.get("lane_changes"), sc.metrics.leader_range_m)
     if target_id is not None:  # the seed's vehicle, whichever cut in first in this arm
         lc = tables["lane_changes"]
         tables["lane_changes"] = lc[lc["vehicle_id"] == target_id]
     row = {"end_reason": run["summary"]["end_reason"],
            "cut_ins_ahead_of_ego": run["summary"].get("cut_ins_ahead_of_ego", 0)}
     m = sc.metrics  # the same thresholds and definitions as the runs' metrics tables
-    row.update(trip_metrics(tables, sc.ego.lane, sc.simulation.step_s, m.ttc_threshold_s, m.jerk_window_s,
-                            m.ttc_clip_s))
+    row.update(trip_metrics(tables, sc.ego.lane, sc.simulation.step_s, m.leader_range_m, m.ttc_threshold_s,
+                            m.jerk_window_s, m.ttc_clip_s))
     row["ttc_threshold_s"] = m.ttc_threshold_s
     row["target_id"] = target_id
     # whether the seed's vehicle cut in ahead of the ego in this arm (else its TTC / gap are NaN)
@@ -272,7 +272,7 @@ def choose_target(runs: list[dict]) -> str | None:
 
     ordered = sorted(runs, key=lambda r: r["arm"] != REFERENCE_ARM)
     for run in ordered:
-        first = cut_in_target(run["tables"].get("lane_changes"))
+        first = cut_in_target(run["tables"].get("lane_changes"), run["scenario"].metrics.leader_range_m)
         if first is not None:
             return str(first["vehicle_id"])
     return None
