@@ -248,6 +248,9 @@ CASES = [
     Case("ego route numbering its lanes otherwise", lambda t: run(t, ONRAMP.replace(
         "ego: {lane: 2,", "ego: {route: [main_out], lane: 0,")),
          ("s.yaml", "ego.route:", "SUMO lane main_out_0", "lane 1 of the scenario's route")),
+    Case("ego route starting off the scenario's route", lambda t: run(t, ONRAMP.replace(
+        "ego: {lane: 2, depart_pos_m: 50", "ego: {route: [ramp, accel, main_out], lane: 0, depart_pos_m: 50")),
+         ("s.yaml", "ego.route:", "SUMO lane ramp_0", "which is not on the scenario's route")),
     Case("accident edge off the route", lambda t: run(t, ONRAMP + "accident: {edge: ramp, pos_m: 10, lanes: [0]}\n"),
          ("s.yaml", "accident.edge:", "expected an edge of the route", "'ramp'")),
     Case("network lane without shape", lambda t: network(

@@ -681,11 +681,13 @@ def _check_ego_lane(scenario: Scenario, road, origins: _Origins) -> None:
     ego = scenario.ego
     frame = read_road(scenario.network, ego.route) if ego.route is not None else road
     lane_id = "{0[0]}_{1}".format(*sumo_place(frame, ego.lane, ego.depart_pos_m))
-    if road.track_of.get(lane_id) != ego.lane:
+    track = road.track_of.get(lane_id)
+    if track != ego.lane:
+        where = (f"which is lane {track} of the scenario's route {list(road.route)}, not {ego.lane}" if track is not None
+                 else f"which is not on the scenario's route {list(road.route)}")
         raise ScenarioError(f"{origins.label(('ego', 'route'))}: ego.route: the ego departs in SUMO lane {lane_id}, "
-                            f"which is lane {road.track_of.get(lane_id, 'none')} of the scenario's route "
-                            f"{list(road.route)}, not {ego.lane}; expected an ego route on which the ego's lane "
-                            "has the scenario's index (e.g. a part of the scenario's route)")
+                            f"{where}; expected an ego route on which the ego's lane has the scenario's index "
+                            "(e.g. a part of the scenario's route)")
     end = float(frame.lane_end_ahead(ego.lane, ego.depart_pos_m))
     trip_end = ego.depart_pos_m + ego.trip_distance_m
     if end < trip_end:
