@@ -346,9 +346,16 @@ class RoadFrame:
             if pts_all:
                 gap = float(np.hypot(*(ref[0] - pts_all[-1][-1])))
                 if gap > _JOIN_TOL_M:
+                    a, b = pieces[i - 1].edge_id, p.edge_id
+                    if a in self.route and b in self.route:  # two route edges: no junction lanes between
+                        raise RouteError(
+                            self.net_file, "route", f"no junction lanes join {a!r} to {b!r} (a network built "
+                            f"with --no-internal-links?) and their lanes lie {gap:.2f} m apart, which the road "
+                            "frame cannot bridge; expected a network with junction lanes (netconvert without "
+                            "--no-internal-links)")
                     raise RouteError(
                         self.net_file, "route", f"the lane geometry jumps by {gap:.2f} m where "
-                        f"{pieces[i - 1].edge_id!r} meets {p.edge_id!r}; the road frame cannot follow it")
+                        f"{a!r} meets {b!r}; the road frame cannot follow it")
                 self.max_join_gap_m = max(self.max_join_gap_m, gap)
                 pts_all[-1][-1] = 0.5 * (pts_all[-1][-1] + ref[0])  # both pieces end at the midpoint
                 ref, s_vertices = ref[1:], s_vertices[1:]
