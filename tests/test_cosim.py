@@ -135,6 +135,11 @@ def test_collisions_are_reported(tmp_path):
     col = result.tables["collisions"]
     assert len(col) >= 1 and result.summary["collisions"] == len(col[["collider", "victim"]].drop_duplicates())
     assert col.iloc[0].collider == "ego" and col.iloc[0].victim.startswith("accident")
+    # one row per contact, from its first to its last step in contact (SUMO repeats the contact's
+    # first record every step it lasts: it was a row per step, each with the impact's speeds)
+    assert (col.end_time >= col.time).all() and (col.end_time - col.time).max() > 0.5  # 87 steps in contact
+    for _, pair in col.groupby(["collider", "victim"]):
+        assert (pair.time.to_numpy()[1:] > pair.end_time.to_numpy()[:-1] + 1.5 * sc.simulation.step_s).all()
 
 
 def test_stopping_short_of_a_stopped_vehicle_is_not_a_collision(tmp_path):

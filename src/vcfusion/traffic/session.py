@@ -9,7 +9,7 @@ libsumo holds one simulation per process and is not thread-safe: parallel runs a
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -32,6 +32,10 @@ class RunError(RuntimeError):
 
 @dataclass(frozen=True)
 class Collision:
+    """One contact of a pair: SUMO's record of it at its first step (while a contact lasts SUMO
+    reports that same record every step: speeds, lane and position at the impact), and the last
+    step the pair was still in contact."""
+
     time: float
     collider: str
     victim: str
@@ -40,6 +44,7 @@ class Collision:
     victim_speed: float
     lane: str
     pos: float
+    end_time: float
 
 
 @dataclass(frozen=True)
@@ -233,7 +238,8 @@ class SumoSession:
         self._static: dict[str, tuple] = {}
         # (ids, their static columns) of the last states(): reused while the same vehicles are there
         self._static_of: tuple[tuple, tuple] = ((), ((), (), np.zeros(0), np.zeros(0), np.zeros(0)))
-        self.collisions: list[Collision] = []  # every collision SUMO reported, in step order
+        self.collisions: list[Collision] = []  # every contact SUMO reported, in the order they began
+        self._contact: dict[tuple[str, str], int] = {}  # (collider, victim) -> its latest contact
         self._ego_min_gap: float | None = None
         self.ego_off_route = False  # the trip ended because the ego left its route (ego_state)
         try:
@@ -355,10 +361,15 @@ class SumoSession:
         # SUMO's outputs (fcd, lanechange, collisions) label the state after a step with the time
         # the step began; getTime() already returns the next one. Stamp like the outputs.
         self.time = round(libsumo.simulation.getTime() - self.step_s, 9)
-        found = libsumo.simulation.getCollisions()
-        if found:
-            self.collisions += [Collision(self.time, c.collider, c.victim, c.type, c.colliderSpeed, c.victimSpeed,
-                                          c.lane, c.pos) for c in found]
+        for c in libsumo.simulation.getCollisions():
+            # a pair reported again one step after its last report is the same contact going on
+            k = self._contact.get((c.collider, c.victim))
+            if k is not None and self.collisions[k].end_time >= self.time - 1.5 * self.step_s:
+                self.collisions[k] = replace(self.collisions[k], end_time=self.time)
+            else:
+                self._contact[(c.collider, c.victim)] = len(self.collisions)
+                self.collisions.append(Collision(self.time, c.collider, c.victim, c.type, c.colliderSpeed,
+                                                 c.victimSpeed, c.lane, c.pos, self.time))
 
     def set_ego_speed(self, speed_mps: float) -> None:
         libsumo.vehicle.setSpeed(EGO_ID, max(0.0, speed_mps))
