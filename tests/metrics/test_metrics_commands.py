@@ -84,6 +84,24 @@ def test_batch_columns_table_rethreshold_and_report(tmp_path, accident_path, cap
     for png in ("ttc_headway_distributions.png", "fuel_co2_by_class.png", "conflicts_by_position.png",
                 "ego_time_series.png"):
         assert (out / "report" / png).stat().st_size > 5000, png
+    capsys.readouterr()
+    # resumed with the scenario's own block, the batch would pool runs of two TTC thresholds (it did,
+    # and the report named one threshold for all): refused, nothing run
+    assert main(["batch", str(accident_path), "--seeds", "0-3", "--out", str(out)]) == 2
+    assert ("seed_0000: its metrics were recomputed with another metrics: block than this scenario's (they "
+            "differ in: ttc_threshold_s)") in capsys.readouterr().err
+    assert not seed_folder(out, 3).exists()
+    # one run recomputed with its own block: a report would pool two definitions
+    assert main(["metrics", str(seed_folder(out, 1))]) == 0
+    assert main(["report", str(out)]) == 2
+    assert "another metrics: block than" in capsys.readouterr().err
+    # all recomputed alike, then a batch of seeds 0-1 into the folder: the report covers those two
+    # (its header, tables and figures covered every run folder, its seeds table the batch's seeds)
+    assert main(["metrics", str(out)]) == 0
+    assert main(["batch", str(accident_path), "--seeds", "0-1", "--out", str(out)]) == 0
+    assert main(["report", str(out)]) == 0
+    report = (out / "report" / "report.md").read_text()
+    assert "\n2 runs;" in report and "| fuel, all rated vehicles | g/km | 2 |" in report
 
 
 def test_metrics_refuses_what_is_not_a_run_or_batch_folder(tmp_path, capsys):

@@ -68,18 +68,23 @@ def recompute_folder(folder: Path, scenario_file: str | None = None) -> bool:
     return has_sumo
 
 
+def batch_seed_folders(batch: Path, folders: list[Path]) -> list[Path]:
+    """The run folders a batch's figures cover: the seeds its batch_summary.parquet lists (those of
+    the last `vcfusion batch` into it), else every complete one."""
+    path = batch / BATCH_SUMMARY
+    if not path.is_file():
+        return folders
+    listed = set(pd.read_parquet(path, columns=["seed"])["seed"])
+    return [f for f in folders if json.loads((f / "summary.json").read_text())["seed"] in listed]
+
+
 def rebuild_batch_summary(batch: Path, folders: list[Path]) -> pd.DataFrame:
     """batch_summary.parquet from its seeds' summaries (the seeds it listed, else every complete one)."""
     from vcfusion.metrics.run_metrics import batch_row
     from vcfusion.runio import atomic_write, write_table
 
     path = batch / BATCH_SUMMARY
-    listed = set(pd.read_parquet(path, columns=["seed"])["seed"]) if path.is_file() else None
-    rows = []
-    for folder in folders:
-        summary = json.loads((folder / "summary.json").read_text())
-        if listed is None or summary["seed"] in listed:
-            rows.append(batch_row(summary))
+    rows = [batch_row(json.loads((folder / "summary.json").read_text())) for folder in batch_seed_folders(batch, folders)]
     frame = pd.DataFrame(rows).sort_values("seed")
     atomic_write(path, lambda tmp: write_table(tmp, frame))
     return frame
@@ -124,7 +129,9 @@ def cmd_report(args: argparse.Namespace) -> int:
     from vcfusion.metrics.report import write_report
 
     batch = Path(args.batch)
-    folders, _ = run_folders(batch)
+    folders, is_batch = run_folders(batch)
+    if is_batch:  # the header, tables and figures cover the seeds the seeds table does
+        folders = batch_seed_folders(batch, folders)
     out = Path(args.out) if args.out else batch / "report"
     report = write_report(batch, folders, out)
     print(f"report: {report}")

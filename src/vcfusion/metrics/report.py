@@ -80,10 +80,20 @@ def write_report(batch: Path, folders: list[Path], out: Path) -> Path:
         raise UsageError(f"{batch}: no metrics.parquet in its run folders; run `vcfusion metrics {batch}` first")
     hist = _read(folders, "metric_histograms")
     conflicts = _read(folders, "conflicts")
+    settings = [_settings(f) for f in folders]
+    odd = [f for f, block in zip(folders, settings) if block != settings[0]]
+    if odd:
+        from vcfusion.errors import UsageError
+
+        keys = sorted(k for k in settings[0].keys() | _settings(odd[0]).keys()
+                      if settings[0].get(k) != _settings(odd[0]).get(k))
+        raise UsageError(f"{odd[0]}: its metrics were computed with another metrics: block than {folders[0]}'s "
+                         f"(they differ in: {', '.join(keys)}); a report pools runs of one definition: recompute "
+                         f"them with one (vcfusion metrics {batch} [--scenario FILE]) first")
     summary_path = batch / "batch_summary.parquet"
     batch_summary = pd.read_parquet(summary_path) if summary_path.is_file() else pd.DataFrame()
     figures = {}
-    threshold = _settings(folders[0]).get("ttc_threshold_s")
+    threshold = settings[0].get("ttc_threshold_s")
 
     # TTC and time headway distributions (all seeds, counted vehicles)
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
@@ -154,10 +164,10 @@ def write_report(batch: Path, folders: list[Path], out: Path) -> Path:
         figures["ego"] = _save(fig, out / "ego_time_series.png")
 
     stats = seed_statistics(batch_summary) if len(batch_summary) else pd.DataFrame()
-    settings = _settings_line(_settings(folders[0]))
     lines = [f"# Metrics report: {batch.name}", "",
              f"{len(folders)} runs; {int(metrics['counted'].sum())} counted vehicle trips, "
-             f"{metrics.loc[metrics['counted'], 'distance_m'].sum() / 1000.0:.1f} vehicle-km. {settings}", ""]
+             f"{metrics.loc[metrics['counted'], 'distance_m'].sum() / 1000.0:.1f} vehicle-km. "
+             f"{_settings_line(settings[0])}", ""]
     if len(stats):
         table = stats[["label", "unit", "seeds", "mean", "ci95_low", "ci95_high", "p2_5", "p97_5"]].rename(columns={
             "ci95_low": "95% CI low", "ci95_high": "95% CI high", "p2_5": "seeds 2.5%", "p97_5": "seeds 97.5%"})

@@ -88,16 +88,22 @@ def _ratio(num: float, den: float) -> float | None:
     return num / den if den > 0 and math.isfinite(num) else None
 
 
+def metrics_settings(cfg, sumo_available: bool = True) -> dict:
+    """summary.json's `metrics.settings`: the definitions a run's metrics were computed with (a
+    batch and a report pool only runs of one)."""
+    return {"ttc_threshold_s": cfg.ttc_threshold_s, "jerk_window_s": cfg.jerk_window_s,
+            "leader_range_m": cfg.leader_range_m, "movestar": dict(cfg.movestar),
+            "exclude_groups": list(cfg.exclude_groups),
+            "sumo_emissions": cfg.sumo_emissions if sumo_available else "missing: the run folder has no "
+            "sumo_emissions.parquet (written before SUMO's emissions were recorded)"}
+
+
 def summary_block(cfg, result: RunMetrics, collisions: pd.DataFrame | None, sumo_available: bool) -> dict:
     """summary.json's `metrics`: the ego, the traffic (counted vehicles) and the settings used."""
     col = result.columns
     distinct = colliding_pairs(collisions)
     pairs, ego_collisions = len(distinct), sum(EGO_ID in pair for pair in distinct)
-    block: dict = {"settings": {"ttc_threshold_s": cfg.ttc_threshold_s, "jerk_window_s": cfg.jerk_window_s,
-                                "leader_range_m": cfg.leader_range_m, "movestar": dict(cfg.movestar),
-                                "exclude_groups": list(cfg.exclude_groups),
-                                "sumo_emissions": cfg.sumo_emissions if sumo_available else "missing: the run folder "
-                                "has no sumo_emissions.parquet (written before SUMO's emissions were recorded)"}}
+    block: dict = {"settings": metrics_settings(cfg, sumo_available)}
     ids = col["vehicle_id"].tolist()
     if EGO_ID in ids:
         i = ids.index(EGO_ID)

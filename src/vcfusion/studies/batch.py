@@ -20,7 +20,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from vcfusion.errors import UsageError
-from vcfusion.metrics.run_metrics import batch_row
+from vcfusion.metrics.run_metrics import batch_row, metrics_settings
 from vcfusion.runio import atomic_write, discard_partial_folder, is_complete_run, write_json, write_table
 from vcfusion.workers import JobFailed, run_jobs
 
@@ -206,7 +206,10 @@ def _check_kept_runs(scenario_path: Path, seeds: list[int], out: Path) -> None:
 
     if not seeds:
         return
-    expected = manifest_for(load_scenario(scenario_path), 0)["scenario"]
+    scenario = load_scenario(scenario_path)
+    expected = manifest_for(scenario, 0)["scenario"]
+    # `vcfusion metrics --scenario` recomputes a run's metrics with another block than its manifest's
+    settings = metrics_settings(scenario.metrics) if scenario.metrics.enabled else None
     for seed in seeds:
         folder = seed_folder(out, seed)
         try:
@@ -224,6 +227,17 @@ def _check_kept_runs(scenario_path: Path, seeds: list[int], out: Path) -> None:
             raise UsageError(f"{folder}: holds a run that is not this scenario's run of seed {seed} (it differs in: "
                              f"{what}); a batch resumes only its own runs: choose another output folder, or "
                              "remove that one")
+        if settings is not None and is_complete_run(folder):
+            try:
+                kept_settings = json.loads((folder / "summary.json").read_text())["metrics"]["settings"]
+            except (OSError, ValueError, KeyError, TypeError):
+                kept_settings = {}
+            other = [k for k in settings if settings[k] != kept_settings.get(k)]
+            if other:
+                raise UsageError(f"{folder}: its metrics were recomputed with another metrics: block than this "
+                                 f"scenario's (they differ in: {', '.join(other)}); a batch pools runs of one "
+                                 f"definition: recompute them with this scenario's (vcfusion metrics {out} "
+                                 f"--scenario {scenario_path}), or choose another output folder")
 
 
 def _write_index(out: Path, seeds: list[int], failed: list[SeedOutcome]) -> None:
