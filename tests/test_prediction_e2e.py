@@ -72,6 +72,16 @@ def test_dataset_train_evaluate_on_real_sumo(tmp_path, capsys):
     assert json.loads((data / "dataset.json").read_text())["samples_version"] == SAMPLES_VERSION
     pd.testing.assert_frame_equal(pd.read_parquet(data / "runs" / "seed_0000" / "samples.parquet"), samples)
     assert (data / "runs" / "seed_0001" / "samples.parquet").is_file()
+    # the scenario edited: refused before anything is written (dataset.json lost its splits, and with
+    # --refeature every run's samples were recomputed with the edited scenario, before the refusal)
+    kept = {p: p.read_bytes() for p in [data / "dataset.json", *data.glob("runs/*/samples.parquet")]}
+    (tmp_path / "edited").mkdir()
+    edited = _short_dense(tmp_path / "edited", 31.0)
+    for extra in ([], ["--refeature"]):
+        assert main(["dataset", str(edited), "--seeds", "0-2", "--out", str(data), "--workers", "1",
+                     "--tau", "4", "--tau-g", "2", *extra]) == 2
+        assert "holds a run that is not this scenario's run of seed 0" in capsys.readouterr().err
+        assert {p: p.read_bytes() for p in kept} == kept
 
     model_file = tmp_path / "m.npz"
     assert main(["train", str(data), "--out", str(model_file), "--epochs", "3", "--hidden", "16"]) == 0

@@ -69,10 +69,21 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
     return CoSimulation(scenario, seed, controller=controller, process_models=process_models, hooks=hooks)
 
 
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
 def manifest_for(scenario: Scenario, seed: int) -> dict:
     return {
-        # the resolved scenario: the file merged over the files it extends, defaults filled in
-        "scenario": scenario.to_dict() | {"network": scenario.network.name, "vehicle_types": scenario.vehicle_types.name},
+        # the resolved scenario: the file merged over the files it extends, defaults filled in; the
+        # network and vehicle types by name and content (a network rebuilt under the same name, e.g.
+        # with other lane widths, makes other runs: a batch or dataset must not resume into it)
+        "scenario": scenario.to_dict() | {"network": scenario.network.name, "vehicle_types": scenario.vehicle_types.name,
+                                          "network_sha256": _sha256(scenario.network),
+                                          "vehicle_types_sha256": _sha256(scenario.vehicle_types)},
         "scenario_file": str(scenario.source) if scenario.source else None,
         # the file given and the files it extends, in that order (one file when it extends none)
         "scenario_chain": [str(p) for p in scenario.chain],

@@ -54,6 +54,27 @@ def test_a_batch_resumes_only_its_own_runs(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == before
 
 
+def test_a_batch_does_not_resume_into_runs_of_a_network_rebuilt_under_the_same_name(tmp_path):
+    # the same scenario file naming a network file whose content changed (other lane widths): the
+    # manifests named the network only, and the old runs were pooled with the new
+    import shutil
+
+    from scenario_files import REPO
+
+    (tmp_path / "net").mkdir()
+    for name in ("highway.net.xml", "vtypes.add.xml"):
+        shutil.copy(REPO / "sumo_net" / name, tmp_path / "net" / name)
+    path = tiny_scenario(tmp_path, 2)
+    path.write_text(path.read_text().replace((REPO / "sumo_net").as_posix(), (tmp_path / "net").as_posix()))
+    out = tmp_path / "b"
+    assert run_batch(path, [0], out, workers=1, progress=False)["done"] == 1
+    net = tmp_path / "net" / "highway.net.xml"
+    net.write_text(net.read_text() + "<!-- rebuilt -->\n")
+    with pytest.raises(UsageError, match=r"seed_0000: holds a run that is not this scenario's run of seed 0 "
+                                         r"\(it differs in: network_sha256\)"):
+        run_batch(path, [0, 1], out, workers=1, progress=False)
+
+
 @pytest.mark.slow
 def test_batch_isolates_failing_seeds(tmp_path):
     # Each seed draws one vehicle in [1950, 2100] m on a 2000 m road: beyond the end it cannot depart.

@@ -24,7 +24,7 @@ import pandas as pd
 from vcfusion.errors import InputError
 from vcfusion.prediction.features import FEATURE_NAMES, SEQUENCE_EXTRA_NAMES, features_from_twins_table
 from vcfusion.prediction.labels import label_samples
-from vcfusion.studies.batch import SeedOutcome, run_batch, seed_folder
+from vcfusion.studies.batch import SeedOutcome, check_kept_runs, run_batch, seed_folder
 from vcfusion.traffic.network import read_road
 from vcfusion.workers import JobFailed, run_jobs
 
@@ -338,6 +338,8 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
             raise DatasetError(f"{meta_file}: the folder holds a dataset with other parameters "
                                f"({', '.join(f'{k}: {a!r} vs {b!r}' for k, (a, b) in clash.items())}); "
                                f"choose a new --out{hint}")
+    # before anything is written: a refused run must leave the dataset as it was
+    check_kept_runs(Path(scenario_path), seeds, out / "runs")
     out.mkdir(parents=True, exist_ok=True)
     atomic_write(meta_file, lambda tmp: write_json(tmp, params))
     refeatured, stale = [], []
