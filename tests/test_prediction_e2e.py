@@ -189,3 +189,41 @@ def test_gru_on_two_families_end_to_end(tmp_path):
     offline = model.stream_proba(stream, list(model.feature_names))
     np.testing.assert_allclose(offline, stream["lc_prob"].to_numpy(), atol=1e-5)
     assert stream["lc_prob"].std() > 1e-3
+
+
+def test_a_dataset_without_a_lane_change_is_refused_for_training_in_one_line(tmp_path, capsys):
+    # one lane driven, every car at its desired speed: no lane change in any seed. Training crashed
+    # (MLP: load_state_dict(None); GRU: "calibration needs both classes"), and so did evaluate's baselines
+    path = tmp_path / "nolc.yaml"
+    path.write_text(f"""
+name: nolc
+network: {(REPO / "sumo_net" / "highway.net.xml").as_posix()}
+vehicle_types: {(REPO / "sumo_net" / "vtypes.add.xml").as_posix()}
+simulation: {{step_s: 0.1, max_time_s: 15}}
+vehicles:
+  - {{name: cars, count: 6, lanes: [0], pos_m: [10, 1200], speed_mps: 15, desired_speed_mps: 15, min_spacing_m: 100}}
+""")
+    data = tmp_path / "ds"
+    assert main(["dataset", str(path), "--seeds", "0-2", "--out", str(data), "--workers", "1"]) == 0
+    assert json.loads((data / "dataset.json").read_text())["counts"]["lane_changes"] == 0
+    capsys.readouterr()
+    for argv in (["train", str(data), "--out", str(tmp_path / "m.npz")],
+                 ["train", str(data), "--kind", "gru", "--out", str(tmp_path / "g.npz")],
+                 ["evaluate", str(REPO / "src" / "vcfusion" / "assets" / "lane_change_gru.npz"), str(data),
+                  "--split", "all", "--out", str(tmp_path / "ev")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "split 'train': 0 positive" in err and "training needs both" in err and len(err.splitlines()) == 1
+    assert not any((tmp_path / name).exists() for name in ("m.npz", "g.npz", "ev"))
+    assert main(["evaluate", str(REPO / "src" / "vcfusion" / "assets" / "lane_change_gru.npz"), str(data),
+                 "--split", "all", "--no-baselines", "--out", str(tmp_path / "ev")]) == 0
+
+
+def test_a_feature_constant_in_training_is_not_blown_up_on_new_traffic():
+    from vcfusion.prediction.model import feature_scaling
+
+    # `length` constant (no trucks in training): a 12 m truck was standardised with std 1e-6 to ~7e6
+    x = np.array([[4.5, 10.0], [4.5, 20.0], [4.5, 30.0]], np.float32)
+    mean, std = feature_scaling(x)
+    assert std.tolist() == [1.0, pytest.approx(np.std([10.0, 20.0, 30.0]))]
+    assert (np.array([12.0, 20.0]) - mean)[0] / std[0] == pytest.approx(7.5)

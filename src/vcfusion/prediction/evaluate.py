@@ -37,10 +37,11 @@ from scipy.stats import rankdata
 from vcfusion.prediction.dataset import DatasetError, load_dataset, load_samples
 from vcfusion.prediction.events import event_scores, smooth_stream, smoothing_bounds, track_bounds
 from vcfusion.prediction.features import SEQUENCE_EXTRA_NAMES
-from vcfusion.prediction.model import LaneChangeModel, load_model, model_feature_names, model_kind
+from vcfusion.prediction.model import LaneChangeModel, feature_scaling, load_model, model_feature_names, model_kind
 from vcfusion.prediction.train_sequence import check_sequence_columns
 from vcfusion.prediction.privileged import SumoWantsRule
-from vcfusion.prediction.train import TrainConfig, _fit_torch, stream_with_events, training_rows, tune_decisions
+from vcfusion.prediction.train import (TrainConfig, _fit_torch, require_both_labels, stream_with_events,
+                                      training_rows, tune_decisions)
 from vcfusion.runio import atomic_write
 
 VARIANTS = ("original", "aggressive", "conservative")
@@ -143,7 +144,10 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
         tr = training_rows(info, "train", bg, rng)
         va = training_rows(info, "validation", bg, rng)
         x_tr, y_tr = tr[names].to_numpy(np.float32), (tr["window_label"] == 1).to_numpy(np.float32)
-        mean, std = x_tr.mean(axis=0), np.maximum(x_tr.std(axis=0), 1e-6).astype(np.float32)
+        for split, rows in (("train", tr), ("validation", va)):
+            require_both_labels((rows["window_label"] == 1).to_numpy(), split,
+                                " (or score the model alone: --no-baselines)")
+        mean, std = feature_scaling(x_tr)
         norm = lambda a: ((a - mean) / std).astype(np.float32)  # noqa: E731
         w, _ = _fit_torch(norm(x_tr), y_tr, norm(va[names].to_numpy(np.float32)),
                           (va["window_label"] == 1).to_numpy(np.float32), TrainConfig(kind="logistic", seed=seed),

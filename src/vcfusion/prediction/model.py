@@ -121,6 +121,14 @@ class LaneChangeModel(DecisionSettings):
         return module
 
 
+def feature_scaling(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, std) standardising the training rows' features. A feature that never varies in training
+    (no trucks: `length` is constant) gets std 1, not a floor of 1e-6: with that, the first truck the
+    model met entered it as ~7e6 and was flagged changing lanes at every tick."""
+    std = x.std(axis=0)
+    return x.mean(axis=0), np.where(std > 1e-6, std, 1.0).astype(np.float32)
+
+
 def fit_platt(logits: np.ndarray, labels: np.ndarray, iterations: int = 100) -> tuple[float, float]:
     """Platt scaling: (a, b) minimising the log loss of sigmoid(a z + b) against 0/1 labels.
 

@@ -24,7 +24,7 @@ import pandas as pd
 
 from vcfusion.prediction.dataset import DatasetError, DatasetInfo, load_dataset, load_samples
 from vcfusion.prediction.events import event_scores, smooth_stream, smoothing_bounds, track_bounds
-from vcfusion.prediction.model import LaneChangeModel, build_torch_mlp, fit_platt, save_model
+from vcfusion.prediction.model import LaneChangeModel, build_torch_mlp, feature_scaling, fit_platt, save_model
 
 # Run-time settings searched on the validation stream. Thresholds are calibrated probabilities
 # of a lane change ending within tau (the stream's base rate is ~11%), on a 0.01 grid.
@@ -160,6 +160,16 @@ def load_datasets(datasets: list[Path]) -> list[DatasetInfo]:
     return infos
 
 
+def require_both_labels(labels: np.ndarray, split: str, hint: str = "") -> None:
+    """DatasetError unless the split's training rows hold positive and negative windows: fitting,
+    early stopping and calibration need both (a split without a lane change crashed the training)."""
+    positive = int(np.count_nonzero(labels))
+    if positive == 0 or positive == len(labels):
+        raise DatasetError(f"split {split!r}: {positive} positive and {len(labels) - positive} negative windows in "
+                           "the datasets given; training needs both (a lane change in its seeds): build the "
+                           f"dataset from more or longer runs{hint}")
+
+
 def combined_stream(infos: list[DatasetInfo], split: str, columns: list[str] | None = None
                     ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """:func:`stream_with_events` of several datasets, one after the other, with the seeds of
@@ -259,10 +269,11 @@ def train_model(datasets: Path | list[Path], out: Path, cfg: TrainConfig, progre
     va = pd.concat([training_rows(i, "validation", cfg.background_negatives, rng) for i in infos], ignore_index=True)
     x_tr = tr[names].to_numpy(np.float32)
     y_tr = (tr["window_label"] == 1).to_numpy(np.float32)
-    mean = x_tr.mean(axis=0)
-    std = np.maximum(x_tr.std(axis=0), 1e-6).astype(np.float32)
-    x_va = ((va[names].to_numpy(np.float32) - mean) / std).astype(np.float32)
     y_va = (va["window_label"] == 1).to_numpy(np.float32)
+    require_both_labels(y_tr, "train")
+    require_both_labels(y_va, "validation")
+    mean, std = feature_scaling(x_tr)
+    x_va = ((va[names].to_numpy(np.float32) - mean) / std).astype(np.float32)
     weights, fit = _fit_torch(((x_tr - mean) / std).astype(np.float32), y_tr, x_va, y_va, cfg, len(names), progress)
     model = LaneChangeModel(tuple(names), mean, std, weights, tau=info.tau, tau_g=info.tau_g, period_s=info.period_s)
     stream, events = combined_stream(infos, "validation", columns=["seed", "vehicle_id", "time", "stream_label",

@@ -28,7 +28,7 @@ import numpy as np
 import pandas as pd
 
 from vcfusion.prediction.dataset import DatasetError
-from vcfusion.prediction.model import fit_platt
+from vcfusion.prediction.model import feature_scaling, fit_platt
 from vcfusion.prediction.sequence import DEFAULT_RESET_GAP_TICKS, SequenceModel, save_sequence_model, segment_bounds
 
 
@@ -157,8 +157,8 @@ def train_sequence_model(datasets: list[Path], out: Path, cfg: SequenceConfig, p
     """Train the GRU on the train seeds of `datasets`, calibrate and tune on their validation
     seeds, save the model file; returns a report."""
     from vcfusion.prediction.features import FEATURE_NAMES, SEQUENCE_EXTRA_NAMES
-    from vcfusion.prediction.train import (choose_default, combined_stream, load_datasets, tune_decisions,
-                                           tuning_report)
+    from vcfusion.prediction.train import (choose_default, combined_stream, load_datasets, require_both_labels,
+                                           tune_decisions, tuning_report)
 
     started = wallclock.perf_counter()
     infos = load_datasets(datasets)
@@ -167,9 +167,10 @@ def train_sequence_model(datasets: list[Path], out: Path, cfg: SequenceConfig, p
     columns = ["seed", "vehicle_id", "time", "window_label", "time_to_lc", "stream_label", *names]
     tr, _ = combined_stream(infos, "train", columns)
     va, va_events = combined_stream(infos, "validation", columns)
+    require_both_labels((tr["window_label"] == 1).to_numpy(), "train")
+    require_both_labels((va["window_label"] == 1).to_numpy(), "validation")
     x_tr = tr[names].to_numpy(np.float32)
-    mean = x_tr.mean(axis=0)
-    std = np.maximum(x_tr.std(axis=0), 1e-6).astype(np.float32)
+    mean, std = feature_scaling(x_tr)
     norm = lambda a: ((a - mean) / std).astype(np.float32)  # noqa: E731
     y_tr, w_tr = loss_weights(tr, tau, tau_g, cfg.background_negatives)
     y_va, w_va = loss_weights(va, tau, tau_g, cfg.background_negatives)
