@@ -96,6 +96,12 @@ def test_dataset_train_evaluate_on_real_sumo(tmp_path, capsys):
     assert (tmp_path / "eval" / "evaluation.png").stat().st_size > 10_000
     metrics = pd.read_csv(tmp_path / "eval" / "metrics.csv")
     assert len(metrics) == 9 and metrics["lane_changes"].iloc[0] > 10
+    # a seed added to the folder: the seeds already there stay in the dataset (its index listed the
+    # command's seeds only, and training then found no validation seed)
+    assert main(["dataset", str(scenario), "--seeds", "3", "--out", str(data), "--workers", "1",
+                 "--tau", "4", "--tau-g", "2"]) == 0
+    meta = json.loads((data / "dataset.json").read_text())
+    assert sorted(sum(meta["splits"].values(), [])) == [0, 1, 2, 3] and meta["counts"]["seeds"] == 4
 
 
 @pytest.mark.slow
