@@ -238,3 +238,31 @@ def test_identification_scores_the_boxes_the_fusion_stage_gets(families):
         right += [r["iou"] >= 0.7 - 1e-12 for r in identification_rows(frame, fused, 100.0)]
     assert results[0].n_identified_targets == len(right) > 0
     assert results[0].identification["cnn"] == pytest.approx(np.mean(right))
+
+
+@pytest.mark.parametrize("damage", ["missing", "smaller"])
+def test_a_frame_whose_depth_image_is_missing_or_misfits_is_refused(families, tmp_path, capsys, damage):
+    # scoring boxes as detected (--no-refine) still identifies targets with the depth: a missing depth
+    # image left its frame's targets out of the identification without a word (15 of 18 counted), and
+    # a depth image of another size was used as if it fitted
+    import shutil
+
+    import cv2
+
+    from vcfusion.cli import main
+
+    folder = tmp_path / "cut_in"
+    shutil.copytree(families[2], folder)
+    depth = sorted((folder / "depth").iterdir())[1]
+    if damage == "missing":
+        depth.unlink()
+    else:
+        png = cv2.imread(str(depth), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(depth), png[::2, ::2])
+    assert main(["eval-detector", str(folder), "--no-refine"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1
+    if damage == "missing":
+        assert "its depth image depth/" in err and "is missing or unreadable" in err
+    else:
+        assert str(depth) in err and "expected a single-channel image of the RGB image's size" in err

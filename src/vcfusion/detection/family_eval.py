@@ -121,11 +121,17 @@ def _camera_frame(ds: CocoDataset, k: int, image: np.ndarray):
     cam = rec.get("camera")
     depth_file = rec.get("depth_file")
     if not cam or not depth_file:
-        return None
+        return None  # not a frame of ours (a COCO folder from elsewhere): no depth to fuse with
     path = _dataset_file(ds.images[k], rec, depth_file)
     png = None if path is None else cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    # a frame that names its depth image must have it: its targets were silently left out of the
+    # identification (and a wrong-sized depth image scored as if it fitted)
     if png is None:
-        return None
+        raise DetectorFileError(f"{ds.images[k]}: its depth image {depth_file} is missing or unreadable; expected "
+                                "the 16-bit depth PNG that vcfusion render / render-scenes wrote beside it")
+    if png.shape != image.shape[:2]:
+        raise DetectorFileError(f"{path}: depth image of shape {png.shape}; expected a single-channel image of the "
+                                f"RGB image's size {image.shape[:2]} (the 16-bit depth PNG vcfusion render wrote)")
     depth = np.where(png > 0, png.astype(np.float32) * np.float32(0.01), np.float32(np.inf))
     time = float(cam.get("time", 0.0))
     view = camera_view(np.array(cam["K"]), np.array(cam["T_world_to_camera"]), image.shape[1], image.shape[0], time)
