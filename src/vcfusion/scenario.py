@@ -808,10 +808,15 @@ def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
         if abs(model.period_s - scenario.v2c.period_s) > 1e-9:
             raise ScenarioError(f"{label}: prediction.model: trained for a V2C period of {model.period_s} s; "
                                 f"expected v2c.period_s to match, got {scenario.v2c.period_s} s")
-    if scenario.fusion.enabled and scenario.fusion.detector == "cnn":
-        from vcfusion.detection.detector_net import DetectorFileError, check_weights, default_weights_path
+    if scenario.fusion.enabled and scenario.fusion.detector != "oracle":
+        from vcfusion.detection.detector_net import (DetectorFileError, check_weights, check_yolo_model,
+                                                     default_weights_path)
 
-        try:
-            check_weights(scenario.fusion.weights or default_weights_path())
+        f = scenario.fusion
+        try:  # every file the scenario names is checked before a run starts (an ONNX one too)
+            if f.detector == "onnx-yolo":
+                check_yolo_model(f.weights, tuple(f.yolo_input_px), tuple(f.yolo_classes))
+            else:
+                check_weights(f.weights or default_weights_path())
         except DetectorFileError as exc:
             raise ScenarioError(f"{origins.label(('fusion', 'weights'))}: fusion.weights: {exc}") from None

@@ -106,6 +106,18 @@ def test_scenario_onnx_yolo_builds_the_ultralytics_detector(tmp_path):
                                           "yolo_classes: [lorry]}\n", "c.yaml")
     with pytest.raises(ScenarioError, match="lorry"):
         load_scenario(bad)
+    # the file is checked when the scenario loads, as the CNN's weights are (a batch started every seed
+    # and failed each with a traceback): another input size, and a file that is no ONNX model
+    bad = write_scenario(tmp_path, base + "fusion: {enabled: true, detector: onnx-yolo, weights: model.onnx}\n",
+                         "d.yaml")
+    with pytest.raises(ScenarioError, match=r"d.yaml: fusion.weights: .*model.onnx: OpenCV DNN failed on a "
+                                            r"\(1, 3, 640, 640\) input \(is that the model's input size\?\)"):
+        load_scenario(bad)
+    (tmp_path / "junk.onnx").write_text("not a model")
+    bad = write_scenario(tmp_path, base + "fusion: {enabled: true, detector: onnx-yolo, weights: junk.onnx, "
+                                          "yolo_input_px: [320, 320]}\n", "e.yaml")
+    with pytest.raises(ScenarioError, match=r"e.yaml: fusion.weights: .*junk.onnx: OpenCV DNN cannot read"):
+        load_scenario(bad)
 
 
 def test_every_object_of_a_raw_yolo_output_survives_its_many_duplicates():

@@ -453,6 +453,22 @@ class OnnxDetector:
                                   self.objectness, geom, source=f"{self.path}: output")
 
 
+@functools.lru_cache(maxsize=4)
+def _check_yolo_file(name: str, _mtime_ns: int, input_wh: tuple[int, int], keep: tuple[str, ...]) -> None:
+    # read, then one forward pass and decode on a grey frame: a file OpenCV cannot read, another
+    # input size or another output layout fails here as it would on the first camera frame
+    OnnxDetector.ultralytics(name, input_wh, keep).detect(np.full((input_wh[1], input_wh[0], 3), 114, np.uint8))
+
+
+def check_yolo_model(path, input_wh: tuple[int, int], keep) -> None:
+    """Raise DetectorFileError unless `path` is an ONNX YOLO that OpenCV runs at `input_wh` with the
+    Ultralytics output layout (cached by path and modification time, like :func:`check_weights`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DetectorFileError(f"{path}: ONNX model not found")
+    _check_yolo_file(str(path), path.stat().st_mtime_ns, tuple(input_wh), tuple(keep))
+
+
 def default_weights_path() -> Path:
     """The shipped detector (package data), trained by the command in docs/architecture.md."""
     return Path(__file__).resolve().parent.parent / "assets" / "detector.pt"
