@@ -363,3 +363,19 @@ def test_the_ego_lane_of_a_lane_change_is_the_one_the_ego_drives_in_at_its_midpo
                        "s": np.array([100.0, 102.0, 104.0, 106.0])}}
     assert _ego_lane_at(tracks, np.array([0.0, 0.12, 0.3]), road, 2).tolist() == [2, 1, 1]
     assert _ego_lane_at({}, np.array([1.0]), road, 2).tolist() == [2]
+
+
+@pytest.mark.slow
+def test_a_vision_run_of_one_seed_writes_the_same_tables_twice(tmp_path):
+    # the camera table carried each frame's render time (wall clock): two runs of one seed differed
+    from vcfusion.run import execute_run
+
+    sc = load_scenario(REPO / "scenarios" / "accident_ar.yaml")
+    sc = sc.model_copy(update={"simulation": sc.simulation.model_copy(update={"max_time_s": 2.0}),
+                               "ar": sc.ar.model_copy(update={"video": False})})
+    for out in ("a", "b"):
+        execute_run(sc, 3, tmp_path / out)
+    tables = sorted(p.name for p in (tmp_path / "a").glob("*.parquet"))
+    assert {"camera.parquet", "fusion.parquet"} <= set(tables)
+    for name in tables:
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name

@@ -2,12 +2,13 @@
 
 The rendered :class:`~vcfusion.render.renderer.Frame` goes to ``tick.frame`` for the later stages
 (detector, matching, overlay; they declare that they need it); ticks without a render keep
-``tick.frame = None``. The hook logs a small ``camera`` table (time, vehicles seen, render time).
+``tick.frame = None``. The hook logs a small ``camera`` table (time, vehicles seen): no render time,
+which is wall-clock and would make the run's tables differ from run to run of one seed
+(`vcfusion bench-render` times the renderer).
 """
 
 from __future__ import annotations
 
-import time as wallclock
 from typing import Callable
 
 import numpy as np
@@ -36,15 +37,12 @@ class CameraHook:
         self._ticks += 1
         if n % self.every_ticks or EGO_ID not in tick.truth.ids or (self.when is not None and not self.when(tick)):
             return None
-        started = wallclock.perf_counter()
         frame = self.renderer.render(tick.truth)
-        render_ms = 1000.0 * (wallclock.perf_counter() - started)
         tick.frame = frame
         if self.on_frame is not None:
             self.on_frame(frame, tick)
         seen = np.unique(frame.instances)
-        return [{"time": round(frame.time, 6), "vehicles_seen": int((seen >= 0).sum()),
-                 "render_ms": round(render_ms, 2)}]
+        return [{"time": round(frame.time, 6), "vehicles_seen": int((seen >= 0).sum())}]
 
     def close(self) -> None:
         self.renderer.close()
