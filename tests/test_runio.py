@@ -282,3 +282,12 @@ def test_a_file_write_clears_what_killed_writers_of_that_file_left(tmp_path):
     finally:
         live.kill()
         live.wait()
+
+
+def test_atomic_write_makes_the_folder_it_writes_into(tmp_path):
+    # as atomic_folder does for a folder's parent; the error named the temporary file before
+    from vcfusion.runio import atomic_write
+
+    atomic_write(tmp_path / "a" / "b" / "model.onnx", lambda tmp: tmp.write_bytes(b"onnx"))
+    assert (tmp_path / "a" / "b" / "model.onnx").read_bytes() == b"onnx"
+    assert [p.name for p in (tmp_path / "a" / "b").iterdir()] == ["model.onnx"]

@@ -73,6 +73,9 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     it still do), renamed over `path` when complete: a kill in the middle leaves the previous file
     whole instead of a truncated one under the final name."""
     path = Path(path)
+    # its folder made, as atomic_folder makes a folder's parent (into a missing folder the error named
+    # the temporary file: "nodir/.x.onnx.14945.14b5d359.onnx: No such file or directory")
+    path.parent.mkdir(parents=True, exist_ok=True)
     # what killed writers of this file left (SIGKILL: no clean-up ran), named after their pid
     for left in path.parent.glob(glob.escape(f".{path.name}.") + "*"):
         pid = left.name[len(path.name) + 2:].split(".", 1)[0]
