@@ -72,7 +72,8 @@ def test_class_selection_is_configurable_and_checked():
         coco_column_categories(("lorry",))
     with pytest.raises(ValueError, match="no vcfusion category"):
         coco_column_categories(("person",))
-    with pytest.raises(DetectorFileError, match=r"\(1, 84, N\)"):
+    # the shape as the model gave it, batch axis included (it read "got shape (85, 10)")
+    with pytest.raises(DetectorFileError, match=r"\(1, 84, N\).*got shape \(1, 85, 10\)$"):
         decode_yolo_output(np.zeros((1, 85, 10), np.float32), coco_column_categories(), (480, 640), (640, 640))
 
 

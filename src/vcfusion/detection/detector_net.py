@@ -368,13 +368,14 @@ def decode_yolo_output(out: np.ndarray, columns, image_hw: tuple[int, int], inpu
     ``box``: the letterbox that made the input (None: the image was stretched to ``input_wh``).
     """
     out = np.asarray(out, dtype=np.float32)
+    given = out.shape  # as the model gave it, batch axis included (the message named it without)
     if out.ndim == 3 and out.shape[0] == 1:
         out = out[0]
     width = 4 + len(columns) + (1 if objectness else 0)
     if out.ndim != 2 or width not in out.shape:
         raise DetectorFileError(f"{source}: expected (1, N, {width}) or (1, {width}, N) (4 box + "
                                 f"{'1 objectness + ' if objectness else ''}{len(columns)} class values per "
-                                f"candidate), got shape {out.shape}")
+                                f"candidate), got shape {given}")
     if out.shape[1] != width:
         out = out.T  # Ultralytics: (4 + C, N)
     columns = np.asarray(columns, dtype=np.int64)
