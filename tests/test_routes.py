@@ -318,3 +318,38 @@ prediction: {{enabled: false}}
     result = build_cosimulation(sc.model_copy(update={"metrics": sc.metrics.model_copy(update={"enabled": False})}),
                                 0).run()
     assert set(result.tables["vehicles"]["vehicle_id"]) == {"a0", "a1", "a2"}
+
+
+def test_a_departure_refused_before_a_lane_end_names_the_lane_end(tmp_path):
+    # a lane that only the middle edge has (2 -> 3 -> 4 -> 3 -> 2 lanes): SUMO refuses a car 85 m
+    # before its end, two lane changes from a lane that goes on ("too many lane changes required");
+    # the message blamed the spacing, with no other vehicle on the road
+    import subprocess
+
+    from vcfusion.traffic.network import netconvert_binary
+
+    (tmp_path / "n.nod.xml").write_text(
+        "<nodes>" + "".join(f'<node id="n{k}" x="{x}" y="0" type="priority"/>'
+                            for k, x in enumerate((0, 500, 1000, 1500, 2000, 2600))) + "</nodes>")
+    (tmp_path / "n.edg.xml").write_text(
+        "<edges>" + "".join(f'<edge id="e{k}" from="n{k}" to="n{k + 1}" numLanes="{lanes}" speed="33" width="3.5"/>'
+                            for k, lanes in enumerate((2, 3, 4, 3, 2))) + "</edges>")
+    subprocess.run([netconvert_binary(), "-n", "n.nod.xml", "-e", "n.edg.xml", "-o", "n.net.xml"], cwd=tmp_path,
+                   check=True, capture_output=True)
+    path = write_scenario(tmp_path, """
+name: lane_end
+network: n.net.xml
+vehicle_types: NET_DIR/vtypes.add.xml
+route: [e0, e1, e2, e3, e4]
+simulation: {step_s: 0.1, max_time_s: 1.0, lanechange_duration_s: 3.0}
+metrics: {enabled: false}
+prediction: {enabled: false}
+vehicles:
+  - {name: late, count: 1, lanes: [0], pos_m: [1412, 1412], speed_mps: 20.0}
+""")
+    with pytest.raises(RunError) as err:
+        build_cosimulation(load_scenario(path), 0).run()
+    msg = str(err.value)
+    assert msg.startswith("SUMO could not insert 'late0' (vehicles.late, lane 0 at 1412.0 m, 20 m/s): no other "
+                          "vehicle in its lane; its lane ends 85 m ahead. SUMO refuses a departure that leaves too "
+                          "little road for the lane changes it needs before the end of its lane")

@@ -9,6 +9,7 @@ libsumo holds one simulation per process and is not thread-safe: parallel runs a
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
@@ -28,6 +29,9 @@ ACCIDENT_STOP_S = 1.0e6
 
 class RunError(RuntimeError):
     """A run that cannot proceed for this seed (e.g. an impossible departure)."""
+
+
+LANE_END_NOTE_M = 500.0  # a refused departure this close to the end of its lane may be refused for it
 
 
 @dataclass(frozen=True)
@@ -347,10 +351,22 @@ class SumoSession:
             near.append(f"{front - length - v[3]:.1f} m ahead of {v[0]!r} ({v[1]}, {v[5]:g} m/s)")
         where = "; ".join(near) if near else "no other vehicle in its lane"
         held = [p.vehicle_id for p in missing[1:]]
+        spacing = ("SUMO refuses a departure whose gap to the vehicle ahead or behind is below the gap the follower "
+                   "needs to brake safely at their departure speeds: raise "
+                   f"{group}.min_spacing_m (a group keeps it to every vehicle placed before it) or lower its speed_mps")
+        # a lane that ends ahead (a lane drop): SUMO also refuses a departure that leaves too little road
+        # for the lane changes needed before the end ("too many lane changes required"), which this
+        # message blamed on the spacing even with the nearest vehicle 360 m away
+        lane_end = getattr(self.road, "lane_end_ahead", None)
+        to_end = float(lane_end(first.lane, first.pos_m)) - first.pos_m if lane_end is not None else math.inf
+        if math.isfinite(to_end) and to_end < LANE_END_NOTE_M:
+            reason = (f"; its lane ends {to_end:.0f} m ahead. SUMO refuses a departure that leaves too little road "
+                      "for the lane changes it needs before the end of its lane: place the group where its lane "
+                      f"goes on, farther from the end, or slower. Else: {spacing}")
+        else:
+            reason = f". {spacing}"
         return (f"SUMO could not insert {first.vehicle_id!r} ({group}, lane {first.lane} at {first.pos_m:.1f} m, "
-                f"{first.speed_mps:g} m/s): {where}. SUMO refuses a departure whose gap to the vehicle ahead or "
-                f"behind is below the gap the follower needs to brake safely at their departure speeds: raise "
-                f"{group}.min_spacing_m (a group keeps it to every vehicle placed before it) or lower its speed_mps"
+                f"{first.speed_mps:g} m/s): {where}{reason}"
                 + (f". Also not inserted: {held} (SUMO holds back the vehicles that depart after a refused one "
                    "in its lane)" if held else ""))
 
