@@ -78,12 +78,11 @@ def _sha256(path: Path) -> str:
 
 def manifest_for(scenario: Scenario, seed: int) -> dict:
     return {
-        # the resolved scenario: the file merged over the files it extends, defaults filled in; the
-        # network and vehicle types by name and content (a network rebuilt under the same name, e.g.
-        # with other lane widths, makes other runs: a batch or dataset must not resume into it)
-        "scenario": scenario.to_dict() | {"network": scenario.network.name, "vehicle_types": scenario.vehicle_types.name,
-                                          "network_sha256": _sha256(scenario.network),
-                                          "vehicle_types_sha256": _sha256(scenario.vehicle_types)},
+        # the resolved scenario: the file merged over the files it extends, defaults filled in
+        "scenario": scenario.to_dict() | {"network": scenario.network.name, "vehicle_types": scenario.vehicle_types.name},
+        # the files it names, by content: a network rebuilt under the same name (e.g. with other lane
+        # widths) makes other runs, which a batch or dataset must not resume into
+        "files_sha256": {"network": _sha256(scenario.network), "vehicle_types": _sha256(scenario.vehicle_types)},
         "scenario_file": str(scenario.source) if scenario.source else None,
         # the file given and the files it extends, in that order (one file when it extends none)
         "scenario_chain": [str(p) for p in scenario.chain],

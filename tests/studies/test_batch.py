@@ -71,7 +71,7 @@ def test_a_batch_does_not_resume_into_runs_of_a_network_rebuilt_under_the_same_n
     net = tmp_path / "net" / "highway.net.xml"
     net.write_text(net.read_text() + "<!-- rebuilt -->\n")
     with pytest.raises(UsageError, match=r"seed_0000: holds a run that is not this scenario's run of seed 0 "
-                                         r"\(it differs in: network_sha256\)"):
+                                         r"\(it differs in: network file \(its content\)\)"):
         run_batch(path, [0, 1], out, workers=1, progress=False)
 
 

@@ -194,9 +194,6 @@ def run_batch(scenario_path: Path, seeds: list[int], out: Path, workers: int = 1
     return {"done": len(todo) - len(failed), "skipped": skipped, "failed": [(o.seed, o.error) for o in failed]}
 
 
-FILE_DIGESTS = ("network_sha256", "vehicle_types_sha256")  # manifest keys since the twenty-fourth session
-
-
 def check_kept_runs(scenario_path: Path, seeds: list[int], out: Path) -> None:
     """UsageError unless every complete run folder of these seeds in `out` (those a batch would keep)
     is this scenario's run of its seed: a re-run into a folder of another (or an edited) scenario
@@ -210,7 +207,8 @@ def check_kept_runs(scenario_path: Path, seeds: list[int], out: Path) -> None:
     if not seeds:
         return
     scenario = load_scenario(scenario_path)
-    expected = manifest_for(scenario, 0)["scenario"]
+    expected_manifest = manifest_for(scenario, 0)
+    expected = expected_manifest["scenario"]
     # `vcfusion metrics --scenario` recomputes a run's metrics with another block than its manifest's
     settings = metrics_settings(scenario.metrics) if scenario.metrics.enabled else None
     for seed in seeds:
@@ -222,9 +220,12 @@ def check_kept_runs(scenario_path: Path, seeds: list[int], out: Path) -> None:
         if not isinstance(manifest, dict):
             manifest = {}
         kept = manifest.get("scenario") if isinstance(manifest.get("scenario"), dict) else {}
-        # a folder written before the files' digests were recorded is compared by their names only
-        differs = [k for k in sorted(expected.keys() | kept.keys()) if expected.get(k) != kept.get(k)
-                   and not (k in FILE_DIGESTS and k not in kept)]
+        differs = [k for k in sorted(expected.keys() | kept.keys()) if expected.get(k) != kept.get(k)]
+        # the files by content (a folder written before their digests were recorded: by name only)
+        digests = manifest.get("files_sha256") if isinstance(manifest.get("files_sha256"), dict) else None
+        if digests is not None:
+            differs += [f"{k} file (its content)" for k, v in expected_manifest["files_sha256"].items()
+                        if digests.get(k) != v]
         if manifest.get("seed") != seed:
             differs.insert(0, "seed")
         if differs:
