@@ -144,8 +144,8 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
         tr = training_rows(info, "train", bg, rng)
         va = training_rows(info, "validation", bg, rng)
         x_tr, y_tr = tr[names].to_numpy(np.float32), (tr["window_label"] == 1).to_numpy(np.float32)
-        for split, rows in (("train", tr), ("validation", va)):
-            require_both_labels((rows["window_label"] == 1).to_numpy(), split,
+        for fitted_on, rows in (("train", tr), ("validation", va)):  # not `split`: the one scored
+            require_both_labels((rows["window_label"] == 1).to_numpy(), fitted_on,
                                 " (or score the model alone: --no-baselines)")
         mean, std = feature_scaling(x_tr)
         norm = lambda a: ((a - mean) / std).astype(np.float32)  # noqa: E731
