@@ -154,6 +154,17 @@ def test_eval_detector_cli_reports_families(families, tmp_path):
     bad = subprocess.run([sys.executable, "-m", "vcfusion", "eval-detector", str(families[0]), "--onnx",
                           str(tmp_path / "none.onnx"), "--layout", "ultralytics"], capture_output=True, text=True)
     assert bad.returncode == 2 and "none.onnx: ONNX model not found" in bad.stderr
+    # an ONNX detector's identification columns carry its name (they were labelled "cnn")
+    pytest.importorskip("onnx")
+    export = subprocess.run([sys.executable, "-m", "vcfusion", "export-onnx", "--out", str(tmp_path / "d.onnx")],
+                            capture_output=True, text=True)
+    assert export.returncode == 0, export.stderr
+    use = export.stdout.strip().splitlines()[-1].split("eval-detector DATA ")[1].split()
+    onnx = subprocess.run([sys.executable, "-m", "vcfusion", "eval-detector", str(families[2]), *use,
+                           "--report", str(tmp_path / "o.json")], capture_output=True, text=True)
+    assert onnx.returncode == 0, onnx.stderr
+    assert "ident_0.7_onnx" in json.loads((tmp_path / "o.json").read_text())["families"][0]
+    assert "oracle - onnx" in onnx.stdout and "cnn" not in onnx.stdout
 
 
 def test_identification_by_visible_fraction_against_hand_values():

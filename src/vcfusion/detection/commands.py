@@ -114,8 +114,11 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
     ds = load_coco_many(args.data)
     from vcfusion.fusion.box_refine import BoxRefineParams
 
+    # the detector's column in the identification tables (an ONNX model's was labelled "cnn")
+    detector_name = "onnx" if args.onnx else "cnn"
     results, _ = evaluate_families(detector, ds, min_area=args.min_area, identification=not args.no_identification,
-                                   progress=sys.stderr.isatty(), refine=None if args.no_refine else BoxRefineParams())
+                                   detector_name=detector_name, progress=sys.stderr.isatty(),
+                                   refine=None if args.no_refine else BoxRefineParams())
     if not results:
         raise UsageError(f"{' '.join(args.data)}: annotations: expected at least one ground-truth box")
     overall = results[-1]  # 'all' when there are several families
@@ -125,11 +128,11 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
     for cid, name in zip(ds.class_ids, ds.class_names):
         if cid in overall.box_map.ap_per_category:
             print(f"  {name}: AP@0.5:0.95 {overall.box_map.ap_per_category[cid]:.3f}")
-    print(format_table(results))
-    by_visibility = format_visibility_table(results)
+    print(format_table(results, detector_name))
+    by_visibility = format_visibility_table(results, detector_name)
     if by_visibility:
         print(by_visibility)
-    intervals = format_interval_table(results)
+    intervals = format_interval_table(results, detector_name)
     if intervals:
         print(intervals)
     if args.report:
