@@ -96,3 +96,17 @@ def test_offline_smoothing_restarts_where_the_cloud_forgot_the_twin(method, tau)
     assert len(bounds) == 2 + 2 + 1  # a and b are split once each where they were away; c is whole
     offline = smooth_stream(bounds, stream["raw"].to_numpy(np.int8), method, tau_a=tau, tau_c=tau)
     np.testing.assert_array_equal(offline, stream["cloud"].to_numpy())
+
+
+def test_frame_metrics_are_undefined_where_there_is_nothing_to_score():
+    # a split without a lane change read "accuracy 0.0, F1 0.0" (null belongs in evaluation.json)
+    import math
+
+    from vcfusion.prediction.evaluate import frame_metrics
+
+    empty = frame_metrics(np.zeros(0), np.zeros(0), np.zeros(0))
+    assert all(math.isnan(empty[k]) for k in ("accuracy", "precision", "recall", "f1", "roc_auc"))
+    negatives = frame_metrics(np.zeros(4), np.array([0, 1, 0, 0]), np.array([0.1, 0.9, 0.2, 0.3]))
+    assert negatives["accuracy"] == 0.75 and math.isnan(negatives["f1"]) and math.isnan(negatives["recall"])
+    missed = frame_metrics(np.array([1, 0, 1]), np.zeros(3), np.array([0.2, 0.1, 0.3]))
+    assert missed["f1"] == 0.0 and missed["recall"] == 0.0  # positives all missed: 0, as before

@@ -64,9 +64,11 @@ def frame_metrics(y: np.ndarray, decision: np.ndarray, score: np.ndarray) -> dic
     fn, tn = int((y & ~d).sum()), int((~y & ~d).sum())
     precision = tp / (tp + fp) if tp + fp else float("nan")
     recall = tp / (tp + fn) if tp + fn else float("nan")
-    f1 = 2 * precision * recall / (precision + recall) if tp else 0.0
-    return {"accuracy": (tp + tn) / max(1, len(y)), "precision": precision, "recall": recall, "f1": f1,
-            "roc_auc": roc_auc(y, score)}
+    # undefined, not 0, where there is nothing to score (no sample; no positive window for F1):
+    # a split without a lane change read "accuracy 0.0, F1 0.0"
+    f1 = float("nan") if tp + fn == 0 else (2 * precision * recall / (precision + recall) if tp else 0.0)
+    accuracy = (tp + tn) / len(y) if len(y) else float("nan")
+    return {"accuracy": accuracy, "precision": precision, "recall": recall, "f1": f1, "roc_auc": roc_auc(y, score)}
 
 
 def _running(bounds, values: np.ndarray, window: int, how: str) -> np.ndarray:
