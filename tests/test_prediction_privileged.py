@@ -103,3 +103,8 @@ def test_privileged_dataset_ceiling_model_and_evaluation(tmp_path, capsys):
     capsys.readouterr()
     assert main(["train", str(data), "--out", str(tmp_path / "x.npz"), "--privileged"]) == 2
     assert "--privileged" in capsys.readouterr().err and not (tmp_path / "x.npz").exists()
+    # ... nor can the ceiling score it: said as such (it read "feature list does not match this version of
+    # vcfusion.prediction.features ... retrain")
+    assert main(["evaluate", str(ceiling), str(data), "--split", "all", "--out", str(tmp_path / "eval3")]) == 2
+    err = capsys.readouterr().err
+    assert "a privileged (ceiling) model" in err and "vcfusion dataset --privileged" in err and "retrain" not in err

@@ -107,6 +107,14 @@ class LaneChangeModel(DecisionSettings):
                 detail.append(f"the code computes {extra} which the model was not trained on")
             if not detail:
                 detail.append("same features in a different order")
+            from vcfusion.prediction.privileged import PRIVILEGED_NAMES
+
+            if set(PRIVILEGED_NAMES) & set(missing):
+                # not a stale model: a ceiling, which reads SUMO's own lane-change state
+                raise ModelFileError(f"{source}: a privileged (ceiling) model, trained with `vcfusion train "
+                                     "--privileged` on SUMO's lane-change state: it scores only datasets built "
+                                     "with `vcfusion dataset --privileged`, and never runs in the cloud "
+                                     "(prediction.model)")
             raise ModelFileError(f"{source}: feature list does not match this version of "
                                  f"vcfusion.prediction.features ({'; '.join(detail)}); retrain with `vcfusion train`")
 
