@@ -99,3 +99,19 @@ def test_command_prints_the_share_and_rejects_a_missing_folder(model, tmp_path, 
     assert "1/1 = 100 %" in capsys.readouterr().out
     assert main(["coco-check", str(tmp_path / "nowhere"), "--coco-onnx", str(model)]) == 2
     assert "annotations.json" in capsys.readouterr().err
+
+
+def test_a_model_of_another_layout_is_refused_saying_what_it_gives(tmp_path):
+    # a YOLO-style (1, N, 4 + C) output: the error said what was expected, not what the model gave
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+
+    class Flat(torch.nn.Module):
+        def forward(self, x):
+            return torch.zeros(1, 100, 6) + 0.0 * x.mean()
+
+    path = tmp_path / "flat.onnx"
+    torch.onnx.export(Flat(), torch.zeros(1, 3, SIZE, SIZE), str(path), input_names=["images"],
+                      output_names=["out"], opset_version=17, dynamo=False)
+    with pytest.raises(CheckInputError, match=r"grid output; inputs of S = 352: output \(1, 100, 6\)"):
+        GridOnnxDetector(path).detect_rgb(np.full((96, 128, 3), 90, np.uint8))

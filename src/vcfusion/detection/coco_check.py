@@ -55,16 +55,20 @@ class GridOnnxDetector:
     def _size(self, image_bgr: np.ndarray) -> int:
         """The square input size: from the model's first layer when OpenCV reports it, else tried."""
         if self.input_size is None:
+            got = []  # what each tried size gave: the error says what the model is, not only what it is not
             for size in (352, 320, 416, 512, 256, 640):
                 try:
                     out = self._forward(image_bgr, size)
                 except cv2.error:
+                    got.append(f"{size}: no output")
                     continue
                 if out.ndim == 4 and out.shape[1] > 5:
                     self.input_size = size
                     break
+                got.append(f"{size}: output {tuple(out.shape)}")
             else:
-                raise CheckInputError(f"{self.path}: expected a (1, 3, S, S) input and a (1, 5 + C, H, W) grid output")
+                raise CheckInputError(f"{self.path}: expected a (1, 3, S, S) input and a (1, 5 + C, H, W) grid output; "
+                                      f"inputs of S = {'; '.join(got)}")
         return self.input_size
 
     def detect_rgb(self, rgb: np.ndarray) -> Detections:
