@@ -82,8 +82,8 @@ class VehicleModel:
         """The lateral range of the front bumper's centre at s: the edges of the lanes present there,
         less half the car, closing in at BARRIER_SLOPE towards where the road narrows ahead (the
         edges at each place x m ahead where the lanes present change, less x times the slope)."""
-        breaks = np.asarray(getattr(self.road, "breaks_s", ()), dtype=float)  # a one-edge road has none
-        x = np.r_[0.0, breaks[(breaks > s) & (breaks <= s + BARRIER_LOOKAHEAD_M)] - s]
+        starts = self.road.piece_starts_s
+        x = np.r_[0.0, starts[(starts > s) & (starts <= s + BARRIER_LOOKAHEAD_M)] - s]
         right, left = self.road.road_bounds(s + x)
         right = float(np.max(np.asarray(right) - BARRIER_SLOPE * x))
         left = float(np.min(np.asarray(left) + BARRIER_SLOPE * x))
@@ -114,10 +114,9 @@ class VehicleModel:
             current = int(self.road.lane_of(s_front, st.d))
             base = st.target_lane if st.target_lane is not None else current
             target = base + int(c.lane_change)
-            if base >= 0 and int(self.road.lane_of(s_front, self.road.lane_centre_d(target, s_front))) == target:
+            if base >= 0 and self.road.lane_exists(target, s_front):
                 st.target_lane = target  # a lane present here; else (the road's edge) the key does nothing
-        if st.target_lane is not None and int(self.road.lane_of(
-                s_front, self.road.lane_centre_d(st.target_lane, s_front))) != st.target_lane:
+        if st.target_lane is not None and not self.road.lane_exists(st.target_lane, s_front):
             st.target_lane = None  # the lane ended (the barrier took the car out of it)
         if st.target_lane is not None:
             if abs(steer) > STEER_TAKES_OVER:

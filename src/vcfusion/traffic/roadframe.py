@@ -533,6 +533,12 @@ class RoadFrame:
         return np.unique(np.concatenate([self._S, self._piece_s0]))
 
     @cached_property
+    def piece_starts_s(self) -> np.ndarray:
+        """s where a piece begins: the only places where the lanes present and their edges change
+        (:meth:`road_bounds` is constant in between)."""
+        return self._piece_s0.copy()
+
+    @cached_property
     def all_lanes_everywhere(self) -> bool:
         """Every track exists at every s (no lane begins or ends along the route)."""
         return bool(self._present.all())

@@ -9,7 +9,6 @@ libsumo holds one simulation per process and is not thread-safe: parallel runs a
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
@@ -357,9 +356,8 @@ class SumoSession:
         # a lane that ends ahead (a lane drop): SUMO also refuses a departure that leaves too little road
         # for the lane changes needed before the end ("too many lane changes required"), which this
         # message blamed on the spacing even with the nearest vehicle 360 m away
-        lane_end = getattr(self.road, "lane_end_ahead", None)
-        to_end = float(lane_end(first.lane, first.pos_m)) - first.pos_m if lane_end is not None else math.inf
-        if math.isfinite(to_end) and to_end < LANE_END_NOTE_M:
+        to_end = float(self.road.lane_end_ahead(first.lane, first.pos_m)) - first.pos_m
+        if to_end < LANE_END_NOTE_M:  # inf where the lane runs to the route's end
             reason = (f"; its lane ends {to_end:.0f} m ahead. SUMO refuses a departure that leaves too little road "
                       "for the lane changes it needs before the end of its lane: place the group where its lane "
                       f"goes on, farther from the end, or slower. Else: {spacing}")
