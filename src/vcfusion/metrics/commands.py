@@ -71,11 +71,13 @@ def recompute_folder(folder: Path, scenario_file: str | None = None) -> bool:
 def batch_seed_folders(batch: Path, folders: list[Path]) -> list[Path]:
     """The run folders a batch's figures cover: the seeds its batch_summary.parquet lists (those of
     the last `vcfusion batch` into it), else every complete one."""
+    from vcfusion.studies.batch import seed_folder
+
     path = batch / BATCH_SUMMARY
     if not path.is_file():
         return folders
-    listed = set(pd.read_parquet(path, columns=["seed"])["seed"])
-    return [f for f in folders if json.loads((f / "summary.json").read_text())["seed"] in listed]
+    listed = {seed_folder(batch, int(s)).name for s in pd.read_parquet(path, columns=["seed"])["seed"]}
+    return [f for f in folders if f.name in listed]
 
 
 def rebuild_batch_summary(batch: Path, folders: list[Path]) -> pd.DataFrame:

@@ -81,13 +81,13 @@ def write_report(batch: Path, folders: list[Path], out: Path) -> Path:
     hist = _read(folders, "metric_histograms")
     conflicts = _read(folders, "conflicts")
     settings = [_settings(f) for f in folders]
-    odd = [f for f, block in zip(folders, settings) if block != settings[0]]
-    if odd:
+    odd = next((k for k, block in enumerate(settings) if block != settings[0]), None)
+    if odd is not None:
         from vcfusion.errors import UsageError
+        from vcfusion.metrics.run_metrics import settings_differences
 
-        keys = sorted(k for k in settings[0].keys() | _settings(odd[0]).keys()
-                      if settings[0].get(k) != _settings(odd[0]).get(k))
-        raise UsageError(f"{odd[0]}: its metrics were computed with another metrics: block than {folders[0]}'s "
+        keys = settings_differences(settings[0], settings[odd])
+        raise UsageError(f"{folders[odd]}: its metrics were computed with another metrics: block than {folders[0]}'s "
                          f"(they differ in: {', '.join(keys)}); a report pools runs of one definition: recompute "
                          f"them with one (vcfusion metrics {batch} [--scenario FILE]) first")
     summary_path = batch / "batch_summary.parquet"

@@ -301,7 +301,7 @@ def _stretches(series: list[dict[str, np.ndarray]], dt: float, cfg, movestar_typ
     starts = np.concatenate(([0], np.cumsum(n)[:-1]))
     ends = starts + n - 1
     col = {k: np.concatenate([x[k] for x in series]) for k in _Buffers.COLUMNS}
-    t, s, v, ttc = col["time"], col["s"], col["speed"], col["ttc"]
+    t, v, ttc = col["time"], col["speed"], col["ttc"]
     seg = np.repeat(np.arange(m), n)
     # kinematics: a = forward difference (sample i to i + 1 of the same stretch)
     a = np.diff(v) / dt

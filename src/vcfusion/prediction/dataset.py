@@ -24,7 +24,7 @@ import pandas as pd
 from vcfusion.errors import InputError
 from vcfusion.prediction.features import FEATURE_NAMES, SEQUENCE_EXTRA_NAMES, features_from_twins_table
 from vcfusion.prediction.labels import label_samples
-from vcfusion.studies.batch import SeedOutcome, check_kept_runs, run_batch, seed_folder
+from vcfusion.studies.batch import SeedOutcome, check_kept_runs, complete_seeds, run_batch, seed_folder
 from vcfusion.traffic.network import read_road
 from vcfusion.workers import JobFailed, run_jobs
 
@@ -307,7 +307,7 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
     privileged: log SUMO's lane-change state every tick and add the privileged columns to the
     samples (vcfusion.prediction.privileged; for the ceiling, never a run-time input).
     """
-    from vcfusion.runio import atomic_write, is_complete_run, write_json
+    from vcfusion.runio import atomic_write, write_json
     from vcfusion.scenario import load_scenario
 
     if tau <= 0 or tau_g < 0:
@@ -340,22 +340,20 @@ def build_dataset(scenario_path: Path, seeds: list[int], out: Path, workers: int
                                f"choose a new --out{hint}")
     # the seeds already in the folder stay in the dataset (a command adding seeds 3-4 to a dataset of
     # seeds 0-2 listed only 3-4 and dropped the others from its splits)
-    kept = sorted(int(p.name.removeprefix("seed_")) for p in (out / "runs").glob("seed_*")
-                  if p.name.removeprefix("seed_").isdigit() and (p / SAMPLES).is_file() and is_complete_run(p))
+    kept = [s for s in complete_seeds(out / "runs") if (seed_folder(out / "runs", s) / SAMPLES).is_file()]
+    every_seed = sorted(set(seeds) | set(kept))
     # before anything is written: a refused run must leave the dataset as it was
-    check_kept_runs(Path(scenario_path), sorted(set(seeds) | set(kept)), out / "runs")
+    check_kept_runs(Path(scenario_path), every_seed, out / "runs")
     out.mkdir(parents=True, exist_ok=True)
     atomic_write(meta_file, lambda tmp: write_json(tmp, params))
     refeatured, stale = [], []
     if refeature:
-        refeatured, stale = refeature_runs(Path(scenario_path), sorted(set(seeds) | set(kept)), out / "runs", workers,
-                                           tau, tau_g, progress)
+        refeatured, stale = refeature_runs(Path(scenario_path), every_seed, out / "runs", workers, tau, tau_g, progress)
     task = functools.partial(_dataset_seed, tau=tau, tau_g=tau_g, privileged=privileged)
     report = run_batch(Path(scenario_path), seeds, out / "runs", workers=workers, progress=progress, task=task)
     report["failed"] = sorted(report["failed"] + stale)  # a seed with old features is left out
     stale_seeds = {s for s, _ in stale}
-    done = [s for s in sorted(set(seeds) | set(kept))
-            if (seed_folder(out / "runs", s) / SAMPLES).is_file() and s not in stale_seeds]
+    done = [s for s in every_seed if (seed_folder(out / "runs", s) / SAMPLES).is_file() and s not in stale_seeds]
     counts = {"seeds": len(done), "samples": 0, "window_positive": 0, "window_negative": 0, "lane_changes": 0}
     for s in done:
         lab = pd.read_parquet(seed_folder(out / "runs", s) / SAMPLES, columns=["window_label"])["window_label"]

@@ -20,7 +20,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from vcfusion.errors import UsageError
-from vcfusion.metrics.run_metrics import batch_row, metrics_settings
+from vcfusion.metrics.run_metrics import batch_row, metrics_settings, settings_differences
 from vcfusion.runio import atomic_write, discard_partial_folder, is_complete_run, write_json, write_table
 from vcfusion.workers import JobFailed, run_jobs
 
@@ -53,6 +53,12 @@ def parse_seeds(text: str, option: str = "--seeds") -> list[int]:
 
 def seed_folder(out: Path, seed: int) -> Path:
     return Path(out) / f"seed_{seed:04d}"
+
+
+def complete_seeds(out: Path) -> list[int]:
+    """The seeds whose run folder in `out` is complete."""
+    numbers = (p.name.removeprefix("seed_") for p in Path(out).glob("seed_*"))
+    return sorted(int(n) for n in numbers if n.isdigit() and is_complete_run(seed_folder(out, int(n))))
 
 
 @dataclass(frozen=True)
@@ -238,7 +244,7 @@ def check_kept_runs(scenario_path: Path, seeds: list[int], out: Path) -> None:
                 kept_settings = json.loads((folder / "summary.json").read_text())["metrics"]["settings"]
             except (OSError, ValueError, KeyError, TypeError):
                 kept_settings = {}
-            other = [k for k in settings if settings[k] != kept_settings.get(k)]
+            other = settings_differences(settings, kept_settings)
             if other:
                 raise UsageError(f"{folder}: its metrics were recomputed with another metrics: block than this "
                                  f"scenario's (they differ in: {', '.join(other)}); a batch pools runs of one "
