@@ -261,8 +261,7 @@ def add_parsers(sub) -> None:
 
     p = sub.add_parser("render-scenes", help="render procedural scenes (no SUMO run) into a COCO dataset folder")
     p.add_argument("--family", default="train",
-                   help="a training family (train; train_dense, with queues in several lanes) or a held-out family: "
-                        "jam, far_chain, cut_in, truck_occlusion")
+                   help="train (the training sampler) or a held-out family: jam, far_chain, cut_in, truck_occlusion")
     p.add_argument("--seeds", required=True, help="scene seeds, e.g. 0-1999 (each family has its own scenes per seed)")
     p.add_argument("--out", required=True, help="dataset folder to create")
     p.add_argument("--scenario", default=str(SHIPPED_SCENARIOS / "overlap.yaml"),

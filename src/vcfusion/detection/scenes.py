@@ -2,9 +2,8 @@
 
 A scene is a :class:`SceneRecipe`: the ego on a straight road, its camera mount (jittered) and a
 list of vehicles placed directly on the road relative to the ego's camera. :func:`sample_scene`
-draws one from a seed and a *family*: a training family (:data:`TRAINING`: ``train``, or
-``train_dense``) or one of the held-out families in :data:`HELD_OUT` that the training families
-never emit.
+draws one from a seed and a *family*: ``train`` (the training sampler) or one of the held-out
+families in :data:`HELD_OUT` that the training sampler never emits.
 
 Training distribution (``train``; all draws uniform unless said otherwise, per scene):
 - ego: lane uniform over the road's lanes, position s uniform in [300, 1500] m of the road;
@@ -27,12 +26,6 @@ Training distribution (``train``; all draws uniform unless said otherwise, per s
   the renderer's palette (it follows the vehicle id, which is random); speed 5-36 m/s;
 - placement: a vehicle whose footprint (plus 0.3 m) overlaps one already placed is dropped;
 - rejection: a scene that matches any held-out family's predicate is redrawn (same generator).
-
-``train_dense``: the same, with one more pattern, *queues* [8]: in each lane with probability
-0.8 (at least one lane) a same-lane chain of 3-6 vehicles whose nearest rear is 3-25 m ahead,
-bumper gaps 1.5-10 m, lateral jitter +- 0.3 m. Crowded near range: vehicles hidden behind and
-beside others, as in slow traffic; scenes that match the held-out ``jam`` predicate (every lane
-a tight chain) are redrawn like any other.
 
 The sun direction is fixed by the renderer (``vcfusion.render.scene``); it is not sampled.
 
@@ -212,9 +205,7 @@ def is_truck_occlusion(recipe: SceneRecipe) -> bool:
 
 
 HELD_OUT = {"jam": is_jam, "far_chain": is_far_chain, "cut_in": is_cut_in, "truck_occlusion": is_truck_occlusion}
-TRAINING = ("train", "train_dense")
-# appended, not inserted: a family's index seeds its generator, so each family keeps its scenes
-FAMILIES = ("train", *HELD_OUT, "train_dense")
+FAMILIES = ("train", *HELD_OUT)
 
 
 def held_out_families(recipe: SceneRecipe) -> list[str]:
@@ -302,10 +293,6 @@ def _neighbour(rng, lane: int, num_lanes: int) -> int | None:
 
 PATTERN_WEIGHTS = {"single": 3.0, "chain": 2.0, "pair": 2.0, "truck_front": 1.0, "truck_beside": 1.0,
                    "lane_change": 1.5, "near_side": 1.0}
-# train_dense: the same patterns plus queues in several lanes at once (crowded near range)
-DENSE_PATTERN_WEIGHTS = {**PATTERN_WEIGHTS, "queues": 8.0}
-TRAINING_WEIGHTS = {"train": PATTERN_WEIGHTS, "train_dense": DENSE_PATTERN_WEIGHTS}
-QUEUE_LANE_P, QUEUE_START_M, QUEUE_LENGTH, QUEUE_GAP_M = 0.8, (MIN_AHEAD_M, 25.0), (3, 6), (1.5, 10.0)
 
 
 def _train_pattern(b: _Builder, name: str) -> None:
@@ -339,11 +326,6 @@ def _train_pattern(b: _Builder, name: str) -> None:
         other = _neighbour(rng, r.ego_lane, r.num_lanes)
         if other is not None:
             b.vehicle(b.kind(), other, float(rng.uniform(MIN_AHEAD_M, 12.0)))
-    elif name == "queues":
-        lanes = [k for k in range(r.num_lanes) if rng.random() < QUEUE_LANE_P] or [lane]
-        for k in lanes:
-            b.chain(k, float(rng.uniform(*QUEUE_START_M)), int(rng.integers(QUEUE_LENGTH[0], QUEUE_LENGTH[1] + 1)),
-                    QUEUE_GAP_M, jitter_m=0.3)
     else:
         raise ValueError(f"unknown pattern {name!r}")
 
@@ -399,19 +381,19 @@ def sample_scene(family: str, seed: int, num_lanes: int = 3, lane_width_m: float
         if family == "cut_in" and num_lanes < 2:
             raise ValueError("family cut_in: expected a road of at least 2 lanes")
         recipe = SceneRecipe(family, seed, num_lanes, lane_width_m, ego_lane, float(rng.uniform(*EGO_S_RANGE_M)), mount)
-        b = _Builder(rng, recipe, prefix=f"{'td' if family == 'train_dense' else family[:2]}{seed}_")
-        if family in TRAINING:
-            weights = TRAINING_WEIGHTS[family]
-            p = np.array(list(weights.values()))
-            for name in rng.choice(list(weights), size=int(rng.integers(2, 8)), p=p / p.sum()):
+        b = _Builder(rng, recipe, prefix=f"{family[:2]}{seed}_")
+        if family == "train":
+            names = list(PATTERN_WEIGHTS)
+            p = np.array(list(PATTERN_WEIGHTS.values()))
+            for name in rng.choice(names, size=int(rng.integers(2, 8)), p=p / p.sum()):
                 _train_pattern(b, str(name))
         else:
             _held_out_scene(b, family)
         recipe = replace(recipe, vehicles=tuple(b.placed))
         matched = held_out_families(recipe)
-        if family in TRAINING and not matched and recipe.vehicles:
+        if family == "train" and not matched and recipe.vehicles:
             return recipe
-        if family not in TRAINING and family in matched:
+        if family != "train" and family in matched:
             return recipe
     raise RuntimeError(f"{family} scene {seed}: no valid scene in {max_attempts} draws")
 
