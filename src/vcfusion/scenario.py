@@ -150,13 +150,22 @@ class FusionConfig(_Strict):
     depth_reducer: Literal["mean", "median"] = "mean"
 
     @model_validator(mode="after")
-    def _yolo(self) -> "FusionConfig":
+    def _detector_settings(self) -> "FusionConfig":
         if self.detector == "onnx-yolo":
             if self.weights is None:
                 raise ValueError("weights: expected the ONNX file of the YOLO model with detector: onnx-yolo")
             from vcfusion.detection.detectors import coco_column_categories
 
             coco_column_categories(self.yolo_classes)  # names checked here, with the known ones in the message
+        # a setting the chosen detector never reads was ignored silently: a run with `detector: oracle`
+        # and a weights file looked like a run of those weights
+        if self.detector == "oracle" and self.weights is not None:
+            raise ValueError("weights: the oracle detector reads no weights file (it boxes the ground truth); "
+                             "expected no weights with detector: oracle, or detector: cnn / onnx-yolo")
+        unread = sorted({"yolo_input_px", "yolo_classes"} & self.model_fields_set)
+        if self.detector != "onnx-yolo" and unread:
+            raise ValueError(f"{unread[0]}: read only with detector: onnx-yolo (this scenario's detector is "
+                             f"{self.detector}); expected no {' / '.join(unread)} here")
         return self
 
 

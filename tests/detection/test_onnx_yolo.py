@@ -103,6 +103,15 @@ def test_scenario_onnx_yolo_builds_the_ultralytics_detector(tmp_path):
     bad = write_scenario(tmp_path, base + "fusion: {enabled: true, detector: onnx-yolo}\n", "b.yaml")
     with pytest.raises(ScenarioError, match="fusion.*weights: expected the ONNX file"):
         load_scenario(bad)
+    # settings the chosen detector never reads are refused, not ignored
+    bad = write_scenario(tmp_path, base + "fusion: {enabled: true, detector: cnn, yolo_input_px: [320, 320]}\n",
+                         "f.yaml")
+    with pytest.raises(ScenarioError, match=r"f.yaml: fusion.*yolo_input_px: read only with detector: onnx-yolo"):
+        load_scenario(bad)
+    bad = write_scenario(tmp_path, base + "fusion: {enabled: true, detector: oracle, weights: model.onnx}\n",
+                         "g.yaml")
+    with pytest.raises(ScenarioError, match=r"g.yaml: fusion.*weights: the oracle detector reads no weights file"):
+        load_scenario(bad)
     bad = write_scenario(tmp_path, base + "fusion: {enabled: true, detector: onnx-yolo, weights: model.onnx, "
                                           "yolo_classes: [lorry]}\n", "c.yaml")
     with pytest.raises(ScenarioError, match="lorry"):
