@@ -162,7 +162,9 @@ class FusionConfig(_Strict):
         if self.detector == "oracle" and self.weights is not None:
             raise ValueError("weights: the oracle detector reads no weights file (it boxes the ground truth); "
                              "expected no weights with detector: oracle, or detector: cnn / onnx-yolo")
-        unread = sorted({"yolo_input_px", "yolo_classes"} & self.model_fields_set)
+        # by value, not by what was written: a run's manifest holds every field, defaults included
+        unread = [name for name in ("yolo_input_px", "yolo_classes")
+                  if getattr(self, name) != type(self).model_fields[name].default]
         if self.detector != "onnx-yolo" and unread:
             raise ValueError(f"{unread[0]}: read only with detector: onnx-yolo (this scenario's detector is "
                              f"{self.detector}); expected no {' / '.join(unread)} here")

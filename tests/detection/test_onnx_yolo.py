@@ -108,6 +108,10 @@ def test_scenario_onnx_yolo_builds_the_ultralytics_detector(tmp_path):
                          "f.yaml")
     with pytest.raises(ScenarioError, match=r"f.yaml: fusion.*yolo_input_px: read only with detector: onnx-yolo"):
         load_scenario(bad)
+    # the defaults written out (as a run's manifest holds them) are no such setting
+    full = load_scenario(write_scenario(tmp_path, base + "fusion: {enabled: true}\n", "h.yaml"))
+    from vcfusion.scenario import Scenario
+    assert Scenario.model_validate(full.model_dump(mode="json")).fusion.yolo_input_px == (640, 640)
     bad = write_scenario(tmp_path, base + "fusion: {enabled: true, detector: oracle, weights: model.onnx}\n",
                          "g.yaml")
     with pytest.raises(ScenarioError, match=r"g.yaml: fusion.*weights: the oracle detector reads no weights file"):
