@@ -103,7 +103,7 @@ def execute_run(scenario: Scenario, seed: int, out_dir: Path | None, progress: b
         # beside the run folder (same file system: moved in, not copied); removed whatever happens
         # (what killed writers of this folder left goes when the folder is written: atomic_folder)
         staging = Path(tempfile.mkdtemp(prefix=video_staging_prefix(out_dir), dir=out_dir.parent))
-        recorder = OverlayRecorder(staging / "video", fps=1.0 / scenario.ar.period_s)
+        recorder = OverlayRecorder(staging / "video", fps=1.0 / scenario.overlay_period_s())
     try:
         result = build_cosimulation(scenario, seed, recorder=recorder).run(progress=progress)
         if out_dir is not None:

@@ -382,7 +382,7 @@ class Scenario(_Strict):
                              f"rates every second of the trajectory; or metrics.enabled: false), got "
                              f"{self.simulation.trajectory_period_s:g}")
         # the AR stage (fusion) runs on V2C ticks: another period would skip ticks unevenly (and
-        # the video's frame rate, 1 / ar.period_s, would not match its frames)
+        # the video's frames would not come at one rate: overlay_period_s)
         ratio = self.ar.period_s / self.v2c.period_s
         if self.fusion.enabled and (ratio < 1 - 1e-6 or abs(ratio - round(ratio)) > 1e-6):
             raise ValueError(f"ar.period_s: expected a whole multiple of v2c.period_s ({self.v2c.period_s}), "
@@ -394,9 +394,22 @@ class Scenario(_Strict):
                 raise ValueError("fusion.enabled: expected vision.enabled: true (fusion needs the ego camera)")
         if self.ar.video and not self.fusion.enabled:
             raise ValueError("ar.video: expected fusion.enabled: true (the overlay needs the fusion stage)")
+        if self.ar.video and self.vision.only_when_warning:
+            # frames only at warnings: no video of one frame rate (and none at all without a warning)
+            raise ValueError("ar.video: expected vision.only_when_warning: false (the video needs a frame at every "
+                             "AR update; only_when_warning renders only where a neighbour carries a warning)")
         if not self.vehicles and not self.flows and self.ego is None:
             raise ValueError("expected at least one of ego, vehicles, flows")
         return self
+
+    def overlay_period_s(self) -> float:
+        """Simulated time between two frames of the AR video: the fusion stage draws at the AR updates
+        (every ar.period_s) that have a camera frame (every vision.every_ticks V2C ticks); both start
+        at the first tick."""
+        import math
+
+        ar_ticks = int(round(self.ar.period_s / self.v2c.period_s))
+        return math.lcm(ar_ticks, self.vision.every_ticks) * self.v2c.period_s
 
     def steps(self, period_s: float) -> int:
         """Number of SUMO steps in one period."""

@@ -47,6 +47,15 @@ def test_scenario_checks_the_fusion_blocks(tmp_path):
         load_scenario(scenario_file(tmp_path, fusion={"method": "magic"}))
     with pytest.raises(ScenarioError, match="fusion.enabled: expected vision.enabled"):
         load_scenario(scenario_file(tmp_path, fusion={"enabled": True}))
+    # a video of frames at warnings only would have no frame rate (and no file without a warning)
+    with pytest.raises(ScenarioError, match="ar.video: expected vision.only_when_warning: false"):
+        load_scenario(scenario_file(tmp_path, vision={"enabled": True, "only_when_warning": True},
+                                    fusion={"enabled": True}, ar={"video": True}))
+    # the video's frames: AR updates that have a camera frame
+    for every, ar_period, expected in ((1, 0.1, 0.1), (3, 0.1, 0.3), (3, 0.2, 0.6), (2, 0.4, 0.4)):
+        sc = load_scenario(scenario_file(tmp_path, vision={"enabled": True, "every_ticks": every},
+                                         fusion={"enabled": True}, ar={"period_s": ar_period}))
+        assert sc.overlay_period_s() == pytest.approx(expected)
 
 
 class FakeCameraHook:
@@ -98,3 +107,13 @@ def test_run_with_rendered_camera_writes_fusion_table_and_video(tmp_path, monkey
     assert ok and first.shape == (480, 640, 3)
     assert cap.get(cv2.CAP_PROP_FRAME_COUNT) == table["time"].nunique()
     assert np.asarray(first).std() > 5  # a rendered scene, not a blank frame
+    assert cap.get(cv2.CAP_PROP_FPS) == pytest.approx(10.0)
+    # a camera every 3rd tick and AR updates every 2nd: a frame every 0.6 s, and the video plays at
+    # that rate (it ran 3x too fast at 1 / ar.period_s)
+    path = scenario_file(tmp_path, vision={"enabled": True, "every_ticks": 3},
+                         fusion={"enabled": True, "detector": "oracle"}, ar={"video": True, "period_s": 0.2})
+    assert main(["run", str(path), "--seed", "1", "--out", "runs/b"]) == 0
+    times = np.sort(pd.read_parquet(tmp_path / "runs" / "b" / "fusion.parquet")["time"].unique())
+    assert np.allclose(np.diff(times), 0.6)
+    cap = cv2.VideoCapture(str(tmp_path / "runs" / "b" / "overlay.mp4"))
+    assert cap.get(cv2.CAP_PROP_FRAME_COUNT) == len(times) and cap.get(cv2.CAP_PROP_FPS) == pytest.approx(1 / 0.6, rel=1e-3)
