@@ -329,6 +329,21 @@ def test_end_of_run_steps_keep_to_what_they_declare(tmp_path):
         CoSimulation(sc, 0, controller=IdmController.for_scenario(sc), hooks=[WantsTable({})])
 
 
+def test_a_hook_table_without_rows_keeps_its_columns(tmp_path):
+    # camera.parquet and fusion.parquet of a run whose camera never fired had no columns at all
+    sc = _scenario(tmp_path, seconds=0.5)
+
+    class Quiet:
+        table = "quiet"
+        columns = ("time", "value")
+
+        def __call__(self, tick):
+            return None
+
+    result = CoSimulation(sc, 0, controller=IdmController.for_scenario(sc), hooks=[Quiet()]).run()
+    assert list(result.tables["quiet"].columns) == ["time", "value"] and len(result.tables["quiet"]) == 0
+
+
 def test_process_models_declare_their_end_of_run_step(tmp_path):
     """The cloud predictor's lane_change_flags come from its own finish, declared like a hook's."""
     from vcfusion.run import build_cosimulation
@@ -379,3 +394,11 @@ def test_a_vision_run_of_one_seed_writes_the_same_tables_twice(tmp_path):
     assert {"camera.parquet", "fusion.parquet"} <= set(tables)
     for name in tables:
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
+    # the columns a hook names for its table when it has no rows are those of its rows
+    from vcfusion.driver.cloud_guidance import CloudGuidanceFallback
+    from vcfusion.fusion.fuse import VisionFusionHook
+    from vcfusion.render.hook import CameraHook
+
+    for hook in (CameraHook, VisionFusionHook, CloudGuidanceFallback):
+        table = pd.read_parquet(tmp_path / "a" / f"{hook.table}.parquet")
+        assert len(table) and tuple(table.columns) == hook.columns, hook.table

@@ -229,7 +229,9 @@ class CoSimulation:
         sumo_changes = read_sumo_lanechanges(lc_file, session.road)
         lc_file.unlink(missing_ok=True)
         stored = {name: sink.close() for name, sink in sinks.items()}
-        frames = {name: pd.DataFrame(columns=EMPTY_COLUMNS.get(name, [])) for name, f in stored.items() if f is None}
+        # a table without rows keeps its columns (a hook names them: a reader's table["time"] works)
+        empty = EMPTY_COLUMNS | {h.table: list(h.columns) for h in self.hooks if getattr(h, "columns", None)}
+        frames = {name: pd.DataFrame(columns=empty.get(name, [])) for name, f in stored.items() if f is None}
         vehicles = session.vehicle_table()
         frames["vehicles"] = vehicles
         frames["collisions"] = pd.DataFrame([c.__dict__ for c in out["collisions"]],

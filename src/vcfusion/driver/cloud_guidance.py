@@ -29,6 +29,7 @@ class CloudGuidanceFallback:
     highlighted); without a camera it makes that guidance from the cloud predictions."""
 
     table = "guidance"
+    columns = ("time", "vehicle_id", "box_vehicle_id", "lc_prob", "level", "source")
 
     def __init__(self, road: Road, policy: GuidancePolicy, camera: bool = False):
         self.road = road

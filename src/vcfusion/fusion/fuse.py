@@ -190,6 +190,7 @@ class VisionFusionHook:
     table. Without a `frame_source` it reads the camera stage's ``tick.frame``."""
 
     table = "fusion"
+    columns = ("time", "vehicle_id", "method", "lc_prob", "level", "matched", "box_vehicle_id", "x1", "y1", "x2", "y2")
     provides = ("detections", "guidance")
 
     def __init__(self, frame_source: FrameSource | None, detector: Detector, seed: int, policy: GuidancePolicy,

@@ -19,6 +19,7 @@ from vcfusion.records import EGO_ID
 
 class CameraHook:
     table = "camera"
+    columns = ("time", "vehicles_seen")
     needs = ("ego",)  # the camera rides on the ego
     provides = ("frame",)
 
