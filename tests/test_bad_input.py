@@ -7,6 +7,7 @@ fails for its own defect.
 """
 
 import json
+import shutil
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -300,6 +301,23 @@ CASES = [
          ("--classes", "expected the category ids", "'1,car'")),
     # dataset folders
     Case("COCO folder missing", lambda t: ["eval-detector", "nope"], ("nope", "dataset folder not found")),
+    Case("COCO folder listed twice", lambda t: ["eval-detector", coco_folder(t), "coco"],
+         ("data: coco holds the same images as coco", "each scene counts once")),
+    Case("COCO folder and its copy", lambda t: (coco_folder(t), shutil.copytree(t / "coco", t / "copy"),
+                                                ["eval-detector", "coco", "copy"])[2],
+         ("data: copy holds the same images as coco",)),
+    Case("negative min area", lambda t: ["eval-detector", coco_folder(t), "--min-area", "-5"],
+         ("--min-area", "expected a non-negative area", "got -5")),
+    Case("negative min train area", lambda t: ["train-detector", coco_folder(t), "--out", "w.pt",
+                                               "--min-train-area", "-1"],
+         ("--min-train-area", "expected a non-negative area", "got -1")),
+    Case("identification study min area", lambda t: ["study", "identification", scenario(t, BASE), "--seeds", "0",
+                                                     "--out", "st", "--min-area", "-5"],
+         ("--min-area", "expected a non-negative area", "got -5")),
+    Case("identification study folder exists", lambda t: ((t / "st").mkdir(),
+                                                          ["study", "identification", scenario(t, BASE), "--seeds",
+                                                           "0", "--out", "st"])[1],
+         ("--out", "st already exists; choose a new folder")),
     Case("resize quality out of range", lambda t: ["resize-dataset", "coco", "--out", "small", "--quality", "0"],
          ("--quality", "expected 1 to 100", "got 0")),
     Case("resize a corrupt COCO folder", lambda t: ((t / "coco").mkdir(), (t / "coco" / "annotations.json").write_text("{"),

@@ -291,3 +291,10 @@ def test_atomic_write_makes_the_folder_it_writes_into(tmp_path):
     atomic_write(tmp_path / "a" / "b" / "model.onnx", lambda tmp: tmp.write_bytes(b"onnx"))
     assert (tmp_path / "a" / "b" / "model.onnx").read_bytes() == b"onnx"
     assert [p.name for p in (tmp_path / "a" / "b").iterdir()] == ["model.onnx"]
+
+
+def test_json_null_for_nan_leaves_numbers_and_nulls_non_finite_floats():
+    from vcfusion.runio import json_null_for_nan
+
+    data = {"a": float("nan"), "b": [1.5, float("inf"), {"c": -float("inf"), "d": "NaN"}], "e": (2, None), "f": 0}
+    assert json_null_for_nan(data) == {"a": None, "b": [1.5, None, {"c": None, "d": "NaN"}], "e": [2, None], "f": 0}

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import glob
 import json
+import math
 import os
 import platform
 import shutil
@@ -38,6 +39,17 @@ def package_versions() -> dict[str, str]:
 
 def write_json(path: Path, data: dict) -> None:
     path.write_text(json.dumps(data, indent=2, sort_keys=True, default=str) + "\n")
+
+
+def json_null_for_nan(data):
+    """`data` with every NaN or infinite float as None (JSON null: NaN is no JSON, and strict readers refuse it)."""
+    if isinstance(data, dict):
+        return {k: json_null_for_nan(v) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [json_null_for_nan(v) for v in data]
+    if isinstance(data, float) and not math.isfinite(data):
+        return None
+    return data
 
 
 def write_table(path: Path, frame: pd.DataFrame) -> None:

@@ -54,6 +54,8 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
     if not 0.0 <= args.val_fraction < 1.0:
         raise UsageError(f"--val-fraction: expected a share in [0, 1) (the rest is trained on), "
                          f"got {args.val_fraction}")
+    _check_min_area(args.min_area)
+    _check_min_area(args.min_train_area, "--min-train-area")
     net, report = train_detector(
         args.data, args.out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, input_wh=input_wh,
         val_fraction=args.val_fraction, val_data=args.val, seed=args.seed, threads=args.threads,
@@ -105,11 +107,36 @@ def _make_detector(args):
     return TorchDetector(args.weights or default_weights_path())
 
 
+def _check_min_area(value: float, option: str = "--min-area") -> None:
+    if not value >= 0:  # NaN too
+        raise UsageError(f"{option}: expected a non-negative area in px^2 (0 = every box), got {value:g}")
+
+
+def _check_distinct_folders(folders) -> None:
+    """Each scene once: a folder listed twice, or a copy of one, counted its targets twice and narrowed
+    the intervals over scenes (training may list a folder twice on purpose; scoring may not)."""
+    import hashlib
+
+    seen: dict = {}
+    for folder in folders:
+        path = Path(folder)
+        key = path.resolve()
+        ann = path / "annotations.json"
+        if ann.is_file():
+            key = hashlib.sha256(ann.read_bytes()).hexdigest()
+        if key in seen:
+            raise UsageError(f"data: {folder} holds the same images as {seen[key]} (a folder listed twice, or a "
+                             "copy); expected each folder once, so that each scene counts once")
+        seen[key] = folder
+
+
 def cmd_eval_detector(args: argparse.Namespace) -> int:
     from vcfusion.detection.detector_train import load_coco_many
     from vcfusion.detection.family_eval import (evaluate_families, format_interval_table, format_table,
                                                 format_visibility_table)
 
+    _check_min_area(args.min_area)
+    _check_distinct_folders(args.data)
     detector = _make_detector(args)
     ds = load_coco_many(args.data)
     from vcfusion.fusion.box_refine import BoxRefineParams
@@ -138,9 +165,13 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
     if args.report:
         from vcfusion.runio import write_json
 
-        write_json(Path(args.report), {"data": [str(d) for d in args.data], "min_area": args.min_area,
-                                       "refined_by_depth": not args.no_refine,
-                                       "families": [r.summary() for r in results]})
+        from vcfusion.runio import json_null_for_nan
+
+        # strict JSON (an empty visibility bin's accuracy is NaN: null here, as JSON readers expect)
+        write_json(Path(args.report), json_null_for_nan({"data": [str(d) for d in args.data],
+                                                         "min_area": args.min_area,
+                                                         "refined_by_depth": not args.no_refine,
+                                                         "families": [r.summary() for r in results]}))
         print(f"report: {args.report}")
     return 0
 

@@ -28,6 +28,11 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
     from vcfusion.fusion.box_refine import BoxRefineParams
     from vcfusion.fusion.stage import RenderedFrameSources, depth_params
 
+    from vcfusion.cli import check_new_folder
+
+    if not args.min_area >= 0:
+        raise UsageError(f"--min-area: expected a non-negative area in px^2 (0 = every box), got {args.min_area:g}")
+    out = check_new_folder(Path(args.out))  # a study is not resumed: another one's outputs would be replaced
     scenarios = [load_scenario(path) for path in args.scenario]
     for scenario in scenarios:
         require_camera_world(scenario)  # every frame is rendered
@@ -52,7 +57,6 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
     for path, scenario in zip(args.scenario, scenarios):
         if scenario.ego is None:
             raise UsageError(f"{path}: ego: the camera rides on the ego; the scenario has no ego block")
-    out = Path(args.out)
     sources = RenderedFrameSources()
     try:
         # Algorithm 1's th, n, reducer: the first scenario's fusion block (one setting per study)
