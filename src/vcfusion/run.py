@@ -76,13 +76,29 @@ def _sha256(path: Path) -> str:
         return hashlib.file_digest(f, "sha256").hexdigest()
 
 
+def input_files(scenario: Scenario) -> dict[str, Path]:
+    """The files a run of the scenario reads besides the scenario itself: the network, the vehicle
+    types, and the models that shape its results (the lane-change model, the detector's weights),
+    shipped defaults included (another release ships other weights)."""
+    files = {"network": scenario.network, "vehicle_types": scenario.vehicle_types}
+    if scenario.prediction.enabled:
+        from vcfusion.prediction.model import default_model_path
+
+        files["prediction_model"] = scenario.prediction.model or default_model_path()
+    if scenario.fusion.enabled and scenario.fusion.detector != "oracle":
+        from vcfusion.detection.detector_net import default_weights_path
+
+        files["detector_weights"] = scenario.fusion.weights or default_weights_path()
+    return files
+
+
 def manifest_for(scenario: Scenario, seed: int) -> dict:
     return {
         # the resolved scenario: the file merged over the files it extends, defaults filled in
         "scenario": scenario.to_dict() | {"network": scenario.network.name, "vehicle_types": scenario.vehicle_types.name},
         # the files it names, by content: a network rebuilt under the same name (e.g. with other lane
         # widths) makes other runs, which a batch or dataset must not resume into
-        "files_sha256": {"network": _sha256(scenario.network), "vehicle_types": _sha256(scenario.vehicle_types)},
+        "files_sha256": {name: _sha256(path) for name, path in input_files(scenario).items()},
         "scenario_file": str(scenario.source) if scenario.source else None,
         # the file given and the files it extends, in that order (one file when it extends none)
         "scenario_chain": [str(p) for p in scenario.chain],

@@ -75,6 +75,29 @@ def test_a_batch_does_not_resume_into_runs_of_a_network_rebuilt_under_the_same_n
         run_batch(path, [0, 1], out, workers=1, progress=False)
 
 
+def test_a_batch_does_not_resume_into_runs_of_another_lane_change_model(tmp_path):
+    # the model files shape the results too: the same file name with other weights made other runs
+    import shutil
+
+    from vcfusion.prediction.model import default_model_path
+
+    model = tmp_path / "model.npz"
+    shutil.copy(default_model_path(), model)
+    path = tiny_scenario(tmp_path, 2, f"prediction: {{model: {model.as_posix()}}}\n")
+    out = tmp_path / "b"
+    assert run_batch(path, [0], out, workers=1, progress=False)["done"] == 1
+    manifest = json.loads((seed_folder(out, 0) / "manifest.json").read_text())
+    assert set(manifest["files_sha256"]) == {"network", "vehicle_types", "prediction_model"}
+    # a folder written before the model's digest was recorded is compared without it
+    old = dict(manifest, files_sha256={k: v for k, v in manifest["files_sha256"].items() if k != "prediction_model"})
+    (seed_folder(out, 0) / "manifest.json").write_text(json.dumps(old))
+    assert run_batch(path, [0], out, workers=1, progress=False) == {"done": 0, "skipped": 1, "failed": []}
+    (seed_folder(out, 0) / "manifest.json").write_text(json.dumps(manifest))
+    shutil.copy(default_model_path().with_name("lane_change_mlp.npz"), model)  # retrained: another model
+    with pytest.raises(UsageError, match=r"seed_0000: .*\(it differs in: prediction_model file \(its content\)\)"):
+        run_batch(path, [0, 1], out, workers=1, progress=False)
+
+
 @pytest.mark.slow
 def test_batch_isolates_failing_seeds(tmp_path):
     # Each seed draws one vehicle in [1950, 2100] m on a 2000 m road: beyond the end it cannot depart.

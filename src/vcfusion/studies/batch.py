@@ -227,11 +227,11 @@ def check_kept_runs(scenario_path: Path, seeds: list[int], out: Path) -> None:
             manifest = {}
         kept = manifest.get("scenario") if isinstance(manifest.get("scenario"), dict) else {}
         differs = [k for k in sorted(expected.keys() | kept.keys()) if expected.get(k) != kept.get(k)]
-        # the files by content (a folder written before their digests were recorded: by name only)
+        # the files by content (a folder written before a file's digest was recorded: by name only)
         digests = manifest.get("files_sha256") if isinstance(manifest.get("files_sha256"), dict) else None
         if digests is not None:
             differs += [f"{k} file (its content)" for k, v in expected_manifest["files_sha256"].items()
-                        if digests.get(k) != v]
+                        if k in digests and digests[k] != v]
         if manifest.get("seed") != seed:
             differs.insert(0, "seed")
         if differs:
