@@ -320,3 +320,31 @@ def test_a_replayed_trip_keeps_its_guidance_condition(tmp_path):
         assert main(["drive", str(path), "--input", f"replay:{trip / 'inputs.csv'}", "--speed", "max", "--headless",
                      "--no-window", "--out", str(out), *extra]) == 0
         assert json.loads((out / "summary.json").read_text())["hitl"]["guidance"] == expected
+
+
+def test_a_replay_drives_the_recorded_trips_seed_and_participant(tmp_path, capsys):
+    # a replay of a trip's inputs under another seed was accepted silently (the inputs then steer
+    # through other traffic), and the replayed folder lost the participant
+    import json
+
+    from vcfusion.cli import main
+
+    path = write_scenario(tmp_path, SCENARIO.replace("MAX_TIME", "1.0").replace("VEHICLES", FAR_AHEAD))
+    (tmp_path / "in.csv").write_text("time_s,throttle,brake,steer\n0,0.2,0,0\n")
+    common = ["--speed", "max", "--headless", "--no-window"]
+    assert main(["drive", str(path), "--input", f"replay:{tmp_path / 'in.csv'}", "--seed", "2", "--participant",
+                 "P1", "--out", str(tmp_path / "trip"), *common]) == 0
+    replay = f"replay:{tmp_path / 'trip' / 'inputs.parquet'}"
+    assert main(["drive", str(path), "--input", replay, "--out", str(tmp_path / "again"), *common]) == 0
+    manifest = json.loads((tmp_path / "again" / "manifest.json").read_text())
+    assert manifest["seed"] == 2 and manifest["hitl"]["participant"] == "P1"
+    for name in ("trajectories", "ego"):
+        assert pd.read_parquet(tmp_path / "trip" / f"{name}.parquet").equals(
+            pd.read_parquet(tmp_path / "again" / f"{name}.parquet")), name
+    capsys.readouterr()
+    assert main(["drive", str(path), "--input", replay, "--seed", "5", "--out", str(tmp_path / "other"), *common]) == 2
+    assert "was driven on seed 2" in capsys.readouterr().err and not (tmp_path / "other").exists()
+    # another scenario: allowed (another camera, say), and said
+    other = write_scenario(tmp_path, SCENARIO.replace("MAX_TIME", "0.8").replace("VEHICLES", FAR_AHEAD), "o.yaml")
+    assert main(["drive", str(other), "--input", replay, "--out", str(tmp_path / "variant"), *common]) == 0
+    assert "driven on another scenario (it differs in: simulation)" in capsys.readouterr().err

@@ -53,6 +53,15 @@ def ssq_scores(ratings: list[int]) -> dict:
             "disorientation": raw["D"] * SSQ_WEIGHTS["D"], "total": sum(raw.values()) * SSQ_TOTAL_WEIGHT}
 
 
+def check_participant(participant: str) -> str:
+    """UsageError unless the id can name a folder: no path separators, not . or .. (an id such as
+    P07/x scattered trips into subfolders, ../x wrote them elsewhere)."""
+    if "/" in participant or "\\" in participant or participant in (".", "..") or "\0" in participant:
+        raise UsageError(f"--participant: expected an id without path separators (it names folders), got "
+                         f"{participant!r}")
+    return participant
+
+
 def default_order(participant: str) -> str:
     """on-first or off-first, alternating between participants by a stable hash of the id."""
     return ("on-first", "off-first")[hashlib.sha256(participant.encode()).digest()[0] % 2]
@@ -114,9 +123,7 @@ def run_hitl_study(scenario_path: Path, participant: str, pairs: int, out: Path,
 
     if not participant:
         raise UsageError("--participant: give the participant's id")
-    if "/" in participant or "\\" in participant or participant in (".", ".."):
-        raise UsageError(f"--participant: expected an id without path separators (it names folders), got "
-                         f"{participant!r}")
+    check_participant(participant)
     if pairs < 1:
         raise UsageError(f"--trips: expected at least 1 paired trip, got {pairs}")
     if first_seed <= practice_seed < first_seed + pairs:
