@@ -28,6 +28,23 @@ def test_calibration_finds_axes_ranges_and_inversion_and_round_trips(tmp_path):
     assert not list(tmp_path.glob("*.tmp-writing*"))
 
 
+def test_a_wheel_that_turns_further_one_way_rests_at_zero_steer():
+    # full left reads -1.0, full right only 0.8, at rest 0.0: read linearly over -1 .. 0.8 the centred
+    # wheel steered 11 % right; the rest reading is the centre, each side scaled on its own
+    rest = [0.0, 1.0, 1.0]
+    held = {"steer_left": [-1.0, 1.0, 1.0], "steer_right": [0.8, 1.0, 1.0], "throttle": [0.0, -1.0, 1.0],
+            "brake": [0.0, 1.0, -1.0]}
+    steer = axis_map_from_phases(rest, held).steer
+    assert steer.centre == 0.0 and steer.steer(0.0) == 0.0
+    assert steer.steer(-1.0) == pytest.approx(1.0) and steer.steer(0.8) == pytest.approx(-1.0)
+    assert steer.steer(-0.5) == pytest.approx(0.5) and steer.steer(0.4) == pytest.approx(-0.5)
+    assert steer.steer(0.95) == pytest.approx(-1.0)  # past the calibrated lock: full lock
+    # without a centre (the presets, maps written before): halfway, as before
+    assert AxisRange(axis=0, min=-1.0, max=0.8).steer(-0.1) == pytest.approx(0.0)
+    with pytest.raises(ValueError, match="centre"):
+        AxisRange(axis=0, min=-1.0, max=0.8, centre=0.9)
+
+
 def test_calibration_refuses_a_control_that_moved_nothing():
     rest = [0.0, 0.0, 0.0]
     held = {"steer_left": [-1.0, 0, 0], "steer_right": [1.0, 0, 0], "throttle": [0.0, 0.9, 0], "brake": [0, 0, 0.05]}

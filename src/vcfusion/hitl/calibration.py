@@ -9,8 +9,9 @@ A map is a small JSON file (`vcfusion drive --calibrate` writes one; `--axis-map
      "lane_left_button": 5, "lane_right_button": 4}
 
 Raw values are SDL's, -1..1. A value is first scaled to t = (raw - min) / (max - min) in [0, 1].
-Steering: not inverted means `min` is full LEFT (SDL's own convention: left is negative), so
-steer = 1 - 2 t (+1 full left, -1 full right); inverted swaps the sides. Pedals: not inverted
+Steering: not inverted means `min` is full LEFT (SDL's own convention: left is negative): +1 at
+`min`, 0 at `centre` (the wheel at rest, from the calibration; default halfway), -1 at `max`, each
+side linear; inverted swaps the sides. Pedals: not inverted
 means `max` is fully pressed, so pedal = t; inverted (the Logitech pedals: +1 released, -1 floored)
 means pedal = 1 - t.
 
@@ -39,11 +40,17 @@ class AxisRange(BaseModel):
     max: float = Field(ge=-1.0, le=1.0)
     inverted: bool = False
     deadzone: float = Field(default=0.0, ge=0.0, lt=1.0)
+    # steering: the raw value of the wheel at rest (None: halfway between min and max). A wheel
+    # that turns further one way than the other rests off that midpoint, and read linearly over
+    # min..max its centre steered (-1.0 .. 0.8 read a centred wheel as 11 % right lock)
+    centre: float | None = Field(default=None, ge=-1.0, le=1.0)
 
     @model_validator(mode="after")
     def _range(self):
         if not self.max > self.min:
             raise ValueError(f"max ({self.max}) must be above min ({self.min})")
+        if self.centre is not None and not self.min < self.centre < self.max:
+            raise ValueError(f"centre ({self.centre}) must lie between min ({self.min}) and max ({self.max})")
         return self
 
     def unit(self, raw: float) -> float:
@@ -51,7 +58,10 @@ class AxisRange(BaseModel):
         return min(1.0, max(0.0, (raw - self.min) / (self.max - self.min)))
 
     def steer(self, raw: float) -> float:
-        value = 1.0 - 2.0 * self.unit(raw)
+        # each side of the centre scaled on its own: full lock at min and max, 0 at the centre
+        centre = (self.min + self.max) / 2 if self.centre is None else self.centre
+        raw = min(self.max, max(self.min, raw))
+        value = (centre - raw) / (centre - self.min) if raw <= centre else -(raw - centre) / (self.max - centre)
         value = -value if self.inverted else value
         if abs(value) <= self.deadzone:
             return 0.0
@@ -155,8 +165,9 @@ def axis_map_from_phases(rest: list[float], held: dict[str, list[float]], device
 
     left, right = held["steer_left"], held["steer_right"]
     steer = pick([abs(left[i] - right[i]) for i in range(n)], set(), "steering")
-    steer_range = AxisRange(axis=steer, min=min(left[steer], right[steer]), max=max(left[steer], right[steer]),
-                            inverted=left[steer] > right[steer])
+    lo, hi = min(left[steer], right[steer]), max(left[steer], right[steer])
+    steer_range = AxisRange(axis=steer, min=lo, max=hi, inverted=left[steer] > right[steer],
+                            centre=rest[steer] if lo < rest[steer] < hi else None)
     pedals = {}
     for name in ("throttle", "brake"):
         pressed = held[name]
