@@ -297,10 +297,17 @@ def test_frames_due_between_two_long_steps_count_as_dropped(tmp_path):
     sc = load_scenario(write_scenario(tmp_path, text))
     (tmp_path / "in.csv").write_text("time_s,throttle,brake,steer\n0,0.2,0,0\n")
     result = drive(sc, tmp_path / "run", input_spec=f"replay:{tmp_path / 'in.csv'}", speed=None, window=True,
-                   display_fps=30.0)
+                   display_fps=30.0, record_video=True)
     rt = result.summary["realtime"]
     assert rt["frames_shown"] == 20 and rt["frames_due"] == pytest.approx(60, abs=3)
     assert rt["dropped_frames"] == rt["frames_due"] - rt["frames_shown"]
+    # the video repeats the frame on the screen for each dropped one: it lasts as long as the trip
+    # (it held the 20 frames shown only, at 30 frames/s: a third of the trip's time)
+    import cv2
+
+    cap = cv2.VideoCapture(str(tmp_path / "run" / "drive.mp4"))
+    assert cap.get(cv2.CAP_PROP_FPS) == pytest.approx(30.0)
+    assert cap.get(cv2.CAP_PROP_FRAME_COUNT) == rt["frames_due"]
 
 
 def test_a_replayed_trip_keeps_its_guidance_condition(tmp_path):

@@ -60,6 +60,7 @@ class HumanDriver:
         self.window = window
         self.renderer = renderer
         self.video = video
+        self._last_image = None  # the frame on the screen (the video repeats it for a dropped frame)
         self.info = info or {}
         self.on_start = on_start  # called once when the trip's clock starts (e.g. to start other recorders)
         # the overlay shows the tick's guidance; the HUD works without it
@@ -132,6 +133,10 @@ class HumanDriver:
         return EgoCommand(state.accel, state.d, state.yaw)
 
     def _dropped(self, sim_time: float, lag: float) -> None:
+        if self.video is not None and self._last_image is not None:
+            # the screen kept the last frame shown: so does the video, which then plays in simulated
+            # time (without it a drive with dropped frames gave a video seconds shorter than the trip)
+            self.video.add(self._last_image)
         f = self.frame_rows
         f["sim_time"].append(round(sim_time, 6))
         f["wall_s"].append(wallclock.perf_counter() - self._wall0)
@@ -159,6 +164,7 @@ class HumanDriver:
             self.window.show(image)
         if self.video is not None:
             self.video.add(image)
+            self._last_image = image
         shown = self._last_shown = wallclock.perf_counter()
         f["wall_s"].append(shown - self._wall0)
         f["shown"].append(True)
