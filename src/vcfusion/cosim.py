@@ -435,7 +435,7 @@ def format_summary(summary: dict, wall_s: float | None = None) -> str:
     if summary["lane_changes_by_reason"]:
         lines.append("  reasons: " + ", ".join(f"{k} {v}" for k, v in summary["lane_changes_by_reason"].items()))
     if "ego_lane" in summary:
-        lines.append(f"  ego (lane {summary['ego_lane']}): {summary['ego_distance_m']:.0f} m at "
+        lines.append(f"  ego (departed in lane {summary['ego_lane']}): {summary['ego_distance_m']:.0f} m at "
                      f"{summary['ego_mean_speed_mps']:.1f} m/s mean; cut-ins ahead of the ego: "
                      f"{summary['cut_ins_ahead_of_ego']}")
         for c in summary["cut_ins"]:

@@ -102,6 +102,22 @@ def test_untouched_pedals_read_released_and_touched_ones_follow_the_map(sdl):
         js.detach()
 
 
+def test_an_axis_map_naming_an_axis_the_device_lacks_is_named_by_its_file(sdl, tmp_path):
+    # the message named the map's device field, "axis map '': ..." for a hand-written file
+    from vcfusion.hitl.inputs import open_input
+
+    data = PRESETS["G29"].model_dump() | {"device": ""}
+    data["brake"] = dict(data["brake"], axis=9)
+    path = tmp_path / "wheel.json"
+    path.write_text(json.dumps(data))
+    js = VirtualJoystick(axes=4, buttons=6)
+    try:
+        with pytest.raises(UsageError, match=rf"{path.name}: axis 9 used, but .* has 4 axes"):
+            open_input("joystick", path)
+    finally:
+        js.detach()
+
+
 def test_an_unplugged_wheel_releases_the_pedals_and_is_taken_back_when_plugged_in(sdl):
     js = VirtualJoystick(axes=4, buttons=6)
     try:

@@ -86,7 +86,7 @@ class KeyboardInput:
 class JoystickInput:
     """An SDL joystick (wheel, pedals, game pad) through an AxisMap."""
 
-    def __init__(self, joystick, axis_map: AxisMap):
+    def __init__(self, joystick, axis_map: AxisMap, map_source: str = ""):
         import pygame
 
         self.pg = pygame
@@ -94,12 +94,14 @@ class JoystickInput:
         self.joystick.init()
         self.instance_id = joystick.get_instance_id()
         self.map = axis_map
+        self.map_source = map_source  # the axis-map file, named in errors
         self.device_name = joystick.get_name()
         self.name = f"joystick:{self.device_name}"
         n = joystick.get_numaxes()
         used = max(axis_map.steer.axis, axis_map.throttle.axis, axis_map.brake.axis)
         if used >= n:
-            raise UsageError(f"axis map {axis_map.device!r}: axis {used} used, but {joystick.get_name()!r} "
+            source = f"{self.map_source}: " if self.map_source else f"axis map of {axis_map.device or 'the preset'}: "
+            raise UsageError(f"{source}axis {used} used, but {joystick.get_name()!r} "
                              f"has {n} axes (axes 0..{n - 1}); run `vcfusion drive --calibrate`")
         self.opened = [joystick.get_axis(i) for i in range(n)]
         self.touched = [False] * n
@@ -250,7 +252,7 @@ def open_input(spec: str, axis_map_file: Path | None = None):
         if axis_map is None:
             raise UsageError(f"--input joystick: no preset for {js.get_name()!r} ({js.get_numaxes()} axes); "
                              "run `vcfusion drive --calibrate --axis-map FILE` and pass --axis-map FILE")
-        return JoystickInput(js, axis_map)
+        return JoystickInput(js, axis_map, map_source=str(axis_map_file) if axis_map_file else "")
     return check_input_spec(spec)  # replay:FILE, read and checked; anything else is refused
 
 
