@@ -380,6 +380,29 @@ def test_the_ego_lane_of_a_lane_change_is_the_one_the_ego_drives_in_at_its_midpo
     assert _ego_lane_at({}, np.array([1.0]), road, 2).tolist() == [2]
 
 
+def test_a_persons_lane_change_starts_and_ends_where_the_car_is_wholly_in_a_lane():
+    # a person holds a car 0.4-0.8 m off a lane's centre (here pinned to its right edge): the
+    # 5 cm "centred" rule of SUMO's vehicles left the start and end NaN, and the ego's own change
+    # had a gap "to the ego" of minus its length
+    from vcfusion.traffic.lanechanges import ego_lane_changes, lane_change_events, relate_to_ego
+    from vcfusion.traffic.network import read_road
+
+    road = read_road(REPO / "sumo_net" / "highway.net.xml")  # 3 lanes of 3.5 m: lane 1 centre 5.25 m
+    t = np.round(np.arange(0.0, 3.01, 0.1), 6)
+    d = np.interp(t, [0.0, 0.5, 2.5, 3.0], [8.75 - 0.4, 8.75 - 0.4, 5.25 - 0.8, 5.25 - 0.8])  # lane 2 -> 1
+    tracks = {"ego": {"time": t, "d": d, "s": 100.0 + 20.0 * t}}
+    changes = ego_lane_changes(tracks["ego"], road, 4.6)
+    events = lane_change_events(changes, tracks, road)
+    assert events["from_lane"].tolist() == [2] and events["to_lane"].tolist() == [1]
+    start, end = events["start_time"][0], events["end_time"][0]
+    # wholly in lane 2 while |d - 8.75| <= 0.85 (until d = 7.9), wholly in lane 1 from |d - 5.25| <= 0.85
+    assert start == pytest.approx(t[d >= 7.9][-1] if (d >= 7.9).any() else np.nan)
+    assert end == pytest.approx(t[(np.abs(d - 5.25) <= 0.85) & (t >= events["mid_time"][0])][0])
+    assert start < events["mid_time"][0] < end
+    related = relate_to_ego(events, tracks, {"ego": 4.6}, 2)
+    assert np.isnan(related["gap_to_ego_m"][0]) and not related["into_ego_lane"][0]
+
+
 @pytest.mark.slow
 def test_a_vision_run_of_one_seed_writes_the_same_tables_twice(tmp_path):
     # the camera table carried each frame's render time (wall clock): two runs of one seed differed

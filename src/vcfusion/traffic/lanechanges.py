@@ -23,6 +23,9 @@ from vcfusion.records import EGO_ID
 from vcfusion.traffic.roadframe import RoadFrame
 
 CENTRED_TOL_M = 0.05
+# a person never centres a car to 5 cm: a person's change starts where the car was last wholly in
+# its old lane and ends where it is first wholly in the new one (a 1.8 m car)
+PERSON_CAR_WIDTH_M = 1.8
 
 LANE_CHANGE_COLUMNS = [
     "event_id", "vehicle_id", "start_time", "mid_time", "end_time", "from_lane", "to_lane",
@@ -115,15 +118,17 @@ def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, di
     events = {name: values[order] for name, values in sumo_changes.items()}
     starts = np.full(len(order), np.nan)
     ends = np.full(len(order), np.nan)
-    columns = (events[c] for c in ("vehicle_id", "from_lane", "to_lane", "mid_time"))
-    for i, (vid, from_lane, to_lane, mid_time) in enumerate(zip(*columns)):
+    person_tol = max(CENTRED_TOL_M, (road.lane_width_m - PERSON_CAR_WIDTH_M) / 2)
+    columns = (events[c] for c in ("vehicle_id", "from_lane", "to_lane", "mid_time", "reason"))
+    for i, (vid, from_lane, to_lane, mid_time, reason) in enumerate(zip(*columns)):
         track = tracks.get(vid)
         if track is None or from_lane < 0 or to_lane < 0:
             continue
         t, d = track["time"], track["d"]
         s = track["s"] if "s" in track else 0.0
-        in_old = np.abs(d - road.lane_centre_d(from_lane, s)) <= CENTRED_TOL_M
-        in_new = np.abs(d - road.lane_centre_d(to_lane, s)) <= CENTRED_TOL_M
+        tol = person_tol if reason == PERSON_REASON else CENTRED_TOL_M
+        in_old = np.abs(d - road.lane_centre_d(from_lane, s)) <= tol
+        in_new = np.abs(d - road.lane_centre_d(to_lane, s)) <= tol
         before = np.flatnonzero(in_old & (t <= mid_time + 1e-9))
         after = np.flatnonzero(in_new & (t >= mid_time - 1e-9))
         if len(before):
@@ -157,5 +162,6 @@ def relate_to_ego(events: dict[str, np.ndarray], tracks: dict[str, dict[str, np.
                 changer_s[i] = track["s"][hit[-1]]
         changer_length = np.array([lengths.get(v, np.nan) for v in vids], dtype=float)
         gaps = changer_s - ego_s[at] - 0.5 * (changer_length + lengths[EGO_ID])
+        gaps[vids == EGO_ID] = np.nan  # the ego's own changes (a person drives it) have no gap to it
     return events | {"into_ego_lane": (events["to_lane"] == ego_lane) & (vids != EGO_ID),
                      "gap_to_ego_m": gaps, "ahead_of_ego": gaps > 0}
