@@ -373,7 +373,7 @@ def test_osm_import_keeps_the_motorway_and_its_acceleration_lane(frames):
     assert frame.lane_count(np.array([accel_start - 50.0, accel_start + 50.0, accel_end + 50.0])).tolist() == [3, 4, 3]
 
 
-def test_every_network_builds_reproducibly(tmp_path):
+def test_every_network_builds_reproducibly(tmp_path, capsys):
     """build-net rebuilds each committed network (plain XML and the OSM extract) to the same content."""
     from vcfusion.traffic.network import build_networks, network_names
 
@@ -390,6 +390,15 @@ def test_every_network_builds_reproducibly(tmp_path):
     assert [p.name for p in built] == [f"{n}.net.xml" for n in network_names(NETS)]
     for path in built:
         assert body(path) == body(NETS / path.name), path.name
+    # built again, nothing changes, and the command says so (it printed "built" for every file)
+    from vcfusion.cli import main
+
+    (tmp_path / "highway.edg.xml").write_text((tmp_path / "highway.edg.xml").read_text().replace(
+        "</edges>", "<!-- touched -->\n</edges>"))  # a comment: the same network
+    capsys.readouterr()
+    assert main(["build-net", "--net-dir", str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == [f"up to date {tmp_path / n}.net.xml" for n in network_names(NETS)]
 
 
 def test_equal_frames_compare_equal(frames):

@@ -193,12 +193,15 @@ def cmd_study_hitl(args: argparse.Namespace) -> int:
 def cmd_build_net(args: argparse.Namespace) -> int:
     from vcfusion.traffic.network import REPO_NET_DIR, build_networks
 
+    net_dir = Path(args.net_dir) if args.net_dir else REPO_NET_DIR
+    # a network whose content did not change keeps its file (netconvert's header timestamp aside)
+    before = {p.name: p.stat().st_mtime_ns for p in net_dir.glob("*.net.xml")} if net_dir.is_dir() else {}
     try:
-        built = build_networks(Path(args.net_dir) if args.net_dir else REPO_NET_DIR)
+        built = build_networks(net_dir)
     except RuntimeError as exc:
         raise UsageError(str(exc)) from None
     for out in built:
-        print(f"built {out}")
+        print(f"{'up to date' if before.get(out.name) == out.stat().st_mtime_ns else 'built'} {out}")
     return 0
 
 

@@ -81,6 +81,8 @@ def test_batch_columns_table_rethreshold_and_report(tmp_path, accident_path, cap
     assert main(["report", str(out)]) == 0
     report = (out / "report" / "report.md").read_text()
     assert "| fuel, all rated vehicles | g/km | 3 |" in report and "passenger" in report
+    # the runs' setting named (default `others`: it said "SUMO's model every class", and the cars read nan)
+    assert "SUMO's model the vehicles MOVESTAR does not rate" in report
     for png in ("ttc_headway_distributions.png", "fuel_co2_by_class.png", "conflicts_by_position.png",
                 "ego_time_series.png"):
         assert (out / "report" / png).stat().st_size > 5000, png

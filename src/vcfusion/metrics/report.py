@@ -173,9 +173,12 @@ def write_report(batch: Path, folders: list[Path], out: Path) -> Path:
             "ci95_low": "95% CI low", "ci95_high": "95% CI high", "p2_5": "seeds 2.5%", "p97_5": "seeds 97.5%"})
         lines += ["## Over the seeds", "", "Mean, t-based 95 % confidence interval of the mean, and the spread "
                   "of the seeds (2.5-97.5 %).", "", _markdown_table(table), ""]
+    sumo_rates = {"others": "the vehicles MOVESTAR does not rate", "all": "every vehicle",
+                  "none": "no vehicle"}.get((settings[0] or {}).get("sumo_emissions") if settings else None,
+                                            "the vehicles the runs' `metrics.sumo_emissions` names")
     lines += ["## Fuel and CO2 by vehicle class", "", "Distance-weighted over all runs (sum of grams / sum of km). "
-              "MOVESTAR rates only its light-duty types; SUMO's model every class.", "",
-              _markdown_table(by_class), ""]
+              f"MOVESTAR rates only its light-duty types; SUMO's model {sumo_rates} (`metrics.sumo_emissions`; "
+              "a class it does not rate reads nan).", "", _markdown_table(by_class), ""]
     lines += ["## Figures", ""] + [f"![{k}]({p.name})" for k, p in figures.items()] + [""]
     path = out / "report.md"
     tmp = out / "report.md.tmp"
