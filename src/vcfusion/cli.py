@@ -321,9 +321,8 @@ def cmd_drive(args: argparse.Namespace) -> int:
         raise UsageError("drive: give a SCENARIO file (or --calibrate)")
     from vcfusion.cosim import format_summary
     from vcfusion.hitl.drive import drive
-    from vcfusion.scenario import require_camera_world
-
     from vcfusion.hitl.study import check_participant
+    from vcfusion.scenario import require_camera_world
 
     scenario = load_scenario(args.scenario)
     require_camera_world(scenario)  # the driver sees the camera's world

@@ -163,9 +163,7 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
     if intervals:
         print(intervals)
     if args.report:
-        from vcfusion.runio import write_json
-
-        from vcfusion.runio import json_null_for_nan
+        from vcfusion.runio import json_null_for_nan, write_json
 
         # strict JSON (an empty visibility bin's accuracy is NaN: null here, as JSON readers expect)
         write_json(Path(args.report), json_null_for_nan({"data": [str(d) for d in args.data],
