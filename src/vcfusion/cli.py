@@ -342,10 +342,10 @@ def cmd_drive(args: argparse.Namespace) -> int:
         check_participant(participant)
     out = Path(args.out) if args.out else _default_run_dir(f"{scenario.name}-{participant or 'drive'}", seed)
     if isinstance(manifest.get("scenario"), dict):
-        from vcfusion.run import manifest_for
+        from vcfusion.run import scenario_record
+        from vcfusion.runio import differing_keys
 
-        now = manifest_for(scenario, seed)["scenario"]
-        differs = sorted(k for k in now.keys() | manifest["scenario"].keys() if now.get(k) != manifest["scenario"].get(k))
+        differs = differing_keys(scenario_record(scenario), manifest["scenario"])
         if differs:  # on purpose (another camera, fusion setting) or not: said, not silent
             print(f"note: the replayed trip was driven on another scenario (it differs in: {', '.join(differs[:4])}"
                   f"{' ...' if len(differs) > 4 else ''})", file=sys.stderr)

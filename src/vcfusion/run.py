@@ -92,10 +92,15 @@ def input_files(scenario: Scenario) -> dict[str, Path]:
     return files
 
 
+def scenario_record(scenario: Scenario) -> dict:
+    """The manifest's `scenario`: the resolved scenario (the file merged over the files it extends,
+    defaults filled in), its network and vehicle-types files by name."""
+    return scenario.to_dict() | {"network": scenario.network.name, "vehicle_types": scenario.vehicle_types.name}
+
+
 def manifest_for(scenario: Scenario, seed: int) -> dict:
     return {
-        # the resolved scenario: the file merged over the files it extends, defaults filled in
-        "scenario": scenario.to_dict() | {"network": scenario.network.name, "vehicle_types": scenario.vehicle_types.name},
+        "scenario": scenario_record(scenario),
         # the files it names, by content: a network rebuilt under the same name (e.g. with other lane
         # widths) makes other runs, which a batch or dataset must not resume into
         "files_sha256": {name: _sha256(path) for name, path in input_files(scenario).items()},

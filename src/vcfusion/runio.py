@@ -41,6 +41,11 @@ def write_json(path: Path, data: dict) -> None:
     path.write_text(json.dumps(data, indent=2, sort_keys=True, default=str) + "\n")
 
 
+def differing_keys(a: dict, b: dict) -> list[str]:
+    """The keys (sorted) whose values differ between two records (a key missing from one differs)."""
+    return sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+
+
 def json_null_for_nan(data):
     """`data` with every NaN or infinite float as None (JSON null: NaN is no JSON, and strict readers refuse it)."""
     if isinstance(data, dict):

@@ -84,9 +84,9 @@ def write_report(batch: Path, folders: list[Path], out: Path) -> Path:
     odd = next((k for k, block in enumerate(settings) if block != settings[0]), None)
     if odd is not None:
         from vcfusion.errors import UsageError
-        from vcfusion.metrics.run_metrics import settings_differences
+        from vcfusion.runio import differing_keys
 
-        keys = settings_differences(settings[0], settings[odd])
+        keys = differing_keys(settings[0], settings[odd])
         raise UsageError(f"{folders[odd]}: its metrics were computed with another metrics: block than {folders[0]}'s "
                          f"(they differ in: {', '.join(keys)}); a report pools runs of one definition: recompute "
                          f"them with one (vcfusion metrics {batch} [--scenario FILE]) first")
@@ -174,7 +174,7 @@ def write_report(batch: Path, folders: list[Path], out: Path) -> Path:
         lines += ["## Over the seeds", "", "Mean, t-based 95 % confidence interval of the mean, and the spread "
                   "of the seeds (2.5-97.5 %).", "", _markdown_table(table), ""]
     sumo_rates = {"others": "the vehicles MOVESTAR does not rate", "all": "every vehicle",
-                  "none": "no vehicle"}.get((settings[0] or {}).get("sumo_emissions") if settings else None,
+                  "none": "no vehicle"}.get(settings[0].get("sumo_emissions"),
                                             "the vehicles the runs' `metrics.sumo_emissions` names")
     lines += ["## Fuel and CO2 by vehicle class", "", "Distance-weighted over all runs (sum of grams / sum of km). "
               f"MOVESTAR rates only its light-duty types; SUMO's model {sumo_rates} (`metrics.sumo_emissions`; "

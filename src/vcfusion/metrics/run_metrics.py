@@ -98,11 +98,6 @@ def metrics_settings(cfg, sumo_available: bool = True) -> dict:
             "sumo_emissions.parquet (written before SUMO's emissions were recorded)"}
 
 
-def settings_differences(a: dict, b: dict) -> list[str]:
-    """The keys in which two `metrics.settings` blocks differ (sorted)."""
-    return sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
-
-
 def summary_block(cfg, result: RunMetrics, collisions: pd.DataFrame | None, sumo_available: bool) -> dict:
     """summary.json's `metrics`: the ego, the traffic (counted vehicles) and the settings used."""
     col = result.columns

@@ -20,8 +20,9 @@ import pandas as pd
 from tqdm import tqdm
 
 from vcfusion.errors import UsageError
-from vcfusion.metrics.run_metrics import batch_row, metrics_settings, settings_differences
-from vcfusion.runio import atomic_write, discard_partial_folder, is_complete_run, write_json, write_table
+from vcfusion.metrics.run_metrics import batch_row, metrics_settings
+from vcfusion.runio import (atomic_write, differing_keys, discard_partial_folder, is_complete_run, write_json,
+                            write_table)
 from vcfusion.workers import JobFailed, run_jobs
 
 # On Dask: how many times a seed is run again after the worker running it was lost (Dask's
@@ -226,7 +227,7 @@ def check_kept_runs(scenario_path: Path, seeds: list[int], out: Path) -> None:
         if not isinstance(manifest, dict):
             manifest = {}
         kept = manifest.get("scenario") if isinstance(manifest.get("scenario"), dict) else {}
-        differs = [k for k in sorted(expected.keys() | kept.keys()) if expected.get(k) != kept.get(k)]
+        differs = differing_keys(expected, kept)
         # the files by content (a folder written before a file's digest was recorded: by name only)
         digests = manifest.get("files_sha256") if isinstance(manifest.get("files_sha256"), dict) else None
         if digests is not None:
@@ -244,7 +245,7 @@ def check_kept_runs(scenario_path: Path, seeds: list[int], out: Path) -> None:
                 kept_settings = json.loads((folder / "summary.json").read_text())["metrics"]["settings"]
             except (OSError, ValueError, KeyError, TypeError):
                 kept_settings = {}
-            other = settings_differences(settings, kept_settings)
+            other = differing_keys(settings, kept_settings)
             if other:
                 raise UsageError(f"{folder}: its metrics were recomputed with another metrics: block than this "
                                  f"scenario's (they differ in: {', '.join(other)}); a batch pools runs of one "
