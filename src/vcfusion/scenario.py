@@ -12,6 +12,7 @@ lists included, replaces the base's); a base may extend another. Paths inside a 
 
 from __future__ import annotations
 
+import math
 import re
 import typing
 from pathlib import Path
@@ -406,8 +407,6 @@ class Scenario(_Strict):
         """Simulated time between two frames of the AR video: the fusion stage draws at the AR updates
         (every ar.period_s) that have a camera frame (every vision.every_ticks V2C ticks); both start
         at the first tick."""
-        import math
-
         ar_ticks = int(round(self.ar.period_s / self.v2c.period_s))
         return math.lcm(ar_ticks, self.vision.every_ticks) * self.v2c.period_s
 

@@ -54,8 +54,8 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
     if not 0.0 <= args.val_fraction < 1.0:
         raise UsageError(f"--val-fraction: expected a share in [0, 1) (the rest is trained on), "
                          f"got {args.val_fraction}")
-    _check_min_area(args.min_area)
-    _check_min_area(args.min_train_area, "--min-train-area")
+    check_min_area(args.min_area)
+    check_min_area(args.min_train_area, "--min-train-area")
     net, report = train_detector(
         args.data, args.out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, input_wh=input_wh,
         val_fraction=args.val_fraction, val_data=args.val, seed=args.seed, threads=args.threads,
@@ -107,7 +107,7 @@ def _make_detector(args):
     return TorchDetector(args.weights or default_weights_path())
 
 
-def _check_min_area(value: float, option: str = "--min-area") -> None:
+def check_min_area(value: float, option: str = "--min-area") -> None:
     if not value >= 0:  # NaN too
         raise UsageError(f"{option}: expected a non-negative area in px^2 (0 = every box), got {value:g}")
 
@@ -135,7 +135,7 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
     from vcfusion.detection.family_eval import (evaluate_families, format_interval_table, format_table,
                                                 format_visibility_table)
 
-    _check_min_area(args.min_area)
+    check_min_area(args.min_area)
     _check_distinct_folders(args.data)
     detector = _make_detector(args)
     ds = load_coco_many(args.data)

@@ -87,6 +87,7 @@ class JoystickInput:
     """An SDL joystick (wheel, pedals, game pad) through an AxisMap."""
 
     def __init__(self, joystick, axis_map: AxisMap, map_source: str = ""):
+        """`map_source`: the axis-map file the map was read from, named in errors ("" for a preset)."""
         import pygame
 
         self.pg = pygame
@@ -94,13 +95,12 @@ class JoystickInput:
         self.joystick.init()
         self.instance_id = joystick.get_instance_id()
         self.map = axis_map
-        self.map_source = map_source  # the axis-map file, named in errors
         self.device_name = joystick.get_name()
         self.name = f"joystick:{self.device_name}"
         n = joystick.get_numaxes()
         used = max(axis_map.steer.axis, axis_map.throttle.axis, axis_map.brake.axis)
         if used >= n:
-            source = f"{self.map_source}: " if self.map_source else f"axis map of {axis_map.device or 'the preset'}: "
+            source = f"{map_source}: " if map_source else f"axis map of {axis_map.device or 'the preset'}: "
             raise UsageError(f"{source}axis {used} used, but {joystick.get_name()!r} "
                              f"has {n} axes (axes 0..{n - 1}); run `vcfusion drive --calibrate`")
         self.opened = [joystick.get_axis(i) for i in range(n)]

@@ -29,9 +29,9 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
     from vcfusion.fusion.stage import RenderedFrameSources, depth_params
 
     from vcfusion.cli import check_new_folder
+    from vcfusion.detection.commands import check_min_area
 
-    if not args.min_area >= 0:
-        raise UsageError(f"--min-area: expected a non-negative area in px^2 (0 = every box), got {args.min_area:g}")
+    check_min_area(args.min_area)
     out = check_new_folder(Path(args.out))  # a study is not resumed: another one's outputs would be replaced
     scenarios = [load_scenario(path) for path in args.scenario]
     for scenario in scenarios:
