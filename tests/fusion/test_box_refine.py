@@ -732,3 +732,76 @@ def test_a_car_mid_lane_change_seen_at_an_angle_is_not_split_for_its_width(tmp_p
     z = frame.depth[y0:y1 + 1, x0:x1 + 1].astype(np.float32)
     near = np.isfinite(z) & (z < np.nanmedian(z) + 3.0)
     assert _lateral_extent(near, np.nan_to_num(z), x0, frame.camera.K, 0.05) > BoxRefineParams().pair_width_m
+
+
+def _side(depth, K, T, y, x0, x1, top):
+    """An upright wall along the road (the side of a truck in the next lane) at lateral y, from x0 to
+    x1 metres ahead, from the road up to `top`, drawn like :func:`_plate`."""
+    R, t = T[:3, :3], T[:3, 3]
+    centre = -R.T @ t
+    h, w = depth.shape
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    rays = R.T @ (np.linalg.inv(K) @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (y - centre[1]) / rays[1]
+    p = centre[:, None] + s * rays
+    hit = (s > 0) & (p[0] >= x0) & (p[0] <= x1) & (p[2] >= 0) & (p[2] <= top)
+    z = depth.ravel().copy()
+    z[hit & (s < z)] = s[hit & (s < z)]
+    return z.reshape(h, w).astype(np.float32)
+
+
+def test_a_box_s_surface_depth_is_the_face_of_the_segment_drawing_its_outline():
+    """A truck's rear 9.5 m ahead, partly hidden by a car 7 m ahead: the truck's box holds much of
+    the car, yet its outline is the truck's, so its surface depth is the truck's face, the car's
+    box's the car's. Nothing where no segment
+    explains a box (the sky, half a car), nor for the side of a truck that runs 10-25 m away (deeper
+    than one vehicle's band: which depth is its face is not known)."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import box_surface_depths, object_segments
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    truck_only = _plate(road, K, T, 9.5, -0.2, 2.3, 3.8)
+    scene = _plate(truck_only, K, T, 7.0, -0.9, 0.9, 1.5)
+    car = scene < truck_only - 1.0
+    truck = (scene < road) & ~car
+    car_box, truck_box = _mask_box(car), _mask_box(truck)
+    # the truck's box holds more of the car than of the truck: its samples read the car's depth
+    assert box_iou(car_box[None], truck_box[None])[0, 0] > 0.1
+    segments = object_segments(scene, K, T)
+    half_car = car_box.copy()
+    half_car[2] = (car_box[0] + car_box[2]) / 2 - 10
+    sky = np.array([300.0, 0.0, 340.0, 20.0])
+    got = box_surface_depths(np.stack([car_box, truck_box, half_car, sky]), segments)
+    # camera-Z over an upright plate varies with the camera's pitch: the face is its nearer part
+    for k, mask in enumerate((car, truck)):
+        assert scene[mask].min() - 0.01 <= got[k] <= np.median(scene[mask])
+    assert got[1] - got[0] > 2.0
+    assert np.isnan(got[2:]).all()
+    assert np.isnan(box_surface_depths(car_box[None], None)).all()
+    wall = _side(road, K, T, 2.5, 10.0, 25.0, 3.5)
+    wall_box = _mask_box(wall < road)
+    assert np.isnan(box_surface_depths(wall_box[None], object_segments(wall, K, T))).all()
+    # a shorter wall (the side of a car in the next lane, 4 m) is one vehicle deep: its face is known
+    short = _side(road, K, T, 2.5, 10.0, 12.5, 1.5)
+    face = box_surface_depths(_mask_box(short < road)[None], object_segments(short, K, T))[0]
+    assert short[short < road].min() - 0.01 <= face <= np.median(short[short < road])
+
+
+def test_the_fusion_s_depth_step_on_given_segments_equals_its_own(frames):
+    """fuse_frame cuts the depth image into segments once for the depth step and the matcher."""
+    from vcfusion.fusion.fuse import depth_step, frame_segments
+
+    class Fixed:
+        def __init__(self, boxes):
+            from vcfusion.detection.detectors import Detections
+
+            self.d = Detections.of(boxes, np.full(len(boxes), 0.9, np.float32), np.ones(len(boxes), np.int64))
+
+    for frame in frames[:3]:
+        detections = Fixed(frame.gt_boxes + 3.0).d
+        own = depth_step(frame, detections, BoxRefineParams())
+        given = depth_step(frame, detections, BoxRefineParams(), frame_segments(frame, BoxRefineParams()))
+        np.testing.assert_array_equal(own.boxes, given.boxes)
+        np.testing.assert_array_equal(own.classes, given.classes)

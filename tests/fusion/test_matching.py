@@ -183,7 +183,7 @@ class _GivenCosts(JointMatcher):
         self.costs = costs
         self.hidden = np.zeros(len(costs), bool) if hidden_whole is None else np.asarray(hidden_whole, bool)
 
-    def _cost_terms(self, proj, boxes, box_depths):
+    def _cost_terms(self, proj, boxes, box_depths, surface_depths=None):
         c = np.array([[np.inf if v is None else v for v in row] for row in self.costs])
         return np.where(np.isfinite(c), c, 10.0), np.isfinite(c), self.hidden
 
@@ -520,3 +520,40 @@ def test_a_truck_alongside_reaching_behind_the_camera_is_in_view_with_its_part_i
     assert x1 == -0.5 and y1 == -0.5 and y2 == 479.5  # cut by the image's borders
     assert x2 == pytest.approx(front[2], abs=0.5)  # the front's inner edge: the box's right side
     assert 0.5 < proj.face_z[0] < 10.0  # depth sees the side in view, not the rear behind the camera
+
+
+def test_the_surface_drawing_a_box_decides_between_the_vehicle_and_the_one_behind_it():
+    """Jam dev seed 3295: a car 7.2 m ahead and, behind it in the next lane, a truck (face 8.9 m) whose
+    lower part the car hides. The truck's box samples the car in its lower part, the car's box
+    samples the truck above its roof, and the best of the samples' quantiles fits either twin to
+    either box: the two swapped boxes on a 0.02 difference in cost. The depth of the surface that
+    draws each box's outline (box_refine.box_surface_depths) tells them apart; where it is unknown
+    (nan) the samples decide as before, and it never changes which pairs are allowed."""
+    cam = pinhole_camera()
+    twins = make_twins(["car", "truck"], [9.45, 13.0], [0.6, -1.2], length=[4.5, 8.2], width=[1.8, 2.5],
+                       height=[1.5, 3.6], z_ground=[-0.75, -1.8])
+    proj = project_twins(twins, cam)
+    face = {"car": 9.45 - 2.25, "truck": 13.0 - 4.1}
+    car_box = vehicle_box(cam, 9.45, 0.6)
+    truck_box = vehicle_box(cam, 13.0, -1.2, length=8.2, width=2.5, height=3.6)
+    boxes = np.stack([car_box, truck_box])
+    # the car's box: the car, and the truck above its roof; the truck's box: mostly the car in front
+    samples = np.array([np.r_[np.full(25, face["car"]), np.full(5, face["truck"])],
+                        np.r_[np.full(20, face["car"]), np.full(10, face["truck"])]])
+    matcher = JointMatcher(JointMatcherParams(smoothing_alpha=None))
+    cost, allowed = matcher.cost_matrix(proj, boxes, samples)
+    surface = np.array([face["car"], face["truck"]])
+    cost_s, allowed_s = matcher.cost_matrix(proj, boxes, samples, surface)
+    sigma = 0.05 * np.array([face["car"], face["truck"]]) + 1.0
+    disagree = abs(face["truck"] - face["car"]) / sigma
+    # each twin's own box: no depth disagreement either way; the other's box now pays it
+    np.testing.assert_allclose(np.diag(cost_s), np.diag(cost))
+    np.testing.assert_allclose([cost_s[0, 1] - cost[0, 1], cost_s[1, 0] - cost[1, 0]], disagree)
+    np.testing.assert_array_equal(allowed_s, allowed)
+    assert [int(g) for g in matcher.assign(proj, boxes, samples, surface)] == [0, 1]
+    # unknown surfaces: the samples' cost, box by box
+    half = matcher.cost_matrix(proj, boxes, samples, np.array([face["car"], np.nan]))[0]
+    np.testing.assert_allclose(half[:, 1], cost[:, 1])
+    np.testing.assert_allclose(half[:, 0], cost_s[:, 0])
+    with pytest.raises(ValueError, match="surface_depths"):
+        matcher.cost_matrix(proj, boxes, samples, surface[:1])

@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from vcfusion.fusion.box_refine import BoxRefineParams, depth_proposals, refine_boxes
+from vcfusion.fusion.box_refine import (BoxRefineParams, box_surface_depths, depth_proposals, object_segments,
+                                       refine_boxes)
 from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detector_net import CenterNetLite, DetectorModel, TorchDetector, default_weights_path
 from vcfusion.fusion.matching import JointMatcher, TwinProjection, match_all_baseline, match_all_paper
@@ -98,14 +99,16 @@ def main(argv=None) -> int:
             refine_boxes(detected, depth, K, T, params)
             t06 = time.perf_counter()
             # the whole frame is segmented whatever it holds; two boxes withheld as the detector's misses
-            depth_proposals(depth, K, T, detected[2:], params)
+            segments = object_segments(depth, K, T, params)  # shared with the matcher, as in fuse_frame
+            depth_proposals(depth, K, T, detected[2:], params, segments)
             t1 = time.perf_counter()
             samples = sample_box_depths(depth, boxes, rng, DepthEvalParams())
             depths = reduce_depth_samples(samples)
             t2 = time.perf_counter()
             match_all_baseline(proj, boxes)
             match_all_paper(proj, boxes, depths)
-            chosen = matcher.assign(proj, boxes, joint_depth_samples(depth, boxes, samples, DepthEvalParams().th))
+            chosen = matcher.assign(proj, boxes, joint_depth_samples(depth, boxes, samples, DepthEvalParams().th),
+                                    box_surface_depths(boxes, segments, params))
             t3 = time.perf_counter()
             guidance = make_guidance(0.1 * i, [f"v{k}" for k in range(len(chosen))], rng.random(len(chosen)),
                                      [boxes[j] if j >= 0 else None for j in chosen], policy)

@@ -15,8 +15,8 @@ import numpy as np
 
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import GuidanceSet, TwinStates
-from vcfusion.fusion.box_refine import (BoxRefineParams, depth_proposals, join_fragments, object_segments,
-                                       refine_boxes)
+from vcfusion.fusion.box_refine import (BoxRefineParams, ObjectSegments, box_surface_depths, depth_proposals,
+                                       join_fragments, object_segments, refine_boxes)
 from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector, nms
 from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, box_iou, match_all_baseline,
@@ -85,19 +85,34 @@ class FusionResult:
         return None if j == NO_MATCH else self.detections.boxes[j]
 
 
-def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams | None = None) -> Detections:
+def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams | None = None,
+                 segments: ObjectSegments | None = None) -> Detections:
     """The detector's boxes on the frame's image, snapped to the depth image when `refine` is given
-    (vcfusion.fusion.box_refine). The oracle's boxes are the truth and are never refined."""
+    (vcfusion.fusion.box_refine; `segments`: the frame's :func:`frame_segments`, when already
+    computed). The oracle's boxes are the truth and are never refined."""
     if isinstance(detector, OracleDetector):
         detector.set_truth(frame.gt_boxes, frame.gt_classes)
         return detector.detect(frame.image)
     detections = detector.detect(frame.image)
-    return detections if refine is None else depth_step(frame, detections, refine)
+    return detections if refine is None else depth_step(frame, detections, refine, segments)
 
 
-def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefineParams) -> Detections:
+def frame_segments(frame: CameraFrame, refine: BoxRefineParams | None) -> ObjectSegments | None:
+    """The frame's depth image cut into object segments (box_refine.object_segments), with `refine`'s
+    settings when it has proposals, else the defaults (the matcher reads them with any detector);
+    None when the camera has no intrinsics / pose or the image holds no object."""
+    cam = frame.camera
+    if cam.K is None or cam.T_world_to_camera is None:
+        return None
+    params = refine if refine is not None and refine.proposals is not None else BoxRefineParams()
+    return object_segments(frame.depth, cam.K, cam.T_world_to_camera, params)
+
+
+def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefineParams,
+               segments: ObjectSegments | None = None) -> Detections:
     """The detector's boxes snapped to the frame's depth image, relabelled by how high they stand,
-    and the vehicles it missed proposed from depth (vcfusion.fusion.box_refine)."""
+    and the vehicles it missed proposed from depth (vcfusion.fusion.box_refine). `segments`: the
+    frame's :func:`frame_segments` with these settings, when already computed."""
     cam = frame.camera
     if cam.K is None or cam.T_world_to_camera is None:
         raise ValueError("box refinement: the camera has no intrinsics / pose (CameraView.K, T_world_to_camera)")
@@ -121,7 +136,8 @@ def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefinePara
         keep[trucks[nms(detections.boxes[trucks], scores[trucks], refine.duplicate_iou)]] = True
         boxes, scores, classes, snapped = boxes[keep], scores[keep], classes[keep], snapped[keep]
     if refine.proposals is not None:
-        segments = object_segments(frame.depth, cam.K, cam.T_world_to_camera, refine)
+        if segments is None:
+            segments = object_segments(frame.depth, cam.K, cam.T_world_to_camera, refine)
         confident = scores >= refine.proposals.score
         new, is_truck = depth_proposals(frame.depth, cam.K, cam.T_world_to_camera, boxes[confident], refine,
                                         segments, snapped[confident])
@@ -154,7 +170,8 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
     `refine` is given)."""
     timings = {}
     t0 = wallclock.perf_counter()
-    detections = detect_frame(frame, detector, refine)
+    segments = frame_segments(frame, refine) if "joint" in methods or refine is not None else None
+    detections = detect_frame(frame, detector, refine, segments)
     t1 = wallclock.perf_counter()
     samples = sample_box_depths(frame.depth, detections.boxes, rng, depth_params)
     depths = reduce_depth_samples(samples, depth_params.reducer)  # Algorithm 1
@@ -172,7 +189,9 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
                                           scores=detections.scores)
     if "joint" in methods:
         joint_samples = joint_depth_samples(frame.depth, detections.boxes, samples, depth_params.th)
-        choice["joint"] = (joint or JointMatcher()).match(twins, detections.boxes, joint_samples, frame.camera)
+        surface = box_surface_depths(detections.boxes, segments, refine or BoxRefineParams())
+        choice["joint"] = (joint or JointMatcher()).match(twins, detections.boxes, joint_samples, frame.camera,
+                                                          surface)
     timings["match"] = wallclock.perf_counter() - t2
     n_anchor_boxes = np.zeros(len(twins), np.int64)
     for i in np.flatnonzero(proj.in_view):

@@ -531,11 +531,12 @@ class JointMatcher:
         self.params = params
         self.filter = TwinPositionFilter(params.smoothing_alpha) if params.smoothing_alpha is not None else None
 
-    def cost_matrix(self, proj: TwinProjection, boxes, box_depths) -> tuple[np.ndarray, np.ndarray]:
+    def cost_matrix(self, proj: TwinProjection, boxes, box_depths, surface_depths=None) -> tuple[np.ndarray, np.ndarray]:
         """(cost, allowed) over (twins, boxes)."""
-        return self._cost_terms(proj, boxes, box_depths)[:2]
+        return self._cost_terms(proj, boxes, box_depths, surface_depths)[:2]
 
-    def _cost_terms(self, proj: TwinProjection, boxes, box_depths) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _cost_terms(self, proj: TwinProjection, boxes, box_depths,
+                    surface_depths=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(cost, allowed) over (twins, boxes) and (N,) whether each twin is hidden whole (the
         assignment's second round; computed here with the rest of :func:`visible_boxes`)."""
         p = self.params
@@ -588,8 +589,20 @@ class JointMatcher:
                                  np.minimum(depth_err, p.depth_gate), depth_err)
         # the more of a twin nearer twins hide, the less likely it has a box of its own: a box wanted
         # by a mostly hidden twin and a visible one goes to the visible one
+        # where the depth image tells which surface draws a box's outline, the cost compares that
+        # surface's depth (box_refine.box_surface_depths): the samples' best quantile also fits a
+        # vehicle of which the box shows a sliver. The gate stays with the samples: a surface
+        # wrongly found must not forbid a pair the samples allow
+        cost_err = depth_err
+        if surface_depths is not None and m:
+            surface = np.asarray(surface_depths, dtype=np.float64)
+            if surface.shape != (m,):
+                raise ValueError(f"surface_depths: expected one depth (or nan) per box ({m}), got shape {surface.shape}")
+            with np.errstate(invalid="ignore"):
+                surface_err = np.abs(surface[None, :] - expected[:, None]) / sigma
+            cost_err = np.where(np.isfinite(surface_err), surface_err, depth_err)
         cost = (p.w_overlap * (1.0 - iou) + p.w_anchor * np.minimum(anchor_dist, 1.0)
-                + p.w_depth * np.minimum(depth_err, p.depth_gate) + p.w_hidden * hidden_share[:, None])
+                + p.w_depth * np.minimum(cost_err, p.depth_gate) + p.w_hidden * hidden_share[:, None])
         cost = np.nan_to_num(cost, nan=10.0, posinf=10.0)  # twins out of view (nan anchors) are gated below
         allowed = ((iou >= p.overlap_gate) | inside) & (depth_err <= p.depth_gate)
         # a twin that nearer twins' expected boxes hide whole has no visible part to overlap a box
@@ -619,19 +632,21 @@ class JointMatcher:
         nearer = expected[None, :] < (expected[:, None] - gate * sigma)  # (I, K): k clearly nearer than i
         return (nearer.astype(np.int64) @ explains.astype(np.int64)) > 0
 
-    def match(self, twins: TwinStates, boxes, box_depths, camera: CameraView) -> np.ndarray:
+    def match(self, twins: TwinStates, boxes, box_depths, camera: CameraView, surface_depths=None) -> np.ndarray:
         """Box index per twin (NO_MATCH where unassigned), aligned with ``twins.ids``.
 
         ``box_depths``: Algorithm 1's distance per box (D,), or better its raw samples (D, n)
-        (:func:`vcfusion.fusion.depth_eval.sample_box_depths`)."""
+        (:func:`vcfusion.fusion.depth_eval.sample_box_depths`). ``surface_depths``: (D,) the depth of
+        the surface drawing each box's outline, nan where unknown
+        (:func:`vcfusion.fusion.box_refine.box_surface_depths`); None: none known."""
         if self.filter is not None:
             twins = self.filter.update(twins)
         if self.params.latency_compensation:
             twins = extrapolate_twins(twins, camera.time, self.params.use_accel)
         proj = project_twins(twins, camera)
-        return self.assign(proj, boxes, box_depths)
+        return self.assign(proj, boxes, box_depths, surface_depths)
 
-    def assign(self, proj: TwinProjection, boxes, box_depths) -> np.ndarray:
+    def assign(self, proj: TwinProjection, boxes, box_depths, surface_depths=None) -> np.ndarray:
         """Box index per twin (NO_MATCH where unassigned), in two rounds: first the twins with a
         visible part, then, from the boxes they left, the twins that nearer twins' expected boxes hide
         whole. Why: such a twin rarely has a box (a roof line above the car in front at most), yet in
@@ -643,7 +658,7 @@ class JointMatcher:
         the second round with the hidden twins: a far car in a chain, visible by a corner, otherwise kept
         the box of the car in front of it at 5.97 (just under ``miss_cost``), which that car, hidden but
         for its roof, fitted at 2.03."""
-        cost, allowed, hidden_whole = self._cost_terms(proj, boxes, box_depths)
+        cost, allowed, hidden_whole = self._cost_terms(proj, boxes, box_depths, surface_depths)
         out = np.full(len(proj.anchor), NO_MATCH)
         if cost.size == 0:
             return out
