@@ -805,3 +805,36 @@ def test_the_fusion_s_depth_step_on_given_segments_equals_its_own(frames):
         given = depth_step(frame, detections, BoxRefineParams(), frame_segments(frame, BoxRefineParams()))
         np.testing.assert_array_equal(own.boxes, given.boxes)
         np.testing.assert_array_equal(own.classes, given.classes)
+
+
+def test_a_vehicle_whose_parts_a_strip_between_nearer_ones_links_is_one_segment():
+    """Jam dev seed 3471: a car 20 m ahead shows its top, then a strip 2 px wide beside a nearer car,
+    then its lower part. Every pixel of the strip is the farther one of a jumping pair, so the cut
+    removes all of them and the parts above and below became two segments; each removed pixel went
+    back to one of them, which joined nothing, and the car's box lost its lower part. Segments that
+    touch as one surface are one. Here: a truck 40 m ahead seen above, between and below two bars
+    10 m ahead that leave a 2 px gap."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import object_segments
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    truck = _plate(road, K, T, 40.0, -1.25, 1.25, 3.8)
+    gap = 2.0 * 10.0 / K[0, 0]  # 2 px at 10 m
+    scene = _plate(_plate(truck, K, T, 10.0, -3.0, -gap / 2, 1.6, 1.2), K, T, 10.0, gap / 2, 3.0, 1.6, 1.2)
+    seen = (truck < road) & (scene == truck)
+    widths = seen.sum(axis=1)
+    rows = np.flatnonzero(widths)
+    narrow = rows[widths[rows] <= 2]
+    assert len(narrow) >= 3 and rows[0] < narrow[0] and narrow[-1] < rows[-1]  # wide above and below
+    assert widths[rows[0] + 2] > 20 and widths[narrow[-1] + 3] > 20
+    seg = object_segments(scene, K, T)
+    labels = np.zeros(scene.shape, seg.labels.dtype)
+    labels[seg.y_lo:seg.y_lo + len(seg.labels)] = seg.labels
+    above = labels[rows[0] + 2][seen[rows[0] + 2]]
+    below = labels[narrow[-1] + 3][seen[narrow[-1] + 3]]
+    assert above.min() > 0 and len(set(above)) == 1
+    assert set(below) == set(above)
+    # and the bars are not joined to it (a depth jump apart)
+    bar = labels[narrow[0]][(scene[narrow[0]] < truck[narrow[0]] - 1.0)]
+    assert bar.size and not (set(bar) & set(above))
