@@ -838,3 +838,21 @@ def test_a_vehicle_whose_parts_a_strip_between_nearer_ones_links_is_one_segment(
     # and the bars are not joined to it (a depth jump apart)
     bar = labels[narrow[0]][(scene[narrow[0]] < truck[narrow[0]] - 1.0)]
     assert bar.size and not (set(bar) & set(above))
+
+
+def test_a_sliver_s_one_pixel_tail_stays_in_its_box_but_a_stray_pixel_of_a_wide_surface_does_not():
+    """Jam dev seed 3305: a car hidden but for its roof (a row 24 px wide) and a strip down the side
+    of the nearer car, whose last rows are 1 px wide; the ground truth spans them. A truck 40 px high
+    with a rail 1 px high running on from its foot is still trimmed to the truck."""
+    from vcfusion.fusion.box_refine import _segment_box
+
+    support = BoxRefineParams().support
+    sliver = np.zeros((30, 30), bool)
+    sliver[0:3, 2:26] = True  # the roof, 24 px
+    sliver[3:20, 22:25] = True  # the strip beside the nearer car
+    sliver[20:23, 23] = True  # its last rows, 1 px
+    np.testing.assert_array_equal(_segment_box(sliver, support, 0, 0), [1.5, -0.5, 25.5, 22.5])
+    wide = np.zeros((45, 80), bool)
+    wide[0:40, 5:65] = True
+    wide[38, 65:78] = True  # a rail running on from its foot: 1 px per column, 1/40 of the fullest
+    np.testing.assert_array_equal(_segment_box(wide, support, 0, 0), [4.5, -0.5, 64.5, 39.5])

@@ -103,7 +103,9 @@ class BoxRefineParams:
     min_height_m: float = 0.05  # above the road by more than this: an object pixel (tyres included)
     band_m: float = 4.0  # depth band of one vehicle's visible surface (see the module docstring)
     candidates: int = 3  # surface depths tried per box
-    support: float = 0.05  # rows / columns with less than this share of the fullest one are trimmed
+    support: float = 0.03  # rows / columns with less than this share of the fullest one are trimmed
+    # (0.05 before the twenty-sixth session: a sliver's last rows, 1 px of a 24 px row, were cut off
+    # its box; 0 keeps the stray pixels of rails and road and breaks most boxes)
     min_iou: float = 0.3  # a segment replaces the box only when its box overlaps the box this much
     pair_width_m: float = 3.0  # a segment across a depth jump laterally wider than any vehicle (2.55 m)
     pair_min_iou: float = 0.5  # is two side by side: a jump-free one, narrower, overlapping the box at
