@@ -734,23 +734,6 @@ def test_a_car_mid_lane_change_seen_at_an_angle_is_not_split_for_its_width(tmp_p
     assert _lateral_extent(near, np.nan_to_num(z), x0, frame.camera.K, 0.05) > BoxRefineParams().pair_width_m
 
 
-def _side(depth, K, T, y, x0, x1, top):
-    """An upright wall along the road (the side of a truck in the next lane) at lateral y, from x0 to
-    x1 metres ahead, from the road up to `top`, drawn like :func:`_plate`."""
-    R, t = T[:3, :3], T[:3, 3]
-    centre = -R.T @ t
-    h, w = depth.shape
-    u, v = np.meshgrid(np.arange(w), np.arange(h))
-    rays = R.T @ (np.linalg.inv(K) @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)]))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (y - centre[1]) / rays[1]
-    p = centre[:, None] + s * rays
-    hit = (s > 0) & (p[0] >= x0) & (p[0] <= x1) & (p[2] >= 0) & (p[2] <= top)
-    z = depth.ravel().copy()
-    z[hit & (s < z)] = s[hit & (s < z)]
-    return z.reshape(h, w).astype(np.float32)
-
-
 def test_a_box_s_surface_depth_is_the_face_of_the_segment_drawing_its_outline():
     """A truck's rear 9.5 m ahead, partly hidden by a car 7 m ahead: the truck's box holds much of
     the car, yet its outline is the truck's, so its surface depth is the truck's face, the car's
