@@ -738,8 +738,9 @@ def test_a_box_s_surface_depth_is_the_face_of_the_segment_drawing_its_outline():
     """A truck's rear 9.5 m ahead, partly hidden by a car 7 m ahead: the truck's box holds much of
     the car, yet its outline is the truck's, so its surface depth is the truck's face, the car's
     box's the car's. Nothing where no segment
-    explains a box (the sky, half a car), nor for the side of a truck that runs 10-25 m away (deeper
-    than one vehicle's band: which depth is its face is not known)."""
+    explains a box (the sky, half a car), nor for a segment deeper than one vehicle's band (the side
+    of a truck that runs 10-25 m away; a far car and the truck behind it, within one depth jump):
+    which depth is the face of the vehicle the box outlines is not known."""
     from vcfusion.fusion.bench import default_camera, road_depth
     from vcfusion.fusion.box_refine import box_surface_depths, object_segments
 
@@ -766,6 +767,14 @@ def test_a_box_s_surface_depth_is_the_face_of_the_segment_drawing_its_outline():
     wall = _side(road, K, T, 2.5, 10.0, 25.0, 3.5)
     wall_box = _mask_box(wall < road)
     assert np.isnan(box_surface_depths(wall_box[None], object_segments(wall, K, T))).all()
+    # far away a car 4.8 m in front of a truck is within one depth jump of it (5.2 m at 104 m): one
+    # segment, whose outline is the truck's and whose face is the car's; deeper than a band: unknown
+    far_truck = _plate(road, K, T, 108.8, -1.25, 1.25, 3.8)
+    chain = _plate(far_truck, K, T, 104.0, -0.9, 0.9, 1.5)
+    far_segments = object_segments(chain, K, T)
+    truck_seen = (chain < road) & (chain > 106.0)
+    assert len(np.unique(far_segments.labels[far_segments.labels > 0])) == 1
+    assert np.isnan(box_surface_depths(_mask_box(truck_seen)[None], far_segments)).all()
     # a shorter wall (the side of a car in the next lane, 4 m) is one vehicle deep: its face is known
     short = _side(road, K, T, 2.5, 10.0, 12.5, 1.5)
     face = box_surface_depths(_mask_box(short < road)[None], object_segments(short, K, T))[0]

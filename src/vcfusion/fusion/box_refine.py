@@ -668,9 +668,9 @@ def box_surface_depths(boxes: np.ndarray, segments: ObjectSegments | None,
     in front of it, and the matcher takes the best of their quantiles, so a near car's box that
     shows a sliver of the truck behind it fits the truck's depth as well as its own, and the two
     twins swapped boxes on a 0.02 difference in cost. Unknown (nan) where no segment explains the
-    box, or where that segment runs deeper than one vehicle's band (``refine.band_m`` + 3 % between
-    its 10th and 90th percentiles): at 150 m a car 7 m in front of a truck is within one depth jump
-    of it, and their joint segment's face is the car's."""
+    box, or where that segment runs deeper than one vehicle's band (``refine.band_m`` between its
+    10th and 90th percentiles): far away a car a few metres in front of a truck is within one depth
+    jump of it (0.5 m + 4.5 % of the depth), and their joint segment's face is the car's."""
     boxes = np.asarray(boxes, float).reshape(-1, 4)
     out = np.full(len(boxes), np.nan)
     if segments is None or not len(boxes):
@@ -691,6 +691,6 @@ def box_surface_depths(boxes: np.ndarray, segments: ObjectSegments | None,
         if k not in face:
             r = regions[k]
             near, far = np.percentile(segments.z[r][labels[r] == present[k]], [face_percentile, 100 - face_percentile])
-            face[k] = float(near) if far - near <= refine.band_m + 0.03 * near else np.nan
+            face[k] = float(near) if far - near <= refine.band_m else np.nan
         out[j] = face[k]
     return out
