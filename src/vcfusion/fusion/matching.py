@@ -587,8 +587,6 @@ class JointMatcher:
         if n > 1 and m:
             depth_err = np.where(self._depth_of_nearer_twin(proj, b, depth_err, sigma),
                                  np.minimum(depth_err, p.depth_gate), depth_err)
-        # the more of a twin nearer twins hide, the less likely it has a box of its own: a box wanted
-        # by a mostly hidden twin and a visible one goes to the visible one
         # where the depth image tells which surface draws a box's outline, the cost compares that
         # surface's depth (box_refine.box_surface_depths): the samples' best quantile also fits a
         # vehicle of which the box shows a sliver. The gate stays with the samples: a surface
@@ -601,6 +599,8 @@ class JointMatcher:
             with np.errstate(invalid="ignore"):
                 surface_err = np.abs(surface[None, :] - expected[:, None]) / sigma
             cost_err = np.where(np.isfinite(surface_err), surface_err, depth_err)
+        # the more of a twin nearer twins hide, the less likely it has a box of its own: a box wanted
+        # by a mostly hidden twin and a visible one goes to the visible one
         cost = (p.w_overlap * (1.0 - iou) + p.w_anchor * np.minimum(anchor_dist, 1.0)
                 + p.w_depth * np.minimum(cost_err, p.depth_gate) + p.w_hidden * hidden_share[:, None])
         cost = np.nan_to_num(cost, nan=10.0, posinf=10.0)  # twins out of view (nan anchors) are gated below
