@@ -273,9 +273,11 @@ def _recorded_trip(input_spec: str) -> tuple[dict, dict]:
     the file is not a trip's: a hand-written CSV)."""
     if not input_spec.startswith("replay:"):
         return {}, {}
+    from vcfusion.runio import MANIFEST, SUMMARY
+
     folder = Path(input_spec[len("replay:"):]).parent
     out = []
-    for name in ("summary.json", "manifest.json"):
+    for name in (SUMMARY, MANIFEST):
         try:
             data = json.loads((folder / name).read_text())
         except (OSError, ValueError):

@@ -139,8 +139,9 @@ def _camera_frame(ds: CocoDataset, k: int, image: np.ndarray):
                        gt_ids=tuple(ds.box_vehicle_ids[k]), gt_classes=ds.classes[k])
 
 
-def _identification(frame, twins, detector, seed: int, min_area: float) -> tuple[np.ndarray, list]:
-    """IoU of the joint matcher's box per target (0 where unmatched) and the targets' vehicle ids."""
+def _identification(frame, twins, detector, seed: int, min_area: float, segments=None) -> tuple[np.ndarray, list]:
+    """IoU of the joint matcher's box per target (0 where unmatched) and the targets' vehicle ids
+    (`segments`: the frame's depth segments, when already computed)."""
     from vcfusion.fusion.depth_eval import DepthEvalParams
     from vcfusion.fusion.fuse import fuse_frame
     from vcfusion.fusion.matching import JointMatcher, JointMatcherParams
@@ -148,7 +149,8 @@ def _identification(frame, twins, detector, seed: int, min_area: float) -> tuple
 
     # each image is its own scene: no position smoothing across images
     joint = JointMatcher(JointMatcherParams(smoothing_alpha=None))
-    result = fuse_frame(frame, twins, detector, np.random.default_rng(seed), DepthEvalParams(), joint, ("joint",))
+    result = fuse_frame(frame, twins, detector, np.random.default_rng(seed), DepthEvalParams(), joint, ("joint",),
+                        segments=segments)
     rows = identification_rows(frame, result, min_area)
     return np.array([r["iou"] for r in rows], float), [r["vehicle_id"] for r in rows]
 
@@ -160,7 +162,7 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
     more than one family) and the detections at COCO-evaluation threshold per image id. ``refine``
     (BoxRefineParams): score the boxes as the fusion stage uses them, snapped to each image's depth
     (every image then needs its depth image and camera record)."""
-    from vcfusion.fusion.fuse import depth_step
+    from vcfusion.fusion.fuse import depth_step, frame_segments
     from vcfusion.detection.detector_net import PostParams
     from vcfusion.fusion.matching import box_iou
 
@@ -185,8 +187,10 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
             # confident one), then the depth step, whose refinements and proposals depend on which
             # boxes it gets (a proposal scores 0.3, which a higher threshold would cut after it)
             working = raw.select(raw.scores >= operating)
+            # the frame's depth segments, once for both depth steps and the matcher
+            segments = frame_segments(frame, refine) if frame is not None else None
             if refine is not None:
-                raw, working = depth_step(frame, raw, refine), depth_step(frame, working, refine)
+                raw, working = depth_step(frame, raw, refine, segments), depth_step(frame, working, refine, segments)
             dets[iid] = (raw.boxes, raw.scores, raw.classes)
             gt = ds.boxes[k]
             big = (gt[:, 2] - gt[:, 0]) * (gt[:, 3] - gt[:, 1]) >= min_area
@@ -198,7 +202,7 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
                     visible = dict(zip(ds.box_vehicle_ids[k], ds.box_visible[k])) if ds.box_visible else {}
                     ident[iid] = {}
                     for name, det in (("oracle", OracleDetector()), (detector_name, _Fixed(working))):
-                        iou_t, vids = _identification(frame, twins, det, k, min_area)
+                        iou_t, vids = _identification(frame, twins, det, k, min_area, segments)
                         ident[iid][name] = (iou_t, np.array([visible.get(v, np.nan) for v in vids], float))
     finally:
         if hasattr(detector, "params"):

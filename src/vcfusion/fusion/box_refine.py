@@ -453,6 +453,12 @@ class ObjectSegments:
     regions: list  # per label from 1, its (rows, columns) slices (scipy.ndimage.find_objects)
     y_lo: int  # image row of row 0
 
+    def boxes(self, labels) -> np.ndarray:
+        """(N, 4) image boxes (pixel-centre convention) around the whole of each of these labels."""
+        regions = [self.regions[k - 1] for k in labels]
+        return np.array([[r[1].start, r[0].start + self.y_lo, r[1].stop, r[0].stop + self.y_lo] for r in regions],
+                        float).reshape(-1, 4) - 0.5
+
 
 def object_segments(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray,
                     refine: BoxRefineParams = BoxRefineParams()) -> ObjectSegments | None:
@@ -599,8 +605,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
               if r is not None and segments.areas[k] >= MIN_FRAGMENT_PIXELS]
     if not labels:
         return boxes
-    seg_box = np.array([[r[1].start, r[0].start + y_lo, r[1].stop, r[0].stop + y_lo]
-                        for r in (segments.regions[k - 1] for k in labels)], float) - 0.5
+    seg_box = segments.boxes(labels)
     # mean depth per segment, all at once: a first, loose sift (the test itself takes the median; the
     # mean of a segment with a little of something farther at its edge lies off it)
     seg_mean = (np.bincount(segments.labels.ravel(), weights=z.ravel(), minlength=len(segments.areas))[labels]
@@ -677,19 +682,17 @@ def box_surface_depths(boxes: np.ndarray, segments: ObjectSegments | None,
         return out
     from vcfusion.fusion.matching import box_iou
 
-    labels, y_lo = segments.labels, segments.y_lo
+    labels = segments.labels
     present = [k for k, r in enumerate(segments.regions, start=1) if r is not None]
     if not present:
         return out
-    regions = [segments.regions[k - 1] for k in present]
-    seg_box = np.array([[r[1].start, r[0].start + y_lo, r[1].stop, r[0].stop + y_lo] for r in regions], float) - 0.5
-    iou = box_iou(boxes, seg_box)
+    iou = box_iou(boxes, segments.boxes(present))
     best = iou.argmax(axis=1)
     face: dict[int, float] = {}  # per segment, computed once: boxes share segments
     for j in np.flatnonzero(iou[np.arange(len(boxes)), best] >= min_iou):
         k = int(best[j])
         if k not in face:
-            r = regions[k]
+            r = segments.regions[present[k] - 1]
             near, far = np.percentile(segments.z[r][labels[r] == present[k]], [face_percentile, 100 - face_percentile])
             face[k] = float(near) if far - near <= refine.band_m else np.nan
         out[j] = face[k]

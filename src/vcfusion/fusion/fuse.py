@@ -165,12 +165,13 @@ def _proposal_scores(proposals: np.ndarray, weak_boxes: np.ndarray, weak_scores:
 def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: np.random.Generator,
                depth_params: DepthEvalParams = DepthEvalParams(), joint: JointMatcher | None = None,
                methods=METHODS, fallback_radius_px: float | None = None,
-               refine: BoxRefineParams | None = None) -> FusionResult:
+               refine: BoxRefineParams | None = None, segments: ObjectSegments | None = None) -> FusionResult:
     """Run every requested matcher on one frame for the given twins (boxes refined by depth when
-    `refine` is given)."""
+    `refine` is given). `segments`: the frame's :func:`frame_segments`, when already computed."""
     timings = {}
     t0 = wallclock.perf_counter()
-    segments = frame_segments(frame, refine) if "joint" in methods or refine is not None else None
+    if segments is None and ("joint" in methods or (refine is not None and refine.proposals is not None)):
+        segments = frame_segments(frame, refine)
     detections = detect_frame(frame, detector, refine, segments)
     t1 = wallclock.perf_counter()
     samples = sample_box_depths(frame.depth, detections.boxes, rng, depth_params)
