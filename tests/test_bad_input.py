@@ -308,6 +308,8 @@ CASES = [
          ("data: copy holds the same images as coco",)),
     Case("negative min area", lambda t: ["eval-detector", coco_folder(t), "--min-area", "-5"],
          ("--min-area", "expected a non-negative area", "got -5")),
+    Case("negative GNSS noise", lambda t: ["eval-detector", coco_folder(t), "--gnss-noise", "-0.5"],
+         ("--gnss-noise", "expected a standard deviation >= 0", "got -0.5")),
     Case("negative min train area", lambda t: ["train-detector", coco_folder(t), "--out", "w.pt",
                                                "--min-train-area", "-1"],
          ("--min-train-area", "expected a non-negative area", "got -1")),

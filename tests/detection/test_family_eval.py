@@ -223,10 +223,12 @@ def test_the_frames_of_one_seed_are_resampled_as_one_scene():
 
 
 @pytest.mark.slow
-def test_identification_scores_the_boxes_the_fusion_stage_gets(families):
+@pytest.mark.parametrize("noise", [0.0, 0.5])
+def test_identification_scores_the_boxes_the_fusion_stage_gets(families, noise):
     """With the depth step, eval-detector identifies with exactly the run-time fusion path (the
     detector at its operating threshold, then refinement and proposals), whatever that threshold:
-    at 0.5 a selection of the evaluation-threshold boxes had dropped every depth proposal (0.3)."""
+    at 0.5 a selection of the evaluation-threshold boxes had dropped every depth proposal (0.3).
+    With GNSS noise, the twins are moved by the draw the documentation names."""
     from vcfusion.detection.detector_net import PostParams, TorchDetector, default_weights_path
     from vcfusion.detection.detector_train import load_coco
     from vcfusion.detection.family_eval import _camera_frame, _twins, evaluate_families, read_rgb
@@ -240,12 +242,17 @@ def test_identification_scores_the_boxes_the_fusion_stage_gets(families):
     detector = TorchDetector(default_weights_path())
     detector.params = PostParams(score_threshold=0.5)
     refine = BoxRefineParams()
-    results, _ = evaluate_families(detector, ds, min_area=100.0, refine=refine)
+    results, _ = evaluate_families(detector, ds, min_area=100.0, refine=refine, gnss_noise_m=noise)
     assert detector.params == PostParams(score_threshold=0.5)  # left as it was
     right = []
     for k in range(len(ds)):
         frame = _camera_frame(ds, k, read_rgb(ds.images[k]))
-        fused = fuse_frame(frame, _twins(ds.records[k], frame.time), detector, np.random.default_rng(k),
+        twins = _twins(ds.records[k], frame.time, noise, np.random.default_rng([k, 1]))
+        if noise:
+            clean = _twins(ds.records[k], frame.time)
+            moved = np.hypot(twins.x - clean.x, twins.y - clean.y)
+            assert (moved > 0).all() and (moved < 6 * noise).all() and np.array_equal(twins.z, clean.z)
+        fused = fuse_frame(frame, twins, detector, np.random.default_rng(k),
                            DepthEvalParams(), JointMatcher(JointMatcherParams(smoothing_alpha=None)), ("joint",),
                            refine=refine)
         right += [r["iou"] >= 0.7 - 1e-12 for r in identification_rows(frame, fused, 100.0)]

@@ -136,6 +136,8 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
                                                 format_visibility_table)
 
     check_min_area(args.min_area)
+    if not np.isfinite(args.gnss_noise) or args.gnss_noise < 0:
+        raise UsageError(f"--gnss-noise: expected a standard deviation >= 0 in metres, got {args.gnss_noise}")
     _check_distinct_folders(args.data)
     detector = _make_detector(args)
     ds = load_coco_many(args.data)
@@ -145,12 +147,13 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
     detector_name = "onnx" if args.onnx else "cnn"
     results, _ = evaluate_families(detector, ds, min_area=args.min_area, identification=not args.no_identification,
                                    detector_name=detector_name, progress=sys.stderr.isatty(),
-                                   refine=None if args.no_refine else BoxRefineParams())
+                                   refine=None if args.no_refine else BoxRefineParams(), gnss_noise_m=args.gnss_noise)
     if not results:
         raise UsageError(f"{' '.join(args.data)}: annotations: expected at least one ground-truth box")
     overall = results[-1]  # 'all' when there are several families
     print(f"{' '.join(args.data)}: {len(ds)} images (boxes >= {args.min_area:g} px^2, "
-          f"{'boxes as detected' if args.no_refine else 'boxes refined by depth'})  "
+          f"{'boxes as detected' if args.no_refine else 'boxes refined by depth'}"
+          f"{f'; identification with {args.gnss_noise:g} m GNSS noise' if args.gnss_noise else ''})  "
           f"mAP@0.5 {overall.box_map.map_50:.3f}  mAP@0.5:0.95 {overall.box_map.map_50_95:.3f}")
     for cid, name in zip(ds.class_ids, ds.class_names):
         if cid in overall.box_map.ap_per_category:
@@ -169,6 +172,7 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
         write_json(Path(args.report), json_null_for_nan({"data": [str(d) for d in args.data],
                                                          "min_area": args.min_area,
                                                          "refined_by_depth": not args.no_refine,
+                                                         "gnss_noise_m": args.gnss_noise,
                                                          "families": [r.summary() for r in results]}))
         print(f"report: {args.report}")
     return 0
@@ -282,6 +286,9 @@ def add_parsers(sub) -> None:
                        help="ignore ground truth below this many px^2 (COCOeval area range; 0 = all)")
         p.add_argument("--no-identification", action="store_true",
                        help="skip the joint-matcher identification check (oracle vs detector boxes)")
+        p.add_argument("--gnss-noise", type=float, default=0.0, metavar="M",
+                       help="identification: GNSS error std on each horizontal axis, m (default 0: the twins "
+                            "where the renderer placed them)")
         p.add_argument("--report", help="also write the per-family figures to this JSON file")
         p.add_argument("--no-refine", action="store_true",
                        help="score the detector's boxes as detected (default: refined by the depth image, as the "

@@ -11,8 +11,8 @@ pools them). Per group:
   IoU >= 0.7 with the target's box), with the detector's boxes and with ground-truth boxes
   (oracle). The twins are the image's vehicles as the renderer placed them (the recipe's
   ``twins`` for procedural scenes, else the ``vehicles`` anchors): GNSS point = body centre
-  (:func:`vcfusion.records.gnss_antenna_points`), no noise, no latency; the depth image is the
-  rendered one. A target is a vehicle with a ground-truth box of at least ``min_area`` px^2;
+  (:func:`vcfusion.records.gnss_antenna_points`), no latency, no noise unless asked for
+  (``gnss_noise_m``); the depth image is the rendered one. A target is a vehicle with a ground-truth box of at least ``min_area`` px^2;
 - the same identification per share of the target that nearer objects leave visible
   (:data:`VISIBILITY_BINS` of the renderer's ``visible_fraction``), where the folder has it;
 - 95 % intervals of the identification accuracies and of each detector's gap to the oracle, by
@@ -97,7 +97,7 @@ def _dataset_file(image: Path, record: dict, name: str) -> Path | None:
     return None
 
 
-def _twins(record: dict, time: float):
+def _twins(record: dict, time: float, gnss_noise_m: float = 0.0, rng: np.random.Generator | None = None):
     from vcfusion.records import TwinStates, gnss_antenna_points
 
     rows = record.get("twins") or record.get("vehicles") or []
@@ -107,6 +107,8 @@ def _twins(record: dict, time: float):
     size = np.array([r["size"] for r in rows], float).reshape(-1, 3)
     gnss = gnss_antenna_points(fp[:, 0], fp[:, 1], fp[:, 2], size[:, 2])
     n = len(rows)
+    if gnss_noise_m > 0:  # as the V2C channel draws it: independent on each horizontal axis
+        gnss[:, :2] += rng.normal(0.0, gnss_noise_m, size=(n, 2))
     return TwinStates(time=time, ids=tuple(r["vehicle_id"] for r in rows), measured_time=np.full(n, time),
                       x=gnss[:, 0], y=gnss[:, 1], z=gnss[:, 2], heading=np.array([r["yaw"] for r in rows], float),
                       speed=np.array([r.get("speed", 0.0) for r in rows], float), accel=np.zeros(n),
@@ -157,11 +159,13 @@ def _identification(frame, twins, detector, seed: int, min_area: float, segments
 
 def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identification: bool = True,
                       detector_name: str = "cnn", progress: bool = False,
-                      refine=None) -> tuple[list[FamilyResult], dict]:
+                      refine=None, gnss_noise_m: float = 0.0) -> tuple[list[FamilyResult], dict]:
     """Per-family results (in order of first appearance; plus 'all' over every image when there is
     more than one family) and the detections at COCO-evaluation threshold per image id. ``refine``
     (BoxRefineParams): score the boxes as the fusion stage uses them, snapped to each image's depth
-    (every image then needs its depth image and camera record)."""
+    (every image then needs its depth image and camera record). ``gnss_noise_m``: the twins' GNSS
+    points for the identification moved by a Gaussian of this std on each horizontal axis (one draw
+    per image, seeded by its index, the same for the oracle and the detector)."""
     from vcfusion.fusion.fuse import depth_step, frame_segments
     from vcfusion.detection.detector_net import PostParams
     from vcfusion.fusion.matching import box_iou
@@ -197,7 +201,8 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
             iou = box_iou(gt[big], working.boxes) if len(working) and big.any() else np.zeros((int(big.sum()), 0))
             best[iid] = iou.max(axis=1) if iou.shape[1] else np.zeros(int(big.sum()))
             if identification and ds.records and ds.box_vehicle_ids:
-                twins = _twins(records[k], frame.time) if frame is not None else None
+                twins = (_twins(records[k], frame.time, gnss_noise_m, np.random.default_rng([k, 1]))
+                         if frame is not None else None)
                 if frame is not None and twins is not None:
                     visible = dict(zip(ds.box_vehicle_ids[k], ds.box_visible[k])) if ds.box_visible else {}
                     ident[iid] = {}
