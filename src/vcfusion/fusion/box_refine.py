@@ -78,8 +78,10 @@ class ProposalParams:
     min_pixels: int = 30  # a far car partly hidden shows as few (60 before the twelfth session, 40
     # before the twenty-first: the roof line of a car behind the next one, 20 x 5 px at 30 m)
     min_top_m: float = 1.0  # the segment's top stands at least this high (a car's roof line; rails are lower)
-    min_width_m: float = 0.25  # wider than this (reflector posts, 0.12 m): a car mostly hidden
-    # behind another shows a sliver as narrow as this (0.3 before the twenty-first session)
+    min_top_truncated_m: float = 0.8  # ... or this high when the image's side cuts it (_min_top)
+    min_width_m: float = 0.15  # wider than this (reflector posts, 0.12 m): a car mostly hidden
+    # behind another shows a sliver as narrow as this (0.3 before the twenty-first session, 0.25
+    # before the twenty-seventh: 6 px at 19 m is 0.249 m)
     min_tall_width_m: float = 0.8  # a segment standing as high as a truck: wider than this (tree trunks)
     max_overlap: float = 0.6  # a segment whose box overlaps a detected box more than this is that box's
     # (0.5 before the sixteenth session: a whole car's segment overlapping a box that held a part of
@@ -487,6 +489,22 @@ def object_segments(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
                           find_objects(labels), y_lo)
 
 
+def _min_top(params: ProposalParams, refine: BoxRefineParams, truncated: bool, width_m: float,
+             depths: np.ndarray) -> float:
+    """How high a segment's top must stand to be proposed: ``params.min_top_m`` (a car's roof line;
+    rails are lower), or ``params.min_top_truncated_m`` for one cut by the image's side that is no
+    wider than a vehicle and no deeper than one (``refine.band_m`` between its 10th and 90th
+    percentiles). Why: of a car alongside the camera only its front corner shows at the image's
+    side, bonnet and wing, 0.8-1.0 m high; a guard rail cut by the side is as high but runs tens of
+    metres away from the camera (on 454 frames of `curved.yaml`, 0.7 m gave 864 false boxes without
+    the width and depth rule, 11 with it)."""
+    if truncated and width_m <= params.max_width_m:
+        spread = np.percentile(depths, 90) - np.percentile(depths, 10)
+        if spread <= refine.band_m:
+            return params.min_top_truncated_m
+    return params.min_top_m
+
+
 def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
                     refine: BoxRefineParams = BoxRefineParams(), segments: ObjectSegments | None = None,
                     snapped: np.ndarray | None = None):
@@ -537,7 +555,7 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         if is_truck and width_m < params.min_tall_width_m and not truncated and not _seen_over_nearer(
                 sel, x, y, z, obj, depth_m, refine.jump_m, refine.jump_rel):
             min_width = params.min_tall_width_m  # standing on the ground as tall as this: a trunk or a pole
-        if top < params.min_top_m or width_m < min_width:
+        if top < _min_top(params, refine, truncated, width_m, z[y:y + h, x:x + w][sel]) or width_m < min_width:
             continue
         inside = box_inside_share(box[None], existing)[0]
         if np.any((inside > 0.5) & snapped & not_in_front & (depth_m < surface + params.behind_m)):
