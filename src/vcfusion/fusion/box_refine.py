@@ -542,7 +542,8 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         # it stands clearly in front of the box's surface (nearer by a depth jump): then the box
         # measured a farther vehicle and this segment is the one in front (Fig. 3 at range)
         iou = box_iou(box[None], existing)[0]
-        depth_m = float(np.median(z[y:y + h, x:x + w][sel]))
+        seg_z = z[y:y + h, x:x + w][sel]
+        depth_m = float(np.median(seg_z))
         not_in_front = ~_farther(surface, np.float32(depth_m), refine.jump_m, refine.jump_rel)
         if np.any((iou > params.max_overlap) & not_in_front):
             continue
@@ -555,7 +556,7 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         if is_truck and width_m < params.min_tall_width_m and not truncated and not _seen_over_nearer(
                 sel, x, y, z, obj, depth_m, refine.jump_m, refine.jump_rel):
             min_width = params.min_tall_width_m  # standing on the ground as tall as this: a trunk or a pole
-        if top < _min_top(params, refine, truncated, width_m, z[y:y + h, x:x + w][sel]) or width_m < min_width:
+        if top < _min_top(params, refine, truncated, width_m, seg_z) or width_m < min_width:
             continue
         inside = box_inside_share(box[None], existing)[0]
         if np.any((inside > 0.5) & snapped & not_in_front & (depth_m < surface + params.behind_m)):
