@@ -122,6 +122,14 @@ def gnss_antenna_points(x: np.ndarray, y: np.ndarray, z: np.ndarray, height: np.
     return out
 
 
+def add_gnss_error(antenna: np.ndarray, std_m: float, rng: np.random.Generator) -> np.ndarray:
+    """``antenna`` (N, 3) with a zero-mean Gaussian error of ``std_m`` added to each horizontal axis
+    (in place; returned), the GNSS model of the V2C channel; nothing drawn when ``std_m`` is 0."""
+    if std_m > 0 and len(antenna):
+        antenna[:, :2] += rng.normal(0.0, std_m, size=(len(antenna), 2))
+    return antenna
+
+
 @dataclass(frozen=True)
 class GnssReports:
     """What vehicles send over the V2C uplink, stamped with the time they were measured."""

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vcfusion.records import GnssReports, VehicleStates, gnss_antenna_points
+from vcfusion.records import GnssReports, VehicleStates, add_gnss_error, gnss_antenna_points
 from vcfusion.scenario import V2CConfig
 
 _US = 1_000_000
@@ -33,10 +33,8 @@ class V2CChannel:
     def measure(self, states: VehicleStates) -> GnssReports:
         """GNSS reports of all vehicles at states.time (error applied)."""
         n = len(states)
-        antenna = gnss_antenna_points(states.x, states.y, states.z, states.height)
-        std = self.config.gnss_noise_std_m
-        if std > 0 and n:
-            antenna[:, :2] += self.rng.normal(0.0, std, size=(n, 2))
+        antenna = add_gnss_error(gnss_antenna_points(states.x, states.y, states.z, states.height),
+                                 self.config.gnss_noise_std_m, self.rng)
         return GnssReports(
             measured_time=np.full(n, states.time),
             ids=states.ids,

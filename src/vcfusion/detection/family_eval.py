@@ -98,17 +98,15 @@ def _dataset_file(image: Path, record: dict, name: str) -> Path | None:
 
 
 def _twins(record: dict, time: float, gnss_noise_m: float = 0.0, rng: np.random.Generator | None = None):
-    from vcfusion.records import TwinStates, gnss_antenna_points
+    from vcfusion.records import TwinStates, add_gnss_error, gnss_antenna_points
 
     rows = record.get("twins") or record.get("vehicles") or []
     if not rows:
         return None
     fp = np.array([r["footprint_world"] for r in rows], float).reshape(-1, 3)
     size = np.array([r["size"] for r in rows], float).reshape(-1, 3)
-    gnss = gnss_antenna_points(fp[:, 0], fp[:, 1], fp[:, 2], size[:, 2])
+    gnss = add_gnss_error(gnss_antenna_points(fp[:, 0], fp[:, 1], fp[:, 2], size[:, 2]), gnss_noise_m, rng)
     n = len(rows)
-    if gnss_noise_m > 0:  # as the V2C channel draws it: independent on each horizontal axis
-        gnss[:, :2] += rng.normal(0.0, gnss_noise_m, size=(n, 2))
     return TwinStates(time=time, ids=tuple(r["vehicle_id"] for r in rows), measured_time=np.full(n, time),
                       x=gnss[:, 0], y=gnss[:, 1], z=gnss[:, 2], heading=np.array([r["yaw"] for r in rows], float),
                       speed=np.array([r.get("speed", 0.0) for r in rows], float), accel=np.zeros(n),
