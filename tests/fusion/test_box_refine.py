@@ -885,3 +885,32 @@ def test_a_sliver_s_one_pixel_tail_stays_in_its_box_but_a_stray_pixel_of_a_wide_
     wide[0:40, 5:65] = True
     wide[38, 65:78] = True  # a rail running on from its foot: 1 px per column, 1/40 of the fullest
     np.testing.assert_array_equal(_segment_box(wide, support, 0, 0), [4.5, -0.5, 64.5, 39.5])
+
+
+def test_a_box_on_a_truck_whose_strip_the_cut_removes_snaps_to_the_truck_whole():
+    """Jam dev seed 3305: a far vehicle shows its lower part as a strip 2 px wide between two nearer
+    cars, and a car beside it lies within its depth band. The band as it is joins that car to the
+    truck; cut at the depth jumps it loses the strip (every pixel of it is the farther one of a jumping
+    pair). The cut segments take their removed outlines back (as the proposals' do), so a box a few
+    pixels off the truck snaps to the truck with its strip (without that its bottom stopped at the
+    cars' roofs: IoU about 0.6)."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    truck = _plate(road, K, T, 40.0, -1.25, 1.25, 3.8)
+    beside = _plate(road, K, T, 43.5, 1.3, 3.8, 3.0)  # a van 3.5 m behind: a jump, but inside the band
+    gap = 2.0 * 10.0 / K[0, 0]  # 2 px at 10 m
+    far = np.minimum(truck, beside)
+    scene = _plate(_plate(far, K, T, 10.0, -3.0, -gap / 2, 1.5), K, T, 10.0, gap / 2, 3.0, 1.5)
+    shown = (truck < road) & (scene == truck)
+    assert (((scene == beside) & (beside < road))[:, :-1] & shown[:, 1:]).any()  # the car beside touches it
+    rows = np.flatnonzero(shown.any(axis=1))
+    assert shown[rows[-1]].sum() == 2  # the strip, 2 px wide at the bottom
+    params = BoxRefineParams(proposals=None)
+    truth = _mask_box(shown & (scene < road - 1e-3))
+    detected = truth + np.array([-2.0, 3.0, 2.0, -6.0])
+    out = refine_boxes(detected[None], scene, K, T, params)
+    assert out.refined[0]
+    assert box_iou(out.boxes, truth[None])[0, 0] > 0.9
+    assert out.boxes[0, 3] >= truth[3] - 2  # down the strip, not stopped at the cars' roofs

@@ -15,10 +15,15 @@ Per detected box (pixel-centre convention, as everywhere in the fusion stage):
 4. For each candidate depth z0, the object pixels from ``0.3 * band_m`` (+3 % of z0) nearer to
    ``band_m`` (+3 %) farther than z0, split into 4-connected segments twice: as they are, and cut
    at depth jumps (the farther pixel of each neighbour pair whose depths differ by more than
-   ``jump_m`` + ``jump_rel`` of the depth removed). Why both: a near car touches, in the image,
-   the side of a truck or the car beside it that lies within its band, and only the cut separates
-   them; but the cut also takes a pixel off each occluded outline, which a small far box cannot
-   spare. Also, once per box, the object pixels of the window cut at depth jumps without any band:
+   ``jump_m`` + ``jump_rel`` of the depth removed, then given back to a neighbour on their own
+   surface: :func:`_restore_outlines`, as for the proposals). Why both: a near car touches, in the
+   image, the side of a truck or the car beside it that lies within its band, and only the cut
+   separates them; but a surface whose depth runs steeply across the view (a far truck's side, each
+   column a jump from the next) has no neighbour on its surface to take its pixels back, and only the
+   band keeps it whole. The cut takes a pixel off each occluded outline, and every pixel of a strip a
+   nearer vehicle leaves 1-2 px wide: without giving them back a small far box lost a pixel a side
+   and a hidden vehicle's box its lower part (the twenty-eighth session). Also, once per box, the
+   object pixels of the window cut at depth jumps (given back the same way) without any band:
    a surface whole, however deep it runs (the side of a truck in the next lane spans 15 m). A
    segment's box is the span of its rows and columns holding at least ``support`` of its fullest
    row / column (so a rail or a sliver of road does not widen it).
@@ -263,6 +268,11 @@ def _join_across_outlines(labels: np.ndarray, z: np.ndarray, jump_m: float, jump
     return lowest[component][labels]
 
 
+def _components(mask: np.ndarray) -> np.ndarray:
+    """4-connected segment labels of a mask (0: not in it)."""
+    return cv2.connectedComponents(mask.astype(np.uint8), connectivity=4)[1]
+
+
 def _segment_box(sel: np.ndarray, support: float, x0: int, y0: int) -> np.ndarray:
     cols, rows = sel.sum(axis=0), sel.sum(axis=1)
     xs = np.flatnonzero(cols >= support * cols.max())
@@ -318,20 +328,24 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
         log_z = np.log(core_z)
         edges = np.arange(log_z.min(), log_z.max() + 0.05, 0.04)
         hist, edges = np.histogram(log_z, bins=edges)
-        masks = []
+        segmentations = []  # labels per way of splitting the window's object pixels
         for j in np.argsort(-hist, kind="stable")[: p.candidates]:
             if hist[j] == 0:
                 break
             z0 = float(np.exp(edges[j]))
             band = obj & (z > z0 - 0.3 * p.band_m - 0.03 * z0) & (z < z0 + p.band_m + 0.03 * z0)
+            segmentations.append(_components(band))
             cut = band & jump_free
-            masks += [band, cut] if (band > cut).any() else [band]
+            if (band > cut).any():
+                segmentations.append(_restore_outlines(_components(cut), band & ~cut, z, p.jump_m, p.jump_rel))
         # and the surfaces whole, however deep (the side of a truck in the next lane runs 15 m away)
-        masks.append(obj & jump_free)
+        whole = obj & jump_free
+        segmentations.append(_restore_outlines(_components(whole), obj & ~whole, z, p.jump_m, p.jump_rel))
         candidates = []  # (IoU with the detected box, segment box, segment mask)
-        for segments in masks:
-            _, labels = cv2.connectedComponents(segments.astype(np.uint8), connectivity=4)
-            for label in np.unique(labels[core][segments[core]]):
+        for labels in segmentations:
+            for label in np.unique(labels[core]):
+                if label == 0:
+                    continue
                 sel = labels == label
                 candidate = _segment_box(sel, p.support, x0, y0)
                 iou = _box_iou(candidate, b)
