@@ -914,3 +914,23 @@ def test_a_box_on_a_truck_whose_strip_the_cut_removes_snaps_to_the_truck_whole()
     assert out.refined[0]
     assert box_iou(out.boxes, truth[None])[0, 0] > 0.9
     assert out.boxes[0, 3] >= truth[3] - 2  # down the strip, not stopped at the cars' roofs
+
+
+def test_a_box_over_two_trucks_snaps_to_the_nearer_one_when_a_car_hides_part_of_it():
+    """As above, with a car 10 m ahead hiding the lower part of the nearer truck. The truck's cut
+    segment takes back its outline along the car (pixels each the farther one of a jumping pair):
+    those are its own edge, not a second surface joined to it, so it still counts as jump-free and
+    replaces the box over the pair (counted as spanning a jump, it could not: IoU 0.6 with the truck)."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    trucks = _plate(_plate(road, K, T, 18.0, -1.25, 1.25, 3.8), K, T, 20.0, 1.25, 3.2, 3.8)
+    scene = _plate(trucks, K, T, 10.0, -1.5, 0.3, 1.5)
+    near = (scene < road) & np.isclose(scene, _plate(road, K, T, 18.0, -1.25, 1.25, 3.8), atol=1e-4, rtol=0)
+    far = (scene < road) & (scene > 19.0) & (scene < 30.0)
+    car = scene < 12.0
+    assert near.any() and far.any() and ((car[1:] & near[:-1]).any() or (car[:, 1:] & near[:, :-1]).any())
+    pair = _mask_box(near | far)
+    out = refine_boxes(pair[None], scene, K, T, BoxRefineParams(proposals=None))
+    assert out.refined[0] and box_iou(out.boxes, _mask_box(near)[None])[0, 0] > 0.9

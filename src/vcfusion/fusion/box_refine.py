@@ -328,21 +328,22 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
         log_z = np.log(core_z)
         edges = np.arange(log_z.min(), log_z.max() + 0.05, 0.04)
         hist, edges = np.histogram(log_z, bins=edges)
-        segmentations = []  # labels per way of splitting the window's object pixels
+        jump = ~jump_free
+        segmentations = []  # (labels, cut at depth jumps) per way of splitting the window's object pixels
         for j in np.argsort(-hist, kind="stable")[: p.candidates]:
             if hist[j] == 0:
                 break
             z0 = float(np.exp(edges[j]))
             band = obj & (z > z0 - 0.3 * p.band_m - 0.03 * z0) & (z < z0 + p.band_m + 0.03 * z0)
-            segmentations.append(_components(band))
+            segmentations.append((_components(band), False))
             cut = band & jump_free
             if (band > cut).any():
-                segmentations.append(_restore_outlines(_components(cut), band & ~cut, z, p.jump_m, p.jump_rel))
+                segmentations.append((_restore_outlines(_components(cut), band & ~cut, z, p.jump_m, p.jump_rel), True))
         # and the surfaces whole, however deep (the side of a truck in the next lane runs 15 m away)
         whole = obj & jump_free
-        segmentations.append(_restore_outlines(_components(whole), obj & ~whole, z, p.jump_m, p.jump_rel))
-        candidates = []  # (IoU with the detected box, segment box, segment mask)
-        for labels in segmentations:
+        segmentations.append((_restore_outlines(_components(whole), obj & ~whole, z, p.jump_m, p.jump_rel), True))
+        candidates = []  # (IoU with the detected box, segment box, segment mask, spans a depth jump)
+        for labels, is_cut in segmentations:
             for label in np.unique(labels[core]):
                 if label == 0:
                     continue
@@ -350,23 +351,23 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
                 candidate = _segment_box(sel, p.support, x0, y0)
                 iou = _box_iou(candidate, b)
                 if iou > p.min_iou:
-                    candidates.append((iou, candidate, sel))
+                    # a cut segment spans no jump: the pixels given back are its own outline
+                    candidates.append((iou, candidate, sel, not is_cut and bool((sel & jump).any())))
         best = best_sel = None
         if candidates:
             candidates.sort(key=lambda c: -c[0])  # stable: of equal overlaps, the first found
-            _, best, best_sel = candidates[0]
+            _, best, best_sel, spans_jump = candidates[0]
             # a box over two vehicles side by side (two trucks in neighbouring lanes a few metres
             # apart in depth, inside one band) snaps best to the pair: when that segment spans a depth
             # jump and is wider than any vehicle, a jump-free segment no wider that still explains the
             # box takes its place, and the other vehicle, no longer inside a box, becomes a proposal.
             # Jump-free, because a car mid lane change, seen at an angle, is 3-4 m across the view
             # with its side, one surface: its wheels and mirrors must not pass for a second vehicle
-            jump = ~jump_free
-            if (best_sel & jump).any() and _lateral_extent(best_sel, z, x0, K, p.support) > p.pair_width_m:
-                for iou, candidate, sel in candidates[1:]:
+            if spans_jump and _lateral_extent(best_sel, z, x0, K, p.support) > p.pair_width_m:
+                for iou, candidate, sel, other_spans_jump in candidates[1:]:
                     if iou < p.pair_min_iou:
                         break
-                    if not (sel & jump).any() and _lateral_extent(sel, z, x0, K, p.support) <= p.pair_width_m:
+                    if not other_spans_jump and _lateral_extent(sel, z, x0, K, p.support) <= p.pair_width_m:
                         best, best_sel = candidate, sel
                         break
         if best is not None:
