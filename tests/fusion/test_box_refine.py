@@ -934,3 +934,62 @@ def test_a_box_over_two_trucks_snaps_to_the_nearer_one_when_a_car_hides_part_of_
     pair = _mask_box(near | far)
     out = refine_boxes(pair[None], scene, K, T, BoxRefineParams(proposals=None))
     assert out.refined[0] and box_iou(out.boxes, _mask_box(near)[None])[0, 0] > 0.9
+
+
+def _van_behind_a_car_seen_in_two_pieces():
+    """Jam dev seed 3427: a van 14 m ahead shows its roof above a car 6 m ahead and a sliver 1 px wide
+    beside it, which a mirror-high object 9 m ahead interrupts: the sliver's lower piece is a
+    fragment of the van below that object. Returns the scene, the van's two pieces and the car."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    van = _plate(road, K, T, 14.0, -1.255, 0.6, 1.95)
+    scene = _plate(_plate(van, K, T, 9.0, -1.6, -0.4, 1.2, bottom=0.95), K, T, 6.0, -0.5, 1.5, 1.5)
+    shown = (van < road) & np.isclose(scene, van, atol=1e-4, rtol=0)
+    rows = np.flatnonzero(shown.any(axis=1))
+    hidden_rows = np.setdiff1d(np.arange(rows[0], rows[-1] + 1), rows)
+    upper, lower = shown.copy(), shown.copy()
+    upper[hidden_rows[0]:] = False
+    lower[:hidden_rows[-1] + 1] = False
+    car = scene < 7.0
+    return K, T, scene, upper, lower, car
+
+
+def test_a_fragment_whose_every_pixel_the_cut_removes_is_a_segment_of_its_own():
+    """The van's lower piece is 1 px wide with nearer things left of it, above and below: every pixel
+    is the farther one of a jumping pair and none has a neighbour on its surface that kept its label,
+    so giving the outlines back cannot place them. They are a segment of their own (before the
+    twenty-eighth session they were no segment at all, and no box could grow over them)."""
+    from vcfusion.fusion.box_refine import object_segments
+
+    K, T, scene, upper, lower, car = _van_behind_a_car_seen_in_two_pieces()
+    assert (lower.sum(axis=1) <= 1).all() and lower.sum() >= 10  # a 1-px sliver, 10 rows or more
+    seg = object_segments(scene, K, T)
+    labels = np.zeros(scene.shape, seg.labels.dtype)
+    labels[seg.y_lo:seg.y_lo + len(seg.labels)] = seg.labels
+    object_rows = lower & (labels > 0)
+    assert object_rows.sum() >= 0.5 * lower.sum()  # (the lowest rows stand under the proposals' 0.3 m)
+    assert len(np.unique(labels[object_rows])) == 1  # one segment
+    assert not (labels[upper] == labels[object_rows][0]).any()  # not the upper piece's: a nearer object lies between
+
+
+def test_a_box_over_a_sliver_grows_over_its_fragment_measured_on_the_surface_drawing_its_outline():
+    """The van's box (its roof above the car and the sliver's upper piece) holds mostly the car in its
+    core: measured there, its surface lay 6 m ahead and no fragment of the van, 14 m ahead, could
+    join it. Measured on the segment drawing its outline (as the matcher does), it is the van's, and
+    the box grows over the lower piece."""
+    from vcfusion.fusion.box_refine import _core, join_fragments, object_segments
+
+    K, T, scene, upper, lower, car = _van_behind_a_car_seen_in_two_pieces()
+    box = _mask_box(upper)
+    core = np.zeros(scene.shape, bool)
+    core[_core(box, 0, 0)] = True
+    assert (core & car).sum() > (core & upper).sum()  # the core shows mostly the car
+    seg = object_segments(scene, K, T)
+    boxes = np.stack([box, _mask_box(car)])
+    joined = join_fragments(boxes, np.array([True, True]), seg, K)
+    object_rows = np.flatnonzero((lower & (scene > 0)).any(axis=1))
+    assert joined[0, 3] >= box[3] + 10  # down over the lower piece
+    np.testing.assert_allclose(joined[0, [0, 1, 2]], box[[0, 1, 2]])
+    np.testing.assert_allclose(joined[1], boxes[1])  # the car's box: unchanged

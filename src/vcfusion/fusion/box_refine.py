@@ -501,10 +501,15 @@ def object_segments(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     obj, height, z, valid = obj[y_lo:y_hi], height[y_lo:y_hi], z[y_lo:y_hi], valid[y_lo:y_hi]
     # cut at depth jumps: the farther pixel of each jumping neighbour pair leaves the mask
     keep = obj & _jump_free(z, valid, refine.jump_m, refine.jump_rel)
-    n, labels = cv2.connectedComponents(keep.astype(np.uint8), connectivity=4)
-    labels = _restore_outlines(labels, obj & ~keep, z, refine.jump_m, refine.jump_rel)
+    labels = _restore_outlines(_components(keep), obj & ~keep, z, refine.jump_m, refine.jump_rel)
+    # what no neighbour on its surface took back is a segment of its own, not left out: a vehicle seen
+    # 1 px wide between nearer things (every pixel the farther one of a jumping pair), e.g. the piece
+    # of a sliver below a mirror of the car beside it, which then joins its box (join_fragments)
+    islands = obj & (labels == 0)
+    if islands.any():
+        labels = np.where(islands, _components(islands) + labels.max(), labels)
     labels = _join_across_outlines(labels, z, refine.jump_m, refine.jump_rel)
-    return ObjectSegments(z, valid, obj, height, labels, np.bincount(labels.ravel(), minlength=n),
+    return ObjectSegments(z, valid, obj, height, labels, np.bincount(labels.ravel()),
                           find_objects(labels), y_lo)
 
 
@@ -625,7 +630,8 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
 
     Then its other fragments: a vehicle partly hidden by a nearer one can show in pieces (its roof
     above the nearer car and a corner beside it); the detector and the refinement box one piece, the
-    ground truth spans all. A segment joins a box when it stands at the box's surface depth, lies
+    ground truth spans all. A segment joins a box when it stands at the box's surface depth (that of
+    the segment drawing the box's outline, :func:`box_surface_depths`, else its core's median), lies
     near it, is not the own segment of one of the ``owners`` boxes (IoU > 0.5; an (N,) mask: the
     boxes the fusion uses), what lies between the two is mostly nearer (the piece of the nearer
     vehicle that cuts them apart) and all together are no wider than a vehicle (a car beside it at
@@ -662,8 +668,11 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
         return medians[k]
 
     out = boxes.copy()
+    # a box's surface: that of the segment drawing its outline (as for the matcher), else the median
+    # of its core, which for a sliver's box is mostly the nearer car beside the sliver
+    outline = box_surface_depths(boxes, segments, refine)
     for i, b in enumerate(boxes):
-        surface = _surface_depth(z, obj, b, y_lo)
+        surface = outline[i] if np.isfinite(outline[i]) else _surface_depth(z, obj, b, y_lo)
         if not np.isfinite(surface):
             continue
         tolerance = params.fragment_depth_m + 0.03 * surface
