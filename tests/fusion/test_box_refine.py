@@ -200,6 +200,13 @@ def _mask_box(mask):
     return np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5])
 
 
+def _image_labels(seg, shape):
+    """object_segments' labels placed in an image of `shape` (they start at row seg.y_lo)."""
+    labels = np.zeros(shape, seg.labels.dtype)
+    labels[seg.y_lo:seg.y_lo + len(seg.labels)] = seg.labels
+    return labels
+
+
 def _plate(depth, K, T, x, y0, y1, top, bottom=0.0):
     """A flat upright rectangle facing the camera, x metres ahead, across y0..y1, from `bottom` (the
     road) up to `top`, drawn into the camera-Z depth image by exact ray-plane intersection."""
@@ -299,8 +306,7 @@ def test_a_car_corner_cut_by_the_image_side_is_proposed_but_not_a_guard_rail_or_
     assert _mask_box(shown)[0] == -0.5  # the image's side cuts it
     boxes, is_truck = depth_proposals(corner, K, T, np.zeros((0, 4)), BoxRefineParams())
     assert len(boxes) == 1 and not is_truck[0]
-    # left, top and right as shown (to a pixel), the bottom
-    # where object pixels stop, 0.3 m above the road
+    # left, top and right as shown (to a pixel)
     np.testing.assert_allclose(boxes[0, :3], _mask_box(shown)[:3], atol=1.0)
     before = BoxRefineParams(proposals=ProposalParams(min_top_truncated_m=1.0))
     assert len(depth_proposals(corner, K, T, np.zeros((0, 4)), before)[0]) == 0
@@ -712,8 +718,7 @@ def test_a_strip_of_a_far_truck_between_two_nearer_cars_goes_back_to_the_truck_w
     strip = seen[rows[-1]]
     assert strip.sum() == 2 and seen[rows[0]].sum() > 20  # 2 px wide at the bottom, whole at the top
     seg = object_segments(scene, K, T)
-    labels = np.zeros(scene.shape, seg.labels.dtype)
-    labels[seg.y_lo:seg.y_lo + len(seg.labels)] = seg.labels
+    labels = _image_labels(seg, scene.shape)
     truck_label = labels[rows[0] + 5, np.flatnonzero(strip)[0]]  # the truck above the cars
     assert truck_label > 0
     lowest_object_row = max(r for r in rows if (labels[r][strip] > 0).any())
@@ -866,8 +871,7 @@ def test_a_vehicle_whose_parts_a_strip_between_nearer_ones_links_is_one_segment(
     assert len(narrow) >= 3 and rows[0] < narrow[0] and narrow[-1] < rows[-1]  # wide above and below
     assert widths[rows[0] + 2] > 20 and widths[narrow[-1] + 3] > 20
     seg = object_segments(scene, K, T)
-    labels = np.zeros(scene.shape, seg.labels.dtype)
-    labels[seg.y_lo:seg.y_lo + len(seg.labels)] = seg.labels
+    labels = _image_labels(seg, scene.shape)
     above = labels[rows[0] + 2][seen[rows[0] + 2]]
     below = labels[narrow[-1] + 3][seen[narrow[-1] + 3]]
     assert above.min() > 0 and len(set(above)) == 1
@@ -974,8 +978,7 @@ def test_a_fragment_whose_every_pixel_the_cut_removes_is_a_segment_of_its_own():
     K, T, scene, upper, lower, car = _van_behind_a_car_seen_in_two_pieces()
     assert (lower.sum(axis=1) <= 1).all() and lower.sum() >= 10  # a 1-px sliver, 10 rows or more
     seg = object_segments(scene, K, T)
-    labels = np.zeros(scene.shape, seg.labels.dtype)
-    labels[seg.y_lo:seg.y_lo + len(seg.labels)] = seg.labels
+    labels = _image_labels(seg, scene.shape)
     object_rows = lower & (labels > 0)
     assert object_rows.sum() >= 0.5 * lower.sum()  # (the lowest rows stand under the proposals' 0.3 m)
     assert len(np.unique(labels[object_rows])) == 1  # one segment
@@ -997,7 +1000,6 @@ def test_a_box_over_a_sliver_grows_over_its_fragment_measured_on_the_surface_dra
     seg = object_segments(scene, K, T)
     boxes = np.stack([box, _mask_box(car)])
     joined = join_fragments(boxes, np.array([True, True]), seg, K)
-    object_rows = np.flatnonzero((lower & (scene > 0)).any(axis=1))
     assert joined[0, 3] >= box[3] + 10  # down over the lower piece
     np.testing.assert_allclose(joined[0, [0, 1, 2]], box[[0, 1, 2]])
     np.testing.assert_allclose(joined[1], boxes[1])  # the car's box: unchanged

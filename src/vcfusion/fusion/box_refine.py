@@ -343,7 +343,7 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
         # and the surfaces whole, however deep (the side of a truck in the next lane runs 15 m away)
         whole = obj & jump_free
         segmentations.append((_restore_outlines(_components(whole), obj & ~whole, z, p.jump_m, p.jump_rel), True))
-        candidates = []  # (IoU with the detected box, segment box, segment mask, spans a depth jump)
+        candidates = []  # (IoU with the detected box, segment box, segment mask, cut at depth jumps)
         for labels, is_cut in segmentations:
             for label in np.unique(labels[core]):
                 if label == 0:
@@ -352,23 +352,26 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
                 candidate = _segment_box(sel, p.support, x0, y0)
                 iou = _box_iou(candidate, b)
                 if iou > p.min_iou:
-                    # a cut segment spans no jump: the pixels given back are its own outline
-                    candidates.append((iou, candidate, sel, not is_cut and bool((sel & jump).any())))
+                    candidates.append((iou, candidate, sel, is_cut))
         best = best_sel = None
         if candidates:
             candidates.sort(key=lambda c: -c[0])  # stable: of equal overlaps, the first found
-            _, best, best_sel, spans_jump = candidates[0]
+            _, best, best_sel, best_is_cut = candidates[0]
+
+            def spans_jump(sel, is_cut):  # a cut segment spans none: the pixels given back are its outline
+                return not is_cut and bool((sel & jump).any())
+
             # a box over two vehicles side by side (two trucks in neighbouring lanes a few metres
             # apart in depth, inside one band) snaps best to the pair: when that segment spans a depth
             # jump and is wider than any vehicle, a jump-free segment no wider that still explains the
             # box takes its place, and the other vehicle, no longer inside a box, becomes a proposal.
             # Jump-free, because a car mid lane change, seen at an angle, is 3-4 m across the view
             # with its side, one surface: its wheels and mirrors must not pass for a second vehicle
-            if spans_jump and _lateral_extent(best_sel, z, x0, K, p.support) > p.pair_width_m:
-                for iou, candidate, sel, other_spans_jump in candidates[1:]:
+            if spans_jump(best_sel, best_is_cut) and _lateral_extent(best_sel, z, x0, K, p.support) > p.pair_width_m:
+                for iou, candidate, sel, is_cut in candidates[1:]:
                     if iou < p.pair_min_iou:
                         break
-                    if not other_spans_jump and _lateral_extent(sel, z, x0, K, p.support) <= p.pair_width_m:
+                    if not spans_jump(sel, is_cut) and _lateral_extent(sel, z, x0, K, p.support) <= p.pair_width_m:
                         best, best_sel = candidate, sel
                         break
         if best is not None:
@@ -540,15 +543,13 @@ def _lowest_row_on_its_surface(sel: np.ndarray, x: int, y: int, depth: np.ndarra
     ground truth spans: 17 px for a car 8 m ahead."""
     cols = np.flatnonzero(sel.any(axis=0))
     rows = y + sel.shape[0] - 1 - np.argmax(sel[::-1, cols], axis=0)  # each column's lowest pixel
-    H = depth.shape[0]
     row0 = int(rows.min())
-    if row0 >= H - 1:
+    if row0 >= depth.shape[0] - 1:
         return int(rows.max())
-    image_cols = x + cols
-    z = np.asarray(depth[row0:, image_cols], np.float32)
-    z = np.where(np.isfinite(z) & (z > 0), z, np.float32(np.inf))
-    h = z * (np.arange(row0, H, dtype=np.float32)[:, None] * np.float32(heights.per_v) + np.float32(heights.const)
-             + image_cols[None, :].astype(np.float32) * np.float32(heights.per_u)) - np.float32(heights.offset)
+    z = np.asarray(depth[row0:, x:x + sel.shape[1]], np.float32)
+    z = np.where(np.isfinite(z) & (z > 0), z, np.float32(0))  # no depth: off any surface
+    h = heights.window(z, x, row0)[:, cols]
+    z = z[:, cols]
     k = np.arange(len(cols))
     at = rows - row0  # per column: the row reached, in the window
     going = np.ones(len(cols), bool)
