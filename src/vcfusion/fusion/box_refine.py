@@ -64,7 +64,7 @@ docs/architecture.md "Depth-guided box refinement" for the figures and for noisy
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -477,6 +477,9 @@ class ObjectSegments:
     areas: np.ndarray  # pixels per label
     regions: list  # per label from 1, its (rows, columns) slices (scipy.ndimage.find_objects)
     y_lo: int  # image row of row 0
+    # box_surface_depths' face depth per (label, percentile, band): the fragments and the matcher
+    # both ask, for mostly the same segments, each vision tick
+    faces: dict = field(default_factory=dict, repr=False, compare=False)
 
     def boxes(self, labels) -> np.ndarray:
         """(N, 4) image boxes (pixel-centre convention) around the whole of each of these labels."""
@@ -770,12 +773,12 @@ def box_surface_depths(boxes: np.ndarray, segments: ObjectSegments | None,
         return out
     iou = box_iou(boxes, segments.boxes(present))
     best = iou.argmax(axis=1)
-    face: dict[int, float] = {}  # per segment, computed once: boxes share segments
     for j in np.flatnonzero(iou[np.arange(len(boxes)), best] >= min_iou):
-        k = int(best[j])
-        if k not in face:
-            r = segments.regions[present[k] - 1]
-            near, far = np.percentile(segments.z[r][labels[r] == present[k]], [face_percentile, 100 - face_percentile])
-            face[k] = float(near) if far - near <= refine.band_m else np.nan
-        out[j] = face[k]
+        label = present[int(best[j])]
+        key = (label, face_percentile, refine.band_m)
+        if key not in segments.faces:  # boxes share segments, and calls share the segmentation
+            r = segments.regions[label - 1]
+            near, far = np.percentile(segments.z[r][labels[r] == label], [face_percentile, 100 - face_percentile])
+            segments.faces[key] = float(near) if far - near <= refine.band_m else np.nan
+        out[j] = segments.faces[key]
     return out
