@@ -948,16 +948,20 @@ def test_a_box_over_two_trucks_snaps_to_the_nearer_one_when_a_car_hides_part_of_
     assert out.refined[0] and box_iou(out.boxes, _mask_box(near)[None])[0, 0] > 0.9
 
 
-def _van_behind_a_car_seen_in_two_pieces():
+def _van_behind_a_car_seen_in_two_pieces(hidden_below_m=None):
     """Jam dev seed 3427: a van 14 m ahead shows its roof above a car 6 m ahead and a sliver 1 px wide
     beside it, which a mirror-high object 9 m ahead interrupts: the sliver's lower piece is a
-    fragment of the van below that object. Returns the scene, the van's two pieces and the car."""
+    fragment of the van below that object. ``hidden_below_m``: that object reaches down to the road
+    but for a gap from this height up, through which the van shows. Returns the scene, the van's
+    two pieces and the car."""
     from vcfusion.fusion.bench import default_camera, road_depth
 
     K, T = default_camera()
     road = road_depth(K, T, 640, 480)
     van = _plate(road, K, T, 14.0, -1.255, 0.6, 1.95)
     scene = _plate(_plate(van, K, T, 9.0, -1.6, -0.4, 1.2, bottom=0.95), K, T, 6.0, -0.5, 1.5, 1.5)
+    if hidden_below_m is not None:
+        scene = _plate(scene, K, T, 9.0, -1.6, -0.4, hidden_below_m)
     shown = (van < road) & np.isclose(scene, van, atol=1e-4, rtol=0)
     rows = np.flatnonzero(shown.any(axis=1))
     hidden_rows = np.setdiff1d(np.arange(rows[0], rows[-1] + 1), rows)
@@ -1003,3 +1007,17 @@ def test_a_box_over_a_sliver_grows_over_its_fragment_measured_on_the_surface_dra
     assert joined[0, 3] >= box[3] + 10  # down over the lower piece
     np.testing.assert_allclose(joined[0, [0, 1, 2]], box[[0, 1, 2]])
     np.testing.assert_allclose(joined[1], boxes[1])  # the car's box: unchanged
+
+
+def test_a_box_grows_over_a_fragment_of_two_pixels_seen_through_a_gap():
+    """Jam dev seed 3362: of a truck behind a car, 1-3 px show beside the car's outline rows below
+    the rest, and the ground truth spans them. Fragments of fewer than 4 px were left out before the
+    twenty-ninth session; the van's lower piece here is 2 px seen through a gap in a nearer object."""
+    from vcfusion.fusion.box_refine import join_fragments, object_segments
+
+    K, T, scene, upper, lower, car = _van_behind_a_car_seen_in_two_pieces(hidden_below_m=0.9)
+    assert lower.sum() == 2
+    boxes = np.stack([_mask_box(upper), _mask_box(car)])
+    joined = join_fragments(boxes, np.array([True, True]), object_segments(scene, K, T), K)
+    np.testing.assert_allclose(joined[0], np.r_[boxes[0, :3], _mask_box(lower)[3]])
+    np.testing.assert_allclose(joined[1], boxes[1])
