@@ -1021,3 +1021,63 @@ def test_a_box_grows_over_a_fragment_of_two_pixels_seen_through_a_gap():
     joined = join_fragments(boxes, np.array([True, True]), object_segments(scene, K, T), K)
     np.testing.assert_allclose(joined[0], np.r_[boxes[0, :3], _mask_box(lower)[3]])
     np.testing.assert_allclose(joined[1], boxes[1])
+
+
+def _car_behind_a_nearer_one(near_top_m):
+    """A car 33 m ahead and a nearer one 11 m ahead hiding its lower part but for a strip at its side
+    (`near_top_m`: how high the nearer one stands). Returns the scene, the far car's shown pixels and
+    the nearer car's."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    car = _plate(road, K, T, 33.0, -0.9, 0.9, 1.6)
+    scene = _plate(car, K, T, 11.0, -1.5, 0.7 * 11 / 33, near_top_m)
+    shown = (car < road) & np.isclose(scene, car, atol=1e-4, rtol=0)
+    near = (scene < road - 0.01) & (scene < 12.0)
+    return K, T, scene, shown, near
+
+
+def test_a_box_grows_over_the_segment_drawing_its_outline_though_its_core_shows_a_nearer_car():
+    """Validation seed 900088: a car's box stopped at the top of the nearer car hiding its lower half,
+    so its core showed mostly that car, and the box grew only over the segment most of its core
+    shows (the nearer car's, at another depth: not at all). It grows over the segment drawing its
+    outline (box_surface_depths' choice) too, down the strip beside the nearer car."""
+    from vcfusion.fusion.box_refine import _core, join_fragments, object_segments
+
+    K, T, scene, shown, near = _car_behind_a_nearer_one(1.4)
+    seg = object_segments(scene, K, T)
+    labels = _image_labels(seg, scene.shape)
+    (car_label,) = np.unique(labels[shown & (labels > 0)])
+    car_box = seg.boxes([car_label])[0]
+    box = car_box.copy()
+    box[3] = car_box[1] + 0.6 * (car_box[3] - car_box[1])  # stopped at the nearer car's top
+    core = np.zeros(scene.shape, bool)
+    core[_core(box, 0, 0)] = True
+    assert (core & near).sum() > 3 * (core & shown).sum()
+    joined = join_fragments(np.stack([box, _mask_box(near)]), np.array([True, True]), seg, K)
+    np.testing.assert_allclose(joined[0], car_box)
+
+
+def test_a_car_in_front_of_a_box_outlining_the_car_behind_is_proposed():
+    """Jam dev seed 3445: a box outlining a car 38 m ahead holds, mostly inside it, a car 32 m ahead
+    (itself partly hidden by one 23 m ahead). The box's surface was its core's median, which the
+    nearer car holds, so that car counted as explained by the box and got none. Measured on the
+    segment drawing the box's outline, the car stands in front of it and is proposed."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import _surface_depth, box_surface_depths, depth_proposals, object_segments
+    from vcfusion.fusion.matching import box_inside_share
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    far = _plate(road, K, T, 38.0, -0.9, 0.9, 1.5)
+    scene = _plate(_plate(far, K, T, 31.7, -0.2, 0.6, 1.4), K, T, 22.9, -2.0, -0.2, 1.3)
+    far_shown = (far < road) & np.isclose(scene, far, atol=1e-4, rtol=0)
+    car = (scene < road) & (scene > 31.0) & (scene < 33.0)
+    box = _mask_box(far_shown | car)
+    seg = object_segments(scene, K, T)
+    assert box_inside_share(_mask_box(car)[None], box[None])[0, 0] > 0.9
+    assert abs(_surface_depth(seg.z, seg.obj, box, seg.y_lo) - 31.7) < 1.0  # the core: the car in front
+    assert abs(box_surface_depths(box[None], seg)[0] - 38.0) < 1.0  # the outline: the car behind
+    proposed, _ = depth_proposals(scene, K, T, box[None], BoxRefineParams(), seg)
+    assert len(proposed) and box_iou(_mask_box(car)[None], proposed).max() > 0.9

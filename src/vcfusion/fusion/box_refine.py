@@ -47,11 +47,12 @@ stem under its middle with nothing nearer beside it (a tree lower than the cap) 
 confident box explains becomes a box (a truck when it stands higher than a car); its box reaches
 down over the same surface to where the refinement's object pixels end (bumper and tyres). A box the
 refinement could not snap to any segment is not confirmed by depth and explains only the segments it
-overlaps, not those it merely holds.
+overlaps, not those it merely holds. A box's surface is that of the segment drawing its outline
+(:func:`outline_segments`), else its core's median; that segment itself is the box's only by overlap.
 
-Last (``join_fragments``), each box grows over its own segment of that segmentation whole (the one
-most of its core shows: where the detector's box was too small, the refinement kept a part of
-the vehicle), and a vehicle that a nearer one cuts into pieces (its roof above the nearer car, a
+Last (``join_fragments``), each box grows over its own segments of that segmentation whole (the one
+most of its core shows, and the one drawing its outline: where the detector's box was too small, the
+refinement kept a part of the vehicle), and a vehicle that a nearer one cuts into pieces (its roof above the nearer car, a
 corner beside it) gets one box over all of them: a segment at a box's surface depth, near it, that
 no other box owns, joins the box when what lies between them is mostly nearer and all together
 are no wider than a vehicle.
@@ -588,7 +589,11 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     snapped = np.ones(len(existing), bool) if snapped is None else np.asarray(snapped, bool)
     if snapped.shape != (len(existing),):
         raise ValueError(f"snapped: expected one flag per box ({len(existing)}), got shape {snapped.shape}")
-    surface = np.array([_surface_depth(z, obj, e, y_lo) for e in existing])
+    # a box's surface: that of the segment drawing its outline (as join_fragments and the matcher
+    # take it), else its core's median, which a nearer car in front of part of the box can hold
+    outline = box_surface_depths(existing, segments, refine)
+    surface = np.array([o if np.isfinite(o) else _surface_depth(z, obj, e, y_lo) for o, e in zip(outline, existing)])
+    outline_label = outline_segments(existing, segments)
     for label, region in enumerate(segments.regions, start=1):
         if region is None or areas[label] < params.min_pixels:
             continue
@@ -617,8 +622,11 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
             min_width = params.min_tall_width_m  # standing on the ground as tall as this: a trunk or a pole
         if top < _min_top(params, refine, truncated, width_m, seg_z) or width_m < min_width:
             continue
+        # (the segment drawing a box's outline is that box's only by overlap: a box over a truck's L
+        # and the top of the car hiding the rest holds the truck's segment but fits it at IoU 0.55)
         inside = box_inside_share(box[None], existing)[0]
-        if np.any((inside > 0.5) & snapped & not_in_front & (depth_m < surface + params.behind_m)):
+        if np.any((inside > 0.5) & snapped & not_in_front & (depth_m < surface + params.behind_m)
+                  & (outline_label != label)):
             continue
         if _continues_above(sel, x, y, z, valid, height, refine.max_height_m, refine.jump_m,
                             refine.jump_rel) > params.max_top_continuing:
@@ -708,6 +716,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
     # a box's surface: that of the segment drawing its outline (as for the matcher), else the median
     # of its core, which for a sliver's box is mostly the nearer car beside the sliver
     outline = box_surface_depths(boxes, segments, refine)
+    outline_label = outline_segments(boxes, segments)
     for i, b in enumerate(boxes):
         surface = outline[i] if np.isfinite(outline[i]) else _surface_depth(z, obj, b, y_lo)
         if not np.isfinite(surface):
@@ -716,16 +725,19 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
         max_width_px = params.max_width_m * fx / surface
         others = owned[:, owner_index != i].any(axis=1)
         grown = b.copy()
-        # first the box's own segment whole (the one most of its core shows): the refinement chose
-        # within a window around the detected box and by overlap with it, so a detected box that
-        # was too small keeps part of its vehicle out
+        # first the box's own segment whole: the refinement chose within a window around the detected
+        # box and by overlap with it, so a detected box that was too small keeps part of its vehicle
+        # out. Its own: the one most of its core shows, and the one drawing its outline (a car's box
+        # that stopped short above the nearer car in front of its lower half shows that car most)
         core = _core(b, 0, y_lo)
         core_labels = index_of[segments.labels[core][obj[core]]]
         core_labels = core_labels[core_labels >= 0]
-        if core_labels.size:
-            own = int(np.bincount(core_labels).argmax())
-            if not others[own] and abs(median_depth(own) - surface) <= tolerance:
-                grown = _union_if_within(grown, seg_box[own], max_width_px)
+        own = {int(np.bincount(core_labels).argmax())} if core_labels.size else set()
+        if outline_label[i]:
+            own.add(int(index_of[outline_label[i]]))
+        for k in own:
+            if not others[k] and abs(median_depth(k) - surface) <= tolerance:
+                grown = _union_if_within(grown, seg_box[k], max_width_px)
         side = max(b[2] - b[0], b[3] - b[1])
         gap = np.maximum.reduce([seg_box[:, 0] - b[2], b[0] - seg_box[:, 2],
                                  seg_box[:, 1] - b[3], b[1] - seg_box[:, 3]])
@@ -743,6 +755,20 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
                 grown = _union_if_within(grown, seg_box[k], max_width_px)
         out[i] = grown
     return out
+
+
+def outline_segments(boxes: np.ndarray, segments: ObjectSegments, min_iou: float = 0.5) -> np.ndarray:
+    """Per box, the label of the segment drawing its outline: the one of ``segments`` whose bounding
+    box overlaps the box most, when by IoU >= ``min_iou``; 0 where none does. (N,) int."""
+    from vcfusion.fusion.matching import box_iou
+
+    boxes = np.asarray(boxes, float).reshape(-1, 4)
+    present = np.array([k for k, r in enumerate(segments.regions, start=1) if r is not None], int)
+    if not len(boxes) or not len(present):
+        return np.zeros(len(boxes), int)
+    iou = box_iou(boxes, segments.boxes(present))
+    best = iou.argmax(axis=1)
+    return np.where(iou[np.arange(len(boxes)), best] >= min_iou, present[best], 0)
 
 
 def box_surface_depths(boxes: np.ndarray, segments: ObjectSegments | None,
@@ -764,16 +790,10 @@ def box_surface_depths(boxes: np.ndarray, segments: ObjectSegments | None,
     out = np.full(len(boxes), np.nan)
     if segments is None or not len(boxes):
         return out
-    from vcfusion.fusion.matching import box_iou
-
     labels = segments.labels
-    present = [k for k, r in enumerate(segments.regions, start=1) if r is not None]
-    if not present:
-        return out
-    iou = box_iou(boxes, segments.boxes(present))
-    best = iou.argmax(axis=1)
-    for j in np.flatnonzero(iou[np.arange(len(boxes)), best] >= min_iou):
-        label = present[int(best[j])]
+    outline = outline_segments(boxes, segments, min_iou)
+    for j in np.flatnonzero(outline):
+        label = int(outline[j])
         key = (label, face_percentile, refine.band_m)
         if key not in segments.faces:  # boxes share segments, and calls share the segmentation
             r = segments.regions[label - 1]
