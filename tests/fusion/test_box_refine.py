@@ -1081,3 +1081,33 @@ def test_a_car_in_front_of_a_box_outlining_the_car_behind_is_proposed():
     assert abs(box_surface_depths(box[None], seg)[0] - 38.0) < 1.0  # the outline: the car behind
     proposed, _ = depth_proposals(scene, K, T, box[None], BoxRefineParams(), seg)
     assert len(proposed) and box_iou(_mask_box(car)[None], proposed).max() > 0.9
+
+
+def test_a_small_box_grows_over_a_piece_of_its_vehicle_a_metre_fraction_away():
+    """Jam dev seed 3409: of a car 13 m ahead, a nearer truck leaves a strip at its side, and a car's
+    body beside it (above the road on its wheels) hides the strip's middle: the roof corner (14 x 20
+    px) and a lower piece 17 px below it show. 17 px is more than half the small box's larger side
+    (the only limit before the twenty-ninth session) but 0.5 m at 13 m."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import ProposalParams, join_fragments, object_segments
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    car = _plate(road, K, T, 13.0, -0.9, 0.9, 1.5)
+    truck = _plate(road, K, T, 7.0, -3.0, 0.5 * 7 / 13, 3.5)
+    scene = _plate(_plate(car, K, T, 7.0, -3.0, 0.5 * 7 / 13, 3.5), K, T, 9.0, 0.5 * 9 / 13, 2.5, 1.1, bottom=0.8)
+    shown = (car < road) & np.isclose(scene, car, atol=1e-4, rtol=0)
+    seg = object_segments(scene, K, T)
+    labels = _image_labels(seg, scene.shape)
+    pieces = [label for label in np.unique(labels[shown]) if label]
+    assert len(pieces) == 2
+    upper, lower = sorted((_mask_box(labels == label) for label in pieces), key=lambda b: b[1])
+    gap = lower[1] - upper[3]
+    assert 0.5 * max(upper[2] - upper[0], upper[3] - upper[1]) < gap < 0.75 * K[0, 0] / 13.0
+    boxes = np.stack([upper, _mask_box((truck < road) & np.isclose(scene, truck, atol=1e-4, rtol=0))])
+    joined = join_fragments(boxes, np.array([True, True]), seg, K)
+    np.testing.assert_allclose(joined[0], np.r_[upper[:3], lower[3]])
+    np.testing.assert_allclose(joined[1], boxes[1])
+    unchanged = join_fragments(boxes, np.array([True, True]), seg, K,
+                               BoxRefineParams(proposals=ProposalParams(fragment_gap_m=0.0)))
+    np.testing.assert_allclose(unchanged, boxes)

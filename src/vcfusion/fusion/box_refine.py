@@ -100,7 +100,10 @@ class ProposalParams:
     # this share of its widest row stands on a stem: a tree
     # the fragments of a vehicle that a nearer one cuts in two join its box (join_fragments): a segment
     fragment_depth_m: float = 0.5  # at the box's surface depth (within this + 3 %),
-    fragment_gap: float = 0.5  # no farther from the box than this share of the box's larger side,
+    fragment_gap: float = 0.5  # no farther from the box than this share of the box's larger side
+    fragment_gap_m: float = 0.75  # or than this at the box's surface depth (a car's roof corner seen
+    # beside a nearer truck, 14 px wide at 13 m, and its lower corner 17 px below: the share alone
+    # kept them apart; on the development folders 0.5 m joined 3 more targets' pieces, 0.75 m 6, 1 m 4),
     fragment_hidden: float = 0.5  # with at least this share of the pixels between them nearer (the cut),
     max_width_m: float = 2.7  # and the two together no wider than a vehicle seen from behind
 
@@ -675,7 +678,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
     above the nearer car and a corner beside it); the detector and the refinement box one piece, the
     ground truth spans all. A segment joins a box when it stands at the box's surface depth (that of
     the segment drawing the box's outline, :func:`box_surface_depths`, else its core's median), lies
-    near it, is not the own segment of one of the ``owners`` boxes (IoU > 0.5; an (N,) mask: the
+    near it (``fragment_gap`` of the box's size or ``fragment_gap_m`` at its depth), is not the own segment of one of the ``owners`` boxes (IoU > 0.5; an (N,) mask: the
     boxes the fusion uses), what lies between the two is mostly nearer (the piece of the nearer
     vehicle that cuts them apart) and all together are no wider than a vehicle (a car beside it at
     the same depth in the next lane is a lane width away)."""
@@ -742,7 +745,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
         gap = np.maximum.reduce([seg_box[:, 0] - b[2], b[0] - seg_box[:, 2],
                                  seg_box[:, 1] - b[3], b[1] - seg_box[:, 3]])
         inside = box_inside_share(seg_box, b[None])[:, 0] >= 0.9
-        near = (gap <= params.fragment_gap * side) & ~inside & ~others
+        near = (gap <= max(params.fragment_gap * side, params.fragment_gap_m * fx / surface)) & ~inside & ~others
         for k in np.flatnonzero(near & (np.abs(seg_mean - surface) <= 2 * tolerance + 1.0)):
             if abs(median_depth(k) - surface) > tolerance:
                 continue
