@@ -52,8 +52,8 @@ overlaps, not those it merely holds. A box's surface is that of the segment draw
 
 Last (``join_fragments``), each box grows over its own segments of that segmentation whole (the one
 most of its core shows, and the one drawing its outline: where the detector's box was too small, the
-refinement kept a part of the vehicle), and a vehicle that a nearer one cuts into pieces (its roof above the nearer car, a
-corner beside it) gets one box over all of them: a segment at a box's surface depth, near it, that
+refinement kept a part of the vehicle), and a vehicle that a nearer one cuts into pieces (its roof
+above the nearer car, a corner beside it) gets one box over all of them: a segment at a box's surface depth, near it, that
 no other box owns, joins the box when what lies between them is mostly nearer and all together
 are no wider than a vehicle.
 
@@ -595,7 +595,8 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     # a box's surface: that of the segment drawing its outline (as join_fragments and the matcher
     # take it), else its core's median, which a nearer car in front of part of the box can hold
     outline = box_surface_depths(existing, segments, refine)
-    surface = np.array([o if np.isfinite(o) else _surface_depth(z, obj, e, y_lo) for o, e in zip(outline, existing)])
+    surface = np.array([o if np.isfinite(o) else _surface_depth(z, obj, e, y_lo)
+                        for o, e in zip(outline, existing)])
     outline_label = outline_segments(existing, segments)
     for label, region in enumerate(segments.regions, start=1):
         if region is None or areas[label] < params.min_pixels:
@@ -670,18 +671,19 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
 
     The refinement snaps a box to the segment of its search window that overlaps the detected box
     most; when the detector's box was too small (a car half hidden at 30-45 m), that is a part of the
-    vehicle. So a box first grows over the whole-image segment that most of its core shows, when that
-    stands at the box's surface depth, is not another owner box's segment and the two together are no
-    wider than a vehicle.
+    vehicle. So a box first grows over the whole-image segments that most of its core shows and that
+    draws its outline (:func:`outline_segments`), each when it stands at the box's surface depth, is
+    not another owner box's segment and the two together are no wider than a vehicle.
 
     Then its other fragments: a vehicle partly hidden by a nearer one can show in pieces (its roof
     above the nearer car and a corner beside it); the detector and the refinement box one piece, the
     ground truth spans all. A segment joins a box when it stands at the box's surface depth (that of
     the segment drawing the box's outline, :func:`box_surface_depths`, else its core's median), lies
-    near it (``fragment_gap`` of the box's size or ``fragment_gap_m`` at its depth), is not the own segment of one of the ``owners`` boxes (IoU > 0.5; an (N,) mask: the
-    boxes the fusion uses), what lies between the two is mostly nearer (the piece of the nearer
-    vehicle that cuts them apart) and all together are no wider than a vehicle (a car beside it at
-    the same depth in the next lane is a lane width away)."""
+    near it (``fragment_gap`` of the box's size or ``fragment_gap_m`` at its depth), is not the own
+    segment of one of the ``owners`` boxes (IoU > 0.5; an (N,) mask: the boxes the fusion uses),
+    what lies between the two is mostly nearer (the piece of the nearer vehicle that cuts them apart)
+    and all together are no wider than a vehicle (a car beside it at the same depth in the next lane
+    is a lane width away)."""
     from vcfusion.fusion.matching import box_inside_share, box_iou
 
     params = refine.proposals
@@ -745,7 +747,8 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
         gap = np.maximum.reduce([seg_box[:, 0] - b[2], b[0] - seg_box[:, 2],
                                  seg_box[:, 1] - b[3], b[1] - seg_box[:, 3]])
         inside = box_inside_share(seg_box, b[None])[:, 0] >= 0.9
-        near = (gap <= max(params.fragment_gap * side, params.fragment_gap_m * fx / surface)) & ~inside & ~others
+        reach = max(params.fragment_gap * side, params.fragment_gap_m * fx / surface)
+        near = (gap <= reach) & ~inside & ~others
         for k in np.flatnonzero(near & (np.abs(seg_mean - surface) <= 2 * tolerance + 1.0)):
             if abs(median_depth(k) - surface) > tolerance:
                 continue
