@@ -53,9 +53,9 @@ overlaps, not those it merely holds. A box's surface is that of the segment draw
 Last (``join_fragments``), each box grows over its own segments of that segmentation whole (the one
 most of its core shows, and the one drawing its outline: where the detector's box was too small, the
 refinement kept a part of the vehicle), and a vehicle that a nearer one cuts into pieces (its roof
-above the nearer car, a corner beside it) gets one box over all of them: a segment at a box's surface depth, near it, that
-no other box owns, joins the box when what lies between them is mostly nearer and all together
-are no wider than a vehicle.
+above the nearer car, a corner beside it) gets one box over all of them: a segment at a box's
+surface depth, near it, that no other box owns, joins the box when what lies between them is mostly
+nearer and all together are no wider than a vehicle.
 
 The band is one vehicle deep: a car behind another in the same lane is at least a car length plus
 the gap farther away, so it falls outside the band of the car in front. Depth quality sets what
@@ -66,6 +66,7 @@ docs/architecture.md "Depth-guided box refinement" for the figures and for noisy
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -361,21 +362,19 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
         if candidates:
             candidates.sort(key=lambda c: -c[0])  # stable: of equal overlaps, the first found
             _, best, best_sel, best_is_cut = candidates[0]
-
-            def spans_jump(sel, is_cut):  # a cut segment spans none: the pixels given back are its outline
-                return not is_cut and bool((sel & jump).any())
-
             # a box over two vehicles side by side (two trucks in neighbouring lanes a few metres
             # apart in depth, inside one band) snaps best to the pair: when that segment spans a depth
             # jump and is wider than any vehicle, a jump-free segment no wider that still explains the
             # box takes its place, and the other vehicle, no longer inside a box, becomes a proposal.
             # Jump-free, because a car mid lane change, seen at an angle, is 3-4 m across the view
             # with its side, one surface: its wheels and mirrors must not pass for a second vehicle
-            if spans_jump(best_sel, best_is_cut) and _lateral_extent(best_sel, z, x0, K, p.support) > p.pair_width_m:
+            if (_spans_jump(best_sel, best_is_cut, jump)
+                    and _lateral_extent(best_sel, z, x0, K, p.support) > p.pair_width_m):
                 for iou, candidate, sel, is_cut in candidates[1:]:
                     if iou < p.pair_min_iou:
                         break
-                    if not spans_jump(sel, is_cut) and _lateral_extent(sel, z, x0, K, p.support) <= p.pair_width_m:
+                    if (not _spans_jump(sel, is_cut, jump)
+                            and _lateral_extent(sel, z, x0, K, p.support) <= p.pair_width_m):
                         best, best_sel = candidate, sel
                         break
         if best is not None:
@@ -383,6 +382,12 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
             refined[i] = True
             top_m[i] = float(np.percentile(height[best_sel], 95))
     return RefinedBoxes(out, refined, top_m)
+
+
+def _spans_jump(sel: np.ndarray, is_cut: bool, jump: np.ndarray) -> bool:
+    """Whether a candidate segment holds a depth jump; a cut segment holds none (the pixels given back
+    to it are its own outline, each the farther of a jumping pair whose partner lies outside it)."""
+    return not is_cut and bool((sel & jump).any())
 
 
 def _surface_depth(z: np.ndarray, obj: np.ndarray, box: np.ndarray, y0: int) -> float:
@@ -484,6 +489,16 @@ class ObjectSegments:
     # box_surface_depths' face depth per (label, percentile, band): the fragments and the matcher
     # both ask, for mostly the same segments, each vision tick
     faces: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @cached_property
+    def present(self) -> np.ndarray:
+        """The labels that hold pixels (joining segments across outlines leaves gaps), ascending."""
+        return np.array([k for k, r in enumerate(self.regions, start=1) if r is not None], int)
+
+    @cached_property
+    def present_boxes(self) -> np.ndarray:
+        """(len(present), 4) the boxes of :attr:`present`."""
+        return self.boxes(self.present)
 
     def boxes(self, labels) -> np.ndarray:
         """(N, 4) image boxes (pixel-centre convention) around the whole of each of these labels."""
@@ -592,12 +607,7 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     snapped = np.ones(len(existing), bool) if snapped is None else np.asarray(snapped, bool)
     if snapped.shape != (len(existing),):
         raise ValueError(f"snapped: expected one flag per box ({len(existing)}), got shape {snapped.shape}")
-    # a box's surface: that of the segment drawing its outline (as join_fragments and the matcher
-    # take it), else its core's median, which a nearer car in front of part of the box can hold
-    outline = box_surface_depths(existing, segments, refine)
-    surface = np.array([o if np.isfinite(o) else _surface_depth(z, obj, e, y_lo)
-                        for o, e in zip(outline, existing)])
-    outline_label = outline_segments(existing, segments)
+    surface, outline_label = _box_surfaces(existing, segments, refine)
     for label, region in enumerate(segments.regions, start=1):
         if region is None or areas[label] < params.min_pixels:
             continue
@@ -696,10 +706,9 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
     # any segment, however small: what shows of a truck through the gap under a nearer car, or beside
     # its outline, is 1-3 px (4 px at least before the twenty-ninth session: the ground truth spans
     # them, and a box that stopped above them missed IoU 0.7)
-    labels = [k for k, r in enumerate(segments.regions, start=1) if r is not None]
-    if not labels:
+    labels, seg_box = segments.present, segments.present_boxes
+    if not len(labels):
         return boxes
-    seg_box = segments.boxes(labels)
     # mean depth per segment, all at once: a first, loose sift (the test itself takes the median; the
     # mean of a segment with a little of something farther at its edge lies off it)
     seg_mean = (np.bincount(segments.labels.ravel(), weights=z.ravel(), minlength=len(segments.areas))[labels]
@@ -718,12 +727,9 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
         return medians[k]
 
     out = boxes.copy()
-    # a box's surface: that of the segment drawing its outline (as for the matcher), else the median
-    # of its core, which for a sliver's box is mostly the nearer car beside the sliver
-    outline = box_surface_depths(boxes, segments, refine)
-    outline_label = outline_segments(boxes, segments)
+    surfaces, outline_label = _box_surfaces(boxes, segments, refine)
     for i, b in enumerate(boxes):
-        surface = outline[i] if np.isfinite(outline[i]) else _surface_depth(z, obj, b, y_lo)
+        surface = surfaces[i]
         if not np.isfinite(surface):
             continue
         tolerance = params.fragment_depth_m + 0.03 * surface
@@ -769,10 +775,10 @@ def outline_segments(boxes: np.ndarray, segments: ObjectSegments, min_iou: float
     from vcfusion.fusion.matching import box_iou
 
     boxes = np.asarray(boxes, float).reshape(-1, 4)
-    present = np.array([k for k, r in enumerate(segments.regions, start=1) if r is not None], int)
+    present = segments.present
     if not len(boxes) or not len(present):
         return np.zeros(len(boxes), int)
-    iou = box_iou(boxes, segments.boxes(present))
+    iou = box_iou(boxes, segments.present_boxes)
     best = iou.argmax(axis=1)
     return np.where(iou[np.arange(len(boxes)), best] >= min_iou, present[best], 0)
 
@@ -793,11 +799,17 @@ def box_surface_depths(boxes: np.ndarray, segments: ObjectSegments | None,
     10th and 90th percentiles): far away a car a few metres in front of a truck is within one depth
     jump of it (0.5 m + 4.5 % of the depth), and their joint segment's face is the car's."""
     boxes = np.asarray(boxes, float).reshape(-1, 4)
-    out = np.full(len(boxes), np.nan)
     if segments is None or not len(boxes):
-        return out
+        return np.full(len(boxes), np.nan)
+    return _face_depths(outline_segments(boxes, segments, min_iou), segments, refine, face_percentile)
+
+
+def _face_depths(outline: np.ndarray, segments: ObjectSegments, refine: BoxRefineParams,
+                 face_percentile: float = 10.0) -> np.ndarray:
+    """Per label of ``outline`` (:func:`outline_segments`; 0: none), its segment's face depth as
+    :func:`box_surface_depths` defines it; nan for 0."""
+    out = np.full(len(outline), np.nan)
     labels = segments.labels
-    outline = outline_segments(boxes, segments, min_iou)
     for j in np.flatnonzero(outline):
         label = int(outline[j])
         key = (label, face_percentile, refine.band_m)
@@ -807,3 +819,16 @@ def box_surface_depths(boxes: np.ndarray, segments: ObjectSegments | None,
             segments.faces[key] = float(near) if far - near <= refine.band_m else np.nan
         out[j] = segments.faces[key]
     return out
+
+
+def _box_surfaces(boxes: np.ndarray, segments: ObjectSegments,
+                  refine: BoxRefineParams) -> tuple[np.ndarray, np.ndarray]:
+    """Per box, its surface depth and the label of the segment drawing its outline (0: none), as the
+    proposals and the fragments take them: that segment's face depth (as the matcher does), else the
+    median of the box's core (inf where it holds no object pixel), which a nearer car in front of part
+    of the box, or beside a sliver, can hold."""
+    outline = outline_segments(boxes, segments)
+    surface = _face_depths(outline, segments, refine)
+    for j in np.flatnonzero(~np.isfinite(surface)):
+        surface[j] = _surface_depth(segments.z, segments.obj, boxes[j], segments.y_lo)
+    return surface, outline
