@@ -1023,29 +1023,21 @@ def test_a_box_grows_over_a_fragment_of_two_pixels_seen_through_a_gap():
     np.testing.assert_allclose(joined[1], boxes[1])
 
 
-def _car_behind_a_nearer_one(near_top_m):
-    """A car 33 m ahead and a nearer one 11 m ahead hiding its lower part but for a strip at its side
-    (`near_top_m`: how high the nearer one stands). Returns the scene, the far car's shown pixels and
-    the nearer car's."""
+def test_a_box_grows_over_the_segment_drawing_its_outline_though_its_core_shows_a_nearer_car():
+    """Validation seed 900088: a car 33 m ahead and a nearer one 11 m ahead hiding its lower part but
+    for a strip at its side. The far car's box stopped at the top of the nearer car,
+    so its core showed mostly that car, and the box grew only over the segment most of its core
+    shows (the nearer car's, at another depth: not at all). It grows over the segment drawing its
+    outline (box_surface_depths' choice) too, down the strip beside the nearer car."""
     from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import _core, join_fragments, object_segments
 
     K, T = default_camera()
     road = road_depth(K, T, 640, 480)
     car = _plate(road, K, T, 33.0, -0.9, 0.9, 1.6)
-    scene = _plate(car, K, T, 11.0, -1.5, 0.7 * 11 / 33, near_top_m)
+    scene = _plate(car, K, T, 11.0, -1.5, 0.7 * 11 / 33, 1.4)  # hides all but a strip at its side
     shown = (car < road) & np.isclose(scene, car, atol=1e-4, rtol=0)
     near = (scene < road - 0.01) & (scene < 12.0)
-    return K, T, scene, shown, near
-
-
-def test_a_box_grows_over_the_segment_drawing_its_outline_though_its_core_shows_a_nearer_car():
-    """Validation seed 900088: a car's box stopped at the top of the nearer car hiding its lower half,
-    so its core showed mostly that car, and the box grew only over the segment most of its core
-    shows (the nearer car's, at another depth: not at all). It grows over the segment drawing its
-    outline (box_surface_depths' choice) too, down the strip beside the nearer car."""
-    from vcfusion.fusion.box_refine import _core, join_fragments, object_segments
-
-    K, T, scene, shown, near = _car_behind_a_nearer_one(1.4)
     seg = object_segments(scene, K, T)
     labels = _image_labels(seg, scene.shape)
     (car_label,) = np.unique(labels[shown & (labels > 0)])
