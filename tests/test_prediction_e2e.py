@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from vcfusion.cli import main
+from vcfusion.commands import main
 from vcfusion.prediction.dataset import SAMPLES_VERSION
 from vcfusion.prediction.features import FEATURE_NAMES, features_from_twins_table
 from vcfusion.prediction.model import load_model

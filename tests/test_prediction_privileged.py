@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from vcfusion.cli import main
+from vcfusion.commands import main
 from vcfusion.prediction.features import FEATURE_NAMES
 from vcfusion.prediction.model import load_model
 from vcfusion.prediction.privileged import (

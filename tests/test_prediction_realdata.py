@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from vcfusion.cli import main
+from vcfusion.commands import main
 from vcfusion.prediction.features import FEATURE_NAMES, SEQUENCE_EXTRA_NAMES
 from vcfusion.prediction.sources.ngsim import NGSIM_COLUMNS
 from vcfusion.prediction.sources.trajectories import (END_AFTER_MID_S, SAMPLE_COLUMNS, Recording, clean_lane_flicker,

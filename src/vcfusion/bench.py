@@ -23,7 +23,6 @@ its worker processes) is its own:
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import resource
@@ -350,8 +349,8 @@ SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 240, "P5": 1.0, "P6": 60.0, 
 
 def run_section(name: str, size: str) -> dict:
     """Run one section in a fresh interpreter; returns its figures."""
-    proc = subprocess.run([sys.executable, "-m", "vcfusion.bench", "--section", name, "--size", size],
-                          capture_output=True, text=True)
+    code = "import sys; from vcfusion.bench import print_section; print_section(sys.argv[1], sys.argv[2])"
+    proc = subprocess.run([sys.executable, "-c", code, name, size], capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"benchmark {name} failed:\n{proc.stderr[-2000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -377,15 +376,7 @@ def run_suite(sections: list[str], size: str, out: Path) -> list[dict]:
     return results
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="one benchmark section (internal: use `vcfusion bench`)")
-    parser.add_argument("--section", choices=sorted(SECTIONS), required=True)
-    parser.add_argument("--size", choices=sorted(SIZES), default="full")
-    args = parser.parse_args(argv)
-    figures = SECTIONS[args.section](SIZES[args.size][args.section])
+def print_section(name: str, size: str) -> None:
+    """Run one section in this process and print its figures as one JSON line (run_section reads it)."""
+    figures = SECTIONS[name](SIZES[size][name])
     print(json.dumps({**figures, **_peak_rss_mb()}))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

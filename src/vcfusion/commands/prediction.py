@@ -6,14 +6,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vcfusion.cli import check_folder_path
+from vcfusion.commands.checks import INTERRUPTED_BATCH, check_folder_path, parse_seeds
 from vcfusion.errors import UsageError
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
     from vcfusion.prediction.dataset import build_dataset
     from vcfusion.scenario import load_scenario
-    from vcfusion.studies.batch import parse_seeds
 
     sources = [name for name, given in (("SCENARIO", args.scenario), ("--from-ngsim", args.from_ngsim),
                                         ("--from-highd", args.from_highd)) if given]
@@ -153,8 +152,6 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub) -> None:
-    from vcfusion.cli import INTERRUPTED_BATCH  # (called by the cli's build_parser)
-
     p = sub.add_parser("dataset", help="simulate seeds (or import NGSIM / highD recordings) and write a labelled "
                                        "lane-change dataset (Parquet)")
     p.add_argument("scenario", nargs="?", help="scenario YAML file, e.g. scenarios/dense.yaml")
