@@ -10,12 +10,26 @@ from vcfusion import interrupts
 from vcfusion.errors import InputError
 
 
+def package_version() -> str:
+    """The installed distribution's version (importlib.metadata); run from a source tree that is not
+    installed, the package's own __version__, said so."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("vcfusion")
+    except metadata.PackageNotFoundError:
+        from vcfusion import __version__
+
+        return f"{__version__} (not installed: run from a source tree)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     from vcfusion.commands import bench, detection, drive, metrics, prediction, simulation, study
 
     parser = argparse.ArgumentParser(prog="vcfusion", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
-    simulation.add_parsers(sub)  # run, batch, build-net, render, demo
+    simulation.add_parsers(sub)  # run, scenarios, batch, build-net, render, demo
     study.add_parsers(sub)  # study identification | guidance | hitl
     drive.add_parsers(sub)
     bench.add_parsers(sub)  # bench, bench-render

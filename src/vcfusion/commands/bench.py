@@ -6,7 +6,6 @@ import argparse
 from pathlib import Path
 
 from vcfusion.errors import UsageError
-from vcfusion.scenario import SHIPPED_SCENARIOS
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -44,7 +43,7 @@ def add_parsers(sub) -> None:
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("bench-render", help="time RGB + depth + instance rendering (median ms per frame)")
-    p.add_argument("--scenario", default=str(SHIPPED_SCENARIOS / "accident.yaml"))
+    p.add_argument("--scenario", default="accident")
     p.add_argument("--frames", type=int, default=100)
     p.add_argument("--seed", type=int, default=0, help="the simulated run whose states are rendered (default 0)")
     p.add_argument("--preset", choices=("fast", "quality"), help="render preset (default: the scenario's camera.render_preset)")

@@ -12,7 +12,6 @@ import numpy as np
 
 from vcfusion.commands.checks import check_min_area, parse_seeds, parse_size
 from vcfusion.errors import UsageError
-from vcfusion.scenario import SHIPPED_SCENARIOS
 
 
 def cmd_train_detector(args: argparse.Namespace) -> int:
@@ -285,7 +284,7 @@ def add_parsers(sub) -> None:
                    help="train (the training sampler) or a held-out family: jam, far_chain, cut_in, truck_occlusion")
     p.add_argument("--seeds", required=True, help="scene seeds, e.g. 0-1999 (each family has its own scenes per seed)")
     p.add_argument("--out", required=True, help="dataset folder to create")
-    p.add_argument("--scenario", default=str(SHIPPED_SCENARIOS / "overlap.yaml"),
+    p.add_argument("--scenario", default="overlap",
                    help="scenario giving the road and the camera (default: the shipped scenarios/overlap.yaml)")
     p.add_argument("--workers", type=int, default=2,
                    help="processes rendering consecutive runs of seeds (default 2; the folder is the same for any number)")

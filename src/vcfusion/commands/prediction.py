@@ -12,7 +12,7 @@ from vcfusion.errors import UsageError
 
 def cmd_dataset(args: argparse.Namespace) -> int:
     from vcfusion.prediction.dataset import build_dataset
-    from vcfusion.scenario import load_scenario
+    from vcfusion.scenario import find_scenario, load_scenario
 
     sources = [name for name, given in (("SCENARIO", args.scenario), ("--from-ngsim", args.from_ngsim),
                                         ("--from-highd", args.from_highd)) if given]
@@ -29,7 +29,7 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     check_folder_path(Path(args.out))
     if args.workers < 1:
         raise UsageError(f"--workers: expected a positive number of processes, got {args.workers}")
-    report = build_dataset(Path(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g,
+    report = build_dataset(find_scenario(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g,
                            refeature=args.refeature, privileged=args.privileged)
     c = report["counts"]
     if args.refeature:

@@ -1,4 +1,4 @@
-"""`vcfusion run | batch | build-net | render | demo`: simulations and what they write."""
+"""`vcfusion run | scenarios | batch | build-net | render | demo`: simulations and what they write."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 from vcfusion.commands.checks import (INTERRUPTED_BATCH, check_folder_path, check_new_folder, check_seed,
                                       default_run_dir, parse_seeds)
 from vcfusion.errors import UsageError
-from vcfusion.scenario import SHIPPED_SCENARIOS, load_scenario
+from vcfusion.scenario import find_scenario, load_scenario
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -33,6 +33,19 @@ def _run_and_report(scenario, seed: int, out: Path) -> None:
     print(f"run folder: {out}")
 
 
+def cmd_scenarios(args: argparse.Namespace) -> int:
+    from vcfusion.resources import scenarios_dir, shipped_scenarios
+    from vcfusion.scenario import describe_scenario_file
+
+    shipped = shipped_scenarios()
+    width = max(len(name) for name in shipped)
+    print(f"shipped scenarios (in {scenarios_dir()}); give a name where a scenario file goes, "
+          "e.g. vcfusion run accident")
+    for name, path in shipped.items():
+        print(f"  {name:<{width}}  {describe_scenario_file(path)}")
+    return 0
+
+
 def cmd_batch(args: argparse.Namespace) -> int:
     from vcfusion.studies.batch import Executor, run_batch
 
@@ -46,7 +59,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
         raise UsageError(f"--scheduler: expected a Dask scheduler address like tcp://HOST:PORT, got {args.scheduler!r}")
     out = check_folder_path(Path(args.out) if args.out else Path("runs") / f"{scenario.name}-batch")
     executor = Executor(workers=args.workers, dask_scheduler=args.scheduler, dask_local=args.dask_local)
-    report = run_batch(Path(args.scenario), seeds, out, executor=executor)
+    report = run_batch(find_scenario(args.scenario), seeds, out, executor=executor)
     print(f"batch {scenario.name} -> {out}: {report['done']} run, {report['skipped']} already complete, "
           f"{len(report['failed'])} failed")
     for seed, error in report["failed"]:
@@ -58,9 +71,17 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
 
 def cmd_build_net(args: argparse.Namespace) -> int:
-    from vcfusion.traffic.network import REPO_NET_DIR, build_networks
+    from vcfusion.resources import networks_dir, networks_dir_is_checkout
+    from vcfusion.traffic.network import build_networks
 
-    net_dir = Path(args.net_dir) if args.net_dir else REPO_NET_DIR
+    if args.net_dir:
+        net_dir = Path(args.net_dir)
+    elif networks_dir_is_checkout():  # the checkout's sumo_net, rebuilt in place
+        net_dir = networks_dir()
+    else:
+        raise UsageError(f"--net-dir: required when vcfusion is installed (the shipped networks in {networks_dir()} "
+                         "are the package's and are not rewritten); copy that folder, edit its sources and give "
+                         "the copy")
     # a network whose content did not change keeps its file (netconvert's header timestamp aside)
     before = {p.name: p.stat().st_mtime_ns for p in net_dir.glob("*.net.xml")} if net_dir.is_dir() else {}
     try:
@@ -90,7 +111,7 @@ def _demo_guidance_study(args: argparse.Namespace) -> int:
     print(f"\nguidance study on {args.trips} paired trips (arms none and fusion: without AR, and with the "
           f"rendered camera, detector and AR overlay):")
     try:
-        result = run_guidance_study(Path(args.scenario), args.trips, 2, out, Path("renders"),
+        result = run_guidance_study(find_scenario(args.scenario), args.trips, 2, out, Path("renders"),
                                     first_seed=args.seed, process_model_specs=specs, progress=sys.stderr.isatty())
     except StudyError as exc:
         print(f"guidance study skipped: {exc}")
@@ -127,6 +148,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", help="run folder to create (default: runs/NAME-seedN)")
     p.set_defaults(func=cmd_run, interrupted="no run folder was written; run the same command again to redo the run")
 
+    p = sub.add_parser("scenarios", help="list the shipped scenarios (usable by name: vcfusion run accident)")
+    p.set_defaults(func=cmd_scenarios)
+
     p = sub.add_parser("batch", help="run many seeds in parallel processes (resumable)")
     p.add_argument("scenario")
     p.add_argument("--seeds", required=True, help="e.g. 0-99 or 1,4,7-9")
@@ -139,7 +163,8 @@ def add_parsers(sub) -> None:
     p.set_defaults(func=cmd_batch, interrupted=INTERRUPTED_BATCH)
 
     p = sub.add_parser("build-net", help="rebuild every sumo_net/NAME.net.xml with netconvert")
-    p.add_argument("--net-dir", help="folder with NAME.nod/edg.xml (+ .typ/.con.xml) (default: the repo's sumo_net)")
+    p.add_argument("--net-dir", help="folder with NAME.nod/edg.xml (+ .typ/.con.xml) (default: the checkout's "
+                                     "sumo_net; required when vcfusion is installed)")
     p.set_defaults(func=cmd_build_net)
 
     p = sub.add_parser("render", help="render ego-camera frames of seeds into a COCO dataset")
@@ -152,7 +177,7 @@ def add_parsers(sub) -> None:
     p.set_defaults(func=cmd_render, interrupted="no dataset folder was written; run the same command again")
 
     p = sub.add_parser("demo", help="the main job on the default scenario")
-    p.add_argument("--scenario", default=str(SHIPPED_SCENARIOS / "accident.yaml"))
+    p.add_argument("--scenario", default="accident")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--trips", type=int, default=8, help="paired trips of the closing guidance study")
     p.add_argument("--process-model", action="append", default=[], metavar="MODULE:FACTORY",

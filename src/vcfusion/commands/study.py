@@ -10,7 +10,7 @@ from pathlib import Path
 from vcfusion.commands.checks import (check_folder_path, check_min_area, check_new_folder, check_seed, float_list,
                                       parse_seeds)
 from vcfusion.errors import UsageError
-from vcfusion.scenario import load_scenario
+from vcfusion.scenario import find_scenario, load_scenario
 
 
 def cmd_study_identification(args: argparse.Namespace) -> int:
@@ -109,7 +109,7 @@ def cmd_study_guidance(args: argparse.Namespace) -> int:
     check_folder_path(Path(args.renders), "--renders")
     try:
         arms = parse_arms(args.arms)
-        result = run_guidance_study(Path(args.scenario), args.trips, args.workers, out, Path(args.renders),
+        result = run_guidance_study(find_scenario(args.scenario), args.trips, args.workers, out, Path(args.renders),
                                     first_seed=args.first_seed, process_model_specs=tuple(args.process_model),
                                     progress=True, arms=arms)
     except ValueError as exc:
@@ -165,7 +165,7 @@ def cmd_study_hitl(args: argparse.Namespace) -> int:
         check_seed(args.practice_seed, "--practice-seed")
     out = Path(args.out) if args.out else Path("runs") / f"hitl-{args.participant}"
     try:
-        protocol = run_hitl_study(Path(args.scenario), args.participant, args.trips, out, input_spec=args.input,
+        protocol = run_hitl_study(find_scenario(args.scenario), args.participant, args.trips, out, input_spec=args.input,
                                   axis_map_file=Path(args.axis_map) if args.axis_map else None,
                                   first_seed=args.first_seed, practice_seed=args.practice_seed, order=args.order,
                                   ssq=args.ssq, headless=args.headless,
