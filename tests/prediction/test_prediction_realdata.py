@@ -16,7 +16,7 @@ from vcfusion.prediction.sources.trajectories import (END_AFTER_MID_S, SAMPLE_CO
                                                       straight_road, twin_tracks)
 
 FT = 0.3048
-SHIPPED_MODEL = Path(__file__).resolve().parents[1] / "src" / "vcfusion" / "assets" / "lane_change_mlp.npz"
+SHIPPED_MODEL = Path(__file__).resolve().parents[2] / "src" / "vcfusion" / "assets" / "lane_change_mlp.npz"
 
 
 # ---------------------------------------------------------------- NGSIM files

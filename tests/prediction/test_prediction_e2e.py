@@ -18,7 +18,7 @@ from vcfusion.run import execute_run
 from vcfusion.scenario import load_scenario
 from vcfusion.traffic.network import read_road
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _short_dense(tmp_path: Path, seconds: float, **prediction) -> Path:
