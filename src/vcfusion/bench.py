@@ -163,7 +163,8 @@ def p4_scaling(seeds: int) -> dict:
                                       ("dask_1", Executor(dask_local=1), range(seeds)),
                                       ("dask_2", Executor(dask_local=2), range(seeds))):
             start = time.perf_counter()
-            report = run_batch(find_scenario(ACCIDENT), list(todo), Path(tmp) / label, progress=False, executor=executor)
+            report = run_batch(find_scenario(ACCIDENT), list(todo), Path(tmp) / label, progress=False,
+                               executor=executor)
             walls[label] = time.perf_counter() - start
             if report["failed"]:
                 raise RuntimeError(f"benchmark batch {label} failed: {report['failed'][0]}")
@@ -331,8 +332,8 @@ def p7_guidance_study(trips: int) -> dict:
 
     with tempfile.TemporaryDirectory(prefix="vcfusion-bench-p6-") as tmp:
         started = time.perf_counter()
-        run_guidance_study(find_scenario(ACCIDENT), trips, 2, Path(tmp) / "study", Path(tmp) / "renders", progress=False,
-                           arms=("none", "fusion"))
+        run_guidance_study(find_scenario(ACCIDENT), trips, 2, Path(tmp) / "study", Path(tmp) / "renders",
+                           progress=False, arms=("none", "fusion"))
         wall = time.perf_counter() - started
         table = pd.read_parquet(Path(tmp) / "study" / "trips.parquet")
     per_arm = table.groupby("arm")["arm_wall_s"].mean()

@@ -44,8 +44,9 @@ def test_a_file_of_that_name_comes_before_the_shipped_scenario(tmp_path, monkeyp
 
 def test_neither_a_file_nor_a_shipped_name_lists_the_shipped_names(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    with pytest.raises(ScenarioError, match=r"^acident: scenario file not found \(expected a scenario file, or the "
-                                            r"name of a shipped scenario: accident, accident_ar, .*, overlap_platoons\)$"):
+    expected = (r"^acident: scenario file not found \(expected a scenario file, or the name of a shipped scenario: "
+                r"accident, accident_ar, .*, overlap_platoons\)$")
+    with pytest.raises(ScenarioError, match=expected):
         find_scenario("acident")
     assert main(["run", "acident"]) == 2
     err = capsys.readouterr().err

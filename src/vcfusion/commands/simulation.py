@@ -143,7 +143,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 def add_parsers(sub) -> None:
     p = sub.add_parser("run", help="run one simulation into a run folder")
-    p.add_argument("scenario", help="scenario YAML file")
+    p.add_argument("scenario", help="scenario YAML file, or the name of a shipped scenario (vcfusion scenarios)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", help="run folder to create (default: runs/NAME-seedN)")
     p.set_defaults(func=cmd_run, interrupted="no run folder was written; run the same command again to redo the run")

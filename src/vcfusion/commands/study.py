@@ -165,8 +165,8 @@ def cmd_study_hitl(args: argparse.Namespace) -> int:
         check_seed(args.practice_seed, "--practice-seed")
     out = Path(args.out) if args.out else Path("runs") / f"hitl-{args.participant}"
     try:
-        protocol = run_hitl_study(find_scenario(args.scenario), args.participant, args.trips, out, input_spec=args.input,
-                                  axis_map_file=Path(args.axis_map) if args.axis_map else None,
+        protocol = run_hitl_study(find_scenario(args.scenario), args.participant, args.trips, out,
+                                  input_spec=args.input, axis_map_file=Path(args.axis_map) if args.axis_map else None,
                                   first_seed=args.first_seed, practice_seed=args.practice_seed, order=args.order,
                                   ssq=args.ssq, headless=args.headless,
                                   speed=None if args.speed == "max" else 1.0,

@@ -49,8 +49,8 @@ def bench_render(scenario, frames: int, seed: int = 0, preset: str | None = None
     renderer.close()
     ms = np.array(times)
     cam = camera
-    lines = [f"ego camera {cam.width_px}x{cam.height_px}, preset {cam.render_preset}, {len(ms)} frames of {scenario.name} "
-             f"seed {seed} (PYOPENGL_PLATFORM={os.environ.get('PYOPENGL_PLATFORM')}, {os.cpu_count()} CPUs, "
+    lines = [f"ego camera {cam.width_px}x{cam.height_px}, preset {cam.render_preset}, {len(ms)} frames of "
+             f"{scenario.name} seed {seed} (PYOPENGL_PLATFORM={os.environ.get('PYOPENGL_PLATFORM')}, {os.cpu_count()} CPUs, "
              f"{np.mean(seen):.1f} vehicles seen per frame)",
              f"RGB + depth + instances: median {np.median(ms):.1f} ms/frame "
              f"(p10 {np.percentile(ms, 10):.1f}, p90 {np.percentile(ms, 90):.1f})"]
