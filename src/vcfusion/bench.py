@@ -23,7 +23,6 @@ its worker processes) is its own:
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import resource
@@ -33,8 +32,10 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[2]
-ACCIDENT = REPO / "scenarios" / "accident.yaml"
+from vcfusion.scenario import find_scenario
+
+# the shipped scenarios the sections run (vcfusion.resources.shipped_scenarios)
+ACCIDENT, ACCIDENT_AR, DENSE = "accident", "accident_ar", "dense"
 
 
 def median_us(fn, repeats: int) -> float:
@@ -162,7 +163,8 @@ def p4_scaling(seeds: int) -> dict:
                                       ("dask_1", Executor(dask_local=1), range(seeds)),
                                       ("dask_2", Executor(dask_local=2), range(seeds))):
             start = time.perf_counter()
-            report = run_batch(ACCIDENT, list(todo), Path(tmp) / label, progress=False, executor=executor)
+            report = run_batch(find_scenario(ACCIDENT), list(todo), Path(tmp) / label, progress=False,
+                               executor=executor)
             walls[label] = time.perf_counter() - start
             if report["failed"]:
                 raise RuntimeError(f"benchmark batch {label} failed: {report['failed'][0]}")
@@ -206,7 +208,7 @@ def p5_memory(hours: float) -> dict:
     from vcfusion.run import build_cosimulation
     from vcfusion.scenario import load_scenario
 
-    sc = load_scenario(REPO / "scenarios" / "dense.yaml")
+    sc = load_scenario(DENSE)
     sc = sc.model_copy(update={"accident": None,
                                "simulation": sc.simulation.model_copy(update={"max_time_s": 3600.0 * hours})})
     cosim = build_cosimulation(sc, 0)
@@ -290,7 +292,7 @@ def p3_dataset(seeds: int) -> dict:
 
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
-        build_dataset(REPO / "scenarios" / "dense.yaml", list(range(seeds)), Path(tmp) / "d", workers=1,
+        build_dataset(find_scenario(DENSE), list(range(seeds)), Path(tmp) / "d", workers=1,
                       tau=5.0, tau_g=2.0, progress=False)
         wall = time.perf_counter() - start
         samples = sum(len(pd.read_parquet(p, columns=["time"])) for p in Path(tmp).rglob("samples.parquet"))
@@ -308,7 +310,7 @@ def p6_drive(max_time_s: float) -> dict:
     from vcfusion.scenario import load_scenario
 
     torch.set_num_threads(2)
-    sc = load_scenario(REPO / "scenarios" / "accident_ar.yaml")
+    sc = load_scenario(ACCIDENT_AR)
     sc = sc.model_copy(update={"simulation": sc.simulation.model_copy(update={"max_time_s": max_time_s}),
                                "ar": sc.ar.model_copy(update={"video": False})})
     result = drive(sc, 0, input_spec="keyboard", guidance_on=True, speed=1.0, out_dir=None, headless=True,
@@ -330,8 +332,8 @@ def p7_guidance_study(trips: int) -> dict:
 
     with tempfile.TemporaryDirectory(prefix="vcfusion-bench-p6-") as tmp:
         started = time.perf_counter()
-        run_guidance_study(ACCIDENT, trips, 2, Path(tmp) / "study", Path(tmp) / "renders", progress=False,
-                           arms=("none", "fusion"))
+        run_guidance_study(find_scenario(ACCIDENT), trips, 2, Path(tmp) / "study", Path(tmp) / "renders",
+                           progress=False, arms=("none", "fusion"))
         wall = time.perf_counter() - started
         table = pd.read_parquet(Path(tmp) / "study" / "trips.parquet")
     per_arm = table.groupby("arm")["arm_wall_s"].mean()
@@ -350,8 +352,8 @@ SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 240, "P5": 1.0, "P6": 60.0, 
 
 def run_section(name: str, size: str) -> dict:
     """Run one section in a fresh interpreter; returns its figures."""
-    proc = subprocess.run([sys.executable, "-m", "vcfusion.bench", "--section", name, "--size", size],
-                          capture_output=True, text=True)
+    code = "import sys; from vcfusion.bench import print_section; print_section(sys.argv[1], sys.argv[2])"
+    proc = subprocess.run([sys.executable, "-c", code, name, size], capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"benchmark {name} failed:\n{proc.stderr[-2000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -377,15 +379,7 @@ def run_suite(sections: list[str], size: str, out: Path) -> list[dict]:
     return results
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="one benchmark section (internal: use `vcfusion bench`)")
-    parser.add_argument("--section", choices=sorted(SECTIONS), required=True)
-    parser.add_argument("--size", choices=sorted(SIZES), default="full")
-    args = parser.parse_args(argv)
-    figures = SECTIONS[args.section](SIZES[args.size][args.section])
+def print_section(name: str, size: str) -> None:
+    """Run one section in this process and print its figures as one JSON line (run_section reads it)."""
+    figures = SECTIONS[name](SIZES[size][name])
     print(json.dumps({**figures, **_peak_rss_mb()}))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

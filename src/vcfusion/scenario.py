@@ -24,9 +24,6 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationEr
 
 from vcfusion.errors import ScenarioError  # the loader's error; importable from here as before
 
-# the repository's scenario files (the package is installed from the checkout), for defaults that
-# must work from any working directory
-SHIPPED_SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
 
 NonNegative = Annotated[float, Field(ge=0.0)]
 
@@ -608,12 +605,43 @@ def _validation_lines(exc: ValidationError, origins: _Origins) -> list[str]:
     return lines
 
 
-def load_scenario(path: str | Path) -> Scenario:
-    """Read, merge (`extends`) and validate a scenario file and the files it names; raises
-    ScenarioError with one line per problem naming the file, the field and what was expected."""
+def find_scenario(path: str | Path) -> Path:
+    """The scenario file `path` names: the file itself when it exists, else the shipped scenario of
+    that name (`accident`, `families/dense`: see vcfusion.resources.shipped_scenarios); ScenarioError
+    listing the shipped names when it is neither."""
+    from vcfusion.resources import SCENARIO_SUFFIX, shipped_scenarios
+
     path = Path(path)
-    if not path.is_file():
-        raise ScenarioError(f"{path}: scenario file not found")
+    if path.is_file():
+        return path
+    shipped = shipped_scenarios()
+    name = path.as_posix()
+    if name in shipped and not path.suffix:
+        return shipped[name]
+    hint = (f"expected a scenario file, or the name of a shipped scenario: {', '.join(shipped)}"
+            if not path.suffix or path.suffix == SCENARIO_SUFFIX else "expected a scenario file (YAML)")
+    raise ScenarioError(f"{path}: scenario file not found ({hint})")
+
+
+def describe_scenario_file(path: Path) -> str:
+    """One line about a scenario file: its own `description` field (not a base's), else its leading
+    YAML comment, whitespace collapsed; empty when it has neither."""
+    raw = _read_mapping(path)
+    if isinstance(raw.get("description"), str) and raw["description"].strip():
+        return " ".join(raw["description"].split())
+    comment = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if not line.startswith("#"):
+            break
+        comment.append(line.lstrip("#").strip())
+    return " ".join(" ".join(comment).split())
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Read, merge (`extends`) and validate a scenario file (or a shipped scenario by name: see
+    find_scenario) and the files it names; raises ScenarioError with one line per problem naming
+    the file, the field and what was expected."""
+    path = find_scenario(path)
     chain = read_chain(path)
     merged: dict = {}
     origin: dict = {}

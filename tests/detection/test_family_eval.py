@@ -269,7 +269,7 @@ def test_a_frame_whose_depth_image_is_missing_or_misfits_is_refused(families, tm
 
     import cv2
 
-    from vcfusion.cli import main
+    from vcfusion.commands import main
 
     folder = tmp_path / "cut_in"
     shutil.copytree(families[2], folder)

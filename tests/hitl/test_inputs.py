@@ -198,7 +198,7 @@ def test_calibrate_reads_a_virtual_wheel_held_in_each_position(sdl, tmp_path):
 def test_drive_refuses_bad_input_with_exit_2(tmp_path, capsys):
     from scenario_files import SCENARIOS
 
-    from vcfusion.cli import main
+    from vcfusion.commands import main
 
     assert main(["drive", str(SCENARIOS / "accident.yaml"), "--speed", "max", "--headless"]) == 2
     assert "--speed max: only for replay" in capsys.readouterr().err

@@ -22,7 +22,6 @@ import contextlib
 import functools
 import json
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -47,7 +46,9 @@ class ModelFileError(InputError):
 
 
 def default_model_path() -> Path:
-    return Path(str(resources.files("vcfusion.assets").joinpath(DEFAULT_MODEL_NAME)))
+    from vcfusion.resources import assets_dir
+
+    return assets_dir() / DEFAULT_MODEL_NAME
 
 
 @dataclass

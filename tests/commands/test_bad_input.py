@@ -19,7 +19,7 @@ import pandas as pd
 import pytest
 
 from scenario_files import REPO, lifted_highway, write_scenario
-from vcfusion.cli import main
+from vcfusion.commands import main
 from vcfusion.prediction.dataset import ID_COLUMNS, SAMPLES_VERSION, load_dataset
 from vcfusion.prediction.features import FEATURE_NAMES
 from vcfusion.prediction.model import default_model_path

@@ -1,5 +1,5 @@
 """Handlers of the detector subcommands of `vcfusion` (train-detector, eval-detector, export-onnx);
-the cli only parses arguments. A bad weights file or dataset folder raises DetectorFileError
+this module parses and checks the arguments. A bad weights file or dataset folder raises DetectorFileError
 (InputError: the CLI prints it and exits with 2)."""
 
 from __future__ import annotations
@@ -10,18 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from vcfusion.commands.checks import check_min_area, parse_seeds, parse_size
 from vcfusion.errors import UsageError
-from vcfusion.scenario import SHIPPED_SCENARIOS
-
-
-def parse_size(text: str, option: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise UsageError(f"{option}: expected WIDTHxHEIGHT such as 320x240, got {text!r}") from None
-    if w <= 0 or h <= 0 or w % 16 or h % 16:
-        raise UsageError(f"{option}: expected positive multiples of 16, got {text!r}")
-    return w, h
 
 
 def cmd_train_detector(args: argparse.Namespace) -> int:
@@ -105,11 +95,6 @@ def _make_detector(args):
         return OnnxDetector(args.onnx, parse_size(args.input_size or "320x240", "--input-size"), class_ids,
                             scale=args.scale, objectness=args.objectness, letterbox=args.letterbox)
     return TorchDetector(args.weights or default_weights_path())
-
-
-def check_min_area(value: float, option: str = "--min-area") -> None:
-    if not value >= 0:  # NaN too
-        raise UsageError(f"{option}: expected a non-negative area in px^2 (0 = every box), got {value:g}")
 
 
 def _check_distinct_folders(folders) -> None:
@@ -197,7 +182,6 @@ def cmd_export_onnx(args: argparse.Namespace) -> int:
 def cmd_render_scenes(args: argparse.Namespace) -> int:
     from vcfusion.detection.scenes import FAMILIES, render_scenes
     from vcfusion.scenario import load_scenario
-    from vcfusion.studies.batch import parse_seeds
 
     if args.family not in FAMILIES:
         raise UsageError(f"--family: expected one of {', '.join(FAMILIES)}, got {args.family!r}")
@@ -300,7 +284,7 @@ def add_parsers(sub) -> None:
                    help="train (the training sampler) or a held-out family: jam, far_chain, cut_in, truck_occlusion")
     p.add_argument("--seeds", required=True, help="scene seeds, e.g. 0-1999 (each family has its own scenes per seed)")
     p.add_argument("--out", required=True, help="dataset folder to create")
-    p.add_argument("--scenario", default=str(SHIPPED_SCENARIOS / "overlap.yaml"),
+    p.add_argument("--scenario", default="overlap",
                    help="scenario giving the road and the camera (default: the shipped scenarios/overlap.yaml)")
     p.add_argument("--workers", type=int, default=2,
                    help="processes rendering consecutive runs of seeds (default 2; the folder is the same for any number)")

@@ -13,7 +13,7 @@ from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import Guidance, GuidanceSet, VehicleStates
 from vcfusion.traffic.network import read_road
 
-ROAD = read_road(Path(__file__).resolve().parents[1] / "sumo_net" / "highway.net.xml")
+ROAD = read_road(Path(__file__).resolve().parents[2] / "sumo_net" / "highway.net.xml")
 W = ROAD.lane_width_m
 POLICY = GuidancePolicy.on_road(ROAD, ego_lane=2, medium=0.3, high=0.6, view_range_m=150.0)
 

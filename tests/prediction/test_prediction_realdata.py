@@ -9,14 +9,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from vcfusion.cli import main
+from vcfusion.commands import main
 from vcfusion.prediction.features import FEATURE_NAMES, SEQUENCE_EXTRA_NAMES
 from vcfusion.prediction.sources.ngsim import NGSIM_COLUMNS
 from vcfusion.prediction.sources.trajectories import (END_AFTER_MID_S, SAMPLE_COLUMNS, Recording, clean_lane_flicker,
                                                       straight_road, twin_tracks)
 
 FT = 0.3048
-SHIPPED_MODEL = Path(__file__).resolve().parents[1] / "src" / "vcfusion" / "assets" / "lane_change_mlp.npz"
+SHIPPED_MODEL = Path(__file__).resolve().parents[2] / "src" / "vcfusion" / "assets" / "lane_change_mlp.npz"
 
 
 # ---------------------------------------------------------------- NGSIM files

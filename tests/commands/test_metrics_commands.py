@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from scenario_files import write_scenario
-from vcfusion.cli import main
+from vcfusion.commands import main
 from vcfusion.studies.batch import seed_folder
 
 METRIC_FILES = ("metrics.parquet", "conflicts.parquet", "metric_histograms.parquet")

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from vcfusion.cli import main
+from vcfusion.commands import main
 from vcfusion.prediction.features import FEATURE_NAMES
 from vcfusion.prediction.model import load_model
 from vcfusion.prediction.privileged import (
@@ -18,7 +18,7 @@ from vcfusion.prediction.privileged import (
 from vcfusion.run import build_cosimulation
 from vcfusion.scenario import load_scenario
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_state_bits_and_join():

@@ -391,7 +391,7 @@ def test_every_network_builds_reproducibly(tmp_path, capsys):
     for path in built:
         assert body(path) == body(NETS / path.name), path.name
     # built again, nothing changes, and the command says so (it printed "built" for every file)
-    from vcfusion.cli import main
+    from vcfusion.commands import main
 
     (tmp_path / "highway.edg.xml").write_text((tmp_path / "highway.edg.xml").read_text().replace(
         "</edges>", "<!-- touched -->\n</edges>"))  # a comment: the same network

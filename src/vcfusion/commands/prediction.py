@@ -6,14 +6,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vcfusion.cli import check_folder_path
+from vcfusion.commands.checks import INTERRUPTED_BATCH, check_folder_path, parse_seeds
 from vcfusion.errors import UsageError
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
     from vcfusion.prediction.dataset import build_dataset
-    from vcfusion.scenario import load_scenario
-    from vcfusion.studies.batch import parse_seeds
+    from vcfusion.scenario import find_scenario, load_scenario
 
     sources = [name for name, given in (("SCENARIO", args.scenario), ("--from-ngsim", args.from_ngsim),
                                         ("--from-highd", args.from_highd)) if given]
@@ -30,7 +29,7 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     check_folder_path(Path(args.out))
     if args.workers < 1:
         raise UsageError(f"--workers: expected a positive number of processes, got {args.workers}")
-    report = build_dataset(Path(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g,
+    report = build_dataset(find_scenario(args.scenario), seeds, Path(args.out), args.workers, args.tau, args.tau_g,
                            refeature=args.refeature, privileged=args.privileged)
     c = report["counts"]
     if args.refeature:
@@ -153,8 +152,6 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub) -> None:
-    from vcfusion.cli import INTERRUPTED_BATCH  # (called by the cli's build_parser)
-
     p = sub.add_parser("dataset", help="simulate seeds (or import NGSIM / highD recordings) and write a labelled "
                                        "lane-change dataset (Parquet)")
     p.add_argument("scenario", nargs="?", help="scenario YAML file, e.g. scenarios/dense.yaml")

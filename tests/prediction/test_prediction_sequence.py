@@ -186,7 +186,7 @@ def test_a_tick_without_any_twin_leaves_the_predictors_memory_as_the_replay_does
 
     for path in (None, "mlp"):
         model = load_model(None) if path is None else load_model(
-            Path(__file__).resolve().parents[1] / "src" / "vcfusion" / "assets" / "lane_change_mlp.npz")
+            Path(__file__).resolve().parents[2] / "src" / "vcfusion" / "assets" / "lane_change_mlp.npz")
         live, replay = LaneChangePredictor(model, road, 0.1), LaneChangePredictor(model, road, 0.1)
         for k in range(30):
             snapshot = at(k)

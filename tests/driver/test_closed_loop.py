@@ -22,7 +22,7 @@ from vcfusion.records import TwinStates, VehicleStates
 from vcfusion.studies.guidance import highlight_counts
 from vcfusion.traffic.network import read_road
 
-ROAD = read_road(Path(__file__).resolve().parents[1] / "sumo_net" / "highway.net.xml")
+ROAD = read_road(Path(__file__).resolve().parents[2] / "sumo_net" / "highway.net.xml")
 POLICY = GuidancePolicy.on_road(ROAD, ego_lane=2, medium=0.3, high=0.6, view_range_m=150.0)
 IDS = ("ego", "cutter", "neighbour")
 

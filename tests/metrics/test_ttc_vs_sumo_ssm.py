@@ -10,7 +10,7 @@ from vcfusion.metrics.safety import cut_in_target, target_ttc
 from vcfusion.run import build_cosimulation
 from vcfusion.scenario import load_scenario
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _ssm_vtypes(tmp_path: Path, ssm_file: Path) -> Path:

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from vcfusion.cli import main
+from vcfusion.commands import main
 from vcfusion.prediction.dataset import SAMPLES_VERSION
 from vcfusion.prediction.features import FEATURE_NAMES, features_from_twins_table
 from vcfusion.prediction.model import load_model
@@ -18,7 +18,7 @@ from vcfusion.run import execute_run
 from vcfusion.scenario import load_scenario
 from vcfusion.traffic.network import read_road
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _short_dense(tmp_path: Path, seconds: float, **prediction) -> Path:
