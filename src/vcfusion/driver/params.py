@@ -95,7 +95,7 @@ def draw_driver(seed: int, desired_speed_mps: float) -> DriverParams:
         lateral_notice_m=float(rng.uniform(0.3, 0.5)),
         notice_range_m=100.0,
         pedal_time_constant_s=float(rng.uniform(0.2, 0.4)),
-        # drawn after the draws above, so those are the same as before these parameters existed
+        # drawn after the draws above, so adding these parameters left those draws unchanged
         cover_decel_mps2=float(rng.uniform(0.3, 0.7)),
         warning_hold_s=0.3,
     )
