@@ -12,7 +12,7 @@ smoothed decision ``lc_decision`` is positive (the paper's Algorithm 3/4 output)
 follows the lane-change probability: ``high`` (red) at ``lc_prob >= ar.high_threshold``,
 ``medium`` (yellow) at ``>= ar.medium_threshold``, else ``none``. The scenario's ``ar:`` block is
 the only place the thresholds are set; the defaults, 0.3 and 0.6, are chosen as follows.
-``lc_prob`` is calibrated (docs/architecture.md, "Calibration"): it is the probability that the
+``lc_prob`` is calibrated (docs/components/prediction.md, "Calibration"): it is the probability that the
 vehicle's lane change ends within tau = 5 s, and its mean, the base rate, is 11 %. The shipped
 model's decision (aggressive smoothing) switches on at ``lc_prob > 0.87`` and holds for 5 s after
 the last such tick, so every warning starts red with any thresholds up to 0.87; the thresholds

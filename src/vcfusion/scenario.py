@@ -335,7 +335,7 @@ class MetricsConfig(_Strict):
     """Safety, comfort and emission metrics of every vehicle of a run (vcfusion.metrics).
 
     One place for the thresholds and definitions: runs, batches, `vcfusion metrics` and the
-    guidance study all read them from here (docs/architecture.md, "Metrics").
+    guidance study all read them from here (docs/components/metrics.md).
     """
 
     enabled: bool = Field(True, description="compute the metrics tables and the summary's metrics block")

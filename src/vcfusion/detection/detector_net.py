@@ -471,5 +471,5 @@ def check_yolo_model(path, input_wh: tuple[int, int], keep) -> None:
 
 
 def default_weights_path() -> Path:
-    """The shipped detector (package data), trained by the command in docs/architecture.md."""
+    """The shipped detector (package data), trained by the commands in docs/model-cards.md."""
     return Path(__file__).resolve().parent.parent / "assets" / "detector.pt"

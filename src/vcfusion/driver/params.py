@@ -1,6 +1,6 @@
 """Driver and car parameters of the ego, drawn per trip from documented distributions.
 
-Sources (see docs/architecture.md, "Driver model"):
+Sources (see docs/components/driver.md, "The model"):
 - IDM parameter ranges: Treiber & Kesting, "Traffic Flow Dynamics" (Springer 2013), Table 11.2
   (highway: desired time gap T 1.0 s within 0.8-2.0 s, minimum gap s0 2 m, acceleration a
   1.0 m/s^2 within 0.8-2.5 m/s^2, comfortable deceleration b 1.5 m/s^2 within 1-2 m/s^2).
