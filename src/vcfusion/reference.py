@@ -83,7 +83,9 @@ def _md(text: str) -> str:
 def _constraints(metadata) -> list[str]:
     out = []
     for m in metadata:
-        if isinstance(m, annotated_types.Ge):
+        if isinstance(m, FieldInfo):  # Field(ge=...) inside Annotated[...]
+            out += _constraints(m.metadata)
+        elif isinstance(m, annotated_types.Ge):
             out.append(f">= {m.ge:g}")
         elif isinstance(m, annotated_types.Gt):
             out.append(f"> {m.gt:g}")
