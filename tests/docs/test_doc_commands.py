@@ -106,3 +106,8 @@ def test_extraction_joins_continuations_and_drops_comments():
         assert commands_in(path) == [(2, ["run", "s.yaml", "--seed", "3"])]
     finally:
         path.unlink()
+
+
+def test_readme_is_a_front_page():
+    lines = (ROOT / "README.md").read_text(encoding="utf-8").splitlines()
+    assert len(lines) <= 300, f"README.md has {len(lines)} lines; the detail belongs in docs/"
