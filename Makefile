@@ -31,7 +31,7 @@ bench: $(STAMP)
 
 # The documentation site: the generated reference pages, then mkdocs (strict) into site/.
 docs: $(STAMP)
-	$(PY) -m pip install -q -e '.[docs]'
+	@test -x $(VENV)/bin/mkdocs || $(PY) -m pip install -q -e '.[docs]'
 	$(PY) -m vcfusion.reference --write docs/reference/
 	$(VENV)/bin/mkdocs build --strict
 
