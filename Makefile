@@ -4,7 +4,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export PYOPENGL_PLATFORM ?= osmesa
 
-.PHONY: setup demo test net bench clean
+.PHONY: setup demo test net bench docs clean
 
 setup: $(STAMP)
 
@@ -29,5 +29,11 @@ net: $(STAMP)
 bench: $(STAMP)
 	$(VENV)/bin/vcfusion bench
 
+# The documentation site: the generated reference pages, then mkdocs (strict) into site/.
+docs: $(STAMP)
+	@test -x $(VENV)/bin/mkdocs || $(PY) -m pip install -q -e '.[docs]'
+	$(PY) -m vcfusion.reference --write docs/reference/
+	$(VENV)/bin/mkdocs build --strict
+
 clean:
-	rm -rf runs .pytest_cache
+	rm -rf runs .pytest_cache site

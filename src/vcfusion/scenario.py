@@ -67,12 +67,16 @@ class _Strict(BaseModel):
 
 
 class SimulationConfig(_Strict):
-    step_s: Positive = 0.01
-    max_time_s: Positive = 120.0
-    # SUMO --lanechange.duration: lane changes take this long instead of one step.
-    lanechange_duration_s: Positive = 3.0
-    # Period of the all-vehicle trajectory table (the ego is also logged every SUMO step).
-    trajectory_period_s: Positive = 0.1
+    """SUMO's clock and the trajectory log."""
+
+    step_s: Positive = Field(0.01, description="SUMO step; a whole number of milliseconds, at least 0.001 s "
+                                               "(SUMO's time resolution)")
+    max_time_s: Positive = Field(120.0, description="simulated time after which the run ends")
+    lanechange_duration_s: Positive = Field(3.0, description="SUMO --lanechange.duration: a lane change takes "
+                                                             "this long instead of one step")
+    trajectory_period_s: Positive = Field(0.1, description="period of the all-vehicle trajectory table (the ego "
+                                                           "is also logged every SUMO step); at most 1 s with "
+                                                           "metrics enabled")
 
     @field_validator("step_s")
     @classmethod
@@ -87,17 +91,18 @@ class SimulationConfig(_Strict):
 class V2CConfig(_Strict):
     """Vehicle-to-cloud channel (uplink GNSS reports) and the cloud's twin store."""
 
-    period_s: Positive = 0.1
-    latency_s: NonNegative = 0.0
-    # Standard deviation of a zero-mean Gaussian added to the latency (clipped at 0).
-    jitter_s: NonNegative = 0.0
-    loss_probability: Probability = 0.0
-    # Standard deviation (per horizontal axis) of the GNSS position error.
-    gnss_noise_std_m: NonNegative = 0.0
-    history_s: Annotated[float, Field(ge=30.0)] = 30.0
-    # A twin with no report for this long is taken as gone (vehicle left the road).
-    twin_timeout_s: Positive = 3.0
-    neighbour_range_m: Positive = 150.0
+    period_s: Positive = Field(0.1, description="period of the GNSS reports and of the cloud's tick")
+    latency_s: NonNegative = Field(0.0, description="uplink latency of a report")
+    jitter_s: NonNegative = Field(0.0, description="standard deviation of a zero-mean Gaussian added to the "
+                                                   "latency (clipped at 0)")
+    loss_probability: Probability = Field(0.0, description="probability that a report is lost")
+    gnss_noise_std_m: NonNegative = Field(0.0, description="standard deviation of the GNSS position error, "
+                                                           "per horizontal axis")
+    history_s: Annotated[float, Field(ge=30.0)] = Field(30.0, description="history each twin keeps in the cloud")
+    twin_timeout_s: Positive = Field(3.0, description="a twin with no report for this long is gone (vehicle "
+                                                      "left the road); more than latency_s + 3 jitter_s + "
+                                                      "period_s")
+    neighbour_range_m: Positive = Field(150.0, description="the ego receives the twins within this range")
 
     @model_validator(mode="after")
     def _timeout_outlasts_latency(self) -> "V2CConfig":
@@ -111,13 +116,19 @@ class V2CConfig(_Strict):
 
 
 class AROverlayConfig(_Strict):
-    period_s: Positive = 0.1
-    # calibrated lane-change probability at or above which a flagged neighbour is yellow (medium) /
-    # red (high), for the overlay, the cloud guidance and the driver alike; why 0.3 / 0.6: vcfusion.guidance
-    medium_threshold: Probability = 0.3
-    high_threshold: Probability = 0.6
-    # write the AR overlay as PNG frames + an mp4 into the run folder (needs fusion.enabled)
-    video: bool = False
+    """The AR overlay and the guidance levels (vcfusion.guidance)."""
+
+    period_s: Positive = Field(0.1, description="period of the AR updates; a whole multiple of v2c.period_s "
+                                                "with fusion enabled")
+    # why 0.3 / 0.6: the module doc of vcfusion.guidance
+    medium_threshold: Probability = Field(0.3, description="calibrated lane-change probability at or above "
+                                                           "which a flagged neighbour is yellow (medium), for the "
+                                                           "overlay, the cloud guidance and the driver alike; at "
+                                                           "most high_threshold")
+    high_threshold: Probability = Field(0.6, description="calibrated lane-change probability at or above which "
+                                                         "a flagged neighbour is red (high)")
+    video: bool = Field(False, description="write the AR overlay as PNG frames and an mp4 into the run folder "
+                                           "(needs fusion.enabled and vision.only_when_warning: false)")
 
     @model_validator(mode="after")
     def _ordered(self) -> "AROverlayConfig":
@@ -130,22 +141,31 @@ class AROverlayConfig(_Strict):
 class FusionConfig(_Strict):
     """Vision-cloud fusion: detector, depth evaluation (Algorithm 1) and twin-to-box matching."""
 
-    enabled: bool = False
-    detector: Literal["cnn", "oracle", "onnx-yolo"] = "cnn"
-    # weights of the cnn detector (relative to the scenario file); default: the shipped model.
-    # onnx-yolo: the user's YOLO exported by Ultralytics to ONNX (required; read by OpenCV DNN)
-    weights: Path | None = None
-    # onnx-yolo: the model's input size (width, height) and the COCO classes kept as vehicles
-    yolo_input_px: tuple[Annotated[int, Field(ge=32, le=4096)], Annotated[int, Field(ge=32, le=4096)]] = (640, 640)
-    yolo_classes: Annotated[tuple[str, ...], Field(min_length=1)] = ("car", "bus", "truck")
-    method: Literal["baseline", "baseline_centre", "paper", "joint"] = "joint"
-    # snap the detector's boxes to the vehicle surfaces of the depth image before matching and add
-    # boxes for vehicles it missed, from depth segments (vcfusion.fusion.box_refine; never the
-    # oracle's); false: the detector's RGB boxes as they are
-    refine_boxes: bool = True
-    depth_th: Annotated[float, Field(gt=0.0, le=1.0)] = 0.8
-    depth_samples: Annotated[int, Field(ge=1)] = 30
-    depth_reducer: Literal["mean", "median"] = "mean"
+    enabled: bool = Field(False, description="run the fusion stage (needs vision.enabled)")
+    detector: Literal["cnn", "oracle", "onnx-yolo"] = Field("cnn", description="cnn: the shipped CNN (or "
+                                                            "weights); oracle: ground-truth boxes; onnx-yolo: a "
+                                                            "YOLO exported by Ultralytics to ONNX")
+    weights: Path | None = Field(None, description="weights of the cnn detector (relative to the scenario file; "
+                                                   "null: the shipped model); the ONNX file with onnx-yolo "
+                                                   "(required there, read by OpenCV DNN); none with oracle")
+    yolo_input_px: tuple[Annotated[int, Field(ge=32, le=4096)], Annotated[int, Field(ge=32, le=4096)]] = Field(
+        (640, 640), description="onnx-yolo only: the model's input size (width, height)")
+    yolo_classes: Annotated[tuple[str, ...], Field(min_length=1)] = Field(
+        ("car", "bus", "truck"), description="onnx-yolo only: the COCO classes kept as vehicles")
+    method: Literal["baseline", "baseline_centre", "paper", "joint"] = Field(
+        "joint", description="twin-to-box matching: baseline (the paper's RGB-only rule), baseline_centre "
+                             "(nearest box centre), paper (Algorithm 2), joint (the joint matcher)")
+    refine_boxes: bool = Field(True, description="snap the detector's boxes to the vehicle surfaces of the depth "
+                                                 "image before matching and add boxes for vehicles it missed, "
+                                                 "from depth segments (vcfusion.fusion.box_refine; never the "
+                                                 "oracle's); false: the detector's RGB boxes as they are")
+    depth_th: Annotated[float, Field(gt=0.0, le=1.0)] = Field(0.8, description="Algorithm 1: each box side is "
+                                                                              "scaled by this about the centre "
+                                                                              "before depth sampling")
+    depth_samples: Annotated[int, Field(ge=1)] = Field(30, description="Algorithm 1: depth pixels drawn in the "
+                                                                      "box's lower quarter")
+    depth_reducer: Literal["mean", "median"] = Field("mean", description="Algorithm 1: how the samples become "
+                                                                         "the box's depth (the paper: mean)")
 
     @model_validator(mode="after")
     def _detector_settings(self) -> "FusionConfig":
@@ -177,19 +197,20 @@ class CameraConfig(_Strict):
     optical axis down. Square pixels, principal point at the image centre.
     """
 
-    height_m: Positive = 1.4
-    forward_m: float = 0.6
-    lateral_m: float = 0.0
-    pitch_deg: Annotated[float, Field(ge=-45.0, le=45.0)] = 3.0
-    hfov_deg: Annotated[float, Field(gt=1.0, lt=170.0)] = 70.0
-    width_px: Annotated[int, Field(ge=16, le=8192)] = 640
-    height_px: Annotated[int, Field(ge=16, le=8192)] = 480
-    # Clip planes of the renderer; depth beyond far_m reads as sky.
-    near_m: Positive = 0.3
-    far_m: Positive = 600.0
-    # How the RGB image is finished (vcfusion.render.presets): "fast" for batch renders,
-    # "quality" (supersampling, lens blur, noise) for studies; depth and instances are the same.
-    render_preset: Literal["fast", "quality"] = "fast"
+    height_m: Positive = Field(1.4, description="mount height above the ground")
+    forward_m: float = Field(0.6, description="mount along the heading from the footprint centre")
+    lateral_m: float = Field(0.0, description="mount to the left of the footprint centre")
+    pitch_deg: Annotated[float, Field(ge=-45.0, le=45.0)] = Field(3.0, description="tilt of the optical axis, "
+                                                                                  "down positive")
+    hfov_deg: Annotated[float, Field(gt=1.0, lt=170.0)] = Field(70.0, description="horizontal field of view")
+    width_px: Annotated[int, Field(ge=16, le=8192)] = Field(640, description="image width")
+    height_px: Annotated[int, Field(ge=16, le=8192)] = Field(480, description="image height")
+    near_m: Positive = Field(0.3, description="near clip plane of the renderer")
+    far_m: Positive = Field(600.0, description="far clip plane (greater than near_m); depth beyond reads as sky")
+    render_preset: Literal["fast", "quality"] = Field(
+        "fast", description="how the RGB image is finished (vcfusion.render.presets): fast for batch renders, "
+                            "quality (2x2 supersampling, lens blur, exposure and sensor noise, ~6x the render "
+                            "time) for studies; depth and instances are the same")
 
     @model_validator(mode="after")
     def _planes(self) -> "CameraConfig":
@@ -201,57 +222,58 @@ class CameraConfig(_Strict):
 class VisionConfig(_Strict):
     """Whether the tick loop renders the ego camera (stages 4-6 of a tick)."""
 
-    enabled: bool = False
-    # Render every this many V2C ticks (1 = every tick).
-    every_ticks: Annotated[int, Field(ge=1)] = 1
-    # Render and fuse only at ticks where a neighbour twin carries a warning (the overlay then has
-    # something to warn about; at other ticks it would draw no warning, so the driver is shown the
-    # same warnings). Off by default: the joint matcher's position filter then gets fewer
-    # updates, so the identification is not the every-tick system's; the video needs it off.
-    only_when_warning: bool = False
+    enabled: bool = Field(False, description="render the ego camera in the tick loop (needs an ego)")
+    every_ticks: Annotated[int, Field(ge=1)] = Field(1, description="render every this many V2C ticks "
+                                                                   "(1 = every tick)")
+    # at other ticks the overlay would draw no warning, so the driver is shown the same warnings;
+    # off by default: the joint matcher's position filter then gets fewer updates
+    only_when_warning: bool = Field(False, description="render and fuse only at ticks where a neighbour twin "
+                                                       "carries a warning (faster; fewer updates for the joint "
+                                                       "matcher's position filter; no AR video)")
 
 
 class EgoConfig(_Strict):
-    vtype: Name = "ego"
-    # the ego's route (default: the scenario's); lane: a track of it (index from the right), and
-    # depart_pos_m (front bumper) along it
-    route: Route | None = None
-    lane: Annotated[int, Field(ge=0)] = 2
-    depart_pos_m: NonNegative = 50.0
-    speed_mps: NonNegative = 19.0
-    desired_speed_mps: Positive = 19.0
-    # The trip ends when the ego has travelled this far (or at simulation.max_time_s).
-    trip_distance_m: Positive = 300.0
+    """The ego vehicle: driven by the driver model (or a person), carrying the camera."""
+
+    vtype: Name = Field("ego", description="vehicle type (of vehicle_types)")
+    route: Route | None = Field(None, description="the ego's route, edge ids in driving order (null: the "
+                                                  "scenario's)")
+    lane: Annotated[int, Field(ge=0)] = Field(2, description="a track of the route, index from the right "
+                                                            "(0 = rightmost); it must run trip_distance_m")
+    depart_pos_m: NonNegative = Field(50.0, description="front bumper along the route at t = 0")
+    speed_mps: NonNegative = Field(19.0, description="speed at t = 0")
+    desired_speed_mps: Positive = Field(19.0, description="the driver's desired speed")
+    trip_distance_m: Positive = Field(300.0, description="the trip ends when the ego has travelled this far (or "
+                                                         "at simulation.max_time_s)")
 
 
 class DriverConfig(_Strict):
     """The ego's driver model (vcfusion.driver) and the guidance it is shown."""
 
-    # Whether the driver uses the AR guidance in a single run (the guidance study runs both).
-    guidance: bool = True
-    # Guidance items are made for neighbours ahead within this range; levels follow ar.medium_threshold /
-    # ar.high_threshold (one GuidancePolicy per run, vcfusion.guidance).
-    guidance_view_range_m: Positive = 150.0
-    # The driver's forward field of view (degrees); default: the camera's hfov_deg (the AR shows
-    # the camera's view). See vcfusion.driver.perception.
-    field_of_view_deg: Annotated[float, Field(gt=1.0, lt=180.0)] | None = None
+    guidance: bool = Field(True, description="whether the driver uses the AR guidance in a single run (the "
+                                             "guidance study runs both)")
+    guidance_view_range_m: Positive = Field(150.0, description="guidance items are made for neighbours ahead "
+                                                               "within this range; levels follow the ar block")
+    field_of_view_deg: Annotated[float, Field(gt=1.0, lt=180.0)] | None = Field(
+        None, description="the driver's forward field of view (null: the camera's hfov_deg; "
+                          "vcfusion.driver.perception)")
 
 
 class VehicleGroup(_Strict):
     """Vehicles placed at t = 0 at random positions (drawn per seed) in the given lanes."""
 
-    name: Name
-    count: Annotated[int, Field(ge=1)]
-    vtype: Name = "car"
-    # the group's route (default: the scenario's); lanes are its tracks (index from the right) and
-    # pos_m the front bumpers' range along it
-    route: Route | None = None
-    lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1)
-    pos_m: tuple[NonNegative, NonNegative]
-    speed_mps: NonNegative = 17.0
-    desired_speed_mps: Positive | None = None
-    # Minimum bumper-to-bumper spacing in one lane (SUMO refuses to insert at 17 m/s with much less).
-    min_spacing_m: NonNegative = 20.0
+    name: Name = Field(description="group name (vehicles.parquet `group`; metrics.exclude_groups)")
+    count: Annotated[int, Field(ge=1)] = Field(description="number of vehicles")
+    vtype: Name = Field("car", description="vehicle type (of vehicle_types)")
+    route: Route | None = Field(None, description="the group's route (null: the scenario's)")
+    lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1, description="tracks of the route (index from "
+                                                                               "the right) the vehicles are drawn in")
+    pos_m: tuple[NonNegative, NonNegative] = Field(description="[low, high] range of the front bumpers along the "
+                                                               "route, low <= high")
+    speed_mps: NonNegative = Field(17.0, description="speed at t = 0")
+    desired_speed_mps: Positive | None = Field(None, description="desired speed (null: the vehicle type's)")
+    # SUMO refuses to insert at 17 m/s with much less
+    min_spacing_m: NonNegative = Field(20.0, description="minimum bumper-to-bumper spacing in one lane")
 
     @field_validator("pos_m")
     @classmethod
@@ -265,84 +287,92 @@ class Flow(_Strict):
     """Poisson arrivals at the start of the route (the flow's, default the scenario's) over the
     whole run, in the given tracks of that route's first edge."""
 
-    vtype: Name = "car"
-    route: Route | None = None
-    vehs_per_hour: Positive
-    lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1)
-    speed_mps: NonNegative = 25.0
+    vtype: Name = Field("car", description="vehicle type (of vehicle_types)")
+    route: Route | None = Field(None, description="the flow's route (null: the scenario's)")
+    vehs_per_hour: Positive = Field(description="mean arrival rate (Poisson)")
+    lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1, description="tracks of the route's first edge")
+    speed_mps: NonNegative = Field(25.0, description="departure speed")
 
 
 class AccidentConfig(_Strict):
     """Stopped vehicles closing lanes (SUMO <stop parking="false">): tracks of the scenario's
     route at pos_m (front bumper) along `edge`, or along the route when no edge is given."""
 
-    edge: Name | None = None
-    pos_m: NonNegative
-    lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1)
-    vtype: Name = "truck"
+    edge: Name | None = Field(None, description="edge of the stop (null: positions along the route)")
+    pos_m: NonNegative = Field(description="front bumper along `edge`, or along the route")
+    lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1, description="tracks closed (index from the "
+                                                                               "right)")
+    vtype: Name = Field("truck", description="vehicle type of the stopped vehicles")
 
 
 class PredictionConfig(_Strict):
     """The cloud's lane-change predictor (a twin process model, vcfusion.prediction)."""
 
-    enabled: bool = True
-    # Model file from `vcfusion train`; None = the model shipped in vcfusion/assets.
-    model: Path | None = None
-    # Smoothing of the per-tick decisions (paper Algorithms 3 and 4): none | aggressive | conservative;
-    # None = the model file's default (chosen on validation seeds by `vcfusion train`).
-    smoothing: Literal["none", "aggressive", "conservative"] | None = None
-    # Probability above which the raw per-tick decision is positive (None = the model file's threshold
-    # tuned for that smoothing).
-    threshold: Probability | None = None
-    # Algorithm 3: a positive lasts tau_a more V2C ticks; Algorithm 4: mean of the last tau_c + 1 ticks.
-    # None = the values stored in the model file (tuned on validation seeds by `vcfusion train`).
-    tau_a_ticks: Annotated[int, Field(ge=0)] | None = None
-    tau_c_ticks: Annotated[int, Field(ge=0)] | None = None
-    conservative_threshold: Probability | None = None  # None = the model file's (0.5 in the shipped ones)
+    enabled: bool = Field(True, description="run the predictor on every twin every V2C tick")
+    model: Path | None = Field(None, description="model file from `vcfusion train` (relative to the scenario); "
+                                                 "null: the shipped GRU")
+    smoothing: Literal["none", "aggressive", "conservative"] | None = Field(
+        None, description="smoothing of the per-tick decisions (paper Algorithms 3 and 4); null: the model "
+                          "file's (chosen on validation seeds by `vcfusion train`)")
+    threshold: Probability | None = Field(None, description="calibrated probability above which the raw "
+                                                            "per-tick decision is positive; null: the model "
+                                                            "file's, tuned for that smoothing")
+    tau_a_ticks: Annotated[int, Field(ge=0)] | None = Field(None, description="Algorithm 3: a positive lasts "
+                                                                             "this many more V2C ticks; null: "
+                                                                             "the model file's")
+    tau_c_ticks: Annotated[int, Field(ge=0)] | None = Field(None, description="Algorithm 4: mean over the last "
+                                                                             "tau_c + 1 V2C ticks; null: the "
+                                                                             "model file's")
+    conservative_threshold: Probability | None = Field(None, description="Algorithm 4's vote threshold; null: "
+                                                                         "the model file's (0.5 in the shipped "
+                                                                         "ones)")
 
 
 class MetricsConfig(_Strict):
     """Safety, comfort and emission metrics of every vehicle of a run (vcfusion.metrics).
 
     One place for the thresholds and definitions: runs, batches, `vcfusion metrics` and the
-    guidance study all read them from here (docs/architecture.md, "Metrics").
+    guidance study all read them from here (docs/components/metrics.md).
     """
 
-    enabled: bool = True
-    # TTC below which a following situation is a conflict (TET/TIT, conflict episodes): 1.5 s, the
-    # SSAM default (Gettman & Head, "Surrogate Safety Measures From Traffic Simulation Models",
-    # FHWA-RD-03-050, 2003; Gettman et al., "Surrogate Safety Assessment Model and Validation",
-    # FHWA-HRT-08-051, 2008).
-    ttc_threshold_s: Positive = 1.5
-    # Jerk: the acceleration (speed difference per sample) is smoothed by a centred moving average
-    # over this window before it is differentiated (one V2C tick: the ego's command is piecewise
-    # constant over a tick; at the 0.1 s trajectory period it is no smoothing).
-    jerk_window_s: Positive = 0.1
-    # The guidance study's mean TTC to the cut-in vehicle is also given with TTC clipped here.
-    ttc_clip_s: Positive = 20.0
-    # A vehicle's leader is the nearest vehicle ahead in its lane within this range (bumper to bumper).
-    leader_range_m: Positive = 250.0
-    # MOVESTAR source type (1 light-duty passenger car, 2 light-duty truck) by SUMO vType id or vClass
-    # (the vType id wins); vehicles of other types (trucks, buses) get SUMO's emission model only.
-    movestar: dict[Name, Literal[1, 2]] = {"passenger": 1}
-    # The vehicles SUMO's own emission model rates (HBEFA/PHEMlight, the class their vType sets):
-    # "others" = those without a MOVESTAR type (trucks, buses: every vehicle gets one model), "all"
-    # (the cars too, a second opinion; SUMO then rates every vehicle every step, which costs the run
-    # ~20-30 %), "none".
-    sumo_emissions: Literal["others", "all", "none"] = "others"
-    # Vehicles of these placement groups (vehicles.parquet `group`) keep their rows and still lead
-    # others, but are left out of the traffic-wide figures (the parked accident vehicles are obstacles).
-    exclude_groups: list[Name] = ["accident"]
+    enabled: bool = Field(True, description="compute the metrics tables and the summary's metrics block")
+    # 1.5 s: the SSAM default (Gettman & Head, "Surrogate Safety Measures From Traffic Simulation
+    # Models", FHWA-RD-03-050, 2003; Gettman et al., "Surrogate Safety Assessment Model and
+    # Validation", FHWA-HRT-08-051, 2008)
+    ttc_threshold_s: Positive = Field(1.5, description="TTC below which a following situation is a conflict "
+                                                       "(TET/TIT, conflict episodes); the SSAM default")
+    # one V2C tick: the ego's command is piecewise constant over a tick; at the 0.1 s trajectory
+    # period it is no smoothing
+    jerk_window_s: Positive = Field(0.1, description="centred moving average of the acceleration before it is "
+                                                     "differentiated into jerk")
+    ttc_clip_s: Positive = Field(20.0, description="the guidance study's mean TTC to the cut-in vehicle is also "
+                                                   "given with TTC clipped here")
+    leader_range_m: Positive = Field(250.0, description="a vehicle's leader is the nearest vehicle ahead in its "
+                                                        "lane within this range (bumper to bumper)")
+    movestar: dict[Name, Literal[1, 2]] = Field({"passenger": 1}, description="MOVESTAR source type (1 "
+                                                "light-duty passenger car, 2 light-duty truck) by SUMO vType id "
+                                                "or vClass (the vType id wins); other types (trucks, buses) get "
+                                                "SUMO's emission model only")
+    sumo_emissions: Literal["others", "all", "none"] = Field(
+        "others", description="the vehicles SUMO's own emission model rates (HBEFA/PHEMlight, their vType's "
+                              "class): others = those without a MOVESTAR type; all = the cars too (SUMO then "
+                              "rates every vehicle every step, ~20-30 % more run time); none")
+    exclude_groups: list[Name] = Field(["accident"], description="placement groups (vehicles.parquet `group`) "
+                                                                 "left out of the traffic-wide figures; they keep "
+                                                                 "their rows and still lead others")
 
 
 class Scenario(_Strict):
-    name: Name
-    description: str = ""
-    network: Path
-    # the road frame's route (edge ids in driving order) and every vehicle's default route; a
-    # network that is one chain of edges (e.g. one straight edge) needs none
-    route: Route | None = None
-    vehicle_types: Path
+    """A scenario file: the top level."""
+
+    name: Name = Field(description="the scenario's name (default run folder names)")
+    description: str = Field("", description="one line shown by `vcfusion scenarios`")
+    network: Path = Field(description="SUMO .net.xml (relative to the file that sets it)")
+    route: Route | None = Field(None, description="edge ids in driving order: the road frame and every "
+                                                  "vehicle's default route; not needed on a network that is one "
+                                                  "chain of edges")
+    vehicle_types: Path = Field(description="SUMO additional file with the <vType>s (relative to the file that "
+                                            "sets it)")
     simulation: SimulationConfig = SimulationConfig()
     v2c: V2CConfig = V2CConfig()
     ar: AROverlayConfig = AROverlayConfig()

@@ -22,7 +22,7 @@ Per detected box (pixel-centre convention, as everywhere in the fusion stage):
    column a jump from the next) has no neighbour on its surface to take its pixels back, and only the
    band keeps it whole. The cut takes a pixel off each occluded outline, and every pixel of a strip a
    nearer vehicle leaves 1-2 px wide: without giving them back a small far box lost a pixel a side
-   and a hidden vehicle's box its lower part (the twenty-eighth session). Also, once per box, the
+   and a hidden vehicle's box its lower part. Also, once per box, the
    object pixels of the window cut at depth jumps (given back the same way) without any band:
    a surface whole, however deep it runs (the side of a truck in the next lane spans 15 m). A
    segment's box is the span of its rows and columns holding at least ``support`` of its fullest
@@ -59,8 +59,8 @@ nearer and all together are no wider than a vehicle.
 
 The band is one vehicle deep: a car behind another in the same lane is at least a car length plus
 the gap farther away, so it falls outside the band of the car in front. Depth quality sets what
-this can do: it was tuned on the renderer's exact depth (validation folders only; see
-docs/architecture.md "Depth-guided box refinement" for the figures and for noisy depth).
+this can do: it was tuned on the renderer's exact depth (docs: components/fusion.md, "Depth step",
+for the rules, the folders that chose each value and the limits).
 """
 
 from __future__ import annotations
@@ -83,19 +83,19 @@ class ProposalParams:
     # and below BoxRefineParams.max_height_m (tree crowns, gantries)
     max_top_continuing: float = 0.3  # a segment whose top outline goes on, as the same surface,
     # above max_height_m over more than this share is part of a tree, a pole or a bridge
-    min_pixels: int = 30  # a far car partly hidden shows as few (60 before the twelfth session, 40
-    # before the twenty-first: the roof line of a car behind the next one, 20 x 5 px at 30 m)
+    min_pixels: int = 30  # px; a far car partly hidden shows as few (the roof line of a car behind
+    # the next one, 20 x 5 px at 30 m); chosen on the jam development seeds (30 vs 40: +1 target)
     min_top_m: float = 1.0  # the segment's top stands at least this high (a car's roof line; rails are lower)
     min_top_truncated_m: float = 0.8  # ... or this high when the image's side cuts it (_min_top)
-    min_width_m: float = 0.15  # wider than this (reflector posts, 0.12 m): a car mostly hidden
-    # behind another shows a sliver as narrow as this (0.3 before the twenty-first session, 0.25
-    # before the twenty-seventh: 6 px at 19 m is 0.249 m)
+    min_width_m: float = 0.15  # m; wider than reflector posts (0.12 m): a car mostly hidden behind
+    # another shows a sliver as narrow as this (6 px at 19 m is 0.249 m); jam development seeds
+    # 3240-3479: 8 of 28 targets without a box were slivers of 0.12-0.25 m
     min_tall_width_m: float = 0.8  # a segment standing as high as a truck: wider than this (tree trunks)
-    max_overlap: float = 0.6  # a segment whose box overlaps a detected box more than this is that box's
-    # (0.5 before the sixteenth session: a whole car's segment overlapping a box that held a part of
-    # it, or the car and a sliver of road, by 0.51-0.55 got no box of its own; 0.7 gains nothing more)
-    behind_m: float = 1.0  # ... as is one mostly inside a box, unless this far behind the box's surface
-    # (3 m before the fourteenth session)
+    max_overlap: float = 0.6  # IoU; a segment whose box overlaps a detected box more than this is
+    # that box's (at 0.5 a whole car's segment overlapping a box that held a part of it, or the car and
+    # a sliver of road, by 0.51-0.55 got no box of its own; jam development 95.2 -> 95.6 %; 0.7 the same)
+    behind_m: float = 1.0  # m; ... as is one mostly inside a box, unless this far behind the box's
+    # surface (a car 1-3 m behind a nearer one is its own; jam development 89.1 % at 3 m, 89.8 % at 1 m)
     score: float = 0.3  # the proposals' score; detected boxes at least this confident explain segments
     max_stem_share: float = 0.25  # a segment whose lowest quarter of rows is one run narrower than
     # this share of its widest row stands on a stem: a tree
@@ -112,20 +112,21 @@ class ProposalParams:
 @dataclass(frozen=True)
 class BoxRefineParams:
     margin: float = 0.4  # search window: the box grown by this share of its width / height per side
-    # (0.25 before the fourteenth session)
+    # (whole surfaces need room; jam development 89.8 % at 0.25, 91.1 % at 0.4, 90.8 % at 0.45)
     min_height_m: float = 0.05  # above the road by more than this: an object pixel (tyres included)
     band_m: float = 4.0  # depth band of one vehicle's visible surface (see the module docstring)
     candidates: int = 3  # surface depths tried per box
     support: float = 0.03  # rows / columns with less than this share of the fullest one are trimmed
-    # (0.05 before the twenty-sixth session: a sliver's last rows, 1 px of a 24 px row, were cut off
-    # its box; 0 keeps the stray pixels of rails and road and breaks most boxes)
+    # (at 0.05 a sliver's last rows, 1 px of a 24 px row, were cut off its box; 0.02 loses 2 jam
+    # development targets; 0 keeps the stray pixels of rails and road and breaks most boxes)
     min_iou: float = 0.3  # a segment replaces the box only when its box overlaps the box this much
     pair_width_m: float = 3.0  # a segment across a depth jump laterally wider than any vehicle (2.55 m)
     pair_min_iou: float = 0.5  # is two side by side: a jump-free one, narrower, overlapping the box at
     # least this much replaces it
     jump_m: float = 0.5  # depth discontinuity between neighbours: more than this (+ jump_rel of the
-    jump_rel: float = 0.045  # depth; 0.05 before the fourteenth session); the refinement's cut
-    # segments, the proposals and the fragments all use it
+    jump_rel: float = 0.045  # depth, m per m: at 100 m 5 m, so the cars of a far chain come apart;
+    # far_chain development 98.0 % at 0.05, 99.0 % at 0.045; 0.035 splits a truck's side seen at a
+    # grazing angle); the refinement's cut segments, the proposals and the fragments all use it
     truck_top_m: float = 2.6  # a segment whose top stands higher than this (cars: <= 2 m) is a truck,
     max_height_m: float = 4.5  # unless it stands higher than this (no vehicle does: trees, poles, gantries)
     duplicate_iou: float = 0.7  # the detector's NMS IoU, applied again to the trucks after boxes
@@ -704,8 +705,8 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
         return boxes
     z, obj, y_lo = segments.z, segments.obj, segments.y_lo
     # any segment, however small: what shows of a truck through the gap under a nearer car, or beside
-    # its outline, is 1-3 px (4 px at least before the twenty-ninth session: the ground truth spans
-    # them, and a box that stopped above them missed IoU 0.7)
+    # its outline, is 1-3 px: the ground truth spans them, and a box that stopped above them missed
+    # IoU 0.7 (a 4-px minimum lost 3 targets on the development folders)
     labels, seg_box = segments.present, segments.present_boxes
     if not len(labels):
         return boxes

@@ -32,7 +32,7 @@ from vcfusion.threads import one_blas_thread
 
 MODEL_FORMAT = "vcfusion-lane-change-mlp/1"
 # The shipped default: the GRU sequence model, better than the MLP on the validation seeds of the
-# scenario families (issue 14; src/vcfusion/assets/README.md). The MLP stays selectable
+# scenario families (issue 14; docs/model-cards.md). The MLP stays selectable
 # (`prediction.model: .../lane_change_mlp.npz`).
 DEFAULT_MODEL_NAME = "lane_change_gru.npz"
 SHIPPED_MODEL_NAMES = ("lane_change_mlp.npz", "lane_change_gru.npz")  # in vcfusion/assets

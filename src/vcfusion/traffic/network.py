@@ -397,7 +397,7 @@ def network_names(net_dir: Path) -> list[str]:
     return sorted(plain | osm)
 
 
-# OpenStreetMap import options that keep a highway usable (see README, "Networks"): only the
+# OpenStreetMap import options that keep a highway usable (see docs/components/traffic.md, "Networks"): only the
 # motorway carriageways and their links; geometry-only nodes merged into curved edges; on-ramps
 # given acceleration lanes; clustered junctions joined; traffic-light and roundabout guessing (for
 # extracts that reach ordinary roads); OSM way ids kept as edge parameters; no U-turns.
