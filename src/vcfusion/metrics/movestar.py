@@ -254,3 +254,16 @@ def trip_emissions(time_s: Sequence[float], speeds_mps: Sequence[float], vehicle
 
 def is_undefined(value) -> bool:
     return value is None or (isinstance(value, float) and math.isnan(value))
+
+
+def fuel_rate_gps(speed_mps: float, accel_mps2: float, vehicle_type: int = 1) -> float:
+    """MOVESTAR's fuel rate (g/s) at one instant: the operating mode of this speed and acceleration
+    (VSP, zero grade) and its base CO2 rate, as fuel. The per-second trip model (movestar) takes
+    the acceleration from the 1 Hz speeds and its braking mode also from the two seconds before;
+    this is the rate of a single (v, a) sample (a controller's reward per tick)."""
+    vehicle_type = _check_vehicle_type(vehicle_type)
+    v = check_speeds([speed_mps])
+    a = np.array([float(accel_mps2)])
+    mode = operating_modes(v, a, vsp(v, a, vehicle_type))
+    co2 = _RATE_TABLE[vehicle_type, mode][0, POLLUTANTS.index("CO2")] / 3600.0
+    return float(_fuel(co2))
