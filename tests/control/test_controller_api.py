@@ -1,6 +1,7 @@
 """The controller API (vcfusion.control): a scenario names its ego controller by import path."""
 
 import numpy as np
+import pandas as pd
 import pytest
 from scenario_files import SCENARIOS
 
@@ -119,3 +120,20 @@ def test_a_scenario_without_a_controller_records_the_same_scenario_as_before(tmp
     named = short_scenario(tmp_path, ", controller: 'vcfusion.control.builtin:ScriptedController', "
                            "controller_params: {accel_mps2: -1.0}", "named.yaml")
     assert named.to_dict()["ego"]["controller_params"] == {"accel_mps2": -1.0}
+
+
+def test_a_live_run_decided_from_outside_is_the_run_its_controller_would_make(tmp_path):
+    sc = short_scenario(tmp_path)
+    whole = build_cosimulation(sc, 6).run()
+    cosim = build_cosimulation(sc, 6)
+    live = cosim.start()
+    ticks = 0
+    while live.tick is not None:  # the caller asks the same driver model: the same decisions
+        live.advance(cosim.controller.acceleration(live.tick))
+        ticks += 1
+    stepped = live.result()
+    assert live.end_reason == whole.summary["end_reason"] == "trip_complete" and ticks > 50
+    for name in ("ego", "trajectories", "twins", "driver", "lane_changes"):
+        pd.testing.assert_frame_equal(stepped.tables[name], whole.tables[name], check_exact=True)
+    with pytest.raises(RuntimeError, match="the run has ended"):
+        live.advance(0.0)
