@@ -116,6 +116,14 @@ class EgoCommand:
     yaw: float = 0.0
 
 
+@dataclass(frozen=True)
+class StopRun:
+    """A decision that ends a live run at the tick it answers, with `reason` as its end reason
+    (LiveRun.stop: e.g. a Gymnasium episode that ends at the ego's collision)."""
+
+    reason: str
+
+
 class TickHook(Protocol):
     """Runs every V2C tick; may return rows for its table of the run folder; declares what it
     needs from and provides to the tick (vcfusion.stages)."""
@@ -358,6 +366,9 @@ class CoSimulation:
                     sinks[hook.table].append_rows(hook(tick) or [])
                 if ego_cfg is not None:
                     decision = yield tick
+                    if isinstance(decision, StopRun):  # the caller ends the run here (LiveRun.stop)
+                        end_reason = decision.reason
+                        break
                     if isinstance(decision, Command):
                         ego_accel = float(decision.accel)
                         if decision.lane_change:
@@ -453,6 +464,11 @@ class LiveRun:
             raise RuntimeError("LiveRun.advance: the run has ended (end_reason: "
                                f"{self.end_reason}); expected a new run")
         return self._advance(decision)
+
+    def stop(self, reason: str) -> None:
+        """End the run at the waiting tick (its tables end there; `reason` is the summary's end_reason)."""
+        if self.tick is not None:
+            self._advance(StopRun(reason))
 
     def result(self) -> RunResult:
         """The run's tables and summary, as run() returns them (the run must have ended)."""

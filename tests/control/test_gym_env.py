@@ -12,16 +12,17 @@ from vcfusion.gym.env import DISCRETE_NAMES, KINEMATICS_FEATURES
 SHORT = """
 extends: {accident}
 simulation: {{max_time_s: {max_time}}}
-metrics: {{enabled: false}}
+metrics: {{enabled: {metrics}}}
 camera: {{width_px: 96, height_px: 64}}
 fusion: {{detector: oracle}}
 {more}
 """
 
 
-def scenario_file(tmp_path, max_time: float = 3.0, more: str = "", name: str = "env.yaml"):
+def scenario_file(tmp_path, max_time: float = 3.0, more: str = "", name: str = "env.yaml", metrics: bool = False):
     path = tmp_path / name
-    path.write_text(SHORT.format(accident=(SCENARIOS / "accident.yaml").as_posix(), max_time=max_time, more=more))
+    path.write_text(SHORT.format(accident=(SCENARIOS / "accident.yaml").as_posix(), max_time=max_time, more=more,
+                                 metrics=str(metrics).lower()))
     return path
 
 
@@ -169,4 +170,19 @@ def test_the_scenario_sets_the_reward_weights(tmp_path):
     env.reset(seed=1)
     _, reward, _, _, info = env.step(np.array([0.5, 0.0], np.float32))
     assert info["metrics"]["fuel_g"] > 0 and reward == pytest.approx(-10.0 * info["metrics"]["fuel_g"])
+    env.close()
+
+
+def test_with_summary_the_last_step_carries_the_runs_summary_and_metrics(tmp_path):
+    path = scenario_file(tmp_path, 30.0, "ego: {trip_distance_m: 600.0}", metrics=True)
+    env = make(path, summary=True)
+    env.reset(seed=2)
+    while True:  # full throttle into the car ahead: the run ends at the collision
+        _, _, terminated, truncated, info = env.step(np.array([1.0, 0.0], np.float32))
+        if terminated or truncated:
+            break
+    run = info["run_summary"]
+    assert info["end_reason"] == run["end_reason"] == "collision" and run["seed"] == 2
+    assert run["metrics"]["ego"]["collisions"] == 1 and run["collisions"] == 1
+    assert run["simulated_s"] == pytest.approx(info["time"], abs=0.11)
     env.close()

@@ -37,6 +37,10 @@ Reward: vcfusion.gym.reward (weights from the scenario's ``reward:`` block). ``i
 ``time``, ``metrics`` (progress_m, ttc_s, drac_mps2, jerk_mps3, fuel_g, collided), the reward
 ``terms``, ``end_reason`` (None while the run goes on) and the run ``seed``.
 
+With ``summary=True`` the info of an episode's last step also carries ``run_summary``: the run's
+summary as ``vcfusion run`` writes it (its end-of-run tables computed, the scenario's metrics
+block included: the project's TTC / DRAC / jerk / MOVESTAR figures of the ego and the traffic).
+
 Episode end: terminated at trip completion (``ego.trip_distance_m``), at the ego's first
 collision, or when the ego leaves its route; truncated at ``simulation.max_time_s`` (the
 ``max_time_s`` argument overrides it). At the end the observation is the last tick's.
@@ -105,7 +109,7 @@ class HighwayEnv(gymnasium.Env):
 
     def __init__(self, scenario: str | Path | Scenario | None = None, observation: str = "kinematics",
                  action: str = "continuous", vehicles: int = 8, camera: str = "rgb", max_time_s: float | None = None,
-                 render_mode: str | None = None):
+                 summary: bool = False, render_mode: str | None = None):
         if observation not in OBSERVATIONS:
             raise ValueError(f"observation: expected one of {OBSERVATIONS}, got {observation!r}")
         if action not in ("continuous", "discrete"):
@@ -125,6 +129,7 @@ class HighwayEnv(gymnasium.Env):
         self.observation_mode, self.action_mode, self.camera = observation, action, camera
         self.render_mode = render_mode
         self.vehicles = int(vehicles)
+        self.summary = bool(summary)
         self.limits = CarLimits()
         sc = self.scenario
         self.tick_s = sc.v2c.period_s
@@ -211,10 +216,13 @@ class HighwayEnv(gymnasium.Env):
         end = self.live.end_reason
         terminated = collided or end in ("trip_complete", "ego_left", "ego_off_route")
         truncated = not terminated and end is not None
-        if collided and end is None:  # the episode ends at the collision; the run is stopped
+        if collided and end is None:  # the episode ends at the collision; the run is stopped there
             end = "collision"
+            self.live.stop(end)
         info = {"time": now, "seed": self.run_seed, "end_reason": end, "metrics": metrics.__dict__, "terms": terms}
         if terminated or truncated:
+            if self.summary:  # the run's summary, as `vcfusion run` writes it (metrics included)
+                info["run_summary"] = self.live.result().summary
             self._close_run()
         return self._last_obs, float(reward(terms, sc.reward)), bool(terminated), bool(truncated), info
 
