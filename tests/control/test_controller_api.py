@@ -137,3 +137,18 @@ def test_a_live_run_decided_from_outside_is_the_run_its_controller_would_make(tm
         pd.testing.assert_frame_equal(stepped.tables[name], whole.tables[name], check_exact=True)
     with pytest.raises(RuntimeError, match="the run has ended"):
         live.advance(0.0)
+
+
+def test_the_human_driver_is_a_controller_of_the_api():
+    from vcfusion.control import Controller
+    from vcfusion.control.builtin import DriverModelController, IdmController
+    from vcfusion.hitl.driver import HumanDriver
+
+    for cls in (HumanDriver, DriverModelController, IdmController):
+        assert callable(getattr(cls, "act", None)), cls
+    # the per-step half of a person at the wheel reaches the loop through the stage
+    driver = HumanDriver.__new__(HumanDriver)
+    driver.needs = ("ego", "guidance")
+    stage = ControllerStage(driver)
+    assert isinstance(driver, Controller) and stage.step == driver.step and stage.finish == driver.finish
+    assert stage.needs == ("ego", "guidance") and stage.finish_tables == ("inputs", "frames")
