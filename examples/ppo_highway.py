@@ -71,8 +71,13 @@ def driver_trip(scenario: Path, seed: int) -> dict:
 
 
 def main() -> int:
+    import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    # one thread for the small policy network: more threads spin and take the environment
+    # processes' cores on a 2-core machine
+    torch.set_num_threads(1)
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", type=Path, default=SHIPPED_SCENARIOS / "accident.yaml")
