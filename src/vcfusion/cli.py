@@ -502,6 +502,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--process-model", action="append", default=[], metavar="MODULE:FACTORY",
                    help="extra cloud process model for the guidance study (see `study guidance`)")
     p.set_defaults(func=cmd_demo)
+    __import__("vcfusion.control.commands", fromlist=["add_parsers"]).add_parsers(sub)  # export-commonroad
 
     from vcfusion.prediction.commands import add_parsers as add_prediction_parsers
 
