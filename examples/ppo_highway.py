@@ -61,7 +61,8 @@ def policy_trip(model, scenario: Path, seed: int) -> dict:
             break
     env.close()
     run = info["run_summary"]
-    return {"arm": "ppo", "seed": seed, "end_reason": run["end_reason"], **{c: run["metrics"]["ego"][c] for c in COLUMNS}}
+    return {"arm": "ppo", "seed": seed, "end_reason": run["end_reason"],
+            **{c: run["metrics"]["ego"][c] for c in COLUMNS}}
 
 
 def driver_trip(scenario: Path, seed: int) -> dict:

@@ -93,7 +93,8 @@ class ScriptedController(IdmController):
     def act(self, observation: Observation) -> Command:
         now = observation.time
         change = 0
-        if self.lane_change and self.lane_change_at is not None and not self._asked and now >= self.lane_change_at - 1e-9:
+        due = self.lane_change_at is not None and now >= self.lane_change_at - 1e-9
+        if self.lane_change and due and not self._asked:
             change, self._asked = self.lane_change, True
         if self.window[0] - 1e-9 <= now < self.window[1] - 1e-9:
             return Command(self.accel, change)

@@ -44,7 +44,8 @@ def commonroad_problem() -> str | None:
         import commonroad.common.file_reader  # noqa: F401
         import commonroad.common.file_writer  # noqa: F401
     except ImportError:
-        return "needs commonroad-io: pip install 'vcfusion[commonroad]' (an environment of its own: it pins protobuf 3.20.2)"
+        return ("needs commonroad-io: pip install 'vcfusion[commonroad]' (an environment of its own: it pins "
+                "protobuf 3.20.2)")
     except TypeError as exc:  # its generated protobuf modules under a newer protobuf runtime
         return (f"commonroad-io does not load with this environment's protobuf ({' '.join(str(exc).split()[:6])}...): "
                 "it pins protobuf 3.20.2; install it in an environment of its own")
@@ -137,8 +138,9 @@ def build_commonroad(folder: Path, scenario_path: Path | None = None):
     manifest, sc = _read_run(folder, scenario_path)
     dt = float(sc.simulation.trajectory_period_s)
     road = read_road(sc.network, sc.route)
-    scenario = CrScenario(dt, ScenarioID(country_id="ZAM", map_name=f"vcfusion-{sc.name}", map_id=1,
-                                         configuration_id=1, obstacle_behavior="T", prediction_id=int(manifest["seed"])))
+    scenario_id = ScenarioID(country_id="ZAM", map_name=f"vcfusion-{sc.name}", map_id=1, configuration_id=1,
+                             obstacle_behavior="T", prediction_id=int(manifest["seed"]))
+    scenario = CrScenario(dt, scenario_id)
     for lanelet in _lanelets(road):
         scenario.lanelet_network.add_lanelet(lanelet)
     vehicles = pd.read_parquet(folder / "vehicles.parquet")

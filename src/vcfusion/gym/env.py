@@ -144,7 +144,8 @@ class HighwayEnv(gymnasium.Env):
         if observation == "kinematics":
             self.observation_space = kinematics
         elif observation == "camera":
-            self.observation_space = {"rgb": rgb, "depth": depth}.get(camera) or spaces.Dict({"rgb": rgb, "depth": depth})
+            both = spaces.Dict({"rgb": rgb, "depth": depth})
+            self.observation_space = {"rgb": rgb, "depth": depth, "rgbd": both}[camera]
         else:
             self.observation_space = spaces.Dict({"kinematics": kinematics,
                                                   "boxes": spaces.Box(0.0, 1.0, (self.vehicles, 5), np.float32)})
@@ -262,7 +263,8 @@ class HighwayEnv(gymnasium.Env):
 
     def _camera(self, frame):
         if frame is None:
-            raise RuntimeError(f"scenario {self.scenario.name}: no camera frame at a tick (camera mode renders every tick)")
+            raise RuntimeError(f"scenario {self.scenario.name}: no camera frame at a tick (camera mode renders "
+                               "every tick)")
         rgb = np.ascontiguousarray(frame.rgb, dtype=np.uint8)
         far = float(self.scenario.camera.far_m)
         depth = np.nan_to_num(np.asarray(frame.depth, np.float32), nan=far, posinf=far)
