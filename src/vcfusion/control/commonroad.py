@@ -52,6 +52,35 @@ def commonroad_problem() -> str | None:
     return None
 
 
+def _rectangle(length: float, width: float):
+    """A rectangle obstacle shape: commonroad-io 2025+ (obstacle_shapes) or 2024 (geometry.shape), which
+    commonroad-crime 0.4 pins."""
+    try:
+        from commonroad.geometry.obstacle_shapes.rect_obstacle_shape import RectObstacleShape
+    except ImportError:
+        from commonroad.geometry.shape import Rectangle
+
+        return Rectangle(float(length), float(width))
+    return RectObstacleShape(width=float(width), length=float(length))
+
+
+def _scenario_id(**fields):
+    try:
+        from commonroad.common.common_scenario import ScenarioID
+    except ImportError:  # commonroad-io 2024
+        from commonroad.scenario.scenario import ScenarioID
+    return ScenarioID(**fields)
+
+
+def _planning_problem(pid: int, state, goal, ego_id: int):
+    import inspect
+
+    from commonroad.planning.planning_problem import PlanningProblem
+
+    takes_ego = "ego_id" in inspect.signature(PlanningProblem).parameters  # commonroad-io 2025+
+    return PlanningProblem(pid, state, goal, ego_id=ego_id) if takes_ego else PlanningProblem(pid, state, goal)
+
+
 class ExportError(InputError):
     """A run folder that cannot be exported; the message names the file and what was expected."""
 
@@ -120,11 +149,9 @@ def _states(rows: pd.DataFrame, dt: float):
 
 def build_commonroad(folder: Path, scenario_path: Path | None = None):
     """(CommonRoad Scenario, PlanningProblemSet, id table) of a run folder (see the module doc)."""
-    from commonroad.common.common_scenario import ScenarioID
     from commonroad.common.util import Interval
-    from commonroad.geometry.obstacle_shapes.rect_obstacle_shape import RectObstacleShape
     from commonroad.planning.goal import GoalRegion
-    from commonroad.planning.planning_problem import PlanningProblem, PlanningProblemSet
+    from commonroad.planning.planning_problem import PlanningProblemSet
     from commonroad.prediction.prediction import TrajectoryPrediction
     from commonroad.scenario.obstacle import DynamicObstacle, ObstacleType
     from commonroad.scenario.scenario import Scenario as CrScenario
@@ -138,7 +165,7 @@ def build_commonroad(folder: Path, scenario_path: Path | None = None):
     manifest, sc = _read_run(folder, scenario_path)
     dt = float(sc.simulation.trajectory_period_s)
     road = read_road(sc.network, sc.route)
-    scenario_id = ScenarioID(country_id="ZAM", map_name=f"vcfusion-{sc.name}", map_id=1, configuration_id=1,
+    scenario_id = _scenario_id(country_id="ZAM", map_name=f"vcfusion-{sc.name}", map_id=1, configuration_id=1,
                              obstacle_behavior="T", prediction_id=int(manifest["seed"]))
     scenario = CrScenario(dt, scenario_id)
     for lanelet in _lanelets(road):
@@ -156,7 +183,7 @@ def build_commonroad(folder: Path, scenario_path: Path | None = None):
             continue
         oid = OBSTACLE_ID0 + row
         ids[str(vid)] = oid
-        shape = RectObstacleShape(width=float(width), length=float(length))
+        shape = _rectangle(length, width)
         states = _states(rows, dt)
         prediction = None
         if len(states) > 1:
@@ -166,7 +193,7 @@ def build_commonroad(folder: Path, scenario_path: Path | None = None):
         if vid == EGO_ID:
             last = states[-1].time_step
             goal = GoalRegion([CustomState(time_step=Interval(states[0].time_step, last))])
-            problems.append(PlanningProblem(PLANNING_PROBLEM_ID, states[0], goal, ego_id=oid))
+            problems.append(_planning_problem(PLANNING_PROBLEM_ID, states[0], goal, oid))
     table = {"dt": dt, "obstacle_ids": ids, "ego_obstacle_id": ids.get(EGO_ID), "run": str(folder)}
     return scenario, PlanningProblemSet(problems), table
 
