@@ -9,7 +9,8 @@ SUMO advances in steps of `simulation.step_s`. Every V2C period (a tick):
 4. the ego controller sets the ego's acceleration for the steps until the next tick.
 What each stage reads and sets is declared and checked when the run is built (vcfusion.stages).
 The ego's speed is integrated here and imposed on SUMO every step (speed mode 0), so the
-ego's motion is exactly what the controller asked for.
+ego's motion is exactly what the controller asked for. `CoSimulation.start()` runs the same loop
+one ego tick at a time for a caller that decides each tick (LiveRun: the Gymnasium environment).
 """
 
 from __future__ import annotations
@@ -218,7 +219,6 @@ class CoSimulation:
             [self.controller] if self.controller is not None else [])
 
     def run(self, progress: bool = False) -> RunResult:
-        sc = self.scenario
         self.check_wiring()
         started = wallclock.perf_counter()
         workdir, sinks, lc_file, session = self._open()
