@@ -16,6 +16,9 @@ its worker processes) is its own:
 - P6 a person's drive paced to the wall clock (`vcfusion drive`) with the full vision tick at
   640x480 and a 30 frames/s display (SDL dummy driver): display frames per second, late and
   dropped frames, the simulation's lag behind the clock, input-to-display time;
+- P8 the Gymnasium environment (vcfusion.gym) on one core: environment steps (one V2C tick
+  each) per second in kinematics mode and in camera mode (640x480 RGB), each beside the plain
+  closed loop (`vcfusion run`'s tick loop with the driver model) on the same trips, alternated;
 - P7 the default guidance study (`--arms none,fusion`: the fusion arm renders, detects with the
   shipped CNN, matches and draws the overlay) on a few paired trips with 2 workers, projected
   to the 200 trips of the paper's figure (target <= 30 min).
@@ -344,10 +347,87 @@ def p7_guidance_study(trips: int) -> dict:
             "fusion_arm_s": round(float(per_arm.get("fusion", float("nan"))), 2)}
 
 
+def _env_episodes(env, seeds: range, max_steps: int | None = None) -> tuple[int, float, float]:
+    """(steps, wall of the steps, wall of the resets) of one episode per seed, action 0 (hold the speed)."""
+    import numpy as np
+
+    steps, step_wall, reset_wall = 0, 0.0, 0.0
+    hold = np.zeros(env.action_space.shape, env.action_space.dtype)
+    for seed in seeds:
+        t0 = time.perf_counter()
+        env.reset(seed=seed)
+        t1 = time.perf_counter()
+        reset_wall += t1 - t0
+        while True:
+            _, _, terminated, truncated, _ = env.step(hold)
+            steps += 1
+            if terminated or truncated or (max_steps is not None and steps % max_steps == 0):
+                break
+        step_wall += time.perf_counter() - t1
+    return steps, step_wall, reset_wall
+
+
+def _loop_ticks(scenario, seeds: range) -> tuple[int, float]:
+    """(V2C ticks, tick-loop wall) of the plain closed loop (the driver model) on the same trips."""
+    from vcfusion.run import build_cosimulation
+
+    ticks, wall = 0, 0.0
+    for seed in seeds:
+        result = build_cosimulation(scenario, seed).run()
+        ticks += int(round(result.summary["simulated_s"] / scenario.v2c.period_s)) + 1
+        wall += result.loop_wall_s
+    return ticks, wall
+
+
+def p8_gym(episodes: int, repeats: int = 3) -> dict:
+    """Environment steps per second on one core (the last one, as P1), best of `repeats` blocks
+    alternated with the plain closed loop on the same seeds: kinematics mode on the accident
+    scenario (with its metrics off: the environment computes no end-of-run tables), then camera
+    mode at 640x480 (RGB) on a few ticks of the same trips."""
+    import gymnasium
+
+    import vcfusion.gym  # noqa: F401  (registers the id)
+    from vcfusion.scenario import load_scenario
+
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {max(os.sched_getaffinity(0))})
+    sc = load_scenario(ACCIDENT)
+    sc = sc.model_copy(update={"metrics": sc.metrics.model_copy(update={"enabled": False})})
+    seeds = range(episodes)
+    env = gymnasium.make("vcfusion/Highway-v0", scenario=sc, observation="kinematics")
+    _env_episodes(env, range(1))  # warm-up: imports, model file, compiled kernels
+    env_blocks, loop_blocks = [], []
+    for _ in range(repeats):
+        env_blocks.append(_env_episodes(env, seeds))
+        loop_blocks.append(_loop_ticks(sc, seeds))
+    env.close()
+    steps, step_wall, reset_wall = min(env_blocks, key=lambda b: b[1])
+    ticks, loop_wall = min(loop_blocks, key=lambda b: b[1])
+    # camera mode: 640x480 RGB every tick, 30 ticks per trip (the renderer is kept across resets)
+    camera_steps = 30
+    vision = sc.model_copy(update={"simulation": sc.simulation.model_copy(update={"max_time_s": camera_steps * 0.1}),
+                                   "vision": sc.vision.model_copy(update={"enabled": True})})
+    cam = gymnasium.make("vcfusion/Highway-v0", scenario=vision, observation="camera")
+    _env_episodes(cam, range(1), 3)
+    c_steps, c_wall, _ = _env_episodes(cam, range(min(episodes, 3)), camera_steps)
+    cam.close()
+    c_ticks, c_loop = _loop_ticks(vision, range(min(episodes, 3)))
+    kin_rate, loop_rate = steps / step_wall, ticks / loop_wall
+    return {"name": "P8 Gymnasium environment, one core", "episodes": episodes, "repeats": repeats,
+            "kinematics_steps": steps, "kinematics_steps_per_s": round(kin_rate),
+            "kinematics_steps_per_s_with_reset": round(steps / (step_wall + reset_wall)),
+            "reset_ms": round(1000 * reset_wall / episodes, 1),
+            "closed_loop_ticks_per_s": round(loop_rate), "kinematics_over_closed_loop": round(kin_rate / loop_rate, 2),
+            "camera_640x480_steps_per_s": round(c_steps / c_wall, 1),
+            "camera_closed_loop_ticks_per_s": round(c_ticks / c_loop, 1),
+            "camera_over_closed_loop": round((c_steps / c_wall) / (c_ticks / c_loop), 2),
+            "target": "kinematics >= 500 steps/s"}
+
+
 SECTIONS = {"P1": p1_traffic, "P2": p2_vision, "P3": p3_dataset, "P4": p4_scaling, "P5": p5_memory, "P6": p6_drive,
-            "P7": p7_guidance_study}
-SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 240, "P5": 1.0, "P6": 60.0, "P7": 20},
-         "quick": {"P1": 3, "P2": 1, "P3": 2, "P4": 6, "P5": 0.3, "P6": 3.0, "P7": 4}}
+            "P7": p7_guidance_study, "P8": p8_gym}
+SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 240, "P5": 1.0, "P6": 60.0, "P7": 20, "P8": 10},
+         "quick": {"P1": 3, "P2": 1, "P3": 2, "P4": 6, "P5": 0.3, "P6": 3.0, "P7": 4, "P8": 3}}
 
 
 def run_section(name: str, size: str) -> dict:

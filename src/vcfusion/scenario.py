@@ -16,11 +16,12 @@ import math
 import re
 import typing
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_serializer,
+                      model_validator)
 
 from vcfusion.errors import ScenarioError  # the loader's error; importable from here as before
 
@@ -245,6 +246,43 @@ class EgoConfig(_Strict):
     desired_speed_mps: Positive = Field(19.0, description="the driver's desired speed")
     trip_distance_m: Positive = Field(300.0, description="the trip ends when the ego has travelled this far (or "
                                                          "at simulation.max_time_s)")
+    controller: str | None = Field(None, description="the ego's controller (vcfusion.control) by import path "
+                                                     "\"package.module:Name\"; null: the built-in driver model")
+    controller_params: dict[str, Any] = Field({}, description="keyword arguments the controller is built with")
+
+    @field_validator("controller")
+    @classmethod
+    def _importable(cls, v: str | None) -> str | None:
+        if v is not None:
+            from vcfusion.control.stage import ControllerError, resolve
+
+            try:
+                resolve(v)
+            except ControllerError as exc:
+                raise ValueError(str(exc)) from None
+        return v
+
+    @model_validator(mode="after")
+    def _params_fit(self) -> "EgoConfig":
+        if self.controller_params and self.controller is None:
+            raise ValueError("controller_params: given without ego.controller; expected a controller to pass them to")
+        if self.controller is not None:
+            from vcfusion.control.stage import ControllerError, check_params
+
+            try:
+                check_params(self.controller, dict(self.controller_params))
+            except ControllerError as exc:
+                raise ValueError(f"controller_params: {exc}") from None
+        return self
+
+    @model_serializer(mode="wrap")
+    def _without_unset_controller(self, handler):
+        # a scenario without a controller records what it recorded before the field existed
+        data = handler(self)
+        if self.controller is None:
+            data.pop("controller", None)
+            data.pop("controller_params", None)
+        return data
 
 
 class DriverConfig(_Strict):
@@ -362,6 +400,22 @@ class MetricsConfig(_Strict):
                                                                  "their rows and still lead others")
 
 
+class RewardConfig(_Strict):
+    """Weights of the Gymnasium environment's reward per V2C tick (vcfusion.gym.reward has the
+    terms and the reasons for these defaults); set in a scenario's `reward:` block."""
+
+    progress: float = Field(1.0, description="weight of travel along the route: 1 per tick driven at "
+                                             "ego.desired_speed_mps")
+    ttc: NonNegative = Field(1.0, description="weight of (threshold - TTC) / threshold to the radar leader while "
+                                              "TTC < metrics.ttc_threshold_s (0..1)")
+    drac: NonNegative = Field(0.5, description="weight of DRAC to the radar leader / 3.35 m/s^2 (the conflict "
+                                               "threshold of Archer 2005)")
+    jerk: NonNegative = Field(0.05, description="weight of |jerk| of the command from one tick to the next / "
+                                                "10 m/s^3")
+    fuel: NonNegative = Field(1.0, description="weight of the tick's MOVESTAR fuel, per gram")
+    collision: NonNegative = Field(100.0, description="penalty, once, at a collision of the ego (the episode ends)")
+
+
 class Scenario(_Strict):
     """A scenario file: the top level."""
 
@@ -386,6 +440,8 @@ class Scenario(_Strict):
     accident: AccidentConfig | None = None
     prediction: PredictionConfig = PredictionConfig()
     metrics: MetricsConfig = MetricsConfig()
+    # the Gymnasium environment's reward weights (vcfusion.gym); unused by `vcfusion run`
+    reward: RewardConfig = RewardConfig()
     # Where the scenario was read from (set by the loader, not by the file): the file given and,
     # when it extends others, the chain of files it was merged from (the given file first).
     source: Path | None = Field(default=None, exclude=True)
@@ -429,6 +485,15 @@ class Scenario(_Strict):
         if not self.vehicles and not self.flows and self.ego is None:
             raise ValueError("expected at least one of ego, vehicles, flows")
         return self
+
+    @model_serializer(mode="wrap")
+    def _without_default_reward(self, handler):
+        # the reward weights are recorded where a scenario sets them (runs before the block existed
+        # record the same scenario)
+        data = handler(self)
+        if self.reward == RewardConfig():
+            data.pop("reward", None)
+        return data
 
     def overlay_period_s(self) -> float:
         """Simulated time between two frames of the AR video: the fusion stage draws at the AR updates

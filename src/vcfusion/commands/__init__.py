@@ -24,7 +24,7 @@ def package_version() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from vcfusion.commands import bench, detection, drive, metrics, prediction, simulation, study
+    from vcfusion.commands import bench, control, detection, drive, metrics, prediction, simulation, study
 
     parser = argparse.ArgumentParser(prog="vcfusion", description=__doc__)
     parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
@@ -36,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     prediction.add_parsers(sub)  # dataset, train, evaluate, bench-predict
     detection.add_parsers(sub)  # train-detector, eval-detector, render-scenes, resize-dataset, coco-check, export-onnx
     metrics.add_parsers(sub)  # metrics, report
+    control.add_parsers(sub)  # export-commonroad
     return parser
 
 

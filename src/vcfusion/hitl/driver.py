@@ -27,6 +27,7 @@ import time as wallclock
 
 import numpy as np
 
+from vcfusion.control.api import Command
 from vcfusion.cosim import EgoCommand, EgoStep
 from vcfusion.hitl.display import HudInfo, compose, reprojected
 from vcfusion.hitl.vehicle import VehicleModel
@@ -86,6 +87,11 @@ class HumanDriver:
         # the camera stage's render of this tick (when it has one) is also this step's display frame
         self._tick_frame = tick.frame if hasattr(tick.frame, "instances") else None
         return self.vehicle.state.accel
+
+    def act(self, observation) -> Command:
+        """The controller API's tick call (vcfusion.control): the tick's guidance and camera frame
+        go to the display; the pedals and the wheel act every SUMO step (`step`)."""
+        return Command(self.acceleration(observation))
 
     def step(self, st: EgoStep) -> EgoCommand:
         now = wallclock.perf_counter()

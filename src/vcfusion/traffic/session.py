@@ -388,6 +388,13 @@ class SumoSession:
     def set_ego_speed(self, speed_mps: float) -> None:
         libsumo.vehicle.setSpeed(EGO_ID, max(0.0, speed_mps))
 
+    def change_ego_lane(self, direction: int) -> None:
+        """Start the ego's change to the adjacent lane on its left (+1) or right (-1), taking
+        simulation.lanechange_duration_s (SUMO's continuous lane change; the ego's lane-change mode
+        0 makes SUMO follow the request without checking the target lane's gaps). SUMO drops a
+        request toward a lane that is absent there."""
+        libsumo.vehicle.changeLaneRelative(EGO_ID, int(direction), self.scenario.simulation.lanechange_duration_s)
+
     def place_ego(self, s_front: float, d: float, yaw: float) -> None:
         """Put the ego's front bumper centre at position (`s_front`, `d`) of its route (d: m left of
         the right road edge), yawed `yaw` rad (left positive) from the road, for the next step.
