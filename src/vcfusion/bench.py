@@ -16,6 +16,9 @@ its worker processes) is its own:
 - P6 a person's drive paced to the wall clock (`vcfusion drive`) with the full vision tick at
   640x480 and a 30 frames/s display (SDL dummy driver): display frames per second, late and
   dropped frames, the simulation's lag behind the clock, input-to-display time;
+- GPU (only when named) the GPU path of the vision tick (EGL rendering, CUDA detection) checked
+  against the CPU path, with its render, detect, vision tick and display figures
+  (vcfusion.gpu_check); on a machine without a GPU it says "no GPU: skipped";
 - P7 the default guidance study (`--arms none,fusion`: the fusion arm renders, detects with the
   shipped CNN, matches and draws the overlay) on a few paired trips with 2 workers, projected
   to the 200 trips of the paper's figure (target <= 30 min).
@@ -344,10 +347,19 @@ def p7_guidance_study(trips: int) -> dict:
             "fusion_arm_s": round(float(per_arm.get("fusion", float("nan"))), 2)}
 
 
+def gpu_section(frames: int) -> dict:
+    """The GPU path against the CPU path (vcfusion.gpu_check); "no GPU: skipped" where there is none."""
+    from vcfusion.gpu_check import gpu_check
+
+    return gpu_check(frames)
+
+
 SECTIONS = {"P1": p1_traffic, "P2": p2_vision, "P3": p3_dataset, "P4": p4_scaling, "P5": p5_memory, "P6": p6_drive,
-            "P7": p7_guidance_study}
-SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 240, "P5": 1.0, "P6": 60.0, "P7": 20},
-         "quick": {"P1": 3, "P2": 1, "P3": 2, "P4": 6, "P5": 0.3, "P6": 3.0, "P7": 4}}
+            "P7": p7_guidance_study, "GPU": gpu_section}
+# what `vcfusion bench` runs without --sections: the GPU check only when named
+DEFAULT_SECTIONS = ("P1", "P2", "P3", "P4", "P5", "P6", "P7")
+SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 240, "P5": 1.0, "P6": 60.0, "P7": 20, "GPU": 8},
+         "quick": {"P1": 3, "P2": 1, "P3": 2, "P4": 6, "P5": 0.3, "P6": 3.0, "P7": 4, "GPU": 2}}
 
 
 def run_section(name: str, size: str) -> dict:
