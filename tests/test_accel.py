@@ -53,7 +53,10 @@ def test_the_command_line_option_sets_the_device_for_the_command(monkeypatch):
     from vcfusion.commands import build_parser, main
 
     monkeypatch.setenv(accel.DEVICE_ENV, "auto")  # recorded, so the value main() sets is undone after
-    assert build_parser().parse_args(["--device", "cpu", "scenarios"]).device == "cpu"
+    assert build_parser().parse_args(["--device", "cpu", "scenarios"]).command_device == "cpu"
+    # a command's own --device (train-detector's torch device) is its own option
+    args = build_parser().parse_args(["--device", "cpu", "train-detector", "coco", "--out", "d.pt", "--device", "cuda"])
+    assert (args.command_device, args.device) == ("cpu", "cuda")
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--device", "tpu", "scenarios"])
     monkeypatch.setattr("vcfusion.commands.simulation.cmd_scenarios", lambda args: 0)
