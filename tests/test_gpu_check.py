@@ -82,3 +82,21 @@ def test_the_check_end_to_end_with_a_second_cpu_side_passes():
     assert out["checks"]["cuda_boxes"]["matched"] == out["checks"]["cuda_boxes"]["boxes_cpu"] > 0
     assert out["skipped_checks"] == ["vision_tick", "hitl_frames"] and out["failed"] == 0
     assert out["cpu_render_ms"] > 0 and out["gpu_render_ms"] > 0
+
+
+def test_a_failing_egl_side_fails_its_checks_and_cuda_is_still_checked(monkeypatch):
+    boxes = [(np.array([[10.0, 10.0, 50.0, 40.0]]), np.array([0.9]))]
+    depth = np.full((1, 4, 4), 10.0, np.float32)
+
+    def fake_side(platform, device, frames, out, rgb_from=None):
+        if platform == "egl":
+            raise RuntimeError("GPU check: the egl/cuda side failed:\nTraceback ...\nOpenGL.error.Error: no EGL display")
+        return {"render_ms": np.array([5.0]), "detect_ms": np.array([3.0]), "boxes": boxes, "boxes_on_ref": boxes,
+                "depth": depth, "instances": np.zeros((1, 4, 4), np.int32), "info": {"platform": platform, "device": device}}
+
+    monkeypatch.setattr(gpu_check, "_run_side", fake_side)
+    out = gpu_check.gpu_check(1, gpu=True, cuda=True, tick_figures=False)
+    assert out["status"].startswith("FAIL") and out["failed"] == 3
+    assert sorted(out["failed_checks"]) == ["egl_cuda_boxes", "egl_depth", "egl_instances"]
+    assert "no EGL display" in out["checks"]["egl_depth"]["problem"]
+    assert out["checks"]["cuda_boxes"]["pass"] and out["gpu_platform"] == "osmesa" and out["gpu_device"] == "cuda"

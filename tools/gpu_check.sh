@@ -7,4 +7,8 @@
 #   tools/gpu_check.sh [OUT_DIR]   (default runs/gpu-check; bench.json + bench.md there)
 set -eu
 PYTHON="${PYTHON:-python}"
+# what the check will find (it decides by itself; this is for the log)
+if [ -e /dev/nvidiactl ]; then echo "NVIDIA device node: present"; else echo "NVIDIA device node: absent"; fi
+if command -v nvidia-smi >/dev/null 2>&1; then nvidia-smi -L || true; fi
+"$PYTHON" -c "import torch; print('torch', torch.__version__, 'CUDA available:', torch.cuda.is_available())" || true
 exec timeout 300 "$PYTHON" -m vcfusion bench --sections GPU --out "${1:-runs/gpu-check}"

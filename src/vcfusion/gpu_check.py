@@ -18,7 +18,9 @@
    (``vision_tick_ms``, bench P2) and a short real-time drive with the display at 30 frames/s
    (``hitl_frames_per_s``, bench P6).
    Where neither is present the GPU half prints ``no GPU: skipped`` with the number of checks
-   skipped (``skipped``), never a pass.
+   skipped (``skipped``), never a pass. A side that cannot run (EGL does not start, CUDA fails)
+   fails its checks with the error's last line (``problem``); where EGL fails and CUDA works,
+   the CUDA checks and figures still run on OSMesa renders.
 
 It installs nothing: it runs the package as installed. Sized to finish in under 5 minutes on a
 GPU machine (each side's process imports torch and pyrender, simulates one seed, renders and
@@ -217,6 +219,26 @@ def _section_in_subprocess(name: str, size_arg, platform: str, device: str) -> d
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def _last_line(exc: BaseException) -> str:
+    lines = [line for line in str(exc).splitlines() if line.strip()]
+    return lines[-1] if lines else type(exc).__name__
+
+
+def _gpu_side(platform: str, device: str, frames: int, tmp: Path) -> tuple[dict | None, str]:
+    """The GPU half's capture, and what went wrong (empty when nothing did). Where EGL fails with
+    CUDA present, CUDA is captured again on OSMesa renders: its checks still run, EGL's fail."""
+    try:
+        return _run_side(platform, device, frames, tmp / "gpu.npz", rgb_from=tmp / "cpu.npz"), ""
+    except RuntimeError as exc:
+        problem = f"the {platform}/{device} side failed: {_last_line(exc)}"
+    if platform == "egl" and device == "cuda":
+        try:
+            return _run_side("osmesa", "cuda", frames, tmp / "gpu.npz", rgb_from=tmp / "cpu.npz"), problem
+        except RuntimeError as exc:
+            problem += f"; osmesa/cuda too: {_last_line(exc)}"
+    return None, problem
+
+
 def gpu_check(frames: int, gpu: bool | None = None, cuda: bool | None = None, drive_s: float = 10.0,
               side: tuple[str, str] | None = None, tick_figures: bool = True) -> dict:
     """The section's figures (see the module docstring). `gpu` / `cuda`: whether EGL on an NVIDIA
@@ -237,32 +259,45 @@ def gpu_check(frames: int, gpu: bool | None = None, cuda: bool | None = None, dr
         if not gpu and not cuda:
             return out | {"status": "no GPU: skipped", "skipped": len(GPU_CHECKS), "skipped_checks": list(GPU_CHECKS),
                           "failed": 0}
-        other = _run_side(platform, device, frames, Path(tmp) / "gpu.npz", rgb_from=Path(tmp) / "cpu.npz")
-        out.update({"gpu_platform": other["info"]["platform"], "gpu_device": other["info"]["device"],
-                    "gpu_render_ms": round(float(np.median(other["render_ms"])), 1),
-                    "gpu_detect_ms": round(float(np.median(other["detect_ms"])), 1)})
         results, skipped = {}, []
+        other, problem = _gpu_side(platform, device, frames, Path(tmp))
+        if other is not None:
+            platform = other["info"]["platform"]  # OSMesa where EGL failed (the CUDA checks still run)
+            out.update({"gpu_platform": platform, "gpu_device": other["info"]["device"],
+                        "gpu_render_ms": round(float(np.median(other["render_ms"])), 1),
+                        "gpu_detect_ms": round(float(np.median(other["detect_ms"])), 1)})
+        failed_side = {"pass": False, "problem": problem}
+        egl = other is not None and not problem  # the side asked for ran (EGL where a GPU is)
         if gpu:
-            results["egl_depth"] = compare_depth(cpu["depth"], other["depth"])
-            results["egl_instances"] = compare_instances(cpu["instances"], other["instances"])
+            results["egl_depth"] = compare_depth(cpu["depth"], other["depth"]) if egl else failed_side
+            results["egl_instances"] = compare_instances(cpu["instances"], other["instances"]) if egl else failed_side
         else:
             skipped += ["egl_depth", "egl_instances"]
         if cuda:
-            results["cuda_boxes"] = compare_boxes(cpu["boxes"], other["boxes_on_ref"], TOLERANCES["box_iou_same_image"],
-                                                  TOLERANCES["score_abs"])
+            results["cuda_boxes"] = failed_side if other is None else compare_boxes(
+                cpu["boxes"], other["boxes_on_ref"], TOLERANCES["box_iou_same_image"], TOLERANCES["score_abs"])
         else:
             skipped.append("cuda_boxes")
         if gpu and cuda:
-            results["egl_cuda_boxes"] = compare_boxes(cpu["boxes"], other["boxes"], TOLERANCES["box_iou_gpu_path"])
+            results["egl_cuda_boxes"] = compare_boxes(cpu["boxes"], other["boxes"], TOLERANCES["box_iou_gpu_path"]) \
+                if egl else failed_side
         else:
             skipped.append("egl_cuda_boxes")
     if tick_figures:
-        p2 = _section_in_subprocess("p2_vision", 1, platform, device)
-        out["vision_tick_ms"] = p2["tick_median_ms"]
-        out.update({f"vision_{k}": v for k, v in p2.items() if k.endswith("_ms") and k != "tick_median_ms"})
-        p6 = _section_in_subprocess("p6_drive", drive_s, platform, device)
-        out["hitl_frames_per_s"] = p6.get("display_fps_median")
-        out["hitl"] = {k: v for k, v in p6.items() if k not in ("name", "target")}
+        try:
+            p2 = _section_in_subprocess("p2_vision", 1, platform, device)
+            out["vision_tick_ms"] = p2["tick_median_ms"]
+            out.update({f"vision_{k}": v for k, v in p2.items() if k.endswith("_ms") and k != "tick_median_ms"})
+            results["vision_tick"] = {"pass": True, "platform": platform, "device": device}
+        except RuntimeError as exc:
+            results["vision_tick"] = {"pass": False, "problem": _last_line(exc)}
+        try:
+            p6 = _section_in_subprocess("p6_drive", drive_s, platform, device)
+            out["hitl_frames_per_s"] = p6.get("display_fps_median")
+            out["hitl"] = {k: v for k, v in p6.items() if k not in ("name", "target")}
+            results["hitl_frames"] = {"pass": True, "platform": platform, "device": device}
+        except RuntimeError as exc:
+            results["hitl_frames"] = {"pass": False, "problem": _last_line(exc)}
     else:
         skipped += ["vision_tick", "hitl_frames"]
     failed = [name for name, r in results.items() if not r["pass"]]
