@@ -16,9 +16,12 @@ its worker processes) is its own:
 - P6 a person's drive paced to the wall clock (`vcfusion drive`) with the full vision tick at
   640x480 and a 30 frames/s display (SDL dummy driver): display frames per second, late and
   dropped frames, the simulation's lag behind the clock, input-to-display time;
-- P8 the Gymnasium environment (vcfusion.gym) on one core: environment steps (one V2C tick
+- P8 (only when named) the Gymnasium environment (vcfusion.gym) on one core: environment steps (one V2C tick
   each) per second in kinematics mode and in camera mode (640x480 RGB), each beside the plain
   closed loop (`vcfusion run`'s tick loop with the driver model) on the same trips, alternated;
+- GPU (only when named) the GPU path of the vision tick (EGL rendering, CUDA detection) checked
+  against the CPU path, with its render, detect, vision tick and display figures
+  (vcfusion.gpu_check); on a machine without a GPU it says "no GPU: skipped";
 - P7 the default guidance study (`--arms none,fusion`: the fusion arm renders, detects with the
   shipped CNN, matches and draws the overlay) on a few paired trips with 2 workers, projected
   to the 200 trips of the paper's figure (target <= 30 min).
@@ -107,7 +110,7 @@ def p1_traffic(seeds: int, repeats: int = 3) -> dict:
     bare = scenario.model_copy(update={"metrics": scenario.metrics.model_copy(update={"enabled": False})})
     build_cosimulation(scenario, seeds).run()  # warm-up: imports, first SUMO start, model file, kernels
     blocks: dict[str, list] = {"metrics": [], "bare": []}
-    bare_walls = []
+    bare_walls, bare_cpus = [], []
     for _ in range(repeats):
         for label, sc in (("metrics", scenario), ("bare", bare)):  # alternated: the VM's speed drifts
             simulated = loop = 0.0
@@ -119,10 +122,14 @@ def p1_traffic(seeds: int, repeats: int = 3) -> dict:
                 durations[seed] = result.summary["simulated_s"]
                 loop += result.loop_wall_s
             blocks[label].append((simulated, time.perf_counter() - start, loop, time.process_time() - cpu_start))
+        cpu_start = time.process_time()
         bare_walls.append(_bare_sumo_block(scenario, durations))
+        bare_cpus.append(time.process_time() - cpu_start)
     best = min(range(repeats), key=lambda i: blocks["metrics"][i][1])
     simulated, wall, loop, _ = blocks["metrics"][best]
     ratios = [b[1] / bare for b, bare in zip(blocks["metrics"], bare_walls)]
+    # the same in CPU time of this process (SUMO runs in it): steadier where other work shares the cores
+    cpu_ratios = [b[3] / bare for b, bare in zip(blocks["metrics"], bare_cpus)]
     bare_wall = min(b[1] for b in blocks["bare"])
     paired = [m[1] / b[1] - 1.0 for m, b in zip(blocks["metrics"], blocks["bare"])]
     # the same in CPU time of this process (SUMO runs in it): less sensitive to the VM's drift
@@ -138,6 +145,8 @@ def p1_traffic(seeds: int, repeats: int = 3) -> dict:
             "bare_sumo_real_time_factor": round(simulated / min(bare_walls), 1),
             "closed_loop_over_bare_sumo": round(statistics.median(ratios), 2),
             "closed_loop_over_bare_sumo_range": [round(min(ratios), 2), round(max(ratios), 2)],
+            "closed_loop_over_bare_sumo_cpu": round(statistics.median(cpu_ratios), 2),
+            "closed_loop_over_bare_sumo_cpu_range": [round(min(cpu_ratios), 2), round(max(cpu_ratios), 2)],
             # the same trips without the metrics: best block against best block, and the median of
             # the back-to-back pairs
             "real_time_factor_without_metrics": round(simulated / bare_wall, 1),
@@ -424,10 +433,19 @@ def p8_gym(episodes: int, repeats: int = 3) -> dict:
             "target": "kinematics >= 500 steps/s"}
 
 
+def gpu_section(frames: int) -> dict:
+    """The GPU path against the CPU path (vcfusion.gpu_check); "no GPU: skipped" where there is none."""
+    from vcfusion.gpu_check import gpu_check
+
+    return gpu_check(frames)
+
+
 SECTIONS = {"P1": p1_traffic, "P2": p2_vision, "P3": p3_dataset, "P4": p4_scaling, "P5": p5_memory, "P6": p6_drive,
-            "P7": p7_guidance_study, "P8": p8_gym}
-SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 240, "P5": 1.0, "P6": 60.0, "P7": 20, "P8": 10},
-         "quick": {"P1": 3, "P2": 1, "P3": 2, "P4": 6, "P5": 0.3, "P6": 3.0, "P7": 4, "P8": 3}}
+            "P7": p7_guidance_study, "P8": p8_gym, "GPU": gpu_section}
+# what `vcfusion bench` runs without --sections: P8 (needs the gym extra) and the GPU check only when named
+DEFAULT_SECTIONS = ("P1", "P2", "P3", "P4", "P5", "P6", "P7")
+SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 240, "P5": 1.0, "P6": 60.0, "P7": 20, "P8": 10, "GPU": 8},
+         "quick": {"P1": 3, "P2": 1, "P3": 2, "P4": 6, "P5": 0.3, "P6": 3.0, "P7": 4, "P8": 3, "GPU": 2}}
 
 
 def run_section(name: str, size: str) -> dict:

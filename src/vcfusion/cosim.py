@@ -172,7 +172,7 @@ def _twin_rows(twins: TwinStates) -> dict[str, np.ndarray]:
     rows = {
         "time": np.full(len(twins), round(twins.time, 6)),
         "vehicle_id": np.array(twins.ids, dtype=object),
-        "measured_time": np.round(twins.measured_time, 6),
+        "measured_time": twins.measured_time.round(6),
         "x": twins.x, "y": twins.y, "z": twins.z, "heading": twins.heading,
         "speed": twins.speed, "accel": twins.accel, "lane": twins.lane,
     }

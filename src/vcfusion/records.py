@@ -41,14 +41,17 @@ def _take(record, index):
         names = _FIELD_NAMES[type(record)] = tuple(f.name for f in fields(record))
     index = np.asarray(index)
     if index.dtype == bool:
-        index = np.flatnonzero(index)
+        index = index.nonzero()[0]
+    listed = None  # the index as Python ints, for the tuple fields (ids, types)
     values = {}
     for name in names:
         v = getattr(record, name)
         if isinstance(v, np.ndarray):
             values[name] = v[index]
         elif isinstance(v, tuple):
-            values[name] = tuple(v[i] for i in index)
+            if listed is None:
+                listed = index.tolist()
+            values[name] = tuple([v[i] for i in listed])
         else:
             values[name] = v
     sub = type(record)(**values)

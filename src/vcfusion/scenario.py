@@ -153,6 +153,9 @@ class FusionConfig(_Strict):
         (640, 640), description="onnx-yolo only: the model's input size (width, height)")
     yolo_classes: Annotated[tuple[str, ...], Field(min_length=1)] = Field(
         ("car", "bus", "truck"), description="onnx-yolo only: the COCO classes kept as vehicles")
+    device: Literal["auto", "cpu", "cuda"] = Field("auto", description="where the cnn detector runs: auto (CUDA when "
+                                                   "torch finds a GPU, else the CPU), cpu or cuda (refused where "
+                                                   "there is no GPU); `vcfusion --device` overrides it")
     method: Literal["baseline", "baseline_centre", "paper", "joint"] = Field(
         "joint", description="twin-to-box matching: baseline (the paper's RGB-only rule), baseline_centre "
                              "(nearest box centre), paper (Algorithm 2), joint (the joint matcher)")

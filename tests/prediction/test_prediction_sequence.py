@@ -198,3 +198,25 @@ def test_a_tick_without_any_twin_leaves_the_predictors_memory_as_the_replay_does
             a, b = live(snapshot), replay(snapshot)
             np.testing.assert_array_equal(a["lc_prob"], b["lc_prob"])
             np.testing.assert_array_equal(a["lc_decision"], b["lc_decision"])
+
+
+def test_the_same_twins_tick_after_tick_and_after_a_long_absence_equal_the_sequence_in_one_go():
+    """Twins given in the same order every tick (the run-time case, where the states are carried
+    without a lookup), and all of them absent for longer than reset_gap_ticks (no call at those
+    ticks, as in a run where no report arrives): then every state starts again from zeros."""
+    model = _model()
+    rows = [{"seed": 0, "vehicle_id": vid, "time": round(0.1 * k, 6)}
+            for vid in ("a", "b") for k in (*range(0, 20), *range(35, 50))]
+    stream = pd.DataFrame(rows).sort_values(["seed", "vehicle_id", "time"], kind="stable").reset_index(drop=True)
+    rng = np.random.default_rng(4)
+    for i, name in enumerate(NAMES):
+        stream[name] = rng.normal(0, 1 + i % 5, len(stream)).astype(np.float32)
+    offline = model.stream_proba(stream, list(NAMES))
+    state = SequenceState(model)
+    online = np.full(len(stream), np.nan, dtype=np.float32)
+    for time, tick in stream.groupby("time", sort=True):
+        online[tick.index] = state(tick["vehicle_id"].tolist(), time, tick[list(NAMES)].to_numpy(np.float32))
+    np.testing.assert_allclose(online, offline, atol=1e-6)
+    # carried across the gap instead, the states would differ (the test can fail)
+    no_reset = _model(reset_gap_ticks=100)
+    assert not np.allclose(no_reset.stream_proba(stream, list(NAMES)), offline, atol=1e-4)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -28,6 +29,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(prog="vcfusion", description=__doc__)
     parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
+    parser.add_argument("--device", dest="command_device", choices=("auto", "cpu", "cuda"),
+                        help="where the camera renders and the detector runs: auto (the GPU when present: EGL and "
+                             "CUDA), cpu (OSMesa, CPU) or cuda; default: the scenario's fusion.device, else auto")
     sub = parser.add_subparsers(dest="command", required=True)
     simulation.add_parsers(sub)  # run, scenarios, batch, build-net, render, demo
     study.add_parsers(sub)  # study identification | guidance | hitl
@@ -42,6 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.command_device:  # before anything imports OpenGL; worker processes inherit it (vcfusion.accel)
+        os.environ["VCFUSION_DEVICE"] = args.command_device
     with interrupts.recorded():  # Ctrl-C stops the command even when numba swallowed its KeyboardInterrupt
         try:
             return args.func(args)

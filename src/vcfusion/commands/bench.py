@@ -9,16 +9,21 @@ from vcfusion.errors import UsageError
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from vcfusion.bench import SECTIONS, run_suite, to_markdown
+    from vcfusion.bench import DEFAULT_SECTIONS, SECTIONS, run_suite, to_markdown
 
-    sections = [s.strip() for s in args.sections.split(",")] if args.sections else sorted(SECTIONS)
+    sections = [s.strip() for s in args.sections.split(",")] if args.sections else list(DEFAULT_SECTIONS)
     unknown = [s for s in sections if s not in SECTIONS]
     if unknown:
         raise UsageError(f"--sections: unknown {unknown}; expected some of {sorted(SECTIONS)}")
     results = run_suite(sections, "quick" if args.quick else "full", Path(args.out))
     print(to_markdown(results))
     print(f"written: {Path(args.out) / 'bench.json'}, {Path(args.out) / 'bench.md'}")
-    return 0
+    failed = 0
+    for r in results:  # the GPU check's verdict, on its own line (counted: skipped is not passed)
+        if "status" in r:
+            print(f"{r['name']}: {r['status']}; {r.get('failed', 0)} failed, {r.get('skipped', 0)} skipped")
+            failed += r.get("failed", 0)
+    return 1 if failed else 0
 
 
 def cmd_bench_render(args: argparse.Namespace) -> int:
@@ -37,7 +42,8 @@ def cmd_bench_render(args: argparse.Namespace) -> int:
 
 def add_parsers(sub) -> None:
     p = sub.add_parser("bench", help="benchmark suite: print figures, write bench.json and bench.md")
-    p.add_argument("--sections", help="comma-separated subset, e.g. P1,P4 (default: all)")
+    p.add_argument("--sections", help="comma-separated subset, e.g. P1,P4 (default: P1-P7); GPU: the GPU path "
+                                      "checked against the CPU path (says 'no GPU: skipped' without one)")
     p.add_argument("--quick", action="store_true", help="small sizes (a smoke run, not figures to report)")
     p.add_argument("--out", default="runs/bench")
     p.set_defaults(func=cmd_bench)

@@ -105,7 +105,10 @@ def build_detector(scenario: Scenario, seed: int):
     try:
         if cfg.detector == "onnx-yolo":
             return OnnxDetector.ultralytics(cfg.weights, tuple(cfg.yolo_input_px), cfg.yolo_classes)
-        return TorchDetector(cfg.weights or default_weights_path())
+        from vcfusion.accel import torch_device
+
+        device = torch_device(cfg.device, f"{scenario.source}: fusion.device")
+        return TorchDetector(cfg.weights or default_weights_path(), device=device)
     except DetectorFileError as exc:
         raise ScenarioError(f"{scenario.source}: fusion.weights: {exc}") from None
 

@@ -15,6 +15,7 @@ from typing import Callable
 
 import libsumo
 import numpy as np
+from traci import constants as tc
 
 from vcfusion.records import EGO_ID, VehicleStates
 from vcfusion.scenario import Scenario
@@ -24,6 +25,12 @@ from vcfusion.traffic.roadframe import RoadFrame
 
 # A stop longer than any run: the accident vehicles never leave.
 ACCIDENT_STOP_S = 1.0e6
+# How far ahead SUMO looks for the ego's leader (m): the ego table's leader columns see no farther.
+LEADER_HORIZON_M = 250.0
+# the TraCI variables of the ego's subscription (ids from SUMO's TraCI constants)
+_LANE_POSITION, _SPEED, _ACCELERATION, _LEADER, _LANE_ID = (tc.VAR_LANEPOSITION, tc.VAR_SPEED, tc.VAR_ACCELERATION,
+                                                             tc.VAR_LEADER, tc.VAR_LANE_ID)
+_EGO_VARS = (_LANE_POSITION, _SPEED, _ACCELERATION, _LEADER)
 
 
 class RunError(RuntimeError):
@@ -323,6 +330,10 @@ class SumoSession:
             # Our code drives the ego: no SUMO safety checks, no SUMO lane changes.
             libsumo.vehicle.setSpeedMode(EGO_ID, 0)
             libsumo.vehicle.setLaneChangeMode(EGO_ID, 0)
+            # what ego_state reads every step, gathered by SUMO in its step: one call instead of four
+            # (the same values as the getters; its results are empty once the ego has left)
+            libsumo.vehicle.subscribe(EGO_ID, list(_EGO_VARS) if self._ego_single_edge else [*_EGO_VARS, _LANE_ID],
+                                      parameters={_LEADER: LEADER_HORIZON_M})
         on_road = set(libsumo.vehicle.getIDList())
         missing = [p for p in self.placements if p.depart_s == 0.0 and p.vehicle_id not in on_road]
         if missing:
@@ -408,27 +419,28 @@ class SumoSession:
     def vehicle_count(self) -> int:
         return libsumo.vehicle.getIDCount()
 
-    def ego_state(self, horizon_m: float = 250.0) -> tuple[float, float, float, tuple[str, float] | None] | None:
+    def ego_state(self) -> tuple[float, float, float, tuple[str, float] | None] | None:
         """The ego now: (front-bumper position along its route, speed, acceleration, leader), where
-        leader is SUMO's (id, bumper-to-bumper gap) within horizon_m or None; None once the ego
-        left. One call per SUMO step (it runs 100 times per simulated second)."""
-        v = libsumo.vehicle
-        try:
-            pos, speed, accel = v.getLanePosition(EGO_ID), v.getSpeed(EGO_ID), v.getAcceleration(EGO_ID)
-            if not self._ego_single_edge:
-                pos = float(self.ego_frame.route_position(v.getLaneID(EGO_ID), pos))
-        except libsumo.TraCIException:
+        leader is SUMO's (id, bumper-to-bumper gap) within LEADER_HORIZON_M or None; None once the
+        ego left. One call per SUMO step (it runs 100 times per simulated second): the values of
+        the ego's subscription (_populate)."""
+        found = libsumo.vehicle.getSubscriptionResults(EGO_ID)
+        if not found:  # the ego has left the simulation, and its subscription with it
             return None
-        except KeyError:  # SUMO put the ego on an edge off its route (a person steered it onto a ramp)
-            self.ego_off_route = True
-            return None
-        found = v.getLeader(EGO_ID, horizon_m)
-        if not found or not found[0]:
+        pos, speed, accel = found[_LANE_POSITION], found[_SPEED], found[_ACCELERATION]
+        if not self._ego_single_edge:
+            try:
+                pos = float(self.ego_frame.route_position(found[_LANE_ID], pos))
+            except KeyError:  # SUMO put the ego on an edge off its route (a person steered it onto a ramp)
+                self.ego_off_route = True
+                return None
+        leader = found[_LEADER]  # ("", -1) when there is none within the horizon
+        if not leader or not leader[0]:
             return pos, speed, accel, None
-        # getLeader's distance excludes the follower's minGap; add it back for the true gap.
+        # the leader's distance excludes the follower's minGap; add it back for the true gap.
         if self._ego_min_gap is None:
-            self._ego_min_gap = v.getMinGap(EGO_ID)
-        return pos, speed, accel, (found[0], found[1] + self._ego_min_gap)
+            self._ego_min_gap = libsumo.vehicle.getMinGap(EGO_ID)
+        return pos, speed, accel, (leader[0], leader[1] + self._ego_min_gap)
 
     def speed_of(self, vehicle_id: str) -> float:
         return libsumo.vehicle.getSpeed(vehicle_id)
