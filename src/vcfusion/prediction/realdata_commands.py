@@ -1,0 +1,39 @@
+"""`vcfusion compare-lane-changes`: argparse setup and handler (the library code is
+vcfusion.prediction.manoeuvres). A bad dataset folder raises DatasetError (the CLI prints it and
+exits with 2)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def cmd_compare_lane_changes(args: argparse.Namespace) -> int:
+    from vcfusion.prediction.manoeuvres import compare_lane_changes
+
+    names = [n.strip() for n in args.names.split(",")] if args.names else None
+    report = compare_lane_changes(Path(args.sim), [Path(r) for r in args.real], Path(args.out), args.label, names)
+    ks = report["ks"]
+    print(f"lane changes: {', '.join(f'{k} {v}' for k, v in report['meta']['lane_changes'].items())}")
+    with __import__("pandas").option_context("display.width", 200, "display.max_rows", 200):
+        print(ks[["quantity", "real", "n_sim", "n_real", "median_sim", "median_real", "ks"]].to_string(index=False,
+                                                                                                      float_format="%.3g"))
+    print(f"comparison -> {args.out} (ks.md, ks.csv, events.parquet, profiles.parquet, profiles.png, quantities.png)")
+    return 0
+
+
+def add_parsers(sub) -> None:
+    p = sub.add_parser("compare-lane-changes",
+                       help="how a simulated dataset's lane changes differ from recorded ones: kinematics around the "
+                            "lane crossing (-10 .. +3 s) and KS distances per quantity")
+    p.add_argument("sim", metavar="SIM_DATASET", help="dataset folder of simulated runs (`vcfusion dataset SCENARIO`)")
+    p.add_argument("real", metavar="REAL_DATASET", nargs="+",
+                   help="dataset folder(s) of imported recordings (`vcfusion dataset --from-...`); each is compared "
+                        "with SIM_DATASET")
+    p.add_argument("--out", required=True, help="new folder for the table, figures and per-event quantities")
+    p.add_argument("--names", help="comma-separated names of SIM then each REAL for tables and figures "
+                                   "(default: the folder names)")
+    p.add_argument("--label", default="",
+                   help="what the figures are, printed on them, e.g. 'development data US-101; nothing held out'")
+    p.set_defaults(func=cmd_compare_lane_changes,
+                   interrupted="the comparison folder is written only when complete; nothing was written")
