@@ -285,6 +285,76 @@ class AccidentConfig(_Strict):
     vtype: Name = "truck"
 
 
+class LaneChangeDurationConfig(_Strict):
+    """Each vehicle's own lane-change duration, drawn when it departs: SUMO's per-vehicle lateral
+    speed limit (maxSpeedLat) is set to lane width / duration (SUMO: a vehicle's maxSpeedLat
+    overrides --lanechange.duration; with the sublane model's lcAccelLat the move takes about
+    maxSpeedLat / lcAccelLat longer)."""
+
+    # fixed: every change `median_s`; lognormal: median `median_s`, log-space std `sigma`;
+    # uniform: between min_s and max_s. Draws are clipped to [min_s, max_s].
+    distribution: Literal["fixed", "lognormal", "uniform"] = "lognormal"
+    median_s: Positive = 4.0
+    sigma: NonNegative = 0.3
+    min_s: Positive = 1.0
+    max_s: Positive = 12.0
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "LaneChangeDurationConfig":
+        if not self.min_s <= self.median_s <= self.max_s:
+            raise ValueError(f"lane_change_model.duration: expected min_s <= median_s <= max_s, got {self.min_s:g}, "
+                             f"{self.median_s:g}, {self.max_s:g}")
+        return self
+
+
+class LaneChangeModelConfig(_Strict):
+    """SUMO's lane-change model for the traffic's vehicle types (not the ego, which our code
+    drives). Unset parameters keep the vehicle types file's values (SUMO's defaults where it has
+    none). Calibrated sets and how they were chosen: docs (issue 46, `vcfusion compare-lane-changes`
+    against US-101 development data)."""
+
+    # LC2013: SUMO's default, lanes as units (a change is a move across at constant lateral speed,
+    # --lanechange.duration); SL2015: the sublane model (needs lateral_resolution_m: vehicles move
+    # within and across lanes with bounded lateral speed and acceleration)
+    model: Literal["LC2013", "SL2015"] = "LC2013"
+    # vehicle types given these parameters; default: every type of the scenario's vehicles and flows
+    vtypes: list[Name] | None = None
+    lateral_resolution_m: Positive | None = None  # SUMO --lateral-resolution (m); SL2015 only
+    lc_sigma: NonNegative | None = None  # lateral imperfection (SUMO lcSigma, m/s-ish noise); SL2015 only
+    max_speed_lat_mps: Positive | None = None  # SUMO maxSpeedLat, m/s
+    lc_accel_lat_mps2: Positive | None = None  # SUMO lcAccelLat, m/s^2; SL2015 only
+    lc_strategic: NonNegative | None = None  # SUMO lcStrategic (eagerness for route changes)
+    lc_cooperative: Annotated[float, Field(ge=0.0, le=1.0)] | None = None  # SUMO lcCooperative
+    lc_speed_gain: NonNegative | None = None  # SUMO lcSpeedGain (eagerness to overtake)
+    lc_keep_right: NonNegative | None = None  # SUMO lcKeepRight (eagerness to return right)
+    duration: LaneChangeDurationConfig | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "LaneChangeModelConfig":
+        sublane = self.model == "SL2015"
+        if sublane != (self.lateral_resolution_m is not None):
+            raise ValueError("lane_change_model: expected lateral_resolution_m exactly with model SL2015 (SUMO runs "
+                             "LC2013 without sublanes only, and SL2015 on sublanes)")
+        for name in ("lc_sigma", "lc_accel_lat_mps2"):
+            if getattr(self, name) is not None and not sublane:
+                raise ValueError(f"lane_change_model.{name}: only the sublane model (model: SL2015) moves vehicles "
+                                 "laterally this way; with LC2013 it would have no effect")
+        if self.duration is not None and self.max_speed_lat_mps is not None:
+            raise ValueError("lane_change_model: expected one of duration (per-vehicle maxSpeedLat) and "
+                             "max_speed_lat_mps, not both")
+        return self
+
+    def vtype_attributes(self) -> dict[str, str]:
+        """The SUMO vType attributes this block sets (name -> value text)."""
+        names = {"lc_sigma": "lcSigma", "max_speed_lat_mps": "maxSpeedLat", "lc_accel_lat_mps2": "lcAccelLat",
+                 "lc_strategic": "lcStrategic", "lc_cooperative": "lcCooperative", "lc_speed_gain": "lcSpeedGain",
+                 "lc_keep_right": "lcKeepRight"}
+        out = {"laneChangeModel": self.model}
+        out |= {sumo: repr(float(getattr(self, field))) for field, sumo in names.items()
+                if getattr(self, field) is not None}
+        return out
+
+
 class PredictionConfig(_Strict):
     """The cloud's lane-change predictor (a twin process model, vcfusion.prediction)."""
 
@@ -359,6 +429,7 @@ class Scenario(_Strict):
     accident: AccidentConfig | None = None
     prediction: PredictionConfig = PredictionConfig()
     metrics: MetricsConfig = MetricsConfig()
+    lane_change_model: LaneChangeModelConfig | None = None
     # Where the scenario was read from (set by the loader, not by the file): the file given and,
     # when it extends others, the chain of files it was merged from (the given file first).
     source: Path | None = Field(default=None, exclude=True)
@@ -415,7 +486,10 @@ class Scenario(_Strict):
         return int(round(period_s / self.simulation.step_s))
 
     def to_dict(self) -> dict:
-        return self.model_dump(mode="json")
+        out = self.model_dump(mode="json")
+        if self.lane_change_model is None:  # unset: the record every run of SUMO's own lane changes keeps
+            del out["lane_change_model"]
+        return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -752,6 +826,12 @@ def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
     uses += [(("vehicles", i), g.vtype, g.route, g.lanes, "pos_m", list(g.pos_m), True)
              for i, g in enumerate(scenario.vehicles)]
     uses += [(("flows", i), f.vtype, f.route, f.lanes, "", [0.0], False) for i, f in enumerate(scenario.flows)]
+    lcm = scenario.lane_change_model
+    for k, vtype in enumerate((lcm.vtypes or []) if lcm is not None else []):
+        if vtype not in vtypes:
+            raise ScenarioError(f"{origins.label(('lane_change_model', 'vtypes', k))}: lane_change_model.vtypes: "
+                                f"{vtype!r} is not defined in {scenario.vehicle_types.name}; expected one of: "
+                                f"{', '.join(vtypes)}")
     acc = scenario.accident
     if acc is not None:
         if acc.edge is not None and acc.edge not in road.route:
