@@ -107,3 +107,25 @@ def test_bad_blocks_are_refused(tmp_path, block, needle):
     path = write_scenario(tmp_path, BUSY + f"lane_change_model: {block}\n")
     with pytest.raises(ScenarioError, match=needle):
         load_scenario(path)
+
+
+def test_sublane_changes_start_and_end_when_the_lateral_motion_settles():
+    """A sublane-model driver keeps an offset of its own (never centred to 5 cm): the settled rule
+    times the change by its lateral motion (3 s cosine move from 20 s), the centred one cannot."""
+    from vcfusion.traffic.lanechanges import lane_change_events
+    from vcfusion.traffic.network import Road
+
+    road = Road("hw", (0.0, 0.0), (2000.0, 0.0), 3, 3.5, 30.0)
+    t = np.round(np.arange(0.0, 40.0, 0.1), 6)
+    u = np.clip((t - 20.0) / 3.0, 0.0, 1.0)
+    d = 1.75 + 0.3 + 3.5 * (1 - np.cos(np.pi * u)) / 2  # 0.3 m left of the lane centres throughout
+    changes = {"vehicle_id": np.array(["v"]), "mid_time": np.array([21.5]), "from_lane": np.array([0]),
+               "to_lane": np.array([1]), "direction": np.array([1]), "reason": np.array(["speedGain"]),
+               "pos_m": np.array([500.0]), "speed_mps": np.array([20.0]), "leader_gap_m": np.array([np.nan]),
+               "follower_gap_m": np.array([np.nan])}
+    tracks = {"v": {"time": t, "d": d, "s": 20.0 * t}}
+    centred = lane_change_events(changes, tracks, road)
+    assert np.isnan(centred["start_time"][0])  # never within 5 cm of the old lane's centre
+    assert centred["end_time"][0] < 22.7  # only passing the new one's centre, while still moving
+    settled = lane_change_events(changes, tracks, road, "settled")
+    assert 19.5 <= settled["start_time"][0] <= 20.3 and 22.7 <= settled["end_time"][0] <= 23.5

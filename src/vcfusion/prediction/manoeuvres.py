@@ -40,7 +40,7 @@ import numpy as np
 import pandas as pd
 
 from vcfusion.prediction.dataset import DatasetError, load_dataset
-from vcfusion.prediction.sources.trajectories import LATERAL_SETTLED_MPS, lateral_speed
+from vcfusion.traffic.lanechanges import LATERAL_SETTLED_MPS, lateral_speed
 
 TAU_BEFORE_S, TAU_AFTER_S = 10.0, 3.0
 STEP_S = 0.1
