@@ -23,3 +23,11 @@ def test_every_candidate_is_a_valid_scenario(tmp_path, name):
 def test_score_is_the_mean_ks_of_the_objective_quantities():
     ks = pd.DataFrame({"quantity": [OBJECTIVE[0], OBJECTIVE[1], "gap_target_lead_m"], "ks": [0.2, 0.4, 0.9]})
     assert score(ks) == pytest.approx(0.3)  # gaps follow density: reported, not scored
+
+
+@pytest.mark.parametrize("name", ["dense_us101", "heavy_us101"])
+def test_shipped_calibrated_scenarios_carry_the_searched_best(name):
+    from vcfusion.scenario import LaneChangeModelConfig
+
+    scenario = load_scenario(SCENARIOS / "calibrated" / f"{name}.yaml")
+    assert scenario.lane_change_model == LaneChangeModelConfig(**CANDIDATES["sl2015-sigma0.9-acc1-logn3.5"])

@@ -46,6 +46,24 @@ CANDIDATES: dict[str, dict | None] = {
                             "duration": {"distribution": "lognormal", "median_s": 3.5, "sigma": 0.3, "min_s": 2.0,
                                          "max_s": 12.0}},
 }
+# Second stage: the sublane model around the first stage's best (lcSigma 0.3, lcAccelLat 0.3,
+# lognormal durations of median 4 s): lateral imperfection x lateral acceleration x duration.
+for _sigma in (0.3, 0.6):
+    for _acc in (0.3, 0.6, 1.0):
+        for _median in (3.0, 4.0):
+            CANDIDATES[f"sl2015-sigma{_sigma:g}-acc{_acc:g}-logn{_median:g}"] = {
+                "model": "SL2015", "lateral_resolution_m": 0.8, "lc_sigma": _sigma, "lc_accel_lat_mps2": _acc,
+                "duration": {"distribution": "lognormal", "median_s": _median, "sigma": 0.3, "min_s": 1.5,
+                             "max_s": 12.0}}
+
+# Third stage: the second stage's best sat at its largest lcSigma (0.6): larger ones.
+for _sigma in (0.9, 1.2):
+    for _acc in (0.6, 1.0):
+        for _median in (3.5, 4.0):
+            CANDIDATES[f"sl2015-sigma{_sigma:g}-acc{_acc:g}-logn{_median:g}"] = {
+                "model": "SL2015", "lateral_resolution_m": 0.8, "lc_sigma": _sigma, "lc_accel_lat_mps2": _acc,
+                "duration": {"distribution": "lognormal", "median_s": _median, "sigma": 0.3, "min_s": 1.5,
+                             "max_s": 12.0}}
 
 
 def candidate_scenario(base: Path, block: dict | None, out: Path) -> Path:
