@@ -131,3 +131,17 @@ def test_bad_commonroad_input_names_the_file_and_writes_nothing(tmp_path, capsys
     empty.mkdir()
     with pytest.raises(RealDataError, match="empty: no CommonRoad scenario"):
         read_commonroad([empty])
+
+
+def test_two_vehicles_under_one_id_in_one_recording_stay_two(tmp_path):
+    changer = lambda first: obstacle_xml(501, first, 20.0, 20.0, changer_d, 100)  # noqa: E731
+    a = obstacle_xml(600, 0, 100.0, 21.0, lambda t: LANE_W / 2, 50)
+    b = obstacle_xml(600, 0, 150.0, 19.0, lambda t: 1.5 * LANE_W, 50)  # another car, same id, other file
+    (tmp_path / "USA_Test-2_1_T-1.xml").write_text(scenario_xml("USA_Test-2_1_T-1", [changer(0), a], 901))
+    (tmp_path / "USA_Test-2_2_T-1.xml").write_text(scenario_xml("USA_Test-2_2_T-1", [changer(0), b], 902))
+    recordings, _ = read_commonroad([tmp_path])
+    assert len(recordings) == 1
+    samples = recordings[0].samples
+    assert sorted(samples["vehicle_id"].unique()) == ["501", "600", "600-2"]
+    assert samples.groupby("vehicle_id").size()["600"] == 50
+    assert recordings[0].source["quality_reader"]["obstacle_ids_renamed"] == 1

@@ -29,7 +29,8 @@ the lanelet network, the dynamic obstacles and their trajectories). What is used
 - duplicated recordings: CommonRoad repeats one recording in several files (another planning
   problem each). An obstacle is identified by its trajectory (first and last position to 1 cm
   and its number of states); files that share an obstacle are one recording (their time steps
-  aligned on the shared obstacles), each obstacle imported once (the copies counted).
+  aligned on the shared obstacles), each obstacle imported once (the copies counted); a
+  different obstacle under an id already taken becomes ID-2, ID-3, ... (counted).
 The planning problem's ego vehicle is not an obstacle and is not imported (it is not recorded
 in the file's trajectories).
 """
@@ -328,18 +329,26 @@ def _recording(scenarios: list[_Scenario], members: list[tuple[int, int]]) -> Re
     counts["files_with_another_lanelet_network"] = sum(
         sorted({ll.lanelet_id for ll in scenarios[i].network.lanelets}) != ids for i, _ in members[1:])
     lanes = lane_map(first.network)
-    tracks, seen = [], set()
+    tracks, seen, names_used = [], set(), set()
     for i, shift in members:
         for tr in scenarios[i].tracks:
             if tr.fingerprint in seen:
                 counts["obstacles_duplicated"] += 1
                 continue
             seen.add(tr.fingerprint)
-            tracks.append((tr, shift))
+            # another vehicle under an id already taken (files of one recording number their own
+            # obstacles): renamed ID-2, ID-3, ... (counted)
+            vid, k = str(tr.obstacle_id), 1
+            while vid in names_used:
+                k += 1
+                vid = f"{tr.obstacle_id}-{k}"
+            counts["obstacle_ids_renamed"] += k > 1
+            names_used.add(vid)
+            tracks.append((tr, shift, vid))
     rows = []
-    for tr, shift in tracks:
+    for tr, shift, vid in tracks:
         steps = tr.steps + shift
-        rows.append(pd.DataFrame({"vehicle_id": str(tr.obstacle_id), "step": steps, "x": tr.xy[:, 0],
+        rows.append(pd.DataFrame({"vehicle_id": vid, "step": steps, "x": tr.xy[:, 0],
                                   "y": tr.xy[:, 1], "speed": tr.speed, "accel": tr.accel, "vclass": tr.vclass,
                                   "length": tr.length, "width": tr.width}))
     if not rows:
@@ -362,7 +371,7 @@ def _recording(scenarios: list[_Scenario], members: list[tuple[int, int]]) -> Re
     vclass = raw["vclass"].to_numpy(str)
     sizes = size_defaults(vclass, raw["length"].to_numpy(float), raw["width"].to_numpy(float),
                           np.full(len(raw), np.nan))
-    # the centre's s is the footprint centre; ids: one recording's obstacle ids are unique
+    # the centre's s is the footprint centre
     samples = pd.DataFrame({
         "vehicle_id": raw["vehicle_id"].to_numpy(str), "time": raw["time"].to_numpy(float), "s": s, "d": d,
         "lane": lane, "speed": speed, "accel": raw["accel"].to_numpy(float),
