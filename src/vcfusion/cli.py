@@ -506,7 +506,7 @@ def build_parser() -> argparse.ArgumentParser:
     from vcfusion.prediction.commands import add_parsers as add_prediction_parsers
 
     add_prediction_parsers(sub)  # dataset, train, evaluate, bench-predict
-    __import__("vcfusion.prediction.realdata_commands", fromlist=["add_parsers"]).add_parsers(sub)  # compare-lane-changes
+    __import__("vcfusion.prediction.realdata_commands", fromlist=["_"]).add_parsers(sub)  # compare/calibrate-lane-changes
 
     from vcfusion.detection.commands import add_parsers as add_detection_parsers
 

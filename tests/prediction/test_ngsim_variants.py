@@ -23,7 +23,8 @@ def rows(unit=1.0, lane_one="left", lateral=True):
             t = k / 10
             lane = lane_from_left if not (vid == 1 and t >= 5.0) else 2
             x = (lane - 0.5) * 12.0
-            out.append({"Vehicle_ID": vid, "Frame_ID": 100 + k, "Total_Frames": 101, "Global_Time": 1118846980000 + 100 * (100 + k),
+            out.append({"Vehicle_ID": vid, "Frame_ID": 100 + k, "Total_Frames": 101,
+                        "Global_Time": 1118846980000 + 100 * (100 + k),
                         "Local_X": x * unit if lateral else np.nan, "Local_Y": (y0 + 60.0 * t) * unit,
                         "Global_X": 0.0, "Global_Y": 0.0, "v_Length": 15.0 * unit, "v_Width": 6.0 * unit,
                         "v_Class": 2, "v_Vel": 60.0 * unit, "v_Acc": 0.0, "Preceding": 9 if vid == 2 else 0,

@@ -19,8 +19,8 @@ def cmd_dataset(args: argparse.Namespace) -> int:
                                         ("--from-highd", args.from_highd),
                                         ("--from-commonroad", getattr(args, "from_commonroad", None))) if given]
     if len(sources) != 1:
-        raise UsageError("dataset: expected exactly one of SCENARIO (simulate seeds), --from-ngsim FILE, "
-                         f"--from-highd PATH or --from-commonroad PATH, got {' and '.join(sources) if sources else 'none'}")
+        raise UsageError("dataset: expected exactly one of SCENARIO (simulate seeds), --from-ngsim FILE, --from-highd "
+                         f"PATH or --from-commonroad PATH, got {' and '.join(sources) if sources else 'none'}")
     if args.scenario is None:
         args.interrupted = "an import writes its folder only when complete; nothing was written, run it again"
         return _import_recordings(args)
@@ -164,8 +164,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 def add_parsers(sub) -> None:
     from vcfusion.cli import INTERRUPTED_BATCH  # (called by the cli's build_parser)
 
-    p = sub.add_parser("dataset", help="simulate seeds (or import NGSIM / highD recordings) and write a labelled "
-                                       "lane-change dataset (Parquet)")
+    p = sub.add_parser("dataset", help="simulate seeds (or import NGSIM / highD / CommonRoad recordings) and write "
+                                       "a labelled lane-change dataset (Parquet)")
     p.add_argument("scenario", nargs="?", help="scenario YAML file, e.g. scenarios/dense.yaml")
     p.add_argument("--seeds", help="e.g. 0-199 or 1,4,7-9 (with a SCENARIO)")
     p.add_argument("--out", required=True, help="dataset folder (resumable for a SCENARIO; new for an import)")

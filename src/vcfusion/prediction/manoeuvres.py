@@ -245,7 +245,8 @@ def ks_table(sim: tuple, real: tuple, sim_label: str, real_label: str) -> pd.Dat
 def _markdown(ks: pd.DataFrame, label: str) -> str:
     lines = [f"# Lane changes: simulated vs recorded ({label})", "",
              "KS = two-sample Kolmogorov-Smirnov distance (0: same distribution, 1: disjoint).", "",
-             "| quantity | real | n sim | n real | median sim | median real | KS | p |", "|---|---|---|---|---|---|---|---|"]
+             "| quantity | real | n sim | n real | median sim | median real | KS | p |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in ks.itertuples(index=False):
         lines.append(f"| {r.quantity} | {r.real} | {r.n_sim} | {r.n_real} | {r.median_sim:.3g} | {r.median_real:.3g} "
                      f"| {r.ks:.3f} | {r.p_value:.2g} |")

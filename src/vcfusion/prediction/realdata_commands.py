@@ -15,9 +15,8 @@ def cmd_compare_lane_changes(args: argparse.Namespace) -> int:
     report = compare_lane_changes(Path(args.sim), [Path(r) for r in args.real], Path(args.out), args.label, names)
     ks = report["ks"]
     print(f"lane changes: {', '.join(f'{k} {v}' for k, v in report['meta']['lane_changes'].items())}")
-    with __import__("pandas").option_context("display.width", 200, "display.max_rows", 200):
-        print(ks[["quantity", "real", "n_sim", "n_real", "median_sim", "median_real", "ks"]].to_string(index=False,
-                                                                                                      float_format="%.3g"))
+    columns = ["quantity", "real", "n_sim", "n_real", "median_sim", "median_real", "ks"]
+    print(ks[columns].to_string(index=False, float_format="%.3g"))
     print(f"comparison -> {args.out} (ks.md, ks.csv, events.parquet, profiles.parquet, profiles.png, quantities.png)")
     return 0
 

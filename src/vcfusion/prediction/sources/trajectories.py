@@ -325,7 +325,8 @@ def import_recordings(recordings: list[Recording], out: Path, tau: float, tau_g:
 IMPORT_README = """
 ## Imported recordings
 
-This dataset was imported from recorded trajectories (`vcfusion dataset --from-ngsim / --from-highd`,
+This dataset was imported from recorded trajectories (`vcfusion dataset --from-ngsim / --from-highd /
+--from-commonroad`,
 vcfusion.prediction.sources): each vehicle is replayed as a twin reporting every 0.1 s, its lane
 counted 0 = rightmost in its driving direction and s along it. A *seed* is a time chunk of one
 recording (one driving direction; `dataset.json` `seeds` says which); it holds the twins first
