@@ -82,16 +82,24 @@ def score(ks: pd.DataFrame) -> float:
 
 
 def run_search(base: Path, seeds: list[int], real_roots: list[Path], out: Path, names: list[str] | None = None,
-               workers: int = 1, tau: float = 5.0, tau_g: float = 2.0, progress: bool = True) -> pd.DataFrame:
-    """Simulate every candidate (datasets under out/NAME, resumable) and score it; writes
-    out/search.csv, out/search.md and out/ks_all.csv (every quantity, every candidate)."""
-    from vcfusion.prediction.dataset import build_dataset
+               workers: int = 1, tau: float = 5.0, tau_g: float = 2.0, progress: bool = True,
+               candidates: list[str] | None = None) -> pd.DataFrame:
+    """Simulate every candidate (or those named; datasets under out/NAME, resumable) and score it;
+    writes out/search.csv, out/search.md and out/ks_all.csv (every quantity, every candidate)."""
+    from vcfusion.prediction.dataset import DatasetError, build_dataset
+
+    unknown = [c for c in candidates or [] if c not in CANDIDATES]
+    if unknown:
+        raise DatasetError(f"--candidates: {', '.join(unknown)}: no such candidate; expected some of "
+                           f"{', '.join(CANDIDATES)}")
 
     out = Path(out)
     reals = [(name, dataset_kinematics(Path(r), name))
              for r, name in zip(real_roots, names or [Path(r).name for r in real_roots])]
     rows, all_ks = [], []
     for name, block in CANDIDATES.items():
+        if candidates is not None and name not in candidates:
+            continue
         scenario = candidate_scenario(base, block, out / "scenarios" / f"{name}.yaml")
         data = out / name
         report = build_dataset(scenario, seeds, data, workers, tau, tau_g, progress=progress)

@@ -34,7 +34,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     names = [n.strip() for n in args.names.split(",")] if args.names else None
     if names is not None and len(names) != len(args.real):
         raise UsageError(f"--names: expected {len(args.real)} names (one per REAL_DATASET), got {len(names)}")
-    table = run_search(Path(args.scenario), seeds, [Path(r) for r in args.real], Path(args.out), names, args.workers)
+    chosen = [c.strip() for c in args.candidates.split(",")] if args.candidates else None
+    table = run_search(Path(args.scenario), seeds, [Path(r) for r in args.real], Path(args.out), names, args.workers,
+                       candidates=chosen)
     print((Path(args.out) / "search.md").read_text())
     print(f"best: {table.loc[table['objective'].idxmin(), 'candidate']} (lowest mean KS); search -> {args.out}")
     return 0
@@ -64,5 +66,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--seeds", required=True, help="seeds of each candidate, e.g. 0-1")
     p.add_argument("--out", required=True, help="search folder (resumable: finished seeds are kept)")
     p.add_argument("--names", help="comma-separated names of the REAL_DATASETs")
+    p.add_argument("--candidates", help="comma-separated candidate names (default: all of "
+                                        "vcfusion.prediction.lc_calibration.CANDIDATES)")
     p.add_argument("--workers", type=int, default=1)
     p.set_defaults(func=cmd_calibrate, interrupted="finished seeds are kept; run the same command again to go on")
