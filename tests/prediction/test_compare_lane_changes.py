@@ -114,6 +114,9 @@ def test_profiles_and_ks(compared):
     assert "synthetic test data" in md and "| duration_s | real | 4 | 3 |" in md
     meta = json.loads((compared / "compare.json").read_text())
     assert meta["lane_changes"] == {"sim": 4, "real": 3} and meta["decision_tau_s"] == DECISION_TAU_S
+    # 12 vehicles x 601 ticks of 0.1 s on the main lanes
+    assert meta["rates"]["real"]["vehicle_hours"] == pytest.approx(12 * 601 * 0.1 / 3600)
+    assert meta["rates"]["real"]["per_vehicle_hour"] == pytest.approx(3 / (12 * 601 * 0.1 / 3600))
     assert (compared / "profiles.png").stat().st_size > 0 and (compared / "quantities.png").stat().st_size > 0
 
 

@@ -182,13 +182,16 @@ def lane_change_kinematics(motion: Motion, events: pd.DataFrame) -> tuple[pd.Dat
 
 
 def dataset_kinematics(root: Path, label: str) -> tuple[pd.DataFrame, np.ndarray, np.ndarray]:
-    """Every seed of a dataset folder: the per-event table (with dataset / seed columns) and profiles."""
+    """Every seed of a dataset folder: the per-event table (with dataset / seed columns; its
+    attrs["vehicle_hours"]: the samples' vehicle-hours on main lanes) and profiles."""
     info = load_dataset(root)
     frames, offs, vels = [], [], []
+    hours = 0.0
     for seed in info.seeds("all"):
         folder = info.run_folder(seed)
         events = pd.read_parquet(folder / "lane_changes.parquet")
         motion = _run_motion(folder)
+        hours += float((motion.table["lane"] >= 0).sum()) * motion.period_s / 3600.0
         table, off, vel = lane_change_kinematics(motion, events)
         frames.append(table.assign(dataset=label, seed=seed))
         offs.append(off)
@@ -196,6 +199,7 @@ def dataset_kinematics(root: Path, label: str) -> tuple[pd.DataFrame, np.ndarray
     events = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
     if not len(events):
         raise DatasetError(f"{root}: no lane change between main lanes in any seed; nothing to compare")
+    events.attrs["vehicle_hours"] = hours
     return events, np.concatenate(offs), np.concatenate(vels)
 
 
@@ -242,8 +246,11 @@ def ks_table(sim: tuple, real: tuple, sim_label: str, real_label: str) -> pd.Dat
     return pd.DataFrame(rows)
 
 
-def _markdown(ks: pd.DataFrame, label: str) -> str:
+def _markdown(ks: pd.DataFrame, label: str, rates: dict) -> str:
     lines = [f"# Lane changes: simulated vs recorded ({label})", "",
+             "Main-lane changes per vehicle-hour on the main lanes: "
+             + ", ".join(f"{k} {v['lane_changes']} in {v['vehicle_hours']:.1f} veh-h = {v['per_vehicle_hour']:.1f}"
+                         for k, v in rates.items()), "",
              "KS = two-sample Kolmogorov-Smirnov distance (0: same distribution, 1: disjoint).", "",
              "| quantity | real | n sim | n real | median sim | median real | KS | p |",
              "|---|---|---|---|---|---|---|---|"]
@@ -309,15 +316,19 @@ def compare_lane_changes(sim_root: Path, real_roots: list[Path], out: Path, labe
     events = pd.concat([sim[0], *[r[0] for r in reals]], ignore_index=True)
     profiles = pd.concat([profile_summary(n, off, vel) for n, (_, off, vel) in zip(labels, [sim, *reals])],
                          ignore_index=True)
+    rates = {}
+    for n, (ev, _, _) in zip(labels, [sim, *reals]):
+        h = ev.attrs.get("vehicle_hours", float("nan"))
+        rates[n] = {"lane_changes": int(len(ev)), "vehicle_hours": h, "per_vehicle_hour": len(ev) / h if h else None}
     with atomic_folder(out, "comparison folder") as tmp:
         write_table(tmp / "events.parquet", events)
         write_table(tmp / "profiles.parquet", profiles)
         write_table(tmp / "ks.parquet", ks)
         ks.to_csv(tmp / "ks.csv", index=False)
-        (tmp / "ks.md").write_text(_markdown(ks, label or "unlabelled"))
+        (tmp / "ks.md").write_text(_markdown(ks, label or "unlabelled", rates))
         figures = _figures(tmp, profiles, events, label or "unlabelled")
         meta = {"sim": str(sim_root), "real": [str(r) for r in real_roots], "names": labels, "label": label,
-                "lane_changes": {n: int((events["dataset"] == n).sum()) for n in labels},
+                "lane_changes": {n: int((events["dataset"] == n).sum()) for n in labels}, "rates": rates,
                 "decision_tau_s": DECISION_TAU_S, "gap_range_m": GAP_RANGE_M, "figures": figures,
                 "tau_s": [-TAU_BEFORE_S, TAU_AFTER_S]}
         write_json(tmp / "compare.json", meta)
