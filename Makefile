@@ -13,7 +13,9 @@ $(STAMP): pyproject.toml
 	@# OSMesa: the offscreen renderer; Xvfb: the human-in-the-loop window test runs in a real X11 server
 	@{ ldconfig -p | grep -q libOSMesa && command -v Xvfb >/dev/null; } || { (apt-get update -qq && apt-get install -y -qq libosmesa6 xvfb >/dev/null) || { echo "could not install libosmesa6 and xvfb (need root and apt)"; exit 1; }; }
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip install -q -e '.[dev,commonroad]'
+	@# the CommonRoad reader: commonroad-io without its protobuf pin (see pyproject.toml, extra commonroad)
+	$(PY) -m pip install -q --no-deps 'commonroad-io>=2024.1,<2027'
 	@touch $(STAMP)
 
 demo: $(STAMP)

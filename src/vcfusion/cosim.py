@@ -276,7 +276,8 @@ class CoSimulation:
             if not (sumo_changes["vehicle_id"] == EGO_ID).any():
                 sumo_changes = merge_changes(sumo_changes, ego_lane_changes(tracks.get(EGO_ID), session.road,
                                                                             lengths[EGO_ID]))
-        events = lane_change_events(sumo_changes, tracks, session.road)
+        sublane = sc.lane_change_model is not None and sc.lane_change_model.model == "SL2015"
+        events = lane_change_events(sumo_changes, tracks, session.road, "settled" if sublane else "centred")
         if sc.ego is not None:
             events = relate_to_ego(events, tracks, lengths, _ego_lane_at(tracks, events["mid_time"], session.road,
                                                                          sc.ego.lane))

@@ -346,6 +346,77 @@ class AccidentConfig(_Strict):
     vtype: Name = Field("truck", description="vehicle type of the stopped vehicles")
 
 
+class LaneChangeDurationConfig(_Strict):
+    """Each vehicle's own lane-change duration, drawn when it departs: SUMO's per-vehicle lateral
+    speed limit (maxSpeedLat) is set to lane width / duration (SUMO: a vehicle's maxSpeedLat
+    overrides --lanechange.duration; with the sublane model's lcAccelLat the move takes about
+    maxSpeedLat / lcAccelLat longer)."""
+
+    distribution: Literal["fixed", "lognormal", "uniform"] = Field(
+        "lognormal", description="fixed: every change median_s; lognormal: median median_s, log-space std sigma; "
+                                 "uniform: between min_s and max_s; draws are clipped to [min_s, max_s]")
+    median_s: Positive = Field(4.0, description="median lane-change duration")
+    sigma: NonNegative = Field(0.3, description="log-space standard deviation (lognormal)")
+    min_s: Positive = Field(1.0, description="shortest duration drawn")
+    max_s: Positive = Field(12.0, description="longest duration drawn")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "LaneChangeDurationConfig":
+        if not self.min_s <= self.median_s <= self.max_s:
+            raise ValueError(f"lane_change_model.duration: expected min_s <= median_s <= max_s, got {self.min_s:g}, "
+                             f"{self.median_s:g}, {self.max_s:g}")
+        return self
+
+
+class LaneChangeModelConfig(_Strict):
+    """SUMO's lane-change model for the traffic's vehicle types (not the ego, which our code
+    drives). Unset parameters keep the vehicle types file's values (SUMO's defaults where it has
+    none). Calibrated sets and how they were chosen: docs/components/real-data.md
+    (`vcfusion calibrate-lane-changes` against US-101 development data)."""
+
+    model: Literal["LC2013", "SL2015"] = Field(
+        "LC2013", description="LC2013: SUMO's default, lanes as units (a change moves across at constant lateral "
+                              "speed); SL2015: the sublane model (needs lateral_resolution_m: vehicles move within "
+                              "and across lanes with bounded lateral speed and acceleration)")
+    vtypes: list[Name] | None = Field(None, description="vehicle types given these parameters; null: every type "
+                                                        "of the scenario's vehicles and flows")
+    lateral_resolution_m: Positive | None = Field(None, description="SUMO --lateral-resolution; SL2015 only")
+    lc_sigma: NonNegative | None = Field(None, description="SUMO lcSigma: lateral imperfection; SL2015 only")
+    max_speed_lat_mps: Positive | None = Field(None, description="SUMO maxSpeedLat")
+    lc_accel_lat_mps2: Positive | None = Field(None, description="SUMO lcAccelLat; SL2015 only")
+    lc_strategic: NonNegative | None = Field(None, description="SUMO lcStrategic: eagerness for route changes")
+    lc_cooperative: Annotated[float, Field(ge=0.0, le=1.0)] | None = Field(None, description="SUMO lcCooperative")
+    lc_speed_gain: NonNegative | None = Field(None, description="SUMO lcSpeedGain: eagerness to overtake")
+    lc_keep_right: NonNegative | None = Field(None, description="SUMO lcKeepRight: eagerness to return right")
+    duration: LaneChangeDurationConfig | None = Field(None, description="per-vehicle lane-change durations "
+                                                                        "(exclusive with max_speed_lat_mps)")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "LaneChangeModelConfig":
+        sublane = self.model == "SL2015"
+        if sublane != (self.lateral_resolution_m is not None):
+            raise ValueError("lane_change_model: expected lateral_resolution_m exactly with model SL2015 (SUMO runs "
+                             "LC2013 without sublanes only, and SL2015 on sublanes)")
+        for name in ("lc_sigma", "lc_accel_lat_mps2"):
+            if getattr(self, name) is not None and not sublane:
+                raise ValueError(f"lane_change_model.{name}: only the sublane model (model: SL2015) moves vehicles "
+                                 "laterally this way; with LC2013 it would have no effect")
+        if self.duration is not None and self.max_speed_lat_mps is not None:
+            raise ValueError("lane_change_model: expected one of duration (per-vehicle maxSpeedLat) and "
+                             "max_speed_lat_mps, not both")
+        return self
+
+    def vtype_attributes(self) -> dict[str, str]:
+        """The SUMO vType attributes this block sets (name -> value text)."""
+        names = {"lc_sigma": "lcSigma", "max_speed_lat_mps": "maxSpeedLat", "lc_accel_lat_mps2": "lcAccelLat",
+                 "lc_strategic": "lcStrategic", "lc_cooperative": "lcCooperative", "lc_speed_gain": "lcSpeedGain",
+                 "lc_keep_right": "lcKeepRight"}
+        out = {"laneChangeModel": self.model}
+        out |= {sumo: repr(float(getattr(self, field))) for field, sumo in names.items()
+                if getattr(self, field) is not None}
+        return out
+
+
 class PredictionConfig(_Strict):
     """The cloud's lane-change predictor (a twin process model, vcfusion.prediction)."""
 
@@ -445,6 +516,7 @@ class Scenario(_Strict):
     metrics: MetricsConfig = MetricsConfig()
     # the Gymnasium environment's reward weights (vcfusion.gym); unused by `vcfusion run`
     reward: RewardConfig = RewardConfig()
+    lane_change_model: LaneChangeModelConfig | None = None
     # Where the scenario was read from (set by the loader, not by the file): the file given and,
     # when it extends others, the chain of files it was merged from (the given file first).
     source: Path | None = Field(default=None, exclude=True)
@@ -510,7 +582,10 @@ class Scenario(_Strict):
         return int(round(period_s / self.simulation.step_s))
 
     def to_dict(self) -> dict:
-        return self.model_dump(mode="json")
+        out = self.model_dump(mode="json")
+        if self.lane_change_model is None:  # unset: the record every run of SUMO's own lane changes keeps
+            del out["lane_change_model"]
+        return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -878,6 +953,12 @@ def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
     uses += [(("vehicles", i), g.vtype, g.route, g.lanes, "pos_m", list(g.pos_m), True)
              for i, g in enumerate(scenario.vehicles)]
     uses += [(("flows", i), f.vtype, f.route, f.lanes, "", [0.0], False) for i, f in enumerate(scenario.flows)]
+    lcm = scenario.lane_change_model
+    for k, vtype in enumerate((lcm.vtypes or []) if lcm is not None else []):
+        if vtype not in vtypes:
+            raise ScenarioError(f"{origins.label(('lane_change_model', 'vtypes', k))}: lane_change_model.vtypes: "
+                                f"{vtype!r} is not defined in {scenario.vehicle_types.name}; expected one of: "
+                                f"{', '.join(vtypes)}")
     acc = scenario.accident
     if acc is not None:
         if acc.edge is not None and acc.edge not in road.route:

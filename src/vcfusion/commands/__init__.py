@@ -25,7 +25,8 @@ def package_version() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from vcfusion.commands import bench, control, detection, drive, metrics, prediction, simulation, study
+    from vcfusion.commands import (bench, control, detection, drive, lane_changes, metrics, prediction, simulation,
+                                   study)
 
     parser = argparse.ArgumentParser(prog="vcfusion", description=__doc__)
     parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
@@ -38,6 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     drive.add_parsers(sub)
     bench.add_parsers(sub)  # bench, bench-render
     prediction.add_parsers(sub)  # dataset, train, evaluate, bench-predict
+    lane_changes.add_parsers(sub)  # compare-lane-changes, calibrate-lane-changes
     detection.add_parsers(sub)  # train-detector, eval-detector, render-scenes, resize-dataset, coco-check, export-onnx
     metrics.add_parsers(sub)  # metrics, report
     control.add_parsers(sub)  # export-commonroad

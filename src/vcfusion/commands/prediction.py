@@ -15,10 +15,11 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     from vcfusion.scenario import find_scenario, load_scenario
 
     sources = [name for name, given in (("SCENARIO", args.scenario), ("--from-ngsim", args.from_ngsim),
-                                        ("--from-highd", args.from_highd)) if given]
+                                        ("--from-highd", args.from_highd),
+                                        ("--from-commonroad", getattr(args, "from_commonroad", None))) if given]
     if len(sources) != 1:
-        raise UsageError("dataset: expected exactly one of SCENARIO (simulate seeds), --from-ngsim FILE or "
-                         f"--from-highd PATH, got {' and '.join(sources) if sources else 'none'}")
+        raise UsageError("dataset: expected exactly one of SCENARIO (simulate seeds), --from-ngsim FILE, --from-highd "
+                         f"PATH or --from-commonroad PATH, got {' and '.join(sources) if sources else 'none'}")
     if args.scenario is None:
         args.interrupted = "an import writes its folder only when complete; nothing was written, run it again"
         return _import_recordings(args)
@@ -57,9 +58,17 @@ def _import_recordings(args: argparse.Namespace) -> int:
         from vcfusion.prediction.sources.ngsim import parse_main_lanes, read_ngsim
 
         lanes = parse_main_lanes(args.main_lanes)
-        recordings = [rec for f in args.from_ngsim for rec in read_ngsim(f, lanes, args.ngsim_location)]
+        recordings = [rec for f in args.from_ngsim for rec in read_ngsim(f, lanes, args.ngsim_location,
+                                                                         args.ngsim_units, args.ngsim_lane_one)]
         source = {"format": "ngsim", "files": [str(f) for f in args.from_ngsim], "main_lanes": list(lanes),
-                  "location": args.ngsim_location}
+                  "location": args.ngsim_location, "units": args.ngsim_units, "lane_one": args.ngsim_lane_one}
+    elif getattr(args, "from_commonroad", None):
+        from vcfusion.prediction.sources.commonroad import read_commonroad
+
+        recordings, notes = read_commonroad(args.from_commonroad)
+        source = {"format": "commonroad", "paths": [str(p) for p in args.from_commonroad], "reader": notes}
+        print(f"{notes['files_read']} scenario files -> {notes['recordings']} distinct recordings; "
+              f"{len(notes['files_without_vehicle_trajectories'])} files without vehicle trajectories left out")
     else:
         from vcfusion.prediction.sources.highd import read_highd_path
 
@@ -152,8 +161,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub) -> None:
-    p = sub.add_parser("dataset", help="simulate seeds (or import NGSIM / highD recordings) and write a labelled "
-                                       "lane-change dataset (Parquet)")
+    p = sub.add_parser("dataset", help="simulate seeds (or import NGSIM / highD / CommonRoad recordings) and write "
+                                       "a labelled lane-change dataset (Parquet)")
     p.add_argument("scenario", nargs="?", help="scenario YAML file, e.g. scenarios/dense.yaml")
     p.add_argument("--seeds", help="e.g. 0-199 or 1,4,7-9 (with a SCENARIO)")
     p.add_argument("--out", required=True, help="dataset folder (resumable for a SCENARIO; new for an import)")
@@ -161,12 +170,19 @@ def add_parsers(sub) -> None:
                    help="import NGSIM trajectory files (18 columns, .csv / .txt, optionally .gz) instead of simulating")
     p.add_argument("--from-highd", dest="from_highd", metavar="PATH",
                    help="import highD recordings: a folder (every XX_tracks.csv) or one XX_tracks.csv")
+    p.add_argument("--from-commonroad", dest="from_commonroad", nargs="+", metavar="PATH",
+                   help="import CommonRoad scenarios: .xml files, folders of them or a .tar.xz of them (needs "
+                        "commonroad-io); files repeating a recording are imported once")
     p.add_argument("--main-lanes", dest="main_lanes", default="1-5",
                    help="NGSIM Lane_IDs of the main lanes (1 = leftmost); others (ramps, auxiliary) are off the "
                         "road. US-101: 1-5, I-80: 1-6")
     p.add_argument("--ngsim-location", dest="ngsim_location", metavar="NAME",
                    help="the combined NGSIM release (all sites in one CSV): import the rows of this Location, "
                         "e.g. us-101 or i-80")
+    p.add_argument("--ngsim-units", dest="ngsim_units", choices=["ft", "m"], default="ft",
+                   help="NGSIM files: the unit of positions, sizes, speeds (NGSIM's own: ft; metric re-releases: m)")
+    p.add_argument("--ngsim-lane-one", dest="ngsim_lane_one", choices=["left", "right"], default="left",
+                   help="NGSIM files: which edge Lane_ID 1 is at (NGSIM: the leftmost lane)")
     p.add_argument("--chunk", type=float, default=300.0,
                    help="imports: seconds of a recording per seed (the unit of the train/validation/test split)")
     p.add_argument("--workers", type=int, default=2)

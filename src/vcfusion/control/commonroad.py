@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -38,17 +40,28 @@ OBSTACLE_TYPES = {"truck": "TRUCK", "trailer": "TRUCK", "bus": "BUS", "coach": "
                   "bicycle": "BICYCLE"}  # SUMO vClass -> CommonRoad ObstacleType (others: CAR)
 
 
+def use_pure_python_protobuf() -> None:
+    """commonroad-io's generated protobuf modules predate protobuf 4's runtime ("Descriptors cannot
+    be created directly"); protobuf's pure-Python runtime still accepts them, and onnx works on it
+    too. The runtime is chosen when google.protobuf is first imported, so this takes effect only
+    before that (a fresh `vcfusion export-commonroad` process, the test session's conftest); where
+    protobuf was loaded first, commonroad_problem() says why the export cannot run."""
+    if "google.protobuf" not in sys.modules:
+        os.environ.setdefault("PROTOCOL_BUFFERS_PYTHON_IMPLEMENTATION", "python")
+
+
 def commonroad_problem() -> str | None:
     """Why commonroad-io cannot be used here (None when it loads)."""
+    use_pure_python_protobuf()
     try:
         import commonroad.common.file_reader  # noqa: F401
         import commonroad.common.file_writer  # noqa: F401
     except ImportError:
         return ("needs commonroad-io: pip install 'vcfusion[commonroad]' (an environment of its own: it pins "
                 "protobuf 3.20.2)")
-    except TypeError as exc:  # its generated protobuf modules under a newer protobuf runtime
-        return (f"commonroad-io does not load with this environment's protobuf ({' '.join(str(exc).split()[:6])}...): "
-                "it pins protobuf 3.20.2; install it in an environment of its own")
+    except TypeError as exc:  # its generated protobuf modules under protobuf's compiled runtime
+        return (f"commonroad-io does not load with this process's protobuf runtime ({' '.join(str(exc).split()[:6])}"
+                "...): set PROTOCOL_BUFFERS_PYTHON_IMPLEMENTATION=python before anything imports protobuf")
     return None
 
 

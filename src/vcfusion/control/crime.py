@@ -33,6 +33,9 @@ from vcfusion.records import EGO_ID
 
 def crime_problem() -> str | None:
     """Why commonroad-crime cannot be used here (None when it loads)."""
+    from vcfusion.control.commonroad import use_pure_python_protobuf
+
+    use_pure_python_protobuf()
     try:
         import commonroad.common.file_reader  # noqa: F401
         from commonroad_crime.measure import HW, THW, TTC  # noqa: F401

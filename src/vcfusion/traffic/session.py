@@ -189,6 +189,38 @@ def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.r
     return placements
 
 
+def traffic_vtypes(scenario: Scenario) -> list[str]:
+    """The vehicle types of a scenario's vehicle groups and flows (not the ego's, not the accident's)."""
+    return sorted({g.vtype for g in scenario.vehicles} | {f.vtype for f in scenario.flows})
+
+
+def lane_change_vtypes(scenario: Scenario, out: Path) -> Path:
+    """The scenario's vehicle types file with its lane_change_model's attributes set on the
+    chosen types, written to `out`."""
+    import xml.etree.ElementTree as ET
+
+    lcm = scenario.lane_change_model
+    chosen = set(lcm.vtypes or traffic_vtypes(scenario))
+    tree = ET.parse(scenario.vehicle_types)
+    for vt in tree.getroot().iter("vType"):
+        if vt.get("id") in chosen:
+            for name, value in lcm.vtype_attributes().items():
+                vt.set(name, value)
+    tree.write(out, encoding="UTF-8", xml_declaration=True)
+    return out
+
+
+def draw_lane_change_duration(cfg, rng: np.random.Generator) -> float:
+    """One vehicle's lane-change duration, s (scenario.LaneChangeDurationConfig)."""
+    if cfg.distribution == "fixed":
+        value = cfg.median_s
+    elif cfg.distribution == "lognormal":
+        value = cfg.median_s * float(np.exp(cfg.sigma * rng.standard_normal()))
+    else:
+        value = float(rng.uniform(cfg.min_s, cfg.max_s))
+    return float(min(max(value, cfg.min_s), cfg.max_s))
+
+
 class SumoSession:
     """One running SUMO simulation of a scenario."""
 
@@ -220,13 +252,25 @@ class SumoSession:
         self._steps = 0  # SUMO steps taken (a parked vehicle is on the road from the first)
         # their rows of the sumo_emissions table (SUMO's units), filled by finish()
         self.parked_emissions: list[tuple] = []
+        lcm = scenario.lane_change_model
+        # the scenario's lane-change model: its vehicle types rewritten beside the lane-change output
+        vtypes_file = scenario.vehicle_types if lcm is None else lane_change_vtypes(
+            scenario, lanechange_file.with_name(lanechange_file.stem + ".vtypes.add.xml"))
+        self._lc_types = set(lcm.vtypes or traffic_vtypes(scenario)) if lcm is not None else set()
+        self._lc_duration = lcm.duration if lcm is not None else None
+        # per-vehicle durations from a generator of their own (the placements' draws stay as they were)
+        self._lc_rng = np.random.default_rng(rng.integers(2**63)) if self._lc_duration is not None else None
+        self.lane_change_durations: dict[str, float] = {}  # vehicle -> drawn duration, s
+        lateral = (["--lateral-resolution", repr(lcm.lateral_resolution_m)] if lcm is not None
+                   and lcm.lateral_resolution_m is not None  # SUMO refuses it with --lanechange.duration
+                   else ["--lanechange.duration", repr(scenario.simulation.lanechange_duration_s)])
         self.sumo_args = [
             "sumo",
             "--net-file", str(scenario.network),
-            "--additional-files", str(scenario.vehicle_types),
+            "--additional-files", str(vtypes_file),
             "--step-length", repr(self.step_s),
             "--seed", str(seed),
-            "--lanechange.duration", repr(scenario.simulation.lanechange_duration_s),
+            *lateral,
             "--collision.action", "warn",
             # contact only: SUMO's default also calls a gap under the vType's minGap (2.5 m) a
             # collision, which the ego's driver (IDM s0 = 2 m, or a person) keeps when stopping
@@ -395,6 +439,12 @@ class SumoSession:
                 self._contact[(c.collider, c.victim)] = len(self.collisions)
                 self.collisions.append(Collision(self.time, c.collider, c.victim, c.type, c.colliderSpeed,
                                                  c.victimSpeed, c.lane, c.pos, self.time))
+        if self._lc_rng is not None:  # the configured duration of each vehicle that has just departed
+            for vid in libsumo.simulation.getDepartedIDList():
+                if libsumo.vehicle.getTypeID(vid) in self._lc_types:
+                    duration = draw_lane_change_duration(self._lc_duration, self._lc_rng)
+                    self.lane_change_durations[vid] = duration
+                    libsumo.vehicle.setMaxSpeedLat(vid, self.road.lane_width_m / duration)
 
     def set_ego_speed(self, speed_mps: float) -> None:
         libsumo.vehicle.setSpeed(EGO_ID, max(0.0, speed_mps))
