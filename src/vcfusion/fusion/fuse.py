@@ -203,6 +203,11 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
     return FusionResult(frame.time, twins.ids, detections, depths, choice, in_view, timings, n_anchor_boxes)
 
 
+def _finite_or_none(value) -> float | None:
+    v = float(value)
+    return v if np.isfinite(v) and v > 0 else None
+
+
 class VisionFusionHook:
     """Tick hook: fuse the camera frame with the ego's neighbour twins, set ``tick.detections`` and
     ``tick.guidance`` (source ``fusion``, levels from `policy`), draw the AR overlay (into
@@ -271,13 +276,16 @@ class VisionFusionHook:
         lc = np.asarray(twins.outputs.get("lc_prob", np.full(len(twins), np.nan)), dtype=float)
         view = np.flatnonzero(result.in_view)
         boxes = [result.box_of(self.method, i) for i in view]
+        chosen = [int(result.choice[self.method][i]) for i in view]
         decision = twins.outputs.get("lc_decision")
         in_view = make_guidance(tick.time, [twins.ids[i] for i in view], lc[view], boxes, self.policy,
                                 None if decision is None else np.asarray(decision)[view])
         # What is drawn is what the driver is shown: a twin without a matched box gives no item;
-        # each item names the vehicle actually inside its box.
-        in_view = [replace(g, box_vehicle_id=box_owner(g.box, frame.instances, frame.instance_ids))
-                   if g.box is not None else g for g in in_view]
+        # each item names the vehicle actually inside its box (scoring only: the instance map is
+        # never drawn), and carries the box's depth as the fusion measured it.
+        in_view = [replace(g, box_vehicle_id=box_owner(g.box, frame.instances, frame.instance_ids),
+                           box_depth_m=_finite_or_none(result.box_depths[j]))
+                   if g.box is not None else g for g, j in zip(in_view, chosen)]
         guidance = [g for g in in_view if g.box is not None]
         tick.detections = result.detections
         tick.guidance = self._shown = GuidanceSet(tuple(guidance), "fusion")
