@@ -23,6 +23,7 @@ import yaml
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from vcfusion.errors import ScenarioError  # the loader's error; importable from here as before
+from vcfusion.fusion import sensors as _sensors
 
 # the repository's scenario files (the package is installed from the checkout), for defaults that
 # must work from any working directory
@@ -172,6 +173,38 @@ class FusionConfig(_Strict):
         return self
 
 
+_DEPTH = _sensors.DepthSensorParams()
+_POSE = _sensors.PoseNoiseParams()
+
+
+class DepthSensorConfig(_Strict):
+    """Parameters of the depth sensor models (vcfusion.fusion.sensors: rule, unit and source of each)."""
+
+    baseline_m: Positive = _DEPTH.baseline_m
+    disparity_noise_px: NonNegative = _DEPTH.disparity_noise_px
+    min_disparity_px: Positive = _DEPTH.min_disparity_px
+    texture_min: NonNegative = _DEPTH.texture_min
+    tof_sigma0_m: NonNegative = _DEPTH.tof_sigma0_m
+    tof_sigma_rel: NonNegative = _DEPTH.tof_sigma_rel
+    tof_max_range_m: Positive = _DEPTH.tof_max_range_m
+    flying_edge_m: Positive = _DEPTH.flying_edge_m
+    lidar_beams: Annotated[int, Field(ge=2, le=512)] = _DEPTH.lidar_beams
+    lidar_elevation_deg: tuple[Annotated[float, Field(ge=-90, le=90)], Annotated[float, Field(ge=-90, le=90)]] = \
+        _DEPTH.lidar_elevation_deg
+    lidar_azimuth_step_deg: Annotated[float, Field(gt=0.0, le=10.0)] = _DEPTH.lidar_azimuth_step_deg
+    lidar_range_noise_m: NonNegative = _DEPTH.lidar_range_noise_m
+
+
+class PoseNoiseConfig(_Strict):
+    """The camera pose error the fusion does not know of (vcfusion.fusion.sensors)."""
+
+    mount_std_deg: Annotated[float, Field(ge=0.0, le=10.0)] = _POSE.mount_std_deg
+    body_motion: bool = _POSE.body_motion
+    pitch_gain_deg_per_mps2: Annotated[float, Field(ge=0.0, le=5.0)] = _POSE.pitch_gain_deg_per_mps2
+    roll_gain_deg_per_mps2: Annotated[float, Field(ge=0.0, le=5.0)] = _POSE.roll_gain_deg_per_mps2
+    suspension_tau_s: Positive = _POSE.suspension_tau_s
+
+
 class CameraConfig(_Strict):
     """The ego's forward camera (paper Sec. II-B): mount on the ego and pinhole intrinsics.
 
@@ -193,6 +226,11 @@ class CameraConfig(_Strict):
     # How the RGB image is finished (vcfusion.render.presets): "fast" for batch renders,
     # "quality" (supersampling, lens blur, noise) for studies; depth and instances are the same.
     render_preset: Literal["fast", "quality"] = "fast"
+    # What the fusion and detector get instead of the exact depth and pose (vcfusion.fusion.sensors):
+    # the depth sensor (exact, stereo, tof, lidar) with its parameters, and the pose error
+    depth: Literal["exact", "stereo", "tof", "lidar"] = "exact"
+    depth_params: DepthSensorConfig = DepthSensorConfig()
+    pose_noise: PoseNoiseConfig = PoseNoiseConfig()
 
     @model_validator(mode="after")
     def _planes(self) -> "CameraConfig":

@@ -139,6 +139,21 @@ def _camera_frame(ds: CocoDataset, k: int, image: np.ndarray):
                        gt_ids=tuple(ds.box_vehicle_ids[k]), gt_classes=ds.classes[k])
 
 
+def _sensed(frame, depth_sensor: str, pose_noise_deg: float, k: int):
+    """The dataset frame as the sensors deliver it (vcfusion.fusion.sensors; image k's own draws)."""
+    from dataclasses import replace
+
+    from vcfusion.fusion.sensors import PoseNoiseParams, SensorModel
+    from vcfusion.fusion.stage import SENSOR_STREAM, camera_view
+
+    cam = frame.camera
+    sensors = SensorModel(depth_sensor, pose=PoseNoiseParams(mount_std_deg=pose_noise_deg),
+                          rng=np.random.default_rng([k, SENSOR_STREAM]))
+    depth = sensors.depth(frame.depth, cam.K, cam.T_world_to_camera, frame.image)
+    T = sensors.believed_pose(cam.T_world_to_camera)
+    return replace(frame, depth=depth, camera=camera_view(cam.K, T, cam.width, cam.height, cam.time))
+
+
 def _identification(frame, twins, detector, seed: int, min_area: float, segments=None) -> tuple[np.ndarray, list]:
     """IoU of the joint matcher's box per target (0 where unmatched) and the targets' vehicle ids
     (`segments`: the frame's depth segments, when already computed)."""
@@ -157,13 +172,17 @@ def _identification(frame, twins, detector, seed: int, min_area: float, segments
 
 def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identification: bool = True,
                       detector_name: str = "cnn", progress: bool = False,
-                      refine=None, gnss_noise_m: float = 0.0) -> tuple[list[FamilyResult], dict]:
+                      refine=None, gnss_noise_m: float = 0.0, depth_sensor: str = "exact",
+                      pose_noise_deg: float = 0.0) -> tuple[list[FamilyResult], dict]:
     """Per-family results (in order of first appearance; plus 'all' over every image when there is
     more than one family) and the detections at COCO-evaluation threshold per image id. ``refine``
     (BoxRefineParams): score the boxes as the fusion stage uses them, snapped to each image's depth
     (every image then needs its depth image and camera record). ``gnss_noise_m``: the twins' GNSS
     points for the identification moved by a Gaussian of this std on each horizontal axis (one draw
-    per image, seeded by its index, the same for the oracle and the detector)."""
+    per image, seeded by its index, the same for the oracle and the detector). ``depth_sensor`` and
+    ``pose_noise_deg`` (a mount calibration error std, deg; frames of a dataset have no motion, so no
+    body pitch): what the fusion and the depth step see instead of the rendered depth and the exact
+    pose (vcfusion.fusion.sensors; seeded per image)."""
     from vcfusion.fusion.fuse import depth_step, frame_segments
     from vcfusion.detection.detector_net import PostParams
     from vcfusion.fusion.matching import box_iou
@@ -179,6 +198,8 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
                                              disable=not progress, leave=False)):
             image = read_rgb(path)
             frame = _camera_frame(ds, k, image) if ds.records and (refine is not None or identification) else None
+            if frame is not None and (depth_sensor != "exact" or pose_noise_deg > 0):
+                frame = _sensed(frame, depth_sensor, pose_noise_deg, k)
             if refine is not None and frame is None:
                 raise DetectorFileError(f"{path}: box refinement needs the image's depth image and camera record "
                                         "(a folder written by vcfusion render / render-scenes); "

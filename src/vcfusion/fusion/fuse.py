@@ -230,6 +230,8 @@ class VisionFusionHook:
 
             frame_source = tick_frame_source
             self.needs = ("neighbours", "frame")
+        elif getattr(frame_source, "reads_tick_frame", False):  # the camera stage's frames, through the sensors
+            self.needs = ("neighbours", "frame")
         else:
             self.needs = ("neighbours",)
         self.frame_source = frame_source

@@ -37,14 +37,33 @@ def camera_view(K: np.ndarray, T_world_to_camera: np.ndarray, width: int, height
                       K=K, T_world_to_camera=T)
 
 
-def frame_from_render(frame, truth) -> CameraFrame:
-    """A rendered frame (vcfusion.render.renderer.Frame) of the traffic state ``truth`` as a CameraFrame."""
+# the stream of a run's Generator that draws its sensor errors (vcfusion.fusion.sensors)
+SENSOR_STREAM = 48
+
+
+def run_sensors(scenario: Scenario, seed: int):
+    """The run's depth sensor and pose error (vcfusion.fusion.sensors), None when exact."""
+    from vcfusion.fusion.sensors import SensorModel
+
+    return SensorModel.for_camera(scenario.camera, np.random.default_rng([seed, SENSOR_STREAM]))
+
+
+def frame_from_render(frame, truth, sensors=None) -> CameraFrame:
+    """A rendered frame (vcfusion.render.renderer.Frame) of the traffic state ``truth`` as a
+    CameraFrame; with ``sensors`` (a SensorModel) the depth image and camera pose are the sensor's
+    (the one place where they are applied); the ground truth (boxes, instances) stays the render's."""
     from vcfusion.render.coco import category_id
     from vcfusion.render.gt_boxes import ground_truth_boxes
 
     gt = ground_truth_boxes(frame, truth)
-    return CameraFrame(time=float(frame.time), image=frame.rgb, depth=frame.depth,
-                       camera=camera_view(frame.K, frame.T_world_to_camera, frame.width, frame.height, frame.time),
+    depth, T = frame.depth, frame.T_world_to_camera
+    if sensors is not None:
+        i = truth.index_of(EGO_ID) if EGO_ID in truth.ids else None
+        depth = sensors.depth(frame.depth, frame.K, T, frame.rgb)
+        T = sensors.believed_pose(T, float(frame.time), *((float(truth.accel[i]), float(truth.speed[i]),
+                                                           float(truth.heading[i])) if i is not None else ()))
+    return CameraFrame(time=float(frame.time), image=frame.rgb, depth=depth,
+                       camera=camera_view(frame.K, T, frame.width, frame.height, frame.time),
                        gt_boxes=np.asarray(gt.box, dtype=float).reshape(-1, 4), gt_ids=tuple(gt.vehicle_ids),
                        gt_classes=np.array([category_id(c) for c in gt.vclass], dtype=np.int64),
                        instances=frame.instances, instance_ids=tuple(frame.vehicle_ids))
@@ -56,6 +75,21 @@ def tick_frame_source(tick) -> CameraFrame | None:
     if frame is None or isinstance(frame, CameraFrame):
         return frame
     return frame_from_render(frame, tick.truth)
+
+
+class SensedTickFrames:
+    """The camera stage's frames as the run's sensors deliver them (vcfusion.fusion.sensors)."""
+
+    reads_tick_frame = True
+
+    def __init__(self, sensors):
+        self.sensors = sensors
+
+    def __call__(self, tick) -> CameraFrame | None:
+        frame = tick.frame
+        if frame is None or isinstance(frame, CameraFrame):
+            return frame
+        return frame_from_render(frame, tick.truth, self.sensors)
 
 
 class RenderedFrameSources:
@@ -80,11 +114,12 @@ class RenderedFrameSources:
                 raise ScenarioError(f"the ego camera renderer cannot be loaded: {exc}") from None
             self._renderer = EgoCameraRenderer.for_scenario(scenario)
         renderer = self._renderer
+        sensors = run_sensors(scenario, seed)
 
         def source(tick):
             if tick.ego is None:
                 return None
-            return frame_from_render(renderer.render(tick.truth), tick.truth)
+            return frame_from_render(renderer.render(tick.truth), tick.truth, sensors)
 
         return source
 
@@ -129,6 +164,9 @@ def build_fusion_hook(scenario: Scenario, seed: int, policy: GuidancePolicy, rec
     before it: the run refuses another order)."""
     from vcfusion.fusion.fuse import VisionFusionHook
 
+    if frame_source is None:
+        sensors = run_sensors(scenario, seed)
+        frame_source = SensedTickFrames(sensors) if sensors is not None else None
     return VisionFusionHook(frame_source, detector or build_detector(scenario, seed), seed, policy,
                             method=scenario.fusion.method, depth_params=depth_params(scenario),
                             recorder=recorder, period_s=scenario.ar.period_s,

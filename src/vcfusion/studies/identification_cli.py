@@ -19,6 +19,22 @@ def _float_list(text: str, option: str) -> list[float]:
     return values
 
 
+def with_sensors(scenario, depth_sensor: str | None, pose_noise_deg: float | None):
+    """The scenario with its camera's depth sensor and pose noise replaced where given (the pose
+    noise: a mount calibration error of that std and the body's pitch and roll on its suspension)."""
+    update = {}
+    if depth_sensor is not None:
+        update["depth"] = depth_sensor
+    if pose_noise_deg is not None:
+        if not (0 <= pose_noise_deg <= 10):
+            raise UsageError(f"--pose-noise-deg: expected a standard deviation in degrees, 0 to 10, got {pose_noise_deg}")
+        update["pose_noise"] = scenario.camera.pose_noise.model_copy(
+            update={"mount_std_deg": pose_noise_deg, "body_motion": pose_noise_deg > 0})
+    if not update:
+        return scenario
+    return scenario.model_copy(update={"camera": scenario.camera.model_copy(update=update)})
+
+
 def cmd_study_identification(args: argparse.Namespace) -> int:
     from vcfusion.scenario import load_scenario, require_camera_world
     from vcfusion.studies.batch import parse_seeds
@@ -33,7 +49,7 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
 
     check_min_area(args.min_area)
     out = check_new_folder(Path(args.out))  # a study is not resumed: another one's outputs would be replaced
-    scenarios = [load_scenario(path) for path in args.scenario]
+    scenarios = [with_sensors(load_scenario(path), args.depth_sensor, args.pose_noise_deg) for path in args.scenario]
     for scenario in scenarios:
         require_camera_world(scenario)  # every frame is rendered
     names = [sc.name for sc in scenarios]
@@ -87,6 +103,11 @@ def add_study_parser(ssub) -> None:
     p.add_argument("--latencies", default="0,0.1,0.2,0.3,0.5", help="V2C latencies (s), at zero noise")
     p.add_argument("--noises", default="0,0.5,1,2", help="GNSS noise std (m), at zero latency")
     p.add_argument("--min-area", type=float, default=100.0, help="smallest ground-truth box (px^2) counted as a target")
+    p.add_argument("--depth-sensor", choices=("exact", "stereo", "tof", "lidar"), default=None,
+                   help="the depth the fusion sees (default: each scenario's camera.depth)")
+    p.add_argument("--pose-noise-deg", type=float, default=None, metavar="DEG",
+                   help="camera mount calibration error std, deg, with the body's pitch and roll on its suspension "
+                        "(default: each scenario's camera.pose_noise)")
     p.add_argument("--anchor-radius", type=float, default=None,
                    help="baseline and paper: with no box containing the anchor, take the nearest box within "
                         "this many pixels (default: off, the paper's rule)")
