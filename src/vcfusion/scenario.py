@@ -147,6 +147,9 @@ class FusionConfig(_Strict):
     # boxes for vehicles it missed, from depth segments (vcfusion.fusion.box_refine; never the
     # oracle's); false: the detector's RGB boxes as they are
     refine_boxes: bool = True
+    # heights above the road for the depth step: the road plane fitted to each depth image
+    # (from_depth; the nominal pose's flat road where the fit fails, counted) or that flat road (flat)
+    road: Literal["flat", "from_depth"] = "from_depth"
     depth_th: Annotated[float, Field(gt=0.0, le=1.0)] = 0.8
     depth_samples: Annotated[int, Field(ge=1)] = 30
     depth_reducer: Literal["mean", "median"] = "mean"

@@ -56,6 +56,9 @@ class FamilyResult:
     identification_by_visibility: dict = field(default_factory=dict)
     # detector name -> (low, high) 95 % interval of its accuracy; "gap_NAME": of oracle minus NAME
     identification_interval: dict = field(default_factory=dict)
+    # the depth step's counts over the family's images (vcfusion.fusion.fuse.depth_step): boxes kept
+    # as detected because depth could not decide (boxes_gated), road fits that failed, ...
+    depth_counts: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         q = np.quantile(self.best_iou, IOU_QUANTILES) if len(self.best_iou) else [np.nan] * len(IOU_QUANTILES)
@@ -68,7 +71,8 @@ class FamilyResult:
                 **{f"ident_0.7_{k}": v for k, v in self.identification.items()},
                 **{f"ident_0.7_{k}_visible_{label}": {"targets": n, "accuracy": acc}
                    for k, bins in self.identification_by_visibility.items() for label, (n, acc) in bins.items()},
-                **{f"ident_0.7_{k}_interval95": list(bounds) for k, bounds in self.identification_interval.items()}}
+                **{f"ident_0.7_{k}_interval95": list(bounds) for k, bounds in self.identification_interval.items()},
+                **{f"depth_step_{k}": v for k, v in self.depth_counts.items()}}
 
 
 class _Fixed:
@@ -151,7 +155,8 @@ def _sensed(frame, depth_sensor: str, pose_noise_deg: float, k: int):
                           rng=np.random.default_rng([k, SENSOR_STREAM]))
     depth = sensors.depth(frame.depth, cam.K, cam.T_world_to_camera, frame.image)
     T = sensors.believed_pose(cam.T_world_to_camera)
-    return replace(frame, depth=depth, camera=camera_view(cam.K, T, cam.width, cam.height, cam.time))
+    return replace(frame, depth=depth, camera=camera_view(cam.K, T, cam.width, cam.height, cam.time),
+                   depth_noise=sensors.noise(cam.K))
 
 
 def _identification(frame, twins, detector, seed: int, min_area: float, segments=None) -> tuple[np.ndarray, list]:
@@ -192,7 +197,7 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
         saved = detector.params
         detector.params = PostParams(score_threshold=0.01, nms_iou=saved.nms_iou, max_detections=100)
     records = ds.records or [{} for _ in ds.images]
-    dets, best, ident = {}, {}, {}
+    dets, best, ident, counts = {}, {}, {}, {}
     try:
         for k, (iid, path) in enumerate(tqdm(list(zip(ds.image_ids, ds.images)), desc="evaluate", unit="img",
                                              disable=not progress, leave=False)):
@@ -213,7 +218,9 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
             # the frame's depth segments, once for both depth steps and the matcher
             segments = frame_segments(frame, refine) if frame is not None else None
             if refine is not None:
-                raw, working = depth_step(frame, raw, refine, segments), depth_step(frame, working, refine, segments)
+                counts[iid] = {}
+                raw = depth_step(frame, raw, refine, segments)
+                working = depth_step(frame, working, refine, segments, counts[iid])
             dets[iid] = (raw.boxes, raw.scores, raw.classes)
             gt = ds.boxes[k]
             big = (gt[:, 2] - gt[:, 0]) * (gt[:, 3] - gt[:, 1]) >= min_area
@@ -245,6 +252,9 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
         bm = coco_map({i: gt_all[i] for i in ids}, {i: dets[i] for i in ids}, min_area=min_area)
         best_iou = np.concatenate([best[i] for i in ids]) if ids else np.zeros(0)
         res = FamilyResult(fam, len(ids), len(best_iou), bm, best_iou)
+        for i in ids:
+            for key, v in counts.get(i, {}).items():
+                res.depth_counts[key] = res.depth_counts.get(key, 0) + v
         with_k = [k for k in index if ds.image_ids[k] in ident]
         with_ident = [ds.image_ids[k] for k in with_k]
         if with_ident:
@@ -369,6 +379,23 @@ def format_table(results: list[FamilyResult], detector_name: str = "cnn") -> str
             f"{s['best_iou_p10']:>7.3f} {s['best_iou_p25']:>5.3f} {s['best_iou_p50']:>6.3f} "
             f"{s['best_iou_ge_0.7']:>6.1%} "
             f"{_share(s.get('ident_0.7_oracle')):>16} {_share(s.get(f'ident_0.7_{detector_name}')):>6}")
+    return "\n".join(lines)
+
+
+def format_depth_counts(results: list[FamilyResult]) -> str:
+    """What the depth step could not decide, per family: boxes kept as detected (gated), road fits
+    that failed, images without depth proposals; and the road fit's mean time."""
+    rows = [r for r in results if r.depth_counts]
+    if not rows:
+        return ""
+    lines = [f"{'depth step':<16} {'boxes refined':>13} {'gated':>6} {'road fit failed':>15} "
+             f"{'no proposals':>12} {'road fit ms':>11}"]
+    for r in rows:
+        c = r.depth_counts
+        frames = max(c.get("frames", 0), 1)
+        lines.append(f"{r.family:<16} {c.get('boxes_refined', 0):>13} {c.get('boxes_gated', 0):>6} "
+                     f"{c.get('frames_road_fit_failed', 0):>15} {c.get('frames_without_proposals', 0):>12} "
+                     f"{c.get('road_fit_ms', 0.0) / frames:>11.2f}")
     return "\n".join(lines)
 
 

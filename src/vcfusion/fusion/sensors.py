@@ -250,6 +250,20 @@ class SensorModel:
     def exact(self) -> bool:
         return self.depth_model == "exact" and not self.pose.active
 
+    def noise(self, K: np.ndarray):
+        """The depth's error as the sensor's spec gives it (vcfusion.fusion.road.DepthNoise):
+        stereo z^2 sigma_d / (f B), ToF sigma0 + rel z, LiDAR its range noise, exact none."""
+        from vcfusion.fusion.road import DepthNoise
+
+        p = self.params
+        if self.depth_model == "stereo":
+            return DepthNoise(c=p.disparity_noise_px / (float(np.asarray(K)[0, 0]) * p.baseline_m))
+        if self.depth_model == "tof":
+            return DepthNoise(a=p.tof_sigma0_m, b=p.tof_sigma_rel, mixed_edges=True)
+        if self.depth_model == "lidar":
+            return DepthNoise(a=p.lidar_range_noise_m)
+        return DepthNoise()
+
     def depth(self, depth: np.ndarray, K: np.ndarray, T: np.ndarray, image: np.ndarray | None = None) -> np.ndarray:
         p = self.params
         if self.depth_model == "stereo":

@@ -16,6 +16,7 @@ from vcfusion.fusion.depth_eval import DepthEvalParams
 from vcfusion.fusion.fuse import CameraFrame
 from vcfusion.fusion.matching import CameraView
 from vcfusion.fusion.overlay import OverlayRecorder
+from vcfusion.fusion.road import DepthNoise
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import EGO_ID
 from vcfusion.scenario import Scenario, ScenarioError
@@ -57,7 +58,9 @@ def frame_from_render(frame, truth, sensors=None) -> CameraFrame:
 
     gt = ground_truth_boxes(frame, truth)
     depth, T = frame.depth, frame.T_world_to_camera
+    noise = DepthNoise()
     if sensors is not None:
+        noise = sensors.noise(frame.K)
         i = truth.index_of(EGO_ID) if EGO_ID in truth.ids else None
         depth = sensors.depth(frame.depth, frame.K, T, frame.rgb)
         T = sensors.believed_pose(T, float(frame.time), *((float(truth.accel[i]), float(truth.speed[i]),
@@ -66,7 +69,7 @@ def frame_from_render(frame, truth, sensors=None) -> CameraFrame:
                        camera=camera_view(frame.K, T, frame.width, frame.height, frame.time),
                        gt_boxes=np.asarray(gt.box, dtype=float).reshape(-1, 4), gt_ids=tuple(gt.vehicle_ids),
                        gt_classes=np.array([category_id(c) for c in gt.vclass], dtype=np.int64),
-                       instances=frame.instances, instance_ids=tuple(frame.vehicle_ids))
+                       instances=frame.instances, instance_ids=tuple(frame.vehicle_ids), depth_noise=noise)
 
 
 def tick_frame_source(tick) -> CameraFrame | None:
@@ -154,7 +157,7 @@ def refine_params(scenario: Scenario):
     """The depth-guided box refinement of the scenario's detector boxes, or None when switched off."""
     from vcfusion.fusion.box_refine import BoxRefineParams
 
-    return BoxRefineParams() if scenario.fusion.refine_boxes else None
+    return BoxRefineParams(road=scenario.fusion.road) if scenario.fusion.refine_boxes else None
 
 
 def build_fusion_hook(scenario: Scenario, seed: int, policy: GuidancePolicy, recorder: OverlayRecorder | None = None,

@@ -87,6 +87,12 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
           f"{int(n_targets.min()) if len(n_targets) else 0} target-frames per detector and method (clean V2C)")
     for line in summary_lines(rows, 0.7):
         print(line)
+    for name, c in rows.attrs.get("depth_counts", {}).items():
+        if c.get("frames"):
+            print(f"{name:>8} depth step: {c.get('boxes_refined', 0)} boxes refined, {c.get('boxes_gated', 0)} kept "
+                  f"as detected (depth could not decide), {c.get('frames_road_fit_failed', 0)} of {c['frames']} road "
+                  f"fits failed, {c.get('frames_without_proposals', 0)} frames without proposals; road fit "
+                  f"{c.get('road_fit_ms', 0.0) / c['frames']:.1f} ms per frame")
     print(f"outputs: {out}/identification_*.csv, *.png, identification_rows.parquet")
     return 0
 
