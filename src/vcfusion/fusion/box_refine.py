@@ -153,7 +153,9 @@ class BoxRefineParams:
     noise_k: float = 3.0
     gate_noise: float = 0.5
     # a box whose core holds less than this share of measured depth (holes, a sparse LiDAR) keeps the
-    # detector's box, and an image with less than this share has no depth proposals (gated)
+    # detector's box, and an image with less than this share keeps every box and has no depth
+    # proposals (gated; filling a 64-beam scan's gaps from the nearest return snapped the boxes
+    # worse than the detector's: 58.9 vs 72.1 % on the development folders)
     gate_valid_share: float = 0.3
 
     def __post_init__(self):

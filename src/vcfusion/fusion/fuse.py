@@ -16,8 +16,8 @@ import numpy as np
 
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import GuidanceSet, TwinStates
-from vcfusion.fusion.box_refine import (BoxRefineParams, ObjectSegments, box_surface_depths, depth_proposals,
-                                       join_fragments, object_segments, refine_boxes)
+from vcfusion.fusion.box_refine import (BoxRefineParams, ObjectSegments, RefinedBoxes, box_surface_depths,
+                                       depth_proposals, join_fragments, object_segments, refine_boxes)
 from vcfusion.fusion.road import DepthNoise, RoadFit, fit_road_plane
 from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector, nms
@@ -198,7 +198,11 @@ def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefinePara
     if view.road is not None:
         count_depth_step(stats, "frames_road_fit_failed", int(not view.road.ok))
         count_depth_step(stats, "road_fit_ms", view.road.ms)
-    refined = refine_boxes(detections.boxes, view.depth, cam.K, view.T, refine, view.noise)
+    if view.sparse:  # too little measured depth to snap boxes to: every box kept as detected
+        refined = RefinedBoxes(detections.boxes.copy(), np.zeros(len(detections), bool),
+                               np.full(len(detections), np.nan), np.ones(len(detections), bool))
+    else:
+        refined = refine_boxes(detections.boxes, view.depth, cam.K, view.T, refine, view.noise)
     count_depth_step(stats, "boxes_gated", int(refined.gated.sum()))
     count_depth_step(stats, "boxes_refined", int(refined.refined.sum()))
     boxes, scores, snapped = refined.boxes, detections.scores, refined.refined
