@@ -149,7 +149,8 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
     detector_name = "onnx" if args.onnx else "cnn"
     results, _ = evaluate_families(detector, ds, min_area=args.min_area, identification=not args.no_identification,
                                    detector_name=detector_name, progress=sys.stderr.isatty(),
-                                   refine=None if args.no_refine else BoxRefineParams(), gnss_noise_m=args.gnss_noise,
+                                   refine=None if args.no_refine else BoxRefineParams(road=args.road),
+                                   gnss_noise_m=args.gnss_noise,
                                    depth_sensor=args.depth_sensor, pose_noise_deg=args.pose_noise_deg)
     if not results:
         raise UsageError(f"{' '.join(args.data)}: annotations: expected at least one ground-truth box")
@@ -182,6 +183,7 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
                                                          "refined_by_depth": not args.no_refine,
                                                          "gnss_noise_m": args.gnss_noise,
                                                          "depth_sensor": args.depth_sensor,
+                                                         "road": args.road,
                                                          "pose_noise_deg": args.pose_noise_deg,
                                                          "families": [r.summary() for r in results]}))
         print(f"report: {args.report}")
@@ -303,6 +305,8 @@ def add_parsers(sub) -> None:
                        help="the depth the depth step and the matcher see (vcfusion.fusion.sensors; default exact)")
         p.add_argument("--pose-noise-deg", type=float, default=0.0, metavar="DEG",
                        help="camera mount calibration error std (pitch, yaw, roll), deg (default 0)")
+        p.add_argument("--road", choices=("from_depth", "flat"), default="from_depth",
+                       help="the depth step's road: fitted to each depth image (default) or the pose's flat road")
         p.add_argument("--report", help="also write the per-family figures to this JSON file")
         p.add_argument("--no-refine", action="store_true",
                        help="score the detector's boxes as detected (default: refined by the depth image, as the "

@@ -66,8 +66,9 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
                 detectors[name] = TorchDetector(args.weights or default_weights_path())
             except DetectorFileError as exc:
                 raise UsageError(f"--weights: {exc}") from None
-            # cnn: boxes refined by depth (the fusion stage's default); cnn-rgb: the boxes as detected
-            refine[name] = BoxRefineParams() if name == "cnn" else None
+            # cnn: boxes refined by depth (the fusion stage's default; the first scenario's fusion.road);
+            # cnn-rgb: the boxes as detected
+            refine[name] = BoxRefineParams(road=scenarios[0].fusion.road) if name == "cnn" else None
         else:
             raise UsageError(f"--detectors: expected names among oracle, cnn, cnn-rgb; got {name!r}")
     for path, scenario in zip(args.scenario, scenarios):
