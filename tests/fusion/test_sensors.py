@@ -91,3 +91,43 @@ def test_braking_pitches_the_camera_down_after_the_suspension_lag():
     mount = [SensorModel("exact", pose=PoseNoiseParams(mount_std_deg=0.3), rng=np.random.default_rng(s)).mount
              for s in (1, 1, 2)]
     assert np.array_equal(mount[0], mount[1]) and not np.array_equal(mount[0], mount[2])
+
+
+def test_the_sensors_change_what_the_fusion_sees_never_the_ground_truth():
+    from dataclasses import dataclass
+
+    from vcfusion.fusion.sensors import SensorModel
+    from vcfusion.fusion.stage import frame_from_render
+    from vcfusion.records import VehicleStates
+
+    @dataclass(frozen=True)
+    class Rendered:  # the render's Frame fields frame_from_render reads
+        time: float
+        rgb: np.ndarray
+        depth: np.ndarray
+        instances: np.ndarray
+        vehicle_ids: tuple
+        K: np.ndarray
+        T_world_to_camera: np.ndarray
+        width: int = 640
+        height: int = 480
+
+    n = 2
+    truth = VehicleStates(time=1.0, ids=("ego", "car"), vtype=("ego", "car"), vclass=("passenger",) * n,
+                          x=np.array([0.0, 20.0]), y=np.zeros(n), z=np.zeros(n), heading=np.zeros(n),
+                          speed=np.full(n, 20.0), accel=np.array([-4.0, 0.0]), lane=np.zeros(n, np.int16),
+                          lateral_offset=np.zeros(n), length=np.full(n, 4.5), width=np.full(n, 1.8),
+                          height=np.full(n, 1.5))
+    depth = np.full((480, 640), 60.0, np.float32)
+    instances = np.full((480, 640), -1, np.int32)
+    depth[200:260, 280:360], instances[200:260, 280:360] = 17.75, 0
+    frame = Rendered(1.0, np.zeros((480, 640, 3), np.uint8), depth, instances, ("car",), K, T)
+    exact = frame_from_render(frame, truth)
+    sensed = frame_from_render(frame, truth, SensorModel("stereo", FLAT, PoseNoiseParams(mount_std_deg=0.3),
+                                                         rng=np.random.default_rng(4)))
+    assert np.array_equal(sensed.gt_boxes, exact.gt_boxes) and sensed.gt_ids == exact.gt_ids == ("car",)
+    assert np.array_equal(sensed.instances, exact.instances)
+    assert not np.array_equal(sensed.depth, exact.depth, equal_nan=True)
+    assert not np.allclose(sensed.camera.T_world_to_camera, exact.camera.T_world_to_camera)
+    assert np.array_equal(frame.depth, depth)  # the render itself is left as it was
+    assert sensed.depth_noise.c > 0 and exact.depth_noise.exact
