@@ -212,6 +212,9 @@ class Guidance:
     level: str  # one of vcfusion.guidance.GUIDANCE_LEVELS
     box: tuple[float, float, float, float] | None  # matched image box (x1, y1, x2, y2) px; None: no image
     box_vehicle_id: str | None = None  # the vehicle owning most pixels of `box` (fusion items)
+    # camera-Z of the matched box's vehicle, m, as the fusion measured it (Algorithm 1 on the depth
+    # image it saw); the display moves the box between vision ticks with it. None: not measured
+    box_depth_m: float | None = None
 
     @property
     def shown_vehicle_id(self) -> str | None:

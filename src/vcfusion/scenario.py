@@ -24,6 +24,7 @@ from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, ValidationE
                       model_validator)
 
 from vcfusion.errors import ScenarioError  # the loader's error; importable from here as before
+from vcfusion.fusion import sensors as _sensors
 
 
 NonNegative = Annotated[float, Field(ge=0.0)]
@@ -163,6 +164,11 @@ class FusionConfig(_Strict):
                                                  "image before matching and add boxes for vehicles it missed, "
                                                  "from depth segments (vcfusion.fusion.box_refine; never the "
                                                  "oracle's); false: the detector's RGB boxes as they are")
+    road: Literal["auto", "flat", "from_depth"] = Field(
+        "auto", description="heights above the road for the depth step: from_depth (the road plane fitted to each "
+                            "depth image; the nominal pose's flat road where the fit fails, counted), flat (the "
+                            "nominal pose's flat road at z = 0), auto (flat with camera.depth exact and no "
+                            "camera.pose_noise, from_depth otherwise)")
     depth_th: Annotated[float, Field(gt=0.0, le=1.0)] = Field(0.8, description="Algorithm 1: each box side is "
                                                                               "scaled by this about the centre "
                                                                               "before depth sampling")
@@ -193,6 +199,38 @@ class FusionConfig(_Strict):
         return self
 
 
+_DEPTH = _sensors.DepthSensorParams()
+_POSE = _sensors.PoseNoiseParams()
+
+
+class DepthSensorConfig(_Strict):
+    """Parameters of the depth sensor models (vcfusion.fusion.sensors: rule, unit and source of each)."""
+
+    baseline_m: Positive = Field(_DEPTH.baseline_m, description="stereo baseline")
+    disparity_noise_px: NonNegative = Field(_DEPTH.disparity_noise_px, description="stereo: Gaussian disparity error (std)")
+    min_disparity_px: Positive = Field(_DEPTH.min_disparity_px, description="stereo: smaller disparities are holes (beyond the matcher's range)")
+    texture_min: NonNegative = Field(_DEPTH.texture_min, description="stereo: holes where the image's local texture (intensity std in a window) is below this")
+    tof_sigma0_m: NonNegative = Field(_DEPTH.tof_sigma0_m, description="ToF: range noise std at zero range")
+    tof_sigma_rel: NonNegative = Field(_DEPTH.tof_sigma_rel, description="ToF: range noise std per metre of range (fraction)")
+    tof_max_range_m: Positive = Field(_DEPTH.tof_max_range_m, description="ToF: no return beyond this range")
+    flying_edge_m: Positive = Field(_DEPTH.flying_edge_m, description="ToF: a 3x3 neighbourhood spanning a larger depth step gives flying pixels")
+    lidar_beams: Annotated[int, Field(ge=2, le=512)] = Field(_DEPTH.lidar_beams, description="LiDAR: beams evenly spaced in elevation")
+    lidar_elevation_deg: tuple[Annotated[float, Field(ge=-90, le=90)], Annotated[float, Field(ge=-90, le=90)]] = \
+        Field(_DEPTH.lidar_elevation_deg, description="LiDAR: lowest and highest beam elevation")
+    lidar_azimuth_step_deg: Annotated[float, Field(gt=0.0, le=10.0)] = Field(_DEPTH.lidar_azimuth_step_deg, description="LiDAR: one return every this many degrees of azimuth")
+    lidar_range_noise_m: NonNegative = Field(_DEPTH.lidar_range_noise_m, description="LiDAR: Gaussian range noise (std)")
+
+
+class PoseNoiseConfig(_Strict):
+    """The camera pose error the fusion does not know of (vcfusion.fusion.sensors)."""
+
+    mount_std_deg: Annotated[float, Field(ge=0.0, le=10.0)] = Field(_POSE.mount_std_deg, description="mount calibration error (std, drawn once per run, each axis)")
+    body_motion: bool = Field(_POSE.body_motion, description="the body's pitch and roll on its suspension from the ego's own accelerations")
+    pitch_gain_deg_per_mps2: Annotated[float, Field(ge=0.0, le=5.0)] = Field(_POSE.pitch_gain_deg_per_mps2, description="body pitch per longitudinal acceleration")
+    roll_gain_deg_per_mps2: Annotated[float, Field(ge=0.0, le=5.0)] = Field(_POSE.roll_gain_deg_per_mps2, description="body roll per lateral acceleration")
+    suspension_tau_s: Positive = Field(_POSE.suspension_tau_s, description="suspension: time constant of the first-order lag")
+
+
 class CameraConfig(_Strict):
     """The ego's forward camera (paper Sec. II-B): mount on the ego and pinhole intrinsics.
 
@@ -215,6 +253,12 @@ class CameraConfig(_Strict):
         "fast", description="how the RGB image is finished (vcfusion.render.presets): fast for batch renders, "
                             "quality (2x2 supersampling, lens blur, exposure and sensor noise, ~6x the render "
                             "time) for studies; depth and instances are the same")
+    depth: Literal["exact", "stereo", "tof", "lidar"] = Field(
+        "exact", description="the depth the fusion and detector get (vcfusion.fusion.sensors): exact, stereo "
+                             "(disparity noise and holes), tof (range noise, flying pixels), lidar (a sparse scan)")
+    depth_params: DepthSensorConfig = Field(DepthSensorConfig(), description="the depth sensor's parameters")
+    pose_noise: PoseNoiseConfig = Field(PoseNoiseConfig(), description="the camera pose error the fusion does not "
+                                                                        "know of")
 
     @model_validator(mode="after")
     def _planes(self) -> "CameraConfig":

@@ -117,28 +117,37 @@ def _check_distinct_folders(folders) -> None:
 
 def cmd_eval_detector(args: argparse.Namespace) -> int:
     from vcfusion.detection.detector_train import load_coco_many
-    from vcfusion.detection.family_eval import (evaluate_families, format_interval_table, format_table,
-                                                format_visibility_table)
+    from vcfusion.detection.family_eval import (evaluate_families, format_depth_counts, format_interval_table,
+                                                format_table, format_visibility_table)
 
     check_min_area(args.min_area)
     if not np.isfinite(args.gnss_noise) or args.gnss_noise < 0:
         raise UsageError(f"--gnss-noise: expected a standard deviation >= 0 in metres, got {args.gnss_noise}")
+    if not np.isfinite(args.pose_noise_deg) or not 0 <= args.pose_noise_deg <= 10:
+        raise UsageError(f"--pose-noise-deg: expected a standard deviation in degrees, 0 to 10, got {args.pose_noise_deg}")
     _check_distinct_folders(args.data)
     detector = _make_detector(args)
     ds = load_coco_many(args.data)
     from vcfusion.fusion.box_refine import BoxRefineParams
+    from vcfusion.fusion.stage import road_model
 
+    # eval-detector's pose noise is a mount error with body motion (family_eval), so any > 0 is a pose error
+    road = road_model(args.road, args.depth_sensor, args.pose_noise_deg > 0)
     # the detector's column in the identification tables (an ONNX model's was labelled "cnn")
     detector_name = "onnx" if args.onnx else "cnn"
     results, _ = evaluate_families(detector, ds, min_area=args.min_area, identification=not args.no_identification,
                                    detector_name=detector_name, progress=sys.stderr.isatty(),
-                                   refine=None if args.no_refine else BoxRefineParams(), gnss_noise_m=args.gnss_noise)
+                                   refine=None if args.no_refine else BoxRefineParams(road=road),
+                                   gnss_noise_m=args.gnss_noise,
+                                   depth_sensor=args.depth_sensor, pose_noise_deg=args.pose_noise_deg)
     if not results:
         raise UsageError(f"{' '.join(args.data)}: annotations: expected at least one ground-truth box")
     overall = results[-1]  # 'all' when there are several families
     print(f"{' '.join(args.data)}: {len(ds)} images (boxes >= {args.min_area:g} px^2, "
           f"{'boxes as detected' if args.no_refine else 'boxes refined by depth'}"
-          f"{f'; identification with {args.gnss_noise:g} m GNSS noise' if args.gnss_noise else ''})  "
+          f"{f'; identification with {args.gnss_noise:g} m GNSS noise' if args.gnss_noise else ''}"
+          f"{f'; {args.depth_sensor} depth' if args.depth_sensor != 'exact' else ''}"
+          f"{f'; pose noise {args.pose_noise_deg:g} deg' if args.pose_noise_deg else ''})  "
           f"mAP@0.5 {overall.box_map.map_50:.3f}  mAP@0.5:0.95 {overall.box_map.map_50_95:.3f}")
     for cid, name in zip(ds.class_ids, ds.class_names):
         if cid in overall.box_map.ap_per_category:
@@ -147,6 +156,9 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
     by_visibility = format_visibility_table(results, detector_name)
     if by_visibility:
         print(by_visibility)
+    depth_counts = format_depth_counts(results)
+    if depth_counts:
+        print(depth_counts)
     intervals = format_interval_table(results, detector_name)
     if intervals:
         print(intervals)
@@ -158,6 +170,9 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
                                                          "min_area": args.min_area,
                                                          "refined_by_depth": not args.no_refine,
                                                          "gnss_noise_m": args.gnss_noise,
+                                                         "depth_sensor": args.depth_sensor,
+                                                         "road": road,
+                                                         "pose_noise_deg": args.pose_noise_deg,
                                                          "families": [r.summary() for r in results]}))
         print(f"report: {args.report}")
     return 0
@@ -273,6 +288,13 @@ def add_parsers(sub) -> None:
         p.add_argument("--gnss-noise", type=float, default=0.0, metavar="M",
                        help="identification: GNSS error std on each horizontal axis, m (default 0: the twins "
                             "where the renderer placed them)")
+        p.add_argument("--depth-sensor", choices=("exact", "stereo", "tof", "lidar"), default="exact",
+                       help="the depth the depth step and the matcher see (vcfusion.fusion.sensors; default exact)")
+        p.add_argument("--pose-noise-deg", type=float, default=0.0, metavar="DEG",
+                       help="camera mount calibration error std (pitch, yaw, roll), deg (default 0)")
+        p.add_argument("--road", choices=("auto", "from_depth", "flat"), default="auto",
+                       help="the depth step's road: fitted to each depth image, the pose's flat road, or auto "
+                            "(flat with exact depth and no pose noise, else fitted)")
         p.add_argument("--report", help="also write the per-family figures to this JSON file")
         p.add_argument("--no-refine", action="store_true",
                        help="score the detector's boxes as detected (default: refined by the depth image, as the "
@@ -281,7 +303,8 @@ def add_parsers(sub) -> None:
 
     p = sub.add_parser("render-scenes", help="render procedural scenes (no SUMO run) into a COCO dataset folder")
     p.add_argument("--family", default="train",
-                   help="train (the training sampler) or a held-out family: jam, far_chain, cut_in, truck_occlusion")
+                   help="train (the training sampler) or a held-out family: jam, far_chain, cut_in, truck_occlusion, "
+                        "high_mount")
     p.add_argument("--seeds", required=True, help="scene seeds, e.g. 0-1999 (each family has its own scenes per seed)")
     p.add_argument("--out", required=True, help="dataset folder to create")
     p.add_argument("--scenario", default="overlap",

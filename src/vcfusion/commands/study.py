@@ -13,17 +13,33 @@ from vcfusion.errors import UsageError
 from vcfusion.scenario import find_scenario, load_scenario
 
 
+def with_sensors(scenario, depth_sensor: str | None, pose_noise_deg: float | None):
+    """The scenario with its camera's depth sensor and pose noise replaced where given (the pose
+    noise: a mount calibration error of that std and the body's pitch and roll on its suspension)."""
+    update = {}
+    if depth_sensor is not None:
+        update["depth"] = depth_sensor
+    if pose_noise_deg is not None:
+        if not (0 <= pose_noise_deg <= 10):
+            raise UsageError(f"--pose-noise-deg: expected a standard deviation in degrees, 0 to 10, got {pose_noise_deg}")
+        update["pose_noise"] = scenario.camera.pose_noise.model_copy(
+            update={"mount_std_deg": pose_noise_deg, "body_motion": pose_noise_deg > 0})
+    if not update:
+        return scenario
+    return scenario.model_copy(update={"camera": scenario.camera.model_copy(update=update)})
+
+
 def cmd_study_identification(args: argparse.Namespace) -> int:
     from vcfusion.scenario import require_camera_world
     from vcfusion.detection.detector_net import DetectorFileError, TorchDetector, default_weights_path
     from vcfusion.detection.detectors import OracleDetector
     from vcfusion.studies.identification import default_conditions, run_identification_study, summary_lines
     from vcfusion.fusion.box_refine import BoxRefineParams
-    from vcfusion.fusion.stage import RenderedFrameSources, depth_params
+    from vcfusion.fusion.stage import RenderedFrameSources, depth_params, scenario_road
 
     check_min_area(args.min_area)
     out = check_new_folder(Path(args.out))  # a study is not resumed: another one's outputs would be replaced
-    scenarios = [load_scenario(path) for path in args.scenario]
+    scenarios = [with_sensors(load_scenario(path), args.depth_sensor, args.pose_noise_deg) for path in args.scenario]
     for scenario in scenarios:
         require_camera_world(scenario)  # every frame is rendered
     names = [sc.name for sc in scenarios]
@@ -40,8 +56,9 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
                 detectors[name] = TorchDetector(args.weights or default_weights_path())
             except DetectorFileError as exc:
                 raise UsageError(f"--weights: {exc}") from None
-            # cnn: boxes refined by depth (the fusion stage's default); cnn-rgb: the boxes as detected
-            refine[name] = BoxRefineParams() if name == "cnn" else None
+            # cnn: boxes refined by depth (the fusion stage's default; the first scenario's road);
+            # cnn-rgb: the boxes as detected
+            refine[name] = BoxRefineParams(road=scenario_road(scenarios[0])) if name == "cnn" else None
         else:
             raise UsageError(f"--detectors: expected names among oracle, cnn, cnn-rgb; got {name!r}")
     for path, scenario in zip(args.scenario, scenarios):
@@ -61,6 +78,12 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
           f"{int(n_targets.min()) if len(n_targets) else 0} target-frames per detector and method (clean V2C)")
     for line in summary_lines(rows, 0.7):
         print(line)
+    for name, c in rows.attrs.get("depth_counts", {}).items():
+        if c.get("frames"):
+            print(f"{name:>8} depth step: {c.get('boxes_refined', 0)} boxes refined, {c.get('boxes_gated', 0)} kept "
+                  f"as detected (depth could not decide), {c.get('frames_road_fit_failed', 0)} of {c['frames']} road "
+                  f"fits failed, {c.get('frames_without_proposals', 0)} frames without proposals; road fit "
+                  f"{c.get('road_fit_ms', 0.0) / c['frames']:.1f} ms per frame")
     print(f"outputs: {out}/identification_*.csv, *.png, identification_rows.parquet")
     return 0
 
@@ -76,6 +99,11 @@ def _add_identification_parser(study) -> None:
     p.add_argument("--latencies", default="0,0.1,0.2,0.3,0.5", help="V2C latencies (s), at zero noise")
     p.add_argument("--noises", default="0,0.5,1,2", help="GNSS noise std (m), at zero latency")
     p.add_argument("--min-area", type=float, default=100.0, help="smallest ground-truth box (px^2) counted as a target")
+    p.add_argument("--depth-sensor", choices=("exact", "stereo", "tof", "lidar"), default=None,
+                   help="the depth the fusion sees (default: each scenario's camera.depth)")
+    p.add_argument("--pose-noise-deg", type=float, default=None, metavar="DEG",
+                   help="camera mount calibration error std, deg, with the body's pitch and roll on its suspension "
+                        "(default: each scenario's camera.pose_noise)")
     p.add_argument("--anchor-radius", type=float, default=None,
                    help="baseline and paper: with no box containing the anchor, take the nearest box within "
                         "this many pixels (default: off, the paper's rule)")
