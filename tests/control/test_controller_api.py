@@ -151,4 +151,4 @@ def test_the_human_driver_is_a_controller_of_the_api():
     driver.needs = ("ego", "guidance")
     stage = ControllerStage(driver)
     assert isinstance(driver, Controller) and stage.step == driver.step and stage.finish == driver.finish
-    assert stage.needs == ("ego", "guidance") and stage.finish_tables == ("inputs", "frames")
+    assert stage.needs == ("ego", "guidance") and stage.finish_tables == HumanDriver.finish_tables == ("inputs", "frames", "display")
