@@ -54,6 +54,12 @@ _UNIQUE_BAND_M = 15.0
 # Reference lines of consecutive pieces meet within this distance (SUMO's lane ends and the next
 # piece's starts coincide to its 0.01 m output precision; offsetting bends adds a few cm).
 _JOIN_TOL_M = 0.5
+# Lane shape vertices closer than this to the chord of their neighbours are dropped before the
+# offset (SUMO writes coordinates to 0.01 m; a junction lane's shape has vertices a few cm apart).
+_SHAPE_NOISE_M = 0.015
+# Lane ends off the bend's miter by more than this lie on a skewed junction border (SUMO cuts
+# lanes at the junction's shape; square to the road they agree to its 0.01 m output precision).
+_CUT_TOL_M = 0.03
 
 
 class RouteError(ValueError):
@@ -161,6 +167,52 @@ def _bend_miter(n_in: np.ndarray, n_out: np.ndarray) -> np.ndarray:
     return b / max(float(b @ n_out), 0.1)
 
 
+def _unfold(pts: np.ndarray, tangents: np.ndarray) -> list[int]:
+    """The reference line without the vertices where it runs backwards. Offset to the inside of a
+    tight bend (a junction lane that turns a few degrees within a metre, the reference line lanes
+    away on its inner side) a polyline folds over itself; the lines of constant d then fan out
+    from the corner, which keeps s monotonic and the map invertible."""
+    keep = list(range(len(pts)))
+    changed = True
+    while changed and len(keep) > 2:
+        changed = False
+        for j in range(len(keep) - 1):
+            a, b = keep[j], keep[j + 1]
+            seg = pts[b] - pts[a]
+            if seg @ (tangents[a] + tangents[b]) <= 1e-9 * max(1.0, float(np.hypot(*seg))):
+                # drop the end that is not the route's first or last vertex
+                del keep[j + 1 if b != len(pts) - 1 else j]
+                changed = True
+                break
+    return keep
+
+
+def _cut_direction(p: "_Piece", p_bounds: np.ndarray, q: "_Piece", q_bounds: np.ndarray,
+                   anchor_end: np.ndarray, bend: np.ndarray) -> np.ndarray | None:
+    """Where piece p hands over to piece q: the direction (per metre of d) of the line through
+    p's lanes' ends and q's lanes' starts, or None where they lie on the bend's miter within
+    _CUT_TOL_M (a junction square to the road) or do not lie on one line."""
+    points, ds = [], []
+    for piece, bounds, end in ((p, p_bounds, -1), (q, q_bounds, 0)):
+        for track, lane in piece.own:
+            points.append(lane.shape[end])
+            ds.append(bounds[track] + piece.widths[track] / 2)
+    if len(set(np.round(ds, 6))) < 2:
+        return None
+    points, ds = np.array(points), np.array(ds)
+    d_anchor = p_bounds[p.anchor_track] + p.widths[p.anchor_track] / 2
+    if np.hypot(*(anchor_end + np.outer(ds - d_anchor, bend) - points).T).max() <= _CUT_TOL_M:
+        return None
+    dd = ds - ds.mean()
+    v = (dd @ (points - points.mean(axis=0))) / (dd @ dd)
+    centre = points.mean(axis=0) - ds.mean() * v
+    normal = bend / np.hypot(*bend)
+    along = v @ normal
+    if not 0.5 < along < 2.0 or np.hypot(*(centre + np.outer(ds, v) - points).T).max() > _CUT_TOL_M + 0.05:
+        return None  # not one straight border: the bend's miter
+    return v
+
+
 def _dedupe(points: np.ndarray, min_gap: float = 1e-3) -> np.ndarray:
     keep = [0]
     for i in range(1, len(points)):
@@ -168,6 +220,28 @@ def _dedupe(points: np.ndarray, min_gap: float = 1e-3) -> np.ndarray:
             keep.append(i)
     if len(keep) == 1:  # a lane of (almost) zero extent: keep its ends
         keep.append(len(points) - 1)
+    return points[keep]
+
+
+def _simplify(points: np.ndarray, tol: float = _SHAPE_NOISE_M) -> np.ndarray:
+    """The vertices of a polyline that stand out of its chords by more than `tol` (Douglas-Peucker):
+    the direction of a segment a few cm long, its ends rounded to SUMO's 0.01 m, is noise, which
+    the offset to lanes several metres away multiplies."""
+    keep = np.zeros(len(points), dtype=bool)
+    keep[0] = keep[-1] = True
+    stack = [(0, len(points) - 1)]
+    while stack:
+        i, j = stack.pop()
+        if j <= i + 1:
+            continue
+        chord = points[j] - points[i]
+        n = np.hypot(*chord)
+        rel = points[i + 1:j] - points[i]
+        dist = np.abs(rel[:, 0] * chord[1] - rel[:, 1] * chord[0]) / n if n > 0 else np.hypot(rel[:, 0], rel[:, 1])
+        k = int(np.argmax(dist))
+        if dist[k] > tol:
+            keep[i + 1 + k] = True
+            stack += [(i, i + 1 + k), (i + 1 + k, j)]
     return points[keep]
 
 
@@ -181,6 +255,12 @@ class _Piece:
     anchor: _Lane  # the lane whose shape gives this piece's geometry
     anchor_track: int
     widths: dict[int, float]  # track -> width of the lane present here
+    # tracks over whose middle s is spread (empty: every lane present); in a junction, the lanes
+    # that continue along the route (not those of a ramp that joins it, which curve their own way)
+    through: tuple[int, ...] = ()
+    # (track, lane) of the piece's lanes that follow the route: where SUMO cuts them at a junction
+    # border, they end (and the next piece's begin)
+    own: tuple = ()
 
 
 class RoadFrame:
@@ -237,7 +317,8 @@ class RoadFrame:
                 self.track_of[ln.lane_id] = ln.index + shift[k]
             self.edge_start_s[edge] = s
             pieces.append(_Piece(edge, s, lanes[0].length, lanes[0], shift[k],
-                                 {ln.index + shift[k]: ln.width for ln in lanes}))
+                                 {ln.index + shift[k]: ln.width for ln in lanes},
+                                 own=tuple((ln.index + shift[k], ln) for ln in lanes)))
             s += lanes[0].length
             if k + 1 < len(self.route):
                 s = self._junction_pieces(net, k, shift, s, pieces)
@@ -306,9 +387,13 @@ class RoadFrame:
                 widths_by_step[step].setdefault(track, ln.width)
                 self.track_of.setdefault(ln.lane_id, track)
         start = s
+        through_chains = [(c, net.via_chain(c)) for c in continuing]
         for step, ln in enumerate(net.via_chain(anchor)):
             widths = widths_by_step[step] if step < len(widths_by_step) else {}
-            pieces.append(_Piece(ln.edge_id, s, ln.length, ln, anchor.to_lane + shift[k + 1], widths))
+            pieces.append(_Piece(ln.edge_id, s, ln.length, ln, anchor.to_lane + shift[k + 1], widths,
+                                 tuple(sorted({c.to_lane + shift[k + 1] for c in continuing} & set(widths))),
+                                 tuple((c.to_lane + shift[k + 1], chain[step]) for c, chain in through_chains
+                                       if step < len(chain))))
             self.edge_start_s.setdefault(ln.edge_id, s)
             s += ln.length
         # the other connections' internal lanes start where the junction starts
@@ -320,25 +405,37 @@ class RoadFrame:
     def _build_reference(self, pieces: list[_Piece], bounds: np.ndarray) -> None:
         pts_all: list[np.ndarray] = []
         s_all: list[np.ndarray] = []
+        tan_all: list[np.ndarray] = []  # the lanes' direction at each vertex
+        fix_all: list[np.ndarray] = []
         self.max_join_gap_m = 0.0
         kept = []
         for i, p in enumerate(pieces):
-            shape = _dedupe(p.anchor.shape)
+            shape = _simplify(_dedupe(p.anchor.shape))
             if np.hypot(*(shape[-1] - shape[0])) < 1e-6 and len(shape) == 2:
                 continue  # a junction lane of no extent (its length joins the next segment's s)
             kept.append((i, p, shape, _miters(shape)))
         # where two pieces meet, both are offset along the miter of the bend between them, as one
         # polyline would be: each offset along its own end normal put a junction lane that swerves
         # (a lane drop on a centre-spread edge, an OSM motorway: 5-10 degrees) 0.5 m off its edge
-        for (_, _, _, before), (_, _, _, after) in zip(kept, kept[1:]):
+        # where SUMO cuts the lanes at a junction border that is not square to them (a bend, a
+        # ramp's angle), the lanes' ends lie on that border: lines of constant s follow it
+        cut: dict[int, np.ndarray] = {}  # kept index -> the cut's direction (per metre of d)
+        for k, ((i, p, shape, before), (j, q, _, after)) in enumerate(zip(kept, kept[1:])):
             before[-1] = after[0] = _bend_miter(before[-1], after[0])
-        for i, p, shape, miters in kept:
+            v = _cut_direction(p, bounds[i], q, bounds[j], shape[-1], before[-1])
+            if v is not None:
+                cut[k] = v
+        for k, (i, p, shape, miters) in enumerate(kept):
+            if k in cut:
+                miters[-1] = cut[k]
+            if k - 1 in cut:
+                miters[0] = cut[k - 1]
             centre_d = bounds[i, p.anchor_track] + p.widths[p.anchor_track] / 2
             ref = shape - centre_d * miters
             # SUMO spreads a lane's length over the lane's own geometry, and an edge's length is
             # that of its middle: s spreads the length over the middle of the lanes present, so
             # on a bend the lanes left and right of it are off SUMO's positions by half as much
-            present = sorted(p.widths)
+            present = sorted(p.through or p.widths)
             middle_d = 0.5 * (bounds[i, present[0]] + bounds[i, present[-1] + 1])
             middle = shape + (middle_d - centre_d) * miters
             geo = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(middle, axis=0).T))])
@@ -358,11 +455,20 @@ class RoadFrame:
                         f"{a!r} meets {b!r}; the road frame cannot follow it")
                 self.max_join_gap_m = max(self.max_join_gap_m, gap)
                 pts_all[-1][-1] = 0.5 * (pts_all[-1][-1] + ref[0])  # both pieces end at the midpoint
-                ref, s_vertices = ref[1:], s_vertices[1:]
+                ref, s_vertices, miters = ref[1:], s_vertices[1:], miters[1:]
             pts_all.append(ref.copy())
             s_all.append(s_vertices)
+            normals = _miters(shape)[len(shape) - len(ref):]
+            tan_all.append(np.column_stack([normals[:, 1], -normals[:, 0]]))
+            fixed = np.full(ref.shape, np.nan)  # the cut directions, kept through the stitching
+            if k in cut:
+                fixed[-1] = cut[k]
+            fix_all.append(fixed)
         pts = np.concatenate(pts_all)
         svals = np.concatenate(s_all)
+        fixed = np.concatenate(fix_all)
+        keep = _unfold(pts, np.concatenate(tan_all))
+        pts, svals, fixed = pts[keep], svals[keep], fixed[keep]
         # drop vertices that coincide (zero-length internal lanes): their segment has no direction
         keep = [0]
         for j in range(1, len(pts)):
@@ -370,10 +476,12 @@ class RoadFrame:
                 keep.append(j)
             elif j == len(pts) - 1:
                 keep[-1] = j  # the route ends exactly at its last point
-        pts, svals = pts[keep], svals[keep]
+        pts, svals, fixed = pts[keep], svals[keep], fixed[keep]
         if len(pts) < 2:
             raise RouteError(self.net_file, "route", "the route has no extent")
         miters = _miters(pts)
+        skewed = ~np.isnan(fixed[:, 0])
+        miters[skewed] = fixed[skewed]
         # split long segments (same bilinear map) so the grid's cells list few segments each
         P, M, S = [pts[:1]], [miters[:1]], [svals[:1]]
         for i in range(len(pts) - 1):
