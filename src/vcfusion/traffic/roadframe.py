@@ -167,24 +167,24 @@ def _bend_miter(n_in: np.ndarray, n_out: np.ndarray) -> np.ndarray:
     return b / max(float(b @ n_out), 0.1)
 
 
-def _unfold(pts: np.ndarray, tangents: np.ndarray) -> list[int]:
-    """The reference line without the vertices where it runs backwards. Offset to the inside of a
-    tight bend (a junction lane that turns a few degrees within a metre, the reference line lanes
-    away on its inner side) a polyline folds over itself; the lines of constant d then fan out
-    from the corner, which keeps s monotonic and the map invertible."""
-    keep = list(range(len(pts)))
-    changed = True
-    while changed and len(keep) > 2:
-        changed = False
-        for j in range(len(keep) - 1):
-            a, b = keep[j], keep[j + 1]
-            seg = pts[b] - pts[a]
-            if seg @ (tangents[a] + tangents[b]) <= 1e-9 * max(1.0, float(np.hypot(*seg))):
-                # drop the end that is not the route's first or last vertex
-                del keep[j + 1 if b != len(pts) - 1 else j]
-                changed = True
-                break
-    return keep
+def _unfold(pts: np.ndarray, tangents: np.ndarray) -> np.ndarray:
+    """Where the reference line runs backwards, its two vertices pulled together (in place);
+    returns which vertices were. Offset to the inside of a tight bend (a junction lane that turns
+    a few degrees within a metre, the reference line lanes away on its inner side) a polyline
+    folds over itself; a segment of no length instead is a fan: the lines of constant d turn
+    about one point, with s along the turn, which keeps s monotonic and the map invertible."""
+    pinned = np.zeros(len(pts), dtype=bool)
+    for _ in range(4 * len(pts)):
+        seg = pts[1:] - pts[:-1]
+        length = np.hypot(seg[:, 0], seg[:, 1])
+        ahead = np.einsum("ij,ij->i", seg, tangents[:-1] + tangents[1:])
+        back = np.flatnonzero((ahead <= 0.0) & (length > 1e-9))
+        if not len(back):
+            break
+        j = back[0]
+        pts[j] = pts[j + 1] = 0.5 * (pts[j] + pts[j + 1])
+        pinned[j] = pinned[j + 1] = True
+    return pinned
 
 
 def _cut_direction(p: "_Piece", p_bounds: np.ndarray, q: "_Piece", q_bounds: np.ndarray,
@@ -407,6 +407,7 @@ class RoadFrame:
         s_all: list[np.ndarray] = []
         tan_all: list[np.ndarray] = []  # the lanes' direction at each vertex
         fix_all: list[np.ndarray] = []
+        mit_all: list[np.ndarray] = []  # the pieces' miters at each vertex
         self.max_join_gap_m = 0.0
         kept = []
         for i, p in enumerate(pieces):
@@ -460,6 +461,7 @@ class RoadFrame:
             s_all.append(s_vertices)
             normals = _miters(shape)[len(shape) - len(ref):]
             tan_all.append(np.column_stack([normals[:, 1], -normals[:, 0]]))
+            mit_all.append(miters)
             fixed = np.full(ref.shape, np.nan)  # the cut directions, kept through the stitching
             if k in cut:
                 fixed[-1] = cut[k]
@@ -467,19 +469,21 @@ class RoadFrame:
         pts = np.concatenate(pts_all)
         svals = np.concatenate(s_all)
         fixed = np.concatenate(fix_all)
-        keep = _unfold(pts, np.concatenate(tan_all))
-        pts, svals, fixed = pts[keep], svals[keep], fixed[keep]
+        pinned = _unfold(pts, np.concatenate(tan_all))
+        fixed[pinned] = np.concatenate(mit_all)[pinned]
         # drop vertices that coincide (zero-length internal lanes): their segment has no direction
         keep = [0]
         for j in range(1, len(pts)):
-            if np.hypot(*(pts[j] - pts[keep[-1]])) > 1e-6:
+            if np.hypot(*(pts[j] - pts[keep[-1]])) > 1e-6 or (pinned[j] and pinned[keep[-1]]):
                 keep.append(j)
             elif j == len(pts) - 1:
                 keep[-1] = j  # the route ends exactly at its last point
-        pts, svals, fixed = pts[keep], svals[keep], fixed[keep]
+        pts, svals, fixed, pinned = pts[keep], svals[keep], fixed[keep], pinned[keep]
         if len(pts) < 2:
             raise RouteError(self.net_file, "route", "the route has no extent")
-        miters = _miters(pts)
+        # (a fan's vertices coincide: the miters of the polyline without its repeats)
+        distinct = np.concatenate([[True], np.hypot(*np.diff(pts, axis=0).T) > 1e-9])
+        miters = _miters(pts[distinct])[np.cumsum(distinct) - 1]
         skewed = ~np.isnan(fixed[:, 0])
         miters[skewed] = fixed[skewed]
         # split long segments (same bilinear map) so the grid's cells list few segments each
