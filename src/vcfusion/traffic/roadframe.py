@@ -403,6 +403,11 @@ class RoadFrame:
         return s
 
     def _build_reference(self, pieces: list[_Piece], bounds: np.ndarray) -> None:
+        # The polyline stored is the line of constant d in the middle of the widest road, not the
+        # reference line d = 0 (the same map: lines of constant d are offsets along the miters):
+        # offset from the lanes to the inside of a junction bend, a line far from them folds over
+        # itself (a reference line several lanes right of a lane that turns within a metre).
+        self._d_line = 0.5 * self.max_width_m
         pts_all: list[np.ndarray] = []
         s_all: list[np.ndarray] = []
         tan_all: list[np.ndarray] = []  # the lanes' direction at each vertex
@@ -432,7 +437,7 @@ class RoadFrame:
             if k - 1 in cut:
                 miters[0] = cut[k - 1]
             centre_d = bounds[i, p.anchor_track] + p.widths[p.anchor_track] / 2
-            ref = shape - centre_d * miters
+            ref = shape + (self._d_line - centre_d) * miters
             # SUMO spreads a lane's length over the lane's own geometry, and an edge's length is
             # that of its middle: s spreads the length over the middle of the lanes present, so
             # on a bend the lanes left and right of it are off SUMO's positions by half as much
@@ -503,7 +508,7 @@ class RoadFrame:
 
     def _build_grid(self) -> None:
         P, M = self._P, self._M
-        lo, hi = -_BAND_M, self.max_width_m + _BAND_M
+        lo, hi = -self._d_line - _BAND_M, self._d_line + _BAND_M
         corners = np.stack([P[:-1] + lo * M[:-1], P[:-1] + hi * M[:-1], P[1:] + lo * M[1:], P[1:] + hi * M[1:]])
         cmin, cmax = corners.min(axis=0), corners.max(axis=0)  # (n_seg, 2)
         origin = cmin.min(axis=0)
@@ -522,8 +527,7 @@ class RoadFrame:
         self._grid_items = np.ascontiguousarray(segs[order], dtype=np.int64)
         self._grid_start = np.searchsorted(cells[order], np.arange(nx * ny + 1)).astype(np.int64)
         # origin, cell size, cells along x and y, band centre and half-width (see _to_frame)
-        self._grid_f = np.array([origin[0], origin[1], cell, nx, ny, 0.5 * self.max_width_m,
-                                 0.5 * self.max_width_m + _UNIQUE_BAND_M])
+        self._grid_f = np.array([origin[0], origin[1], cell, nx, ny, 0.0, self._d_line + _UNIQUE_BAND_M])
 
     def _build_track_intervals(self) -> None:
         """Per track, the [start, end) stretches of s where it exists (consecutive pieces merged)."""
@@ -574,6 +578,7 @@ class RoadFrame:
         """World (x, y) -> (s along the route, d left of the reference line)."""
         x, y, shape = _flat_pair(x, y)
         s, d = _to_frame(x, y, self._P, self._M, self._S, self._grid_f, self._grid_start, self._grid_items)
+        d += self._d_line
         return s.reshape(shape), d.reshape(shape)
 
     # the straight Road's name: records cache road_frame(road) through it (vcfusion.records)
@@ -585,13 +590,14 @@ class RoadFrame:
         per-tick map matching of every twin)."""
         x, y, shape = _flat_pair(x, y)
         s, d = _to_frame(x, y, self._P, self._M, self._S, self._grid_f, self._grid_start, self._grid_items)
+        d += self._d_line
         lane = _lane_of(s, d, self._piece_s0, self._bounds, self._present)
         return s.reshape(shape), d.reshape(shape), lane.reshape(shape)
 
     def to_world(self, s, d) -> tuple[np.ndarray, np.ndarray]:
         """(s, d) -> world (x, y); beyond the route's ends the first/last segment extends straight."""
         s, d, shape = _flat_pair(s, d)
-        x, y = _to_world(s, d, self._P, self._M, self._S)
+        x, y = _to_world(s, d - self._d_line, self._P, self._M, self._S)
         return x.reshape(shape), y.reshape(shape)
 
     def _segment_of(self, s: np.ndarray):
@@ -605,7 +611,7 @@ class RoadFrame:
         s, d = np.broadcast_arrays(np.asarray(s, dtype=np.float64), np.asarray(d, dtype=np.float64))
         i, t, off = self._segment_of(s)
         P, M = self._P, self._M
-        tangent = (P[i + 1] - P[i]) + np.where(off, 0.0, d)[..., None] * (M[i + 1] - M[i])
+        tangent = (P[i + 1] - P[i]) + np.where(off, 0.0, d - self._d_line)[..., None] * (M[i + 1] - M[i])
         return np.arctan2(tangent[..., 1], tangent[..., 0])
 
     def _piece_of(self, s) -> np.ndarray:
