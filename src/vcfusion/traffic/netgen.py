@@ -139,7 +139,8 @@ def _draw(rng: np.random.Generator, spec: dict | None = None):
         if rng.random() < 0.6:
             radius = float(rng.uniform(*RADIUS_RANGE_M))
             # an S-curve: most arcs after an arc turn the other way
-            sign = -math.copysign(1.0, last_curv) if last_curv and rng.random() < 0.7 else float(rng.choice([-1.0, 1.0]))
+            turn_back = last_curv and rng.random() < 0.7
+            sign = -math.copysign(1.0, last_curv) if turn_back else float(rng.choice([-1.0, 1.0]))
             length = min(length, radius * math.radians(40.0))
             curv = sign / radius
         else:

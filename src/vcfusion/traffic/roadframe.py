@@ -402,6 +402,25 @@ class RoadFrame:
                 self.edge_start_s.setdefault(ln.edge_id, start)
         return s
 
+    def _refuse_sideways_jump(self, before: tuple, p: _Piece, shape: np.ndarray) -> None:
+        """RouteError where a junction's lanes move more sideways than along the road, by more
+        than _JOIN_TOL_M: lines of constant d cannot follow a lane that jumps across (netconvert's
+        --ramps.guess shifts the edge before an exit half a lane sideways at its start when the
+        OpenStreetMap ways already carry the exit's lanes)."""
+        prev = before[2]
+        direction = prev[-1] - prev[-2]
+        direction = direction / np.hypot(*direction)
+        chord = shape[-1] - shape[0]
+        along = float(chord @ direction)
+        across = abs(float(chord[0] * direction[1] - chord[1] * direction[0]))
+        if across > _JOIN_TOL_M and across > along:
+            raise RouteError(
+                self.net_file, "route", f"the lanes jump {across:.2f} m sideways within junction lane "
+                f"{p.anchor.lane_id!r} after {before[1].edge_id!r} ({along:.2f} m along the road), which the "
+                "road frame cannot follow; expected lanes that continue along the road (an OpenStreetMap import: "
+                "netconvert's --ramps.guess shifts the edge before an exit when the ways already carry "
+                "the exit's lanes; build without it)")
+
     def _build_reference(self, pieces: list[_Piece], bounds: np.ndarray) -> None:
         # The polyline stored is the line of constant d in the middle of the widest road, not the
         # reference line d = 0 (the same map: lines of constant d are offsets along the miters):
@@ -419,6 +438,8 @@ class RoadFrame:
             shape = _simplify(_dedupe(p.anchor.shape))
             if np.hypot(*(shape[-1] - shape[0])) < 1e-6 and len(shape) == 2:
                 continue  # a junction lane of no extent (its length joins the next segment's s)
+            if kept and p.edge_id.startswith(":"):
+                self._refuse_sideways_jump(kept[-1], p, shape)
             kept.append((i, p, shape, _miters(shape)))
         # where two pieces meet, both are offset along the miter of the bend between them, as one
         # polyline would be: each offset along its own end normal put a junction lane that swerves
