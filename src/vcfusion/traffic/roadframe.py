@@ -547,8 +547,9 @@ class RoadFrame:
         order = np.argsort(cells, kind="stable")
         self._grid_items = np.ascontiguousarray(segs[order], dtype=np.int64)
         self._grid_start = np.searchsorted(cells[order], np.arange(nx * ny + 1)).astype(np.int64)
-        # origin, cell size, cells along x and y, band centre and half-width (see _to_frame)
-        self._grid_f = np.array([origin[0], origin[1], cell, nx, ny, 0.0, self._d_line + _UNIQUE_BAND_M])
+        # origin, cell size, cells along x and y, d of the stored line (the band's centre), the
+        # band's half-width (see _to_frame)
+        self._grid_f = np.array([origin[0], origin[1], cell, nx, ny, self._d_line, self._d_line + _UNIQUE_BAND_M])
 
     def _build_track_intervals(self) -> None:
         """Per track, the [start, end) stretches of s where it exists (consecutive pieces merged)."""
@@ -599,7 +600,6 @@ class RoadFrame:
         """World (x, y) -> (s along the route, d left of the reference line)."""
         x, y, shape = _flat_pair(x, y)
         s, d = _to_frame(x, y, self._P, self._M, self._S, self._grid_f, self._grid_start, self._grid_items)
-        d += self._d_line
         return s.reshape(shape), d.reshape(shape)
 
     # the straight Road's name: records cache road_frame(road) through it (vcfusion.records)
@@ -611,14 +611,13 @@ class RoadFrame:
         per-tick map matching of every twin)."""
         x, y, shape = _flat_pair(x, y)
         s, d = _to_frame(x, y, self._P, self._M, self._S, self._grid_f, self._grid_start, self._grid_items)
-        d += self._d_line
         lane = _lane_of(s, d, self._piece_s0, self._bounds, self._present)
         return s.reshape(shape), d.reshape(shape), lane.reshape(shape)
 
     def to_world(self, s, d) -> tuple[np.ndarray, np.ndarray]:
         """(s, d) -> world (x, y); beyond the route's ends the first/last segment extends straight."""
         s, d, shape = _flat_pair(s, d)
-        x, y = _to_world(s, d - self._d_line, self._P, self._M, self._S)
+        x, y = _to_world(s, d, self._P, self._M, self._S, self._d_line)
         return x.reshape(shape), y.reshape(shape)
 
     def _segment_of(self, s: np.ndarray):
@@ -840,7 +839,7 @@ def _flat_pair(a, b) -> tuple[np.ndarray, np.ndarray, tuple]:
 
 @numba.njit(cache=True)
 def _to_frame(x, y, P, M, S, grid, grid_start, grid_items):
-    gx0, gy0, cell, nx, ny, e_mid, e_half = grid[0], grid[1], grid[2], int(grid[3]), int(grid[4]), grid[5], grid[6]
+    gx0, gy0, cell, nx, ny, d_line, e_half = grid[0], grid[1], grid[2], int(grid[3]), int(grid[4]), grid[5], grid[6]
     n = x.shape[0]
     n_seg = P.shape[0] - 1
     s_out = np.empty(n)
@@ -855,15 +854,15 @@ def _to_frame(x, y, P, M, S, grid, grid_start, grid_items):
             for j in range(grid_start[c], grid_start[c + 1]):
                 i = grid_items[j]
                 ok, t, e = _solve_segment(qx, qy, i, P, M, n_seg)
-                if ok and abs(e - e_mid) < best_cost:
-                    best_i, best_t, best_e, best_cost = i, t, e, abs(e - e_mid)
+                if ok and abs(e) < best_cost:
+                    best_i, best_t, best_e, best_cost = i, t, e, abs(e)
                     if best_cost <= e_half:
                         break  # near the road the segments' maps tile the plane: this is the one
         if best_i < 0:  # far from the route: every segment
             for i in range(n_seg):
                 ok, t, e = _solve_segment(qx, qy, i, P, M, n_seg)
-                if ok and abs(e - e_mid) < best_cost:
-                    best_i, best_t, best_e, best_cost = i, t, e, abs(e - e_mid)
+                if ok and abs(e) < best_cost:
+                    best_i, best_t, best_e, best_cost = i, t, e, abs(e)
         if best_i < 0:  # no segment's map reaches it (beyond a curve's centre): nearest point
             best_d2 = np.inf
             for i in range(n_seg):
@@ -876,12 +875,12 @@ def _to_frame(x, y, P, M, S, grid, grid_start, grid_items):
                     sign = 1.0 if dx * ry - dy * rx >= 0.0 else -1.0
                     best_i, best_t, best_e, best_d2 = i, t, sign * math.sqrt(d2), d2
         s_out[k] = S[best_i] + best_t * (S[best_i + 1] - S[best_i])
-        d_out[k] = best_e
+        d_out[k] = best_e + d_line
     return s_out, d_out
 
 
 @numba.njit(cache=True)
-def _to_world(s, d, P, M, S):
+def _to_world(s, d, P, M, S, d_line):
     n = s.shape[0]
     last = S.shape[0] - 2
     x_out = np.empty(n)
@@ -892,8 +891,9 @@ def _to_world(s, d, P, M, S):
         tm = min(max(t, 0.0), 1.0)  # off the ends the end vertex's normal: a straight extension
         mx = M[i, 0] + tm * (M[i + 1, 0] - M[i, 0])
         my = M[i, 1] + tm * (M[i + 1, 1] - M[i, 1])
-        x_out[k] = P[i, 0] + t * (P[i + 1, 0] - P[i, 0]) + d[k] * mx
-        y_out[k] = P[i, 1] + t * (P[i + 1, 1] - P[i, 1]) + d[k] * my
+        e = d[k] - d_line
+        x_out[k] = P[i, 0] + t * (P[i + 1, 0] - P[i, 0]) + e * mx
+        y_out[k] = P[i, 1] + t * (P[i + 1, 1] - P[i, 1]) + e * my
     return x_out, y_out
 
 
