@@ -176,6 +176,13 @@ def _from_spec(spec: dict):
     return width, edges, changes, ramps
 
 
+def describe(seed: int) -> dict:
+    """What network `seed` holds, without building it: the change at each inner main node and
+    the lane count of each main edge."""
+    _, edges, changes, _ = _draw(np.random.default_rng(seed))
+    return {"changes": changes, "lanes": [e.hi - e.lo for e in edges]}
+
+
 def _write_sources(out: Path, name: str, width: float, edges: list[_Edge], ramps: list[tuple],
                    rng: np.random.Generator) -> dict[str, list[str]]:
     nodes = []
