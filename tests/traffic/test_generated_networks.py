@@ -10,7 +10,11 @@ from vcfusion.traffic import netgen
 
 # Seeds of the regular suite; the slow mark takes the other 175 of seeds 0-199.
 FAST_SEEDS = range(0, 200, 8)
-SUMO_SEEDS = (3, 9, 26)
+# SUMO runs. Seeds 9 and 87 are the two failures as the generator draws them: an S-curve
+# whose on-ramp joins at 11 degrees into an acceleration lane that ends (s ran 585 % off the
+# distance driven, d 15 m off the road); an S-curve that widens on the left, then loses its right
+# lane as an exit at 8 degrees (633 %, 15 m).
+SUMO_SEEDS = (9, 26, 87)
 SLOW_SEEDS = [s for s in range(200) if s not in FAST_SEEDS]
 
 
