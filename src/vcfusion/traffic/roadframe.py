@@ -19,12 +19,27 @@ A route is a list of edges. Its frame is built from the ``.net.xml`` lane shapes
   their right: that lane gets the lower index, and the main line's index 0 is then track 1).
   A SUMO lane maps to its track with ``track_of[lane_id]``; the lanes present change along s.
 
-Geometry. The reference polyline P_i carries at every vertex a miter vector M_i (the bisector of
-the adjacent segments' left normals, scaled so its projection on each normal is 1): SUMO offsets
-lane shapes the same way, so lanes are lines of constant d. Inside segment i the map is
-Q(t, e) = P_i + t (P_i+1 - P_i) + e (M_i + t (M_i+1 - M_i)) with s linear in t: an exact,
-continuous inverse of itself (world -> (s, d) solves a quadratic in t). Before the route's start
-and after its end the first and last segments extend straight, as the straight road does.
+Geometry. The stored polyline P_i is the line of constant d in the middle of the widest road
+(d = half its width; the reference line is that line offset by -d). It carries at every vertex a
+miter vector M_i (the bisector of the adjacent segments' left normals, scaled so its projection
+on each normal is 1): SUMO offsets lane shapes the same way, so lanes are lines of constant d.
+Inside segment i the map is Q(t, e) = P_i + t (P_i+1 - P_i) + e (M_i + t (M_i+1 - M_i)), with
+e = d - the middle's d and s linear in t: an exact, continuous inverse of itself (world -> (s, d)
+solves a quadratic in t). Before the route's start and after its end the first and last segments
+extend straight, as the straight road does. Where lanes join, split, appear or end:
+
+- each piece's geometry is one lane's shape (an edge's lane 0; in a junction, the internal lane
+  of the continuing lane with the lowest track), its vertices within 1.5 cm of their neighbours'
+  chord dropped (SUMO's 0.01 m coordinates make a few-cm segment's direction noise);
+- where two pieces meet, the miter is the bend's, unless SUMO cut the lanes along a junction
+  border that is not square to them (a kink, a ramp's angle): then the line of constant s there
+  runs through the lanes' ends, so each lane's s starts and ends where SUMO's positions do;
+- on the inside of a junction bend tighter than the stored line's offset, the line would fold
+  back: its two vertices are pulled together, and the lines of constant d fan about that point;
+- in a junction s is spread over the lanes that continue along the route (not a ramp's lane);
+- lanes that jump sideways within a junction (more than 0.5 m, more across than along) are
+  refused with a RouteError naming the junction lane.
+
 The conversion runs for every twin on every tick: it is a compiled kernel with a uniform grid over
 the segments (points farther than 60 m from the road fall back to a scan of all segments).
 """
