@@ -125,4 +125,7 @@ def test_gen_net_command_reproduces_a_seed(tmp_path, capsys):
     (tmp_path / "file").write_text("x")
     assert main(["gen-net", "--seed", "3", "--out", str(tmp_path / "file")]) == 2
     assert "is a file" in capsys.readouterr().err
+    assert main(["gen-net", "--seed", "-1", "--out", str(tmp_path / "n")]) == 2
+    assert "--seed -1: expected a non-negative integer" in capsys.readouterr().err
+    assert not (tmp_path / "n").exists()
     np.testing.assert_equal(netgen.generate(3, tmp_path / "h").routes, netgen.generate(3, tmp_path / "g").routes)

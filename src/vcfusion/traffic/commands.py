@@ -11,7 +11,7 @@ def add_parsers(sub) -> None:
     p = sub.add_parser("gen-net", help="write a seeded random highway network (plain XML + netconvert) and "
                                        "check the road frame on its routes")
     p.add_argument("--seed", type=int, required=True, help="the network's seed (the property tests name it)")
-    p.add_argument("--out", required=True, help="folder for gen.nod/edg/con.xml, gen.net.xml and gen.rou.xml")
+    p.add_argument("--out", required=True, help="folder for gen.nod/edg/con.xml, gen.net.xml, gen.rou.xml (and gen.flows.rou.xml with --sumo)")
     p.add_argument("--sumo", action="store_true", help="also a short SUMO run: s rate vs speed, d inside the road")
     p.set_defaults(func=cmd_gen_net)
 
@@ -20,6 +20,8 @@ def cmd_gen_net(args: argparse.Namespace) -> int:
     from vcfusion.errors import UsageError
     from vcfusion.traffic import netgen
 
+    if args.seed < 0:
+        raise UsageError(f"--seed {args.seed}: expected a non-negative integer")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out}: is a file; expected a folder (or a path that does not exist yet)")
