@@ -11,7 +11,8 @@ def add_parsers(sub) -> None:
     p = sub.add_parser("gen-net", help="write a seeded random highway network (plain XML + netconvert) and "
                                        "check the road frame on its routes")
     p.add_argument("--seed", type=int, required=True, help="the network's seed (the property tests name it)")
-    p.add_argument("--out", required=True, help="folder for gen.nod/edg/con.xml, gen.net.xml, gen.rou.xml (and gen.flows.rou.xml with --sumo)")
+    p.add_argument("--out", required=True,
+                   help="folder for gen.nod/edg/con.xml, gen.net.xml, gen.rou.xml (and gen.flows.rou.xml with --sumo)")
     p.add_argument("--sumo", action="store_true", help="also a short SUMO run: s rate vs speed, d inside the road")
     p.set_defaults(func=cmd_gen_net)
 
