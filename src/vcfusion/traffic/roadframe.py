@@ -510,8 +510,17 @@ class RoadFrame:
         pts = np.concatenate(pts_all)
         svals = np.concatenate(s_all)
         fixed = np.concatenate(fix_all)
+        carried = np.concatenate(mit_all)
+        # beside a cut the stored line is no parallel offset of the lanes (the cut moved its vertex
+        # along the road): its bisector there is not the lanes' miter, the pieces' one is
+        skewed = ~np.isnan(fixed[:, 0])
+        beside = np.zeros(len(fixed), dtype=bool)
+        beside[:-1] |= skewed[1:]
+        beside[1:] |= skewed[:-1]
+        beside &= ~skewed
+        fixed[beside] = carried[beside]
         pinned = _unfold(pts, np.concatenate(tan_all))
-        fixed[pinned] = np.concatenate(mit_all)[pinned]
+        fixed[pinned] = carried[pinned]
         # drop vertices that coincide (zero-length internal lanes): their segment has no direction
         keep = [0]
         for j in range(1, len(pts)):
