@@ -74,7 +74,7 @@ _JOIN_TOL_M = 0.5
 _SHAPE_NOISE_M = 0.015
 # Lane ends off the bend's miter by more than this lie on a skewed junction border (SUMO cuts
 # lanes at the junction's shape; square to the road they agree to its 0.01 m output precision).
-_CUT_TOL_M = 0.03
+_CUT_TOL_M = 0.015
 
 
 class RouteError(ValueError):
