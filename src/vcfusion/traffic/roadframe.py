@@ -74,7 +74,9 @@ _JOIN_TOL_M = 0.5
 _SHAPE_NOISE_M = 0.015
 # Lane ends off the bend's miter by more than this lie on a skewed junction border (SUMO cuts
 # lanes at the junction's shape; square to the road they agree to its 0.01 m output precision).
-_CUT_TOL_M = 0.015
+# Chosen on generated seeds 0-599 (a fan-shaped junction turns 1.2 cm into 0.17 m of s: seed 424);
+# held out, seeds 600-799: 199 of 200 networks keep every promise (docs: roadframe figures).
+_CUT_TOL_M = 0.01
 
 
 class RouteError(ValueError):
