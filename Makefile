@@ -4,7 +4,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export PYOPENGL_PLATFORM ?= osmesa
 
-.PHONY: setup demo test net bench clean
+.PHONY: setup demo test net bench docs clean
 
 setup: $(STAMP)
 
@@ -13,7 +13,9 @@ $(STAMP): pyproject.toml
 	@# OSMesa: the offscreen renderer; Xvfb: the human-in-the-loop window test runs in a real X11 server
 	@{ ldconfig -p | grep -q libOSMesa && command -v Xvfb >/dev/null; } || { (apt-get update -qq && apt-get install -y -qq libosmesa6 xvfb >/dev/null) || { echo "could not install libosmesa6 and xvfb (need root and apt)"; exit 1; }; }
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip install -q -e '.[dev,commonroad]'
+	@# the CommonRoad reader: commonroad-io without its protobuf pin (see pyproject.toml, extra commonroad)
+	$(PY) -m pip install -q --no-deps 'commonroad-io>=2024.1,<2027'
 	@touch $(STAMP)
 
 demo: $(STAMP)
@@ -29,5 +31,11 @@ net: $(STAMP)
 bench: $(STAMP)
 	$(VENV)/bin/vcfusion bench
 
+# The documentation site: the generated reference pages, then mkdocs (strict) into site/.
+docs: $(STAMP)
+	@test -x $(VENV)/bin/mkdocs || $(PY) -m pip install -q -e '.[docs]'
+	$(PY) -m vcfusion.reference --write docs/reference/
+	$(VENV)/bin/mkdocs build --strict
+
 clean:
-	rm -rf runs .pytest_cache
+	rm -rf runs .pytest_cache site

@@ -97,7 +97,7 @@ def test_a_writer_killed_before_its_rename_leaves_no_run(tmp_path):
     folder leaves seed_0001.tmp-writing with a manifest: it matches seed_*, and `vcfusion metrics`
     counted it as a run of the batch."""
     from vcfusion.errors import UsageError
-    from vcfusion.metrics.commands import run_folders
+    from vcfusion.metrics.folders import run_folders
 
     batch = tmp_path / "batch"
     write_run_folder(batch / "seed_0000", {"vehicles": pd.DataFrame({"a": [1]})}, {"seed": 0}, {"seed": 0})

@@ -166,23 +166,23 @@ def test_a_worker_whose_job_swallowed_ctrl_c_stops_and_runs_no_other_job(tmp_pat
 
 
 def test_ctrl_c_inside_numba_in_a_command_exits_130_with_the_hint(tmp_path, monkeypatch, capsys):
-    from vcfusion import cli
+    from vcfusion.commands import main, simulation
 
-    monkeypatch.setattr(cli, "cmd_run", lambda args: _numba_interrupted())
-    assert cli.main(["run", str(tmp_path / "any.yaml")]) == 130
+    monkeypatch.setattr(simulation, "cmd_run", lambda args: _numba_interrupted())
+    assert main(["run", str(tmp_path / "any.yaml")]) == 130
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
         "interrupted: no run folder was written; run the same command again to redo the run")
 
 
 def test_ctrl_c_swallowed_on_its_way_up_still_exits_130(tmp_path, monkeypatch, capsys):
-    from vcfusion import cli
+    from vcfusion.commands import main, simulation
 
     def swallowed_then_failed(args):  # as numba, whose cache then has no compiled object
         _ctrl_c_swallowed_in_a_ctypes_callback()
         raise RuntimeError("no compiled object yet")
 
-    monkeypatch.setattr(cli, "cmd_run", swallowed_then_failed)
-    assert cli.main(["run", str(tmp_path / "any.yaml")]) == 130
+    monkeypatch.setattr(simulation, "cmd_run", swallowed_then_failed)
+    assert main(["run", str(tmp_path / "any.yaml")]) == 130
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith("interrupted: no run folder was written")
     # the record is the command's: the next command in this process starts afresh
     assert not interrupts.is_interrupt(RuntimeError("no compiled object yet"))

@@ -1,5 +1,5 @@
 import sys
 
-from vcfusion.cli import main
+from vcfusion.commands import main
 
 sys.exit(main())

@@ -16,6 +16,12 @@ its worker processes) is its own:
 - P6 a person's drive paced to the wall clock (`vcfusion drive`) with the full vision tick at
   640x480 and a 30 frames/s display (SDL dummy driver): display frames per second, late and
   dropped frames, the simulation's lag behind the clock, input-to-display time;
+- P8 (only when named) the Gymnasium environment (vcfusion.gym) on one core: environment steps (one V2C tick
+  each) per second in kinematics mode and in camera mode (640x480 RGB), each beside the plain
+  closed loop (`vcfusion run`'s tick loop with the driver model) on the same trips, alternated;
+- GPU (only when named) the GPU path of the vision tick (EGL rendering, CUDA detection) checked
+  against the CPU path, with its render, detect, vision tick and display figures
+  (vcfusion.gpu_check); on a machine without a GPU it says "no GPU: skipped";
 - P7 the default guidance study (`--arms none,fusion`: the fusion arm renders, detects with the
   shipped CNN, matches and draws the overlay) on a few paired trips with 2 workers, projected
   to the 200 trips of the paper's figure (target <= 30 min).
@@ -23,7 +29,6 @@ its worker processes) is its own:
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import resource
@@ -33,8 +38,10 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[2]
-ACCIDENT = REPO / "scenarios" / "accident.yaml"
+from vcfusion.scenario import find_scenario
+
+# the shipped scenarios the sections run (vcfusion.resources.shipped_scenarios)
+ACCIDENT, ACCIDENT_AR, DENSE = "accident", "accident_ar", "dense"
 
 
 def median_us(fn, repeats: int) -> float:
@@ -103,7 +110,7 @@ def p1_traffic(seeds: int, repeats: int = 3) -> dict:
     bare = scenario.model_copy(update={"metrics": scenario.metrics.model_copy(update={"enabled": False})})
     build_cosimulation(scenario, seeds).run()  # warm-up: imports, first SUMO start, model file, kernels
     blocks: dict[str, list] = {"metrics": [], "bare": []}
-    bare_walls = []
+    bare_walls, bare_cpus = [], []
     for _ in range(repeats):
         for label, sc in (("metrics", scenario), ("bare", bare)):  # alternated: the VM's speed drifts
             simulated = loop = 0.0
@@ -115,10 +122,14 @@ def p1_traffic(seeds: int, repeats: int = 3) -> dict:
                 durations[seed] = result.summary["simulated_s"]
                 loop += result.loop_wall_s
             blocks[label].append((simulated, time.perf_counter() - start, loop, time.process_time() - cpu_start))
+        cpu_start = time.process_time()
         bare_walls.append(_bare_sumo_block(scenario, durations))
+        bare_cpus.append(time.process_time() - cpu_start)
     best = min(range(repeats), key=lambda i: blocks["metrics"][i][1])
     simulated, wall, loop, _ = blocks["metrics"][best]
     ratios = [b[1] / bare for b, bare in zip(blocks["metrics"], bare_walls)]
+    # the same in CPU time of this process (SUMO runs in it): steadier where other work shares the cores
+    cpu_ratios = [b[3] / bare for b, bare in zip(blocks["metrics"], bare_cpus)]
     bare_wall = min(b[1] for b in blocks["bare"])
     paired = [m[1] / b[1] - 1.0 for m, b in zip(blocks["metrics"], blocks["bare"])]
     # the same in CPU time of this process (SUMO runs in it): less sensitive to the VM's drift
@@ -134,6 +145,8 @@ def p1_traffic(seeds: int, repeats: int = 3) -> dict:
             "bare_sumo_real_time_factor": round(simulated / min(bare_walls), 1),
             "closed_loop_over_bare_sumo": round(statistics.median(ratios), 2),
             "closed_loop_over_bare_sumo_range": [round(min(ratios), 2), round(max(ratios), 2)],
+            "closed_loop_over_bare_sumo_cpu": round(statistics.median(cpu_ratios), 2),
+            "closed_loop_over_bare_sumo_cpu_range": [round(min(cpu_ratios), 2), round(max(cpu_ratios), 2)],
             # the same trips without the metrics: best block against best block, and the median of
             # the back-to-back pairs
             "real_time_factor_without_metrics": round(simulated / bare_wall, 1),
@@ -162,7 +175,8 @@ def p4_scaling(seeds: int) -> dict:
                                       ("dask_1", Executor(dask_local=1), range(seeds)),
                                       ("dask_2", Executor(dask_local=2), range(seeds))):
             start = time.perf_counter()
-            report = run_batch(ACCIDENT, list(todo), Path(tmp) / label, progress=False, executor=executor)
+            report = run_batch(find_scenario(ACCIDENT), list(todo), Path(tmp) / label, progress=False,
+                               executor=executor)
             walls[label] = time.perf_counter() - start
             if report["failed"]:
                 raise RuntimeError(f"benchmark batch {label} failed: {report['failed'][0]}")
@@ -206,7 +220,7 @@ def p5_memory(hours: float) -> dict:
     from vcfusion.run import build_cosimulation
     from vcfusion.scenario import load_scenario
 
-    sc = load_scenario(REPO / "scenarios" / "dense.yaml")
+    sc = load_scenario(DENSE)
     sc = sc.model_copy(update={"accident": None,
                                "simulation": sc.simulation.model_copy(update={"max_time_s": 3600.0 * hours})})
     cosim = build_cosimulation(sc, 0)
@@ -290,7 +304,7 @@ def p3_dataset(seeds: int) -> dict:
 
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
-        build_dataset(REPO / "scenarios" / "dense.yaml", list(range(seeds)), Path(tmp) / "d", workers=1,
+        build_dataset(find_scenario(DENSE), list(range(seeds)), Path(tmp) / "d", workers=1,
                       tau=5.0, tau_g=2.0, progress=False)
         wall = time.perf_counter() - start
         samples = sum(len(pd.read_parquet(p, columns=["time"])) for p in Path(tmp).rglob("samples.parquet"))
@@ -308,7 +322,7 @@ def p6_drive(max_time_s: float) -> dict:
     from vcfusion.scenario import load_scenario
 
     torch.set_num_threads(2)
-    sc = load_scenario(REPO / "scenarios" / "accident_ar.yaml")
+    sc = load_scenario(ACCIDENT_AR)
     sc = sc.model_copy(update={"simulation": sc.simulation.model_copy(update={"max_time_s": max_time_s}),
                                "ar": sc.ar.model_copy(update={"video": False})})
     result = drive(sc, 0, input_spec="keyboard", guidance_on=True, speed=1.0, out_dir=None, headless=True,
@@ -330,8 +344,8 @@ def p7_guidance_study(trips: int) -> dict:
 
     with tempfile.TemporaryDirectory(prefix="vcfusion-bench-p6-") as tmp:
         started = time.perf_counter()
-        run_guidance_study(ACCIDENT, trips, 2, Path(tmp) / "study", Path(tmp) / "renders", progress=False,
-                           arms=("none", "fusion"))
+        run_guidance_study(find_scenario(ACCIDENT), trips, 2, Path(tmp) / "study", Path(tmp) / "renders",
+                           progress=False, arms=("none", "fusion"))
         wall = time.perf_counter() - started
         table = pd.read_parquet(Path(tmp) / "study" / "trips.parquet")
     per_arm = table.groupby("arm")["arm_wall_s"].mean()
@@ -342,16 +356,102 @@ def p7_guidance_study(trips: int) -> dict:
             "fusion_arm_s": round(float(per_arm.get("fusion", float("nan"))), 2)}
 
 
+def _env_episodes(env, seeds: range, max_steps: int | None = None) -> tuple[int, float, float]:
+    """(steps, wall of the steps, wall of the resets) of one episode per seed, action 0 (hold the speed)."""
+    import numpy as np
+
+    steps, step_wall, reset_wall = 0, 0.0, 0.0
+    hold = np.zeros(env.action_space.shape, env.action_space.dtype)
+    for seed in seeds:
+        t0 = time.perf_counter()
+        env.reset(seed=seed)
+        t1 = time.perf_counter()
+        reset_wall += t1 - t0
+        while True:
+            _, _, terminated, truncated, _ = env.step(hold)
+            steps += 1
+            if terminated or truncated or (max_steps is not None and steps % max_steps == 0):
+                break
+        step_wall += time.perf_counter() - t1
+    return steps, step_wall, reset_wall
+
+
+def _loop_ticks(scenario, seeds: range) -> tuple[int, float]:
+    """(V2C ticks, tick-loop wall) of the plain closed loop (the driver model) on the same trips."""
+    from vcfusion.run import build_cosimulation
+
+    ticks, wall = 0, 0.0
+    for seed in seeds:
+        result = build_cosimulation(scenario, seed).run()
+        ticks += int(round(result.summary["simulated_s"] / scenario.v2c.period_s)) + 1
+        wall += result.loop_wall_s
+    return ticks, wall
+
+
+def p8_gym(episodes: int, repeats: int = 3) -> dict:
+    """Environment steps per second on one core (the last one, as P1), best of `repeats` blocks
+    alternated with the plain closed loop on the same seeds: kinematics mode on the accident
+    scenario (with its metrics off: the environment computes no end-of-run tables), then camera
+    mode at 640x480 (RGB) on a few ticks of the same trips."""
+    import gymnasium
+
+    import vcfusion.gym  # noqa: F401  (registers the id)
+    from vcfusion.scenario import load_scenario
+
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {max(os.sched_getaffinity(0))})
+    sc = load_scenario(ACCIDENT)
+    sc = sc.model_copy(update={"metrics": sc.metrics.model_copy(update={"enabled": False})})
+    seeds = range(episodes)
+    env = gymnasium.make("vcfusion/Highway-v0", scenario=sc, observation="kinematics")
+    _env_episodes(env, range(1))  # warm-up: imports, model file, compiled kernels
+    env_blocks, loop_blocks = [], []
+    for _ in range(repeats):
+        env_blocks.append(_env_episodes(env, seeds))
+        loop_blocks.append(_loop_ticks(sc, seeds))
+    env.close()
+    steps, step_wall, reset_wall = min(env_blocks, key=lambda b: b[1])
+    ticks, loop_wall = min(loop_blocks, key=lambda b: b[1])
+    # camera mode: 640x480 RGB every tick, 30 ticks per trip (the renderer is kept across resets)
+    camera_steps = 30
+    vision = sc.model_copy(update={"simulation": sc.simulation.model_copy(update={"max_time_s": camera_steps * 0.1}),
+                                   "vision": sc.vision.model_copy(update={"enabled": True})})
+    cam = gymnasium.make("vcfusion/Highway-v0", scenario=vision, observation="camera")
+    _env_episodes(cam, range(1), 3)
+    c_steps, c_wall, _ = _env_episodes(cam, range(min(episodes, 3)), camera_steps)
+    cam.close()
+    c_ticks, c_loop = _loop_ticks(vision, range(min(episodes, 3)))
+    kin_rate, loop_rate = steps / step_wall, ticks / loop_wall
+    return {"name": "P8 Gymnasium environment, one core", "episodes": episodes, "repeats": repeats,
+            "kinematics_steps": steps, "kinematics_steps_per_s": round(kin_rate),
+            "kinematics_steps_per_s_with_reset": round(steps / (step_wall + reset_wall)),
+            "reset_ms": round(1000 * reset_wall / episodes, 1),
+            "closed_loop_ticks_per_s": round(loop_rate), "kinematics_over_closed_loop": round(kin_rate / loop_rate, 2),
+            "camera_640x480_steps_per_s": round(c_steps / c_wall, 1),
+            "camera_closed_loop_ticks_per_s": round(c_ticks / c_loop, 1),
+            "camera_over_closed_loop": round((c_steps / c_wall) / (c_ticks / c_loop), 2),
+            "target": "kinematics >= 500 steps/s"}
+
+
+def gpu_section(frames: int) -> dict:
+    """The GPU path against the CPU path (vcfusion.gpu_check); "no GPU: skipped" where there is none."""
+    from vcfusion.gpu_check import gpu_check
+
+    return gpu_check(frames)
+
+
 SECTIONS = {"P1": p1_traffic, "P2": p2_vision, "P3": p3_dataset, "P4": p4_scaling, "P5": p5_memory, "P6": p6_drive,
-            "P7": p7_guidance_study}
-SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 240, "P5": 1.0, "P6": 60.0, "P7": 20},
-         "quick": {"P1": 3, "P2": 1, "P3": 2, "P4": 6, "P5": 0.3, "P6": 3.0, "P7": 4}}
+            "P7": p7_guidance_study, "P8": p8_gym, "GPU": gpu_section}
+# what `vcfusion bench` runs without --sections: P8 (needs the gym extra) and the GPU check only when named
+DEFAULT_SECTIONS = ("P1", "P2", "P3", "P4", "P5", "P6", "P7")
+SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 240, "P5": 1.0, "P6": 60.0, "P7": 20, "P8": 10, "GPU": 8},
+         "quick": {"P1": 3, "P2": 1, "P3": 2, "P4": 6, "P5": 0.3, "P6": 3.0, "P7": 4, "P8": 3, "GPU": 2}}
 
 
 def run_section(name: str, size: str) -> dict:
     """Run one section in a fresh interpreter; returns its figures."""
-    proc = subprocess.run([sys.executable, "-m", "vcfusion.bench", "--section", name, "--size", size],
-                          capture_output=True, text=True)
+    code = "import sys; from vcfusion.bench import print_section; print_section(sys.argv[1], sys.argv[2])"
+    proc = subprocess.run([sys.executable, "-c", code, name, size], capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"benchmark {name} failed:\n{proc.stderr[-2000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -377,15 +477,7 @@ def run_suite(sections: list[str], size: str, out: Path) -> list[dict]:
     return results
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="one benchmark section (internal: use `vcfusion bench`)")
-    parser.add_argument("--section", choices=sorted(SECTIONS), required=True)
-    parser.add_argument("--size", choices=sorted(SIZES), default="full")
-    args = parser.parse_args(argv)
-    figures = SECTIONS[args.section](SIZES[args.size][args.section])
+def print_section(name: str, size: str) -> None:
+    """Run one section in this process and print its figures as one JSON line (run_section reads it)."""
+    figures = SECTIONS[name](SIZES[size][name])
     print(json.dumps({**figures, **_peak_rss_mb()}))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -9,13 +9,15 @@ SUMO advances in steps of `simulation.step_s`. Every V2C period (a tick):
 4. the ego controller sets the ego's acceleration for the steps until the next tick.
 What each stage reads and sets is declared and checked when the run is built (vcfusion.stages).
 The ego's speed is integrated here and imposed on SUMO every step (speed mode 0), so the
-ego's motion is exactly what the controller asked for.
+ego's motion is exactly what the controller asked for. `CoSimulation.start()` runs the same loop
+one ego tick at a time for a caller that decides each tick (LiveRun: the Gymnasium environment).
 """
 
 from __future__ import annotations
 
 import tempfile
 import time as wallclock
+from contextlib import ExitStack
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -28,6 +30,7 @@ from tqdm import tqdm
 
 from vcfusion.cloud.channel import V2CChannel
 from vcfusion.cloud.twins import ProcessModel, TwinStore, neighbours
+from vcfusion.control.api import Command
 from vcfusion.interrupts import raise_if_received
 from vcfusion.metrics.run_metrics import add_run_metrics
 from vcfusion.metrics.safety import colliding_pairs, cut_ins
@@ -81,12 +84,14 @@ class Tick:
 
 
 class EgoController(Protocol):
-    """Sets the ego's acceleration every tick; may declare `needs` and `finish` (vcfusion.stages).
+    """Sets the ego's acceleration every tick (a float, m/s^2, or a vcfusion.control.Command with
+    a lane-change request: a controller of the API runs through vcfusion.control.ControllerStage);
+    may declare `needs` and `finish` (vcfusion.stages).
 
     A controller may also have ``step(EgoStep) -> EgoCommand``, called every SUMO step after the
     tick's stages: a person at the wheel (vcfusion.hitl) acts between ticks, and steers."""
 
-    def acceleration(self, tick: Tick) -> float: ...
+    def acceleration(self, tick: Tick) -> float | Command: ...
 
 
 @dataclass(frozen=True)
@@ -110,6 +115,14 @@ class EgoCommand:
     accel: float
     d: float | None = None
     yaw: float = 0.0
+
+
+@dataclass(frozen=True)
+class StopRun:
+    """A decision that ends a live run at the tick it answers, with `reason` as its end reason
+    (LiveRun.stop: e.g. a Gymnasium episode that ends at the ego's collision)."""
+
+    reason: str
 
 
 class TickHook(Protocol):
@@ -159,7 +172,7 @@ def _twin_rows(twins: TwinStates) -> dict[str, np.ndarray]:
     rows = {
         "time": np.full(len(twins), round(twins.time, 6)),
         "vehicle_id": np.array(twins.ids, dtype=object),
-        "measured_time": np.round(twins.measured_time, 6),
+        "measured_time": twins.measured_time.round(6),
         "x": twins.x, "y": twins.y, "z": twins.z, "heading": twins.heading,
         "speed": twins.speed, "accel": twins.accel, "lane": twins.lane,
     }
@@ -206,9 +219,22 @@ class CoSimulation:
             [self.controller] if self.controller is not None else [])
 
     def run(self, progress: bool = False) -> RunResult:
-        sc = self.scenario
         self.check_wiring()
         started = wallclock.perf_counter()
+        workdir, sinks, lc_file, session = self._open()
+        try:
+            loop_started = wallclock.perf_counter()
+            with one_blas_thread():  # small per-tick arrays: BLAS threads only cost hand-offs
+                out = self._loop(session, sinks, progress)
+            loop_wall = wallclock.perf_counter() - loop_started
+            session.finish()
+        finally:
+            session.close()
+        return self._results(session, workdir, sinks, lc_file, out, started, loop_wall)
+
+    def _open(self) -> tuple[tempfile.TemporaryDirectory, dict[str, TableSink], Path, SumoSession]:
+        """The run's working folder, its table sinks, SUMO's lane-change file and the started SUMO."""
+        sc = self.scenario
         # Tables that grow with simulated time are streamed to Parquet here (flat memory).
         workdir = tempfile.TemporaryDirectory(prefix="vcfusion-run-")
         sinks = {name: TableSink(Path(workdir.name) / f"{name}.parquet") for name in STREAMED_TABLES}
@@ -218,14 +244,17 @@ class CoSimulation:
         session = SumoSession(sc, self.seed, lc_file, np.random.default_rng(self.rng.integers(2**63)),
                               self.extra_sumo_args, (tripinfo, partial(sumo_model_rates, sc.metrics))
                               if sc.metrics.enabled else None)
-        try:
-            loop_started = wallclock.perf_counter()
-            with one_blas_thread():  # small per-tick arrays: BLAS threads only cost hand-offs
-                out = self._loop(session, sinks, progress)
-            loop_wall = wallclock.perf_counter() - loop_started
-            session.finish()
-        finally:
-            session.close()
+        return workdir, sinks, lc_file, session
+
+    def start(self, progress: bool = False) -> "LiveRun":
+        """Start the run and stop at its first ego tick: the caller decides each tick
+        (:class:`LiveRun`), on the same loop as :meth:`run` (the Gymnasium environment)."""
+        return LiveRun(self, progress)
+
+    def _results(self, session: SumoSession, workdir, sinks: dict[str, TableSink], lc_file: Path, out: dict,
+                 started: float, loop_wall: float) -> RunResult:
+        """The run's tables and summary from its streamed tables and the closed SUMO session."""
+        sc = self.scenario
         sumo_changes = read_sumo_lanechanges(lc_file, session.road)
         lc_file.unlink(missing_ok=True)
         stored = {name: sink.close() for name, sink in sinks.items()}
@@ -242,10 +271,13 @@ class CoSimulation:
         tracks = vehicle_tracks(lateral, set(sumo_changes["vehicle_id"]) | {EGO_ID}, ["time", "d", "s"])
         if sc.ego is not None:
             lengths = dict(zip(vehicles["vehicle_id"], vehicles["length"]))
-            # a person steers the ego across lanes; SUMO does not report those changes
-            sumo_changes = merge_changes(sumo_changes, ego_lane_changes(tracks.get(EGO_ID), session.road,
-                                                                        lengths[EGO_ID]))
-        events = lane_change_events(sumo_changes, tracks, session.road)
+            # a person steers the ego across lanes; SUMO does not report those changes (it reports
+            # those a controller's Command asked for: they are not counted twice)
+            if not (sumo_changes["vehicle_id"] == EGO_ID).any():
+                sumo_changes = merge_changes(sumo_changes, ego_lane_changes(tracks.get(EGO_ID), session.road,
+                                                                            lengths[EGO_ID]))
+        sublane = sc.lane_change_model is not None and sc.lane_change_model.model == "SL2015"
+        events = lane_change_events(sumo_changes, tracks, session.road, "settled" if sublane else "centred")
         if sc.ego is not None:
             events = relate_to_ego(events, tracks, lengths, _ego_lane_at(tracks, events["mid_time"], session.road,
                                                                          sc.ego.lane))
@@ -263,6 +295,19 @@ class CoSimulation:
         return RunResult(sc, self.seed, tables, summary, wallclock.perf_counter() - started, loop_wall)
 
     def _loop(self, session: SumoSession, sinks: dict[str, TableSink], progress: bool) -> dict:
+        """The tick loop with the run's own controller deciding at each ego tick."""
+        ticks = self._ticks(session, sinks, progress)
+        try:
+            tick = next(ticks)
+            while True:
+                tick = ticks.send(self.controller.acceleration(tick))
+        except StopIteration as stop:
+            return stop.value
+
+    def _ticks(self, session: SumoSession, sinks: dict[str, TableSink], progress: bool):
+        """The tick loop as a generator: it yields each ego tick, after the tick's stages, and
+        takes the ego's decision for it (an acceleration, m/s^2, or a vcfusion.control.Command);
+        returns the loop's outcome (collisions, end reason, channel)."""
         sc = self.scenario
         dt = sc.simulation.step_s
         tick_every = sc.steps(sc.v2c.period_s)
@@ -321,7 +366,16 @@ class CoSimulation:
                 for hook in self.hooks:
                     sinks[hook.table].append_rows(hook(tick) or [])
                 if ego_cfg is not None:
-                    ego_accel = float(self.controller.acceleration(tick))
+                    decision = yield tick
+                    if isinstance(decision, StopRun):  # the caller ends the run here (LiveRun.stop)
+                        end_reason = decision.reason
+                        break
+                    if isinstance(decision, Command):
+                        ego_accel = float(decision.accel)
+                        if decision.lane_change:
+                            session.change_ego_lane(decision.lane_change)
+                    else:
+                        ego_accel = float(decision)
             if stepper is not None:
                 command = stepper(EgoStep(session.time, s_front, ego_speed_now, session.states))
                 ego_accel = float(command.accel)
@@ -360,6 +414,89 @@ class CoSimulation:
             leader_gap_m=leader[1] if leader else None,
             leader_speed=session.speed_of(leader[0]) if leader else None,
         )
+
+
+class LiveRun:
+    """A run driven from outside its loop, one ego tick at a time: the loop of
+    :meth:`CoSimulation.run` (the same stages, tables and SUMO session), with each tick's ego
+    decision (an acceleration or a vcfusion.control.Command) given by the caller instead of the
+    run's controller. ``tick`` is the tick waiting for a decision (None once the run has ended);
+    ``advance(decision)`` applies it and runs to the next ego tick; ``result()`` gives the run's
+    tables and summary once it has ended; ``close()`` stops it and frees SUMO (libsumo: one
+    simulation per process, so one live run at a time)."""
+
+    def __init__(self, cosim: CoSimulation, progress: bool = False):
+        if cosim.scenario.ego is None:
+            raise WiringError(f"scenario {cosim.scenario.name}: a live run decides for the ego; expected an ego block")
+        cosim.check_wiring()
+        self.cosim = cosim
+        self._started = wallclock.perf_counter()
+        self._workdir, self._sinks, self._lc_file, self.session = cosim._open()
+        self._blas = ExitStack()
+        self._blas.enter_context(one_blas_thread())  # as run() holds it around its loop
+        self._ticks = cosim._ticks(self.session, self._sinks, progress)
+        self.tick: Tick | None = None
+        self.out: dict | None = None
+        self._closed = False
+        self._advance(None)
+
+    @property
+    def ended(self) -> bool:
+        return self.out is not None
+
+    @property
+    def end_reason(self) -> str | None:
+        return self.out["end_reason"] if self.out is not None else None
+
+    def _advance(self, decision) -> Tick | None:
+        try:
+            self.tick = next(self._ticks) if decision is None else self._ticks.send(decision)
+        except StopIteration as stop:
+            self.tick, self.out = None, stop.value
+            self._loop_wall = wallclock.perf_counter() - self._started
+        except BaseException:
+            self.close()
+            raise
+        return self.tick
+
+    def advance(self, decision: float | Command) -> Tick | None:
+        """Apply the decision for the waiting tick and run to the next ego tick (None: the run ended)."""
+        if self.tick is None:
+            raise RuntimeError("LiveRun.advance: the run has ended (end_reason: "
+                               f"{self.end_reason}); expected a new run")
+        return self._advance(decision)
+
+    def stop(self, reason: str) -> None:
+        """End the run at the waiting tick (its tables end there; `reason` is the summary's end_reason)."""
+        if self.tick is not None:
+            self._advance(StopRun(reason))
+
+    def result(self) -> RunResult:
+        """The run's tables and summary, as run() returns them (the run must have ended)."""
+        if self.out is None:
+            raise RuntimeError("LiveRun.result: the run has not ended; advance it to its end first")
+        try:
+            self.session.finish()
+        finally:
+            self._stop()
+        return self.cosim._results(self.session, self._workdir, self._sinks, self._lc_file, self.out, self._started,
+                                   self._loop_wall)
+
+    def _stop(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._ticks.close()
+            self.session.close()
+            self._blas.close()
+
+    def close(self) -> None:
+        """Stop the run, free SUMO and remove its working folder (nothing is kept)."""
+        was_open = not self._closed
+        self._stop()
+        if was_open:
+            for sink in self._sinks.values():
+                sink.close()
+            self._workdir.cleanup()
 
 
 def _ego_lane_at(tracks: dict, times: np.ndarray, road: RoadFrame, start_lane: int) -> np.ndarray:

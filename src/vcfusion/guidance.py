@@ -12,15 +12,15 @@ smoothed decision ``lc_decision`` is positive (the paper's Algorithm 3/4 output)
 follows the lane-change probability: ``high`` (red) at ``lc_prob >= ar.high_threshold``,
 ``medium`` (yellow) at ``>= ar.medium_threshold``, else ``none``. The scenario's ``ar:`` block is
 the only place the thresholds are set; the defaults, 0.3 and 0.6, are chosen as follows.
-``lc_prob`` is calibrated (docs/architecture.md, "Calibration"): it is the probability that the
+``lc_prob`` is calibrated (docs/components/prediction.md, "Calibration"): it is the probability that the
 vehicle's lane change ends within tau = 5 s, and its mean, the base rate, is 11 %. The shipped
-model's decision (aggressive smoothing) switches on at ``lc_prob > 0.87`` and holds for 5 s after
-the last such tick, so every warning starts red with any thresholds up to 0.87; the thresholds
-colour a warning while it is held and the probability moves. The hold exists to keep warnings
+GRU's decision (aggressive smoothing) switches on at ``lc_prob > 0.78`` (the MLP's at 0.86) and
+holds for 5 s after the last such tick, so every warning starts red with any thresholds up to that;
+the thresholds colour a warning while it is held and the probability moves. The hold exists to keep warnings
 steady (the paper's reason for Algorithms 3 and 4: a warning that goes dark and comes back
 confuses the driver), so a held warning should go dark only once the probability is back near
 ordinary levels: medium = 0.3, about three times the base rate. High = 0.6: a change within 5 s
-is clearly more likely than not. With 0.5 / 0.8 instead (the values the docs once named) a held
+is clearly more likely than not. With 0.5 / 0.8 instead a held
 warning would be dark in 40 % of the held twin-ticks instead of 34 % and red in 47 % instead of
 58 % (scenarios/accident.yaml, seeds 0-7: 3,636 twin-ticks with ``lc_decision = 1``). A process
 model that writes ``lc_prob`` but no ``lc_decision`` is levelled by the thresholds alone.

@@ -41,14 +41,17 @@ def _take(record, index):
         names = _FIELD_NAMES[type(record)] = tuple(f.name for f in fields(record))
     index = np.asarray(index)
     if index.dtype == bool:
-        index = np.flatnonzero(index)
+        index = index.nonzero()[0]
+    listed = None  # the index as Python ints, for the tuple fields (ids, types)
     values = {}
     for name in names:
         v = getattr(record, name)
         if isinstance(v, np.ndarray):
             values[name] = v[index]
         elif isinstance(v, tuple):
-            values[name] = tuple(v[i] for i in index)
+            if listed is None:
+                listed = index.tolist()
+            values[name] = tuple([v[i] for i in listed])
         else:
             values[name] = v
     sub = type(record)(**values)
@@ -209,6 +212,9 @@ class Guidance:
     level: str  # one of vcfusion.guidance.GUIDANCE_LEVELS
     box: tuple[float, float, float, float] | None  # matched image box (x1, y1, x2, y2) px; None: no image
     box_vehicle_id: str | None = None  # the vehicle owning most pixels of `box` (fusion items)
+    # camera-Z of the matched box's vehicle, m, as the fusion measured it (Algorithm 1 on the depth
+    # image it saw); the display moves the box between vision ticks with it. None: not measured
+    box_depth_m: float | None = None
 
     @property
     def shown_vehicle_id(self) -> str | None:

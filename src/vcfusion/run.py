@@ -61,8 +61,14 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
         # frame is counted, never filled from the cloud)
         hooks.append(CloudGuidanceFallback(road, policy, camera=scenario.fusion.enabled))
         enabled = scenario.driver.guidance if guidance_enabled is None else guidance_enabled
-        controller = DriverModel(draw_driver(seed, scenario.ego.desired_speed_mps), road, policy, enabled,
-                                 view=DriverView.from_scenario(scenario))
+        if scenario.ego.controller is not None:  # the scenario's own controller (vcfusion.control)
+            from vcfusion.control import ControllerContext, ControllerStage, load_controller
+
+            controller = ControllerStage(load_controller(scenario.ego.controller, dict(scenario.ego.controller_params)),
+                                         ControllerContext(scenario, seed, road, enabled))
+        else:
+            controller = DriverModel(draw_driver(seed, scenario.ego.desired_speed_mps), road, policy, enabled,
+                                     view=DriverView.from_scenario(scenario))
     # The order above is what the stages declare they need (checked here, see vcfusion.stages):
     # camera -> fusion (reads tick.frame) -> guidance log (without fusion: the cloud guidance,
     # filling tick.guidance) -> driver (reads tick.guidance).

@@ -16,17 +16,16 @@ import math
 import re
 import typing
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_serializer,
+                      model_validator)
 
 from vcfusion.errors import ScenarioError  # the loader's error; importable from here as before
+from vcfusion.fusion import sensors as _sensors
 
-# the repository's scenario files (the package is installed from the checkout), for defaults that
-# must work from any working directory
-SHIPPED_SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
 
 NonNegative = Annotated[float, Field(ge=0.0)]
 
@@ -70,12 +69,16 @@ class _Strict(BaseModel):
 
 
 class SimulationConfig(_Strict):
-    step_s: Positive = 0.01
-    max_time_s: Positive = 120.0
-    # SUMO --lanechange.duration: lane changes take this long instead of one step.
-    lanechange_duration_s: Positive = 3.0
-    # Period of the all-vehicle trajectory table (the ego is also logged every SUMO step).
-    trajectory_period_s: Positive = 0.1
+    """SUMO's clock and the trajectory log."""
+
+    step_s: Positive = Field(0.01, description="SUMO step; a whole number of milliseconds, at least 0.001 s "
+                                               "(SUMO's time resolution)")
+    max_time_s: Positive = Field(120.0, description="simulated time after which the run ends")
+    lanechange_duration_s: Positive = Field(3.0, description="SUMO --lanechange.duration: a lane change takes "
+                                                             "this long instead of one step")
+    trajectory_period_s: Positive = Field(0.1, description="period of the all-vehicle trajectory table (the ego "
+                                                           "is also logged every SUMO step); at most 1 s with "
+                                                           "metrics enabled")
 
     @field_validator("step_s")
     @classmethod
@@ -90,17 +93,18 @@ class SimulationConfig(_Strict):
 class V2CConfig(_Strict):
     """Vehicle-to-cloud channel (uplink GNSS reports) and the cloud's twin store."""
 
-    period_s: Positive = 0.1
-    latency_s: NonNegative = 0.0
-    # Standard deviation of a zero-mean Gaussian added to the latency (clipped at 0).
-    jitter_s: NonNegative = 0.0
-    loss_probability: Probability = 0.0
-    # Standard deviation (per horizontal axis) of the GNSS position error.
-    gnss_noise_std_m: NonNegative = 0.0
-    history_s: Annotated[float, Field(ge=30.0)] = 30.0
-    # A twin with no report for this long is taken as gone (vehicle left the road).
-    twin_timeout_s: Positive = 3.0
-    neighbour_range_m: Positive = 150.0
+    period_s: Positive = Field(0.1, description="period of the GNSS reports and of the cloud's tick")
+    latency_s: NonNegative = Field(0.0, description="uplink latency of a report")
+    jitter_s: NonNegative = Field(0.0, description="standard deviation of a zero-mean Gaussian added to the "
+                                                   "latency (clipped at 0)")
+    loss_probability: Probability = Field(0.0, description="probability that a report is lost")
+    gnss_noise_std_m: NonNegative = Field(0.0, description="standard deviation of the GNSS position error, "
+                                                           "per horizontal axis")
+    history_s: Annotated[float, Field(ge=30.0)] = Field(30.0, description="history each twin keeps in the cloud")
+    twin_timeout_s: Positive = Field(3.0, description="a twin with no report for this long is gone (vehicle "
+                                                      "left the road); more than latency_s + 3 jitter_s + "
+                                                      "period_s")
+    neighbour_range_m: Positive = Field(150.0, description="the ego receives the twins within this range")
 
     @model_validator(mode="after")
     def _timeout_outlasts_latency(self) -> "V2CConfig":
@@ -114,13 +118,19 @@ class V2CConfig(_Strict):
 
 
 class AROverlayConfig(_Strict):
-    period_s: Positive = 0.1
-    # calibrated lane-change probability at or above which a flagged neighbour is yellow (medium) /
-    # red (high), for the overlay, the cloud guidance and the driver alike; why 0.3 / 0.6: vcfusion.guidance
-    medium_threshold: Probability = 0.3
-    high_threshold: Probability = 0.6
-    # write the AR overlay as PNG frames + an mp4 into the run folder (needs fusion.enabled)
-    video: bool = False
+    """The AR overlay and the guidance levels (vcfusion.guidance)."""
+
+    period_s: Positive = Field(0.1, description="period of the AR updates; a whole multiple of v2c.period_s "
+                                                "with fusion enabled")
+    # why 0.3 / 0.6: the module doc of vcfusion.guidance
+    medium_threshold: Probability = Field(0.3, description="calibrated lane-change probability at or above "
+                                                           "which a flagged neighbour is yellow (medium), for the "
+                                                           "overlay, the cloud guidance and the driver alike; at "
+                                                           "most high_threshold")
+    high_threshold: Probability = Field(0.6, description="calibrated lane-change probability at or above which "
+                                                         "a flagged neighbour is red (high)")
+    video: bool = Field(False, description="write the AR overlay as PNG frames and an mp4 into the run folder "
+                                           "(needs fusion.enabled and vision.only_when_warning: false)")
 
     @model_validator(mode="after")
     def _ordered(self) -> "AROverlayConfig":
@@ -133,22 +143,39 @@ class AROverlayConfig(_Strict):
 class FusionConfig(_Strict):
     """Vision-cloud fusion: detector, depth evaluation (Algorithm 1) and twin-to-box matching."""
 
-    enabled: bool = False
-    detector: Literal["cnn", "oracle", "onnx-yolo"] = "cnn"
-    # weights of the cnn detector (relative to the scenario file); default: the shipped model.
-    # onnx-yolo: the user's YOLO exported by Ultralytics to ONNX (required; read by OpenCV DNN)
-    weights: Path | None = None
-    # onnx-yolo: the model's input size (width, height) and the COCO classes kept as vehicles
-    yolo_input_px: tuple[Annotated[int, Field(ge=32, le=4096)], Annotated[int, Field(ge=32, le=4096)]] = (640, 640)
-    yolo_classes: Annotated[tuple[str, ...], Field(min_length=1)] = ("car", "bus", "truck")
-    method: Literal["baseline", "baseline_centre", "paper", "joint"] = "joint"
-    # snap the detector's boxes to the vehicle surfaces of the depth image before matching and add
-    # boxes for vehicles it missed, from depth segments (vcfusion.fusion.box_refine; never the
-    # oracle's); false: the detector's RGB boxes as they are
-    refine_boxes: bool = True
-    depth_th: Annotated[float, Field(gt=0.0, le=1.0)] = 0.8
-    depth_samples: Annotated[int, Field(ge=1)] = 30
-    depth_reducer: Literal["mean", "median"] = "mean"
+    enabled: bool = Field(False, description="run the fusion stage (needs vision.enabled)")
+    detector: Literal["cnn", "oracle", "onnx-yolo"] = Field("cnn", description="cnn: the shipped CNN (or "
+                                                            "weights); oracle: ground-truth boxes; onnx-yolo: a "
+                                                            "YOLO exported by Ultralytics to ONNX")
+    weights: Path | None = Field(None, description="weights of the cnn detector (relative to the scenario file; "
+                                                   "null: the shipped model); the ONNX file with onnx-yolo "
+                                                   "(required there, read by OpenCV DNN); none with oracle")
+    yolo_input_px: tuple[Annotated[int, Field(ge=32, le=4096)], Annotated[int, Field(ge=32, le=4096)]] = Field(
+        (640, 640), description="onnx-yolo only: the model's input size (width, height)")
+    yolo_classes: Annotated[tuple[str, ...], Field(min_length=1)] = Field(
+        ("car", "bus", "truck"), description="onnx-yolo only: the COCO classes kept as vehicles")
+    device: Literal["auto", "cpu", "cuda"] = Field("auto", description="where the cnn detector runs: auto (CUDA when "
+                                                   "torch finds a GPU, else the CPU), cpu or cuda (refused where "
+                                                   "there is no GPU); `vcfusion --device` overrides it")
+    method: Literal["baseline", "baseline_centre", "paper", "joint"] = Field(
+        "joint", description="twin-to-box matching: baseline (the paper's RGB-only rule), baseline_centre "
+                             "(nearest box centre), paper (Algorithm 2), joint (the joint matcher)")
+    refine_boxes: bool = Field(True, description="snap the detector's boxes to the vehicle surfaces of the depth "
+                                                 "image before matching and add boxes for vehicles it missed, "
+                                                 "from depth segments (vcfusion.fusion.box_refine; never the "
+                                                 "oracle's); false: the detector's RGB boxes as they are")
+    road: Literal["auto", "flat", "from_depth"] = Field(
+        "auto", description="heights above the road for the depth step: from_depth (the road plane fitted to each "
+                            "depth image; the nominal pose's flat road where the fit fails, counted), flat (the "
+                            "nominal pose's flat road at z = 0), auto (flat with camera.depth exact and no "
+                            "camera.pose_noise, from_depth otherwise)")
+    depth_th: Annotated[float, Field(gt=0.0, le=1.0)] = Field(0.8, description="Algorithm 1: each box side is "
+                                                                              "scaled by this about the centre "
+                                                                              "before depth sampling")
+    depth_samples: Annotated[int, Field(ge=1)] = Field(30, description="Algorithm 1: depth pixels drawn in the "
+                                                                      "box's lower quarter")
+    depth_reducer: Literal["mean", "median"] = Field("mean", description="Algorithm 1: how the samples become "
+                                                                         "the box's depth (the paper: mean)")
 
     @model_validator(mode="after")
     def _detector_settings(self) -> "FusionConfig":
@@ -172,6 +199,38 @@ class FusionConfig(_Strict):
         return self
 
 
+_DEPTH = _sensors.DepthSensorParams()
+_POSE = _sensors.PoseNoiseParams()
+
+
+class DepthSensorConfig(_Strict):
+    """Parameters of the depth sensor models (vcfusion.fusion.sensors: rule, unit and source of each)."""
+
+    baseline_m: Positive = Field(_DEPTH.baseline_m, description="stereo baseline")
+    disparity_noise_px: NonNegative = Field(_DEPTH.disparity_noise_px, description="stereo: Gaussian disparity error (std)")
+    min_disparity_px: Positive = Field(_DEPTH.min_disparity_px, description="stereo: smaller disparities are holes (beyond the matcher's range)")
+    texture_min: NonNegative = Field(_DEPTH.texture_min, description="stereo: holes where the image's local texture (intensity std in a window) is below this")
+    tof_sigma0_m: NonNegative = Field(_DEPTH.tof_sigma0_m, description="ToF: range noise std at zero range")
+    tof_sigma_rel: NonNegative = Field(_DEPTH.tof_sigma_rel, description="ToF: range noise std per metre of range (fraction)")
+    tof_max_range_m: Positive = Field(_DEPTH.tof_max_range_m, description="ToF: no return beyond this range")
+    flying_edge_m: Positive = Field(_DEPTH.flying_edge_m, description="ToF: a 3x3 neighbourhood spanning a larger depth step gives flying pixels")
+    lidar_beams: Annotated[int, Field(ge=2, le=512)] = Field(_DEPTH.lidar_beams, description="LiDAR: beams evenly spaced in elevation")
+    lidar_elevation_deg: tuple[Annotated[float, Field(ge=-90, le=90)], Annotated[float, Field(ge=-90, le=90)]] = \
+        Field(_DEPTH.lidar_elevation_deg, description="LiDAR: lowest and highest beam elevation")
+    lidar_azimuth_step_deg: Annotated[float, Field(gt=0.0, le=10.0)] = Field(_DEPTH.lidar_azimuth_step_deg, description="LiDAR: one return every this many degrees of azimuth")
+    lidar_range_noise_m: NonNegative = Field(_DEPTH.lidar_range_noise_m, description="LiDAR: Gaussian range noise (std)")
+
+
+class PoseNoiseConfig(_Strict):
+    """The camera pose error the fusion does not know of (vcfusion.fusion.sensors)."""
+
+    mount_std_deg: Annotated[float, Field(ge=0.0, le=10.0)] = Field(_POSE.mount_std_deg, description="mount calibration error (std, drawn once per run, each axis)")
+    body_motion: bool = Field(_POSE.body_motion, description="the body's pitch and roll on its suspension from the ego's own accelerations")
+    pitch_gain_deg_per_mps2: Annotated[float, Field(ge=0.0, le=5.0)] = Field(_POSE.pitch_gain_deg_per_mps2, description="body pitch per longitudinal acceleration")
+    roll_gain_deg_per_mps2: Annotated[float, Field(ge=0.0, le=5.0)] = Field(_POSE.roll_gain_deg_per_mps2, description="body roll per lateral acceleration")
+    suspension_tau_s: Positive = Field(_POSE.suspension_tau_s, description="suspension: time constant of the first-order lag")
+
+
 class CameraConfig(_Strict):
     """The ego's forward camera (paper Sec. II-B): mount on the ego and pinhole intrinsics.
 
@@ -180,19 +239,26 @@ class CameraConfig(_Strict):
     optical axis down. Square pixels, principal point at the image centre.
     """
 
-    height_m: Positive = 1.4
-    forward_m: float = 0.6
-    lateral_m: float = 0.0
-    pitch_deg: Annotated[float, Field(ge=-45.0, le=45.0)] = 3.0
-    hfov_deg: Annotated[float, Field(gt=1.0, lt=170.0)] = 70.0
-    width_px: Annotated[int, Field(ge=16, le=8192)] = 640
-    height_px: Annotated[int, Field(ge=16, le=8192)] = 480
-    # Clip planes of the renderer; depth beyond far_m reads as sky.
-    near_m: Positive = 0.3
-    far_m: Positive = 600.0
-    # How the RGB image is finished (vcfusion.render.presets): "fast" for batch renders,
-    # "quality" (supersampling, lens blur, noise) for studies; depth and instances are the same.
-    render_preset: Literal["fast", "quality"] = "fast"
+    height_m: Positive = Field(1.4, description="mount height above the ground")
+    forward_m: float = Field(0.6, description="mount along the heading from the footprint centre")
+    lateral_m: float = Field(0.0, description="mount to the left of the footprint centre")
+    pitch_deg: Annotated[float, Field(ge=-45.0, le=45.0)] = Field(3.0, description="tilt of the optical axis, "
+                                                                                  "down positive")
+    hfov_deg: Annotated[float, Field(gt=1.0, lt=170.0)] = Field(70.0, description="horizontal field of view")
+    width_px: Annotated[int, Field(ge=16, le=8192)] = Field(640, description="image width")
+    height_px: Annotated[int, Field(ge=16, le=8192)] = Field(480, description="image height")
+    near_m: Positive = Field(0.3, description="near clip plane of the renderer")
+    far_m: Positive = Field(600.0, description="far clip plane (greater than near_m); depth beyond reads as sky")
+    render_preset: Literal["fast", "quality"] = Field(
+        "fast", description="how the RGB image is finished (vcfusion.render.presets): fast for batch renders, "
+                            "quality (2x2 supersampling, lens blur, exposure and sensor noise, ~6x the render "
+                            "time) for studies; depth and instances are the same")
+    depth: Literal["exact", "stereo", "tof", "lidar"] = Field(
+        "exact", description="the depth the fusion and detector get (vcfusion.fusion.sensors): exact, stereo "
+                             "(disparity noise and holes), tof (range noise, flying pixels), lidar (a sparse scan)")
+    depth_params: DepthSensorConfig = Field(DepthSensorConfig(), description="the depth sensor's parameters")
+    pose_noise: PoseNoiseConfig = Field(PoseNoiseConfig(), description="the camera pose error the fusion does not "
+                                                                        "know of")
 
     @model_validator(mode="after")
     def _planes(self) -> "CameraConfig":
@@ -204,57 +270,95 @@ class CameraConfig(_Strict):
 class VisionConfig(_Strict):
     """Whether the tick loop renders the ego camera (stages 4-6 of a tick)."""
 
-    enabled: bool = False
-    # Render every this many V2C ticks (1 = every tick).
-    every_ticks: Annotated[int, Field(ge=1)] = 1
-    # Render and fuse only at ticks where a neighbour twin carries a warning (the overlay then has
-    # something to warn about; at other ticks it would draw no warning, so the driver is shown the
-    # same warnings). Off by default: the joint matcher's position filter then gets fewer
-    # updates, so the identification is not the every-tick system's; the video needs it off.
-    only_when_warning: bool = False
+    enabled: bool = Field(False, description="render the ego camera in the tick loop (needs an ego)")
+    every_ticks: Annotated[int, Field(ge=1)] = Field(1, description="render every this many V2C ticks "
+                                                                   "(1 = every tick)")
+    # at other ticks the overlay would draw no warning, so the driver is shown the same warnings;
+    # off by default: the joint matcher's position filter then gets fewer updates
+    only_when_warning: bool = Field(False, description="render and fuse only at ticks where a neighbour twin "
+                                                       "carries a warning (faster; fewer updates for the joint "
+                                                       "matcher's position filter; no AR video)")
 
 
 class EgoConfig(_Strict):
-    vtype: Name = "ego"
-    # the ego's route (default: the scenario's); lane: a track of it (index from the right), and
-    # depart_pos_m (front bumper) along it
-    route: Route | None = None
-    lane: Annotated[int, Field(ge=0)] = 2
-    depart_pos_m: NonNegative = 50.0
-    speed_mps: NonNegative = 19.0
-    desired_speed_mps: Positive = 19.0
-    # The trip ends when the ego has travelled this far (or at simulation.max_time_s).
-    trip_distance_m: Positive = 300.0
+    """The ego vehicle: driven by the driver model (or a person), carrying the camera."""
+
+    vtype: Name = Field("ego", description="vehicle type (of vehicle_types)")
+    route: Route | None = Field(None, description="the ego's route, edge ids in driving order (null: the "
+                                                  "scenario's)")
+    lane: Annotated[int, Field(ge=0)] = Field(2, description="a track of the route, index from the right "
+                                                            "(0 = rightmost); it must run trip_distance_m")
+    depart_pos_m: NonNegative = Field(50.0, description="front bumper along the route at t = 0")
+    speed_mps: NonNegative = Field(19.0, description="speed at t = 0")
+    desired_speed_mps: Positive = Field(19.0, description="the driver's desired speed")
+    trip_distance_m: Positive = Field(300.0, description="the trip ends when the ego has travelled this far (or "
+                                                         "at simulation.max_time_s)")
+    controller: str | None = Field(None, description="the ego's controller (vcfusion.control) by import path "
+                                                     "\"package.module:Name\"; null: the built-in driver model")
+    controller_params: dict[str, Any] = Field({}, description="keyword arguments the controller is built with")
+
+    @field_validator("controller")
+    @classmethod
+    def _importable(cls, v: str | None) -> str | None:
+        if v is not None:
+            from vcfusion.control.stage import ControllerError, resolve
+
+            try:
+                resolve(v)
+            except ControllerError as exc:
+                raise ValueError(str(exc)) from None
+        return v
+
+    @model_validator(mode="after")
+    def _params_fit(self) -> "EgoConfig":
+        if self.controller_params and self.controller is None:
+            raise ValueError("controller_params: given without ego.controller; expected a controller to pass them to")
+        if self.controller is not None:
+            from vcfusion.control.stage import ControllerError, check_params
+
+            try:
+                check_params(self.controller, dict(self.controller_params))
+            except ControllerError as exc:
+                raise ValueError(f"controller_params: {exc}") from None
+        return self
+
+    @model_serializer(mode="wrap")
+    def _without_unset_controller(self, handler):
+        # a scenario without a controller records what it recorded before the field existed
+        data = handler(self)
+        if self.controller is None:
+            data.pop("controller", None)
+            data.pop("controller_params", None)
+        return data
 
 
 class DriverConfig(_Strict):
     """The ego's driver model (vcfusion.driver) and the guidance it is shown."""
 
-    # Whether the driver uses the AR guidance in a single run (the guidance study runs both).
-    guidance: bool = True
-    # Guidance items are made for neighbours ahead within this range; levels follow ar.medium_threshold /
-    # ar.high_threshold (one GuidancePolicy per run, vcfusion.guidance).
-    guidance_view_range_m: Positive = 150.0
-    # The driver's forward field of view (degrees); default: the camera's hfov_deg (the AR shows
-    # the camera's view). See vcfusion.driver.perception.
-    field_of_view_deg: Annotated[float, Field(gt=1.0, lt=180.0)] | None = None
+    guidance: bool = Field(True, description="whether the driver uses the AR guidance in a single run (the "
+                                             "guidance study runs both)")
+    guidance_view_range_m: Positive = Field(150.0, description="guidance items are made for neighbours ahead "
+                                                               "within this range; levels follow the ar block")
+    field_of_view_deg: Annotated[float, Field(gt=1.0, lt=180.0)] | None = Field(
+        None, description="the driver's forward field of view (null: the camera's hfov_deg; "
+                          "vcfusion.driver.perception)")
 
 
 class VehicleGroup(_Strict):
     """Vehicles placed at t = 0 at random positions (drawn per seed) in the given lanes."""
 
-    name: Name
-    count: Annotated[int, Field(ge=1)]
-    vtype: Name = "car"
-    # the group's route (default: the scenario's); lanes are its tracks (index from the right) and
-    # pos_m the front bumpers' range along it
-    route: Route | None = None
-    lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1)
-    pos_m: tuple[NonNegative, NonNegative]
-    speed_mps: NonNegative = 17.0
-    desired_speed_mps: Positive | None = None
-    # Minimum bumper-to-bumper spacing in one lane (SUMO refuses to insert at 17 m/s with much less).
-    min_spacing_m: NonNegative = 20.0
+    name: Name = Field(description="group name (vehicles.parquet `group`; metrics.exclude_groups)")
+    count: Annotated[int, Field(ge=1)] = Field(description="number of vehicles")
+    vtype: Name = Field("car", description="vehicle type (of vehicle_types)")
+    route: Route | None = Field(None, description="the group's route (null: the scenario's)")
+    lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1, description="tracks of the route (index from "
+                                                                               "the right) the vehicles are drawn in")
+    pos_m: tuple[NonNegative, NonNegative] = Field(description="[low, high] range of the front bumpers along the "
+                                                               "route, low <= high")
+    speed_mps: NonNegative = Field(17.0, description="speed at t = 0")
+    desired_speed_mps: Positive | None = Field(None, description="desired speed (null: the vehicle type's)")
+    # SUMO refuses to insert at 17 m/s with much less
+    min_spacing_m: NonNegative = Field(20.0, description="minimum bumper-to-bumper spacing in one lane")
 
     @field_validator("pos_m")
     @classmethod
@@ -268,84 +372,179 @@ class Flow(_Strict):
     """Poisson arrivals at the start of the route (the flow's, default the scenario's) over the
     whole run, in the given tracks of that route's first edge."""
 
-    vtype: Name = "car"
-    route: Route | None = None
-    vehs_per_hour: Positive
-    lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1)
-    speed_mps: NonNegative = 25.0
+    vtype: Name = Field("car", description="vehicle type (of vehicle_types)")
+    route: Route | None = Field(None, description="the flow's route (null: the scenario's)")
+    vehs_per_hour: Positive = Field(description="mean arrival rate (Poisson)")
+    lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1, description="tracks of the route's first edge")
+    speed_mps: NonNegative = Field(25.0, description="departure speed")
 
 
 class AccidentConfig(_Strict):
     """Stopped vehicles closing lanes (SUMO <stop parking="false">): tracks of the scenario's
     route at pos_m (front bumper) along `edge`, or along the route when no edge is given."""
 
-    edge: Name | None = None
-    pos_m: NonNegative
-    lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1)
-    vtype: Name = "truck"
+    edge: Name | None = Field(None, description="edge of the stop (null: positions along the route)")
+    pos_m: NonNegative = Field(description="front bumper along `edge`, or along the route")
+    lanes: list[Annotated[int, Field(ge=0)]] = Field(min_length=1, description="tracks closed (index from the "
+                                                                               "right)")
+    vtype: Name = Field("truck", description="vehicle type of the stopped vehicles")
+
+
+class LaneChangeDurationConfig(_Strict):
+    """Each vehicle's own lane-change duration, drawn when it departs: SUMO's per-vehicle lateral
+    speed limit (maxSpeedLat) is set to lane width / duration (SUMO: a vehicle's maxSpeedLat
+    overrides --lanechange.duration; with the sublane model's lcAccelLat the move takes about
+    maxSpeedLat / lcAccelLat longer)."""
+
+    distribution: Literal["fixed", "lognormal", "uniform"] = Field(
+        "lognormal", description="fixed: every change median_s; lognormal: median median_s, log-space std sigma; "
+                                 "uniform: between min_s and max_s; draws are clipped to [min_s, max_s]")
+    median_s: Positive = Field(4.0, description="median lane-change duration")
+    sigma: NonNegative = Field(0.3, description="log-space standard deviation (lognormal)")
+    min_s: Positive = Field(1.0, description="shortest duration drawn")
+    max_s: Positive = Field(12.0, description="longest duration drawn")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "LaneChangeDurationConfig":
+        if not self.min_s <= self.median_s <= self.max_s:
+            raise ValueError(f"lane_change_model.duration: expected min_s <= median_s <= max_s, got {self.min_s:g}, "
+                             f"{self.median_s:g}, {self.max_s:g}")
+        return self
+
+
+class LaneChangeModelConfig(_Strict):
+    """SUMO's lane-change model for the traffic's vehicle types (not the ego, which our code
+    drives). Unset parameters keep the vehicle types file's values (SUMO's defaults where it has
+    none). Calibrated sets and how they were chosen: docs/components/real-data.md
+    (`vcfusion calibrate-lane-changes` against US-101 development data)."""
+
+    model: Literal["LC2013", "SL2015"] = Field(
+        "LC2013", description="LC2013: SUMO's default, lanes as units (a change moves across at constant lateral "
+                              "speed); SL2015: the sublane model (needs lateral_resolution_m: vehicles move within "
+                              "and across lanes with bounded lateral speed and acceleration)")
+    vtypes: list[Name] | None = Field(None, description="vehicle types given these parameters; null: every type "
+                                                        "of the scenario's vehicles and flows")
+    lateral_resolution_m: Positive | None = Field(None, description="SUMO --lateral-resolution; SL2015 only")
+    lc_sigma: NonNegative | None = Field(None, description="SUMO lcSigma: lateral imperfection; SL2015 only")
+    max_speed_lat_mps: Positive | None = Field(None, description="SUMO maxSpeedLat")
+    lc_accel_lat_mps2: Positive | None = Field(None, description="SUMO lcAccelLat; SL2015 only")
+    lc_strategic: NonNegative | None = Field(None, description="SUMO lcStrategic: eagerness for route changes")
+    lc_cooperative: Annotated[float, Field(ge=0.0, le=1.0)] | None = Field(None, description="SUMO lcCooperative")
+    lc_speed_gain: NonNegative | None = Field(None, description="SUMO lcSpeedGain: eagerness to overtake")
+    lc_keep_right: NonNegative | None = Field(None, description="SUMO lcKeepRight: eagerness to return right")
+    duration: LaneChangeDurationConfig | None = Field(None, description="per-vehicle lane-change durations "
+                                                                        "(exclusive with max_speed_lat_mps)")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "LaneChangeModelConfig":
+        sublane = self.model == "SL2015"
+        if sublane != (self.lateral_resolution_m is not None):
+            raise ValueError("lane_change_model: expected lateral_resolution_m exactly with model SL2015 (SUMO runs "
+                             "LC2013 without sublanes only, and SL2015 on sublanes)")
+        for name in ("lc_sigma", "lc_accel_lat_mps2"):
+            if getattr(self, name) is not None and not sublane:
+                raise ValueError(f"lane_change_model.{name}: only the sublane model (model: SL2015) moves vehicles "
+                                 "laterally this way; with LC2013 it would have no effect")
+        if self.duration is not None and self.max_speed_lat_mps is not None:
+            raise ValueError("lane_change_model: expected one of duration (per-vehicle maxSpeedLat) and "
+                             "max_speed_lat_mps, not both")
+        return self
+
+    def vtype_attributes(self) -> dict[str, str]:
+        """The SUMO vType attributes this block sets (name -> value text)."""
+        names = {"lc_sigma": "lcSigma", "max_speed_lat_mps": "maxSpeedLat", "lc_accel_lat_mps2": "lcAccelLat",
+                 "lc_strategic": "lcStrategic", "lc_cooperative": "lcCooperative", "lc_speed_gain": "lcSpeedGain",
+                 "lc_keep_right": "lcKeepRight"}
+        out = {"laneChangeModel": self.model}
+        out |= {sumo: repr(float(getattr(self, field))) for field, sumo in names.items()
+                if getattr(self, field) is not None}
+        return out
 
 
 class PredictionConfig(_Strict):
     """The cloud's lane-change predictor (a twin process model, vcfusion.prediction)."""
 
-    enabled: bool = True
-    # Model file from `vcfusion train`; None = the model shipped in vcfusion/assets.
-    model: Path | None = None
-    # Smoothing of the per-tick decisions (paper Algorithms 3 and 4): none | aggressive | conservative;
-    # None = the model file's default (chosen on validation seeds by `vcfusion train`).
-    smoothing: Literal["none", "aggressive", "conservative"] | None = None
-    # Probability above which the raw per-tick decision is positive (None = the model file's threshold
-    # tuned for that smoothing).
-    threshold: Probability | None = None
-    # Algorithm 3: a positive lasts tau_a more V2C ticks; Algorithm 4: mean of the last tau_c + 1 ticks.
-    # None = the values stored in the model file (tuned on validation seeds by `vcfusion train`).
-    tau_a_ticks: Annotated[int, Field(ge=0)] | None = None
-    tau_c_ticks: Annotated[int, Field(ge=0)] | None = None
-    conservative_threshold: Probability | None = None  # None = the model file's (0.5 in the shipped ones)
+    enabled: bool = Field(True, description="run the predictor on every twin every V2C tick")
+    model: Path | None = Field(None, description="model file from `vcfusion train` (relative to the scenario); "
+                                                 "null: the shipped GRU")
+    smoothing: Literal["none", "aggressive", "conservative"] | None = Field(
+        None, description="smoothing of the per-tick decisions (paper Algorithms 3 and 4); null: the model "
+                          "file's (chosen on validation seeds by `vcfusion train`)")
+    threshold: Probability | None = Field(None, description="calibrated probability above which the raw "
+                                                            "per-tick decision is positive; null: the model "
+                                                            "file's, tuned for that smoothing")
+    tau_a_ticks: Annotated[int, Field(ge=0)] | None = Field(None, description="Algorithm 3: a positive lasts "
+                                                                             "this many more V2C ticks; null: "
+                                                                             "the model file's")
+    tau_c_ticks: Annotated[int, Field(ge=0)] | None = Field(None, description="Algorithm 4: mean over the last "
+                                                                             "tau_c + 1 V2C ticks; null: the "
+                                                                             "model file's")
+    conservative_threshold: Probability | None = Field(None, description="Algorithm 4's vote threshold; null: "
+                                                                         "the model file's (0.5 in the shipped "
+                                                                         "ones)")
 
 
 class MetricsConfig(_Strict):
     """Safety, comfort and emission metrics of every vehicle of a run (vcfusion.metrics).
 
     One place for the thresholds and definitions: runs, batches, `vcfusion metrics` and the
-    guidance study all read them from here (docs/architecture.md, "Metrics").
+    guidance study all read them from here (docs/components/metrics.md).
     """
 
-    enabled: bool = True
-    # TTC below which a following situation is a conflict (TET/TIT, conflict episodes): 1.5 s, the
-    # SSAM default (Gettman & Head, "Surrogate Safety Measures From Traffic Simulation Models",
-    # FHWA-RD-03-050, 2003; Gettman et al., "Surrogate Safety Assessment Model and Validation",
-    # FHWA-HRT-08-051, 2008).
-    ttc_threshold_s: Positive = 1.5
-    # Jerk: the acceleration (speed difference per sample) is smoothed by a centred moving average
-    # over this window before it is differentiated (one V2C tick: the ego's command is piecewise
-    # constant over a tick; at the 0.1 s trajectory period it is no smoothing).
-    jerk_window_s: Positive = 0.1
-    # The guidance study's mean TTC to the cut-in vehicle is also given with TTC clipped here.
-    ttc_clip_s: Positive = 20.0
-    # A vehicle's leader is the nearest vehicle ahead in its lane within this range (bumper to bumper).
-    leader_range_m: Positive = 250.0
-    # MOVESTAR source type (1 light-duty passenger car, 2 light-duty truck) by SUMO vType id or vClass
-    # (the vType id wins); vehicles of other types (trucks, buses) get SUMO's emission model only.
-    movestar: dict[Name, Literal[1, 2]] = {"passenger": 1}
-    # The vehicles SUMO's own emission model rates (HBEFA/PHEMlight, the class their vType sets):
-    # "others" = those without a MOVESTAR type (trucks, buses: every vehicle gets one model), "all"
-    # (the cars too, a second opinion; SUMO then rates every vehicle every step, which costs the run
-    # ~20-30 %), "none".
-    sumo_emissions: Literal["others", "all", "none"] = "others"
-    # Vehicles of these placement groups (vehicles.parquet `group`) keep their rows and still lead
-    # others, but are left out of the traffic-wide figures (the parked accident vehicles are obstacles).
-    exclude_groups: list[Name] = ["accident"]
+    enabled: bool = Field(True, description="compute the metrics tables and the summary's metrics block")
+    # 1.5 s: the SSAM default (Gettman & Head, "Surrogate Safety Measures From Traffic Simulation
+    # Models", FHWA-RD-03-050, 2003; Gettman et al., "Surrogate Safety Assessment Model and
+    # Validation", FHWA-HRT-08-051, 2008)
+    ttc_threshold_s: Positive = Field(1.5, description="TTC below which a following situation is a conflict "
+                                                       "(TET/TIT, conflict episodes); the SSAM default")
+    # one V2C tick: the ego's command is piecewise constant over a tick; at the 0.1 s trajectory
+    # period it is no smoothing
+    jerk_window_s: Positive = Field(0.1, description="centred moving average of the acceleration before it is "
+                                                     "differentiated into jerk")
+    ttc_clip_s: Positive = Field(20.0, description="the guidance study's mean TTC to the cut-in vehicle is also "
+                                                   "given with TTC clipped here")
+    leader_range_m: Positive = Field(250.0, description="a vehicle's leader is the nearest vehicle ahead in its "
+                                                        "lane within this range (bumper to bumper)")
+    movestar: dict[Name, Literal[1, 2]] = Field({"passenger": 1}, description="MOVESTAR source type (1 "
+                                                "light-duty passenger car, 2 light-duty truck) by SUMO vType id "
+                                                "or vClass (the vType id wins); other types (trucks, buses) get "
+                                                "SUMO's emission model only")
+    sumo_emissions: Literal["others", "all", "none"] = Field(
+        "others", description="the vehicles SUMO's own emission model rates (HBEFA/PHEMlight, their vType's "
+                              "class): others = those without a MOVESTAR type; all = the cars too (SUMO then "
+                              "rates every vehicle every step, ~20-30 % more run time); none")
+    exclude_groups: list[Name] = Field(["accident"], description="placement groups (vehicles.parquet `group`) "
+                                                                 "left out of the traffic-wide figures; they keep "
+                                                                 "their rows and still lead others")
+
+
+class RewardConfig(_Strict):
+    """Weights of the Gymnasium environment's reward per V2C tick (vcfusion.gym.reward has the
+    terms and the reasons for these defaults); set in a scenario's `reward:` block."""
+
+    progress: float = Field(1.0, description="weight of travel along the route: 1 per tick driven at "
+                                             "ego.desired_speed_mps")
+    ttc: NonNegative = Field(1.0, description="weight of (threshold - TTC) / threshold to the radar leader while "
+                                              "TTC < metrics.ttc_threshold_s (0..1)")
+    drac: NonNegative = Field(0.5, description="weight of DRAC to the radar leader / 3.35 m/s^2 (the conflict "
+                                               "threshold of Archer 2005)")
+    jerk: NonNegative = Field(0.05, description="weight of |jerk| of the command from one tick to the next / "
+                                                "10 m/s^3")
+    fuel: NonNegative = Field(1.0, description="weight of the tick's MOVESTAR fuel, per gram")
+    collision: NonNegative = Field(100.0, description="penalty, once, at a collision of the ego (the episode ends)")
 
 
 class Scenario(_Strict):
-    name: Name
-    description: str = ""
-    network: Path
-    # the road frame's route (edge ids in driving order) and every vehicle's default route; a
-    # network that is one chain of edges (e.g. one straight edge) needs none
-    route: Route | None = None
-    vehicle_types: Path
+    """A scenario file: the top level."""
+
+    name: Name = Field(description="the scenario's name (default run folder names)")
+    description: str = Field("", description="one line shown by `vcfusion scenarios`")
+    network: Path = Field(description="SUMO .net.xml (relative to the file that sets it)")
+    route: Route | None = Field(None, description="edge ids in driving order: the road frame and every "
+                                                  "vehicle's default route; not needed on a network that is one "
+                                                  "chain of edges")
+    vehicle_types: Path = Field(description="SUMO additional file with the <vType>s (relative to the file that "
+                                            "sets it)")
     simulation: SimulationConfig = SimulationConfig()
     v2c: V2CConfig = V2CConfig()
     ar: AROverlayConfig = AROverlayConfig()
@@ -359,6 +558,9 @@ class Scenario(_Strict):
     accident: AccidentConfig | None = None
     prediction: PredictionConfig = PredictionConfig()
     metrics: MetricsConfig = MetricsConfig()
+    # the Gymnasium environment's reward weights (vcfusion.gym); unused by `vcfusion run`
+    reward: RewardConfig = RewardConfig()
+    lane_change_model: LaneChangeModelConfig | None = None
     # Where the scenario was read from (set by the loader, not by the file): the file given and,
     # when it extends others, the chain of files it was merged from (the given file first).
     source: Path | None = Field(default=None, exclude=True)
@@ -403,6 +605,15 @@ class Scenario(_Strict):
             raise ValueError("expected at least one of ego, vehicles, flows")
         return self
 
+    @model_serializer(mode="wrap")
+    def _without_default_reward(self, handler):
+        # the reward weights are recorded where a scenario sets them (runs before the block existed
+        # record the same scenario)
+        data = handler(self)
+        if self.reward == RewardConfig():
+            data.pop("reward", None)
+        return data
+
     def overlay_period_s(self) -> float:
         """Simulated time between two frames of the AR video: the fusion stage draws at the AR updates
         (every ar.period_s) that have a camera frame (every vision.every_ticks V2C ticks); both start
@@ -415,7 +626,10 @@ class Scenario(_Strict):
         return int(round(period_s / self.simulation.step_s))
 
     def to_dict(self) -> dict:
-        return self.model_dump(mode="json")
+        out = self.model_dump(mode="json")
+        if self.lane_change_model is None:  # unset: the record every run of SUMO's own lane changes keeps
+            del out["lane_change_model"]
+        return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -608,12 +822,43 @@ def _validation_lines(exc: ValidationError, origins: _Origins) -> list[str]:
     return lines
 
 
-def load_scenario(path: str | Path) -> Scenario:
-    """Read, merge (`extends`) and validate a scenario file and the files it names; raises
-    ScenarioError with one line per problem naming the file, the field and what was expected."""
+def find_scenario(path: str | Path) -> Path:
+    """The scenario file `path` names: the file itself when it exists, else the shipped scenario of
+    that name (`accident`, `families/dense`: see vcfusion.resources.shipped_scenarios); ScenarioError
+    listing the shipped names when it is neither."""
+    from vcfusion.resources import SCENARIO_SUFFIX, shipped_scenarios
+
     path = Path(path)
-    if not path.is_file():
-        raise ScenarioError(f"{path}: scenario file not found")
+    if path.is_file():
+        return path
+    shipped = shipped_scenarios()
+    name = path.as_posix()
+    if name in shipped and not path.suffix:
+        return shipped[name]
+    hint = (f"expected a scenario file, or the name of a shipped scenario: {', '.join(shipped)}"
+            if not path.suffix or path.suffix == SCENARIO_SUFFIX else "expected a scenario file (YAML)")
+    raise ScenarioError(f"{path}: scenario file not found ({hint})")
+
+
+def describe_scenario_file(path: Path) -> str:
+    """One line about a scenario file: its own `description` field (not a base's), else its leading
+    YAML comment, whitespace collapsed; empty when it has neither."""
+    raw = _read_mapping(path)
+    if isinstance(raw.get("description"), str) and raw["description"].strip():
+        return " ".join(raw["description"].split())
+    comment = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if not line.startswith("#"):
+            break
+        comment.append(line.lstrip("#").strip())
+    return " ".join(" ".join(comment).split())
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Read, merge (`extends`) and validate a scenario file (or a shipped scenario by name: see
+    find_scenario) and the files it names; raises ScenarioError with one line per problem naming
+    the file, the field and what was expected."""
+    path = find_scenario(path)
     chain = read_chain(path)
     merged: dict = {}
     origin: dict = {}
@@ -752,6 +997,12 @@ def _check_named_files(scenario: Scenario, origins: _Origins) -> None:
     uses += [(("vehicles", i), g.vtype, g.route, g.lanes, "pos_m", list(g.pos_m), True)
              for i, g in enumerate(scenario.vehicles)]
     uses += [(("flows", i), f.vtype, f.route, f.lanes, "", [0.0], False) for i, f in enumerate(scenario.flows)]
+    lcm = scenario.lane_change_model
+    for k, vtype in enumerate((lcm.vtypes or []) if lcm is not None else []):
+        if vtype not in vtypes:
+            raise ScenarioError(f"{origins.label(('lane_change_model', 'vtypes', k))}: lane_change_model.vtypes: "
+                                f"{vtype!r} is not defined in {scenario.vehicle_types.name}; expected one of: "
+                                f"{', '.join(vtypes)}")
     acc = scenario.accident
     if acc is not None:
         if acc.edge is not None and acc.edge not in road.route:

@@ -92,7 +92,7 @@ def test_bad_inputs_name_the_file(model, tmp_path):
 
 
 def test_command_prints_the_share_and_rejects_a_missing_folder(model, tmp_path, capsys):
-    from vcfusion.cli import main
+    from vcfusion.commands import main
 
     folder = _folder(tmp_path / "ds", [{"bbox": [20.0, 20.0, 40.0, 40.0], "visible_fraction": 1.0, "truncation": 0.0}])
     assert main(["coco-check", str(folder), "--coco-onnx", str(model)]) == 0

@@ -269,7 +269,7 @@ def test_a_frame_whose_depth_image_is_missing_or_misfits_is_refused(families, tm
 
     import cv2
 
-    from vcfusion.cli import main
+    from vcfusion.commands import main
 
     folder = tmp_path / "cut_in"
     shutil.copytree(families[2], folder)
@@ -286,3 +286,28 @@ def test_a_frame_whose_depth_image_is_missing_or_misfits_is_refused(families, tm
         assert "its depth image depth/" in err and "is missing or unreadable" in err
     else:
         assert str(depth) in err and "expected a single-channel image of the RGB image's size" in err
+
+
+def test_a_lidar_scan_leaves_the_detectors_boxes_and_says_so(families, tmp_path):
+    # a 64-beam scan cannot snap a box: every box is kept as detected (counted), none is proposed,
+    # and the identification is that of the raw boxes under the same depth (never worse)
+    import subprocess
+    import sys
+
+    from vcfusion.detection.detector_net import TorchDetector, default_weights_path
+    from vcfusion.detection.detector_train import load_coco_many
+    from vcfusion.detection.family_eval import evaluate_families
+    from vcfusion.fusion.box_refine import BoxRefineParams
+
+    ds = load_coco_many([families[1]])
+    det = TorchDetector(default_weights_path())
+    refined, _ = evaluate_families(det, ds, refine=BoxRefineParams(), depth_sensor="lidar")
+    raw, _ = evaluate_families(det, ds, refine=None, depth_sensor="lidar")
+    c = refined[0].depth_counts
+    assert c["frames"] == len(ds) and c["frames_without_proposals"] == len(ds)
+    assert c["boxes_refined"] == 0 and c["boxes_gated"] > 0
+    assert refined[0].identification == raw[0].identification
+    assert refined[0].summary()["depth_step_boxes_gated"] == c["boxes_gated"]
+    bad = subprocess.run([sys.executable, "-m", "vcfusion", "eval-detector", str(families[1]), "--pose-noise-deg",
+                          "-1"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "--pose-noise-deg: expected a standard deviation" in bad.stderr

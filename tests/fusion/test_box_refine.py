@@ -168,8 +168,8 @@ def test_a_vehicle_without_a_box_is_proposed_from_depth(frames):
           f"proposals on a given box: {extra}")
     assert len(found) >= 20
     # (measured: 91 % of 23; without the 'behind the box's surface' rule 74 %: a car peeking over or
-    # beside a nearer one lies inside the nearer one's box; with that rule at 3 m, as before the
-    # fourteenth session, 87 %: a car 1-3 m behind a nearer one's surface counted as part of it)
+    # beside a nearer one lies inside the nearer one's box; with that rule at 3 m instead of
+    # behind_m = 1 m, 87 %: a car 1-3 m behind a nearer one's surface counted as part of it)
     assert (found >= 0.7).mean() >= 0.9 and np.median(found) >= 0.85
     assert extra == 0
 
@@ -227,7 +227,7 @@ def _plate(depth, K, T, x, y0, y1, top, bottom=0.0):
 def test_a_narrow_car_sliver_is_proposed_but_not_a_post_or_a_tree_trunk():
     """What is left of a car mostly hidden behind another is as narrow as 0.27 m (jam development
     seed 3122: 0.28 m at 13 m), and narrower still: 6 px at 19 m, 0.249 m, and 4 px at 17 m, 0.15 m
-    (seeds 3444, 3327; 0.25 m was the limit before the twenty-seventh session); reflector posts
+    (seeds 3444, 3327; a 0.25 m limit misses them); reflector posts
     (0.12 m) are narrower, and a segment standing higher than a truck's roof line must be as wide as a
     vehicle (tree trunks)."""
     from vcfusion.fusion.bench import default_camera, road_depth
@@ -732,8 +732,8 @@ def test_a_strip_of_a_far_truck_between_two_nearer_cars_goes_back_to_the_truck_w
 def test_a_segment_overlapping_a_box_of_a_nearer_surface_by_under_0_6_is_proposed():
     """A car 10 m ahead hides the lower right of a truck 22 m ahead, which shows as an L (its top
     above the car and its left side). A box over the truck's L and the top of the car measures the
-    car's depth in its core; the truck's segment overlaps it by 0.55-0.6, which made it that box's
-    (0.5 before the sixteenth session) and left the truck without a box of its own."""
+    car's depth in its core; the truck's segment overlaps it by 0.55-0.6, which under a 0.5 limit
+    makes it that box's and leaves the truck without a box of its own."""
     from vcfusion.fusion.bench import default_camera, road_depth
     from vcfusion.fusion.box_refine import ProposalParams, _surface_depth, depth_proposals, object_segments
 
@@ -975,8 +975,8 @@ def _van_behind_a_car_seen_in_two_pieces(hidden_below_m=None):
 def test_a_fragment_whose_every_pixel_the_cut_removes_is_a_segment_of_its_own():
     """The van's lower piece is 1 px wide with nearer things left of it, above and below: every pixel
     is the farther one of a jumping pair and none has a neighbour on its surface that kept its label,
-    so giving the outlines back cannot place them. They are a segment of their own (before the
-    twenty-eighth session they were no segment at all, and no box could grow over them)."""
+    so giving the outlines back cannot place them. They are a segment of their own (were they no
+    segment at all, no box could grow over them)."""
     from vcfusion.fusion.box_refine import object_segments
 
     K, T, scene, upper, lower, car = _van_behind_a_car_seen_in_two_pieces()
@@ -1011,8 +1011,8 @@ def test_a_box_over_a_sliver_grows_over_its_fragment_measured_on_the_surface_dra
 
 def test_a_box_grows_over_a_fragment_of_two_pixels_seen_through_a_gap():
     """Jam dev seed 3362: of a truck behind a car, 1-3 px show beside the car's outline rows below
-    the rest, and the ground truth spans them. Fragments of fewer than 4 px were left out before the
-    twenty-ninth session; the van's lower piece here is 2 px seen through a gap in a nearer object."""
+    the rest, and the ground truth spans them, so a fragment of any size joins (a 4-px minimum
+    leaves them out); the van's lower piece here is 2 px seen through a gap in a nearer object."""
     from vcfusion.fusion.box_refine import join_fragments, object_segments
 
     K, T, scene, upper, lower, car = _van_behind_a_car_seen_in_two_pieces(hidden_below_m=0.9)
@@ -1079,7 +1079,7 @@ def test_a_small_box_grows_over_a_piece_of_its_vehicle_a_metre_fraction_away():
     """Jam dev seed 3409: of a car 13 m ahead, a nearer truck leaves a strip at its side, and a car's
     body beside it (above the road on its wheels) hides the strip's middle: the roof corner (14 x 20
     px) and a lower piece 17 px below it show. 17 px is more than half the small box's larger side
-    (the only limit before the twenty-ninth session) but 0.5 m at 13 m."""
+    (the fragment_gap share alone keeps them apart) but 0.5 m at 13 m, within fragment_gap_m."""
     from vcfusion.fusion.bench import default_camera, road_depth
     from vcfusion.fusion.box_refine import ProposalParams, join_fragments, object_segments
 

@@ -86,7 +86,7 @@ def test_fusion_hook_reads_the_camera_hooks_frame(tmp_path):
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_CAMERA, reason="needs the rendering stage (scenario vision block, camera hook)")
 def test_run_with_rendered_camera_writes_fusion_table_and_video(tmp_path, monkeypatch):
-    from vcfusion.cli import main
+    from vcfusion.commands import main
 
     monkeypatch.chdir(tmp_path)
     path = scenario_file(tmp_path, vision={"enabled": True}, fusion={"enabled": True, "detector": "oracle"},

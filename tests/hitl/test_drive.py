@@ -315,7 +315,7 @@ def test_a_replayed_trip_keeps_its_guidance_condition(tmp_path):
     # (labelled "on" it went to the wrong arm of the guidance study)
     import json
 
-    from vcfusion.cli import main
+    from vcfusion.commands import main
 
     path = write_scenario(tmp_path, SCENARIO.replace("MAX_TIME", "1.0").replace("VEHICLES", FAR_AHEAD))
     trip = tmp_path / "trip"
@@ -334,7 +334,7 @@ def test_a_replay_drives_the_recorded_trips_seed_and_participant(tmp_path, capsy
     # through other traffic), and the replayed folder lost the participant
     import json
 
-    from vcfusion.cli import main
+    from vcfusion.commands import main
 
     path = write_scenario(tmp_path, SCENARIO.replace("MAX_TIME", "1.0").replace("VEHICLES", FAR_AHEAD))
     (tmp_path / "in.csv").write_text("time_s,throttle,brake,steer\n0,0.2,0,0\n")

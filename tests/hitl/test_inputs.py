@@ -198,7 +198,7 @@ def test_calibrate_reads_a_virtual_wheel_held_in_each_position(sdl, tmp_path):
 def test_drive_refuses_bad_input_with_exit_2(tmp_path, capsys):
     from scenario_files import SCENARIOS
 
-    from vcfusion.cli import main
+    from vcfusion.commands import main
 
     assert main(["drive", str(SCENARIOS / "accident.yaml"), "--speed", "max", "--headless"]) == 2
     assert "--speed max: only for replay" in capsys.readouterr().err
@@ -265,21 +265,3 @@ def test_a_driving_key_held_before_the_start_key_drives_from_the_first_step(sdl)
         assert controls[-1].throttle > 0.5 and not any(c.lane_change for c in controls)
     finally:
         window.close()
-
-
-def test_guidance_boxes_follow_their_vehicles_in_the_instance_map():
-    import numpy as np
-
-    from vcfusion.hitl.display import reprojected
-    from vcfusion.records import Guidance
-
-    instances = np.full((40, 60), -1, np.int32)
-    instances[10:20, 30:45] = 1  # vehicle "b" now here
-    instances[5:8, 2:4] = 0  # "a"
-    items = (Guidance(1.0, "b", 0.9, "high", (0.0, 0.0, 5.0, 5.0)),  # matched at the fusion tick, elsewhere
-             Guidance(1.0, "a", 0.5, "medium", None),  # not matched
-             Guidance(1.0, "c", 0.9, "high", (1.0, 1.0, 2.0, 2.0)))  # not in view now
-    moved = reprojected(items, ("a", "b"), instances)
-    assert [(g.vehicle_id, g.box) for g in moved] == [("b", (30.0, 10.0, 44.0, 19.0))]
-    cloud = reprojected(items, ("a", "b"), instances, box_unmatched=True)
-    assert [(g.vehicle_id, g.box) for g in cloud] == [("b", (30.0, 10.0, 44.0, 19.0)), ("a", (2.0, 5.0, 3.0, 7.0))]

@@ -5,7 +5,7 @@ import json
 import pytest
 from scenario_files import write_scenario
 
-from vcfusion.cli import main
+from vcfusion.commands import main
 from vcfusion.hitl.study import SSQ_SYMPTOMS, ask_ssq, default_order, ssq_scores, trip_plan
 
 

@@ -194,7 +194,7 @@ def test_a_seed_sumo_refuses_is_one_error_line_in_workers_too(tmp_path, capsys, 
     process printed SUMO's refusal on one line and exited with 1. Now both do the same."""
     from scenario_files import REFUSED_DEPARTURE, write_scenario
 
-    from vcfusion.cli import main
+    from vcfusion.commands import main
 
     ego = "ego: {vtype: ego, lane: 1, depart_pos_m: 20.0, speed_mps: 20.0, trip_distance_m: 200.0}\n"
     scenario = write_scenario(tmp_path, REFUSED_DEPARTURE + ego)

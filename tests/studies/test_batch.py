@@ -9,15 +9,7 @@ import pytest
 
 from scenario_files import tiny_scenario, write_scenario
 from vcfusion.errors import UsageError
-from vcfusion.studies.batch import parse_seeds, run_batch, seed_folder
-
-
-def test_parse_seeds():
-    assert parse_seeds("0-3") == [0, 1, 2, 3]
-    assert parse_seeds("5,1,2-3") == [1, 2, 3, 5]
-    for bad in ("a", "3-1", "-2", ""):
-        with pytest.raises(ValueError, match="--seeds"):
-            parse_seeds(bad)
+from vcfusion.studies.batch import run_batch, seed_folder
 
 
 @pytest.mark.slow

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 from scenario_files import SCENARIOS, write_scenario
 
-from vcfusion.cli import main
+from vcfusion.commands import main
 from vcfusion.studies.guidance import ARM_TABLES, arm_metrics, choose_target, paired_summary, run_trip
 
 # the accident trip, short and on a coarse step (a cut-in ahead of the ego at ~10 s for seed 0)

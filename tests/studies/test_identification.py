@@ -103,3 +103,23 @@ def test_study_refuses_two_scenarios_of_one_name(tmp_path):
     with pytest.raises(ValueError, match="distinct scenario names"):
         run_identification_study([sc, sc], [0], None, {"oracle": OracleDetector()}, tmp_path, progress=False)
     assert not any(tmp_path.iterdir())
+
+
+def test_the_study_runs_each_scenario_with_the_sensors_asked_for():
+    from scenario_files import SCENARIOS
+
+    from vcfusion.errors import UsageError
+    from vcfusion.fusion.stage import run_sensors
+    from vcfusion.scenario import load_scenario
+    from vcfusion.commands.study import with_sensors
+
+    sc = load_scenario(SCENARIOS / "accident.yaml")
+    assert with_sensors(sc, None, None) is sc and run_sensors(sc, 0) is None  # exact: nothing applied
+    sensed = with_sensors(sc, "stereo", 0.3)
+    cam = sensed.camera
+    assert cam.depth == "stereo" and cam.pose_noise.mount_std_deg == 0.3 and cam.pose_noise.body_motion
+    a, b = run_sensors(sensed, 5), run_sensors(sensed, 5)
+    assert a.depth_model == "stereo" and np.array_equal(a.mount, b.mount)  # the run's seed draws them
+    assert not np.array_equal(a.mount, run_sensors(sensed, 6).mount)
+    with pytest.raises(UsageError, match="--pose-noise-deg"):
+        with_sensors(sc, None, -1.0)

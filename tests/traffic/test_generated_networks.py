@@ -116,7 +116,7 @@ def test_a_bad_change_is_named(tmp_path):
 
 
 def test_gen_net_command_reproduces_a_seed(tmp_path, capsys):
-    from vcfusion.cli import main
+    from vcfusion.commands import main
 
     assert main(["gen-net", "--seed", "3", "--out", str(tmp_path / "g")]) == 0
     out = capsys.readouterr().out

@@ -113,7 +113,7 @@ class TwinStore:
         self.received += _store_reports(self._data, self._head, self._count, self._newest, slots, fields)
 
     def forget_stale(self, now: float) -> None:
-        for slot in np.flatnonzero(self._newest < now - self.config.twin_timeout_s):
+        for slot in (self._newest < now - self.config.twin_timeout_s).nonzero()[0]:
             del self._slot[self._id_of[slot]]
             self._order = None
             self._id_of[slot] = None
@@ -169,4 +169,4 @@ def neighbours(twins: TwinStates, ego_xy: tuple[float, float], range_m: float, e
     keep = np.hypot(twins.x - ego_xy[0], twins.y - ego_xy[1]) <= range_m
     if exclude in twins.ids:
         keep[twins.ids.index(exclude)] = False
-    return twins.select(np.flatnonzero(keep))
+    return twins.select(keep.nonzero()[0])

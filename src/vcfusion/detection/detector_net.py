@@ -471,5 +471,7 @@ def check_yolo_model(path, input_wh: tuple[int, int], keep) -> None:
 
 
 def default_weights_path() -> Path:
-    """The shipped detector (package data), trained by the command in docs/architecture.md."""
-    return Path(__file__).resolve().parent.parent / "assets" / "detector.pt"
+    """The shipped detector (package data), trained by the commands in docs/model-cards.md."""
+    from vcfusion.resources import assets_dir
+
+    return assets_dir() / "detector.pt"

@@ -56,6 +56,9 @@ class FamilyResult:
     identification_by_visibility: dict = field(default_factory=dict)
     # detector name -> (low, high) 95 % interval of its accuracy; "gap_NAME": of oracle minus NAME
     identification_interval: dict = field(default_factory=dict)
+    # the depth step's counts over the family's images (vcfusion.fusion.fuse.depth_step): boxes kept
+    # as detected because depth could not decide (boxes_gated), road fits that failed, ...
+    depth_counts: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         q = np.quantile(self.best_iou, IOU_QUANTILES) if len(self.best_iou) else [np.nan] * len(IOU_QUANTILES)
@@ -68,7 +71,8 @@ class FamilyResult:
                 **{f"ident_0.7_{k}": v for k, v in self.identification.items()},
                 **{f"ident_0.7_{k}_visible_{label}": {"targets": n, "accuracy": acc}
                    for k, bins in self.identification_by_visibility.items() for label, (n, acc) in bins.items()},
-                **{f"ident_0.7_{k}_interval95": list(bounds) for k, bounds in self.identification_interval.items()}}
+                **{f"ident_0.7_{k}_interval95": list(bounds) for k, bounds in self.identification_interval.items()},
+                **{f"depth_step_{k}": v for k, v in self.depth_counts.items()}}
 
 
 class _Fixed:
@@ -139,6 +143,22 @@ def _camera_frame(ds: CocoDataset, k: int, image: np.ndarray):
                        gt_ids=tuple(ds.box_vehicle_ids[k]), gt_classes=ds.classes[k])
 
 
+def _sensed(frame, depth_sensor: str, pose_noise_deg: float, k: int):
+    """The dataset frame as the sensors deliver it (vcfusion.fusion.sensors; image k's own draws)."""
+    from dataclasses import replace
+
+    from vcfusion.fusion.sensors import PoseNoiseParams, SensorModel
+    from vcfusion.fusion.stage import SENSOR_STREAM, camera_view
+
+    cam = frame.camera
+    sensors = SensorModel(depth_sensor, pose=PoseNoiseParams(mount_std_deg=pose_noise_deg),
+                          rng=np.random.default_rng([k, SENSOR_STREAM]))
+    depth = sensors.depth(frame.depth, cam.K, cam.T_world_to_camera, frame.image)
+    T = sensors.believed_pose(cam.T_world_to_camera)
+    return replace(frame, depth=depth, camera=camera_view(cam.K, T, cam.width, cam.height, cam.time),
+                   depth_noise=sensors.noise(cam.K))
+
+
 def _identification(frame, twins, detector, seed: int, min_area: float, segments=None) -> tuple[np.ndarray, list]:
     """IoU of the joint matcher's box per target (0 where unmatched) and the targets' vehicle ids
     (`segments`: the frame's depth segments, when already computed)."""
@@ -157,13 +177,17 @@ def _identification(frame, twins, detector, seed: int, min_area: float, segments
 
 def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identification: bool = True,
                       detector_name: str = "cnn", progress: bool = False,
-                      refine=None, gnss_noise_m: float = 0.0) -> tuple[list[FamilyResult], dict]:
+                      refine=None, gnss_noise_m: float = 0.0, depth_sensor: str = "exact",
+                      pose_noise_deg: float = 0.0) -> tuple[list[FamilyResult], dict]:
     """Per-family results (in order of first appearance; plus 'all' over every image when there is
     more than one family) and the detections at COCO-evaluation threshold per image id. ``refine``
     (BoxRefineParams): score the boxes as the fusion stage uses them, snapped to each image's depth
     (every image then needs its depth image and camera record). ``gnss_noise_m``: the twins' GNSS
     points for the identification moved by a Gaussian of this std on each horizontal axis (one draw
-    per image, seeded by its index, the same for the oracle and the detector)."""
+    per image, seeded by its index, the same for the oracle and the detector). ``depth_sensor`` and
+    ``pose_noise_deg`` (a mount calibration error std, deg; frames of a dataset have no motion, so no
+    body pitch): what the fusion and the depth step see instead of the rendered depth and the exact
+    pose (vcfusion.fusion.sensors; seeded per image)."""
     from vcfusion.fusion.fuse import depth_step, frame_segments
     from vcfusion.detection.detector_net import PostParams
     from vcfusion.fusion.matching import box_iou
@@ -173,12 +197,14 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
         saved = detector.params
         detector.params = PostParams(score_threshold=0.01, nms_iou=saved.nms_iou, max_detections=100)
     records = ds.records or [{} for _ in ds.images]
-    dets, best, ident = {}, {}, {}
+    dets, best, ident, counts = {}, {}, {}, {}
     try:
         for k, (iid, path) in enumerate(tqdm(list(zip(ds.image_ids, ds.images)), desc="evaluate", unit="img",
                                              disable=not progress, leave=False)):
             image = read_rgb(path)
             frame = _camera_frame(ds, k, image) if ds.records and (refine is not None or identification) else None
+            if frame is not None and (depth_sensor != "exact" or pose_noise_deg > 0):
+                frame = _sensed(frame, depth_sensor, pose_noise_deg, k)
             if refine is not None and frame is None:
                 raise DetectorFileError(f"{path}: box refinement needs the image's depth image and camera record "
                                         "(a folder written by vcfusion render / render-scenes); "
@@ -192,7 +218,9 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
             # the frame's depth segments, once for both depth steps and the matcher
             segments = frame_segments(frame, refine) if frame is not None else None
             if refine is not None:
-                raw, working = depth_step(frame, raw, refine, segments), depth_step(frame, working, refine, segments)
+                counts[iid] = {}
+                raw = depth_step(frame, raw, refine, segments)
+                working = depth_step(frame, working, refine, segments, counts[iid])
             dets[iid] = (raw.boxes, raw.scores, raw.classes)
             gt = ds.boxes[k]
             big = (gt[:, 2] - gt[:, 0]) * (gt[:, 3] - gt[:, 1]) >= min_area
@@ -224,6 +252,9 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
         bm = coco_map({i: gt_all[i] for i in ids}, {i: dets[i] for i in ids}, min_area=min_area)
         best_iou = np.concatenate([best[i] for i in ids]) if ids else np.zeros(0)
         res = FamilyResult(fam, len(ids), len(best_iou), bm, best_iou)
+        for i in ids:
+            for key, v in counts.get(i, {}).items():
+                res.depth_counts[key] = res.depth_counts.get(key, 0) + v
         with_k = [k for k in index if ds.image_ids[k] in ident]
         with_ident = [ds.image_ids[k] for k in with_k]
         if with_ident:
@@ -348,6 +379,23 @@ def format_table(results: list[FamilyResult], detector_name: str = "cnn") -> str
             f"{s['best_iou_p10']:>7.3f} {s['best_iou_p25']:>5.3f} {s['best_iou_p50']:>6.3f} "
             f"{s['best_iou_ge_0.7']:>6.1%} "
             f"{_share(s.get('ident_0.7_oracle')):>16} {_share(s.get(f'ident_0.7_{detector_name}')):>6}")
+    return "\n".join(lines)
+
+
+def format_depth_counts(results: list[FamilyResult]) -> str:
+    """What the depth step could not decide, per family: boxes kept as detected (gated), road fits
+    that failed, images without depth proposals; and the road fit's mean time."""
+    rows = [r for r in results if r.depth_counts]
+    if not rows:
+        return ""
+    lines = [f"{'depth step':<16} {'boxes refined':>13} {'gated':>6} {'road fit failed':>15} "
+             f"{'no proposals':>12} {'road fit ms':>11}"]
+    for r in rows:
+        c = r.depth_counts
+        frames = max(c.get("frames", 0), 1)
+        lines.append(f"{r.family:<16} {c.get('boxes_refined', 0):>13} {c.get('boxes_gated', 0):>6} "
+                     f"{c.get('frames_road_fit_failed', 0):>15} {c.get('frames_without_proposals', 0):>12} "
+                     f"{c.get('road_fit_ms', 0.0) / frames:>11.2f}")
     return "\n".join(lines)
 
 

@@ -1,6 +1,6 @@
 """Driver and car parameters of the ego, drawn per trip from documented distributions.
 
-Sources (see docs/architecture.md, "Driver model"):
+Sources (see docs/components/driver.md, "The model"):
 - IDM parameter ranges: Treiber & Kesting, "Traffic Flow Dynamics" (Springer 2013), Table 11.2
   (highway: desired time gap T 1.0 s within 0.8-2.0 s, minimum gap s0 2 m, acceleration a
   1.0 m/s^2 within 0.8-2.5 m/s^2, comfortable deceleration b 1.5 m/s^2 within 1-2 m/s^2).
@@ -95,7 +95,7 @@ def draw_driver(seed: int, desired_speed_mps: float) -> DriverParams:
         lateral_notice_m=float(rng.uniform(0.3, 0.5)),
         notice_range_m=100.0,
         pedal_time_constant_s=float(rng.uniform(0.2, 0.4)),
-        # drawn after the draws above, so those are the same as before these parameters existed
+        # drawn after the draws above, so adding these parameters left those draws unchanged
         cover_decel_mps2=float(rng.uniform(0.3, 0.7)),
         warning_hold_s=0.3,
     )

@@ -18,7 +18,7 @@ footprint centre, at ``camera.height_m``).
   within ``mirror_range_m`` (no occlusion test in the mirror).
 - Nothing whose rear is more than ``sight_range_m`` ahead of the eye is seen.
 
-The test runs every tick as a compiled kernel (`_visible`); tests/test_driver_model.py checks it
+The test runs every tick as a compiled kernel (`_visible`); tests/driver/test_driver_model.py checks it
 against a plain-Python transcription of the rules above on random scenes.
 """
 

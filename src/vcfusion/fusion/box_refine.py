@@ -22,7 +22,7 @@ Per detected box (pixel-centre convention, as everywhere in the fusion stage):
    column a jump from the next) has no neighbour on its surface to take its pixels back, and only the
    band keeps it whole. The cut takes a pixel off each occluded outline, and every pixel of a strip a
    nearer vehicle leaves 1-2 px wide: without giving them back a small far box lost a pixel a side
-   and a hidden vehicle's box its lower part (the twenty-eighth session). Also, once per box, the
+   and a hidden vehicle's box its lower part. Also, once per box, the
    object pixels of the window cut at depth jumps (given back the same way) without any band:
    a surface whole, however deep it runs (the side of a truck in the next lane spans 15 m). A
    segment's box is the span of its rows and columns holding at least ``support`` of its fullest
@@ -57,10 +57,18 @@ above the nearer car, a corner beside it) gets one box over all of them: a segme
 surface depth, near it, that no other box owns, joins the box when what lies between them is mostly
 nearer and all together are no wider than a vehicle.
 
+A depth step that does not need a perfect world (``road``, the gates): the heights above are
+measured above the road plane fitted to each depth image (vcfusion.fusion.road; the nominal pose's
+flat road where the fit fails, counted), and with a sensor's noise (a DepthNoise) the depth is
+median-filtered first, the object pixels' height threshold grows by ``noise_k`` sigma of the
+height's noise, and a box (or proposal) whose depth is too noisy to tell one surface from the next,
+or whose core holds too little measured depth, keeps the detector's box: it is *gated*, and counted
+(``RefinedBoxes.gated``; fuse.depth_step's counts), never silently.
+
 The band is one vehicle deep: a car behind another in the same lane is at least a car length plus
 the gap farther away, so it falls outside the band of the car in front. Depth quality sets what
-this can do: it was tuned on the renderer's exact depth (validation folders only; see
-docs/architecture.md "Depth-guided box refinement" for the figures and for noisy depth).
+this can do: it was tuned on the renderer's exact depth (docs: components/fusion.md, "Depth step",
+for the rules, the folders that chose each value and the limits).
 """
 
 from __future__ import annotations
@@ -83,19 +91,19 @@ class ProposalParams:
     # and below BoxRefineParams.max_height_m (tree crowns, gantries)
     max_top_continuing: float = 0.3  # a segment whose top outline goes on, as the same surface,
     # above max_height_m over more than this share is part of a tree, a pole or a bridge
-    min_pixels: int = 30  # a far car partly hidden shows as few (60 before the twelfth session, 40
-    # before the twenty-first: the roof line of a car behind the next one, 20 x 5 px at 30 m)
+    min_pixels: int = 30  # px; a far car partly hidden shows as few (the roof line of a car behind
+    # the next one, 20 x 5 px at 30 m); chosen on the jam development seeds (30 vs 40: +1 target)
     min_top_m: float = 1.0  # the segment's top stands at least this high (a car's roof line; rails are lower)
     min_top_truncated_m: float = 0.8  # ... or this high when the image's side cuts it (_min_top)
-    min_width_m: float = 0.15  # wider than this (reflector posts, 0.12 m): a car mostly hidden
-    # behind another shows a sliver as narrow as this (0.3 before the twenty-first session, 0.25
-    # before the twenty-seventh: 6 px at 19 m is 0.249 m)
+    min_width_m: float = 0.15  # m; wider than reflector posts (0.12 m): a car mostly hidden behind
+    # another shows a sliver as narrow as this (6 px at 19 m is 0.249 m); jam development seeds
+    # 3240-3479: 8 of 28 targets without a box were slivers of 0.12-0.25 m
     min_tall_width_m: float = 0.8  # a segment standing as high as a truck: wider than this (tree trunks)
-    max_overlap: float = 0.6  # a segment whose box overlaps a detected box more than this is that box's
-    # (0.5 before the sixteenth session: a whole car's segment overlapping a box that held a part of
-    # it, or the car and a sliver of road, by 0.51-0.55 got no box of its own; 0.7 gains nothing more)
-    behind_m: float = 1.0  # ... as is one mostly inside a box, unless this far behind the box's surface
-    # (3 m before the fourteenth session)
+    max_overlap: float = 0.6  # IoU; a segment whose box overlaps a detected box more than this is
+    # that box's (at 0.5 a whole car's segment overlapping a box that held a part of it, or the car and
+    # a sliver of road, by 0.51-0.55 got no box of its own; jam development 95.2 -> 95.6 %; 0.7 the same)
+    behind_m: float = 1.0  # m; ... as is one mostly inside a box, unless this far behind the box's
+    # surface (a car 1-3 m behind a nearer one is its own; jam development 89.1 % at 3 m, 89.8 % at 1 m)
     score: float = 0.3  # the proposals' score; detected boxes at least this confident explain segments
     max_stem_share: float = 0.25  # a segment whose lowest quarter of rows is one run narrower than
     # this share of its widest row stands on a stem: a tree
@@ -112,25 +120,45 @@ class ProposalParams:
 @dataclass(frozen=True)
 class BoxRefineParams:
     margin: float = 0.4  # search window: the box grown by this share of its width / height per side
-    # (0.25 before the fourteenth session)
+    # (whole surfaces need room; jam development 89.8 % at 0.25, 91.1 % at 0.4, 90.8 % at 0.45)
     min_height_m: float = 0.05  # above the road by more than this: an object pixel (tyres included)
     band_m: float = 4.0  # depth band of one vehicle's visible surface (see the module docstring)
     candidates: int = 3  # surface depths tried per box
     support: float = 0.03  # rows / columns with less than this share of the fullest one are trimmed
-    # (0.05 before the twenty-sixth session: a sliver's last rows, 1 px of a 24 px row, were cut off
-    # its box; 0 keeps the stray pixels of rails and road and breaks most boxes)
+    # (at 0.05 a sliver's last rows, 1 px of a 24 px row, were cut off its box; 0.02 loses 2 jam
+    # development targets; 0 keeps the stray pixels of rails and road and breaks most boxes)
     min_iou: float = 0.3  # a segment replaces the box only when its box overlaps the box this much
     pair_width_m: float = 3.0  # a segment across a depth jump laterally wider than any vehicle (2.55 m)
     pair_min_iou: float = 0.5  # is two side by side: a jump-free one, narrower, overlapping the box at
     # least this much replaces it
     jump_m: float = 0.5  # depth discontinuity between neighbours: more than this (+ jump_rel of the
-    jump_rel: float = 0.045  # depth; 0.05 before the fourteenth session); the refinement's cut
-    # segments, the proposals and the fragments all use it
+    jump_rel: float = 0.045  # depth, m per m: at 100 m 5 m, so the cars of a far chain come apart;
+    # far_chain development 98.0 % at 0.05, 99.0 % at 0.045; 0.035 splits a truck's side seen at a
+    # grazing angle); the refinement's cut segments, the proposals and the fragments all use it
     truck_top_m: float = 2.6  # a segment whose top stands higher than this (cars: <= 2 m) is a truck,
     max_height_m: float = 4.5  # unless it stands higher than this (no vehicle does: trees, poles, gantries)
     duplicate_iou: float = 0.7  # the detector's NMS IoU, applied again to the trucks after boxes
     # became trucks
     proposals: ProposalParams | None = ProposalParams()  # None: refine the detected boxes only
+    # A depth step that does not need a perfect world (vcfusion.fusion.road; the module docstring's
+    # last part). Heights above the road fitted to each depth image ("from_depth") or above the
+    # nominal pose's flat road ("flat", exact where depth and pose are: a scenario's fusion.road
+    # "auto" picks it there, vcfusion.fusion.stage.road_model)
+    road: str = "flat"
+    # noisy depth (a sensor's DepthNoise): a 5 x 5 median first (sigma about 0.25 of a pixel's for
+    # Gaussian noise, 1.2533 / 5; 0.3 assumed), then object pixels stand noise_k sigma of their
+    # height's noise above min_height_m, and a box or segment whose depth's sigma exceeds gate_noise
+    # of the depth-jump threshold there (jump_m + jump_rel z) keeps the detector's box (gated)
+    denoise_px: int = 5
+    denoise_passes: int = 1
+    denoise_sigma_share: float = 0.3
+    noise_k: float = 3.0
+    gate_noise: float = 0.5
+    # a box whose core holds less than this share of measured depth (holes, a sparse LiDAR) keeps the
+    # detector's box, and an image with less than this share keeps every box and has no depth
+    # proposals (gated; filling a 64-beam scan's gaps from the nearest return snapped the boxes
+    # worse than the detector's: 58.9 vs 72.1 % on the development folders)
+    gate_valid_share: float = 0.3
 
     def __post_init__(self):
         for name, low, high in (("margin", 0.0, 2.0), ("support", 0.0, 1.0), ("min_iou", 0.0, 1.0),
@@ -149,6 +177,7 @@ class RefinedBoxes:
     boxes: np.ndarray  # (N, 4) x1, y1, x2, y2: refined where `refined`, else the detected box
     refined: np.ndarray  # (N,) bool
     top_m: np.ndarray  # (N,) height above the road of the refined segment's top (95th percentile), nan if not refined
+    gated: np.ndarray | None = None  # (N,) bool: depth could not support a decision (kept as detected)
 
 
 def _box_iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -180,6 +209,14 @@ class _Heights:
         ray = up @ np.linalg.inv(K)  # world-z component of the ray through (u, v, 1), per unit camera-Z
         self.per_u, self.per_v, self.const = (float(x) for x in ray)
         self.offset = float(up @ T[:3, 3]) + ROAD_Z_M
+
+    def noise_margin(self, z: np.ndarray, noise, k: float):
+        """k sigma of the height's noise at depth z (0 for exact depth): sigma_z(z) h / z, h the
+        camera's height above the road (the slope of a road point's height in its depth)."""
+        if noise is None or noise.exact:
+            return np.float32(0.0)
+        cam_h = max(-self.offset, 0.5)
+        return np.float32(k) * noise.sigma(z) * np.float32(cam_h) / np.maximum(z, np.float32(1.0))
 
     def window(self, z: np.ndarray, x0: int, y0: int) -> np.ndarray:
         h, w = z.shape
@@ -298,9 +335,18 @@ def _lateral_extent(sel: np.ndarray, z: np.ndarray, x0: int, K: np.ndarray, supp
     return ends[1] - ends[0]
 
 
+def gate_by_noise(z_m: float, noise, params: BoxRefineParams) -> bool:
+    """Whether depth of this noise at z_m cannot tell one surface from the next: its sigma exceeds
+    ``gate_noise`` of the depth-jump threshold there."""
+    if noise is None or noise.exact:
+        return False
+    return float(noise.sigma(z_m)) > params.gate_noise * (params.jump_m + params.jump_rel * z_m)
+
+
 def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray,
-                 params: BoxRefineParams = BoxRefineParams()) -> RefinedBoxes:
-    """Each box snapped to the depth segment that explains it best (module docstring)."""
+                 params: BoxRefineParams = BoxRefineParams(), noise=None) -> RefinedBoxes:
+    """Each box snapped to the depth segment that explains it best (module docstring); with
+    ``noise`` (vcfusion.fusion.road.DepthNoise of `depth`), a box depth cannot decide is gated."""
     boxes = np.asarray(boxes, float).reshape(-1, 4)
     depth = np.asarray(depth)
     if depth.ndim != 2:
@@ -311,6 +357,7 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
     out = boxes.copy()
     refined = np.zeros(len(boxes), bool)
     top_m = np.full(len(boxes), np.nan)
+    gated = np.zeros(len(boxes), bool)
     p = params
     for i, b in enumerate(boxes):
         w, h = b[2] - b[0], b[3] - b[1]
@@ -322,15 +369,22 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
         if x1 <= x0 or y1 <= y0:
             continue
         z = depth[y0:y1, x0:x1].astype(np.float32)
+        core = _core(b, x0, y0)  # at least one pixel
+        if np.isnan(z[core]).mean() > 1 - p.gate_valid_share:  # no measurement (holes, a sparse scan)
+            gated[i] = True
+            continue
         valid = np.isfinite(z) & (z > 0)
+        if noise is not None and not noise.exact and valid[core].any() \
+                and gate_by_noise(float(np.median(z[core][valid[core]])), noise, p):
+            gated[i] = True  # too noisy at this depth to tell one surface from the next
+            continue
         z = np.where(valid, z, np.float32(0))
         height = heights.window(z, x0, y0)
-        obj = valid & (height > p.min_height_m)
-        jump_free = _jump_free(z, valid, p.jump_m, p.jump_rel)
-        core = _core(b, x0, y0)  # at least one pixel
+        obj = valid & (height > p.min_height_m + heights.noise_margin(z, noise, p.noise_k))
         core_z = z[core][obj[core]]
         if core_z.size < 3:
             continue
+        jump_free = _jump_free(z, valid, p.jump_m, p.jump_rel)
         log_z = np.log(core_z)
         edges = np.arange(log_z.min(), log_z.max() + 0.05, 0.04)
         hist, edges = np.histogram(log_z, bins=edges)
@@ -381,7 +435,7 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
             out[i] = best
             refined[i] = True
             top_m[i] = float(np.percentile(height[best_sel], 95))
-    return RefinedBoxes(out, refined, top_m)
+    return RefinedBoxes(out, refined, top_m, gated)
 
 
 def _spans_jump(sel: np.ndarray, is_cut: bool, jump: np.ndarray) -> bool:
@@ -508,16 +562,19 @@ class ObjectSegments:
 
 
 def object_segments(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray,
-                    refine: BoxRefineParams = BoxRefineParams()) -> ObjectSegments | None:
-    """The image's object pixels cut into segments (module docstring); None when it holds none."""
+                    refine: BoxRefineParams = BoxRefineParams(), noise=None) -> ObjectSegments | None:
+    """The image's object pixels cut into segments (module docstring); None when it holds none
+    (``noise``: the depth's DepthNoise, raising the object pixels' height threshold)."""
     params = refine.proposals
     if params is None:
         raise ValueError("depth segments: the proposals are switched off (BoxRefineParams.proposals is None)")
     z = np.asarray(depth, np.float32)
     valid = np.isfinite(z) & (z > 0)
     z = np.where(valid, z, np.float32(0))
-    height = _Heights(K, T_world_to_camera).window(z, 0, 0)
-    obj = valid & (height > params.min_height_m) & (height < refine.max_height_m)
+    heights = _Heights(K, T_world_to_camera)
+    height = heights.window(z, 0, 0)
+    obj = valid & (height > params.min_height_m + heights.noise_margin(z, noise, refine.noise_k)) \
+        & (height < refine.max_height_m)
     rows = np.flatnonzero(obj.any(axis=1))
     if not len(rows):
         return None
@@ -584,7 +641,7 @@ def _lowest_row_on_its_surface(sel: np.ndarray, x: int, y: int, depth: np.ndarra
 
 def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
                     refine: BoxRefineParams = BoxRefineParams(), segments: ObjectSegments | None = None,
-                    snapped: np.ndarray | None = None):
+                    snapped: np.ndarray | None = None, noise=None):
     """Boxes of depth segments standing on the road that no detected box explains: (M, 4) boxes and
     (M,) bool is_truck (``refine.proposals``; segments trimmed with ``refine.support``). ``segments``:
     the image's :func:`object_segments`, when already computed. ``snapped``: per box, whether the
@@ -595,7 +652,7 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
 
     params = refine.proposals
     if segments is None:
-        segments = object_segments(depth, K, T_world_to_camera, refine)
+        segments = object_segments(depth, K, T_world_to_camera, refine, noise)
     if segments is None:
         return np.zeros((0, 4)), np.zeros(0, bool)
     z, valid, obj, height, labels, areas, y_lo = (segments.z, segments.valid, segments.obj, segments.height,
@@ -622,6 +679,8 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         iou = box_iou(box[None], existing)[0]
         seg_z = z[y:y + h, x:x + w][sel]
         depth_m = float(np.median(seg_z))
+        if gate_by_noise(depth_m, noise, refine):
+            continue  # depth this noisy cannot tell a vehicle's surface: no proposal
         not_in_front = ~_farther(surface, np.float32(depth_m), refine.jump_m, refine.jump_rel)
         if np.any((iou > params.max_overlap) & not_in_front):
             continue
@@ -704,8 +763,8 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
         return boxes
     z, obj, y_lo = segments.z, segments.obj, segments.y_lo
     # any segment, however small: what shows of a truck through the gap under a nearer car, or beside
-    # its outline, is 1-3 px (4 px at least before the twenty-ninth session: the ground truth spans
-    # them, and a box that stopped above them missed IoU 0.7)
+    # its outline, is 1-3 px: the ground truth spans them, and a box that stopped above them missed
+    # IoU 0.7 (a 4-px minimum lost 3 targets on the development folders)
     labels, seg_box = segments.present, segments.present_boxes
     if not len(labels):
         return boxes

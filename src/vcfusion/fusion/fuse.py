@@ -11,12 +11,14 @@ import time as wallclock
 from dataclasses import dataclass, field, replace
 from typing import Protocol
 
+import cv2
 import numpy as np
 
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import GuidanceSet, TwinStates
-from vcfusion.fusion.box_refine import (BoxRefineParams, ObjectSegments, box_surface_depths, depth_proposals,
-                                       join_fragments, object_segments, refine_boxes)
+from vcfusion.fusion.box_refine import (BoxRefineParams, ObjectSegments, RefinedBoxes, box_surface_depths,
+                                       depth_proposals, join_fragments, object_segments, refine_boxes)
+from vcfusion.fusion.road import DepthNoise, RoadFit, fit_road_plane
 from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector, nms
 from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, box_iou, match_all_baseline,
@@ -34,7 +36,8 @@ class CameraFrame:
 
     time: float  # s, simulation clock (the image's timestamp)
     image: np.ndarray  # (H, W, 3) RGB uint8
-    depth: np.ndarray  # (H, W) float32 camera-Z metres; inf or 0 where nothing was hit (sky)
+    depth: np.ndarray  # (H, W) float32 camera-Z metres; inf or 0 where nothing was hit (sky), nan where
+    # the sensor measured nothing (vcfusion.fusion.sensors)
     camera: CameraView
     gt_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (M, 4) visible vehicles' boxes
     gt_ids: tuple[str, ...] = ()  # vehicle id of each ground-truth box
@@ -43,6 +46,72 @@ class CameraFrame:
     # renderer's instance map); None when the source has none
     instances: np.ndarray | None = None
     instance_ids: tuple[str, ...] = ()
+    depth_noise: DepthNoise = DepthNoise()  # the depth sensor's error (its spec), for the depth step
+
+
+@dataclass(frozen=True)
+class DepthView:
+    """What the depth step works on for one frame (:func:`depth_view`): the depth (median-filtered
+    when noisy), the pose whose z = 0 plane is the road, the depth's noise after the filter, the
+    road fit, and whether the image holds too little measured depth for proposals."""
+
+    depth: np.ndarray
+    T: np.ndarray
+    noise: DepthNoise
+    road: RoadFit | None
+    sparse: bool
+
+
+def depth_view(frame: CameraFrame, refine: BoxRefineParams) -> DepthView:
+    """The frame's :class:`DepthView` with `refine`'s settings, computed once per frame."""
+    key = (refine.road, refine.denoise_px, refine.denoise_passes, refine.denoise_sigma_share, refine.gate_valid_share)
+    cached = frame.__dict__.get("_depth_view")
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    cam = frame.camera
+    depth, noise = frame.depth, frame.depth_noise
+    sparse = bool(np.isnan(frame.depth).mean() > 1 - refine.gate_valid_share)
+    if not noise.exact and refine.denoise_px and not sparse:  # (a sparse scan has no neighbours to filter with)
+        for _ in range(refine.denoise_passes):
+            depth = _median(depth, refine.denoise_px)
+        noise = noise.scaled(refine.denoise_sigma_share)
+        if frame.depth_noise.mixed_edges:
+            depth = _without_flying_pixels(depth, refine)
+    road = fit_road_plane(depth, cam.K, cam.T_world_to_camera, noise) if refine.road == "from_depth" else None
+    view = DepthView(depth, road.T if road is not None else cam.T_world_to_camera, noise, road, sparse)
+    object.__setattr__(frame, "_depth_view", (key, view))
+    return view
+
+
+def _median(depth: np.ndarray, size: int) -> np.ndarray:
+    """A size x size median of a depth image with holes (nan): holes stay holes, and a pixel the
+    median takes into a hole (more than half its window missing) becomes one."""
+    z = np.asarray(depth, np.float32)
+    hole = ~np.isfinite(z)
+    far = np.isposinf(z)
+    filled = np.where(hole, np.float32(0), z)
+    out = cv2.medianBlur(filled, size)
+    return np.where(far, np.float32(np.inf), np.where(hole | (out <= 0), np.float32(np.nan), out)).astype(np.float32)
+
+
+def _without_flying_pixels(depth: np.ndarray, refine: BoxRefineParams) -> np.ndarray:
+    """A noisy sensor's depth with its flying pixels made holes: a pixel whose 3 x 3 neighbourhood
+    spans a depth jump (box_refine's jump_m + jump_rel z) and which lies more than half a jump
+    from both the nearest and the farthest of it: a mix of two surfaces (a ToF pixel straddling an
+    edge, a stereo match across one), which would join them into one segment."""
+    z = np.asarray(depth, np.float32)
+    finite = np.isfinite(z)
+    kernel = np.ones((3, 3), np.uint8)
+    near = cv2.erode(np.where(finite, z, np.float32(1e6)), kernel)
+    far = cv2.dilate(np.where(finite, z, np.float32(0)), kernel)
+    half = np.float32(0.5) * (np.float32(refine.jump_m) + np.float32(refine.jump_rel) * z)
+    flying = finite & (far - near > 2 * half) & (z - near > half) & (far - z > half)
+    return np.where(flying, np.float32(np.nan), z)
+
+
+def count_depth_step(stats: dict | None, key: str, n: float = 1) -> None:
+    if stats is not None:
+        stats[key] = stats.get(key, 0) + n
 
 
 def box_owner(box, instances: np.ndarray | None, instance_ids: tuple[str, ...]) -> str | None:
@@ -79,6 +148,7 @@ class FusionResult:
     timings_s: dict  # stage -> seconds
     # (N,) boxes containing each twin's anchor (0 out of view): >= 2 is the ambiguous case of Fig. 3
     n_anchor_boxes: np.ndarray | None = None
+    depth_counts: dict = field(default_factory=dict)  # the depth step's counts (depth_step's `stats`)
 
     def box_of(self, method: str, i: int):
         j = int(self.choice[method][i])
@@ -86,7 +156,7 @@ class FusionResult:
 
 
 def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams | None = None,
-                 segments: ObjectSegments | None = None) -> Detections:
+                 segments: ObjectSegments | None = None, stats: dict | None = None) -> Detections:
     """The detector's boxes on the frame's image, snapped to the depth image when `refine` is given
     (vcfusion.fusion.box_refine; `segments`: the frame's :func:`frame_segments`, when already
     computed). The oracle's boxes are the truth and are never refined."""
@@ -94,7 +164,7 @@ def detect_frame(frame: CameraFrame, detector: Detector, refine: BoxRefineParams
         detector.set_truth(frame.gt_boxes, frame.gt_classes)
         return detector.detect(frame.image)
     detections = detector.detect(frame.image)
-    return detections if refine is None else depth_step(frame, detections, refine, segments)
+    return detections if refine is None else depth_step(frame, detections, refine, segments, stats)
 
 
 def frame_segments(frame: CameraFrame, refine: BoxRefineParams | None) -> ObjectSegments | None:
@@ -105,20 +175,36 @@ def frame_segments(frame: CameraFrame, refine: BoxRefineParams | None) -> Object
     if cam.K is None or cam.T_world_to_camera is None:
         return None
     params = refine if refine is not None and refine.proposals is not None else BoxRefineParams()
-    return object_segments(frame.depth, cam.K, cam.T_world_to_camera, params)
+    view = depth_view(frame, params)
+    if view.sparse:
+        return None  # too little measured depth to cut into surfaces
+    return object_segments(view.depth, cam.K, view.T, params, view.noise)
 
 
 def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefineParams,
-               segments: ObjectSegments | None = None) -> Detections:
+               segments: ObjectSegments | None = None, stats: dict | None = None) -> Detections:
     """The detector's boxes snapped to the frame's depth image, relabelled by how high they stand,
     and the vehicles it missed proposed from depth (vcfusion.fusion.box_refine). `segments`: the
-    frame's :func:`frame_segments` with these settings, when already computed."""
+    frame's :func:`frame_segments` with these settings, when already computed. `stats` (a dict)
+    counts what depth could not decide: boxes_gated (kept as detected), boxes_refined, frames,
+    frames_road_fit_failed, frames_without_proposals (too little measured depth), road_fit_ms."""
     cam = frame.camera
     if cam.K is None or cam.T_world_to_camera is None:
         raise ValueError("box refinement: the camera has no intrinsics / pose (CameraView.K, T_world_to_camera)")
     from vcfusion.render.coco import category_id  # the dataset's category ids, as every detector reports
 
-    refined = refine_boxes(detections.boxes, frame.depth, cam.K, cam.T_world_to_camera, refine)
+    view = depth_view(frame, refine)
+    count_depth_step(stats, "frames")
+    if view.road is not None:
+        count_depth_step(stats, "frames_road_fit_failed", int(not view.road.ok))
+        count_depth_step(stats, "road_fit_ms", view.road.ms)
+    if view.sparse:  # too little measured depth to snap boxes to: every box kept as detected
+        refined = RefinedBoxes(detections.boxes.copy(), np.zeros(len(detections), bool),
+                               np.full(len(detections), np.nan), np.ones(len(detections), bool))
+    else:
+        refined = refine_boxes(detections.boxes, view.depth, cam.K, view.T, refine, view.noise)
+    count_depth_step(stats, "boxes_gated", int(refined.gated.sum()))
+    count_depth_step(stats, "boxes_refined", int(refined.refined.sum()))
     boxes, scores, snapped = refined.boxes, detections.scores, refined.refined
     # depth measures how high a vehicle stands, which a 10 px box at 100 m does not show: a car box
     # whose surface stands higher than any car (and not higher than any vehicle: a tree) is a truck
@@ -135,12 +221,14 @@ def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefinePara
         keep[trucks] = False
         keep[trucks[nms(detections.boxes[trucks], scores[trucks], refine.duplicate_iou)]] = True
         boxes, scores, classes, snapped = boxes[keep], scores[keep], classes[keep], snapped[keep]
-    if refine.proposals is not None:
+    if refine.proposals is not None and view.sparse:
+        count_depth_step(stats, "frames_without_proposals")  # too little measured depth: none proposed
+    elif refine.proposals is not None:
         if segments is None:
-            segments = object_segments(frame.depth, cam.K, cam.T_world_to_camera, refine)
+            segments = object_segments(view.depth, cam.K, view.T, refine, view.noise)
         confident = scores >= refine.proposals.score
-        new, is_truck = depth_proposals(frame.depth, cam.K, cam.T_world_to_camera, boxes[confident], refine,
-                                        segments, snapped[confident])
+        new, is_truck = depth_proposals(view.depth, cam.K, view.T, boxes[confident], refine,
+                                        segments, snapped[confident], view.noise)
         new_scores = _proposal_scores(new, boxes[~confident], scores[~confident], refine.proposals.score)
         boxes, scores = np.vstack([boxes, new]), np.r_[scores, new_scores]
         classes = np.r_[classes, np.where(is_truck, category_id("truck"), category_id("passenger"))]
@@ -172,9 +260,12 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
     t0 = wallclock.perf_counter()
     if segments is None and ("joint" in methods or (refine is not None and refine.proposals is not None)):
         segments = frame_segments(frame, refine)
-    detections = detect_frame(frame, detector, refine, segments)
+    depth_counts: dict = {}
+    detections = detect_frame(frame, detector, refine, segments, depth_counts)
     t1 = wallclock.perf_counter()
-    samples = sample_box_depths(frame.depth, detections.boxes, rng, depth_params)
+    # the matchers read the depth as the depth step does (median-filtered when the sensor is noisy)
+    depth = depth_view(frame, refine or BoxRefineParams()).depth if not frame.depth_noise.exact else frame.depth
+    samples = sample_box_depths(depth, detections.boxes, rng, depth_params)
     depths = reduce_depth_samples(samples, depth_params.reducer)  # Algorithm 1
     t2 = wallclock.perf_counter()
     timings["detect"], timings["depth"] = t1 - t0, t2 - t1
@@ -189,7 +280,7 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
         choice["paper"] = match_all_paper(proj, detections.boxes, depths, fallback_radius_px,
                                           scores=detections.scores)
     if "joint" in methods:
-        joint_samples = joint_depth_samples(frame.depth, detections.boxes, samples, depth_params.th)
+        joint_samples = joint_depth_samples(depth, detections.boxes, samples, depth_params.th)
         surface = box_surface_depths(detections.boxes, segments, refine or BoxRefineParams())
         choice["joint"] = (joint or JointMatcher()).match(twins, detections.boxes, joint_samples, frame.camera,
                                                           surface)
@@ -200,7 +291,13 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
     # in view: projected into the image as received, or matched (the joint matcher projects the
     # twins moved on by their latency: a stale report can lie behind the camera, its vehicle not)
     in_view = proj.in_view | np.any([c != NO_MATCH for c in choice.values()], axis=0) if choice else proj.in_view
-    return FusionResult(frame.time, twins.ids, detections, depths, choice, in_view, timings, n_anchor_boxes)
+    return FusionResult(frame.time, twins.ids, detections, depths, choice, in_view, timings, n_anchor_boxes,
+                        depth_counts)
+
+
+def _finite_or_none(value) -> float | None:
+    v = float(value)
+    return v if np.isfinite(v) and v > 0 else None
 
 
 class VisionFusionHook:
@@ -225,6 +322,8 @@ class VisionFusionHook:
 
             frame_source = tick_frame_source
             self.needs = ("neighbours", "frame")
+        elif getattr(frame_source, "reads_tick_frame", False):  # the camera stage's frames, through the sensors
+            self.needs = ("neighbours", "frame")
         else:
             self.needs = ("neighbours",)
         self.frame_source = frame_source
@@ -237,6 +336,7 @@ class VisionFusionHook:
         self.joint = joint or JointMatcher()
         self.recorder = recorder
         self.timings: list[dict] = []
+        self.depth_counts: dict = {}  # the depth step's counts over the run (depth_step's `stats`)
         # run every period_s (the AR update period, ar.period_s); None = every tick
         self.period_s = period_s
         self._next_time = -np.inf
@@ -268,16 +368,21 @@ class VisionFusionHook:
         twins = tick.neighbours
         result = fuse_frame(frame, twins, self.detector, self.rng, self.depth_params, self.joint, (self.method,),
                             refine=self.refine)
+        for key, v in result.depth_counts.items():
+            count_depth_step(self.depth_counts, key, v)
         lc = np.asarray(twins.outputs.get("lc_prob", np.full(len(twins), np.nan)), dtype=float)
         view = np.flatnonzero(result.in_view)
         boxes = [result.box_of(self.method, i) for i in view]
+        chosen = [int(result.choice[self.method][i]) for i in view]
         decision = twins.outputs.get("lc_decision")
         in_view = make_guidance(tick.time, [twins.ids[i] for i in view], lc[view], boxes, self.policy,
                                 None if decision is None else np.asarray(decision)[view])
         # What is drawn is what the driver is shown: a twin without a matched box gives no item;
-        # each item names the vehicle actually inside its box.
-        in_view = [replace(g, box_vehicle_id=box_owner(g.box, frame.instances, frame.instance_ids))
-                   if g.box is not None else g for g in in_view]
+        # each item names the vehicle actually inside its box (scoring only: the instance map is
+        # never drawn), and carries the box's depth as the fusion measured it.
+        in_view = [replace(g, box_vehicle_id=box_owner(g.box, frame.instances, frame.instance_ids),
+                           box_depth_m=_finite_or_none(result.box_depths[j]))
+                   if g.box is not None else g for g, j in zip(in_view, chosen)]
         guidance = [g for g in in_view if g.box is not None]
         tick.detections = result.detections
         tick.guidance = self._shown = GuidanceSet(tuple(guidance), "fusion")

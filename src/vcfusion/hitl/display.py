@@ -1,13 +1,22 @@
 """The driver's window: the ego camera render with the AR overlay and a HUD, and text screens.
 
 Every displayed frame is a fresh render of the ego camera at that SUMO step. The AR overlay's
-content (which vehicle, its level and probability) changes only at fusion ticks (0.1 s); its
-boxes follow their vehicles in between: each shown item's box is re-projected every frame as
-that vehicle's extent in the frame's instance map (the render stands in for the AR display's
-tracker; a vehicle hidden at that moment shows no box). In a scenario without the fusion stage
-the guidance comes from the cloud (source `cloud`, no boxes); its items are boxed the same way,
-standing for the twin projected into the view, so guidance on / off differ on screen in every
-scenario.
+content (which vehicle, its level and probability, its box) changes only at fusion ticks (0.1 s)
+and comes only from what the car knows; nothing drawn is read from the render's instance map:
+
+- fusion guidance (source ``fusion``): the box the fusion matched, as it drew it at the tick. On
+  the frames shown between two ticks the box is carried forward (:func:`tracked_boxes`): its
+  corners are back-projected at the depth the fusion measured for it (``Guidance.box_depth_m``),
+  moved by the matched twin's reported velocity (the cloud's report: GNSS error and latency
+  included) and projected into the camera as the ego's own pose places it now (the ego's own
+  state, its odometry). A wrong match shows a box on the wrong vehicle, as the car would.
+- cloud guidance (source ``cloud``, no camera in the loop): the twin's cuboid as the cloud reports
+  it (its GNSS position with its error and latency, its heading and size; carried forward by its
+  reported speed between ticks) projected into the camera (:func:`cloud_boxes`). It is drawn
+  where the cloud puts the twin, whichever vehicle is there.
+
+Which vehicle each drawn box lands on is found afterwards, for scoring only (the driver's
+``display`` table, :func:`displayed_rows`).
 """
 
 from __future__ import annotations
@@ -32,24 +41,85 @@ class HudInfo:
     lag_s: float = 0.0
 
 
-def reprojected(items: tuple[Guidance, ...], vehicle_ids: tuple[str, ...], instances: np.ndarray,
-                box_unmatched: bool = False) -> list[Guidance]:
-    """The guidance items with their boxes moved to where their vehicles are in this frame
-    (`instances`: the render's instance map); items whose vehicle is not visible are left out.
-    Items without a box (fusion did not match the twin to a detection) are left out too, unless
-    `box_unmatched`: cloud guidance (no camera in the loop) has no boxes, and its display stands
-    for projecting the twin into the view."""
-    index = {vid: k for k, vid in enumerate(vehicle_ids)}
+def _moved_box(box, depth_m: float, K: np.ndarray, T_then: np.ndarray, T_now: np.ndarray, shift: np.ndarray,
+               size: tuple[int, int], near_m: float = 0.5):
+    """`box` (x1, y1, x2, y2, px) of camera `T_then` back-projected at camera-Z `depth_m`, moved by
+    `shift` (world, m) and projected into camera `T_now`; clipped to the image (`size` = (w, h)); None
+    when it falls behind the near plane or off the image."""
+    from vcfusion.render.camera import project_points
+
+    x1, y1, x2, y2 = box
+    uv1 = np.array([[x1, y1, 1.0], [x2, y1, 1.0], [x1, y2, 1.0], [x2, y2, 1.0]])
+    cam = (uv1 @ np.linalg.inv(K).T) * depth_m  # camera-then points at that depth
+    R, t = T_then[:3, :3], T_then[:3, 3]
+    world = (cam - t) @ R + shift  # R^T (p - t)
+    w, h = size
+    p = project_points(world, K, T_now, w, h)
+    if not (np.asarray(p.depth) > near_m).all():
+        return None
+    uv = np.asarray(p.uv, float)
+    lo = np.clip(uv.min(axis=0), -0.5, [w - 0.5, h - 0.5])
+    hi = np.clip(uv.max(axis=0), -0.5, [w - 0.5, h - 0.5])
+    if hi[0] <= lo[0] or hi[1] <= lo[1]:
+        return None
+    return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+
+
+def _twin_velocity(twins, vehicle_id: str) -> np.ndarray:
+    """The twin's reported velocity (world, m/s), zero when the cloud has no such twin."""
+    if twins is None or vehicle_id not in twins.ids:
+        return np.zeros(3)
+    i = twins.ids.index(vehicle_id)
+    v, h = float(twins.speed[i]), float(twins.heading[i])
+    return np.array([v * np.cos(h), v * np.sin(h), 0.0])
+
+
+def tracked_boxes(items, K: np.ndarray, T_then: np.ndarray, T_now: np.ndarray, dt_s: float,
+                  size: tuple[int, int], twins=None) -> list[Guidance]:
+    """The fusion's items with their matched boxes carried from the tick's camera `T_then` to the
+    camera `T_now`, `dt_s` later (module doc). Items without a box (no match) are left out; a box
+    without a measured depth stays where the fusion drew it; a box carried off the image is left out."""
+    out = []
+    for g in items:
+        if g.box is None:
+            continue
+        if g.box_depth_m is None or dt_s == 0.0:
+            out.append(g)
+            continue
+        box = _moved_box(g.box, g.box_depth_m, K, T_then, T_now, _twin_velocity(twins, g.vehicle_id) * dt_s, size)
+        if box is not None:
+            out.append(replace(g, box=box))
+    return out
+
+
+def cloud_boxes(items, twins, camera) -> list[Guidance]:
+    """Cloud items boxed where the cloud puts their twins: each twin's reported cuboid (`twins`:
+    the tick's neighbour twins, already carried to the frame's time) projected into `camera` (a
+    CameraView); twins out of view are left out."""
+    from vcfusion.fusion.matching import project_twins
+
+    if twins is None or not len(twins):
+        return []
+    proj = project_twins(twins, camera)
+    index = {vid: k for k, vid in enumerate(twins.ids)}
     out = []
     for g in items:
         k = index.get(g.vehicle_id)
-        if k is None or (g.box is None and not box_unmatched):
+        if k is None or not proj.in_view[k]:
             continue
-        rows, cols = np.nonzero(instances == k)
-        if rows.size == 0:
-            continue
-        out.append(replace(g, box=(float(cols.min()), float(rows.min()), float(cols.max()), float(rows.max()))))
+        out.append(replace(g, box=tuple(float(v) for v in proj.expected_box[k])))
     return out
+
+
+def carried_twins(twins, dt_s: float):
+    """The twins moved `dt_s` along their reported heading at their reported speed (their reports'
+    error and latency kept: what the cloud knows, carried to the frame's time)."""
+    if twins is None or dt_s == 0.0 or not len(twins):
+        return twins
+    travel = np.asarray(twins.speed, float) * dt_s
+    heading = np.asarray(twins.heading, float)
+    return replace(twins, x=np.asarray(twins.x) + travel * np.cos(heading),
+                   y=np.asarray(twins.y) + travel * np.sin(heading))
 
 
 def compose(rgb: np.ndarray, items: list[Guidance], hud: HudInfo) -> np.ndarray:

@@ -36,6 +36,7 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
     replays skip it); `on_start`: called when the trip's clock starts (other recorders of a study,
     e.g. an eye tracker, start with it); `shared_window`: a Window to draw in and leave open (a
     study session keeps one window for all its screens and trips)."""
+    from vcfusion.control.stage import ControllerStage
     from vcfusion.hitl.driver import HumanDriver
     from vcfusion.hitl.inputs import ReplayInput, open_input
     from vcfusion.hitl.sdl import init_sdl
@@ -90,10 +91,11 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
             video = OverlayRecorder(staging / "video", fps=display_fps, write_png=False, video_name="drive.mp4")
     info = {"participant": participant, "input": device.name, "seed": seed,
             "axis_map": device.map.model_dump() if hasattr(device, "map") else None}
-    cosim.controller = HumanDriver(device, vehicle, scenario.simulation.step_s, ego.depart_pos_m + ego.trip_distance_m,
-                                   guidance_on=guidance_on, speed=speed, display_fps=display_fps, pygame=pygame,
-                                   window=win, renderer=renderer, video=video, info=info,
-                                   on_start=on_start)
+    # the person at the wheel, as a controller of the API (vcfusion.control)
+    cosim.controller = ControllerStage(HumanDriver(device, vehicle, scenario.simulation.step_s,
+                                                   ego.depart_pos_m + ego.trip_distance_m, guidance_on=guidance_on,
+                                                   speed=speed, display_fps=display_fps, pygame=pygame, window=win,
+                                                   renderer=renderer, video=video, info=info, on_start=on_start))
     try:
         if win is not None and not replay:
             from vcfusion.hitl.driver import forward_controls

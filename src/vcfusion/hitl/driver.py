@@ -18,7 +18,10 @@ Every SUMO step (`step`):
 Every step's wall time, simulated time, lag, raw readings and mapped controls go to the
 `inputs` table; every displayed or dropped frame to `frames`; `finish` adds both and the
 summary's `realtime` block (display_fps_median, late_frames, dropped_frames, max_lag_s,
-input_to_display_ms_median) and `hitl` block.
+input_to_display_ms_median) and `hitl` block. With guidance on and a display, every box drawn on a shown frame goes to `display`
+(time, the twin it warns of, level, source, the box, and `box_vehicle_id`: the vehicle owning most
+of the box's pixels in that frame's instance map, found after drawing, for scoring only): the
+guidance study counts a person's right and wrong highlights from it, i.e. from what was shown.
 """
 
 from __future__ import annotations
@@ -27,8 +30,9 @@ import time as wallclock
 
 import numpy as np
 
+from vcfusion.control.api import Command
 from vcfusion.cosim import EgoCommand, EgoStep
-from vcfusion.hitl.display import HudInfo, compose, reprojected
+from vcfusion.hitl.display import HudInfo, carried_twins, cloud_boxes, compose, tracked_boxes
 from vcfusion.hitl.vehicle import VehicleModel
 
 
@@ -38,12 +42,15 @@ from vcfusion.hitl.vehicle import VehicleModel
 MAX_FRAME_GAP = 4
 
 
+DISPLAY_COLUMNS = ("time", "vehicle_id", "box_vehicle_id", "lc_prob", "level", "source", "x1", "y1", "x2", "y2")
+
+
 class DriveAborted(Exception):
     """The person ended the trip (Escape or closing the window): nothing is written."""
 
 
 class HumanDriver:
-    finish_tables = ("inputs", "frames")
+    finish_tables = ("inputs", "frames", "display")
     finish_summary = ("realtime", "hitl")
 
     def __init__(self, device, vehicle: VehicleModel, dt: float, trip_end_s: float, *, guidance_on: bool,
@@ -64,9 +71,13 @@ class HumanDriver:
         self.info = info or {}
         self.on_start = on_start  # called once when the trip's clock starts (e.g. to start other recorders)
         # the overlay shows the tick's guidance; the HUD works without it
-        self.needs = ("ego", "guidance") if guidance_on else ("ego",)
+        self.needs = ("ego", "neighbours", "guidance") if guidance_on else ("ego",)
         self._guidance = ()
         self._guidance_source = "none"
+        self._shown_set = None  # the GuidanceSet on the screen, and what the car knew when it was made:
+        self._update_time = 0.0  # its tick's time, s
+        self._update_pose = None  # (K, T_world_to_camera) of the camera at that tick (the ego's own pose)
+        self._update_twins = None  # the neighbour twins as the cloud reported them at that tick
         self._wall0: float | None = None
         self._sim0 = 0.0
         self._next_frame = 0.0
@@ -77,15 +88,28 @@ class HumanDriver:
                                                       "steer", "throttle", "brake", "lane_change", "accel", "d", "yaw")}
         self.frame_rows: dict[str, list] = {k: [] for k in ("sim_time", "wall_s", "shown", "lag_s", "render_ms",
                                                             "input_to_display_ms")}
+        self.display_rows: list[dict] = []
 
     # -- the loop's controller interface ------------------------------------------------
     def acceleration(self, tick) -> float:
-        if tick.guidance is not None:
+        if tick.guidance is not None and tick.guidance is not self._shown_set:
+            # a new overlay (the fusion hook hands the same set again between its updates)
+            self._shown_set = tick.guidance
             self._guidance = tick.guidance.items
             self._guidance_source = tick.guidance.source
+            self._update_time = tick.time
+            self._update_twins = tick.neighbours
+            frame = tick.frame
+            self._update_pose = (np.asarray(frame.K, float), np.asarray(frame.T_world_to_camera, float)) \
+                if hasattr(frame, "T_world_to_camera") else None
         # the camera stage's render of this tick (when it has one) is also this step's display frame
         self._tick_frame = tick.frame if hasattr(tick.frame, "instances") else None
         return self.vehicle.state.accel
+
+    def act(self, observation) -> Command:
+        """The controller API's tick call (vcfusion.control): the tick's guidance and camera frame
+        go to the display; the pedals and the wheel act every SUMO step (`step`)."""
+        return Command(self.acceleration(observation))
 
     def step(self, st: EgoStep) -> EgoCommand:
         now = wallclock.perf_counter()
@@ -156,12 +180,12 @@ class HumanDriver:
         tick_frame = self._tick_frame
         frame = tick_frame if tick_frame is not None and abs(tick_frame.time - st.time) < 1e-9 \
             else self.renderer.render(st.states())
-        items = reprojected(self._guidance, frame.vehicle_ids, frame.instances,
-                            box_unmatched=self._guidance_source == "cloud") if self.guidance_on else []
+        items = self._drawn(frame, st.time) if self.guidance_on else []
         hud = HudInfo(st.time, st.speed, self.trip_end_s - st.s_front, self.guidance_on, lag)
         image = compose(frame.rgb, items, hud)
         if self.window is not None:
             self.window.show(image)
+        self._log_drawn(st.time, items, frame)
         if self.video is not None:
             self.video.add(image)
             self._last_image = image
@@ -172,6 +196,33 @@ class HumanDriver:
         f["render_ms"].append(1000.0 * (shown - started))
         # the state shown was moved by the previous step's command: from that poll to the flip
         f["input_to_display_ms"].append(1000.0 * (shown - (self._last_poll or started)))
+
+    def _drawn(self, frame, time_s: float) -> list:
+        """The overlay's items with the boxes drawn on this frame (vcfusion.hitl.display)."""
+        dt = time_s - self._update_time
+        if self._guidance_source == "cloud":
+            from vcfusion.fusion.stage import camera_view
+
+            camera = camera_view(frame.K, frame.T_world_to_camera, frame.width, frame.height, time_s)
+            return cloud_boxes(self._guidance, carried_twins(self._update_twins, dt), camera)
+        if self._update_pose is None:  # no camera pose of the tick: the boxes stay where the fusion drew them
+            return [g for g in self._guidance if g.box is not None]
+        K, T_then = self._update_pose
+        return tracked_boxes(self._guidance, K, T_then, np.asarray(frame.T_world_to_camera, float), dt,
+                             (frame.width, frame.height), self._update_twins)
+
+    def _log_drawn(self, time_s: float, items: list, frame) -> None:
+        from vcfusion.fusion.fuse import box_owner
+
+        for g in items:
+            if g.level == "none":  # not drawn (compose draws warnings only)
+                continue
+            # scoring only: the vehicle under the drawn box, found after it was drawn
+            owner = box_owner(g.box, frame.instances, tuple(frame.vehicle_ids))
+            self.display_rows.append({"time": round(time_s, 6), "vehicle_id": g.vehicle_id,
+                                      "box_vehicle_id": owner or "", "lc_prob": float(g.lc_prob), "level": g.level,
+                                      "source": self._guidance_source, "x1": g.box[0], "y1": g.box[1],
+                                      "x2": g.box[2], "y2": g.box[3]})
 
     # -- end of the trip ------------------------------------------------------------------
     def finish(self, tables, summary: dict) -> None:
@@ -187,6 +238,8 @@ class HumanDriver:
                                 "brake", "lane_change", "accel", "d", "yaw"])
         tables["inputs"] = inputs.to_pandas()
         tables["frames"] = pd.DataFrame(self.frame_rows)
+        if self.renderer is not None and self.guidance_on:  # a trip with a display that drew guidance
+            tables["display"] = pd.DataFrame(self.display_rows, columns=list(DISPLAY_COLUMNS))
         summary["realtime"] = realtime_summary(self.frame_rows, r["lag_s"], self.speed, self.frame_period)
         summary["hitl"] = self.info | {"guidance": "on" if self.guidance_on else "off",
                                       "speed": "max" if self.speed is None else self.speed,

@@ -1,6 +1,6 @@
 """The ego's vehicle model under a person's pedals and steering wheel.
 
-Longitudinal (per SUMO step dt, documented in docs/architecture.md, "Driving it yourself"):
+Longitudinal (per SUMO step dt, documented in docs/components/hitl.md, "How a trip runs"):
     a_wanted = throttle * max_accel - brake * max_decel - coast(v)
     coast(v) = ROLLING_MPS2 + DRAG_PER_M * v^2      (rolling resistance + air drag, no pedal)
 then the acceleration moves toward a_wanted no faster than the car's jerk limits (braking jerk

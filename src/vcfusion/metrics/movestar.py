@@ -254,3 +254,28 @@ def trip_emissions(time_s: Sequence[float], speeds_mps: Sequence[float], vehicle
 
 def is_undefined(value) -> bool:
     return value is None or (isinstance(value, float) and math.isnan(value))
+
+
+def fuel_rate_gps(speed_mps: float, accel_mps2: float, vehicle_type: int = 1) -> float:
+    """MOVESTAR's fuel rate (g/s) at one instant: the operating mode of this speed and acceleration
+    (operating_modes' rules on one sample, zero grade) and its base CO2 rate, as fuel. The
+    per-second trip model (movestar) takes the acceleration from the 1 Hz speeds and its braking
+    mode also from the two seconds before; this is the rate of a single (v, a) sample (a
+    controller's reward per tick). Plain floats: it runs once per tick."""
+    import bisect
+
+    vehicle_type = _check_vehicle_type(vehicle_type)
+    v, a = float(speed_mps), float(accel_mps2)
+    if not (math.isfinite(v) and v >= 0.0 and math.isfinite(a)):
+        raise ValueError(f"expected a finite speed >= 0 and a finite acceleration, got {speed_mps!r}, {accel_mps2!r}")
+    A, B, C, M, f = ROAD_LOAD[vehicle_type]
+    power = (A * v + B * v**2 + C * v**3 + M * a * v) / f  # vsp()
+    mph, accel_mph = v * MPS_TO_MPH, a * MPS_TO_MPH
+    if accel_mph <= -2:
+        mode = 0
+    elif mph < 1:
+        mode = 1
+    else:
+        edges, modes = _LOW_SPEED if mph < 25 else _MID_SPEED if mph < 50 else _HIGH_SPEED
+        mode = modes[bisect.bisect_right(edges, power)]
+    return float(_fuel(_RATE_TABLE[vehicle_type, mode, POLLUTANTS.index("CO2")] / 3600.0))

@@ -35,8 +35,9 @@ ID_COLUMNS = ["seed", "time", "vehicle_id", "event_id", "lc_reason", "time_to_lc
 SPLIT_FRACTIONS = (0.7, 0.15, 0.15)  # train, validation, test, in seed order
 # What the samples mean beyond their column names: raised when the labels or the features change
 # meaning under the same names, so that a dataset built before is refused instead of training or
-# scoring a model on what the cloud no longer computes. 1 (absent in dataset.json): until the
-# twenty-third session; 2: the paper's negative window, lane histories that start afresh.
+# scoring a model on what the cloud no longer computes. 1 (absent in dataset.json): the negative
+# window one tick later than the paper's, lane histories averaging the absent lane's sentinel;
+# 2: the paper's negative window, lane histories that start afresh when the twin has the lane.
 SAMPLES_VERSION = 2
 
 

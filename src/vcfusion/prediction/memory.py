@@ -16,6 +16,7 @@ class TwinMemory:
 
     def __init__(self, width: int, dtype=np.float64):
         self._row: dict[str, int] = {}
+        self._ids: tuple | None = None  # the last tick's ids when given as a tuple (the run-time path)
         self._state = np.zeros((0, width), dtype=dtype)
 
     @property
@@ -25,9 +26,13 @@ class TwinMemory:
 
     def previous_rows(self, ids) -> np.ndarray:
         """For each id, its row in :attr:`state`, or -1 for a twin not seen at the last tick."""
+        if isinstance(ids, tuple) and ids == self._ids:  # the twins of the last tick, in its order
+            return np.arange(len(ids), dtype=np.int64)
         row = self._row
         return np.array([row.get(v, -1) for v in ids], dtype=np.int64)
 
     def keep(self, ids, state: np.ndarray) -> None:
-        self._row = dict(zip(ids, range(len(state))))
+        if not (isinstance(ids, tuple) and ids == self._ids):
+            self._row = dict(zip(ids, range(len(state))))
+            self._ids = ids if isinstance(ids, tuple) else None
         self._state = state

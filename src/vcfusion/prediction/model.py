@@ -22,7 +22,6 @@ import contextlib
 import functools
 import json
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +32,7 @@ from vcfusion.threads import one_blas_thread
 
 MODEL_FORMAT = "vcfusion-lane-change-mlp/1"
 # The shipped default: the GRU sequence model, better than the MLP on the validation seeds of the
-# scenario families (issue 14; src/vcfusion/assets/README.md). The MLP stays selectable
+# scenario families (issue 14; docs/model-cards.md). The MLP stays selectable
 # (`prediction.model: .../lane_change_mlp.npz`).
 DEFAULT_MODEL_NAME = "lane_change_gru.npz"
 SHIPPED_MODEL_NAMES = ("lane_change_mlp.npz", "lane_change_gru.npz")  # in vcfusion/assets
@@ -47,7 +46,9 @@ class ModelFileError(InputError):
 
 
 def default_model_path() -> Path:
-    return Path(str(resources.files("vcfusion.assets").joinpath(DEFAULT_MODEL_NAME)))
+    from vcfusion.resources import assets_dir
+
+    return assets_dir() / DEFAULT_MODEL_NAME
 
 
 @dataclass

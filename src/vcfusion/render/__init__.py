@@ -12,11 +12,6 @@ import OpenGL, and only when a camera is used, so traffic-only runs never load i
 
 from __future__ import annotations
 
-import os
+from vcfusion.accel import select_gl_platform
 
-
-def _default_gl_platform() -> str:
-    return "egl" if os.path.exists("/dev/nvidiactl") else "osmesa"
-
-
-os.environ.setdefault("PYOPENGL_PLATFORM", _default_gl_platform())
+select_gl_platform()  # egl on an NVIDIA GPU, osmesa otherwise; `vcfusion --device` chooses (vcfusion.accel)

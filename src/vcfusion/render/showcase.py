@@ -46,14 +46,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from vcfusion.cosim import CoSimulation
     from vcfusion.driver.idm import IdmController
-    from vcfusion.scenario import SHIPPED_SCENARIOS, load_scenario
+    from vcfusion.scenario import load_scenario
     from vcfusion.render.gt_boxes import ground_truth_boxes
     from vcfusion.render.hook import CameraHook
+    from vcfusion.resources import scenarios_dir
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for path, seed, times in SHOTS:
-        scenario = load_scenario(SHIPPED_SCENARIOS / path)
+        scenario = load_scenario(scenarios_dir() / path)
         scenario = scenario.model_copy(update={"simulation": scenario.simulation.model_copy(
             update={"max_time_s": min(scenario.simulation.max_time_s, max(times) + 0.5)})})
 

@@ -30,28 +30,6 @@ from vcfusion.workers import JobFailed, run_jobs
 LOST_WORKER_RETRIES = 2
 
 
-MAX_SEED = 2**31 - 1  # SUMO's --seed is a C int
-MAX_SEEDS = 1_000_000  # seeds of one command: a typo like 0-99999999999 is refused, not enumerated
-
-
-def parse_seeds(text: str, option: str = "--seeds") -> list[int]:
-    """'0-99', '3', '1,4,7-9' -> sorted unique seeds (UsageError naming `option` otherwise)."""
-    expected = f"{option}: expected seeds from 0 to {MAX_SEED} like '0-99' or '1,4,7-9'"
-    ranges = []
-    try:
-        for part in text.split(","):
-            lo, _, hi = part.strip().partition("-")
-            lo, hi = int(lo), int(hi) if hi else int(lo)
-            if not 0 <= lo <= hi <= MAX_SEED:
-                raise ValueError
-            ranges.append((lo, hi))
-    except ValueError:
-        raise UsageError(f"{expected}, got {text!r}") from None
-    if sum(hi - lo + 1 for lo, hi in ranges) > MAX_SEEDS:
-        raise UsageError(f"{expected} (at most {MAX_SEEDS:,} seeds), got {text!r}")
-    return sorted({s for lo, hi in ranges for s in range(lo, hi + 1)})
-
-
 def seed_folder(out: Path, seed: int) -> Path:
     return Path(out) / f"seed_{seed:04d}"
 

@@ -159,7 +159,7 @@ def _worker_resources(scenario):
 
 
 ARM_TABLES = ("ego", "trajectories", "vehicles", "lane_changes", "collisions", "guidance", "fusion",
-              "driver_events")
+              "driver_events", "display")
 
 
 def simulate_arm(scenario, seed: int, arm: str, process_model_specs: tuple[str, ...] = ()) -> dict:
@@ -247,7 +247,9 @@ def arm_metrics(run: dict, target_id: str | None) -> dict:
     row["guidance_source"] = "+".join(sources)
     row["ticks_without_frame"] = int((guidance["source"] == "no_frame").sum()) if guidance is not None else 0
     nan = math.nan
-    counts = highlight_counts(guidance, tables.get("fusion"), sc.v2c.period_s) if arm != REFERENCE_ARM else {}
+    # a person's trip counts what its display drew (vcfusion.hitl.driver's display table), else the guidance log
+    shown = tables.get("display", guidance)
+    counts = highlight_counts(shown, tables.get("fusion"), sc.v2c.period_s) if arm != REFERENCE_ARM else {}
     row["highlights_right"] = counts.get("highlights_right", nan)
     row["highlights_wrong"] = counts.get("highlights_wrong", nan)
     row["missed_warnings"] = counts.get("missed_warnings", nan)

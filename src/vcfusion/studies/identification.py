@@ -189,6 +189,7 @@ class _StudyHook:
         self.fallback_radius_px = fallback_radius_px
         self.rngs = {name: np.random.default_rng([seed, k]) for k, name in enumerate(detectors)}
         self.rows: list[dict] = []
+        self.depth_counts: dict = {}  # detector -> the depth step's counts
 
     def __call__(self, tick):
         if tick.neighbours is None or len(tick.neighbours) == 0:
@@ -199,6 +200,9 @@ class _StudyHook:
         for name, det in self.detectors.items():
             result = fuse_frame(frame, tick.neighbours, det, self.rngs[name], self.depth_params, self.joints[name],
                                 fallback_radius_px=self.fallback_radius_px, refine=self.refine.get(name))
+            mine = self.depth_counts.setdefault(name, {})
+            for key, v in result.depth_counts.items():
+                mine[key] = mine.get(key, 0) + v
             self.rows.extend(identification_rows(
                 frame, result, self.min_gt_area_px, scenario=self.scenario_name, seed=self.seed, latency_s=self.condition.latency_s,
                 gnss_noise_m=self.condition.gnss_noise_m, detector=name))
@@ -226,6 +230,7 @@ def run_identification_study(scenarios, seeds, frame_source_factory, detectors: 
     if len(set(names)) != len(names):
         raise ValueError(f"scenarios: expected distinct scenario names, got {names}")
     rows: list[dict] = []
+    depth_counts: dict = {}
     jobs = [(scenario, seed, c) for scenario in scenarios for seed in seeds for c in conditions]
     for scenario, seed, cond in tqdm(jobs, desc="identification study", unit="run", disable=not progress):
         sc = scenario.model_copy(update={"v2c": scenario.v2c.model_copy(
@@ -235,7 +240,13 @@ def run_identification_study(scenarios, seeds, frame_source_factory, detectors: 
                           min_gt_area_px, fallback_radius_px, scenario.name, refine)
         CoSimulation(sc, seed, controller=IdmController.for_scenario(sc), hooks=[hook]).run()
         rows.extend(hook.rows)
+        for name, counts in hook.depth_counts.items():
+            mine = depth_counts.setdefault(name, {})
+            for key, v in counts.items():
+                mine[key] = mine.get(key, 0) + v
     frame = pd.DataFrame(rows, columns=ROW_COLUMNS)
+    # what the depth step could not decide, per detector (boxes kept as detected, failed road fits)
+    frame.attrs["depth_counts"] = depth_counts
     write_study_outputs(frame, out_dir)
     return frame
 

@@ -13,7 +13,8 @@ import argparse
 import numpy as np
 
 from vcfusion.bench import median_us
-from vcfusion.traffic.network import REPO_NET_DIR, read_road
+from vcfusion.resources import networks_dir
+from vcfusion.traffic.network import read_road
 from vcfusion.traffic.roadframe import RoadFrame
 
 CASES = (("highway", None), ("curved", None), ("onramp", ("main_in", "accel", "main_out")))
@@ -22,14 +23,14 @@ CASES = (("highway", None), ("curved", None), ("onramp", ("main_in", "accel", "m
 def run_bench(n_points: int = 100, repeats: int = 3000) -> str:
     rng = np.random.default_rng(0)
     lines = [f"road frame, one call for {n_points} points (median of {repeats}, microseconds)"]
-    road = read_road(REPO_NET_DIR / "highway.net.xml")
+    road = read_road(networks_dir() / "highway.net.xml")
     s = rng.uniform(0.0, road.length_m, n_points)
     x, y = road.to_world(s, rng.uniform(0.0, road.width_m, n_points))
     t_road = median_us(lambda: road.to_road_frame(x, y), repeats)
     t_road_lane = median_us(lambda: road.locate(x, y), repeats)
     lines.append(f"  Road (straight, closed form) to_frame {t_road:7.1f}   +lane {t_road_lane:7.1f}")
     for name, route in CASES:
-        frame = RoadFrame.from_net(REPO_NET_DIR / f"{name}.net.xml", route)
+        frame = RoadFrame.from_net(networks_dir() / f"{name}.net.xml", route)
         s = rng.uniform(0.0, frame.length_m, n_points)
         track = rng.integers(1 if name == "onramp" else 0, frame.num_tracks, n_points)
         x, y = frame.to_world(s, frame.lane_centre_d(track, s))

@@ -27,6 +27,15 @@ CENTRED_TOL_M = 0.05
 # its old lane and ends where it is first wholly in the new one (a 1.8 m car)
 PERSON_CAR_WIDTH_M = 1.8
 
+# "Lateral motion settled": a change starts at the last sample before its midpoint, and ends at the
+# first one from it on, at which the lateral speed towards the new lane (of d smoothed over
+# LATERAL_SMOOTH_S, centred) is at most LATERAL_SETTLED_MPS. Recorded drivers keep their own offset in
+# a lane, and so do SUMO's sublane-model vehicles (lcSigma): for them "centred to 5 cm" may never
+# happen near the change (in the sublane model it found starts ~10 s before the midpoint). Imports
+# of recordings and sublane runs use this rule; SUMO's lanes-as-units runs keep CENTRED_TOL_M.
+LATERAL_SMOOTH_S = 1.0
+LATERAL_SETTLED_MPS = 0.2
+
 LANE_CHANGE_COLUMNS = [
     "event_id", "vehicle_id", "start_time", "mid_time", "end_time", "from_lane", "to_lane",
     "direction", "reason", "pos_m", "speed_mps", "leader_gap_m", "follower_gap_m",
@@ -108,12 +117,48 @@ def merge_changes(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[st
     return {name: np.concatenate([a[name], b[name]]).astype(dtype) for name, dtype in SUMO_CHANGE_DTYPES.items()}
 
 
+def lateral_speed(d: np.ndarray, period_s: float) -> np.ndarray:
+    """Rate of change of d smoothed over LATERAL_SMOOTH_S (centred); NaN where d is unknown."""
+    import pandas as pd
+
+    n = max(1, int(round(LATERAL_SMOOTH_S / period_s))) | 1  # odd, so the window is centred
+    if len(d) < max(n, 2):
+        return np.full(len(d), np.nan)
+    smooth = pd.Series(np.asarray(d, dtype=float)).rolling(n, center=True, min_periods=n).mean().to_numpy()
+    return np.gradient(smooth, period_s)
+
+
+def settled_bounds(t: np.ndarray, d: np.ndarray, mid_time: float, direction: int) -> tuple[float, float]:
+    """(start, end) of a change by the settled rule (see LATERAL_SETTLED_MPS), NaN where the track
+    does not show it (it ends first, or d is unknown)."""
+    if len(t) < 2:
+        return np.nan, np.nan
+    toward = direction * lateral_speed(d, float(np.median(np.diff(t))))
+    k = int(np.searchsorted(t, mid_time - 1e-9))
+    start = end = np.nan
+    for j in range(min(k, len(t)) - 1, -1, -1):
+        if np.isnan(toward[j]):
+            break
+        if toward[j] <= LATERAL_SETTLED_MPS:
+            start = float(t[j])
+            break
+    for j in range(k, len(t)):
+        if np.isnan(toward[j]):
+            break
+        if toward[j] <= LATERAL_SETTLED_MPS:
+            end = float(t[j])
+            break
+    return start, end
+
+
 def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, dict[str, np.ndarray]],
-                       road: RoadFrame) -> dict[str, np.ndarray]:
+                       road: RoadFrame, rule: str = "centred") -> dict[str, np.ndarray]:
     """Add start and end times from the lateral trajectory; one element per lane change, in
     LANE_CHANGE_COLUMNS order, sorted by midpoint then vehicle. `tracks`: time, d and s of each
     changer's trajectory samples, in time order (see runio.vehicle_tracks); lane centres are
-    taken at each sample's s (a lane's d range may change along the route)."""
+    taken at each sample's s (a lane's d range may change along the route). `rule`: "centred"
+    (to CENTRED_TOL_M; a person's changes to PERSON_CAR_WIDTH_M) or "settled" (the lateral-speed
+    rule, for SUMO's sublane model)."""
     order = np.lexsort((sumo_changes["vehicle_id"], sumo_changes["mid_time"]))  # stable
     events = {name: values[order] for name, values in sumo_changes.items()}
     starts = np.full(len(order), np.nan)
@@ -125,6 +170,9 @@ def lane_change_events(sumo_changes: dict[str, np.ndarray], tracks: dict[str, di
         if track is None or from_lane < 0 or to_lane < 0:
             continue
         t, d = track["time"], track["d"]
+        if rule == "settled" and reason != PERSON_REASON:
+            starts[i], ends[i] = settled_bounds(t, d, mid_time, 1 if to_lane > from_lane else -1)
+            continue
         s = track["s"] if "s" in track else 0.0
         tol = person_tol if reason == PERSON_REASON else CENTRED_TOL_M
         in_old = np.abs(d - road.lane_centre_d(from_lane, s)) <= tol

@@ -22,9 +22,6 @@ import numpy as np
 from vcfusion.errors import InputError
 from vcfusion.traffic.roadframe import RoadFrame, RouteError, _Lane, _Piece
 
-REPO_NET_DIR = Path(__file__).resolve().parents[3] / "sumo_net"
-
-
 @dataclass(init=False, eq=False, repr=False)
 class Road(RoadFrame):
     """The road frame of one straight edge of parallel lanes of equal width. Lane 0 is the
@@ -391,7 +388,7 @@ def netconvert_binary() -> str:
     return found
 
 
-def network_names(net_dir: Path = REPO_NET_DIR) -> list[str]:
+def network_names(net_dir: Path) -> list[str]:
     """The networks whose sources are in net_dir: plain XML (NAME.nod.xml + NAME.edg.xml) or an
     OpenStreetMap extract (NAME.osm.xml)."""
     plain = {p.name[: -len(".nod.xml")] for p in net_dir.glob("*.nod.xml")
@@ -400,7 +397,7 @@ def network_names(net_dir: Path = REPO_NET_DIR) -> list[str]:
     return sorted(plain | osm)
 
 
-# OpenStreetMap import options that keep a highway usable (see README, "Networks"): only the
+# OpenStreetMap import options that keep a highway usable (see docs/components/traffic.md, "Networks"): only the
 # motorway carriageways and their links; geometry-only nodes merged into curved edges; on-ramps
 # given acceleration lanes; clustered junctions joined; traffic-light and roundabout guessing (for
 # extracts that reach ordinary roads); OSM way ids kept as edge parameters; no U-turns.
@@ -416,7 +413,7 @@ OSM_OPTIONS = (
 )
 
 
-def build_network(net_dir: Path = REPO_NET_DIR, name: str = "highway") -> Path:
+def build_network(net_dir: Path, name: str = "highway") -> Path:
     """Build NAME.net.xml from NAME.nod.xml / .edg.xml, and .typ.xml / .con.xml where present, or
     from the OpenStreetMap extract NAME.osm.xml (with OSM_OPTIONS).
 
@@ -451,7 +448,7 @@ def build_network(net_dir: Path = REPO_NET_DIR, name: str = "highway") -> Path:
     return out
 
 
-def build_networks(net_dir: Path = REPO_NET_DIR) -> list[Path]:
+def build_networks(net_dir: Path) -> list[Path]:
     """Build every network of net_dir (see network_names)."""
     if not net_dir.is_dir():
         raise RuntimeError(f"{net_dir}: folder not found")

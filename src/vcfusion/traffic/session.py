@@ -15,6 +15,7 @@ from typing import Callable
 
 import libsumo
 import numpy as np
+from traci import constants as tc
 
 from vcfusion.records import EGO_ID, VehicleStates
 from vcfusion.scenario import Scenario
@@ -24,6 +25,12 @@ from vcfusion.traffic.roadframe import RoadFrame
 
 # A stop longer than any run: the accident vehicles never leave.
 ACCIDENT_STOP_S = 1.0e6
+# How far ahead SUMO looks for the ego's leader (m): the ego table's leader columns see no farther.
+LEADER_HORIZON_M = 250.0
+# the TraCI variables of the ego's subscription (ids from SUMO's TraCI constants)
+_LANE_POSITION, _SPEED, _ACCELERATION, _LEADER, _LANE_ID = (tc.VAR_LANEPOSITION, tc.VAR_SPEED, tc.VAR_ACCELERATION,
+                                                             tc.VAR_LEADER, tc.VAR_LANE_ID)
+_EGO_VARS = (_LANE_POSITION, _SPEED, _ACCELERATION, _LEADER)
 
 
 class RunError(RuntimeError):
@@ -182,6 +189,38 @@ def plan_placements(scenario: Scenario, road: RoadFrame, vtypes: dict, rng: np.r
     return placements
 
 
+def traffic_vtypes(scenario: Scenario) -> list[str]:
+    """The vehicle types of a scenario's vehicle groups and flows (not the ego's, not the accident's)."""
+    return sorted({g.vtype for g in scenario.vehicles} | {f.vtype for f in scenario.flows})
+
+
+def lane_change_vtypes(scenario: Scenario, out: Path) -> Path:
+    """The scenario's vehicle types file with its lane_change_model's attributes set on the
+    chosen types, written to `out`."""
+    import xml.etree.ElementTree as ET
+
+    lcm = scenario.lane_change_model
+    chosen = set(lcm.vtypes or traffic_vtypes(scenario))
+    tree = ET.parse(scenario.vehicle_types)
+    for vt in tree.getroot().iter("vType"):
+        if vt.get("id") in chosen:
+            for name, value in lcm.vtype_attributes().items():
+                vt.set(name, value)
+    tree.write(out, encoding="UTF-8", xml_declaration=True)
+    return out
+
+
+def draw_lane_change_duration(cfg, rng: np.random.Generator) -> float:
+    """One vehicle's lane-change duration, s (scenario.LaneChangeDurationConfig)."""
+    if cfg.distribution == "fixed":
+        value = cfg.median_s
+    elif cfg.distribution == "lognormal":
+        value = cfg.median_s * float(np.exp(cfg.sigma * rng.standard_normal()))
+    else:
+        value = float(rng.uniform(cfg.min_s, cfg.max_s))
+    return float(min(max(value, cfg.min_s), cfg.max_s))
+
+
 class SumoSession:
     """One running SUMO simulation of a scenario."""
 
@@ -213,13 +252,25 @@ class SumoSession:
         self._steps = 0  # SUMO steps taken (a parked vehicle is on the road from the first)
         # their rows of the sumo_emissions table (SUMO's units), filled by finish()
         self.parked_emissions: list[tuple] = []
+        lcm = scenario.lane_change_model
+        # the scenario's lane-change model: its vehicle types rewritten beside the lane-change output
+        vtypes_file = scenario.vehicle_types if lcm is None else lane_change_vtypes(
+            scenario, lanechange_file.with_name(lanechange_file.stem + ".vtypes.add.xml"))
+        self._lc_types = set(lcm.vtypes or traffic_vtypes(scenario)) if lcm is not None else set()
+        self._lc_duration = lcm.duration if lcm is not None else None
+        # per-vehicle durations from a generator of their own (the placements' draws stay as they were)
+        self._lc_rng = np.random.default_rng(rng.integers(2**63)) if self._lc_duration is not None else None
+        self.lane_change_durations: dict[str, float] = {}  # vehicle -> drawn duration, s
+        lateral = (["--lateral-resolution", repr(lcm.lateral_resolution_m)] if lcm is not None
+                   and lcm.lateral_resolution_m is not None  # SUMO refuses it with --lanechange.duration
+                   else ["--lanechange.duration", repr(scenario.simulation.lanechange_duration_s)])
         self.sumo_args = [
             "sumo",
             "--net-file", str(scenario.network),
-            "--additional-files", str(scenario.vehicle_types),
+            "--additional-files", str(vtypes_file),
             "--step-length", repr(self.step_s),
             "--seed", str(seed),
-            "--lanechange.duration", repr(scenario.simulation.lanechange_duration_s),
+            *lateral,
             "--collision.action", "warn",
             # contact only: SUMO's default also calls a gap under the vType's minGap (2.5 m) a
             # collision, which the ego's driver (IDM s0 = 2 m, or a person) keeps when stopping
@@ -323,6 +374,10 @@ class SumoSession:
             # Our code drives the ego: no SUMO safety checks, no SUMO lane changes.
             libsumo.vehicle.setSpeedMode(EGO_ID, 0)
             libsumo.vehicle.setLaneChangeMode(EGO_ID, 0)
+            # what ego_state reads every step, gathered by SUMO in its step: one call instead of four
+            # (the same values as the getters; its results are empty once the ego has left)
+            libsumo.vehicle.subscribe(EGO_ID, list(_EGO_VARS) if self._ego_single_edge else [*_EGO_VARS, _LANE_ID],
+                                      parameters={_LEADER: LEADER_HORIZON_M})
         on_road = set(libsumo.vehicle.getIDList())
         missing = [p for p in self.placements if p.depart_s == 0.0 and p.vehicle_id not in on_road]
         if missing:
@@ -384,9 +439,22 @@ class SumoSession:
                 self._contact[(c.collider, c.victim)] = len(self.collisions)
                 self.collisions.append(Collision(self.time, c.collider, c.victim, c.type, c.colliderSpeed,
                                                  c.victimSpeed, c.lane, c.pos, self.time))
+        if self._lc_rng is not None:  # the configured duration of each vehicle that has just departed
+            for vid in libsumo.simulation.getDepartedIDList():
+                if libsumo.vehicle.getTypeID(vid) in self._lc_types:
+                    duration = draw_lane_change_duration(self._lc_duration, self._lc_rng)
+                    self.lane_change_durations[vid] = duration
+                    libsumo.vehicle.setMaxSpeedLat(vid, self.road.lane_width_m / duration)
 
     def set_ego_speed(self, speed_mps: float) -> None:
         libsumo.vehicle.setSpeed(EGO_ID, max(0.0, speed_mps))
+
+    def change_ego_lane(self, direction: int) -> None:
+        """Start the ego's change to the adjacent lane on its left (+1) or right (-1), taking
+        simulation.lanechange_duration_s (SUMO's continuous lane change; the ego's lane-change mode
+        0 makes SUMO follow the request without checking the target lane's gaps). SUMO drops a
+        request toward a lane that is absent there."""
+        libsumo.vehicle.changeLaneRelative(EGO_ID, int(direction), self.scenario.simulation.lanechange_duration_s)
 
     def place_ego(self, s_front: float, d: float, yaw: float) -> None:
         """Put the ego's front bumper centre at position (`s_front`, `d`) of its route (d: m left of
@@ -401,27 +469,28 @@ class SumoSession:
     def vehicle_count(self) -> int:
         return libsumo.vehicle.getIDCount()
 
-    def ego_state(self, horizon_m: float = 250.0) -> tuple[float, float, float, tuple[str, float] | None] | None:
+    def ego_state(self) -> tuple[float, float, float, tuple[str, float] | None] | None:
         """The ego now: (front-bumper position along its route, speed, acceleration, leader), where
-        leader is SUMO's (id, bumper-to-bumper gap) within horizon_m or None; None once the ego
-        left. One call per SUMO step (it runs 100 times per simulated second)."""
-        v = libsumo.vehicle
-        try:
-            pos, speed, accel = v.getLanePosition(EGO_ID), v.getSpeed(EGO_ID), v.getAcceleration(EGO_ID)
-            if not self._ego_single_edge:
-                pos = float(self.ego_frame.route_position(v.getLaneID(EGO_ID), pos))
-        except libsumo.TraCIException:
+        leader is SUMO's (id, bumper-to-bumper gap) within LEADER_HORIZON_M or None; None once the
+        ego left. One call per SUMO step (it runs 100 times per simulated second): the values of
+        the ego's subscription (_populate)."""
+        found = libsumo.vehicle.getSubscriptionResults(EGO_ID)
+        if not found:  # the ego has left the simulation, and its subscription with it
             return None
-        except KeyError:  # SUMO put the ego on an edge off its route (a person steered it onto a ramp)
-            self.ego_off_route = True
-            return None
-        found = v.getLeader(EGO_ID, horizon_m)
-        if not found or not found[0]:
+        pos, speed, accel = found[_LANE_POSITION], found[_SPEED], found[_ACCELERATION]
+        if not self._ego_single_edge:
+            try:
+                pos = float(self.ego_frame.route_position(found[_LANE_ID], pos))
+            except KeyError:  # SUMO put the ego on an edge off its route (a person steered it onto a ramp)
+                self.ego_off_route = True
+                return None
+        leader = found[_LEADER]  # ("", -1) when there is none within the horizon
+        if not leader or not leader[0]:
             return pos, speed, accel, None
-        # getLeader's distance excludes the follower's minGap; add it back for the true gap.
+        # the leader's distance excludes the follower's minGap; add it back for the true gap.
         if self._ego_min_gap is None:
-            self._ego_min_gap = v.getMinGap(EGO_ID)
-        return pos, speed, accel, (found[0], found[1] + self._ego_min_gap)
+            self._ego_min_gap = libsumo.vehicle.getMinGap(EGO_ID)
+        return pos, speed, accel, (leader[0], leader[1] + self._ego_min_gap)
 
     def speed_of(self, vehicle_id: str) -> float:
         return libsumo.vehicle.getSpeed(vehicle_id)

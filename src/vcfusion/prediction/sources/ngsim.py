@@ -17,8 +17,12 @@ a period's file, and become recordings of their own. Numbers written with thousa
 How the fields are used (and the documented defaults for gaps of real releases):
 - time = (Frame_ID - first Frame_ID) x 0.1 s;
 - s = Local_Y (front centre, along the direction of travel) - length / 2: the footprint centre;
-- lane: Lane_ID 1 is the leftmost lane. `main_lanes` = (first, last) Lane_IDs of the road
-  (default 1-5: US-101's five main lanes; I-80's six are 1-6). Lane index = last - Lane_ID;
+- units: NGSIM's feet (`units="ft"`, the default) or metres (`units="m"`, as metric re-releases
+  write them): lengths, positions, speeds and accelerations are scaled by the one factor;
+- lane: Lane_ID 1 is the leftmost lane (`lane_one="left"`, NGSIM's convention; `"right"` for a
+  release that numbers from the right edge). `main_lanes` = (first, last) Lane_IDs of the road
+  (default 1-5: US-101's five main lanes; I-80's six are 1-6). Lane index = last - Lane_ID
+  (numbered from the right: Lane_ID - first);
   samples on other lanes (US-101 6 auxiliary, 7 on-ramp, 8 off-ramp; I-80 7 on-ramp) are off
   the road: the twin leaves there and a later return is a new twin;
 - d = last x 12 ft - Local_X (the main lanes assumed 12 ft wide from the left edge); Local_X
@@ -29,7 +33,9 @@ How the fields are used (and the documented defaults for gaps of real releases):
 - v_Vel is required; v_Acc missing: from the speed;
 - Preceding, Following, Space_Headway, Time_Headway, Global_*, Total_Frames are not used: the
   cloud computes neighbours and gaps from the positions, as for simulated runs (zero headways,
-  NGSIM's "no leader", do not matter).
+  NGSIM's "no leader", do not matter). Preceding / Following are only checked: the rows that
+  name a leader or follower absent from the file (a truncated release: neighbours the features
+  cannot see) are counted in the reader's quality report.
 """
 
 from __future__ import annotations
@@ -54,6 +60,8 @@ LANE_WIDTH_FT = 12.0
 FRAME_S = 0.1
 CLASS_NAMES = {1: "motorcycle", 2: "passenger", 3: "truck"}
 DEFAULT_MAIN_LANES = (1, 5)
+UNIT_M = {"ft": FT_M, "m": 1.0}
+LANE_ONE = ("left", "right")
 
 
 def parse_main_lanes(text: str) -> tuple[int, int]:
@@ -138,9 +146,13 @@ def read_ngsim_table(path: Path, location: str | None = None) -> pd.DataFrame:
 
 
 def read_ngsim(path: str | Path, main_lanes: tuple[int, int] = DEFAULT_MAIN_LANES,
-               location: str | None = None) -> list[Recording]:
+               location: str | None = None, units: str = "ft", lane_one: str = "left") -> list[Recording]:
     """The file's recordings: one per period (see the module's notes), in time order."""
     path = Path(path)
+    if units not in UNIT_M:
+        raise RealDataError(f"--ngsim-units: expected one of {', '.join(UNIT_M)}, got {units!r}")
+    if lane_one not in LANE_ONE:
+        raise RealDataError(f"--ngsim-lane-one: expected one of {', '.join(LANE_ONE)}, got {lane_one!r}")
     table = read_ngsim_table(path, location)
     name = path.name
     for suffix in (".gz", ".csv", ".txt"):
@@ -153,43 +165,60 @@ def read_ngsim(path: str | Path, main_lanes: tuple[int, int] = DEFAULT_MAIN_LANE
         period = np.round(table["Global_Time"].to_numpy(float) - 100.0 * table["Frame_ID"].to_numpy(float), -3)
     starts = np.unique(period)
     if len(starts) == 1:
-        return [_recording(table, path, name, main_lanes)]
-    return [_recording(table[period == p].reset_index(drop=True), path, f"{name}-period{k + 1}", main_lanes)
-            for k, p in enumerate(starts)]
+        return [_recording(table, path, name, main_lanes, units, lane_one)]
+    return [_recording(table[period == p].reset_index(drop=True), path, f"{name}-period{k + 1}", main_lanes,
+                       units, lane_one) for k, p in enumerate(starts)]
 
 
-def _recording(table: pd.DataFrame, path: Path, name: str, main_lanes: tuple[int, int]) -> Recording:
+def _absent_neighbours(table: pd.DataFrame, column: str) -> int:
+    """Rows whose `column` (Preceding / Following) names a vehicle with no row at that frame."""
+    if column not in table or table[column].isna().all():
+        return 0
+    named = table[column].fillna(0).to_numpy(np.int64)
+    present = set(zip(table["Vehicle_ID"].to_numpy(np.int64).tolist(), table["Frame_ID"].to_numpy(np.int64).tolist()))
+    frames = table["Frame_ID"].to_numpy(np.int64)
+    return int(sum(1 for v, f in zip(named.tolist(), frames.tolist()) if v > 0 and (v, f) not in present))
+
+
+def _recording(table: pd.DataFrame, path: Path, name: str, main_lanes: tuple[int, int], units: str = "ft",
+               lane_one: str = "left") -> Recording:
     first, last = main_lanes
+    unit = UNIT_M[units]
     n = len(table)
     lane_id = table["Lane_ID"].to_numpy(np.int64)
     on_main = (lane_id >= first) & (lane_id <= last)
     vclass = table["v_Class"].map(CLASS_NAMES).fillna("passenger").to_numpy(str) if "v_Class" in table \
         else np.full(n, "passenger")
     nan = np.full(n, np.nan)
-    sizes = size_defaults(vclass, table["v_Length"].to_numpy(float) * FT_M if "v_Length" in table else nan,
-                          table["v_Width"].to_numpy(float) * FT_M if "v_Width" in table else nan, nan)
-    local_x = table["Local_X"].to_numpy(float) if "Local_X" in table else nan
-    d = np.where(local_x > 0, (last * LANE_WIDTH_FT - local_x) * FT_M, np.nan)  # 0 / empty: unknown
+    sizes = size_defaults(vclass, table["v_Length"].to_numpy(float) * unit if "v_Length" in table else nan,
+                          table["v_Width"].to_numpy(float) * unit if "v_Width" in table else nan, nan)
+    local_x = table["Local_X"].to_numpy(float) * unit if "Local_X" in table else nan
+    lane_w = LANE_WIDTH_FT * FT_M
+    # d left of the main lanes' right edge; Local_X from the left edge of the section (0 / empty: unknown)
+    d = np.where(local_x > 0, (last - first + 1 if lane_one == "right" else last) * lane_w - local_x, np.nan)
     frame = table["Frame_ID"].to_numpy(np.int64)
     samples = pd.DataFrame({
         "vehicle_id": table["Vehicle_ID"].to_numpy(np.int64).astype(str),
         "time": (frame - frame.min()) * FRAME_S,
-        "s": table["Local_Y"].to_numpy(float) * FT_M - sizes["length"] / 2,
+        "s": table["Local_Y"].to_numpy(float) * unit - sizes["length"] / 2,
         "d": d,
-        "lane": np.where(on_main, last - lane_id, -1),
-        "speed": table["v_Vel"].to_numpy(float) * FT_M,
-        "accel": table["v_Acc"].to_numpy(float) * FT_M if "v_Acc" in table else nan,
+        "lane": np.where(on_main, (lane_id - first) if lane_one == "right" else (last - lane_id), -1),
+        "speed": table["v_Vel"].to_numpy(float) * unit,
+        "accel": table["v_Acc"].to_numpy(float) * unit if "v_Acc" in table else nan,
         "length": sizes["length"], "width": sizes["width"], "height": sizes["height"], "vclass": vclass,
     })
     off = pd.Series(lane_id[~on_main]).value_counts().sort_index()
     source = {
-        "format": "ngsim", "file": path.name, "recording": name, "main_lanes": [first, last],
+        "format": "ngsim", "file": path.name, "recording": name, "main_lanes": [first, last], "units": units,
+        "lane_one": lane_one,
         "quality_reader": {
             "rows": n, "sizes_filled_by_class": sizes["filled"],
             "lateral_unknown_rows": int(np.isnan(d).sum()),
             "rows_by_lane_outside_main": {str(k): int(v) for k, v in off.items()},
+            "rows_naming_a_leader_absent_from_the_file": _absent_neighbours(table, "Preceding"),
+            "rows_naming_a_follower_absent_from_the_file": _absent_neighbours(table, "Following"),
         },
     }
-    road = straight_road(f"ngsim-{name}", last - first + 1, LANE_WIDTH_FT * FT_M,
+    road = straight_road(f"ngsim-{name}", last - first + 1, lane_w,
                          float(np.nanmax(samples["s"])) + 1.0, float("nan"))
     return Recording(f"ngsim {name}", road, samples, FRAME_S, source)

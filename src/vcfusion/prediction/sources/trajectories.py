@@ -29,18 +29,17 @@ from vcfusion.prediction.dataset import (DATASET_JSON, README, SAMPLES_VERSION, 
                                          split_seeds)
 from vcfusion.prediction.features import FEATURE_NAMES
 from vcfusion.studies.batch import seed_folder
-from vcfusion.traffic.lanechanges import LANE_CHANGE_COLUMNS
+from vcfusion.traffic.lanechanges import (  # noqa: F401 - the settled rule, re-exported
+    LANE_CHANGE_COLUMNS, LATERAL_SETTLED_MPS, LATERAL_SMOOTH_S, lateral_speed,
+)
 from vcfusion.traffic.network import Road
 
 PERIOD_S = 0.1  # the V2C period the twins report at (the simulated runs' default)
 MAX_GAP_S = 1.0  # a longer gap in a vehicle's samples starts a new twin (NGSIM reuses ids)
 MIN_LANE_DWELL_S = 1.0  # a shorter visit to a lane, back to the lane it came from, is flicker
 # Start / end of a lane change: the lateral speed towards the new lane, of the lateral position
-# smoothed over LATERAL_SMOOTH_S, is at most LATERAL_SETTLED_MPS. SUMO's events use "centred
-# in the lane to 5 cm" instead (lanechanges.CENTRED_TOL_M); real drivers keep their own offset
-# in a lane, and "lateral motion settled" is what centred means for SUMO's straight-line moves.
-LATERAL_SMOOTH_S = 1.0
-LATERAL_SETTLED_MPS = 0.2
+# smoothed over LATERAL_SMOOTH_S, is at most LATERAL_SETTLED_MPS (the rule and its constants live
+# in vcfusion.traffic.lanechanges, which applies it to SUMO's sublane model too).
 # A change whose end was not seen (track ends, lateral position unknown) is labelled as ending
 # this long after its midpoint: about half of the ~5 s a highway lane change takes.
 END_AFTER_MID_S = 2.5
@@ -106,15 +105,6 @@ def clean_lane_flicker(lane: np.ndarray, min_samples: int) -> tuple[np.ndarray, 
         k = short[0]
         lane[starts[k]:stops[k]] = lane[starts[k - 1]]
         removed += 1
-
-
-def lateral_speed(d: np.ndarray, period_s: float) -> np.ndarray:
-    """Rate of change of d smoothed over LATERAL_SMOOTH_S (centred); NaN where d is unknown."""
-    n = max(1, int(round(LATERAL_SMOOTH_S / period_s))) | 1  # odd, so the window is centred
-    if len(d) < max(n, 2):
-        return np.full(len(d), np.nan)
-    smooth = pd.Series(np.asarray(d, dtype=float)).rolling(n, center=True, min_periods=n).mean().to_numpy()
-    return np.gradient(smooth, period_s)
 
 
 def lane_changes_of_track(t: np.ndarray, lane: np.ndarray, d: np.ndarray, period_s: float) -> list[dict]:
@@ -335,7 +325,8 @@ def import_recordings(recordings: list[Recording], out: Path, tau: float, tau_g:
 IMPORT_README = """
 ## Imported recordings
 
-This dataset was imported from recorded trajectories (`vcfusion dataset --from-ngsim / --from-highd`,
+This dataset was imported from recorded trajectories (`vcfusion dataset --from-ngsim / --from-highd /
+--from-commonroad`,
 vcfusion.prediction.sources): each vehicle is replayed as a twin reporting every 0.1 s, its lane
 counted 0 = rightmost in its driving direction and s along it. A *seed* is a time chunk of one
 recording (one driving direction; `dataset.json` `seeds` says which); it holds the twins first

@@ -1,0 +1,87 @@
+"""The `vcfusion` command."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from vcfusion import interrupts
+from vcfusion.errors import InputError
+
+
+def package_version() -> str:
+    """The installed distribution's version (importlib.metadata); run from a source tree that is not
+    installed, the package's own __version__, said so."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("vcfusion")
+    except metadata.PackageNotFoundError:
+        from vcfusion import __version__
+
+        return f"{__version__} (not installed: run from a source tree)"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from vcfusion.commands import (bench, control, detection, drive, lane_changes, metrics, prediction, simulation,
+                                   study, traffic)
+
+    parser = argparse.ArgumentParser(prog="vcfusion", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
+    parser.add_argument("--device", dest="command_device", choices=("auto", "cpu", "cuda"),
+                        help="where the camera renders and the detector runs: auto (the GPU when present: EGL and "
+                             "CUDA), cpu (OSMesa, CPU) or cuda; default: the scenario's fusion.device, else auto")
+    sub = parser.add_subparsers(dest="command", required=True)
+    simulation.add_parsers(sub)  # run, scenarios, batch, build-net, render, demo
+    traffic.add_parsers(sub)  # gen-net
+    study.add_parsers(sub)  # study identification | guidance | hitl
+    drive.add_parsers(sub)
+    bench.add_parsers(sub)  # bench, bench-render
+    prediction.add_parsers(sub)  # dataset, train, evaluate, bench-predict
+    lane_changes.add_parsers(sub)  # compare-lane-changes, calibrate-lane-changes
+    detection.add_parsers(sub)  # train-detector, eval-detector, render-scenes, resize-dataset, coco-check, export-onnx
+    metrics.add_parsers(sub)  # metrics, report
+    control.add_parsers(sub)  # export-commonroad
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.command_device:  # before anything imports OpenGL; worker processes inherit it (vcfusion.accel)
+        os.environ["VCFUSION_DEVICE"] = args.command_device
+    with interrupts.recorded():  # Ctrl-C stops the command even when numba swallowed its KeyboardInterrupt
+        try:
+            return args.func(args)
+        except SystemExit:
+            raise
+        except BaseException as exc:
+            if interrupts.is_interrupt(exc):  # also when numba mangled it on its way up
+                # What Ctrl-C left and how to go on: the command's set_defaults(interrupted=...).
+                # The workers were stopped and temporary folders removed on the way up.
+                hint = getattr(args, "interrupted", None)
+                terminated = interrupts.terminated()  # SIGTERM, else Ctrl-C
+                print(("terminated" if terminated else "interrupted") + (f": {hint}" if hint else ""), file=sys.stderr)
+                return 143 if terminated else 130
+            # scenario, model, dataset, command-line values; an output that exists (our own message)
+            if isinstance(exc, InputError) or (isinstance(exc, FileExistsError) and exc.filename is None):
+                for line in str(exc).splitlines():  # one line per problem (a scenario file may have several)
+                    print(f"error: {line}", file=sys.stderr)
+                return 2
+            if isinstance(exc, OSError) and exc.filename is not None:
+                # a path the command could not write or read (no permission, a folder where a file
+                # goes, a missing parent, a file where a folder goes): the path and the reason
+                what = f" (-> {exc.filename2})" if exc.filename2 else ""
+                reason = exc.strerror or str(exc)
+                if isinstance(exc, FileExistsError) and Path(exc.filename).is_file():
+                    reason = "is a file; expected a folder (or a path that does not exist yet)"
+                print(f"error: {exc.filename}{what}: {reason}", file=sys.stderr)
+                return 2
+            from vcfusion.errors import JobError
+            from vcfusion.traffic.session import RunError
+
+            if isinstance(exc, (RunError, JobError)):
+                print(f"error: {exc}", file=sys.stderr)
+                return 1
+            raise

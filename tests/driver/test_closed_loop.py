@@ -1,0 +1,148 @@
+"""The closed loop on hand-made ticks: what the AR draws is what the driver sees and responds to.
+
+Real fusion hook (matcher, overlay items, instance map owner), real guidance log, real driver and
+the study's highlight counting; the frames come from the test-only cuboid frame source (it has an
+instance map), the boxes from a detector that draws them where the test says.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from tests.support.cuboid_frames import CuboidFrameSource
+from vcfusion.cosim import Tick
+from vcfusion.detection.detectors import Detections
+from vcfusion.driver.cloud_guidance import CloudGuidanceFallback
+from vcfusion.driver.model import DriverModel
+from vcfusion.driver.params import draw_driver
+from vcfusion.fusion.fuse import VisionFusionHook
+from vcfusion.guidance import GuidancePolicy
+from vcfusion.records import TwinStates, VehicleStates
+from vcfusion.studies.guidance import highlight_counts
+from vcfusion.traffic.network import read_road
+
+ROAD = read_road(Path(__file__).resolve().parents[2] / "sumo_net" / "highway.net.xml")
+POLICY = GuidancePolicy.on_road(ROAD, ego_lane=2, medium=0.3, high=0.6, view_range_m=150.0)
+IDS = ("ego", "cutter", "neighbour")
+
+
+def _truth(t, ego_s):
+    """The ego in lane 2; the cutter 25 m ahead and a neighbour 12 m ahead, both in lane 1."""
+    s = np.array([ego_s, ego_s + 25.0 + 0.6 * t, ego_s + 12.0 + 0.6 * t])
+    d = np.array([ROAD.lane_centre_d(2), ROAD.lane_centre_d(1), ROAD.lane_centre_d(1)])
+    x, y = ROAD.to_world(s, d)
+    n = 3
+    return VehicleStates(time=t, ids=IDS, vtype=("ego", "car", "car"), vclass=("passenger",) * n, x=x, y=y,
+                         z=np.zeros(n), heading=np.zeros(n), speed=np.array([19.0, 15.0, 15.0]), accel=np.zeros(n),
+                         lane=np.array([2, 1, 1], dtype=np.int16), lateral_offset=np.zeros(n),
+                         length=np.full(n, 4.6), width=np.full(n, 1.8), height=np.full(n, 1.5))
+
+
+def _twins(truth, warned=True):
+    """Perfect twins of the two neighbours; the cloud warns about the cutter only."""
+    k = [1, 2]
+    return TwinStates(time=truth.time, ids=tuple(truth.ids[i] for i in k), measured_time=np.full(2, truth.time),
+                      x=truth.x[k], y=truth.y[k], z=truth.z[k] + truth.height[k] / 2, heading=truth.heading[k],
+                      speed=truth.speed[k], accel=truth.accel[k], lane=truth.lane[k], length=truth.length[k],
+                      width=truth.width[k], height=truth.height[k],
+                      outputs={"lc_prob": np.array([0.9 if warned else 0.05, 0.05]),
+                               "lc_decision": np.array([warned, False])})
+
+
+class ShiftedOntoNeighbour:
+    """A detector whose box for the cutter spreads onto the neighbouring vehicle: one box over
+    both (the nearer neighbour owns most of its pixels; it still holds the cutter's anchor, so the
+    matcher gives it to the cutter's twin). `frame` is set per tick by the test."""
+
+    frame = None
+
+    def detect(self, image):
+        ids = list(self.frame.gt_ids)
+        cut, nb = self.frame.gt_boxes[ids.index("cutter")], self.frame.gt_boxes[ids.index("neighbour")]
+        box = [min(nb[0], cut[0]), min(nb[1], cut[1]), max(nb[2], cut[2]), max(nb[3], cut[3])]
+        return Detections.of(np.array([box]), np.array([0.9]), np.array([3]))
+
+
+class NoBoxes:
+    def detect(self, image):
+        return Detections.empty()
+
+
+def _closed_loop(detector, guided=True, until=3.0, warned=True):
+    frames = CuboidFrameSource()
+
+    def source(tick):
+        frame = frames(tick)
+        detector.frame = frame
+        return frame
+
+    fusion = VisionFusionHook(source, detector, 0, POLICY, method="baseline")
+    log = CloudGuidanceFallback(ROAD, POLICY, camera=True)
+    driver = DriverModel(draw_driver(3, 19.0), ROAD, POLICY, guidance_enabled=guided)
+    fusion_rows, guidance_rows, accs = [], [], []
+    ego_s = 100.0
+    for k in range(int(round(until / 0.1)) + 1):
+        t = round(0.1 * k, 6)
+        truth = _truth(t, ego_s)
+        tick = Tick(t, truth, None, None, _twins(truth, warned))
+        fusion_rows += fusion(tick) or []
+        guidance_rows += log(tick)
+        accs.append(driver.acceleration(tick))
+        ego_s += 19.0 * 0.1
+    return driver, pd.DataFrame(fusion_rows), pd.DataFrame(guidance_rows), np.array(accs)
+
+
+def test_a_box_shifted_onto_the_neighbour_makes_the_driver_respond_to_the_neighbour():
+    driver, fusion, guidance, accs = _closed_loop(ShiftedOntoNeighbour())
+    warned = guidance[guidance["level"].isin(["medium", "high"])]
+    # the cloud meant the cutter; the box drawn for it holds the neighbour
+    assert len(warned) and set(warned["vehicle_id"]) == {"cutter"} and set(warned["box_vehicle_id"]) == {"neighbour"}
+    cues = [e for e in driver.events if e["cue"] == "guidance"]
+    assert [(e["vehicle_id"], e["twin_id"]) for e in cues] == [("neighbour", "cutter")]
+    assert set(driver.warnings) == {"neighbour"}
+    counts = highlight_counts(guidance, fusion, 0.1)
+    assert counts == {"highlights_right": 0, "highlights_wrong": 1, "missed_warnings": 0}
+    # and the driver does respond (releases the throttle), unlike one without guidance
+    _, _, _, unguided = _closed_loop(ShiftedOntoNeighbour(), guided=False)
+    assert accs.min() < unguided.min() - 0.2
+
+
+def test_a_twin_without_a_matched_box_gives_no_highlight_and_no_response():
+    driver, fusion, guidance, accs = _closed_loop(NoBoxes())
+    assert (guidance["vehicle_id"] == "").all() and set(guidance["source"]) == {"fusion"}  # nothing shown
+    assert not fusion["matched"].any() and (fusion[fusion["vehicle_id"] == "cutter"]["level"] == "high").all()
+    assert driver.warnings == {} and not [e for e in driver.events if e["cue"] == "guidance"]
+    assert highlight_counts(guidance, fusion, 0.1) == {"highlights_right": 0, "highlights_wrong": 0,
+                                                       "missed_warnings": 1}
+    _, _, _, unguided = _closed_loop(NoBoxes(), guided=False)
+    assert np.array_equal(accs, unguided)
+
+
+def test_right_boxes_count_as_right():
+    class OwnBoxes:
+        frame = None
+
+        def detect(self, image):
+            return Detections.of(self.frame.gt_boxes, np.full(len(self.frame.gt_boxes), 0.9),
+                                 np.full(len(self.frame.gt_boxes), 3))
+
+    driver, fusion, guidance, _ = _closed_loop(OwnBoxes())
+    assert set(driver.warnings) == {"cutter"}
+    assert highlight_counts(guidance, fusion, 0.1) == {"highlights_right": 1, "highlights_wrong": 0,
+                                                       "missed_warnings": 0}
+
+
+def test_box_owner_counts_the_pixels_inside_the_box():
+    from vcfusion.fusion.fuse import box_owner
+
+    inst = np.full((10, 10), -1, np.int32)
+    inst[:, 0:5] = 0
+    inst[:, 5:10] = 1
+    inst[0:2, :] = -1  # sky
+    ids = ("a", "b")
+    # pixel-centre convention: columns 2..7 inside (3 of each vehicle): a tie goes to the lower index
+    assert box_owner((1.5, -0.5, 7.5, 9.5), inst, ids) == "a"
+    assert box_owner((2.5, -0.5, 8.5, 9.5), inst, ids) == "b"  # columns 3..8: 2 of a, 4 of b
+    assert box_owner((1.5, -0.5, 7.5, 1.5), inst, ids) is None  # rows 0..1: no vehicle pixel
+    assert box_owner((1.5, -0.5, 7.5, 9.5), None, ids) is None  # no instance map

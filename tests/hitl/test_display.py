@@ -1,0 +1,241 @@
+"""The person's display draws what the car knows: the fusion's matched box (carried between vision
+ticks with the ego's own motion and the twin's reported velocity), or in the cloud arm the twin's
+reported cuboid; never the renderer's instance map. The trip's right / wrong highlight counts are
+those of the boxes drawn.
+
+Real fusion hook, real HumanDriver display path and the study's highlight counting on hand-made
+ticks; frames from the test-only cuboid frame source, given a pinhole K and extrinsics here."""
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from tests.support.cuboid_frames import CuboidFrameSource
+from vcfusion.cosim import EgoStep, Tick
+from vcfusion.detection.detectors import Detections
+from vcfusion.driver.cloud_guidance import CloudGuidanceFallback
+from vcfusion.fusion.fuse import VisionFusionHook, box_owner
+from vcfusion.fusion.matching import box_iou
+from vcfusion.guidance import GuidancePolicy
+from vcfusion.hitl.display import cloud_boxes, tracked_boxes
+from vcfusion.hitl.driver import HumanDriver
+from vcfusion.hitl.vehicle import ControlSample, VehicleState
+from vcfusion.records import Guidance, TwinStates, VehicleStates
+from vcfusion.studies.guidance import highlight_counts
+from vcfusion.traffic.network import read_road
+
+ROAD = read_road(Path(__file__).resolve().parents[2] / "sumo_net" / "highway.net.xml")
+POLICY = GuidancePolicy.on_road(ROAD, ego_lane=2, medium=0.3, high=0.6, view_range_m=150.0)
+IDS = ("ego", "cutter", "neighbour")
+EGO_SPEED = 25.0
+TICK_STEPS = 4  # a vision tick every 0.2 s, a display frame every 0.05 s
+
+
+def _truth(t):
+    """The ego in lane 2 at 25 m/s; the cutter 30 m ahead and a neighbour 15 m ahead in lane 1 at 15 m/s."""
+    ego_s = 100.0 + EGO_SPEED * t
+    s = np.array([ego_s, ego_s + 30.0 - 10.0 * t, ego_s + 15.0 - 10.0 * t])
+    d = np.array([ROAD.lane_centre_d(2), ROAD.lane_centre_d(1), ROAD.lane_centre_d(1)])
+    x, y = ROAD.to_world(s, d)
+    n = 3
+    return VehicleStates(time=t, ids=IDS, vtype=("ego", "car", "car"), vclass=("passenger",) * n, x=x, y=y,
+                         z=np.zeros(n), heading=np.zeros(n), speed=np.array([EGO_SPEED, 15.0, 15.0]),
+                         accel=np.zeros(n), lane=np.array([2, 1, 1], dtype=np.int16), lateral_offset=np.zeros(n),
+                         length=np.full(n, 4.6), width=np.full(n, 1.8), height=np.full(n, 1.5))
+
+
+def _twins(truth, offset_x=0.0):
+    """The cloud's twins of the two neighbours (reported `offset_x` m ahead of where they are); it
+    warns about the cutter only."""
+    k = [1, 2]
+    return TwinStates(time=truth.time, ids=tuple(truth.ids[i] for i in k), measured_time=np.full(2, truth.time),
+                      x=truth.x[k] + offset_x, y=truth.y[k], z=truth.z[k] + truth.height[k] / 2,
+                      heading=truth.heading[k], speed=truth.speed[k], accel=truth.accel[k], lane=truth.lane[k],
+                      length=truth.length[k], width=truth.width[k], height=truth.height[k],
+                      outputs={"lc_prob": np.array([0.9, 0.05]), "lc_decision": np.array([True, False])})
+
+
+@dataclass(frozen=True)
+class PinholeFrame:
+    """The render's Frame fields the display reads."""
+
+    time: float
+    rgb: np.ndarray
+    depth: np.ndarray
+    instances: np.ndarray
+    vehicle_ids: tuple
+    K: np.ndarray
+    T_world_to_camera: np.ndarray
+
+    @property
+    def width(self):
+        return self.rgb.shape[1]
+
+    @property
+    def height(self):
+        return self.rgb.shape[0]
+
+
+class PinholeCuboids(CuboidFrameSource):
+    """The cuboid frame source as a renderer: frames with K and the extrinsics of its camera."""
+
+    def pose(self, truth):
+        i = truth.index_of("ego")
+        psi = float(truth.heading[i])
+        fwd = np.array([np.cos(psi), np.sin(psi), 0.0])
+        rot = np.stack([[np.sin(psi), -np.cos(psi), 0.0], [0.0, 0.0, -1.0], fwd])
+        pos = np.array([truth.x[i], truth.y[i], truth.z[i] + self.cam_h]) + 0.5 * truth.length[i] * fwd
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = rot, -rot @ pos
+        K = np.array([[self.f, 0.0, self.w / 2], [0.0, self.f, self.h / 2], [0.0, 0.0, 1.0]])
+        return K, T
+
+    def render(self, truth):
+        f = self(Tick(truth.time, truth, None, None, None))
+        K, T = self.pose(truth)
+        return PinholeFrame(truth.time, f.image, f.depth, f.instances, f.instance_ids, K, T)
+
+
+class ShiftedOntoNeighbour:
+    """A detector whose box for the cutter spreads onto the nearer neighbour (one box over both:
+    the neighbour owns most of its pixels; the cutter's anchor is inside, so it is matched to the cutter)."""
+
+    frame = None
+
+    def detect(self, image):
+        ids = list(self.frame.gt_ids)
+        cut, nb = self.frame.gt_boxes[ids.index("cutter")], self.frame.gt_boxes[ids.index("neighbour")]
+        box = [min(nb[0], cut[0]), min(nb[1], cut[1]), max(nb[2], cut[2]), max(nb[3], cut[3])]
+        return Detections.of(np.array([box]), np.array([0.9]), np.array([3]))
+
+
+class OwnBoxes:
+    frame = None
+
+    def detect(self, image):
+        return Detections.of(self.frame.gt_boxes, np.full(len(self.frame.gt_boxes), 0.9),
+                             np.full(len(self.frame.gt_boxes), 3))
+
+
+class Pedal:
+    name = "test"
+
+    def sample(self, time, dt):
+        return ControlSample(0.0, 0.0, 0.0), {}
+
+
+class Car:
+    state = VehicleState(EGO_SPEED, 0.0, 0.0, 0.0)
+
+    def update(self, control, dt, s_front):
+        return self.state
+
+
+def _drive(detector=None, offset_x=0.0, until=0.6):
+    """Vision ticks every 0.2 s (fusion with `detector`, or the cloud's guidance without one),
+    display frames every 0.05 s; returns the driver and the display table."""
+    render = PinholeCuboids()
+    driver = HumanDriver(Pedal(), Car(), 0.05, 1e6, guidance_on=True, speed=None, display_fps=20.0, renderer=render)
+    if detector is not None:
+        def source(tick):
+            frame = render(tick)
+            detector.frame = frame
+            return frame
+        stage = VisionFusionHook(source, detector, 0, POLICY, method="baseline")
+    else:
+        stage = CloudGuidanceFallback(ROAD, POLICY, camera=False)
+    for k in range(int(round(until / 0.05)) + 1):
+        t = round(0.05 * k, 6)
+        truth = _truth(t)
+        if k % TICK_STEPS == 0:  # a vision tick
+            tick = Tick(t, truth, None, None, _twins(truth, offset_x))
+            tick.ego = type("EgoView", (), {"s": float(truth.road_frame(ROAD)[0][0]) + 2.3})()
+            stage(tick)
+            tick.frame = render.render(truth)
+            driver.acceleration(tick)
+        driver.step(EgoStep(t, 0.0, EGO_SPEED, lambda truth=truth: truth))
+    tables, summary = {}, {}
+    driver.finish(tables, summary)
+    return driver, tables["display"], render
+
+
+def _true_box(render, t, vid):
+    f = render(Tick(t, _truth(t), None, None, None))
+    return f.gt_boxes[list(f.gt_ids).index(vid)]
+
+
+def test_a_box_shifted_onto_the_neighbour_is_drawn_there_and_counts_as_wrong():
+    _, shown, render = _drive(ShiftedOntoNeighbour())
+    assert len(shown) == 13  # every frame drew the cutter's warning
+    assert set(shown["vehicle_id"]) == {"cutter"} and set(shown["box_vehicle_id"]) == {"neighbour"}
+    at_tick = shown[shown["time"] == 0.4].iloc[0]
+    cut, nb = _true_box(render, 0.4, "cutter"), _true_box(render, 0.4, "neighbour")
+    union = [min(cut[0], nb[0]), min(cut[1], nb[1]), max(cut[2], nb[2]), max(cut[3], nb[3])]
+    # the display drew the detector's box, not the cutter's silhouette
+    assert np.allclose(at_tick[["x1", "y1", "x2", "y2"]].to_numpy(float), union)
+    assert highlight_counts(shown, None, 0.1) == {"highlights_right": 0, "highlights_wrong": 1, "missed_warnings": 0}
+
+
+def test_right_boxes_follow_their_vehicle_between_ticks_and_count_as_right():
+    _, shown, render = _drive(OwnBoxes())
+    assert highlight_counts(shown, None, 0.1) == {"highlights_right": 1, "highlights_wrong": 0, "missed_warnings": 0}
+    boxes = shown.set_index("time")[["x1", "y1", "x2", "y2"]]
+    for t in (0.15, 0.35, 0.55):  # the last frame before the next tick: 0.15 s after the last
+        truth = _true_box(render, t, "cutter")[None]
+        drawn = boxes.loc[t].to_numpy(float)[None]
+        at_tick = boxes.loc[round(t - 0.15, 6)].to_numpy(float)[None]
+        # carried forward: on the vehicle's box now, much nearer than the tick's box left in place
+        assert box_iou(drawn, truth)[0, 0] > 0.9 > box_iou(at_tick, truth)[0, 0] + 0.05
+
+
+def test_the_cloud_arm_draws_the_reported_cuboid_not_the_vehicle():
+    # the cloud reports the cutter 6 m ahead of where it is: the box is drawn there
+    _, shown, render = _drive(None, offset_x=6.0)
+    assert set(shown["vehicle_id"]) == {"cutter"} and set(shown["source"]) == {"cloud"}
+    from vcfusion.fusion.matching import project_twins
+    from vcfusion.fusion.stage import camera_view
+
+    boxes = shown.set_index("time")[["x1", "y1", "x2", "y2"]]
+    render = PinholeCuboids()
+    for t in (0.4, 0.55):  # at a tick, and 0.15 s after it (carried by the reported 15 m/s)
+        truth = _truth(t)
+        cam = camera_view(*render.pose(truth), render.w, render.h, t)
+        want = project_twins(_twins(truth, 6.0), cam).expected_box[0]
+        drawn = boxes.loc[t].to_numpy(float)
+        assert np.allclose(drawn, want, atol=1e-6)
+        # not the vehicle's silhouette in the instance map
+        assert box_iou(drawn[None], _true_box(render, t, "cutter")[None])[0, 0] < 0.8
+
+
+def test_a_box_is_carried_by_the_ego_motion_and_the_twins_velocity():
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    T0 = np.eye(4)
+    T0[:3, :3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]]  # camera at the origin looking along +x
+    T1 = T0.copy()
+    T1[:3, 3] = -T0[:3, :3] @ np.array([2.0, 0, 0])  # the ego moved 2 m forward
+    box = (300.0, 220.0, 340.0, 260.0)  # 40 px at 20 m
+    g = Guidance(0.0, "a", 0.9, "high", box, "a", 20.0)
+    (still,) = tracked_boxes([g], K, T0, T1, 0.1, (640, 480))
+    assert np.allclose(np.subtract(still.box[2:], still.box[:2]), 40.0 * 20.0 / 18.0)  # a parked car grows
+    twins = _twins(_truth(0.0))
+    twins = replace(twins, ids=("a", "b"), speed=np.array([20.0, 0.0]), heading=np.zeros(2))
+    (along,) = tracked_boxes([g], K, T0, T1, 0.1, (640, 480), twins)  # a car doing the ego's 20 m/s
+    assert np.allclose(along.box, box)
+    assert tracked_boxes([replace(g, box=None)], K, T0, T1, 0.1, (640, 480)) == []
+    assert box_owner(box, None, ()) is None
+
+
+def test_cloud_boxes_leave_out_twins_out_of_view():
+    render = PinholeCuboids()
+    truth = _truth(0.0)
+    K, T = render.pose(truth)
+    from vcfusion.fusion.stage import camera_view
+
+    cam = camera_view(K, T, render.w, render.h, 0.0)
+    twins = _twins(truth)
+    behind = replace(twins, x=twins.x - np.array([60.0, 0.0]))  # the cutter reported behind the ego
+    items = [Guidance(0.0, "cutter", 0.9, "high", None), Guidance(0.0, "neighbour", 0.9, "high", None)]
+    assert [g.vehicle_id for g in cloud_boxes(items, behind, cam)] == ["neighbour"]
+    assert pd.Series([g.box is not None for g in cloud_boxes(items, twins, cam)]).all()
