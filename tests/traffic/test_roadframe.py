@@ -377,7 +377,7 @@ def test_every_network_builds_reproducibly(tmp_path, capsys):
     """build-net rebuilds each committed network (plain XML and the OSM extract) to the same content."""
     from vcfusion.traffic.network import build_networks, network_names
 
-    assert network_names(NETS) == ["curved", "highway", "onramp", "osm_example"]
+    assert network_names(NETS) == ["curved", "exit", "highway", "onramp", "osm_example"]
     for source in NETS.iterdir():
         if not source.name.endswith(".net.xml"):
             (tmp_path / source.name).write_text(source.read_text())

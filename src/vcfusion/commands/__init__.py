@@ -26,7 +26,7 @@ def package_version() -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     from vcfusion.commands import (bench, control, detection, drive, lane_changes, metrics, prediction, simulation,
-                                   study)
+                                   study, traffic)
 
     parser = argparse.ArgumentParser(prog="vcfusion", description=__doc__)
     parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
@@ -35,6 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "CUDA), cpu (OSMesa, CPU) or cuda; default: the scenario's fusion.device, else auto")
     sub = parser.add_subparsers(dest="command", required=True)
     simulation.add_parsers(sub)  # run, scenarios, batch, build-net, render, demo
+    traffic.add_parsers(sub)  # gen-net
     study.add_parsers(sub)  # study identification | guidance | hitl
     drive.add_parsers(sub)
     bench.add_parsers(sub)  # bench, bench-render
