@@ -136,12 +136,22 @@ def arm_scenario(scenario, arm: str):
 _WORKER = {}
 
 
+def renderer_key(scenario) -> str:
+    """What `EgoCameraRenderer.for_scenario` builds from (the network, the road the camera draws:
+    the ego's route or the scenario's, the camera), as canonical JSON: a hashable key, equal for
+    two scenarios exactly when their renderers are the same."""
+    from vcfusion.render.renderer import camera_road
+
+    road = camera_road(scenario)
+    return json.dumps({"network": str(scenario.network), "route": [str(e) for e in road.route],
+                       "camera": scenario.camera.model_dump(mode="json")}, sort_keys=True)
+
+
 def _worker_resources(scenario):
     """(renderer, detector) for a camera arm of `scenario`, built once per worker process."""
     from vcfusion.fusion.stage import build_detector
 
-    key = ("renderer", str(scenario.network), scenario.route, scenario.ego and scenario.ego.route,
-           scenario.camera.model_dump_json())
+    key = ("renderer", renderer_key(scenario))
     renderer = _WORKER.get(key)
     if renderer is None:
         from vcfusion.render.renderer import EgoCameraRenderer
@@ -466,6 +476,10 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
         raise ScenarioError(f"{scenario_path}: ego: the guidance study needs an ego; the scenario has no ego block")
     for spec in process_model_specs:  # fail fast, before any worker starts
         load_process_model(spec, scenario)
+    if not scenario.prediction.enabled and not process_model_specs:
+        raise StudyError(f"{scenario_path}: prediction.enabled is false and no --process-model is given, so no "
+                         "process model writes 'lc_prob' to the cloud twins, nothing ever warns and every arm is "
+                         "the same driver: set prediction: {enabled: true} or pass --process-model module:factory")
     if any(arm in CAMERA_ARMS for arm in arms):
         require_camera_world(scenario)  # what the camera arms render
     started = wallclock.perf_counter()
