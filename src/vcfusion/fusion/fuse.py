@@ -22,6 +22,7 @@ from vcfusion.detection.detectors import Detections, Detector, OracleDetector, n
 from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, box_iou, match_all_baseline,
                                       match_all_paper, point_in_boxes, project_twins)
 from vcfusion.fusion.overlay import Hud, OverlayRecorder, draw_overlay, make_guidance
+from vcfusion.metrics.highlights import judge_highlight
 
 # baseline: the paper's RGB-only rule; baseline_centre: our nearest-box-centre heuristic (RGB only);
 # paper: Algorithm 2 (RGB + depth); joint: the joint matcher (see matching.py)
@@ -43,25 +44,6 @@ class CameraFrame:
     # renderer's instance map); None when the source has none
     instances: np.ndarray | None = None
     instance_ids: tuple[str, ...] = ()
-
-
-def box_owner(box, instances: np.ndarray | None, instance_ids: tuple[str, ...]) -> str | None:
-    """The vehicle owning most of the pixels inside `box` (x1, y1, x2, y2, pixel-centre convention:
-    pixel (u, v) is inside iff x1 <= u < x2 and y1 <= v < y2), or None when no vehicle pixel is
-    inside (or there is no instance map). Ties go to the lower instance index."""
-    if box is None or instances is None:
-        return None
-    h, w = instances.shape
-    x1, y1, x2, y2 = box
-    c1, c2 = max(0, int(np.ceil(x1))), min(w, int(np.ceil(x2)))
-    r1, r2 = max(0, int(np.ceil(y1))), min(h, int(np.ceil(y2)))
-    if c2 <= c1 or r2 <= r1:
-        return None
-    inside = instances[r1:r2, c1:c2].ravel()
-    inside = inside[inside >= 0]
-    if not inside.size:
-        return None
-    return instance_ids[int(np.argmax(np.bincount(inside)))]
 
 
 class FrameSource(Protocol):
@@ -210,7 +192,8 @@ class VisionFusionHook:
     table. Without a `frame_source` it reads the camera stage's ``tick.frame``."""
 
     table = "fusion"
-    columns = ("time", "vehicle_id", "method", "lc_prob", "level", "matched", "box_vehicle_id", "x1", "y1", "x2", "y2")
+    columns = ("time", "vehicle_id", "method", "lc_prob", "level", "matched", "box_vehicle_id", "x1", "y1", "x2", "y2",
+               "outcome", "gt_iou", "visible_px", "frame")
     provides = ("detections", "guidance")
 
     def __init__(self, frame_source: FrameSource | None, detector: Detector, seed: int, policy: GuidancePolicy,
@@ -274,25 +257,33 @@ class VisionFusionHook:
         decision = twins.outputs.get("lc_decision")
         in_view = make_guidance(tick.time, [twins.ids[i] for i in view], lc[view], boxes, self.policy,
                                 None if decision is None else np.asarray(decision)[view])
-        # What is drawn is what the driver is shown: a twin without a matched box gives no item;
-        # each item names the vehicle actually inside its box.
-        in_view = [replace(g, box_vehicle_id=box_owner(g.box, frame.instances, frame.instance_ids))
-                   if g.box is not None else g for g in in_view]
+        # What is drawn is what the driver is shown: a twin without a matched box gives no item.
+        # Each twin is judged against the frame's ground truth (vcfusion.metrics.highlights, the
+        # one definition of a right highlight), and each item names the vehicle its box shows (the
+        # one whose visible box it overlaps most: whom a person looking at the overlay would see
+        # highlighted); ground truth serves that model of the driver's eye and the scoring only.
+        judged = [judge_highlight(g.vehicle_id, g.box, frame.gt_boxes, frame.gt_ids) for g in in_view]
+        in_view = [replace(g, box_vehicle_id=j.box_vehicle_id or None) if g.box is not None else g
+                   for g, j in zip(in_view, judged)]
         guidance = [g for g in in_view if g.box is not None]
         tick.detections = result.detections
         tick.guidance = self._shown = GuidanceSet(tuple(guidance), "fusion")
         t3 = wallclock.perf_counter()
+        frame_index = -1  # the overlay frame of this update (frames/NNNNNN.png), -1 when none is recorded
         if self.recorder is not None:
+            frame_index = self.recorder.count
             ego_speed = tick.ego.speed if tick.ego is not None else float("nan")
             self.recorder.add(draw_overlay(frame.image, guidance, Hud(tick.time, ego_speed)))
         self.timings.append({"render": t_render, **result.timings_s, "overlay": wallclock.perf_counter() - t3})
-        # every twin in view, matched or not: an unmatched warning is a missed warning
+        # every twin in view, matched or not, with its judgement: an unmatched warning on a
+        # visible vehicle is missed, on a vehicle the frame does not show unseen
         rows = []
-        for g in in_view:
+        for g, j in zip(in_view, judged):
             b = g.box if g.box is not None else (np.nan,) * 4
             rows.append({"time": round(tick.time, 6), "vehicle_id": g.vehicle_id, "method": self.method,
                          "lc_prob": g.lc_prob, "level": g.level, "matched": g.box is not None,
                          "box_vehicle_id": g.box_vehicle_id or "",
-                         "x1": b[0], "y1": b[1], "x2": b[2], "y2": b[3]})
+                         "x1": b[0], "y1": b[1], "x2": b[2], "y2": b[3],
+                         "outcome": j.outcome, "gt_iou": j.iou, "visible_px": j.visible_px, "frame": frame_index})
         return rows
 

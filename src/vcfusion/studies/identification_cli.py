@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from vcfusion.errors import UsageError
+from vcfusion.metrics.highlights import MIN_VISIBLE_PX
 
 
 def _float_list(text: str, option: str) -> list[float]:
@@ -86,7 +87,7 @@ def add_study_parser(ssub) -> None:
     p.add_argument("--weights", help="cnn weights (default: the shipped detector)")
     p.add_argument("--latencies", default="0,0.1,0.2,0.3,0.5", help="V2C latencies (s), at zero noise")
     p.add_argument("--noises", default="0,0.5,1,2", help="GNSS noise std (m), at zero latency")
-    p.add_argument("--min-area", type=float, default=100.0, help="smallest ground-truth box (px^2) counted as a target")
+    p.add_argument("--min-area", type=float, default=MIN_VISIBLE_PX, help="smallest ground-truth box (px^2) counted as a target")
     p.add_argument("--anchor-radius", type=float, default=None,
                    help="baseline and paper: with no box containing the anchor, take the nearest box within "
                         "this many pixels (default: off, the paper's rule)")
