@@ -514,6 +514,7 @@ def build_parser() -> argparse.ArgumentParser:
     from vcfusion.metrics.commands import add_parsers as add_metrics_parsers
 
     add_metrics_parsers(sub)  # metrics, report
+    __import__("vcfusion.studies.explain_cli", fromlist=["add_parsers"]).add_parsers(sub)  # explain-highlights
     return parser
 
 
