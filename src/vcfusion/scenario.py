@@ -100,7 +100,10 @@ class V2CConfig(_Strict):
     history_s: Annotated[float, Field(ge=30.0)] = 30.0
     # A twin with no report for this long is taken as gone (vehicle left the road).
     twin_timeout_s: Positive = 3.0
-    neighbour_range_m: Positive = 150.0
+    # The ego receives the twins within this horizontal range (m): with the camera fusing, at least
+    # vcfusion.fusion.stage.matching_reach_m(driver.guidance_view_range_m) (199 m for 150 m), so that
+    # every vehicle whose box the matcher could give to a warned twin has a twin of its own.
+    neighbour_range_m: Positive = 200.0
 
     @model_validator(mode="after")
     def _timeout_outlasts_latency(self) -> "V2CConfig":
