@@ -93,7 +93,20 @@ def _closed_loop(detector, guided=True, until=3.0, warned=True):
     return driver, pd.DataFrame(fusion_rows), pd.DataFrame(guidance_rows), np.array(accs)
 
 
-def test_a_box_shifted_onto_the_neighbour_makes_the_driver_respond_to_the_neighbour():
+def test_the_overlay_does_not_draw_a_box_spread_onto_the_nearer_neighbour():
+    # the box over both cars is many times the cutter's outline: it cannot be the cutter's vehicle
+    driver, fusion, guidance, accs = _closed_loop(ShiftedOntoNeighbour())
+    assert not (guidance["level"].isin(["medium", "high"])).any() and driver.warnings == {}
+    cutter = fusion[fusion["vehicle_id"] == "cutter"]
+    assert len(cutter) and not cutter["matched"].any() and set(cutter["outcome"]) <= {"missed", "unseen"}
+
+
+def test_a_box_shifted_onto_the_neighbour_makes_the_driver_respond_to_the_neighbour(monkeypatch):
+    import vcfusion.fusion.fuse as fuse
+
+    # the overlay's plausibility gates off: the box drawn for the cutter shows the neighbour
+    monkeypatch.setattr(fuse, "MAX_BOX_TO_OUTLINE_AREA", float("inf"))
+    monkeypatch.setattr(fuse, "MAX_HIDDEN_SHARE_DRAWN", 2.0)
     driver, fusion, guidance, accs = _closed_loop(ShiftedOntoNeighbour())
     warned = guidance[guidance["level"].isin(["medium", "high"])]
     # the cloud meant the cutter; the box drawn for it holds the neighbour

@@ -19,7 +19,7 @@ from vcfusion.fusion.box_refine import (BoxRefineParams, ObjectSegments, box_sur
                                        join_fragments, object_segments, refine_boxes)
 from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector, nms
-from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, box_iou, match_all_baseline,
+from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, box_iou, match_all_baseline, visible_boxes,
                                       match_all_paper, point_in_boxes, project_twins)
 from vcfusion.fusion.overlay import Hud, OverlayRecorder, draw_overlay, make_guidance
 from vcfusion.metrics.highlights import judge_highlight
@@ -61,6 +61,10 @@ class FusionResult:
     timings_s: dict  # stage -> seconds
     # (N,) boxes containing each twin's anchor (0 out of view): >= 2 is the ambiguous case of Fig. 3
     n_anchor_boxes: np.ndarray | None = None
+    # (N, 4) each twin's whole projected outline as received (TwinProjection.expected_box), and
+    # (N,) the share of it nearer twins' outlines hide (matching.visible_boxes)
+    expected_boxes: np.ndarray | None = None
+    hidden_share: np.ndarray | None = None
 
     def box_of(self, method: str, i: int):
         j = int(self.choice[method][i])
@@ -182,7 +186,41 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
     # in view: projected into the image as received, or matched (the joint matcher projects the
     # twins moved on by their latency: a stale report can lie behind the camera, its vehicle not)
     in_view = proj.in_view | np.any([c != NO_MATCH for c in choice.values()], axis=0) if choice else proj.in_view
-    return FusionResult(frame.time, twins.ids, detections, depths, choice, in_view, timings, n_anchor_boxes)
+    return FusionResult(frame.time, twins.ids, detections, depths, choice, in_view, timings, n_anchor_boxes,
+                        proj.expected_box, visible_boxes(proj)[2])
+
+
+# A twin whose projected outline nearer twins hide by at least this share (the joint matcher's
+# visible_boxes raster, twin data only; 1.0: hidden whole, the matcher's own second-round case)
+# gets no box drawn: its vehicle shows a sliver at most, and the box it was matched to is mostly
+# another vehicle's (curved.yaml seed 0: cars queued behind the accident at 150-165 m, 8-35 px of
+# them visible, took boxes on the stopped trucks and on the cars in front of them).
+MAX_HIDDEN_SHARE_DRAWN = 1.0
+# A matched box more than this many times the area of the twin's whole projected outline is not
+# drawn: it cannot be the twin's vehicle (its visible part is at most its outline; GNSS noise and
+# detector slack move a box by a fraction of it). Cause: a mostly hidden far car's twin took a
+# stopped truck's box or a fragment of it (curved.yaml seed 0: a truck's 15 x 21 px box for a car
+# whose outline is about 6 x 10 px), which the identification study, judging visible targets
+# only, never sees.
+MAX_BOX_TO_OUTLINE_AREA = 3.0
+
+
+def drawable_box(box, expected_box, hidden_share: float = 0.0, max_ratio: float | None = None,
+                 max_hidden: float | None = None):
+    """`box` unless it is more than `max_ratio` (default MAX_BOX_TO_OUTLINE_AREA) times the area
+    of the twin's projected outline `expected_box`, or nearer twins hide at least `max_hidden`
+    (default MAX_HIDDEN_SHARE_DRAWN) of that outline (then None: nothing is drawn for the twin).
+    Boxes (x1, y1, x2, y2) px."""
+    max_ratio = MAX_BOX_TO_OUTLINE_AREA if max_ratio is None else max_ratio
+    max_hidden = MAX_HIDDEN_SHARE_DRAWN if max_hidden is None else max_hidden
+    if box is None or expected_box is None:
+        return box
+    if hidden_share >= max_hidden:
+        return None
+    e = np.asarray(expected_box, dtype=float)
+    outline = max(float((e[2] - e[0]) * (e[3] - e[1])), 1.0)
+    area = float((box[2] - box[0]) * (box[3] - box[1]))
+    return None if area > max_ratio * outline else box
 
 
 class VisionFusionHook:
@@ -253,7 +291,8 @@ class VisionFusionHook:
                             refine=self.refine)
         lc = np.asarray(twins.outputs.get("lc_prob", np.full(len(twins), np.nan)), dtype=float)
         view = np.flatnonzero(result.in_view)
-        boxes = [result.box_of(self.method, i) for i in view]
+        boxes = [drawable_box(result.box_of(self.method, i), result.expected_boxes[i], result.hidden_share[i])
+                 for i in view]
         decision = twins.outputs.get("lc_decision")
         in_view = make_guidance(tick.time, [twins.ids[i] for i in view], lc[view], boxes, self.policy,
                                 None if decision is None else np.asarray(decision)[view])

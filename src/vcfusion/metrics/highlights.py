@@ -10,7 +10,7 @@ nothing here is shown to a driver or given to a detector):
 - **right**: a box is drawn for the twin and its IoU with that vehicle's ground-truth box is at
   least `RIGHT_IOU`;
 - **wrong**: a box is drawn for the twin and it is not right (on another vehicle, on part of it,
-  on none, or drawn for a twin whose vehicle is not visible);
+  on none, or drawn for a twin whose vehicle the frame does not show);
 - **missed**: the twin's vehicle is visible and no box is drawn for it;
 - **unseen**: the twin's vehicle is not visible and no box is drawn (hidden behind another
   vehicle, too small, or outside the image: the driver could not see it either); not counted as
@@ -70,5 +70,5 @@ def judge_highlight(vehicle_id: str, box, gt_boxes, gt_ids, right_iou: float = R
     ious = box_iou(b, gt)[0] if len(gt) else np.zeros(0)
     best = str(gt_ids[int(np.argmax(ious))]) if len(ious) and ious.max() > 0 else ""
     iou = float(box_iou(b, own[None])[0, 0]) if own is not None else 0.0
-    right = visible and iou >= right_iou - 1e-12
+    right = iou >= right_iou - 1e-12  # on the meant vehicle, however small it is
     return Judgement("right" if right else "wrong", iou, area, vehicle_id if right else best)
