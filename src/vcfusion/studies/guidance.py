@@ -400,9 +400,12 @@ def format_summary(summary: pd.DataFrame, info: dict) -> str:
         line = f"  {arm}: " + ("no highlights shown" if arm == REFERENCE_ARM
                                 else f"highlights from {a['guidance_source']}")
         if arm != REFERENCE_ARM:
+            drawn = a["highlights_right"] + a["highlights_wrong"]
+            share = (f" (of the {drawn} drawn: wrong {100 * a['highlights_wrong'] / drawn:.1f} %, missed "
+                     f"{100 * a['missed_warnings'] / drawn:.1f} %)") if drawn else ""
             line += (f"; highlight episodes right {a['highlights_right']}, wrong {a['highlights_wrong']}, "
-                     f"missed warnings {a['missed_warnings']} (vehicle visible, nothing drawn), warnings on a "
-                     f"vehicle the camera does not show {a['unseen_warnings']}; ticks without a camera frame "
+                     f"missed warnings {a['missed_warnings']} (vehicle visible, nothing drawn){share}, warnings "
+                     f"on a vehicle the camera does not show {a['unseen_warnings']}; ticks without a camera frame "
                      f"{a['ticks_without_frame']}")
         line += f"; own first cut-in differs from the seed's vehicle in {a['first_cut_in_differs']} trips"
         if arm != REFERENCE_ARM:
