@@ -23,7 +23,9 @@ def _tables():
                                  "into_ego_lane": [True, False]})
     events = pd.DataFrame({"time": [7.4, 7.4], "vehicle_id": ["cutter", "lead"], "cue": ["lateral", "lateral"],
                            "twin_id": "", "level": "", "lc_prob": np.nan, "response_time": [8.2, 8.2]})
-    return {"driver": driver, "guidance": guidance, "collisions": collisions, "lane_changes": lane_changes,
+    traj = pd.DataFrame({"time": [9.5, 9.5], "vehicle_id": ["ego", "cutter"], "d": [8.75, 5.3]})
+    vehicles = pd.DataFrame({"vehicle_id": ["ego", "cutter"], "width": [1.8, 2.5]})
+    return {"trajectories": traj, "vehicles": vehicles, "driver": driver, "guidance": guidance, "collisions": collisions, "lane_changes": lane_changes,
             "driver_events": events}
 
 
@@ -40,6 +42,15 @@ def test_one_record_per_ego_pair_with_what_happened_before():
     assert rec["driver"][0]["time"] == 4.5 and rec["driver"][-1]["time"] == 9.5 and len(rec["driver"]) == 11
     text = describe(rec)
     assert "ego ran into cutter at 6.0 m/s closing" in text and "another vehicle highlighted" in text
+    # 3.45 m between the centres, 2.15 m of half widths: SUMO's lane bookkeeping, not a body contact
+    assert rec["lateral_clearance_m"] == 1.3 and "no body contact: 1.30 m" in text
+
+
+def test_overlapping_bodies_are_a_contact():
+    tables = _tables()
+    tables["trajectories"].loc[1, "d"] = 7.5
+    (rec,) = ego_collision_records(tables)
+    assert rec["lateral_clearance_m"] == -0.9 and "no body contact" not in describe(rec)
 
 
 def test_without_guidance_the_record_says_nothing_was_shown():

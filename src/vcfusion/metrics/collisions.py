@@ -6,7 +6,9 @@ One record per pair in contact with the ego (SUMO's first report of the contact)
 - ``time``, ``other`` (the other vehicle), ``ego_role`` (``collider``: the ego ran into it;
   ``victim``: it ran into the ego), SUMO's ``kind``, ``lane`` and ``pos``;
 - ``ego_speed_mps`` / ``other_speed_mps`` at the contact and ``closing_speed_mps`` (the
-  collider's speed minus the victim's);
+  collider's speed minus the victim's); ``ego_d_m`` / ``other_d_m`` (road-frame lateral
+  positions) and ``lateral_clearance_m`` between their sides (> 0: no body contact; SUMO counts
+  a vehicle in its target lane from the start of a lane change);
 - ``other_lane_changes``: the other vehicle's lane changes in the window (start, mid, from lane,
   to lane, into the ego lane);
 - ``driver``: the driver model's state in the window (one sample per ``sample_s``: its leader and
@@ -46,6 +48,28 @@ def _window(table: pd.DataFrame | None, t0: float, t1: float) -> pd.DataFrame:
     return table[(table["time"] >= t0 - 1e-9) & (table["time"] <= t1 + 1e-9)]
 
 
+def _lateral_geometry(tables, t: float, other: str) -> dict:
+    """Lateral positions (road frame d) of the ego and the other vehicle at the trajectory sample
+    nearest `t`, and the clearance between their sides (m; < 0: the bodies overlap sideways).
+    SUMO reports a contact with a vehicle it has already moved into the ego's lane at the start
+    of its lane change while its body is still beside the lane: a positive clearance says so."""
+    traj, veh = tables.get("trajectories"), tables.get("vehicles")
+    none = {"ego_d_m": None, "other_d_m": None, "lateral_clearance_m": None}
+    if traj is None or veh is None or not len(traj):
+        return none
+    near = traj[traj["vehicle_id"].isin([EGO_ID, other])]
+    if not len(near):
+        return none
+    at = near["time"].to_numpy()[np.abs(near["time"].to_numpy() - t).argmin()]
+    row = near[near["time"] == at].set_index("vehicle_id")
+    width = dict(zip(veh["vehicle_id"], veh["width"]))
+    if EGO_ID not in row.index or other not in row.index or EGO_ID not in width or other not in width:
+        return none
+    de, do = float(row.loc[EGO_ID, "d"]), float(row.loc[other, "d"])
+    return {"ego_d_m": _f(de), "other_d_m": _f(do),
+            "lateral_clearance_m": _f(abs(de - do) - (float(width[EGO_ID]) + float(width[other])) / 2)}
+
+
 def ego_collision_records(tables, window_s: float = WINDOW_S, sample_s: float = SAMPLE_S) -> list[dict]:
     """The records of the ego's collisions in a run's `tables` (see the module doc)."""
     from vcfusion.guidance import WARNING_LEVELS
@@ -65,6 +89,7 @@ def ego_collision_records(tables, window_s: float = WINDOW_S, sample_s: float = 
                "ego_speed_mps": _f(c.collider_speed if ego_collider else c.victim_speed),
                "other_speed_mps": _f(c.victim_speed if ego_collider else c.collider_speed),
                "closing_speed_mps": _f(float(c.collider_speed) - float(c.victim_speed))}
+        rec.update(_lateral_geometry(tables, t, other))
         lc = tables.get("lane_changes")
         if lc is not None and len(lc):
             theirs = lc[(lc["vehicle_id"] == other) & (lc["end_time"] >= t0) & (lc["start_time"] <= t)]
@@ -117,5 +142,8 @@ def describe(rec: dict) -> str:
         shown = "; guidance off" + (" (the cloud warned about it)" if rec["other_warned_twin"] else "")
     leader = (f"; the driver's leader from {rec['other_was_leader_s']:.1f} s" if rec.get("other_was_leader_s") is not None
               else "; never the driver's leader")
+    gap = rec.get("lateral_clearance_m")
+    side = (f"; no body contact: {gap:.2f} m between their sides (SUMO had moved it into the ego's lane at the "
+            f"start of its lane change)" if gap is not None and gap > 0 else "")
     return (f"{rec['time']:.1f} s: {who} at {rec['closing_speed_mps']:.1f} m/s closing (ego {rec['ego_speed_mps']:.1f} m/s)"
-            f"{cut}{shown}{leader}")
+            f"{side}{cut}{shown}{leader}")
