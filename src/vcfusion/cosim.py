@@ -32,6 +32,7 @@ from vcfusion.cloud.channel import V2CChannel
 from vcfusion.cloud.twins import ProcessModel, TwinStore, neighbours
 from vcfusion.control.api import Command
 from vcfusion.interrupts import raise_if_received
+from vcfusion.metrics.collisions import describe as describe_collision, ego_collision_records
 from vcfusion.metrics.run_metrics import add_run_metrics
 from vcfusion.metrics.safety import colliding_pairs, cut_ins
 from vcfusion.metrics.traffic import sumo_model_rates
@@ -287,6 +288,8 @@ class CoSimulation:
         summary["process_models"] = [name for name, _ in self.process_models]
         for stage in self.stages():
             _finish(stage, tables, summary)
+        if sc.ego is not None:  # who hit whom and what the driver saw and was shown before (vcfusion.metrics.collisions)
+            summary["ego_collisions"] = ego_collision_records(tables)
         if sc.metrics.enabled:  # per-vehicle safety, comfort and emissions (vcfusion.metrics)
             summary["metrics"] = add_run_metrics(sc, tables, session)
             highest, _ = network_elevation(sc.network)
@@ -577,6 +580,8 @@ def format_summary(summary: dict, wall_s: float | None = None) -> str:
                      f"{summary['cut_ins_ahead_of_ego']}")
         for c in summary["cut_ins"]:
             lines.append(f"    {c['vehicle_id']} at t = {c['mid_time']:.2f} s, {c['gap_to_ego_m']:.1f} m ahead")
+        for rec in summary.get("ego_collisions", []):
+            lines.append(f"  ego collision: {describe_collision(rec)}")
     if "lane_change_flags" in summary:
         lines.append("  cloud lane-change flags, changes into the ego lane (s before end / before mid):")
         for f in summary["lane_change_flags"]:

@@ -104,7 +104,12 @@ class V2CConfig(_Strict):
     twin_timeout_s: Positive = Field(3.0, description="a twin with no report for this long is gone (vehicle "
                                                       "left the road); more than latency_s + 3 jitter_s + "
                                                       "period_s")
-    neighbour_range_m: Positive = Field(150.0, description="the ego receives the twins within this range")
+    # with the camera fusing, at least vcfusion.fusion.stage.matching_reach_m(driver.guidance_view_range_m)
+    # (199 m for 150 m), so that every vehicle whose box the matcher could give to a warned twin has a
+    # twin of its own (curved.yaml seed 0: trucks at 184 m took the warnings of the cars before them)
+    neighbour_range_m: Positive = Field(200.0, description="the ego receives the twins within this horizontal "
+                                                           "range; with the camera fusing at least the joint "
+                                                           "matcher's reach (199 m for a 150 m guidance view)")
 
     @model_validator(mode="after")
     def _timeout_outlasts_latency(self) -> "V2CConfig":

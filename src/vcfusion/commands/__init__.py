@@ -25,8 +25,8 @@ def package_version() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from vcfusion.commands import (bench, control, detection, drive, lane_changes, metrics, prediction, simulation,
-                                   study, traffic)
+    from vcfusion.commands import (bench, control, detection, drive, explain, lane_changes, metrics, prediction,
+                                   simulation, study, traffic)
 
     parser = argparse.ArgumentParser(prog="vcfusion", description=__doc__)
     parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
@@ -37,6 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulation.add_parsers(sub)  # run, scenarios, batch, build-net, render, demo
     traffic.add_parsers(sub)  # gen-net
     study.add_parsers(sub)  # study identification | guidance | hitl
+    explain.add_parsers(sub)  # explain-highlights, guidance-matrix
     drive.add_parsers(sub)
     bench.add_parsers(sub)  # bench, bench-render
     prediction.add_parsers(sub)  # dataset, train, evaluate, bench-predict

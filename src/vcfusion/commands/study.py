@@ -10,6 +10,7 @@ from pathlib import Path
 from vcfusion.commands.checks import (check_folder_path, check_min_area, check_new_folder, check_seed, float_list,
                                       parse_seeds)
 from vcfusion.errors import UsageError
+from vcfusion.metrics.highlights import MIN_VISIBLE_PX
 from vcfusion.scenario import find_scenario, load_scenario
 
 
@@ -98,7 +99,8 @@ def _add_identification_parser(study) -> None:
     p.add_argument("--weights", help="cnn weights (default: the shipped detector)")
     p.add_argument("--latencies", default="0,0.1,0.2,0.3,0.5", help="V2C latencies (s), at zero noise")
     p.add_argument("--noises", default="0,0.5,1,2", help="GNSS noise std (m), at zero latency")
-    p.add_argument("--min-area", type=float, default=100.0, help="smallest ground-truth box (px^2) counted as a target")
+    p.add_argument("--min-area", type=float, default=MIN_VISIBLE_PX,
+                   help="smallest ground-truth box (px^2) counted as a target")
     p.add_argument("--depth-sensor", choices=("exact", "stereo", "tof", "lidar"), default=None,
                    help="the depth the fusion sees (default: each scenario's camera.depth)")
     p.add_argument("--pose-noise-deg", type=float, default=None, metavar="DEG",

@@ -21,9 +21,10 @@ from vcfusion.fusion.box_refine import (BoxRefineParams, ObjectSegments, Refined
 from vcfusion.fusion.road import DepthNoise, RoadFit, fit_road_plane
 from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector, nms
-from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, box_iou, match_all_baseline,
+from vcfusion.fusion.matching import (NO_MATCH, CameraView, JointMatcher, box_iou, match_all_baseline, visible_boxes,
                                       match_all_paper, point_in_boxes, project_twins)
 from vcfusion.fusion.overlay import Hud, OverlayRecorder, draw_overlay, make_guidance
+from vcfusion.metrics.highlights import judge_highlight
 
 # baseline: the paper's RGB-only rule; baseline_centre: our nearest-box-centre heuristic (RGB only);
 # paper: Algorithm 2 (RGB + depth); joint: the joint matcher (see matching.py)
@@ -114,25 +115,6 @@ def count_depth_step(stats: dict | None, key: str, n: float = 1) -> None:
         stats[key] = stats.get(key, 0) + n
 
 
-def box_owner(box, instances: np.ndarray | None, instance_ids: tuple[str, ...]) -> str | None:
-    """The vehicle owning most of the pixels inside `box` (x1, y1, x2, y2, pixel-centre convention:
-    pixel (u, v) is inside iff x1 <= u < x2 and y1 <= v < y2), or None when no vehicle pixel is
-    inside (or there is no instance map). Ties go to the lower instance index."""
-    if box is None or instances is None:
-        return None
-    h, w = instances.shape
-    x1, y1, x2, y2 = box
-    c1, c2 = max(0, int(np.ceil(x1))), min(w, int(np.ceil(x2)))
-    r1, r2 = max(0, int(np.ceil(y1))), min(h, int(np.ceil(y2)))
-    if c2 <= c1 or r2 <= r1:
-        return None
-    inside = instances[r1:r2, c1:c2].ravel()
-    inside = inside[inside >= 0]
-    if not inside.size:
-        return None
-    return instance_ids[int(np.argmax(np.bincount(inside)))]
-
-
 class FrameSource(Protocol):
     def __call__(self, tick) -> CameraFrame | None: ...
 
@@ -149,6 +131,10 @@ class FusionResult:
     # (N,) boxes containing each twin's anchor (0 out of view): >= 2 is the ambiguous case of Fig. 3
     n_anchor_boxes: np.ndarray | None = None
     depth_counts: dict = field(default_factory=dict)  # the depth step's counts (depth_step's `stats`)
+    # (N, 4) each twin's whole projected outline as received (TwinProjection.expected_box), and
+    # (N,) the share of it nearer twins' outlines hide (matching.visible_boxes)
+    expected_boxes: np.ndarray | None = None
+    hidden_share: np.ndarray | None = None
 
     def box_of(self, method: str, i: int):
         j = int(self.choice[method][i])
@@ -292,12 +278,46 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
     # twins moved on by their latency: a stale report can lie behind the camera, its vehicle not)
     in_view = proj.in_view | np.any([c != NO_MATCH for c in choice.values()], axis=0) if choice else proj.in_view
     return FusionResult(frame.time, twins.ids, detections, depths, choice, in_view, timings, n_anchor_boxes,
-                        depth_counts)
+                        depth_counts, proj.expected_box, visible_boxes(proj)[2])
 
 
 def _finite_or_none(value) -> float | None:
     v = float(value)
     return v if np.isfinite(v) and v > 0 else None
+
+
+
+# A twin whose projected outline nearer twins hide by at least this share (the joint matcher's
+# visible_boxes raster, twin data only; 1.0: hidden whole, the matcher's own second-round case)
+# gets no box drawn: its vehicle shows a sliver at most, and the box it was matched to is mostly
+# another vehicle's (curved.yaml seed 0: cars queued behind the accident at 150-165 m, 8-35 px of
+# them visible, took boxes on the stopped trucks and on the cars in front of them).
+MAX_HIDDEN_SHARE_DRAWN = 1.0
+# A matched box more than this many times the area of the twin's whole projected outline is not
+# drawn: it cannot be the twin's vehicle (its visible part is at most its outline; GNSS noise and
+# detector slack move a box by a fraction of it). Cause: a mostly hidden far car's twin took a
+# stopped truck's box or a fragment of it (curved.yaml seed 0: a truck's 15 x 21 px box for a car
+# whose outline is about 6 x 10 px), which the identification study, judging visible targets
+# only, never sees.
+MAX_BOX_TO_OUTLINE_AREA = 3.0
+
+
+def drawable_box(box, expected_box, hidden_share: float = 0.0, max_ratio: float | None = None,
+                 max_hidden: float | None = None):
+    """`box` unless it is more than `max_ratio` (default MAX_BOX_TO_OUTLINE_AREA) times the area
+    of the twin's projected outline `expected_box`, or nearer twins hide at least `max_hidden`
+    (default MAX_HIDDEN_SHARE_DRAWN) of that outline (then None: nothing is drawn for the twin).
+    Boxes (x1, y1, x2, y2) px."""
+    max_ratio = MAX_BOX_TO_OUTLINE_AREA if max_ratio is None else max_ratio
+    max_hidden = MAX_HIDDEN_SHARE_DRAWN if max_hidden is None else max_hidden
+    if box is None or expected_box is None:
+        return box
+    if hidden_share >= max_hidden:
+        return None
+    e = np.asarray(expected_box, dtype=float)
+    outline = max(float((e[2] - e[0]) * (e[3] - e[1])), 1.0)
+    area = float((box[2] - box[0]) * (box[3] - box[1]))
+    return None if area > max_ratio * outline else box
 
 
 class VisionFusionHook:
@@ -307,7 +327,8 @@ class VisionFusionHook:
     table. Without a `frame_source` it reads the camera stage's ``tick.frame``."""
 
     table = "fusion"
-    columns = ("time", "vehicle_id", "method", "lc_prob", "level", "matched", "box_vehicle_id", "x1", "y1", "x2", "y2")
+    columns = ("time", "vehicle_id", "method", "lc_prob", "level", "matched", "box_vehicle_id", "x1", "y1", "x2", "y2",
+               "outcome", "gt_iou", "visible_px", "frame")
     provides = ("detections", "guidance")
 
     def __init__(self, frame_source: FrameSource | None, detector: Detector, seed: int, policy: GuidancePolicy,
@@ -372,32 +393,40 @@ class VisionFusionHook:
             count_depth_step(self.depth_counts, key, v)
         lc = np.asarray(twins.outputs.get("lc_prob", np.full(len(twins), np.nan)), dtype=float)
         view = np.flatnonzero(result.in_view)
-        boxes = [result.box_of(self.method, i) for i in view]
+        boxes = [drawable_box(result.box_of(self.method, i), result.expected_boxes[i], result.hidden_share[i])
+                 for i in view]
         chosen = [int(result.choice[self.method][i]) for i in view]
         decision = twins.outputs.get("lc_decision")
         in_view = make_guidance(tick.time, [twins.ids[i] for i in view], lc[view], boxes, self.policy,
                                 None if decision is None else np.asarray(decision)[view])
-        # What is drawn is what the driver is shown: a twin without a matched box gives no item;
-        # each item names the vehicle actually inside its box (scoring only: the instance map is
-        # never drawn), and carries the box's depth as the fusion measured it.
-        in_view = [replace(g, box_vehicle_id=box_owner(g.box, frame.instances, frame.instance_ids),
-                           box_depth_m=_finite_or_none(result.box_depths[j]))
-                   if g.box is not None else g for g, j in zip(in_view, chosen)]
+        # What is drawn is what the driver is shown: a twin without a matched box gives no item.
+        # Each twin is judged against the frame's ground truth (vcfusion.metrics.highlights, the
+        # one definition of a right highlight), and each item names the vehicle its box shows (the
+        # one whose visible box it overlaps most: whom a person looking at the overlay would see
+        # highlighted); ground truth serves that model of the driver's eye and the scoring only.
+        # Each drawn item carries its box's depth as the fusion measured it.
+        judged = [judge_highlight(g.vehicle_id, g.box, frame.gt_boxes, frame.gt_ids) for g in in_view]
+        in_view = [replace(g, box_vehicle_id=jd.box_vehicle_id or None, box_depth_m=_finite_or_none(result.box_depths[j]))
+                   if g.box is not None else g for g, jd, j in zip(in_view, judged, chosen)]
         guidance = [g for g in in_view if g.box is not None]
         tick.detections = result.detections
         tick.guidance = self._shown = GuidanceSet(tuple(guidance), "fusion")
         t3 = wallclock.perf_counter()
+        frame_index = -1  # the overlay frame of this update (frames/NNNNNN.png), -1 when none is recorded
         if self.recorder is not None:
+            frame_index = self.recorder.count
             ego_speed = tick.ego.speed if tick.ego is not None else float("nan")
             self.recorder.add(draw_overlay(frame.image, guidance, Hud(tick.time, ego_speed)))
         self.timings.append({"render": t_render, **result.timings_s, "overlay": wallclock.perf_counter() - t3})
-        # every twin in view, matched or not: an unmatched warning is a missed warning
+        # every twin in view, matched or not, with its judgement: an unmatched warning on a
+        # visible vehicle is missed, on a vehicle the frame does not show unseen
         rows = []
-        for g in in_view:
+        for g, j in zip(in_view, judged):
             b = g.box if g.box is not None else (np.nan,) * 4
             rows.append({"time": round(tick.time, 6), "vehicle_id": g.vehicle_id, "method": self.method,
                          "lc_prob": g.lc_prob, "level": g.level, "matched": g.box is not None,
                          "box_vehicle_id": g.box_vehicle_id or "",
-                         "x1": b[0], "y1": b[1], "x2": b[2], "y2": b[3]})
+                         "x1": b[0], "y1": b[1], "x2": b[2], "y2": b[3],
+                         "outcome": j.outcome, "gt_iou": j.iou, "visible_px": j.visible_px, "frame": frame_index})
         return rows
 

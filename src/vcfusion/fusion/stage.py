@@ -10,11 +10,13 @@ itself through :class:`RenderedFrameSources` (one renderer reused over all runs)
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from vcfusion.fusion.depth_eval import DepthEvalParams
 from vcfusion.fusion.fuse import CameraFrame
-from vcfusion.fusion.matching import CameraView
+from vcfusion.fusion.matching import CameraView, JointMatcherParams
 from vcfusion.fusion.overlay import OverlayRecorder
 from vcfusion.fusion.road import DepthNoise
 from vcfusion.guidance import GuidancePolicy
@@ -179,6 +181,35 @@ def refine_params(scenario: Scenario):
     return BoxRefineParams(road=scenario_road(scenario)) if scenario.fusion.refine_boxes else None
 
 
+# the most a vehicle's centre lies beyond the range at which guidance measures it (its rear bumper,
+# from the ego's front bumper) plus the ego's half length: a 12 m truck's length (sumo_net/vtypes)
+VEHICLE_SPAN_M = 12.0
+
+
+def matching_reach_m(view_range_m: float, params: JointMatcherParams = JointMatcherParams()) -> float:
+    """How far from the ego a vehicle can be and its box still pass the joint matcher's depth gate
+    for a twin that guidance draws (at most `view_range_m` ahead): the range plus the gate at that
+    range (depth_gate sigmas of depth_sigma_rel * range + depth_sigma_abs_m) plus `VEHICLE_SPAN_M`.
+    A vehicle within this reach that is not among the ego's neighbour twins has a box no twin claims,
+    and the matcher gives it to a warned twin beside it (an accident's trucks at 184 m took the
+    warnings of the cars queued before them at 150-165 m, curved.yaml seed 0, neighbour range 150 m)."""
+    r = view_range_m + VEHICLE_SPAN_M
+    return r + params.depth_gate * (params.depth_sigma_rel * r + params.depth_sigma_abs_m)
+
+
+def require_matching_range(scenario: Scenario) -> None:
+    """ScenarioError unless the ego's neighbour twins (v2c.neighbour_range_m) cover every vehicle
+    whose box the matcher could give to a twin guidance draws (`matching_reach_m`)."""
+    reach = matching_reach_m(scenario.driver.guidance_view_range_m)
+    if scenario.v2c.neighbour_range_m < reach:
+        raise ScenarioError(
+            f"{scenario.source or scenario.name}: v2c.neighbour_range_m: expected at least {math.ceil(reach):d} m "
+            f"with the camera fusing (driver.guidance_view_range_m {scenario.driver.guidance_view_range_m:g} m plus "
+            f"the joint matcher's depth gate at that range and a vehicle's length), got "
+            f"{scenario.v2c.neighbour_range_m:g} m: the boxes of vehicles beyond the neighbour range, which no twin "
+            "claims, would be matched to the warned twins beside them")
+
+
 def build_fusion_hook(scenario: Scenario, seed: int, policy: GuidancePolicy, recorder: OverlayRecorder | None = None,
                       frame_source=None, detector=None):
     """The tick hook of the fusion stage as the scenario configures it, levelling guidance by the
@@ -186,6 +217,7 @@ def build_fusion_hook(scenario: Scenario, seed: int, policy: GuidancePolicy, rec
     before it: the run refuses another order)."""
     from vcfusion.fusion.fuse import VisionFusionHook
 
+    require_matching_range(scenario)
     if frame_source is None:
         sensors = run_sensors(scenario, seed)
         frame_source = SensedTickFrames(sensors) if sensors is not None else None

@@ -212,13 +212,17 @@ class HumanDriver:
                              (frame.width, frame.height), self._update_twins)
 
     def _log_drawn(self, time_s: float, items: list, frame) -> None:
-        from vcfusion.fusion.fuse import box_owner
+        from vcfusion.metrics.highlights import instance_boxes, judge_highlight
 
+        gt_boxes, gt_ids = None, ()
         for g in items:
             if g.level == "none":  # not drawn (compose draws warnings only)
                 continue
-            # scoring only: the vehicle under the drawn box, found after it was drawn
-            owner = box_owner(g.box, frame.instances, tuple(frame.vehicle_ids))
+            # scoring only, after it was drawn: the vehicle the drawn box shows, by the one
+            # definition of a right highlight (vcfusion.metrics.highlights)
+            if gt_boxes is None:
+                gt_boxes, gt_ids = instance_boxes(frame.instances, tuple(frame.vehicle_ids))
+            owner = judge_highlight(g.vehicle_id, g.box, gt_boxes, gt_ids).box_vehicle_id
             self.display_rows.append({"time": round(time_s, 6), "vehicle_id": g.vehicle_id,
                                       "box_vehicle_id": owner or "", "lc_prob": float(g.lc_prob), "level": g.level,
                                       "source": self._guidance_source, "x1": g.box[0], "y1": g.box[1],

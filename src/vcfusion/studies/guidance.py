@@ -15,9 +15,9 @@ without a frame is counted (`ticks_without_frame`), never filled from another so
 
 Per trip and arm (`arm_metrics`, the one place the study's metrics are computed): TTC, gaps,
 acceleration and jerk (`vcfusion.metrics.safety`), MOVESTAR fuel and emissions per km
-(`vcfusion.metrics.movestar`), the highlight episodes (`highlights_right`: on the vehicle the
-cloud meant; `highlights_wrong`: on another vehicle or none; `missed_warnings`: a twin in view
-the cloud warns about, with no box drawn). TTC and gaps are measured in every arm against the
+(`vcfusion.metrics.movestar`), the highlight episodes judged by the one definition of
+`vcfusion.metrics.highlights` (`highlight_counts`: right, wrong, missed, unseen), and each ego
+collision described (`vcfusion.metrics.collisions`). TTC and gaps are measured in every arm against the
 same vehicle: the first cut-in ahead of the ego in the reference arm (``none``; the first arm
 with one where it has none), chosen once per seed; because SUMO's vehicles react to the ego, an
 arm's own first cut-in can be another vehicle (`first_cut_in_differs`).
@@ -136,12 +136,22 @@ def arm_scenario(scenario, arm: str):
 _WORKER = {}
 
 
+def renderer_key(scenario) -> str:
+    """What `EgoCameraRenderer.for_scenario` builds from (the network, the road the camera draws:
+    the ego's route or the scenario's, the camera), as canonical JSON: a hashable key, equal for
+    two scenarios exactly when their renderers are the same."""
+    from vcfusion.render.renderer import camera_road
+
+    road = camera_road(scenario)
+    return json.dumps({"network": str(scenario.network), "route": [str(e) for e in road.route],
+                       "camera": scenario.camera.model_dump(mode="json")}, sort_keys=True)
+
+
 def _worker_resources(scenario):
     """(renderer, detector) for a camera arm of `scenario`, built once per worker process."""
     from vcfusion.fusion.stage import build_detector
 
-    key = ("renderer", str(scenario.network), scenario.route, scenario.ego and scenario.ego.route,
-           scenario.camera.model_dump_json())
+    key = ("renderer", renderer_key(scenario))
     renderer = _WORKER.get(key)
     if renderer is None:
         from vcfusion.render.renderer import EgoCameraRenderer
@@ -159,7 +169,7 @@ def _worker_resources(scenario):
 
 
 ARM_TABLES = ("ego", "trajectories", "vehicles", "lane_changes", "collisions", "guidance", "fusion",
-              "driver_events", "display")
+              "driver", "driver_events", "display")
 
 
 def simulate_arm(scenario, seed: int, arm: str, process_model_specs: tuple[str, ...] = ()) -> dict:
@@ -180,39 +190,57 @@ def simulate_arm(scenario, seed: int, arm: str, process_model_specs: tuple[str, 
             "driver": cosim.controller.p.to_dict()}
 
 
-def highlight_episodes(rows: pd.DataFrame, period_s: float) -> list[tuple[str, str, float]]:
-    """(twin id, shown vehicle id, start time) of each highlight episode in the rows of a
-    guidance or fusion table (one row per item and tick): runs of ticks in which the same twin is
-    shown on the same vehicle, a gap of more than 1.5 periods starting a new episode."""
+def highlight_episodes(rows: pd.DataFrame, period_s: float, by=("vehicle_id", "box_vehicle_id")) -> list[tuple]:
+    """(*values of the `by` columns, start time) of each episode in the rows of a guidance or
+    fusion table (one row per item and tick): runs of ticks with the same values of `by` (the
+    twin, the vehicle shown), a gap of more than 1.5 periods starting a new episode."""
     out = []
-    for (twin, shown), g in rows.groupby(["vehicle_id", "box_vehicle_id"], sort=True):
+    for key, g in rows.groupby(list(by), sort=True):
+        key = key if isinstance(key, tuple) else (key,)
         t = np.sort(g["time"].to_numpy(dtype=float))
         starts = np.concatenate([[0], np.flatnonzero(np.diff(t) > 1.5 * period_s + 1e-9) + 1])
-        out += [(str(twin), str(shown), float(t[k])) for k in starts]
+        out += [(*(str(k) for k in key), float(t[k])) for k in starts]
     return out
 
 
+HIGHLIGHT_COUNTS = ("highlights_right", "highlights_wrong", "missed_warnings", "unseen_warnings")
+
+
 def highlight_counts(guidance: pd.DataFrame | None, fusion: pd.DataFrame | None, period_s: float) -> dict:
-    """Highlight episodes of one run: ``highlights_right`` (a warning drawn on the vehicle the
-    cloud meant), ``highlights_wrong`` (drawn on another vehicle, or on no vehicle), from the
-    ``guidance`` table; ``missed_warnings`` (a twin in the camera's view with a warning level and
-    no matched box: nothing drawn), from the ``fusion`` table (0 without one: the cloud arm marks
-    every warned twin)."""
+    """Highlight episodes of one run, judged by the one definition (vcfusion.metrics.highlights):
+    runs of frames in which a warned twin has the same outcome and the same vehicle in its box.
+
+    With a camera (a ``fusion`` table: one judged row per twin in view and AR update):
+    ``highlights_right`` / ``highlights_wrong`` (a box drawn for the twin, on its vehicle or not),
+    ``missed_warnings`` (the twin's vehicle visible, nothing drawn), ``unseen_warnings`` (its
+    vehicle not visible, nothing drawn: behind another vehicle or too small; not a miss). Without
+    one (the cloud arm), from the ``guidance`` table: every item marks the twin it means (right
+    unless it names another vehicle); nothing is missed or unseen."""
     from vcfusion.guidance import WARNING_LEVELS
 
-    out = {"highlights_right": 0, "highlights_wrong": 0, "missed_warnings": 0}
+    out = dict.fromkeys(HIGHLIGHT_COUNTS, 0)
+    if fusion is not None and len(fusion):
+        if "outcome" not in fusion:
+            from vcfusion.errors import InputError
+
+            raise InputError("fusion table: no 'outcome' column (the judged highlight of each twin); expected a "
+                             "run written by a version that judges highlights (vcfusion.metrics.highlights)")
+        warned = fusion[fusion["level"].isin(WARNING_LEVELS)]
+        for _, outcome, _, _ in highlight_episodes(warned, period_s, ("vehicle_id", "outcome", "box_vehicle_id")):
+            key = {"right": "highlights_right", "wrong": "highlights_wrong", "missed": "missed_warnings",
+                   "unseen": "unseen_warnings"}[outcome]
+            out[key] += 1
+        return out
     if guidance is not None and len(guidance):
         for twin, shown, _ in highlight_episodes(guidance[guidance["level"].isin(WARNING_LEVELS)], period_s):
             out["highlights_right" if twin == shown else "highlights_wrong"] += 1
-    if fusion is not None and len(fusion):
-        missed = fusion[~fusion["matched"].astype(bool) & fusion["level"].isin(WARNING_LEVELS)]
-        out["missed_warnings"] = len(highlight_episodes(missed.assign(box_vehicle_id=""), period_s))
     return out
 
 
 def arm_metrics(run: dict, target_id: str | None) -> dict:
     """Every metric of one arm of one trip (the study's one metric computation), TTC and gaps
     against the seed's `target_id`."""
+    from vcfusion.metrics.collisions import describe as describe_collision
     from vcfusion.metrics.movestar import trip_emissions
     from vcfusion.metrics.safety import cut_in_target, trip_metrics
     from vcfusion.metrics.traffic import ego_movestar_type
@@ -247,12 +275,15 @@ def arm_metrics(run: dict, target_id: str | None) -> dict:
     row["guidance_source"] = "+".join(sources)
     row["ticks_without_frame"] = int((guidance["source"] == "no_frame").sum()) if guidance is not None else 0
     nan = math.nan
-    # a person's trip counts what its display drew (vcfusion.hitl.driver's display table), else the guidance log
-    shown = tables.get("display", guidance)
-    counts = highlight_counts(shown, tables.get("fusion"), sc.v2c.period_s) if arm != REFERENCE_ARM else {}
-    row["highlights_right"] = counts.get("highlights_right", nan)
-    row["highlights_wrong"] = counts.get("highlights_wrong", nan)
-    row["missed_warnings"] = counts.get("missed_warnings", nan)
+    counts = highlight_counts(guidance, tables.get("fusion"), sc.v2c.period_s) if arm != REFERENCE_ARM else {}
+    display = tables.get("display")
+    if counts and display is not None and len(display):
+        # a person's trip: right and wrong are what its display drew (vcfusion.hitl.driver's display
+        # table, each box judged by the one definition when drawn); missed / unseen stay the fusion's
+        drawn = highlight_counts(display, None, sc.v2c.period_s)
+        counts["highlights_right"], counts["highlights_wrong"] = drawn["highlights_right"], drawn["highlights_wrong"]
+    for key in HIGHLIGHT_COUNTS:
+        row[key] = counts.get(key, nan)
     # the driver's first response to the seed's vehicle (any cue)
     events = tables.get("driver_events")
     row["response_time_s"], row["response_cue"] = nan, ""
@@ -261,6 +292,9 @@ def arm_metrics(run: dict, target_id: str | None) -> dict:
         if len(mine):
             first = mine.sort_values("response_time").iloc[0]
             row["response_time_s"], row["response_cue"] = float(first["response_time"]), str(first["cue"])
+    # every ego collision, described (vcfusion.metrics.collisions; the records are in the run summary)
+    records = run["summary"].get("ego_collisions", [])
+    row["ego_collision_detail"] = " | ".join(describe_collision(r) for r in records)
     row["process_models"] = run["process_models"]
     for k, v in run["driver"].items():
         row[f"driver_{k}"] = v
@@ -373,12 +407,20 @@ def format_summary(summary: pd.DataFrame, info: dict) -> str:
         line = f"  {arm}: " + ("no highlights shown" if arm == REFERENCE_ARM
                                 else f"highlights from {a['guidance_source']}")
         if arm != REFERENCE_ARM:
+            drawn = a["highlights_right"] + a["highlights_wrong"]
+            share = (f" (of the {drawn} drawn: wrong {100 * a['highlights_wrong'] / drawn:.1f} %, missed "
+                     f"{100 * a['missed_warnings'] / drawn:.1f} %)") if drawn else ""
             line += (f"; highlight episodes right {a['highlights_right']}, wrong {a['highlights_wrong']}, "
-                     f"missed warnings {a['missed_warnings']}; ticks without a camera frame {a['ticks_without_frame']}")
+                     f"missed warnings {a['missed_warnings']} (vehicle visible, nothing drawn){share}, warnings "
+                     f"on a vehicle the camera does not show {a['unseen_warnings']}; ticks without a camera frame "
+                     f"{a['ticks_without_frame']}")
         line += f"; own first cut-in differs from the seed's vehicle in {a['first_cut_in_differs']} trips"
         if arm != REFERENCE_ARM:
             line += (f"; responds to that vehicle {a['response_gain_s']:.2f} s earlier than {REFERENCE_ARM} "
                      f"(mean over {a['response_pairs']} trips)")
+        hit = a.get("collision_trips", [])
+        line += (f"; ego collisions in {len(hit)} trips" + (" (" + ", ".join(
+            "seed " + str(k[-1] if isinstance(k, (list, tuple)) else k) for k in hit) + ")" if hit else ""))
         if a.get("mean_wall_s") is not None:
             line += f"; {a['mean_wall_s']:.1f} s wall per trip"
         lines.append(line)
@@ -468,8 +510,15 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
         raise ScenarioError(f"{scenario_path}: ego: the guidance study needs an ego; the scenario has no ego block")
     for spec in process_model_specs:  # fail fast, before any worker starts
         load_process_model(spec, scenario)
+    if not scenario.prediction.enabled and not process_model_specs:
+        raise StudyError(f"{scenario_path}: prediction.enabled is false and no --process-model is given, so no "
+                         "process model writes 'lc_prob' to the cloud twins, nothing ever warns and every arm is "
+                         "the same driver: set prediction: {enabled: true} or pass --process-model module:factory")
     if any(arm in CAMERA_ARMS for arm in arms):
+        from vcfusion.fusion.stage import require_matching_range
+
         require_camera_world(scenario)  # what the camera arms render
+        require_matching_range(arm_scenario(scenario, "fusion"))
     started = wallclock.perf_counter()
     seeds = list(range(first_seed, first_seed + trips))
     rows: list[dict] = []
@@ -542,7 +591,11 @@ def write_study(table: pd.DataFrame, arms: tuple[str, ...], info: dict, out: Pat
             "highlights_right": int(t["highlights_right"].sum()) if arm != REFERENCE_ARM else None,
             "highlights_wrong": int(t["highlights_wrong"].sum()) if arm != REFERENCE_ARM else None,
             "missed_warnings": int(t["missed_warnings"].sum()) if arm != REFERENCE_ARM else None,
+            "unseen_warnings": int(t["unseen_warnings"].sum()) if arm != REFERENCE_ARM else None,
             "ticks_without_frame": int(t["ticks_without_frame"].sum()),
+            # never hidden: the trips in which the ego collided, by their pair key (the seed)
+            "collision_trips": [list(k) if isinstance(k, tuple) else k
+                                for k in t.loc[t["collisions"].fillna(0) > 0, list(pair_on)].itertuples(index=False, name=None)],
             "first_cut_in_differs": int(t["first_cut_in_differs"].sum()),
             "target_cut_in_here": int(t["target_cut_in_here"].sum()),
             "mean_response_time_s": float(resp.mean()) if len(resp) else math.nan, "responses": int(len(resp)),
@@ -559,6 +612,11 @@ def write_study(table: pd.DataFrame, arms: tuple[str, ...], info: dict, out: Pat
         "per_arm": per_arm,
     }
     write_table(out / "trips.parquet", table)
+    # the collisions, one row each, with their trip (never left out of the study's outputs)
+    hits = table[table["collisions"].fillna(0) > 0]
+    tmp = out / "collisions.csv.tmp"
+    hits.reindex(columns=[*pair_on, "arm", "collisions", "ego_collision_detail"]).to_csv(tmp, index=False)
+    tmp.replace(out / "collisions.csv")
     tmp = out / "trips.csv.tmp"
     table.to_csv(tmp, index=False)
     tmp.replace(out / "trips.csv")

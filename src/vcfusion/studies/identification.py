@@ -5,7 +5,9 @@ nearest-centre RGB-only heuristic ``baseline_centre``, paper fusion = Algorithm 
 see matching.py), the box the method chose and its IoU with the target's ground-truth
 box (0 when the method chose none). Accuracy at an IoU threshold is the fraction of target-frames
 whose chosen box has at least that IoU. A target is a neighbour twin whose vehicle has a
-ground-truth box in the frame (visible) of at least ``min_gt_area_px``. Each row also records how
+ground-truth box in the frame (visible) of at least ``min_gt_area_px`` (default: the one
+definition's ``MIN_VISIBLE_PX``, vcfusion.metrics.highlights, which also gives each row's
+``outcome`` at its IoU rule, as the guidance study counts highlights). Each row also records how
 many detected boxes contain the target's anchor (``n_anchor_boxes``: 0 = none, 1 = the easy case,
 >= 2 = the ambiguous case of Fig. 3 that depth is meant to resolve) and the scenario's name, so a
 study over several scenarios can be read per scenario and per case.
@@ -30,16 +32,20 @@ from tqdm import tqdm
 
 from vcfusion.fusion.depth_eval import DepthEvalParams
 from vcfusion.fusion.fuse import METHODS, CameraFrame, FusionResult, fuse_frame
-from vcfusion.fusion.matching import JointMatcher, JointMatcherParams, box_iou
+from vcfusion.fusion.matching import JointMatcher, JointMatcherParams
+from vcfusion.metrics.highlights import MIN_VISIBLE_PX, judge_highlight
 from vcfusion.runio import atomic_write
 
 IOU_THRESHOLDS = np.round(np.arange(0.5, 0.951, 0.05), 2)
 ROW_COLUMNS = ["scenario", "seed", "latency_s", "gnss_noise_m", "detector", "time", "vehicle_id", "method", "n_anchor_boxes", "matched", "iou",
-               "x1", "y1", "x2", "y2", "gt_x1", "gt_y1", "gt_x2", "gt_y2"]
+               "outcome", "x1", "y1", "x2", "y2", "gt_x1", "gt_y1", "gt_x2", "gt_y2"]
 
 
-def identification_rows(frame: CameraFrame, result: FusionResult, min_gt_area_px: float = 0.0, **context) -> list[dict]:
-    """Rows for the visible targets of one frame (context: scenario, seed, latency_s, gnss_noise_m, detector)."""
+def identification_rows(frame: CameraFrame, result: FusionResult, min_gt_area_px: float = MIN_VISIBLE_PX,
+                        **context) -> list[dict]:
+    """Rows for the visible targets of one frame (context: scenario, seed, latency_s, gnss_noise_m,
+    detector), each method's box judged by the one definition of a right highlight
+    (vcfusion.metrics.highlights: ``outcome`` at its IoU rule, ``iou`` for any other threshold)."""
     gt = np.asarray(frame.gt_boxes, dtype=float).reshape(-1, 4)
     gt_index = {vid: k for k, vid in enumerate(frame.gt_ids)}
     rows = []
@@ -52,14 +58,12 @@ def identification_rows(frame: CameraFrame, result: FusionResult, min_gt_area_px
             continue
         for method, chosen in result.choice.items():
             j = int(chosen[i])
-            if j < 0:
-                box, iou = (np.nan,) * 4, 0.0
-            else:
-                box = tuple(float(v) for v in result.detections.boxes[j])
-                iou = float(box_iou(np.array([box]), g[None])[0, 0])
+            box = (np.nan,) * 4 if j < 0 else tuple(float(v) for v in result.detections.boxes[j])
+            judged = judge_highlight(vid, None if j < 0 else box, gt, frame.gt_ids, min_visible_px=min_gt_area_px)
             n_cand = -1 if result.n_anchor_boxes is None else int(result.n_anchor_boxes[i])
             rows.append({**context, "time": round(float(frame.time), 6), "vehicle_id": vid, "method": method,
-                         "n_anchor_boxes": n_cand, "matched": j >= 0, "iou": iou, "x1": box[0], "y1": box[1], "x2": box[2], "y2": box[3],
+                         "n_anchor_boxes": n_cand, "matched": j >= 0, "iou": judged.iou, "outcome": judged.outcome,
+                         "x1": box[0], "y1": box[1], "x2": box[2], "y2": box[3],
                          "gt_x1": g[0], "gt_y1": g[1], "gt_x2": g[2], "gt_y2": g[3]})
     return rows
 
@@ -211,7 +215,7 @@ class _StudyHook:
 
 def run_identification_study(scenarios, seeds, frame_source_factory, detectors: dict, out_dir,
                              conditions: list[Condition] | None = None, depth_params=DepthEvalParams(),
-                             joint_params: JointMatcherParams = JointMatcherParams(), min_gt_area_px: float = 100.0,
+                             joint_params: JointMatcherParams = JointMatcherParams(), min_gt_area_px: float = MIN_VISIBLE_PX,
                              fallback_radius_px: float | None = None, progress: bool = True,
                              refine: dict | None = None) -> pd.DataFrame:
     """Run every (scenario, seed, condition), collect the rows, write the outputs; returns the rows.

@@ -1,0 +1,149 @@
+"""A record of every ego collision of a run: who, where, how fast, and what the driver saw, was
+shown and did in the seconds before (the run summary's ``ego_collisions``; the guidance study
+lists them per trip and arm).
+
+One record per pair in contact with the ego (SUMO's first report of the contact):
+- ``time``, ``other`` (the other vehicle), ``ego_role`` (``collider``: the ego ran into it;
+  ``victim``: it ran into the ego), SUMO's ``kind``, ``lane`` and ``pos``;
+- ``ego_speed_mps`` / ``other_speed_mps`` at the contact and ``closing_speed_mps`` (the
+  collider's speed minus the victim's); ``ego_d_m`` / ``other_d_m`` (road-frame lateral
+  positions) and ``lateral_clearance_m`` between their sides (> 0: no body contact; SUMO counts
+  a vehicle in its target lane from the start of a lane change);
+- ``other_lane_changes``: the other vehicle's lane changes in the window (start, mid, from lane,
+  to lane, into the ego lane);
+- ``driver``: the driver model's state in the window (one sample per ``sample_s``: its leader and
+  the leader's kind, the perceived gap, the desired and applied acceleration, whether it covers
+  the brake, active warnings, vehicles seen); ``driver_cues``: the cues it noticed about the
+  other vehicle (lateral, anticipation, guidance) and when it responds; ``other_was_leader_s``:
+  the first time in the window the other vehicle was its leader (None: never);
+- ``shown``: the warnings guidance made in the window (twin, vehicle highlighted, level, first
+  and last time; the driver saw them only when ``guidance_on``), and ``other_highlighted`` /
+  ``other_warned_twin``: whether the other vehicle was highlighted, whether the cloud warned
+  about its twin.
+
+Ground truth throughout: this is the scoring side, nothing here reaches the driver.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+
+from vcfusion.records import EGO_ID
+
+WINDOW_S = 5.0  # how far before the contact the record looks (s)
+SAMPLE_S = 0.5  # the driver's state every this many seconds in the window
+
+
+def _f(x) -> float | None:
+    x = float(x)
+    return None if math.isnan(x) else round(x, 3)
+
+
+def _window(table: pd.DataFrame | None, t0: float, t1: float) -> pd.DataFrame:
+    if table is None or not len(table) or "time" not in table:
+        return pd.DataFrame()
+    return table[(table["time"] >= t0 - 1e-9) & (table["time"] <= t1 + 1e-9)]
+
+
+def _lateral_geometry(tables, t: float, other: str) -> dict:
+    """Lateral positions (road frame d) of the ego and the other vehicle at the trajectory sample
+    nearest `t`, and the clearance between their sides (m; < 0: the bodies overlap sideways).
+    SUMO reports a contact with a vehicle it has already moved into the ego's lane at the start
+    of its lane change while its body is still beside the lane: a positive clearance says so."""
+    traj, veh = tables.get("trajectories"), tables.get("vehicles")
+    none = {"ego_d_m": None, "other_d_m": None, "lateral_clearance_m": None}
+    if traj is None or veh is None or not len(traj):
+        return none
+    near = traj[traj["vehicle_id"].isin([EGO_ID, other])]
+    if not len(near):
+        return none
+    at = near["time"].to_numpy()[np.abs(near["time"].to_numpy() - t).argmin()]
+    row = near[near["time"] == at].set_index("vehicle_id")
+    width = dict(zip(veh["vehicle_id"], veh["width"]))
+    if EGO_ID not in row.index or other not in row.index or EGO_ID not in width or other not in width:
+        return none
+    de, do = float(row.loc[EGO_ID, "d"]), float(row.loc[other, "d"])
+    return {"ego_d_m": _f(de), "other_d_m": _f(do),
+            "lateral_clearance_m": _f(abs(de - do) - (float(width[EGO_ID]) + float(width[other])) / 2)}
+
+
+def ego_collision_records(tables, window_s: float = WINDOW_S, sample_s: float = SAMPLE_S) -> list[dict]:
+    """The records of the ego's collisions in a run's `tables` (see the module doc)."""
+    from vcfusion.guidance import WARNING_LEVELS
+
+    col = tables.get("collisions") if hasattr(tables, "get") else None
+    if col is None or not len(col):
+        return []
+    mine = col[(col["collider"] == EGO_ID) | (col["victim"] == EGO_ID)].sort_values("time")
+    mine = mine.drop_duplicates(["collider", "victim"], keep="first")
+    records = []
+    for c in mine.itertuples(index=False):
+        t, t0 = float(c.time), float(c.time) - window_s
+        ego_collider = c.collider == EGO_ID
+        other = str(c.victim if ego_collider else c.collider)
+        rec = {"time": round(t, 3), "other": other, "ego_role": "collider" if ego_collider else "victim",
+               "kind": str(c.kind), "lane": str(c.lane), "pos": _f(c.pos),
+               "ego_speed_mps": _f(c.collider_speed if ego_collider else c.victim_speed),
+               "other_speed_mps": _f(c.victim_speed if ego_collider else c.collider_speed),
+               "closing_speed_mps": _f(float(c.collider_speed) - float(c.victim_speed))}
+        rec.update(_lateral_geometry(tables, t, other))
+        lc = tables.get("lane_changes")
+        if lc is not None and len(lc):
+            theirs = lc[(lc["vehicle_id"] == other) & (lc["end_time"] >= t0) & (lc["start_time"] <= t)]
+            rec["other_lane_changes"] = [
+                {"start": _f(r.start_time), "mid": _f(r.mid_time), "from_lane": int(r.from_lane),
+                 "to_lane": int(r.to_lane), "into_ego_lane": bool(getattr(r, "into_ego_lane", False))}
+                for r in theirs.itertuples(index=False)]
+        else:
+            rec["other_lane_changes"] = []
+        drv = _window(tables.get("driver"), t0, t)
+        if len(drv):
+            picks = drv.iloc[np.unique(np.searchsorted(drv["time"].to_numpy(), np.arange(t0, t + 1e-9, sample_s)).clip(
+                0, len(drv) - 1))]
+            rec["driver"] = [{"time": _f(r.time), "leader": r.leader_id, "leader_kind": r.leader_kind,
+                              "perceived_gap_m": _f(r.perceived_gap_m), "desired_accel": _f(r.desired_accel),
+                              "applied_accel": _f(r.applied_accel), "covering": bool(r.covering),
+                              "warnings_active": int(r.warnings_active), "vehicles_seen": int(r.vehicles_seen)}
+                             for r in picks.itertuples(index=False)]
+            led = drv[drv["leader_id"] == other]
+            rec["other_was_leader_s"] = _f(led["time"].iloc[0]) if len(led) else None
+        else:  # a person drove (no driver model)
+            rec["driver"], rec["other_was_leader_s"] = [], None
+        ev = _window(tables.get("driver_events"), t0, t)
+        rec["driver_cues"] = [] if not len(ev) else [
+            {"time": _f(r.time), "cue": r.cue, "twin": r.twin_id, "level": r.level, "response_time": _f(r.response_time)}
+            for r in ev[ev["vehicle_id"] == other].itertuples(index=False)]
+        shown = _window(tables.get("guidance"), t0, t)
+        shown = shown[shown["level"].isin(WARNING_LEVELS)] if len(shown) else shown
+        rec["shown"] = [] if not len(shown) else [
+            {"twin": twin, "highlighted": box, "level": "high" if (g["level"] == "high").any() else "medium",
+             "first": _f(g["time"].min()), "last": _f(g["time"].max())}
+            for (twin, box), g in shown.groupby(["vehicle_id", "box_vehicle_id"], sort=True)]
+        # the guidance log records what guidance made in every arm; the driver saw it only with guidance on
+        rec["guidance_on"] = bool(drv["guidance_enabled"].iloc[0]) if "guidance_enabled" in drv else None
+        rec["other_highlighted"] = any(s["highlighted"] == other for s in rec["shown"])
+        rec["other_warned_twin"] = any(s["twin"] == other for s in rec["shown"])
+        records.append(rec)
+    return records
+
+
+def describe(rec: dict) -> str:
+    """One line of a record, for a study's table and the run's summary text."""
+    who = (f"ego ran into {rec['other']}" if rec["ego_role"] == "collider" else f"{rec['other']} ran into the ego")
+    into = [c for c in rec.get("other_lane_changes", []) if c["into_ego_lane"]]
+    cut = f", {rec['other']} cut in (mid {into[0]['mid']:.1f} s)" if into else ""
+    shown = ("; it was highlighted" if rec["other_highlighted"] else
+             "; its twin was warned about but another vehicle highlighted" if rec["other_warned_twin"] else
+             "; not highlighted")
+    if rec.get("guidance_on") is False:
+        shown = "; guidance off" + (" (the cloud warned about it)" if rec["other_warned_twin"] else "")
+    leader = (f"; the driver's leader from {rec['other_was_leader_s']:.1f} s" if rec.get("other_was_leader_s") is not None
+              else "; never the driver's leader")
+    gap = rec.get("lateral_clearance_m")
+    side = (f"; no body contact: {gap:.2f} m between their sides (SUMO had moved it into the ego's lane at the "
+            f"start of its lane change)" if gap is not None and gap > 0 else "")
+    return (f"{rec['time']:.1f} s: {who} at {rec['closing_speed_mps']:.1f} m/s closing (ego {rec['ego_speed_mps']:.1f} m/s)"
+            f"{side}{cut}{shown}{leader}")

@@ -1,0 +1,66 @@
+"""The record of an ego collision: who, how fast, what the driver saw, was shown and did before."""
+
+import numpy as np
+import pandas as pd
+
+from vcfusion.metrics.collisions import describe, ego_collision_records
+
+
+def _tables():
+    t = np.round(np.arange(0.0, 10.01, 0.1), 6)
+    driver = pd.DataFrame({"time": t, "leader_id": np.where(t >= 8.0, "cutter", "lead"),
+                           "leader_kind": np.where(t >= 8.0, "lane", "lane"), "perceived_gap_m": 30.0 - t,
+                           "desired_accel": -1.0, "applied_accel": -0.5, "covering": t >= 7.0,
+                           "warnings_active": (t >= 6.5).astype(int), "vehicles_seen": 4, "guidance_enabled": True})
+    guidance = pd.DataFrame({"time": [6.5, 6.6, 6.7, 2.0], "vehicle_id": ["cutter"] * 3 + ["far"],
+                             "box_vehicle_id": ["other"] * 3 + ["far"], "level": ["high"] * 4,
+                             "lc_prob": 0.9, "source": "fusion"})
+    collisions = pd.DataFrame({"time": [9.5, 9.6, 9.6], "collider": ["ego", "ego", "a"], "victim": ["cutter", "cutter", "b"],
+                               "kind": "collision", "collider_speed": [15.0, 15.0, 3.0],
+                               "victim_speed": [9.0, 9.0, 1.0], "lane": "e_2", "pos": 300.0, "end_time": 9.7})
+    lane_changes = pd.DataFrame({"vehicle_id": ["cutter", "cutter"], "start_time": [7.0, 1.0], "mid_time": [8.2, 2.0],
+                                 "end_time": [9.0, 3.0], "from_lane": [1, 0], "to_lane": [2, 1],
+                                 "into_ego_lane": [True, False]})
+    events = pd.DataFrame({"time": [7.4, 7.4], "vehicle_id": ["cutter", "lead"], "cue": ["lateral", "lateral"],
+                           "twin_id": "", "level": "", "lc_prob": np.nan, "response_time": [8.2, 8.2]})
+    traj = pd.DataFrame({"time": [9.5, 9.5], "vehicle_id": ["ego", "cutter"], "d": [8.75, 5.3]})
+    vehicles = pd.DataFrame({"vehicle_id": ["ego", "cutter"], "width": [1.8, 2.5]})
+    return {"trajectories": traj, "vehicles": vehicles, "driver": driver, "guidance": guidance, "collisions": collisions, "lane_changes": lane_changes,
+            "driver_events": events}
+
+
+def test_one_record_per_ego_pair_with_what_happened_before():
+    (rec,) = ego_collision_records(_tables())  # SUMO repeats a contact every step; a-b is not the ego's
+    assert (rec["other"], rec["ego_role"], rec["time"]) == ("cutter", "collider", 9.5)
+    assert rec["closing_speed_mps"] == 6.0 and rec["ego_speed_mps"] == 15.0 and rec["other_speed_mps"] == 9.0
+    assert [c["mid"] for c in rec["other_lane_changes"]] == [8.2]  # the one in the 5 s before
+    assert rec["other_was_leader_s"] == 8.0
+    assert [c["cue"] for c in rec["driver_cues"]] == ["lateral"]
+    # the cloud warned about the cutter's twin, but the box showed another vehicle
+    assert rec["other_warned_twin"] and not rec["other_highlighted"]
+    assert rec["shown"] == [{"twin": "cutter", "highlighted": "other", "level": "high", "first": 6.5, "last": 6.7}]
+    assert rec["driver"][0]["time"] == 4.5 and rec["driver"][-1]["time"] == 9.5 and len(rec["driver"]) == 11
+    text = describe(rec)
+    assert "ego ran into cutter at 6.0 m/s closing" in text and "another vehicle highlighted" in text
+    # 3.45 m between the centres, 2.15 m of half widths: SUMO's lane bookkeeping, not a body contact
+    assert rec["lateral_clearance_m"] == 1.3 and "no body contact: 1.30 m" in text
+
+
+def test_overlapping_bodies_are_a_contact():
+    tables = _tables()
+    tables["trajectories"].loc[1, "d"] = 7.5
+    (rec,) = ego_collision_records(tables)
+    assert rec["lateral_clearance_m"] == -0.9 and "no body contact" not in describe(rec)
+
+
+def test_without_guidance_the_record_says_nothing_was_shown():
+    tables = _tables()
+    tables["driver"]["guidance_enabled"] = False
+    (rec,) = ego_collision_records(tables)
+    assert rec["guidance_on"] is False and "guidance off (the cloud warned about it)" in describe(rec)
+
+
+def test_no_collision_no_record():
+    tables = _tables()
+    tables["collisions"] = tables["collisions"].iloc[2:]
+    assert ego_collision_records(tables) == []

@@ -1,0 +1,64 @@
+"""The one definition of a right / wrong / missed highlight (vcfusion.metrics.highlights)."""
+
+import numpy as np
+import pytest
+
+from vcfusion.metrics.highlights import MIN_VISIBLE_PX, RIGHT_IOU, judge_highlight
+
+GT = np.array([[100, 100, 140, 130],   # "a": 40 x 30 = 1200 px
+               [130, 105, 200, 150],   # "b": overlaps a's right side
+               [300, 100, 305, 105]])  # "c": 25 px, too small to be judged
+IDS = ("a", "b", "c")
+
+
+def test_a_box_on_the_meant_vehicle_is_right():
+    j = judge_highlight("a", (101, 101, 141, 131), GT, IDS)
+    assert j.outcome == "right" and j.iou > 0.85 and j.box_vehicle_id == "a" and j.visible_px == 1200
+
+
+def test_a_box_on_the_neighbouring_vehicle_is_wrong_and_names_it():
+    j = judge_highlight("a", (130, 105, 200, 150), GT, IDS)
+    assert j.outcome == "wrong" and j.box_vehicle_id == "b" and j.iou < RIGHT_IOU
+
+
+def test_a_loose_box_below_the_iou_rule_is_wrong_even_around_the_meant_vehicle():
+    # twice as wide as a: IoU 0.5 at most on the meant vehicle's side, here below
+    j = judge_highlight("a", (80, 95, 165, 135), GT, IDS)
+    assert j.outcome == "wrong" and j.box_vehicle_id == "a"
+    assert judge_highlight("a", (80, 95, 165, 135), GT, IDS, right_iou=0.3).outcome == "right"
+
+
+def test_a_box_on_a_small_far_vehicle_is_right():
+    assert judge_highlight("c", (300, 100, 305, 105), GT, IDS).outcome == "right"  # 25 px, IoU 1
+
+
+def test_nothing_drawn_for_a_visible_vehicle_is_missed_for_an_unseen_one_unseen():
+    assert judge_highlight("a", None, GT, IDS).outcome == "missed"
+    assert judge_highlight("c", None, GT, IDS).outcome == "unseen"  # 25 px < MIN_VISIBLE_PX
+    assert judge_highlight("hidden", None, GT, IDS).outcome == "unseen"
+    assert 25 < MIN_VISIBLE_PX
+
+
+@pytest.mark.parametrize("twin", ["c", "hidden"])
+def test_a_box_drawn_for_a_vehicle_the_frame_does_not_show_is_wrong(twin):
+    j = judge_highlight(twin, (101, 101, 141, 131), GT, IDS)
+    assert j.outcome == "wrong" and j.box_vehicle_id == "a"
+
+
+def test_a_frame_without_ground_truth_boxes():
+    assert judge_highlight("a", (0, 0, 10, 10), np.zeros((0, 4)), ()).outcome == "wrong"
+    assert judge_highlight("a", None, np.zeros((0, 4)), ()).outcome == "unseen"
+
+
+def test_the_overlay_draws_no_box_many_times_the_twins_outline():
+    from vcfusion.fusion.fuse import MAX_BOX_TO_OUTLINE_AREA, drawable_box
+
+    outline = (100.0, 100.0, 106.0, 110.0)  # a far car: 6 x 10 px
+    own = (100.0, 101.0, 106.0, 110.0)
+    truck = (98.0, 95.0, 113.0, 116.0)  # 15 x 21 px: 5.25 times the outline
+    assert drawable_box(own, outline) == own
+    assert drawable_box(truck, outline) is None
+    assert drawable_box(truck, outline, max_ratio=6.0) == truck
+    assert drawable_box(None, outline) is None and MAX_BOX_TO_OUTLINE_AREA == 3.0
+    assert drawable_box(own, outline, hidden_share=1.0) is None  # hidden whole: a sliver shows at most
+    assert drawable_box(own, outline, hidden_share=0.9) == own
