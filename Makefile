@@ -14,8 +14,13 @@ $(STAMP): pyproject.toml
 	@{ ldconfig -p | grep -q libOSMesa && command -v Xvfb >/dev/null; } || { (apt-get update -qq && apt-get install -y -qq libosmesa6 xvfb >/dev/null) || { echo "could not install libosmesa6 and xvfb (need root and apt)"; exit 1; }; }
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[dev,commonroad]'
-	@# the CommonRoad reader: commonroad-io without its protobuf pin (see pyproject.toml, extra commonroad)
-	$(PY) -m pip install -q --no-deps 'commonroad-io>=2024.1,<2027'
+	@# CommonRoad (reader, export, the CriMe cross-check): commonroad-io pins protobuf 3.20.2, which onnx (dev)
+	@# refuses, so these go in without their pins; their other dependencies are the commonroad and dev extras
+	@# (pyproject.toml). commonroad-io 2024.3: the release CriMe 0.4 and CommonRoad's tools are built on.
+	$(PY) -m pip install -q --no-deps 'commonroad-io==2024.3' 'commonroad-crime==0.4.5' \
+	  'commonroad-drivability-checker==2025.3.1' 'commonroad-reach==2025.2.1' 'commonroad-clcs==2025.2.0' \
+	  'commonroad-route-planner==2025.1.0' 'casadi>=3.6.3,<4' 'osqp==0.6.7.post3' 'qdldl>=0.1.5,<0.2' \
+	  'polygon3>=3.0.8,<4' 'seaborn>=0.10,<1' 'cython>=3.0,<4' 'imageio>=2.9,<3'
 	@touch $(STAMP)
 
 demo: $(STAMP)

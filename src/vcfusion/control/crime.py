@@ -13,8 +13,9 @@ eq. 5.26), the constant-velocity TTC otherwise; THW = the time the ego's recorde
 takes to reach the leader's rear position (inf where the trajectory ends first). CriMe 0.4.5
 has no DRAC.
 
-Needs commonroad-crime, which pins commonroad-io 2024.3 and protobuf 3.20.2: an environment of
-its own.
+Needs commonroad-crime, which pins commonroad-io 2024.3 and protobuf 3.20.2; `make setup` installs
+them without their pins and commonroad-io runs on protobuf's pure-Python runtime
+(vcfusion.control.commonroad.use_pure_python_protobuf).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ def crime_problem() -> str | None:
         import commonroad.common.file_reader  # noqa: F401
         from commonroad_crime.measure import HW, THW, TTC  # noqa: F401
     except ImportError as exc:
-        return f"needs commonroad-crime (an environment of its own: it pins commonroad-io 2024.3): {exc}"
+        return f"needs commonroad-crime with commonroad-io 2024.3 (`make setup` installs both): {exc}"
     except TypeError as exc:  # commonroad-io's protobuf modules under a newer protobuf runtime
         return f"commonroad-io does not load with this environment's protobuf ({' '.join(str(exc).split()[:6])}...)"
     return None
