@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from tests.support.cuboid_frames import CuboidFrameSource
+from support.cuboid_frames import CuboidFrameSource
 from vcfusion.cosim import Tick
 from vcfusion.detection.detectors import Detections
 from vcfusion.driver.cloud_guidance import CloudGuidanceFallback
