@@ -7,7 +7,7 @@ import pytest
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 # commonroad-io's generated protobuf modules need protobuf's pure-Python runtime, chosen at protobuf's
-# first import, which may be onnx's in this session (vcfusion.control.commonroad.use_pure_python_protobuf)
+# first import, which may be onnx's in this test run (vcfusion.control.commonroad.use_pure_python_protobuf)
 os.environ.setdefault("PROTOCOL_BUFFERS_PYTHON_IMPLEMENTATION", "python")
 sys.path.insert(0, str(Path(__file__).parent))
 
