@@ -23,6 +23,22 @@ vehicles:
 """
 
 
+def busy_traffic(max_time_s: float = 120.0) -> str:
+    """Poisson cars with spread desired speeds on the 3-lane highway: tens of overtakes in a minute."""
+    return f"""
+name: busy
+network: NET_DIR/highway.net.xml
+vehicle_types: NET_DIR/vtypes.add.xml
+simulation: {{step_s: 0.1, max_time_s: {max_time_s:g}}}
+metrics: {{enabled: false}}
+prediction: {{enabled: false}}
+vehicles:
+  - {{name: cars, count: 30, vtype: car_mixed, lanes: [0, 1, 2], pos_m: [10, 1500], speed_mps: 20, min_spacing_m: 40}}
+flows:
+  - {{vtype: car_mixed, vehs_per_hour: 2400, lanes: [0, 1, 2], speed_mps: 25}}
+"""
+
+
 def write_scenario(tmp_path: Path, text: str, name: str = "s.yaml") -> Path:
     """A scenario file in tmp_path whose relative paths point at the repo's sumo_net."""
     path = tmp_path / name

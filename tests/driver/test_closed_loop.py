@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from support.cuboid_frames import CuboidFrameSource
+from support.cuboid_frames import CuboidFrameSource, ShiftedOntoNeighbour
 from vcfusion.cosim import Tick
 from vcfusion.detection.detectors import Detections
 from vcfusion.driver.cloud_guidance import CloudGuidanceFallback
@@ -48,20 +48,6 @@ def _twins(truth, warned=True):
                       width=truth.width[k], height=truth.height[k],
                       outputs={"lc_prob": np.array([0.9 if warned else 0.05, 0.05]),
                                "lc_decision": np.array([warned, False])})
-
-
-class ShiftedOntoNeighbour:
-    """A detector whose box for the cutter spreads onto the neighbouring vehicle: one box over
-    both (the nearer neighbour owns most of its pixels; it still holds the cutter's anchor, so the
-    matcher gives it to the cutter's twin). `frame` is set per tick by the test."""
-
-    frame = None
-
-    def detect(self, image):
-        ids = list(self.frame.gt_ids)
-        cut, nb = self.frame.gt_boxes[ids.index("cutter")], self.frame.gt_boxes[ids.index("neighbour")]
-        box = [min(nb[0], cut[0]), min(nb[1], cut[1]), max(nb[2], cut[2]), max(nb[3], cut[3])]
-        return Detections.of(np.array([box]), np.array([0.9]), np.array([3]))
 
 
 class NoBoxes:

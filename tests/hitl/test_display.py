@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from support.cuboid_frames import CuboidFrameSource
+from support.cuboid_frames import CuboidFrameSource, ShiftedOntoNeighbour
 from vcfusion.cosim import EgoStep, Tick
 from vcfusion.detection.detectors import Detections
 from vcfusion.driver.cloud_guidance import CloudGuidanceFallback
@@ -97,19 +97,6 @@ class PinholeCuboids(CuboidFrameSource):
         f = self(Tick(truth.time, truth, None, None, None))
         K, T = self.pose(truth)
         return PinholeFrame(truth.time, f.image, f.depth, f.instances, f.instance_ids, K, T)
-
-
-class ShiftedOntoNeighbour:
-    """A detector whose box for the cutter spreads onto the nearer neighbour (one box over both:
-    the neighbour owns most of its pixels; the cutter's anchor is inside, so it is matched to the cutter)."""
-
-    frame = None
-
-    def detect(self, image):
-        ids = list(self.frame.gt_ids)
-        cut, nb = self.frame.gt_boxes[ids.index("cutter")], self.frame.gt_boxes[ids.index("neighbour")]
-        box = [min(nb[0], cut[0]), min(nb[1], cut[1]), max(nb[2], cut[2]), max(nb[3], cut[3])]
-        return Detections.of(np.array([box]), np.array([0.9]), np.array([3]))
 
 
 class OwnBoxes:

@@ -37,7 +37,7 @@ def test_shipped_calibrated_scenarios_carry_the_searched_best(name):
 def test_search_of_two_candidates_end_to_end(tmp_path, capsys):
     """Two candidates on a one-minute run of the busy highway, scored against a synthetic
     recording (the one of test_compare_lane_changes): a table row each, the objective finite."""
-    from scenario_files import write_scenario
+    from scenario_files import busy_traffic, write_scenario
 
     from vcfusion.commands import main
     from vcfusion.prediction.sources.trajectories import import_recordings
@@ -51,18 +51,7 @@ def test_search_of_two_candidates_end_to_end(tmp_path, capsys):
 
     real = tmp_path / "real"
     import_recordings([synthetic.recording(5.0, 20.0, 25.0)], real, 5.0, 2.0, progress=False)
-    base = write_scenario(tmp_path, """
-name: busy
-network: NET_DIR/highway.net.xml
-vehicle_types: NET_DIR/vtypes.add.xml
-simulation: {step_s: 0.1, max_time_s: 60}
-metrics: {enabled: false}
-prediction: {enabled: false}
-vehicles:
-  - {name: cars, count: 30, vtype: car_mixed, lanes: [0, 1, 2], pos_m: [10, 1500], speed_mps: 20, min_spacing_m: 40}
-flows:
-  - {vtype: car_mixed, vehs_per_hour: 2400, lanes: [0, 1, 2], speed_mps: 25}
-""")
+    base = write_scenario(tmp_path, busy_traffic(60))
     out = tmp_path / "search"
     assert main(["calibrate-lane-changes", str(base), str(real), "--seeds", "0", "--out", str(out),
                  "--candidates", "lc2013-default,lc2013-fixed5"]) == 0

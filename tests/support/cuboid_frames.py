@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from vcfusion.detection.detectors import Detections
 from vcfusion.records import EGO_ID
 from vcfusion.fusion.fuse import CameraFrame
 from vcfusion.fusion.matching import CameraView
@@ -73,3 +74,17 @@ class CuboidFrameSource:
                 ids.append(vid)
         return CameraFrame(tick.time, image, depth, cam, np.array(boxes, float).reshape(-1, 4), tuple(ids),
                            instances=inst, instance_ids=tuple(vid for _, vid, _ in order))
+
+
+class ShiftedOntoNeighbour:
+    """A detector whose box for the cutter spreads onto the neighbouring vehicle: one box over
+    both (the nearer neighbour owns most of its pixels; it still holds the cutter's anchor, so the
+    matcher gives it to the cutter's twin). `frame` is set per tick by the test."""
+
+    frame = None
+
+    def detect(self, image):
+        ids = list(self.frame.gt_ids)
+        cut, nb = self.frame.gt_boxes[ids.index("cutter")], self.frame.gt_boxes[ids.index("neighbour")]
+        box = [min(nb[0], cut[0]), min(nb[1], cut[1]), max(nb[2], cut[2]), max(nb[3], cut[3])]
+        return Detections.of(np.array([box]), np.array([0.9]), np.array([3]))

@@ -4,24 +4,12 @@ with --lateral-resolution; bad blocks are refused naming the field."""
 
 import numpy as np
 import pytest
-from scenario_files import write_scenario
+from scenario_files import busy_traffic, write_scenario
 
 from vcfusion.scenario import ScenarioError, load_scenario
 from vcfusion.traffic.session import SumoSession, lane_change_vtypes
 
-# Poisson cars with spread desired speeds on the 3-lane highway: tens of overtakes in a minute
-BUSY = """
-name: busy
-network: NET_DIR/highway.net.xml
-vehicle_types: NET_DIR/vtypes.add.xml
-simulation: {step_s: 0.1, max_time_s: 120}
-metrics: {enabled: false}
-prediction: {enabled: false}
-vehicles:
-  - {name: cars, count: 30, vtype: car_mixed, lanes: [0, 1, 2], pos_m: [10, 1500], speed_mps: 20, min_spacing_m: 40}
-flows:
-  - {vtype: car_mixed, vehs_per_hour: 2400, lanes: [0, 1, 2], speed_mps: 25}
-"""
+BUSY = busy_traffic()
 
 
 def _run(path, tmp_path, seconds=90.0):

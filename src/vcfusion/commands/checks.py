@@ -3,6 +3,8 @@ raises UsageError naming the option and what was expected (the command prints it
 
 from __future__ import annotations
 
+import math
+
 from pathlib import Path
 
 from vcfusion.errors import UsageError
@@ -88,3 +90,10 @@ def default_run_dir(name: str, seed: int) -> Path:
         n += 1
         candidate = base.with_name(f"{base.name}-{n}")
     return candidate
+
+
+def check_pose_noise_deg(value: float, option: str = "--pose-noise-deg") -> float:
+    """A camera pose error standard deviation in degrees, 0 to 10 (UsageError otherwise)."""
+    if not math.isfinite(value) or not 0 <= value <= 10:
+        raise UsageError(f"{option}: expected a standard deviation in degrees, 0 to 10, got {value}")
+    return value

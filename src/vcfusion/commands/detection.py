@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vcfusion.commands.checks import check_min_area, parse_seeds, parse_size
+from vcfusion.commands.checks import check_min_area, check_pose_noise_deg, parse_seeds, parse_size
 from vcfusion.errors import UsageError
 
 
@@ -123,8 +123,7 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
     check_min_area(args.min_area)
     if not np.isfinite(args.gnss_noise) or args.gnss_noise < 0:
         raise UsageError(f"--gnss-noise: expected a standard deviation >= 0 in metres, got {args.gnss_noise}")
-    if not np.isfinite(args.pose_noise_deg) or not 0 <= args.pose_noise_deg <= 10:
-        raise UsageError(f"--pose-noise-deg: expected a standard deviation in degrees, 0 to 10, got {args.pose_noise_deg}")
+    check_pose_noise_deg(args.pose_noise_deg)
     _check_distinct_folders(args.data)
     detector = _make_detector(args)
     ds = load_coco_many(args.data)

@@ -7,8 +7,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from vcfusion.commands.checks import (check_folder_path, check_min_area, check_new_folder, check_seed, float_list,
-                                      parse_seeds)
+from vcfusion.commands.checks import (check_folder_path, check_min_area, check_new_folder, check_pose_noise_deg,
+                                      check_seed, float_list, parse_seeds)
 from vcfusion.errors import UsageError
 from vcfusion.metrics.highlights import MIN_VISIBLE_PX
 from vcfusion.scenario import find_scenario, load_scenario
@@ -21,8 +21,7 @@ def with_sensors(scenario, depth_sensor: str | None, pose_noise_deg: float | Non
     if depth_sensor is not None:
         update["depth"] = depth_sensor
     if pose_noise_deg is not None:
-        if not (0 <= pose_noise_deg <= 10):
-            raise UsageError(f"--pose-noise-deg: expected a standard deviation in degrees, 0 to 10, got {pose_noise_deg}")
+        check_pose_noise_deg(pose_noise_deg)
         update["pose_noise"] = scenario.camera.pose_noise.model_copy(
             update={"mount_std_deg": pose_noise_deg, "body_motion": pose_noise_deg > 0})
     if not update:
@@ -34,6 +33,7 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
     from vcfusion.scenario import require_camera_world
     from vcfusion.detection.detector_net import DetectorFileError, TorchDetector, default_weights_path
     from vcfusion.detection.detectors import OracleDetector
+    from vcfusion.detection.family_eval import depth_counts_table
     from vcfusion.studies.identification import default_conditions, run_identification_study, summary_lines
     from vcfusion.fusion.box_refine import BoxRefineParams
     from vcfusion.fusion.stage import RenderedFrameSources, depth_params, scenario_road
@@ -79,12 +79,9 @@ def cmd_study_identification(args: argparse.Namespace) -> int:
           f"{int(n_targets.min()) if len(n_targets) else 0} target-frames per detector and method (clean V2C)")
     for line in summary_lines(rows, 0.7):
         print(line)
-    for name, c in rows.attrs.get("depth_counts", {}).items():
-        if c.get("frames"):
-            print(f"{name:>8} depth step: {c.get('boxes_refined', 0)} boxes refined, {c.get('boxes_gated', 0)} kept "
-                  f"as detected (depth could not decide), {c.get('frames_road_fit_failed', 0)} of {c['frames']} road "
-                  f"fits failed, {c.get('frames_without_proposals', 0)} frames without proposals; road fit "
-                  f"{c.get('road_fit_ms', 0.0) / c['frames']:.1f} ms per frame")
+    depth_counts = depth_counts_table(rows.attrs.get("depth_counts", {}))
+    if depth_counts:
+        print(depth_counts)
     print(f"outputs: {out}/identification_*.csv, *.png, identification_rows.parquet")
     return 0
 
