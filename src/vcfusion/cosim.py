@@ -410,12 +410,18 @@ class CoSimulation:
     def _ego_view(self, session: SumoSession, truth: VehicleStates, i: int,
                   leader: tuple[str, float] | None) -> EgoView:
         s = truth.road_frame(session.road)[0][i]
+        leader_speed = None
+        if leader:
+            # the truth was read at this step (SumoSession.states: SUMO's getSpeed of every vehicle), so
+            # the leader's speed there is SUMO's getSpeed(leader) without another libsumo call
+            ids = truth.ids
+            leader_speed = float(truth.speed[ids.index(leader[0])]) if leader[0] in ids else session.speed_of(leader[0])
         return EgoView(
             speed=float(truth.speed[i]), accel=float(truth.accel[i]),
             s=float(s + truth.length[i] / 2), lane=int(truth.lane[i]),
             leader_id=leader[0] if leader else None,
             leader_gap_m=leader[1] if leader else None,
-            leader_speed=session.speed_of(leader[0]) if leader else None,
+            leader_speed=leader_speed,
         )
 
 

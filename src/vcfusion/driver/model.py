@@ -136,7 +136,7 @@ class DriverModel:
         s, d = truth.road_frame(self.road)
         seen_mask = visible_vehicles(s, d, truth.length, truth.width, truth.height, i, self.policy, self.view)
         ego_front = float(s[i] + truth.length[i] / 2)
-        idx = np.flatnonzero(seen_mask).tolist()
+        idx = seen_mask.nonzero()[0].tolist()
         ids = [truth.ids[k] for k in idx]
         # plain dicts of plain floats, seen vehicles only (the loops below run over ~10 vehicles)
         rear = dict(zip(ids, (s[idx] - truth.length[idx] / 2).tolist()))

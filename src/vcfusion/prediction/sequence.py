@@ -95,7 +95,8 @@ class SequenceModel(DecisionSettings):
 
     def calibrated(self, z: np.ndarray) -> np.ndarray:
         a, b = self.calibration
-        return _sigmoid(np.float32(a) * z + np.float32(b)).astype(np.float32)
+        # float32 in, float32 out (NumPy's Python-scalar rule): the cast copies only other inputs
+        return _sigmoid(np.float32(a) * z + np.float32(b)).astype(np.float32, copy=False)
 
     def sequence_logits(self, x: np.ndarray, bounds: list[tuple[int, int]]) -> np.ndarray:
         """Logits of every row of x (rows of each segment (start, stop) in time order), each
@@ -159,6 +160,7 @@ class SequenceState:
         self._ids: list[str] = []
         self._h = np.zeros((0, model.hidden), dtype=np.float32)
         self._last = np.zeros(0)  # time each kept state was last updated
+        self._oldest = np.inf  # self._last.min() (inf when no state is kept)
 
     def __len__(self) -> int:
         return len(self._ids)
@@ -168,12 +170,13 @@ class SequenceState:
         m = self.model
         ids = list(ids)
         limit = m.reset_gap_ticks * m.period_s + _EPS
-        if ids == self._ids and len(ids) and time - float(self._last.min()) <= limit:
+        if ids == self._ids and len(ids) and time - self._oldest <= limit:
             # the common tick: the very twins of the last tick, every state carried (the general
             # path below gives the same states and probabilities, with a dozen more array calls)
             h = m.step(self._h, features)
             self._h = h
             self._last = np.full(len(ids), time)
+            self._oldest = float(time)
             return m.calibrated(m.output_logits(h))
         h = np.zeros((len(ids), m.hidden), dtype=np.float32)
         prev = np.array([self._row.get(v, -1) for v in ids], dtype=np.int64)
@@ -191,6 +194,7 @@ class SequenceState:
         self._ids = ids + [self._ids[k] for k in keep]
         self._h = np.concatenate([h, self._h[keep]]) if len(keep) else h
         self._last = np.concatenate([np.full(len(ids), time), self._last[keep]])
+        self._oldest = float(self._last.min()) if len(self._last) else np.inf
         self._row = dict(zip(self._ids, range(len(self._ids))))
         return prob
 
