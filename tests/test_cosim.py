@@ -425,3 +425,28 @@ def test_a_vision_run_of_one_seed_writes_the_same_tables_twice(tmp_path):
     for hook in (CameraHook, VisionFusionHook, CloudGuidanceFallback):
         table = pd.read_parquet(tmp_path / "a" / f"{hook.table}.parquet")
         assert len(table) and tuple(table.columns) == hook.columns, hook.table
+
+
+def test_the_ego_views_leader_speed_is_sumos_speed_of_the_leader_at_that_step():
+    """EgoView.leader_speed is read from the tick's ground truth, not asked of SUMO: it must be
+    SUMO's own getSpeed of the leader at the tick's step."""
+    import libsumo
+
+    from vcfusion.run import build_cosimulation
+
+    scenario = load_scenario("accident")
+    scenario = scenario.model_copy(update={"simulation": scenario.simulation.model_copy(update={"max_time_s": 12.0})})
+    run = build_cosimulation(scenario, 0).start()
+    compared = 0
+    try:
+        while run.tick is not None:
+            ego = run.tick.ego
+            if ego.leader_id is not None:
+                assert ego.leader_speed == libsumo.vehicle.getSpeed(ego.leader_id)
+                compared += 1
+            else:
+                assert ego.leader_speed is None
+            run.advance(-0.5 if ego.speed > 25.0 else 0.5)
+    finally:
+        run.close()
+    assert compared > 20
