@@ -383,7 +383,8 @@ class CoSimulation:
                 command = stepper(EgoStep(session.time, s_front, ego_speed_now, session.states))
                 ego_accel = float(command.accel)
             if ego_cfg is not None:
-                ego_rows.append((round(session.time, 6), s_front, ego_speed_now, sumo_acc, ego_accel,
+                # session.time is the nearest double to a whole number of milliseconds: its own round(.., 6)
+                ego_rows.append((session.time, s_front, ego_speed_now, sumo_acc, ego_accel,
                                  *(leader or ("", np.nan))))
                 if len(ego_rows) >= 1000:
                     sinks["ego"].append(_ego_columns(ego_rows))

@@ -289,6 +289,10 @@ class SumoSession:
             raise RunError(f"SUMO did not start ({exc}; SUMO's own message is the line above)") from None
         self._open = True
         self.time = 0.0
+        # SUMO counts time in whole milliseconds (simulation.step_s is a whole number of them): the
+        # step's start time is counted here, as SUMO counts it, instead of asked every step
+        self._step_ms = int(round(self.step_s * 1000.0))
+        self._begin_ms = int(round(libsumo.simulation.getTime() * 1000.0))  # when the next step begins
         self._static: dict[str, tuple] = {}
         # (ids, their static columns) of the last states(): reused while the same vehicles are there
         self._static_of: tuple[tuple, tuple] = ((), ((), (), np.zeros(0), np.zeros(0), np.zeros(0)))
@@ -428,8 +432,11 @@ class SumoSession:
         libsumo.simulationStep()
         self._steps += 1
         # SUMO's outputs (fcd, lanechange, collisions) label the state after a step with the time
-        # the step began; getTime() already returns the next one. Stamp like the outputs.
-        self.time = round(libsumo.simulation.getTime() - self.step_s, 9)
+        # the step began; getTime() already returns the next one. Stamp like the outputs: the
+        # nearest double to the step's start in seconds (round(getTime() - step_s, 9), one libsumo
+        # call and a rounding fewer per step)
+        self.time = self._begin_ms / 1000.0
+        self._begin_ms += self._step_ms
         for c in libsumo.simulation.getCollisions():
             # a pair reported again one step after its last report is the same contact going on
             k = self._contact.get((c.collider, c.victim))
