@@ -303,7 +303,7 @@ def add_parsers(sub) -> None:
     p = sub.add_parser("render-scenes", help="render procedural scenes (no SUMO run) into a COCO dataset folder")
     p.add_argument("--family", default="train",
                    help="train (the training sampler) or a held-out family: jam, far_chain, cut_in, truck_occlusion, "
-                        "high_mount")
+                        "high_mount, low_mount")
     p.add_argument("--seeds", required=True, help="scene seeds, e.g. 0-1999 (each family has its own scenes per seed)")
     p.add_argument("--out", required=True, help="dataset folder to create")
     p.add_argument("--scenario", default="overlap",
