@@ -288,9 +288,10 @@ def test_a_frame_whose_depth_image_is_missing_or_misfits_is_refused(families, tm
         assert str(depth) in err and "expected a single-channel image of the RGB image's size" in err
 
 
-def test_a_lidar_scan_leaves_the_detectors_boxes_and_says_so(families, tmp_path):
-    # a 64-beam scan cannot snap a box: every box is kept as detected (counted), none is proposed,
-    # and the identification is that of the raw boxes under the same depth (never worse)
+def test_a_lidar_scan_is_filled_and_snapped_or_left_as_detected_and_says_so(families, tmp_path):
+    # a 64-beam scan with its gaps left open cannot snap a box: every box is kept as detected
+    # (counted), none is proposed, and the identification is that of the raw boxes under the same
+    # depth; with the gaps filled between returns (the default) boxes crossed by enough scan rows snap
     import subprocess
     import sys
 
@@ -301,13 +302,17 @@ def test_a_lidar_scan_leaves_the_detectors_boxes_and_says_so(families, tmp_path)
 
     ds = load_coco_many([families[1]])
     det = TorchDetector(default_weights_path())
-    refined, _ = evaluate_families(det, ds, refine=BoxRefineParams(), depth_sensor="lidar")
+    sparse = BoxRefineParams(scan_fill_px=None)
+    refined, _ = evaluate_families(det, ds, refine=sparse, depth_sensor="lidar")
     raw, _ = evaluate_families(det, ds, refine=None, depth_sensor="lidar")
     c = refined[0].depth_counts
     assert c["frames"] == len(ds) and c["frames_without_proposals"] == len(ds)
     assert c["boxes_refined"] == 0 and c["boxes_gated"] > 0
-    assert refined[0].identification == raw[0].identification
     assert refined[0].summary()["depth_step_boxes_gated"] == c["boxes_gated"]
+    filled, _ = evaluate_families(det, ds, refine=BoxRefineParams(), depth_sensor="lidar")
+    f = filled[0].depth_counts
+    assert f["frames"] == len(ds) and f.get("frames_without_proposals", 0) == 0
+    assert f["boxes_refined"] > 0 and f["boxes_refined"] + f["boxes_gated"] <= c["boxes_gated"]
     bad = subprocess.run([sys.executable, "-m", "vcfusion", "eval-detector", str(families[1]), "--pose-noise-deg",
                           "-1"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--pose-noise-deg: expected a standard deviation" in bad.stderr

@@ -159,6 +159,16 @@ class BoxRefineParams:
     # proposals (gated; filling a 64-beam scan's gaps from the nearest return snapped the boxes
     # worse than the detector's: 58.9 vs 72.1 % on the development folders)
     gate_valid_share: float = 0.3
+    # a sparse scan (less than gate_valid_share measured) first has its gaps filled between returns at
+    # most this many pixels apart, (down a column, along a row): fill_scan_gaps; None: kept sparse
+    scan_fill_px: tuple[int, int] | None = (6, 2)
+    # a side of a snapped box where the depth ends in holes (more than this share of the two rows /
+    # columns outside it unmeasured) is the detector's: the surface may go on unseen
+    unmeasured_share: float = 0.5
+    scan_min_rows: int = 5  # a box whose core's columns hold fewer of a scan's returns than this (median
+    # over its columns) is gated: its outline lies between the scan's rows (development folders, LiDAR
+    # and 0.3 deg: 84.5 % at 3, 86.0 % at 5, 86.8 % at 7)
+    scan_road_m: float = 0.1  # a return within this (+ noise_k sigma) of the fitted road is the road's
 
     def __post_init__(self):
         for name, low, high in (("margin", 0.0, 2.0), ("support", 0.0, 1.0), ("min_iou", 0.0, 1.0),
@@ -344,9 +354,14 @@ def gate_by_noise(z_m: float, noise, params: BoxRefineParams) -> bool:
 
 
 def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray,
-                 params: BoxRefineParams = BoxRefineParams(), noise=None) -> RefinedBoxes:
+                 params: BoxRefineParams = BoxRefineParams(), noise=None,
+                 returns: np.ndarray | None = None) -> RefinedBoxes:
     """Each box snapped to the depth segment that explains it best (module docstring); with
-    ``noise`` (vcfusion.fusion.road.DepthNoise of `depth`), a box depth cannot decide is gated."""
+    ``noise`` (vcfusion.fusion.road.DepthNoise of `depth`), a box depth cannot decide is gated.
+    ``returns``: (H, W) bool, the pixels a scan measured when `depth` is a scan with its gaps filled
+    (:func:`fill_scan_gaps`): a box crossed by fewer than ``scan_min_rows`` of the scan's rows is
+    gated, and a side of a snapped box that ends where the scan measured nothing is the detector's
+    (:func:`_unmeasured_sides`)."""
     boxes = np.asarray(boxes, float).reshape(-1, 4)
     depth = np.asarray(depth)
     if depth.ndim != 2:
@@ -373,6 +388,12 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
         if np.isnan(z[core]).mean() > 1 - p.gate_valid_share:  # no measurement (holes, a sparse scan)
             gated[i] = True
             continue
+        if returns is not None:
+            # a box crossed by too few of the scan's rows: its outline lies between them, unseen
+            core_returns = returns[y0:y1, x0:x1][core]
+            if not core_returns.size or np.median(core_returns.sum(axis=0)) < p.scan_min_rows:
+                gated[i] = True
+                continue
         valid = np.isfinite(z) & (z > 0)
         if noise is not None and not noise.exact and valid[core].any() \
                 and gate_by_noise(float(np.median(z[core][valid[core]])), noise, p):
@@ -432,10 +453,33 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
                         best, best_sel = candidate, sel
                         break
         if best is not None:
+            if returns is not None:
+                best = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share)
             out[i] = best
             refined[i] = True
             top_m[i] = float(np.percentile(height[best_sel], 95))
     return RefinedBoxes(out, refined, top_m, gated)
+
+
+def _unmeasured_sides(best: np.ndarray, detected: np.ndarray, hole: np.ndarray, x0: int, y0: int,
+                      share: float) -> np.ndarray:
+    """The snapped box with each side where depth ends in a hole taken from the detector's box: when
+    more than ``share`` of the two pixel rows (columns) just outside a side, across the box, measured
+    nothing (nan: beyond a LiDAR's highest beam, a stereo hole), the surface may go on there unseen
+    (a near truck's upper half above a 64-beam scan's +2 deg). `hole`: the search window's nan mask,
+    whose pixel (0, 0) is image pixel (x0, y0)."""
+    out = best.copy()
+    Hh, Ww = hole.shape
+    c0, c1 = max(int(best[0] + 0.5) - x0, 0), min(int(best[2] + 0.5) - x0, Ww)
+    r0, r1 = max(int(best[1] + 0.5) - y0, 0), min(int(best[3] + 0.5) - y0, Hh)
+    if c1 <= c0 or r1 <= r0:
+        return out
+    strips = ((1, hole[max(r0 - 2, 0):r0, c0:c1]), (3, hole[r1:r1 + 2, c0:c1]),
+              (0, hole[r0:r1, max(c0 - 2, 0):c0]), (2, hole[r0:r1, c1:c1 + 2]))
+    for side, strip in strips:
+        if strip.size and strip.mean() > share:
+            out[side] = detected[side]
+    return out
 
 
 def _spans_jump(sel: np.ndarray, is_cut: bool, jump: np.ndarray) -> bool:
@@ -891,3 +935,39 @@ def _box_surfaces(boxes: np.ndarray, segments: ObjectSegments,
     for j in np.flatnonzero(~np.isfinite(surface)):
         surface[j] = _surface_depth(segments.z, segments.obj, boxes[j], segments.y_lo)
     return surface, outline
+
+
+def fill_scan_gaps(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: float,
+                   axis: int = 0, on_road: np.ndarray | None = None) -> np.ndarray:
+    """A sparse scan's depth (nan where no return lands) with the gaps between returns filled along
+    ``axis`` (0: down each column, 1: along each row), where two returns at most ``max_gap_px + 1``
+    pixels apart bound the gap: linearly in inverse depth between them (exact on a plane) when they
+    lie on one surface (no depth jump, :func:`_same_surface`) or both on the road (``on_road``, (H, W)
+    bool: returns within the road's noise of the fitted road; far down the road two beams' returns
+    lie metres apart), else each pixel takes the nearer return's depth (the edge between two surfaces
+    half-way between the returns). A gap wider than that, or open at the image's edge, stays nan.
+    ``inf`` (a return with nothing within range) counts as a return."""
+    z = np.asarray(depth, np.float32)
+    if axis == 1:
+        return fill_scan_gaps(z.T, max_gap_px, jump_m, jump_rel, 0, None if on_road is None else on_road.T).T
+    H = z.shape[0]
+    measured = ~np.isnan(z)
+    rows = np.arange(H)[:, None]
+    above = np.maximum.accumulate(np.where(measured, rows, -1), axis=0)
+    below = np.minimum.accumulate(np.where(measured, rows, H)[::-1], axis=0)[::-1]
+    gap = ~measured & (above >= 0) & (below < H) & (below - above <= max_gap_px + 1)
+    if not gap.any():
+        return z.copy()
+    r, c = np.nonzero(gap)
+    a, b = above[r, c], below[r, c]
+    za, zb = z[a, c], z[b, c]
+    t = ((r - a) / (b - a)).astype(np.float32)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        same = np.isfinite(za) & np.isfinite(zb) & (za > 0) & (zb > 0) & _same_surface(za, zb, jump_m, jump_rel)
+        if on_road is not None:
+            same |= np.isfinite(za) & np.isfinite(zb) & on_road[a, c] & on_road[b, c]
+        inverse = np.float32(1) / (np.float32(1) / za + t * (np.float32(1) / zb - np.float32(1) / za))
+        value = np.where(same, inverse, np.where(t <= 0.5, za, zb))
+    out = z.copy()
+    out[r, c] = value
+    return out

@@ -16,8 +16,8 @@ import numpy as np
 
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import GuidanceSet, TwinStates
-from vcfusion.fusion.box_refine import (BoxRefineParams, ObjectSegments, RefinedBoxes, box_surface_depths,
-                                       depth_proposals, join_fragments, object_segments, refine_boxes)
+from vcfusion.fusion.box_refine import (BoxRefineParams, _Heights, ObjectSegments, RefinedBoxes, box_surface_depths,
+                                       depth_proposals, fill_scan_gaps, join_fragments, object_segments, refine_boxes)
 from vcfusion.fusion.road import DepthNoise, RoadFit, fit_road_plane
 from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector, nms
@@ -61,27 +61,52 @@ class DepthView:
     noise: DepthNoise
     road: RoadFit | None
     sparse: bool
+    returns: np.ndarray | None = None  # (H, W) bool: a scan's own returns, when its gaps were filled
 
 
 def depth_view(frame: CameraFrame, refine: BoxRefineParams) -> DepthView:
     """The frame's :class:`DepthView` with `refine`'s settings, computed once per frame."""
-    key = (refine.road, refine.denoise_px, refine.denoise_passes, refine.denoise_sigma_share, refine.gate_valid_share)
+    key = (refine.road, refine.scan_fill_px, refine.scan_road_m, refine.denoise_px, refine.denoise_passes, refine.denoise_sigma_share, refine.gate_valid_share)
     cached = frame.__dict__.get("_depth_view")
     if cached is not None and cached[0] == key:
         return cached[1]
     cam = frame.camera
     depth, noise = frame.depth, frame.depth_noise
     sparse = bool(np.isnan(frame.depth).mean() > 1 - refine.gate_valid_share)
+    road = returns = None
+    if sparse and refine.scan_fill_px:  # a scan: its gaps between returns filled (box_refine.fill_scan_gaps)
+        # the road first, on the returns themselves (a plane needs no dense image), so that the road's
+        # returns are filled along the plane
+        T = cam.T_world_to_camera
+        returns = ~np.isnan(depth)
+        if refine.road == "from_depth":
+            road = fit_road_plane(depth, cam.K, T, noise)
+            T = road.T
+        heights = _Heights(cam.K, T)
+        on_road = _on_road(depth, heights, noise, refine)
+        depth = fill_scan_gaps(depth, refine.scan_fill_px[1], refine.jump_m, refine.jump_rel, 1, on_road)
+        on_road = _on_road(depth, heights, noise, refine)
+        depth = fill_scan_gaps(depth, refine.scan_fill_px[0], refine.jump_m, refine.jump_rel, 0, on_road)
+        sparse = bool(np.isnan(depth).mean() > 1 - refine.gate_valid_share)
     if not noise.exact and refine.denoise_px and not sparse:  # (a sparse scan has no neighbours to filter with)
         for _ in range(refine.denoise_passes):
             depth = _median(depth, refine.denoise_px)
         noise = noise.scaled(refine.denoise_sigma_share)
         if frame.depth_noise.mixed_edges:
             depth = _without_flying_pixels(depth, refine)
-    road = fit_road_plane(depth, cam.K, cam.T_world_to_camera, noise) if refine.road == "from_depth" else None
-    view = DepthView(depth, road.T if road is not None else cam.T_world_to_camera, noise, road, sparse)
+    if road is None and refine.road == "from_depth":
+        road = fit_road_plane(depth, cam.K, cam.T_world_to_camera, noise)
+    view = DepthView(depth, road.T if road is not None else cam.T_world_to_camera, noise, road, sparse, returns)
     object.__setattr__(frame, "_depth_view", (key, view))
     return view
+
+
+def _on_road(depth: np.ndarray, heights: _Heights, noise: DepthNoise, refine: BoxRefineParams) -> np.ndarray:
+    """(H, W) bool: measured pixels within ``refine.scan_road_m`` (+ noise_k sigma of their height's
+    noise) of the road `heights` measures from."""
+    finite = np.isfinite(depth)
+    z = np.where(finite, depth, np.float32(0))
+    return finite & (np.abs(heights.window(z, 0, 0)) < refine.scan_road_m + heights.noise_margin(z, noise, refine.noise_k))
 
 
 def _median(depth: np.ndarray, size: int) -> np.ndarray:
@@ -188,7 +213,7 @@ def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefinePara
         refined = RefinedBoxes(detections.boxes.copy(), np.zeros(len(detections), bool),
                                np.full(len(detections), np.nan), np.ones(len(detections), bool))
     else:
-        refined = refine_boxes(detections.boxes, view.depth, cam.K, view.T, refine, view.noise)
+        refined = refine_boxes(detections.boxes, view.depth, cam.K, view.T, refine, view.noise, view.returns)
     count_depth_step(stats, "boxes_gated", int(refined.gated.sum()))
     count_depth_step(stats, "boxes_refined", int(refined.refined.sum()))
     boxes, scores, snapped = refined.boxes, detections.scores, refined.refined
