@@ -168,6 +168,9 @@ class BoxRefineParams:
     scan_min_rows: int = 5  # a box whose core's columns hold fewer of a scan's returns than this (median
     # over its columns) is gated: its outline lies between the scan's rows (development folders, LiDAR
     # and 0.3 deg: 84.5 % at 3, 86.0 % at 5, 86.8 % at 7)
+    hole_fill_px: int = 16  # stereo depth (DepthNoise.c > 0): holes up to this wide filled along rows
+    # (fill_scan_gaps, occlusion bands with the farther depth; development folders, stereo + 0.3 deg:
+    # 81.4 % without, 82.9 % at 16 px, 82.2 % at 48 px)
     scan_road_m: float = 0.1  # a return within this (+ noise_k sigma) of the fitted road is the road's
 
     def __post_init__(self):
@@ -938,7 +941,7 @@ def _box_surfaces(boxes: np.ndarray, segments: ObjectSegments,
 
 
 def fill_scan_gaps(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: float,
-                   axis: int = 0, on_road: np.ndarray | None = None) -> np.ndarray:
+                   axis: int = 0, on_road: np.ndarray | None = None, occlusion_side: str | None = None) -> np.ndarray:
     """A sparse scan's depth (nan where no return lands) with the gaps between returns filled along
     ``axis`` (0: down each column, 1: along each row), where two returns at most ``max_gap_px + 1``
     pixels apart bound the gap: linearly in inverse depth between them (exact on a plane) when they
@@ -946,10 +949,14 @@ def fill_scan_gaps(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: 
     bool: returns within the road's noise of the fitted road; far down the road two beams' returns
     lie metres apart), else each pixel takes the nearer return's depth (the edge between two surfaces
     half-way between the returns). A gap wider than that, or open at the image's edge, stays nan.
-    ``inf`` (a return with nothing within range) counts as a return."""
+    ``inf`` (a return with nothing within range) counts as a return. ``occlusion_side="left"`` (along
+    rows of a stereo pair's left image): a gap whose right end is nearer than its left by a depth
+    jump is the band the right camera could not see behind the nearer surface's left edge, and takes
+    the farther depth whole."""
     z = np.asarray(depth, np.float32)
     if axis == 1:
-        return fill_scan_gaps(z.T, max_gap_px, jump_m, jump_rel, 0, None if on_road is None else on_road.T).T
+        return fill_scan_gaps(z.T, max_gap_px, jump_m, jump_rel, 0, None if on_road is None else on_road.T,
+                              occlusion_side).T
     H = z.shape[0]
     measured = ~np.isnan(z)
     rows = np.arange(H)[:, None]
@@ -967,7 +974,12 @@ def fill_scan_gaps(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: 
         if on_road is not None:
             same |= np.isfinite(za) & np.isfinite(zb) & on_road[a, c] & on_road[b, c]
         inverse = np.float32(1) / (np.float32(1) / za + t * (np.float32(1) / zb - np.float32(1) / za))
-        value = np.where(same, inverse, np.where(t <= 0.5, za, zb))
+        edge = np.where(t <= 0.5, za, zb)
+        if occlusion_side == "left":
+            # a stereo pair's occlusion band: left of a nearer surface, the farther one the right
+            # camera could not see (the right end nearer than the left by a jump): the farther's
+            edge = np.where(_farther(za, zb, jump_m, jump_rel), za, edge)
+        value = np.where(same, inverse, edge)
     out = z.copy()
     out[r, c] = value
     return out

@@ -66,7 +66,7 @@ class DepthView:
 
 def depth_view(frame: CameraFrame, refine: BoxRefineParams) -> DepthView:
     """The frame's :class:`DepthView` with `refine`'s settings, computed once per frame."""
-    key = (refine.road, refine.scan_fill_px, refine.scan_road_m, refine.denoise_px, refine.denoise_passes, refine.denoise_sigma_share, refine.gate_valid_share)
+    key = (refine.road, refine.scan_fill_px, refine.scan_road_m, refine.hole_fill_px, refine.denoise_px, refine.denoise_passes, refine.denoise_sigma_share, refine.gate_valid_share)
     cached = frame.__dict__.get("_depth_view")
     if cached is not None and cached[0] == key:
         return cached[1]
@@ -88,6 +88,8 @@ def depth_view(frame: CameraFrame, refine: BoxRefineParams) -> DepthView:
         on_road = _on_road(depth, heights, noise, refine)
         depth = fill_scan_gaps(depth, refine.scan_fill_px[0], refine.jump_m, refine.jump_rel, 0, on_road)
         sparse = bool(np.isnan(depth).mean() > 1 - refine.gate_valid_share)
+    if not sparse and noise.c > 0 and refine.hole_fill_px:  # stereo: its holes filled along the rows
+        depth = fill_scan_gaps(depth, refine.hole_fill_px, refine.jump_m, refine.jump_rel, 1, None, "left")
     if not noise.exact and refine.denoise_px and not sparse:  # (a sparse scan has no neighbours to filter with)
         for _ in range(refine.denoise_passes):
             depth = _median(depth, refine.denoise_px)
