@@ -954,25 +954,36 @@ def fill_scan_gaps(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: 
     jump is the band the right camera could not see behind the nearer surface's left edge, and takes
     the farther depth whole."""
     z = np.asarray(depth, np.float32)
-    if axis == 1:
-        return fill_scan_gaps(z.T, max_gap_px, jump_m, jump_rel, 0, None if on_road is None else on_road.T,
-                              occlusion_side).T
-    H = z.shape[0]
     measured = ~np.isnan(z)
-    rows = np.arange(H)[:, None]
-    above = np.maximum.accumulate(np.where(measured, rows, -1), axis=0)
-    below = np.minimum.accumulate(np.where(measured, rows, H)[::-1], axis=0)[::-1]
-    gap = ~measured & (above >= 0) & (below < H) & (below - above <= max_gap_px + 1)
+    H, W = z.shape
+    # per pixel, how far the nearest return lies before (above / left) and after it along the axis,
+    # within max_gap_px + 1 (0: none that near); one shifted comparison per distance
+    before = np.zeros(z.shape, np.int16)
+    after = np.zeros(z.shape, np.int16)
+    n = H if axis == 0 else W
+    for d in range(1, min(max_gap_px + 1, n - 1) + 1):
+        if axis == 0:
+            b_view, b_src, a_view, a_src = before[d:], measured[:-d], after[:-d], measured[d:]
+        else:
+            b_view, b_src, a_view, a_src = before[:, d:], measured[:, :-d], after[:, :-d], measured[:, d:]
+        b_view[(b_view == 0) & b_src] = d
+        a_view[(a_view == 0) & a_src] = d
+    gap = ~measured & (before > 0) & (after > 0) & (before + after <= max_gap_px + 1)
     if not gap.any():
         return z.copy()
     r, c = np.nonzero(gap)
-    a, b = above[r, c], below[r, c]
-    za, zb = z[a, c], z[b, c]
-    t = ((r - a) / (b - a)).astype(np.float32)
+    da, db = before[r, c], after[r, c]
+    if axis == 0:
+        za, zb = z[r - da, c], z[r + db, c]
+        road_a, road_b = (None, None) if on_road is None else (on_road[r - da, c], on_road[r + db, c])
+    else:
+        za, zb = z[r, c - da], z[r, c + db]
+        road_a, road_b = (None, None) if on_road is None else (on_road[r, c - da], on_road[r, c + db])
+    t = (da / (da + db)).astype(np.float32)
     with np.errstate(invalid="ignore", divide="ignore"):
         same = np.isfinite(za) & np.isfinite(zb) & (za > 0) & (zb > 0) & _same_surface(za, zb, jump_m, jump_rel)
         if on_road is not None:
-            same |= np.isfinite(za) & np.isfinite(zb) & on_road[a, c] & on_road[b, c]
+            same |= np.isfinite(za) & np.isfinite(zb) & road_a & road_b
         inverse = np.float32(1) / (np.float32(1) / za + t * (np.float32(1) / zb - np.float32(1) / za))
         edge = np.where(t <= 0.5, za, zb)
         if occlusion_side == "left":
