@@ -955,6 +955,17 @@ def fill_scan_gaps(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: 
     the farther depth whole."""
     z = np.asarray(depth, np.float32)
     measured = ~np.isnan(z)
+    # only the rows holding returns can hold a gap between two of them (the sky above a scan's highest
+    # beam holds none)
+    rows = np.flatnonzero(measured.any(axis=1))
+    if not len(rows):
+        return z.copy()
+    if rows[0] > 0 or rows[-1] < z.shape[0] - 1:
+        lo, hi = int(rows[0]), int(rows[-1]) + 1
+        out = z.copy()
+        out[lo:hi] = fill_scan_gaps(z[lo:hi], max_gap_px, jump_m, jump_rel, axis,
+                                    None if on_road is None else on_road[lo:hi], occlusion_side)
+        return out
     H, W = z.shape
     # per pixel, how far the nearest return lies before (above / left) and after it along the axis,
     # within max_gap_px + 1 (0: none that near); one shifted comparison per distance

@@ -82,10 +82,9 @@ def depth_view(frame: CameraFrame, refine: BoxRefineParams) -> DepthView:
         if refine.road == "from_depth":
             road = fit_road_plane(depth, cam.K, T, noise)
             T = road.T
-        heights = _Heights(cam.K, T)
-        on_road = _on_road(depth, heights, noise, refine)
-        depth = fill_scan_gaps(depth, refine.scan_fill_px[1], refine.jump_m, refine.jump_rel, 1, on_road)
-        on_road = _on_road(depth, heights, noise, refine)
+        # along each beam's row first (returns a pixel or two apart), then down the columns between beams
+        depth = fill_scan_gaps(depth, refine.scan_fill_px[1], refine.jump_m, refine.jump_rel, 1)
+        on_road = _on_road(depth, _Heights(cam.K, T), noise, refine)
         depth = fill_scan_gaps(depth, refine.scan_fill_px[0], refine.jump_m, refine.jump_rel, 0, on_road)
         sparse = bool(np.isnan(depth).mean() > 1 - refine.gate_valid_share)
     if not sparse and noise.c > 0 and refine.hole_fill_px:  # stereo: its holes filled along the rows
