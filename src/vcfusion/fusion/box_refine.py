@@ -63,7 +63,11 @@ flat road where the fit fails, counted), and with a sensor's noise (a DepthNoise
 median-filtered first, the object pixels' height threshold grows by ``noise_k`` sigma of the
 height's noise, and a box (or proposal) whose depth is too noisy to tell one surface from the next,
 or whose core holds too little measured depth, keeps the detector's box: it is *gated*, and counted
-(``RefinedBoxes.gated``; fuse.depth_step's counts), never silently.
+(``RefinedBoxes.gated``; fuse.depth_step's counts), never silently. Holes are filled first where
+the sensor leaves them between two measurements (:func:`fill_scan_gaps`): a stereo pair's along its
+rows (the occlusion band left of a nearer surface with the farther depth), a LiDAR scan's between
+its returns (the road's along the fitted plane); on a scan a box crossed by too few of its rows is
+gated, and a side of a snapped box that ends where the scan sees nothing is the detector's.
 
 The band is one vehicle deep: a car behind another in the same lane is at least a car length plus
 the gap farther away, so it falls outside the band of the car in front. Depth quality sets what
@@ -160,18 +164,25 @@ class BoxRefineParams:
     # worse than the detector's: 58.9 vs 72.1 % on the development folders)
     gate_valid_share: float = 0.3
     # a sparse scan (less than gate_valid_share measured) first has its gaps filled between returns at
-    # most this many pixels apart, (down a column, along a row): fill_scan_gaps; None: kept sparse
+    # most this many pixels apart (down a column, along a row; px): fill_scan_gaps. A 64-beam scan's
+    # rows lie 3-4 px apart at f = 457 px and its returns 1-2 px apart along a row; development
+    # folders, LiDAR + 0.3 deg: 72.1 % kept sparse (every box gated), 86.0 % filled. None: kept sparse
     scan_fill_px: tuple[int, int] | None = (6, 2)
-    # a side of a snapped box where the depth ends in holes (more than this share of the two rows /
-    # columns outside it unmeasured) is the detector's: the surface may go on unseen
+    # a scan's return within this of the fitted road (m, + noise_k sigma of its height's noise) is the
+    # road's: two such returns bound a gap filled along the plane (nearest-return fill of the road: 56.6 %
+    # on the development folders, the road between two beams 0.1-0.3 m above the plane)
+    scan_road_m: float = 0.1
+    # on a scan, a side of a snapped box where the depth ends unmeasured (more than this share of the
+    # two rows / columns outside it nan) is the detector's: the surface may go on unseen (a truck 9 m
+    # ahead above the highest beam, +2 deg; development folders, LiDAR + 0.3 deg: 65.1 % without, 84.5 %
+    # with, at scan_min_rows 3)
     unmeasured_share: float = 0.5
     scan_min_rows: int = 5  # a box whose core's columns hold fewer of a scan's returns than this (median
     # over its columns) is gated: its outline lies between the scan's rows (development folders, LiDAR
     # and 0.3 deg: 84.5 % at 3, 86.0 % at 5, 86.8 % at 7)
-    hole_fill_px: int = 16  # stereo depth (DepthNoise.c > 0): holes up to this wide filled along rows
+    hole_fill_px: int = 16  # px; stereo depth (DepthNoise.c > 0): holes up to this wide filled along rows
     # (fill_scan_gaps, occlusion bands with the farther depth; development folders, stereo + 0.3 deg:
     # 81.4 % without, 82.9 % at 16 px, 82.2 % at 48 px)
-    scan_road_m: float = 0.1  # a return within this (+ noise_k sigma) of the fitted road is the road's
 
     def __post_init__(self):
         for name, low, high in (("margin", 0.0, 2.0), ("support", 0.0, 1.0), ("min_iou", 0.0, 1.0),

@@ -52,9 +52,10 @@ class CameraFrame:
 
 @dataclass(frozen=True)
 class DepthView:
-    """What the depth step works on for one frame (:func:`depth_view`): the depth (median-filtered
-    when noisy), the pose whose z = 0 plane is the road, the depth's noise after the filter, the
-    road fit, and whether the image holds too little measured depth for proposals."""
+    """What the depth step works on for one frame (:func:`depth_view`): the depth (a stereo pair's
+    holes and a LiDAR scan's gaps filled, box_refine.fill_scan_gaps; median-filtered when noisy),
+    the pose whose z = 0 plane is the road, the depth's noise after the filter, the road fit, whether
+    the image holds too little measured depth for proposals, and a filled scan's own returns."""
 
     depth: np.ndarray
     T: np.ndarray
@@ -66,7 +67,8 @@ class DepthView:
 
 def depth_view(frame: CameraFrame, refine: BoxRefineParams) -> DepthView:
     """The frame's :class:`DepthView` with `refine`'s settings, computed once per frame."""
-    key = (refine.road, refine.scan_fill_px, refine.scan_road_m, refine.hole_fill_px, refine.denoise_px, refine.denoise_passes, refine.denoise_sigma_share, refine.gate_valid_share)
+    key = (refine.road, refine.scan_fill_px, refine.scan_road_m, refine.hole_fill_px, refine.denoise_px,
+           refine.denoise_passes, refine.denoise_sigma_share, refine.gate_valid_share)
     cached = frame.__dict__.get("_depth_view")
     if cached is not None and cached[0] == key:
         return cached[1]
@@ -107,7 +109,8 @@ def _on_road(depth: np.ndarray, heights: _Heights, noise: DepthNoise, refine: Bo
     noise) of the road `heights` measures from."""
     finite = np.isfinite(depth)
     z = np.where(finite, depth, np.float32(0))
-    return finite & (np.abs(heights.window(z, 0, 0)) < refine.scan_road_m + heights.noise_margin(z, noise, refine.noise_k))
+    tolerance = refine.scan_road_m + heights.noise_margin(z, noise, refine.noise_k)
+    return finite & (np.abs(heights.window(z, 0, 0)) < tolerance)
 
 
 def _median(depth: np.ndarray, size: int) -> np.ndarray:
