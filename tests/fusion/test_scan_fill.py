@@ -131,3 +131,25 @@ def test_the_depth_step_snaps_boxes_on_a_lidar_scan():
     out = depth_step(frame, Detections.of(loose, np.array([0.9]), np.array([1])),
                      BoxRefineParams(road="from_depth", scan_fill_px=None), stats=kept)
     assert kept["boxes_gated"] == 1 and np.array_equal(out.boxes, loose)
+
+
+def test_the_depth_step_snaps_a_car_whose_stereo_depth_has_a_textureless_hole_across_it():
+    T = _pose()
+    car = (130, 105, 190, 139)  # a car 15 m ahead on row 139, 60 px wide
+    truth = _road_depth(T, cars=[(*car, 15.0)])
+    sensor = SensorModel("stereo", rng=np.random.default_rng(7))
+    depth = sensor.depth(truth, K, T)
+    depth[:, 155:167] = np.nan  # a flat-coloured band down the car's middle: block matching finds nothing
+    frame = CameraFrame(0.0, np.zeros((H, W, 3), np.uint8), depth, camera_view(K, T, W, H, 0.0),
+                        depth_noise=sensor.noise(K))
+    loose = np.array([[124.0, 100.0, 197.0, 143.0]])
+    true_box = np.array([[car[0] - 0.5, car[1] - 0.5, car[2] - 0.5, car[3] - 0.5]])
+    dets = Detections.of(loose, np.array([0.9]), np.array([1]))
+    stats = {}
+    filled = depth_step(frame, dets, BoxRefineParams(road="from_depth"), stats=stats)
+    assert stats["boxes_refined"] == 1 and box_iou(filled.boxes[:1], true_box)[0, 0] > 0.85
+    # left open, the band cuts the car in two and the box snaps to one half
+    frame = CameraFrame(0.0, np.zeros((H, W, 3), np.uint8), depth, camera_view(K, T, W, H, 0.0),
+                        depth_noise=sensor.noise(K))
+    split = depth_step(frame, dets, BoxRefineParams(road="from_depth", hole_fill_px=0))
+    assert box_iou(split.boxes[:1], true_box)[0, 0] < 0.7
