@@ -316,3 +316,20 @@ def test_a_lidar_scan_is_filled_and_snapped_or_left_as_detected_and_says_so(fami
     bad = subprocess.run([sys.executable, "-m", "vcfusion", "eval-detector", str(families[1]), "--pose-noise-deg",
                           "-1"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--pose-noise-deg: expected a standard deviation" in bad.stderr
+
+
+def test_each_target_is_told_what_became_of_it():
+    from vcfusion.detection.family_eval import failure_kinds, format_failure_table, FamilyResult
+
+    gt = np.array([[0, 0, 10, 10], [20, 0, 30, 10], [40, 0, 50, 10], [60, 0, 70, 10], [80, 0, 90, 10]], float)
+    detected = np.array([[0, 0, 10, 10], [20, 0, 26, 10], [40, 0, 50, 10], [80, 0, 85, 10]], float)
+    # the depth step kept boxes 0-2 as detected, snapped the last one off and proposed nothing for gt 3
+    boxes = np.array([[0, 0, 10, 10], [20, 0, 26, 10], [40, 0, 50, 10], [80, 0, 84, 10]], float)
+    matched = np.array([1.0, 0.6, 0.0, 0.0, 0.4])  # gt 2's right box was there, the matcher took another
+    kinds = failure_kinds(matched, gt, boxes, detected)
+    assert kinds == ["right", "detector_box_off", "matcher", "missed", "depth_box_off"]
+    r = FamilyResult("f", 1, 5, None, np.zeros(5), failures={"cnn": {k: kinds.count(k) for k in
+                                                                      ("right", "missed", "detector_box_off",
+                                                                       "depth_box_off", "matcher")}})
+    table = format_failure_table([r])
+    assert table.splitlines()[1].split() == ["f", "1", "1", "1", "1", "1"]
