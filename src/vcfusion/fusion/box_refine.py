@@ -792,7 +792,7 @@ def _union_if_within(box: np.ndarray, other: np.ndarray, max_width_px: float) ->
 
 
 def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegments | None, K: np.ndarray,
-                   refine: BoxRefineParams = BoxRefineParams()) -> np.ndarray:
+                   refine: BoxRefineParams = BoxRefineParams(), noise=None) -> np.ndarray:
     """Each box grown over its own segment whole and over the other fragments of its vehicle: (N, 4)
     boxes.
 
@@ -810,7 +810,9 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
     segment of one of the ``owners`` boxes (IoU > 0.5; an (N,) mask: the boxes the fusion uses),
     what lies between the two is mostly nearer (the piece of the nearer vehicle that cuts them apart)
     and all together are no wider than a vehicle (a car beside it at the same depth in the next lane
-    is a lane width away)."""
+    is a lane width away). With ``noise`` (the depth's DepthNoise), a box whose surface lies where the
+    depth is too noisy to tell one surface from the next (:func:`gate_by_noise`) does not grow: the
+    gate that kept it as detected holds here too."""
     from vcfusion.fusion.matching import box_inside_share, box_iou
 
     params = refine.proposals
@@ -847,7 +849,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
     surfaces, outline_label = _box_surfaces(boxes, segments, refine)
     for i, b in enumerate(boxes):
         surface = surfaces[i]
-        if not np.isfinite(surface):
+        if not np.isfinite(surface) or gate_by_noise(surface, noise, refine):
             continue
         tolerance = params.fragment_depth_m + 0.03 * surface
         max_width_px = params.max_width_m * fx / surface

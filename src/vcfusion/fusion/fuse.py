@@ -247,7 +247,7 @@ def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefinePara
         new_scores = _proposal_scores(new, boxes[~confident], scores[~confident], refine.proposals.score)
         boxes, scores = np.vstack([boxes, new]), np.r_[scores, new_scores]
         classes = np.r_[classes, np.where(is_truck, category_id("truck"), category_id("passenger"))]
-        boxes = join_fragments(boxes, scores >= refine.proposals.score, segments, cam.K, refine)
+        boxes = join_fragments(boxes, scores >= refine.proposals.score, segments, cam.K, refine, view.noise)
     return Detections.of(boxes, scores, classes)
 
 
