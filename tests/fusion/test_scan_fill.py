@@ -153,3 +153,14 @@ def test_the_depth_step_snaps_a_car_whose_stereo_depth_has_a_textureless_hole_ac
                         depth_noise=sensor.noise(K))
     split = depth_step(frame, dets, BoxRefineParams(road="from_depth", hole_fill_px=0))
     assert box_iou(split.boxes[:1], true_box)[0, 0] < 0.7
+
+
+def test_fill_settings_out_of_range_say_which():
+    import pytest
+
+    with pytest.raises(ValueError, match="scan_fill_px"):
+        BoxRefineParams(scan_fill_px=(6, -1))
+    with pytest.raises(ValueError, match="hole_fill_px"):
+        BoxRefineParams(hole_fill_px=-2)
+    with pytest.raises(ValueError, match="occlusion_side"):
+        fill_scan_gaps(np.zeros((2, 2), np.float32), 4, *JUMP, axis=1, occlusion_side="right")

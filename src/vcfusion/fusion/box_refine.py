@@ -160,8 +160,8 @@ class BoxRefineParams:
     gate_noise: float = 0.5
     # a box whose core holds less than this share of measured depth (holes, a sparse LiDAR) keeps the
     # detector's box, and an image with less than this share keeps every box and has no depth
-    # proposals (gated; filling a 64-beam scan's gaps from the nearest return snapped the boxes
-    # worse than the detector's: 58.9 vs 72.1 % on the development folders)
+    # proposals (gated); a scan's gaps are filled first (scan_fill_px: filled from the nearest return
+    # alone the boxes snapped worse than the detector's, 58.9 vs 72.1 % on the development folders)
     gate_valid_share: float = 0.3
     # a sparse scan (less than gate_valid_share measured) first has its gaps filled between returns at
     # most this many pixels apart (down a column, along a row; px): fill_scan_gaps. A 64-beam scan's
@@ -186,12 +186,17 @@ class BoxRefineParams:
 
     def __post_init__(self):
         for name, low, high in (("margin", 0.0, 2.0), ("support", 0.0, 1.0), ("min_iou", 0.0, 1.0),
-                                ("pair_min_iou", 0.0, 1.0)):
+                                ("pair_min_iou", 0.0, 1.0), ("unmeasured_share", 0.0, 1.0)):
             v = getattr(self, name)
             if not low <= v <= high:
                 raise ValueError(f"{name}: expected a value in [{low}, {high}], got {v}")
         if self.pair_width_m <= 0:
             raise ValueError(f"pair_width_m: expected a positive width, got {self.pair_width_m}")
+        if self.scan_fill_px is not None and (len(self.scan_fill_px) != 2 or min(self.scan_fill_px) < 0):
+            raise ValueError(f"scan_fill_px: expected None or two gap widths >= 0 (px), got {self.scan_fill_px}")
+        if self.hole_fill_px < 0 or self.scan_min_rows < 0 or self.scan_road_m < 0:
+            raise ValueError("hole_fill_px, scan_min_rows, scan_road_m: expected values >= 0, got "
+                             f"{self.hole_fill_px}, {self.scan_min_rows}, {self.scan_road_m}")
         if self.band_m <= 0 or self.candidates < 1:
             raise ValueError(f"band_m and candidates: expected positive values, got {self.band_m}, {self.candidates}")
 
@@ -953,8 +958,8 @@ def _box_surfaces(boxes: np.ndarray, segments: ObjectSegments,
     return surface, outline
 
 
-def fill_scan_gaps(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: float,
-                   axis: int = 0, on_road: np.ndarray | None = None, occlusion_side: str | None = None) -> np.ndarray:
+def fill_scan_gaps(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: float, axis: int = 0,
+                   on_road: np.ndarray | None = None, occlusion_side: str | None = None) -> np.ndarray:
     """A sparse scan's depth (nan where no return lands) with the gaps between returns filled along
     ``axis`` (0: down each column, 1: along each row), where two returns at most ``max_gap_px + 1``
     pixels apart bound the gap: linearly in inverse depth between them (exact on a plane) when they
@@ -966,6 +971,10 @@ def fill_scan_gaps(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: 
     rows of a stereo pair's left image): a gap whose right end is nearer than its left by a depth
     jump is the band the right camera could not see behind the nearer surface's left edge, and takes
     the farther depth whole."""
+    if occlusion_side not in (None, "left"):
+        raise ValueError(f"occlusion_side: expected None or 'left', got {occlusion_side!r}")
+    if axis not in (0, 1):
+        raise ValueError(f"axis: expected 0 (columns) or 1 (rows), got {axis}")
     z = np.asarray(depth, np.float32)
     measured = ~np.isnan(z)
     # only the rows holding returns can hold a gap between two of them (the sky above a scan's highest
@@ -1018,3 +1027,14 @@ def fill_scan_gaps(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: 
     out = z.copy()
     out[r, c] = value
     return out
+
+
+def on_road_mask(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, noise,
+                 refine: BoxRefineParams = BoxRefineParams()) -> np.ndarray:
+    """(H, W) bool: the measured pixels within ``refine.scan_road_m`` (+ ``noise_k`` sigma of their
+    height's noise) of the road whose z = 0 plane `T_world_to_camera` defines (a fitted road's pose)."""
+    heights = _Heights(K, T_world_to_camera)
+    finite = np.isfinite(depth)
+    z = np.where(finite, depth, np.float32(0)).astype(np.float32)
+    tolerance = refine.scan_road_m + heights.noise_margin(z, noise, refine.noise_k)
+    return finite & (np.abs(heights.window(z, 0, 0)) < tolerance)

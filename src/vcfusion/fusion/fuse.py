@@ -16,8 +16,9 @@ import numpy as np
 
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import GuidanceSet, TwinStates
-from vcfusion.fusion.box_refine import (BoxRefineParams, _Heights, ObjectSegments, RefinedBoxes, box_surface_depths,
-                                       depth_proposals, fill_scan_gaps, join_fragments, object_segments, refine_boxes)
+from vcfusion.fusion.box_refine import (BoxRefineParams, ObjectSegments, RefinedBoxes, box_surface_depths,
+                                       depth_proposals, fill_scan_gaps, join_fragments, object_segments,
+                                       on_road_mask, refine_boxes)
 from vcfusion.fusion.road import DepthNoise, RoadFit, fit_road_plane
 from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector, nms
@@ -86,7 +87,7 @@ def depth_view(frame: CameraFrame, refine: BoxRefineParams) -> DepthView:
             T = road.T
         # along each beam's row first (returns a pixel or two apart), then down the columns between beams
         depth = fill_scan_gaps(depth, refine.scan_fill_px[1], refine.jump_m, refine.jump_rel, 1)
-        on_road = _on_road(depth, _Heights(cam.K, T), noise, refine)
+        on_road = on_road_mask(depth, cam.K, T, noise, refine)
         depth = fill_scan_gaps(depth, refine.scan_fill_px[0], refine.jump_m, refine.jump_rel, 0, on_road)
         sparse = bool(np.isnan(depth).mean() > 1 - refine.gate_valid_share)
     if not sparse and noise.c > 0 and refine.hole_fill_px:  # stereo: its holes filled along the rows
@@ -102,15 +103,6 @@ def depth_view(frame: CameraFrame, refine: BoxRefineParams) -> DepthView:
     view = DepthView(depth, road.T if road is not None else cam.T_world_to_camera, noise, road, sparse, returns)
     object.__setattr__(frame, "_depth_view", (key, view))
     return view
-
-
-def _on_road(depth: np.ndarray, heights: _Heights, noise: DepthNoise, refine: BoxRefineParams) -> np.ndarray:
-    """(H, W) bool: measured pixels within ``refine.scan_road_m`` (+ noise_k sigma of their height's
-    noise) of the road `heights` measures from."""
-    finite = np.isfinite(depth)
-    z = np.where(finite, depth, np.float32(0))
-    tolerance = refine.scan_road_m + heights.noise_margin(z, noise, refine.noise_k)
-    return finite & (np.abs(heights.window(z, 0, 0)) < tolerance)
 
 
 def _median(depth: np.ndarray, size: int) -> np.ndarray:
