@@ -288,9 +288,10 @@ def test_a_frame_whose_depth_image_is_missing_or_misfits_is_refused(families, tm
         assert str(depth) in err and "expected a single-channel image of the RGB image's size" in err
 
 
-def test_a_lidar_scan_leaves_the_detectors_boxes_and_says_so(families, tmp_path):
-    # a 64-beam scan cannot snap a box: every box is kept as detected (counted), none is proposed,
-    # and the identification is that of the raw boxes under the same depth (never worse)
+def test_a_lidar_scan_is_filled_and_snapped_or_left_as_detected_and_says_so(families, tmp_path):
+    # a 64-beam scan with its gaps left open cannot snap a box: every box is kept as detected
+    # (counted), none is proposed, and the identification is that of the raw boxes under the same
+    # depth; with the gaps filled between returns (the default) boxes crossed by enough scan rows snap
     import subprocess
     import sys
 
@@ -301,13 +302,34 @@ def test_a_lidar_scan_leaves_the_detectors_boxes_and_says_so(families, tmp_path)
 
     ds = load_coco_many([families[1]])
     det = TorchDetector(default_weights_path())
-    refined, _ = evaluate_families(det, ds, refine=BoxRefineParams(), depth_sensor="lidar")
+    sparse = BoxRefineParams(scan_fill_px=None)
+    refined, _ = evaluate_families(det, ds, refine=sparse, depth_sensor="lidar")
     raw, _ = evaluate_families(det, ds, refine=None, depth_sensor="lidar")
     c = refined[0].depth_counts
     assert c["frames"] == len(ds) and c["frames_without_proposals"] == len(ds)
     assert c["boxes_refined"] == 0 and c["boxes_gated"] > 0
-    assert refined[0].identification == raw[0].identification
     assert refined[0].summary()["depth_step_boxes_gated"] == c["boxes_gated"]
+    filled, _ = evaluate_families(det, ds, refine=BoxRefineParams(), depth_sensor="lidar")
+    f = filled[0].depth_counts
+    assert f["frames"] == len(ds) and f.get("frames_without_proposals", 0) == 0
+    assert f["boxes_refined"] > 0 and f["boxes_refined"] + f["boxes_gated"] <= c["boxes_gated"]
     bad = subprocess.run([sys.executable, "-m", "vcfusion", "eval-detector", str(families[1]), "--pose-noise-deg",
                           "-1"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--pose-noise-deg: expected a standard deviation" in bad.stderr
+
+
+def test_each_target_is_told_what_became_of_it():
+    from vcfusion.detection.family_eval import failure_kinds, format_failure_table, FamilyResult
+
+    gt = np.array([[0, 0, 10, 10], [20, 0, 30, 10], [40, 0, 50, 10], [60, 0, 70, 10], [80, 0, 90, 10]], float)
+    detected = np.array([[0, 0, 10, 10], [20, 0, 26, 10], [40, 0, 50, 10], [80, 0, 85, 10]], float)
+    # the depth step kept boxes 0-2 as detected, snapped the last one off and proposed nothing for gt 3
+    boxes = np.array([[0, 0, 10, 10], [20, 0, 26, 10], [40, 0, 50, 10], [80, 0, 84, 10]], float)
+    matched = np.array([1.0, 0.6, 0.0, 0.0, 0.4])  # gt 2's right box was there, the matcher took another
+    kinds = failure_kinds(matched, gt, boxes, detected)
+    assert kinds == ["right", "detector_box_off", "matcher", "missed", "depth_box_off"]
+    r = FamilyResult("f", 1, 5, None, np.zeros(5), failures={"cnn": {k: kinds.count(k) for k in
+                                                                      ("right", "missed", "detector_box_off",
+                                                                       "depth_box_off", "matcher")}})
+    table = format_failure_table([r])
+    assert table.splitlines()[1].split() == ["f", "1", "1", "1", "1", "1"]

@@ -1009,6 +1009,21 @@ def test_a_box_over_a_sliver_grows_over_its_fragment_measured_on_the_surface_dra
     np.testing.assert_allclose(joined[1], boxes[1])  # the car's box: unchanged
 
 
+def test_a_box_the_noise_gate_keeps_does_not_grow_over_fragments():
+    """Where the depth is too noisy to tell one surface from the next (the gate that keeps the
+    detector's box), the box does not grow over a fragment either: the same van's box as above stays
+    as it is with a depth whose sigma at 14 m (0.01 z^2 = 2 m) exceeds half the jump threshold."""
+    from vcfusion.fusion.box_refine import join_fragments, object_segments
+    from vcfusion.fusion.road import DepthNoise
+
+    K, T, scene, upper, lower, car = _van_behind_a_car_seen_in_two_pieces()
+    boxes = np.stack([_mask_box(upper), _mask_box(car)])
+    seg = object_segments(scene, K, T)
+    assert join_fragments(boxes, np.array([True, True]), seg, K)[0, 3] >= boxes[0, 3] + 10
+    kept = join_fragments(boxes, np.array([True, True]), seg, K, BoxRefineParams(), DepthNoise(c=0.01))
+    np.testing.assert_allclose(kept, boxes)
+
+
 def test_a_box_grows_over_a_fragment_of_two_pixels_seen_through_a_gap():
     """Jam dev seed 3362: of a truck behind a car, 1-3 px show beside the car's outline rows below
     the rest, and the ground truth spans them, so a fragment of any size joins (a 4-px minimum

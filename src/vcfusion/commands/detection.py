@@ -117,8 +117,8 @@ def _check_distinct_folders(folders) -> None:
 
 def cmd_eval_detector(args: argparse.Namespace) -> int:
     from vcfusion.detection.detector_train import load_coco_many
-    from vcfusion.detection.family_eval import (evaluate_families, format_depth_counts, format_interval_table,
-                                                format_table, format_visibility_table)
+    from vcfusion.detection.family_eval import (evaluate_families, format_depth_counts, format_failure_table,
+                                                format_interval_table, format_table, format_visibility_table)
 
     check_min_area(args.min_area)
     if not np.isfinite(args.gnss_noise) or args.gnss_noise < 0:
@@ -158,6 +158,9 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
     depth_counts = format_depth_counts(results)
     if depth_counts:
         print(depth_counts)
+    failures = format_failure_table(results, detector_name)
+    if failures:
+        print(failures)
     intervals = format_interval_table(results, detector_name)
     if intervals:
         print(intervals)
@@ -303,7 +306,7 @@ def add_parsers(sub) -> None:
     p = sub.add_parser("render-scenes", help="render procedural scenes (no SUMO run) into a COCO dataset folder")
     p.add_argument("--family", default="train",
                    help="train (the training sampler) or a held-out family: jam, far_chain, cut_in, truck_occlusion, "
-                        "high_mount")
+                        "high_mount, low_mount")
     p.add_argument("--seeds", required=True, help="scene seeds, e.g. 0-1999 (each family has its own scenes per seed)")
     p.add_argument("--out", required=True, help="dataset folder to create")
     p.add_argument("--scenario", default="overlap",

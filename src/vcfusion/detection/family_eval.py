@@ -59,6 +59,9 @@ class FamilyResult:
     # the depth step's counts over the family's images (vcfusion.fusion.fuse.depth_step): boxes kept
     # as detected because depth could not decide (boxes_gated), road fits that failed, ...
     depth_counts: dict = field(default_factory=dict)
+    # detector name -> {failure kind (FAILURE_KINDS): targets}: where each identification target's
+    # box came from (failure_kinds)
+    failures: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         q = np.quantile(self.best_iou, IOU_QUANTILES) if len(self.best_iou) else [np.nan] * len(IOU_QUANTILES)
@@ -72,7 +75,8 @@ class FamilyResult:
                 **{f"ident_0.7_{k}_visible_{label}": {"targets": n, "accuracy": acc}
                    for k, bins in self.identification_by_visibility.items() for label, (n, acc) in bins.items()},
                 **{f"ident_0.7_{k}_interval95": list(bounds) for k, bounds in self.identification_interval.items()},
-                **{f"depth_step_{k}": v for k, v in self.depth_counts.items()}}
+                **{f"depth_step_{k}": v for k, v in self.depth_counts.items()},
+                **{f"targets_{k}_{kind}": n for k, kinds in self.failures.items() for kind, n in kinds.items()}}
 
 
 class _Fixed:
@@ -159,6 +163,37 @@ def _sensed(frame, depth_sensor: str, pose_noise_deg: float, k: int):
                    depth_noise=sensors.noise(cam.K))
 
 
+# what became of each identification target (failure_kinds), in table order
+FAILURE_KINDS = ("right", "missed", "detector_box_off", "depth_box_off", "matcher")
+MISSED_IOU = 0.3  # no box overlaps the target this much: it was missed
+
+
+def failure_kinds(iou_matched: np.ndarray, gt: np.ndarray, boxes: np.ndarray, detected: np.ndarray) -> list[str]:
+    """Per target, what became of it (FAILURE_KINDS): ``right`` (its matched box at IoU >= 0.7);
+    ``missed`` (no box overlaps it by MISSED_IOU); ``matcher`` (a box at IoU >= 0.7 was there, the
+    matcher took another); else the best box overlapping it was off: ``detector_box_off`` when that box
+    is one of the detector's as detected (gated, not snapped, or no depth step), ``depth_box_off`` when
+    the depth step snapped or proposed it. `iou_matched`: (T,) the matched box's IoU per target, `gt`
+    (T, 4) the targets' boxes, `boxes` the boxes the matcher chose from, `detected` the detector's."""
+    from vcfusion.fusion.matching import box_iou
+
+    iou = box_iou(gt, boxes) if len(boxes) and len(gt) else np.zeros((len(gt), 0))
+    out = []
+    for t in range(len(gt)):
+        best = int(iou[t].argmax()) if iou.shape[1] else -1
+        best_iou = iou[t, best] if best >= 0 else 0.0
+        if iou_matched[t] >= IDENTIFICATION_IOU - 1e-12:
+            out.append("right")
+        elif best_iou >= IDENTIFICATION_IOU - 1e-12:
+            out.append("matcher")
+        elif best_iou < MISSED_IOU:
+            out.append("missed")
+        else:
+            as_detected = len(detected) and bool(np.any(np.all(np.abs(detected - boxes[best]) < 1e-6, axis=1)))
+            out.append("detector_box_off" if as_detected else "depth_box_off")
+    return out
+
+
 def _identification(frame, twins, detector, seed: int, min_area: float, segments=None) -> tuple[np.ndarray, list]:
     """IoU of the joint matcher's box per target (0 where unmatched) and the targets' vehicle ids
     (`segments`: the frame's depth segments, when already computed)."""
@@ -197,7 +232,7 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
         saved = detector.params
         detector.params = PostParams(score_threshold=0.01, nms_iou=saved.nms_iou, max_detections=100)
     records = ds.records or [{} for _ in ds.images]
-    dets, best, ident, counts = {}, {}, {}, {}
+    dets, best, ident, counts, kinds = {}, {}, {}, {}, {}
     try:
         for k, (iid, path) in enumerate(tqdm(list(zip(ds.image_ids, ds.images)), desc="evaluate", unit="img",
                                              disable=not progress, leave=False)):
@@ -215,6 +250,7 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
             # confident one), then the depth step, whose refinements and proposals depend on which
             # boxes it gets (a proposal scores 0.3, which a higher threshold would cut after it)
             working = raw.select(raw.scores >= operating)
+            detected = working.boxes
             # the frame's depth segments, once for both depth steps and the matcher
             segments = frame_segments(frame, refine) if frame is not None else None
             if refine is not None:
@@ -231,10 +267,14 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
                          if frame is not None else None)
                 if frame is not None and twins is not None:
                     visible = dict(zip(ds.box_vehicle_ids[k], ds.box_visible[k])) if ds.box_visible else {}
-                    ident[iid] = {}
+                    ident[iid], kinds[iid] = {}, {}
+                    gt_index = {v: j for j, v in enumerate(frame.gt_ids)}
                     for name, det in (("oracle", OracleDetector()), (detector_name, _Fixed(working))):
                         iou_t, vids = _identification(frame, twins, det, k, min_area, segments)
                         ident[iid][name] = (iou_t, np.array([visible.get(v, np.nan) for v in vids], float))
+                        if name == detector_name:
+                            gt_t = frame.gt_boxes[[gt_index[v] for v in vids]].reshape(-1, 4)
+                            kinds[iid][name] = failure_kinds(iou_t, gt_t, working.boxes, detected)
     finally:
         if hasattr(detector, "params"):
             detector.params = saved
@@ -268,6 +308,11 @@ def evaluate_families(detector, ds: CocoDataset, min_area: float = 100.0, identi
                 if np.isfinite(vis).any():
                     res.identification_by_visibility[name] = _by_visibility(right, vis)
             res.n_identified_targets = int(sum(len(ident[i]["oracle"][0]) for i in with_ident))
+            for i in with_ident:
+                for name, per_target in kinds.get(i, {}).items():
+                    tally = res.failures.setdefault(name, dict.fromkeys(FAILURE_KINDS, 0))
+                    for kind in per_target:
+                        tally[kind] += 1
             res.identification_interval = scene_bootstrap(right_per_image, [scene_of[k] for k in with_k])
         results.append(res)
     return results, dets
@@ -400,6 +445,19 @@ def depth_counts_table(counts: dict[str, dict]) -> str:
         lines.append(f"{name:<16} {c.get('boxes_refined', 0):>13} {c.get('boxes_gated', 0):>6} "
                      f"{c.get('frames_road_fit_failed', 0):>15} {c.get('frames_without_proposals', 0):>12} "
                      f"{c.get('road_fit_ms', 0.0) / c['frames']:>11.2f}")
+    return "\n".join(lines)
+
+
+def format_failure_table(results: list[FamilyResult], detector_name: str = "cnn") -> str:
+    """What became of each identification target, per family (failure_kinds): right, missed, the
+    detector's box off (kept as detected), the depth step's box off, the matcher's choice; "" when no
+    family has identification targets."""
+    rows = [r for r in results if detector_name in r.failures]
+    if not rows:
+        return ""
+    lines = [f"{'targets':<16} " + " ".join(f"{k:>16}" for k in FAILURE_KINDS)]
+    for r in rows:
+        lines.append(f"{r.family:<16} " + " ".join(f"{r.failures[detector_name][k]:>16}" for k in FAILURE_KINDS))
     return "\n".join(lines)
 
 

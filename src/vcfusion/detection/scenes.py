@@ -43,6 +43,10 @@ matches their predicates, :func:`held_out_families`):
   1.65 m) and pitched 3-8 deg down, over 3-6 of the training patterns (a view of the road no
   training scene and no tuning of the depth step has seen: the family held out by family, frozen
   before the depth step's road fit was tuned).
+- ``low_mount``: the camera of a low car, 0.95-1.10 m high (the training sampler's starts at 1.15 m)
+  and pitched -1 to +2 deg (nearly level: the road seen at a grazing angle, nearer cars hide more of
+  the ones behind them), over 4-8 of the training patterns (a second view no training scene and no
+  tuning of the depth step has seen: frozen before the depth step's noisy-sensor work was tuned).
 """
 
 from __future__ import annotations
@@ -215,8 +219,15 @@ def is_high_mount(recipe: SceneRecipe) -> bool:
     return recipe.mount.height_m >= HIGH_MOUNT_HEIGHT_M[0] - 0.05
 
 
+LOW_MOUNT_HEIGHT_M, LOW_MOUNT_PITCH_DEG = (0.95, 1.10), (-1.0, 2.0)
+
+
+def is_low_mount(recipe: SceneRecipe) -> bool:
+    return recipe.mount.height_m <= LOW_MOUNT_HEIGHT_M[1] + 0.02
+
+
 HELD_OUT = {"jam": is_jam, "far_chain": is_far_chain, "cut_in": is_cut_in, "truck_occlusion": is_truck_occlusion,
-            "high_mount": is_high_mount}
+            "high_mount": is_high_mount, "low_mount": is_low_mount}
 FAMILIES = ("train", *HELD_OUT)
 
 
@@ -363,10 +374,11 @@ def _held_out_scene(b: _Builder, family: str) -> None:
         b.vehicle(b.kind(), r.ego_lane, float(rng.uniform(25.0, 70.0)))  # the gap it cuts into
         for _ in range(int(rng.integers(0, 3))):
             b.vehicle(b.kind(), int(rng.integers(r.num_lanes)), _log_uniform(rng, 25.0, MAX_AHEAD_M))
-    elif family == "high_mount":
+    elif family in ("high_mount", "low_mount"):
         names = list(PATTERN_WEIGHTS)
         p = np.array(list(PATTERN_WEIGHTS.values()))
-        for name in rng.choice(names, size=int(rng.integers(3, 7)), p=p / p.sum()):
+        n = int(rng.integers(3, 7)) if family == "high_mount" else int(rng.integers(4, 9))
+        for name in rng.choice(names, size=n, p=p / p.sum()):
             _train_pattern(b, str(name))
     elif family == "truck_occlusion":
         side = _neighbour(rng, r.ego_lane, r.num_lanes)
@@ -395,6 +407,9 @@ def sample_scene(family: str, seed: int, num_lanes: int = 3, lane_width_m: float
         if family == "high_mount":
             mount = CameraMount(height_m=float(rng.uniform(*HIGH_MOUNT_HEIGHT_M)),
                                 pitch_deg=float(rng.uniform(*HIGH_MOUNT_PITCH_DEG)), lateral_m=float(rng.uniform(-0.4, 0.4)))
+        elif family == "low_mount":
+            mount = CameraMount(height_m=float(rng.uniform(*LOW_MOUNT_HEIGHT_M)),
+                                pitch_deg=float(rng.uniform(*LOW_MOUNT_PITCH_DEG)), lateral_m=float(rng.uniform(-0.4, 0.4)))
         else:
             mount = CameraMount(height_m=float(rng.uniform(1.15, 1.65)), pitch_deg=float(rng.uniform(0.0, 6.0)),
                                 lateral_m=float(rng.uniform(-0.4, 0.4)))

@@ -17,7 +17,8 @@ import numpy as np
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import GuidanceSet, TwinStates
 from vcfusion.fusion.box_refine import (BoxRefineParams, ObjectSegments, RefinedBoxes, box_surface_depths,
-                                       depth_proposals, join_fragments, object_segments, refine_boxes)
+                                       depth_proposals, fill_scan_gaps, join_fragments, object_segments,
+                                       on_road_mask, refine_boxes)
 from vcfusion.fusion.road import DepthNoise, RoadFit, fit_road_plane
 from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector, nms
@@ -52,34 +53,54 @@ class CameraFrame:
 
 @dataclass(frozen=True)
 class DepthView:
-    """What the depth step works on for one frame (:func:`depth_view`): the depth (median-filtered
-    when noisy), the pose whose z = 0 plane is the road, the depth's noise after the filter, the
-    road fit, and whether the image holds too little measured depth for proposals."""
+    """What the depth step works on for one frame (:func:`depth_view`): the depth (a stereo pair's
+    holes and a LiDAR scan's gaps filled, box_refine.fill_scan_gaps; median-filtered when noisy),
+    the pose whose z = 0 plane is the road, the depth's noise after the filter, the road fit, whether
+    the image holds too little measured depth for proposals, and a filled scan's own returns."""
 
     depth: np.ndarray
     T: np.ndarray
     noise: DepthNoise
     road: RoadFit | None
     sparse: bool
+    returns: np.ndarray | None = None  # (H, W) bool: a scan's own returns, when its gaps were filled
 
 
 def depth_view(frame: CameraFrame, refine: BoxRefineParams) -> DepthView:
     """The frame's :class:`DepthView` with `refine`'s settings, computed once per frame."""
-    key = (refine.road, refine.denoise_px, refine.denoise_passes, refine.denoise_sigma_share, refine.gate_valid_share)
+    key = (refine.road, refine.scan_fill_px, refine.scan_road_m, refine.hole_fill_px, refine.denoise_px,
+           refine.denoise_passes, refine.denoise_sigma_share, refine.gate_valid_share)
     cached = frame.__dict__.get("_depth_view")
     if cached is not None and cached[0] == key:
         return cached[1]
     cam = frame.camera
     depth, noise = frame.depth, frame.depth_noise
     sparse = bool(np.isnan(frame.depth).mean() > 1 - refine.gate_valid_share)
+    road = returns = None
+    if sparse and refine.scan_fill_px:  # a scan: its gaps between returns filled (box_refine.fill_scan_gaps)
+        # the road first, on the returns themselves (a plane needs no dense image), so that the road's
+        # returns are filled along the plane
+        T = cam.T_world_to_camera
+        returns = ~np.isnan(depth)
+        if refine.road == "from_depth":
+            road = fit_road_plane(depth, cam.K, T, noise)
+            T = road.T
+        # along each beam's row first (returns a pixel or two apart), then down the columns between beams
+        depth = fill_scan_gaps(depth, refine.scan_fill_px[1], refine.jump_m, refine.jump_rel, 1)
+        on_road = on_road_mask(depth, cam.K, T, noise, refine)
+        depth = fill_scan_gaps(depth, refine.scan_fill_px[0], refine.jump_m, refine.jump_rel, 0, on_road)
+        sparse = bool(np.isnan(depth).mean() > 1 - refine.gate_valid_share)
+    if not sparse and noise.c > 0 and refine.hole_fill_px:  # stereo: its holes filled along the rows
+        depth = fill_scan_gaps(depth, refine.hole_fill_px, refine.jump_m, refine.jump_rel, 1, None, "left")
     if not noise.exact and refine.denoise_px and not sparse:  # (a sparse scan has no neighbours to filter with)
         for _ in range(refine.denoise_passes):
             depth = _median(depth, refine.denoise_px)
         noise = noise.scaled(refine.denoise_sigma_share)
         if frame.depth_noise.mixed_edges:
             depth = _without_flying_pixels(depth, refine)
-    road = fit_road_plane(depth, cam.K, cam.T_world_to_camera, noise) if refine.road == "from_depth" else None
-    view = DepthView(depth, road.T if road is not None else cam.T_world_to_camera, noise, road, sparse)
+    if road is None and refine.road == "from_depth":
+        road = fit_road_plane(depth, cam.K, cam.T_world_to_camera, noise)
+    view = DepthView(depth, road.T if road is not None else cam.T_world_to_camera, noise, road, sparse, returns)
     object.__setattr__(frame, "_depth_view", (key, view))
     return view
 
@@ -188,7 +209,7 @@ def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefinePara
         refined = RefinedBoxes(detections.boxes.copy(), np.zeros(len(detections), bool),
                                np.full(len(detections), np.nan), np.ones(len(detections), bool))
     else:
-        refined = refine_boxes(detections.boxes, view.depth, cam.K, view.T, refine, view.noise)
+        refined = refine_boxes(detections.boxes, view.depth, cam.K, view.T, refine, view.noise, view.returns)
     count_depth_step(stats, "boxes_gated", int(refined.gated.sum()))
     count_depth_step(stats, "boxes_refined", int(refined.refined.sum()))
     boxes, scores, snapped = refined.boxes, detections.scores, refined.refined
@@ -218,7 +239,7 @@ def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefinePara
         new_scores = _proposal_scores(new, boxes[~confident], scores[~confident], refine.proposals.score)
         boxes, scores = np.vstack([boxes, new]), np.r_[scores, new_scores]
         classes = np.r_[classes, np.where(is_truck, category_id("truck"), category_id("passenger"))]
-        boxes = join_fragments(boxes, scores >= refine.proposals.score, segments, cam.K, refine)
+        boxes = join_fragments(boxes, scores >= refine.proposals.score, segments, cam.K, refine, view.noise)
     return Detections.of(boxes, scores, classes)
 
 
