@@ -46,6 +46,11 @@ STOP_GRACE_S = 5.0
 # loaded 2-core machine: ~10 s measured; a worker that never answers is an error, not a hang).
 READY_TIMEOUT_S = 180.0
 SHM_PREFIX = "vcfusion-vision-"
+# CPU threads of the worker's CNN: one, the other core being the loop's. Two threads that wait
+# for each other at every layer collapse when a core is taken: on the shared 2-core VM (load ~14)
+# the shipped CNN at 640x480 took 1377 ms median with two threads, 186 ms with one (8 calls each,
+# alternated twice); a drive whose worker ran two threads got 19 vision results of 177 due ticks.
+WORKER_CNN_THREADS = 1
 
 
 class VisionPipelineError(RuntimeError):
@@ -104,6 +109,8 @@ def _worker_main(conn, scenario: Scenario, seed: int, shm_name: str, size: tuple
         views = _views(shm.buf, *size)
         road = read_road(scenario.network, scenario.route)
         hook = build_fusion_hook(scenario, seed, GuidancePolicy.from_scenario(scenario, road))
+        if hasattr(hook.detector, "threads") and str(getattr(hook.detector, "device", "cpu")) == "cpu":
+            hook.detector.threads = WORKER_CNN_THREADS
         if hasattr(hook.detector, "dense"):  # the CNN's first forward pass allocates: not on the first tick
             hook.detector.detect(np.zeros((size[1], size[0], 3), np.uint8))
         conn.send(("ready", os.getpid()))
