@@ -87,6 +87,8 @@ def _drive(scenario, seed, pipeline, pygame, device, replay, *, input_spec, guid
 
     cosim = build_cosimulation(scenario, seed, guidance_enabled=guidance_on,
                                fusion_hook=pipeline.hook if pipeline is not None else None)
+    if pipeline is not None:  # the camera stage renders the ticks the worker takes
+        pipeline.hook.gate(next(h for h in cosim.hooks if h.table == "camera"))
     ego = scenario.ego
     # the ego's own route (a scenario may give it one): its positions and the loop's s_front are along it
     road = frame_of(scenario, read_road(scenario.network, scenario.route), ego.route)

@@ -242,11 +242,15 @@ class VisionPipeline:
             self.latest = VisionResult(seq, time_s, guidance, fresh, pose, near, detections, submitted, now)
         return self.latest
 
+    def drop(self, tick) -> None:
+        """Count a vision tick that was due while the worker was busy."""
+        self.dropped_times.append(round(float(tick.time), 6))
+
     def submit(self, tick) -> bool:
         """Hand the tick to the worker; False (the tick dropped and counted) while it is busy."""
         self.poll()
         if self._in_flight is not None:
-            self.dropped_times.append(round(float(tick.time), 6))
+            self.drop(tick)
             return False
         frame, meta, pose = tick.frame, None, None
         if frame is not None:
@@ -335,7 +339,9 @@ class PipelinedFusionHook:
     """The fusion stage of a paced drive (tick hook): hands due vision ticks to the worker, and sets
     ``tick.guidance`` to the newest result's overlay (None before the first). Its ``fusion`` rows
     are the worker's, logged at the tick after they arrive. Due ticks follow the stage's AR update
-    period (``ar.period_s``) as in the loop; the worker applies the rest of the stage's rules."""
+    period (``ar.period_s``) as in the loop; the worker applies the rest of the stage's rules.
+    With :meth:`gate` the camera stage renders only the ticks handed over (the display renders
+    the frames it shows itself), so a dropped vision tick costs no render either."""
 
     table = "fusion"
     needs = ("neighbours", "frame")
@@ -349,16 +355,40 @@ class PipelinedFusionHook:
         self.period_s = scenario.ar.period_s
         self._next_time = -np.inf
         self._delivered: VisionResult | None = None
+        self._decided: tuple = (None, "")  # (the tick, what is done with it): one decision per tick
+
+    def decide(self, tick) -> str:
+        """"submit" (due and the worker idle), "drop" (due, the worker busy) or "not_due"; the
+        same answer for the camera stage and this stage within one tick."""
+        if self._decided[0] is tick:
+            return self._decided[1]
+        self.pipeline.poll()
+        if self.period_s is not None and tick.time < self._next_time - 1e-9:
+            decision = "not_due"
+        else:
+            decision = "drop" if self.pipeline.busy else "submit"
+        self._decided = (tick, decision)
+        return decision
+
+    def gate(self, camera_hook) -> None:
+        """Make the camera stage render only the ticks this stage hands over (and its own rule)."""
+        previous = camera_hook.when
+
+        def when(tick) -> bool:
+            return self.decide(tick) == "submit" and (previous is None or previous(tick))
+        camera_hook.when = when
 
     def __call__(self, tick) -> list[dict] | None:
         if tick.neighbours is None:
             return None
         p = self.pipeline
-        if self.period_s is None or tick.time >= self._next_time - 1e-9:
-            if p.submit(tick) and self.period_s is not None:
+        decision = self.decide(tick)
+        if decision == "submit":
+            p.submit(tick)
+            if self.period_s is not None:
                 self._next_time = tick.time + self.period_s
-        else:
-            p.poll()
+        elif decision == "drop":
+            p.drop(tick)
         latest = p.latest
         if latest is not None:
             tick.guidance = latest.guidance
