@@ -210,3 +210,63 @@ def test_ctrl_c_stops_the_worker_and_unlinks_the_shared_memory(tmp_path):
     assert not [p for p in workers if alive(p)]
     assert not shm_segments(proc.pid)
     assert not (tmp_path / "run").exists()
+
+
+class FakeWorker:
+    """The pipeline's side the hook talks to, without a process: busy while a tick is held."""
+
+    def __init__(self):
+        self.busy, self.latest, self.handed, self.dropped = False, None, [], []
+
+    def poll(self, wait=False):
+        return self.latest
+
+    def submit(self, tick):
+        self.handed.append(tick.time)
+        self.busy = True
+        return True
+
+    def drop(self, tick):
+        self.dropped.append(tick.time)
+
+    def take_rows(self):
+        return []
+
+
+class FakeCamera:
+    def __init__(self, when=None):
+        self.when = when
+
+
+def test_a_tick_due_while_the_worker_is_busy_is_dropped_and_not_rendered():
+    from types import SimpleNamespace
+
+    from vcfusion.hitl.pipeline import PipelinedFusionHook
+
+    sc = load_scenario(SCENARIOS / "accident_ar.yaml")
+    worker = FakeWorker()
+    hook = PipelinedFusionHook(worker, sc.model_copy(update={"ar": sc.ar.model_copy(update={"period_s": 0.2})}))
+    camera = FakeCamera(when=lambda tick: tick.time != 0.2)  # the camera's own rule: no frame at 0.2 s
+    hook.gate(camera)
+    rendered = []
+    for k, busy_after in enumerate([False, False, True, True, False, False]):
+        tick = SimpleNamespace(time=round(0.1 * k, 6), neighbours=(), guidance=None, detections=None)
+        if camera.when(tick):
+            rendered.append(tick.time)
+        hook(tick)
+        worker.busy = busy_after
+    # 0.0 handed over; 0.1 not due (AR period 0.2 s); 0.2 handed over; 0.3 not due; 0.4 due but
+    # the worker busy: dropped; 0.5 due (0.4 was not taken), the worker idle: handed over
+    assert worker.handed == [0.0, 0.2, 0.5] and worker.dropped == [0.4]
+    # only ticks handed over are rendered, and never against the camera's own rule (0.2 s is handed
+    # over without a frame, as the stage in the loop gets it)
+    assert rendered == [0.0, 0.5]
+
+
+def test_the_summary_takes_the_age_of_the_shown_frames_only():
+    from vcfusion.hitl.driver import realtime_summary
+
+    frames = {"shown": [True, False, True, True], "wall_s": [0.0, 0.04, 0.07, 0.1], "lag_s": [0.0] * 4,
+              "input_to_display_ms": [5.0, np.nan, 5.0, 5.0], "ar_age_ms": [np.nan, np.nan, 40.0, 100.0]}
+    rt = realtime_summary(frames, [0.0], 1.0)
+    assert rt["ar_age_ms_median"] == 70.0 and rt["ar_age_ms_max"] == 100.0
