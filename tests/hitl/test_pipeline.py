@@ -129,32 +129,47 @@ def test_a_paced_drive_records_its_vision_ticks_and_the_age_of_what_it_shows(tmp
 @pytest.mark.slow
 def test_an_error_in_the_loop_or_in_the_worker_leaves_no_process_and_no_shared_memory(tmp_path, recorded_pipelines,
                                                                                     monkeypatch):
+    from vcfusion.errors import ScenarioError
     from vcfusion.hitl.driver import HumanDriver
     from vcfusion.hitl.pipeline import VisionPipelineError
 
     sc = load_scenario(small_scenario(tmp_path, 3.0))
     step = HumanDriver.step
-    calls = []
 
-    def failing(self, st):
-        calls.append(st.time)
-        if len(calls) == 50:
-            raise RuntimeError("a failure in the loop's process")
-        return step(self, st)
+    def failing_at(n, act):
+        calls = []
 
-    monkeypatch.setattr(HumanDriver, "step", failing)
+        def failing(self, st):
+            calls.append(st.time)
+            if len(calls) == n:
+                act(self)
+            return step(self, st)
+        return failing
+
+    def raise_here(driver):
+        raise RuntimeError("a failure in the loop's process")
+
+    monkeypatch.setattr(HumanDriver, "step", failing_at(50, raise_here))
     with pytest.raises(RuntimeError, match="a failure in the loop"):
         drive(sc, tmp_path / "run", input_spec=replay_file(tmp_path), speed=1.0)
     assert gone(recorded_pipelines[0]) and recorded_pipelines[0].worker_pid is not None
+
+    # the worker killed mid-trip (the out-of-memory killer, say): the drive stops and says so
+    monkeypatch.setattr(HumanDriver, "step", failing_at(50, lambda driver: os.kill(driver.vision.worker_pid,
+                                                                                   signal.SIGKILL)))
+    with pytest.raises(VisionPipelineError, match="the vision process failed: it died"):
+        drive(sc, tmp_path / "run", input_spec=replay_file(tmp_path), speed=1.0)
+    assert gone(recorded_pipelines[1])
     monkeypatch.setattr(HumanDriver, "step", step)
 
-    # the worker cannot build its stage (no such detector weights): the drive says why, and stops
+    # the worker cannot build its stage (no such detector weights): the scenario's error, as the
+    # stage in the loop raises it
     sc = sc.model_copy(update={"fusion": sc.fusion.model_copy(update={"detector": "cnn",
                                                                       "weights": tmp_path / "missing.pt"})})
-    with pytest.raises(VisionPipelineError, match="missing.pt"):
-        drive(sc, tmp_path / "run2", input_spec=replay_file(tmp_path), speed=1.0)
-    assert gone(recorded_pipelines[1])
-    assert not (tmp_path / "run").exists() and not (tmp_path / "run2").exists()
+    with pytest.raises(ScenarioError, match="fusion.weights.*missing.pt"):
+        drive(sc, tmp_path / "run", input_spec=replay_file(tmp_path), speed=1.0)
+    assert gone(recorded_pipelines[2])
+    assert not (tmp_path / "run").exists()
     assert not shm_segments(os.getpid())
 
 

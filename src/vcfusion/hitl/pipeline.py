@@ -37,6 +37,7 @@ from multiprocessing import shared_memory
 
 import numpy as np
 
+from vcfusion.errors import InputError, JobError
 from vcfusion.records import GuidanceSet
 from vcfusion.scenario import Scenario
 
@@ -53,8 +54,12 @@ SHM_PREFIX = "vcfusion-vision-"
 WORKER_CNN_THREADS = 1
 
 
-class VisionPipelineError(RuntimeError):
-    """The vision worker failed (its traceback follows) or died."""
+class VisionPipelineError(JobError):
+    """The vision worker failed (the cause's last line first, then its traceback) or died. A bad
+    input the worker finds (a scenario's detector weights, say) is raised as the InputError it is."""
+
+    def __init__(self, cause: str):
+        super().__init__("the vision process", cause)
 
 
 @dataclass(frozen=True)
@@ -114,6 +119,7 @@ def _worker_main(conn, scenario: Scenario, seed: int, shm_name: str, size: tuple
         if hasattr(hook.detector, "dense"):  # the CNN's first forward pass allocates: not on the first tick
             hook.detector.detect(np.zeros((size[1], size[0], 3), np.uint8))
         conn.send(("ready", os.getpid()))
+        last = None  # the overlay handed back last: the stage hands it again between its AR updates
         with one_blas_thread():
             while True:
                 try:
@@ -130,15 +136,19 @@ def _worker_main(conn, scenario: Scenario, seed: int, shm_name: str, size: tuple
                     # views into the shared block: the loop's process does not write it until we answer
                     frame = Frame(time_s, views["rgb"], views["depth"], views["instances"], vehicle_ids, K, T)
                 tick = Tick(time_s, truth, None, ego, near, frame=frame)
-                before = hook._shown
                 started = wallclock.perf_counter()
                 rows = hook(tick) or []
                 busy = wallclock.perf_counter() - started
-                fresh = tick.guidance is not before or tick.guidance is None
+                fresh = tick.guidance is None or tick.guidance is not last
+                last = tick.guidance
                 conn.send(("result", seq, rows, tick.guidance, fresh, tick.detections, busy))
-    except BaseException:  # noqa: BLE001 -- any failure goes back to the loop's process, which raises it
+    except BaseException as exc:  # noqa: BLE001 -- any failure goes back to the loop's process, which raises it
         try:
-            conn.send(("error", traceback.format_exc()))
+            if isinstance(exc, InputError):
+                conn.send(("input_error", exc))
+            else:
+                lines = [line for line in traceback.format_exc().splitlines() if line.strip()]
+                conn.send(("error", "\n".join(lines[-1:] + lines)))
         except (OSError, ValueError):
             pass
     finally:
@@ -193,13 +203,12 @@ class VisionPipeline:
         deadline = wallclock.perf_counter() + timeout_s
         while not self._conn.poll(0.2):
             if not self.process.is_alive():
-                raise VisionPipelineError(f"the vision process exited while starting (exit code "
-                                          f"{self.process.exitcode})")
+                raise VisionPipelineError(f"it exited while starting (exit code {self.process.exitcode})")
             if wallclock.perf_counter() > deadline:
-                raise VisionPipelineError(f"the vision process did not start within {timeout_s:g} s")
+                raise VisionPipelineError(f"it did not start within {timeout_s:g} s")
         msg = self._recv()
         if msg[0] != "ready":
-            raise VisionPipelineError(f"the vision process answered {msg[0]!r} while starting")
+            raise VisionPipelineError(f"it answered {msg[0]!r} while starting")
         self.worker_pid = msg[1]
 
     def _recv(self):
@@ -207,9 +216,11 @@ class VisionPipeline:
             msg = self._conn.recv()
         except (EOFError, OSError):
             self.process.join(1.0)
-            raise VisionPipelineError(f"the vision process died (exit code {self.process.exitcode})") from None
+            raise VisionPipelineError(f"it died (exit code {self.process.exitcode})") from None
+        if msg[0] == "input_error":
+            raise msg[1]
         if msg[0] == "error":
-            raise VisionPipelineError(f"the vision process failed:\n{msg[1]}")
+            raise VisionPipelineError(msg[1])
         return msg
 
     @property
@@ -222,12 +233,11 @@ class VisionPipeline:
             return self.latest
         if not wait and not self._conn.poll(0):
             if not self.process.is_alive():
-                raise VisionPipelineError(f"the vision process died (exit code {self.process.exitcode})")
+                raise VisionPipelineError(f"it died (exit code {self.process.exitcode})")
             return self.latest
         msg = self._recv()
         if msg[0] != "result" or msg[1] != self._in_flight[0]:
-            raise VisionPipelineError(f"the vision process answered {msg[:2]!r}, expected the result of tick "
-                                      f"{self._in_flight[0]}")
+            raise VisionPipelineError(f"it answered {msg[:2]!r}, expected the result of tick {self._in_flight[0]}")
         _, seq, rows, guidance, fresh, detections, busy = msg
         seq, time_s, pose, near, submitted = self._in_flight
         self._in_flight = None
@@ -255,8 +265,8 @@ class VisionPipeline:
         frame, meta, pose = tick.frame, None, None
         if frame is not None:
             if frame.rgb.shape[:2] != (self.size[1], self.size[0]):
-                raise VisionPipelineError(f"frame of {frame.rgb.shape[1]}x{frame.rgb.shape[0]} px, expected the "
-                                          f"camera's {self.size[0]}x{self.size[1]}")
+                raise VisionPipelineError(f"a frame of {frame.rgb.shape[1]}x{frame.rgb.shape[0]} px was handed over, "
+                                          f"expected the camera's {self.size[0]}x{self.size[1]}")
             for name in ("rgb", "depth", "instances"):
                 self._views[name][...] = getattr(frame, name)
             K, T = np.asarray(frame.K, float), np.asarray(frame.T_world_to_camera, float)
@@ -265,7 +275,7 @@ class VisionPipeline:
         try:
             self._conn.send(("tick", self._seq, float(tick.time), tick.truth, tick.ego, tick.neighbours, meta))
         except (OSError, ValueError):
-            raise VisionPipelineError(f"the vision process died (exit code {self.process.exitcode})") from None
+            raise VisionPipelineError(f"it died (exit code {self.process.exitcode})") from None
         self._in_flight = (self._seq, float(tick.time), pose, tick.neighbours, wallclock.perf_counter())
         self.submitted += 1
         if self.lossless:  # the tick's result before the loop goes on, as the stage in the loop gives it
