@@ -4,6 +4,9 @@ The trip is the scenario's ordinary run (build_cosimulation: camera, fusion, clo
 with the driver model replaced by a HumanDriver; it lands in an ordinary run folder with two
 more tables (inputs, frames) and the summary's `realtime` and `hitl` blocks, so every metric and
 study that reads run folders reads human trips too.
+
+At real speed the fusion stage runs in a worker process beside the loop (vcfusion.hitl.pipeline):
+the loop never waits for a vision tick (one due while the worker is busy is dropped and counted).
 """
 
 from __future__ import annotations
