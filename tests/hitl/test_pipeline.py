@@ -285,3 +285,16 @@ def test_the_summary_takes_the_age_of_the_shown_frames_only():
               "input_to_display_ms": [5.0, np.nan, 5.0, 5.0], "ar_age_ms": [np.nan, np.nan, 40.0, 100.0]}
     rt = realtime_summary(frames, [0.0], 1.0)
     assert rt["ar_age_ms_median"] == 70.0 and rt["ar_age_ms_max"] == 100.0
+
+
+@pytest.mark.slow
+def test_batch_runs_and_full_speed_replays_never_start_the_worker(tmp_path, recorded_pipelines):
+    # their tables must not depend on the wall clock: the fusion stage runs in the loop
+    from vcfusion.run import execute_run
+
+    sc = load_scenario(small_scenario(tmp_path, 1.0))
+    result = execute_run(sc, 0, tmp_path / "batch")
+    assert len(pd.read_parquet(tmp_path / "batch" / "fusion.parquet")) > 0 and "realtime" not in result.summary
+    replay = drive(sc, tmp_path / "replay", input_spec=replay_file(tmp_path), speed=None)
+    assert replay.summary["realtime"]["vision_pipeline"] is False
+    assert not recorded_pipelines
