@@ -11,8 +11,9 @@ worker process, so on two cores the simulation, the display and the vision tick 
   small records (time, ground truth for the render's boxes, the ego, the neighbour twins) go
   through a pipe.
 - **One tick in flight**: a vision tick is handed over only while the worker is idle; a tick due
-  while it still works on an earlier one is dropped and counted (``vision_ticks_dropped``), so a
-  slow machine costs vision results, never display frames or simulated time.
+  while it still works on an earlier one is dropped and counted (``vision_ticks_dropped``) and
+  not rendered (:meth:`PipelinedFusionHook.gate`), so a slow machine costs vision results, not
+  display frames or simulated time.
 - **Results**: polled without waiting at every tick and every display frame; the newest
   :class:`VisionResult` (the guidance set with the time and camera pose of the frame it was made
   from) is what the display carries forward with the ego's own motion
