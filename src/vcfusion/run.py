@@ -15,14 +15,15 @@ from vcfusion.scenario import Scenario
 
 def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool | None = None,
                        extra_process_models: list[tuple[str, ProcessModel]] | None = None,
-                       recorder=None, renderer=None, detector=None) -> CoSimulation:
+                       recorder=None, renderer=None, detector=None, fusion_hook=None) -> CoSimulation:
     """The co-simulation with every stage the scenario enables.
 
     `guidance_enabled` overrides `driver.guidance` of the scenario (the guidance study runs
     both arms of a trip); `extra_process_models` are added to the cloud twins' models;
     `recorder` receives the AR overlay frames (video). `renderer` / `detector`: a camera renderer
     and a detector to reuse (a study's worker keeps them loaded across trips; the caller closes
-    the renderer); by default the camera and fusion stages make their own.
+    the renderer); by default the camera and fusion stages make their own. `fusion_hook`: a fusion
+    stage to run in place of the scenario's (a paced drive's, vcfusion.hitl.pipeline).
     """
     from vcfusion.traffic.network import read_road
 
@@ -47,7 +48,9 @@ def build_cosimulation(scenario: Scenario, seed: int, *, guidance_enabled: bool 
             def when(tick, policy=policy):
                 return policy.any_warning(tick.neighbours)
         hooks.append(CameraHook(scenario, every_ticks=scenario.vision.every_ticks, renderer=renderer, when=when))
-    if scenario.fusion.enabled:
+    if fusion_hook is not None:
+        hooks.append(fusion_hook)
+    elif scenario.fusion.enabled:
         from vcfusion.fusion.stage import build_fusion_hook
 
         hooks.append(build_fusion_hook(scenario, seed, policy, recorder, detector=detector))

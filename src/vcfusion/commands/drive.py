@@ -116,6 +116,13 @@ def cmd_drive(args: argparse.Namespace) -> int:
             if rt["display_fps_median"] is not None and rt["max_lag_s"] is not None
             else "frame rate and lag not measured (not in real time)")
     print(f"  display: {rt['frames_shown']} frames shown, {rt['dropped_frames']} dropped, {pace}")
+    if rt.get("vision_pipeline"):
+        latency = rt["vision_latency_ms_median"]
+        print(f"  vision beside the loop: {rt['vision_results']} results of {rt['vision_ticks_due']} due ticks, "
+              f"{rt['vision_ticks_dropped']} dropped (worker busy)"
+              + (f", latency median {latency:.0f} ms" if latency is not None else ""))
+    if rt.get("ar_age_ms_median") is not None:
+        print(f"  AR age: median {rt['ar_age_ms_median']:.0f} ms, max {rt['ar_age_ms_max']:.0f} ms")
     print(f"run folder: {out}")
     return 0
 

@@ -4,6 +4,9 @@ The trip is the scenario's ordinary run (build_cosimulation: camera, fusion, clo
 with the driver model replaced by a HumanDriver; it lands in an ordinary run folder with two
 more tables (inputs, frames) and the summary's `realtime` and `hitl` blocks, so every metric and
 study that reads run folders reads human trips too.
+
+At real speed the fusion stage runs in a worker process beside the loop (vcfusion.hitl.pipeline):
+the loop never waits for a vision tick (one due while the worker is busy is dropped and counted).
 """
 
 from __future__ import annotations
@@ -30,21 +33,17 @@ INSTRUCTIONS = [
 def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, speed: float | None,
           out_dir: Path | None, participant: str = "", axis_map_file: Path | None = None,
           record_video: bool = False, window: bool = True, headless: bool = False,
-          display_fps: float = 30.0, start_screen_s: float | None = None, on_start=None, shared_window=None):
+          display_fps: float = 30.0, start_screen_s: float | None = None, on_start=None, shared_window=None,
+          vision_pipeline: bool | None = None):
     """Drive one trip; returns the RunResult (run folder written when out_dir is given).
     `start_screen_s`: how long the instruction screen waits at most (None: until a key press;
     replays skip it); `on_start`: called when the trip's clock starts (other recorders of a study,
     e.g. an eye tracker, start with it); `shared_window`: a Window to draw in and leave open (a
-    study session keeps one window for all its screens and trips)."""
-    from vcfusion.control.stage import ControllerStage
-    from vcfusion.hitl.driver import HumanDriver
-    from vcfusion.hitl.inputs import ReplayInput, open_input
+    study session keeps one window for all its screens and trips). `vision_pipeline`: run the fusion
+    stage in a worker process beside the loop (vcfusion.hitl.pipeline); None: where the drive is
+    paced to the wall clock (`speed` set) and the scenario fuses the camera; False: in the loop."""
+    from vcfusion.hitl.inputs import open_input
     from vcfusion.hitl.sdl import init_sdl
-    from vcfusion.hitl.vehicle import VehicleModel
-    from vcfusion.run import build_cosimulation, manifest_for
-    from vcfusion.runio import write_run_folder
-    from vcfusion.traffic.network import read_road, read_vehicle_types
-    from vcfusion.traffic.session import frame_of
 
     if scenario.ego is None:
         raise UsageError(f"{scenario.source}: ego: a person drives the ego; the scenario has no ego block")
@@ -55,10 +54,44 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
         raise UsageError(f"--out: {out_dir} already exists; choose a new run folder")
     if record_video and (not window or out_dir is None):
         raise UsageError("--record-video: needs the window and a run folder")
+    if vision_pipeline is None:
+        vision_pipeline = speed is not None and scenario.fusion.enabled
+    if vision_pipeline and not scenario.fusion.enabled:
+        raise UsageError(f"{scenario.source}: fusion.enabled: the vision pipeline runs the fusion stage; the "
+                         "scenario has none")
     pygame = init_sdl(headless) if (window or not replay) else None
     device = open_input(input_spec, axis_map_file)
 
-    cosim = build_cosimulation(scenario, seed, guidance_enabled=guidance_on)
+    pipeline = None
+    if vision_pipeline:
+        from vcfusion.hitl.pipeline import VisionPipeline
+
+        # started first: the worker loads the detector while SUMO and the renderer start here
+        pipeline = VisionPipeline(scenario, seed, lossless=speed is None)
+    try:
+        return _drive(scenario, seed, pipeline, pygame, device, replay, input_spec=input_spec,
+                      guidance_on=guidance_on, speed=speed, out_dir=out_dir, participant=participant,
+                      record_video=record_video, window=window, display_fps=display_fps,
+                      start_screen_s=start_screen_s, on_start=on_start, shared_window=shared_window)
+    finally:
+        if pipeline is not None:
+            pipeline.close()  # on every exit: the end of the trip, an error, Ctrl-C
+
+
+def _drive(scenario, seed, pipeline, pygame, device, replay, *, input_spec, guidance_on, speed, out_dir, participant,
+           record_video, window, display_fps, start_screen_s, on_start, shared_window):
+    from vcfusion.control.stage import ControllerStage
+    from vcfusion.hitl.driver import HumanDriver
+    from vcfusion.hitl.vehicle import VehicleModel
+    from vcfusion.run import build_cosimulation, manifest_for
+    from vcfusion.runio import write_run_folder
+    from vcfusion.traffic.network import read_road, read_vehicle_types
+    from vcfusion.traffic.session import frame_of
+
+    cosim = build_cosimulation(scenario, seed, guidance_enabled=guidance_on,
+                               fusion_hook=pipeline.hook if pipeline is not None else None)
+    if pipeline is not None:  # the camera stage renders the ticks the worker takes
+        pipeline.hook.gate(next(h for h in cosim.hooks if h.table == "camera"))
     ego = scenario.ego
     # the ego's own route (a scenario may give it one): its positions and the loop's s_front are along it
     road = frame_of(scenario, read_road(scenario.network, scenario.route), ego.route)
@@ -95,13 +128,16 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
     cosim.controller = ControllerStage(HumanDriver(device, vehicle, scenario.simulation.step_s,
                                                    ego.depart_pos_m + ego.trip_distance_m, guidance_on=guidance_on,
                                                    speed=speed, display_fps=display_fps, pygame=pygame, window=win,
-                                                   renderer=renderer, video=video, info=info, on_start=on_start))
+                                                   renderer=renderer, video=video, info=info, on_start=on_start,
+                                                   vision=pipeline))
     try:
         if win is not None and not replay:
             from vcfusion.hitl.driver import forward_controls
 
             win.wait_for_start(INSTRUCTIONS + [f"guidance: {'on' if guidance_on else 'off'}"],
                                forward_controls(pygame, device), start_screen_s)
+        if pipeline is not None:
+            pipeline.wait_ready()  # the trip's clock starts with the vision worker ready
         result = cosim.run()
         if out_dir is not None:
             extra = {}

@@ -55,7 +55,7 @@ class HumanDriver:
 
     def __init__(self, device, vehicle: VehicleModel, dt: float, trip_end_s: float, *, guidance_on: bool,
                  speed: float | None = 1.0, display_fps: float = 30.0, pygame=None, window=None, renderer=None,
-                 video=None, info: dict | None = None, on_start=None):
+                 video=None, info: dict | None = None, on_start=None, vision=None):
         self.device = device
         self.vehicle = vehicle
         self.dt = dt
@@ -70,6 +70,10 @@ class HumanDriver:
         self._last_image = None  # the frame on the screen (the video repeats it for a dropped frame)
         self.info = info or {}
         self.on_start = on_start  # called once when the trip's clock starts (e.g. to start other recorders)
+        # the vision worker of a paced drive (vcfusion.hitl.pipeline.VisionPipeline): its newest result
+        # is the overlay, read at every display frame; None: the tick's guidance is
+        self.vision = vision
+        self._shown_result = None
         # the overlay shows the tick's guidance; the HUD works without it
         self.needs = ("ego", "neighbours", "guidance") if guidance_on else ("ego",)
         self._guidance = ()
@@ -87,12 +91,12 @@ class HumanDriver:
         self.rows: dict[str, list] = {k: [] for k in ("wall_s", "sim_time", "lag_s", "keys", "raw_axes", "raw_buttons",
                                                       "steer", "throttle", "brake", "lane_change", "accel", "d", "yaw")}
         self.frame_rows: dict[str, list] = {k: [] for k in ("sim_time", "wall_s", "shown", "lag_s", "render_ms",
-                                                            "input_to_display_ms")}
+                                                            "input_to_display_ms", "ar_age_ms")}
         self.display_rows: list[dict] = []
 
     # -- the loop's controller interface ------------------------------------------------
     def acceleration(self, tick) -> float:
-        if tick.guidance is not None and tick.guidance is not self._shown_set:
+        if self.vision is None and tick.guidance is not None and tick.guidance is not self._shown_set:
             # a new overlay (the fusion hook hands the same set again between its updates)
             self._shown_set = tick.guidance
             self._guidance = tick.guidance.items
@@ -168,6 +172,7 @@ class HumanDriver:
         f["lag_s"].append(lag)
         f["render_ms"].append(np.nan)
         f["input_to_display_ms"].append(np.nan)
+        f["ar_age_ms"].append(np.nan)
 
     def _frame(self, st: EgoStep, lag: float) -> None:
         starved = self._last_shown is None or wallclock.perf_counter() - self._last_shown > MAX_FRAME_GAP * self.frame_period
@@ -180,6 +185,8 @@ class HumanDriver:
         tick_frame = self._tick_frame
         frame = tick_frame if tick_frame is not None and abs(tick_frame.time - st.time) < 1e-9 \
             else self.renderer.render(st.states())
+        if self.vision is not None:
+            self._take_vision_result()
         items = self._drawn(frame, st.time) if self.guidance_on else []
         hud = HudInfo(st.time, st.speed, self.trip_end_s - st.s_front, self.guidance_on, lag)
         image = compose(frame.rgb, items, hud)
@@ -196,6 +203,23 @@ class HumanDriver:
         f["render_ms"].append(1000.0 * (shown - started))
         # the state shown was moved by the previous step's command: from that poll to the flip
         f["input_to_display_ms"].append(1000.0 * (shown - (self._last_poll or started)))
+        # how old the overlay's picture of the world is: from the frame it was made from to this one
+        f["ar_age_ms"].append(1000.0 * (st.time - self._update_time) if self._shown_set is not None else np.nan)
+
+    def _take_vision_result(self) -> None:
+        """The vision worker's newest overlay, when it is new (as acceleration() takes a tick's)."""
+        result = self.vision.poll()
+        if result is None or result is self._shown_result:
+            return
+        self._shown_result = result
+        if result.guidance is None:  # no frame at that tick: the overlay on the screen stays
+            return
+        self._shown_set = result.guidance
+        self._guidance = result.guidance.items
+        self._guidance_source = result.guidance.source
+        self._update_time = result.time
+        self._update_twins = result.neighbours
+        self._update_pose = result.pose
 
     def _drawn(self, frame, time_s: float) -> list:
         """The overlay's items with the boxes drawn on this frame (vcfusion.hitl.display)."""
@@ -244,7 +268,8 @@ class HumanDriver:
         tables["frames"] = pd.DataFrame(self.frame_rows)
         if self.renderer is not None and self.guidance_on:  # a trip with a display that drew guidance
             tables["display"] = pd.DataFrame(self.display_rows, columns=list(DISPLAY_COLUMNS))
-        summary["realtime"] = realtime_summary(self.frame_rows, r["lag_s"], self.speed, self.frame_period)
+        summary["realtime"] = realtime_summary(self.frame_rows, r["lag_s"], self.speed, self.frame_period) | (
+            self.vision.stats() if self.vision is not None else {"vision_pipeline": False, "vision_ticks_dropped": 0})
         summary["hitl"] = self.info | {"guidance": "on" if self.guidance_on else "off",
                                       "speed": "max" if self.speed is None else self.speed,
                                       # when the wheel was found unplugged (the car coasted, wheel centred)
@@ -259,6 +284,8 @@ def realtime_summary(frames: dict[str, list], step_lags: list[float], speed: flo
     intervals = np.diff(wall)
     period_lag = np.array(frames["lag_s"], dtype=float)
     to_display = np.array(frames["input_to_display_ms"], dtype=float)[shown]
+    age = np.array(frames.get("ar_age_ms", [np.nan] * len(shown)), dtype=float)[shown]
+    age = age[np.isfinite(age)]
     late_limit = frame_period  # a frame more than one frame period behind its simulated time
     return {
         "frames_due": int(len(shown)),
@@ -268,6 +295,8 @@ def realtime_summary(frames: dict[str, list], step_lags: list[float], speed: flo
         "display_fps_median": float(1.0 / np.median(intervals)) if len(intervals) and np.median(intervals) > 0 else None,
         "max_lag_s": float(max(step_lags)) if step_lags and speed is not None else None,
         "input_to_display_ms_median": float(np.median(to_display)) if len(to_display) else None,
+        "ar_age_ms_median": float(np.median(age)) if len(age) else None,
+        "ar_age_ms_max": float(age.max()) if len(age) else None,
     }
 
 
