@@ -112,6 +112,13 @@ def cmd_train(args: argparse.Namespace) -> int:
                          f"{args.background_negatives}")
     if gru and args.privileged:
         raise UsageError("--privileged: the ceiling is an MLP (--kind mlp)")
+    if not gru and (args.availability or args.init or args.false_alarm_budget is not None):
+        raise UsageError("--availability / --init / --false-alarm-budget: options of the GRU (--kind gru)")
+    if args.false_alarm_budget is not None and not args.false_alarm_budget > 0:
+        raise UsageError(f"--false-alarm-budget: expected a positive rate per vehicle-hour, got {args.false_alarm_budget}")
+    if args.init and args.availability:
+        raise UsageError("--init and --availability: a fine-tuned model keeps its initial model's inputs; "
+                         "give one of them")
     out = Path(args.out)
     if out.exists() and not args.force:
         raise UsageError(f"--out: {out} already exists (use --force to replace it)")
@@ -124,7 +131,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         cfg = SequenceConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
                              background_negatives=args.background_negatives, threads=args.threads,
                              learning_rate=args.learning_rate, weight_decay=args.weight_decay,
-                             bptt_ticks=args.bptt_ticks)
+                             bptt_ticks=args.bptt_ticks, availability=args.availability,
+                             init=str(args.init) if args.init else None,
+                             **({} if args.false_alarm_budget is None else
+                                {"false_alarm_budget": args.false_alarm_budget}))
         report = train_sequence_model(datasets, out, cfg)
     else:
         cfg = TrainConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
@@ -222,6 +232,15 @@ def add_parsers(sub) -> None:
     p.add_argument("--privileged", action="store_true",
                    help="the privileged ceiling: also feed SUMO's lane-change state (a dataset built with "
                         "--privileged); such a model cannot run in the cloud")
+    p.add_argument("--availability", action="store_true",
+                   help="GRU: also feed the availability flags (a neighbour observed or not; "
+                        "features.AVAILABILITY_NAMES); the model file records its inputs")
+    p.add_argument("--init", metavar="MODEL",
+                   help="GRU: fine-tune: start from this GRU file's weights, inputs and standardisation "
+                        "(e.g. a model trained on simulation, fine-tuned on a real recording's development part)")
+    p.add_argument("--false-alarm-budget", dest="false_alarm_budget", type=float, default=None,
+                   help="GRU: the decision settings' false alarms per vehicle-hour on the validation seeds "
+                        "(default 1.5)")
     p.set_defaults(func=cmd_train, interrupted="the model file was not written; run the same command again")
 
     p = sub.add_parser("evaluate", help="frame- and event-level evaluation of a model on a dataset's test seeds")

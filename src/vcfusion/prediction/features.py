@@ -88,6 +88,22 @@ assert FEATURE_NAMES[_N_TICK:] == ("speed_trend", *[f"{n}_trend" for n in HISTOR
 # MLP's input list stays FEATURE_NAMES, so the shipped MLP file keeps loading).
 SEQUENCE_EXTRA_NAMES: tuple[str, ...] = ("lane_end_ahead_m",)
 
+# Availability flags (issue 46), inputs of a sequence model trained with them (SEQUENCE_INPUT_SETS
+# "availability"): 1 where a neighbour was observed within RANGE_M, 0 where the twin's lane on that
+# side does not exist, the twin is off the road, or no twin was seen there. Without them a missing
+# neighbour reads as a free lane (gap RANGE_M, speed difference 0), which is what a truncated
+# recording (NGSIM sorted by vehicle id), a short window (CommonRoad) or a partly connected fleet
+# show the cloud. They are functions of FEATURE_NAMES (computed when read: datasets need no
+# rebuild), from the data every source has; no lateral quantity is among the features, so none is
+# flagged.
+AVAILABILITY_NAMES: tuple[str, ...] = tuple(f"{kind}_found_{side}" for side in ("own", "left", "right")
+                                            for kind in ("lead", "foll"))
+# the model input lists this version computes for a sequence model: a model file records its own
+SEQUENCE_INPUT_SETS: dict[str, tuple[str, ...]] = {
+    "base": (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES),
+    "availability": (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES, *AVAILABILITY_NAMES),
+}
+
 _LANE_KEY = 1.0e6  # lane * _LANE_KEY + s orders twins by lane, then along the road
 
 
@@ -318,14 +334,18 @@ class FeatureExtractor:
         self._memory.keep(ids, state)
         return out
 
-    def from_twins(self, twins, extras: bool = False) -> np.ndarray:
+    def from_twins(self, twins, extras: bool = False, availability: bool = False) -> np.ndarray:
         """Features of a TwinStates snapshot (the run-time path); extras: with the
-        SEQUENCE_EXTRA_NAMES columns appended (the sequence model's inputs)."""
+        SEQUENCE_EXTRA_NAMES columns appended (the sequence model's inputs); availability: then
+        also AVAILABILITY_NAMES (SEQUENCE_INPUT_SETS["availability"])."""
         s = twins.road_frame(self.road)[0]
         out = self(twins.ids, s, twins.lane, twins.speed, twins.accel, twins.length)
         if not extras:
             return out
-        return np.column_stack([out, lane_end_ahead_m(self.road, s, twins.lane)])
+        columns = [out, lane_end_ahead_m(self.road, s, twins.lane)]
+        if availability:
+            columns.append(availability_flags(out))
+        return np.column_stack(columns)
 
 
 def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road: RoadFrame,
@@ -356,3 +376,44 @@ def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road:
     out.insert(0, "vehicle_id", twins["vehicle_id"].astype(str).to_numpy())
     out.insert(0, "time", times)
     return out
+
+
+def _availability_columns(col) -> np.ndarray:
+    """(N, len(AVAILABILITY_NAMES)) 0/1 flags from the FEATURE_NAMES columns `col(name)`."""
+    on_road = col("lane") >= 0  # _tick_matrix leaves lane = -1 for a twin off the road
+    exists = {"own": on_road, "left": on_road & (col("left_lane_exists") > 0.5),
+              "right": on_road & (col("right_lane_exists") > 0.5)}
+    flags = [exists[side] & (col(f"gap_{kind}_{side}") < RANGE_M) for side in ("own", "left", "right")
+             for kind in ("lead", "foll")]
+    return np.column_stack(flags).astype(np.float64) if flags else np.zeros((0, 0))
+
+
+_FEATURE_INDEX = {name: i for i, name in enumerate(FEATURE_NAMES)}
+
+
+def availability_flags(features: np.ndarray) -> np.ndarray:
+    """AVAILABILITY_NAMES of an (N, len(FEATURE_NAMES)) feature matrix (the cloud's per-tick path)."""
+    features = np.asarray(features)
+    return _availability_columns(lambda name: features[:, _FEATURE_INDEX[name]])
+
+
+def stored_columns(names) -> list[str]:
+    """The sample columns a list of model inputs is computed from (AVAILABILITY_NAMES are derived)."""
+    needed = [n for n in names if n not in AVAILABILITY_NAMES]
+    if any(n in AVAILABILITY_NAMES for n in names):
+        needed += [n for n in _AVAILABILITY_SOURCES if n not in needed]
+    return needed
+
+
+_AVAILABILITY_SOURCES = ("lane", "left_lane_exists", "right_lane_exists",
+                         *[f"gap_{kind}_{side}" for side in ("own", "left", "right") for kind in ("lead", "foll")])
+
+
+def with_derived_columns(frame: pd.DataFrame, names) -> pd.DataFrame:
+    """`frame` (samples) with the AVAILABILITY_NAMES among `names` added (in place; returned)."""
+    wanted = [n for n in names if n in AVAILABILITY_NAMES]
+    if wanted:
+        flags = _availability_columns(lambda name: frame[name].to_numpy(dtype=float))
+        for name in wanted:
+            frame[name] = flags[:, AVAILABILITY_NAMES.index(name)]
+    return frame
