@@ -112,12 +112,12 @@ def cmd_train(args: argparse.Namespace) -> int:
                          f"{args.background_negatives}")
     if gru and args.privileged:
         raise UsageError("--privileged: the ceiling is an MLP (--kind mlp)")
-    if not gru and (args.availability or args.init or args.false_alarm_budget is not None):
-        raise UsageError("--availability / --init / --false-alarm-budget: options of the GRU (--kind gru)")
+    if not gru and (args.inputs != "base" or args.init or args.false_alarm_budget is not None):
+        raise UsageError("--inputs / --init / --false-alarm-budget: options of the GRU (--kind gru)")
     if args.false_alarm_budget is not None and not args.false_alarm_budget > 0:
         raise UsageError(f"--false-alarm-budget: expected a positive rate per vehicle-hour, got {args.false_alarm_budget}")
-    if args.init and args.availability:
-        raise UsageError("--init and --availability: a fine-tuned model keeps its initial model's inputs; "
+    if args.init and args.inputs != "base":
+        raise UsageError("--init and --inputs: a fine-tuned model keeps its initial model's inputs; "
                          "give one of them")
     out = Path(args.out)
     if out.exists() and not args.force:
@@ -127,11 +127,15 @@ def cmd_train(args: argparse.Namespace) -> int:
     if gru:
         from vcfusion.prediction.train import load_datasets
 
-        check_sequence_columns(load_datasets(datasets))  # before any training: a bad folder stops here
+        from vcfusion.prediction.features import SEQUENCE_INPUT_SETS
+        from vcfusion.prediction.model import load_model
+
+        names = load_model(args.init).feature_names if args.init else SEQUENCE_INPUT_SETS[args.inputs]
+        check_sequence_columns(load_datasets(datasets), names)  # before any training: a bad folder stops here
         cfg = SequenceConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
                              background_negatives=args.background_negatives, threads=args.threads,
                              learning_rate=args.learning_rate, weight_decay=args.weight_decay,
-                             bptt_ticks=args.bptt_ticks, availability=args.availability,
+                             bptt_ticks=args.bptt_ticks, inputs=args.inputs,
                              init=str(args.init) if args.init else None,
                              **({} if args.false_alarm_budget is None else
                                 {"false_alarm_budget": args.false_alarm_budget}))
@@ -232,9 +236,10 @@ def add_parsers(sub) -> None:
     p.add_argument("--privileged", action="store_true",
                    help="the privileged ceiling: also feed SUMO's lane-change state (a dataset built with "
                         "--privileged); such a model cannot run in the cloud")
-    p.add_argument("--availability", action="store_true",
-                   help="GRU: also feed the availability flags (a neighbour observed or not; "
-                        "features.AVAILABILITY_NAMES); the model file records its inputs")
+    p.add_argument("--inputs", choices=["base", "availability", "lateral"], default="base",
+                   help="GRU inputs (features.SEQUENCE_INPUT_SETS): base (the shipped GRU's), availability (also "
+                        "the flags: a neighbour observed or not), lateral (also the lateral motion: drift and "
+                        "lateral speed, with a known-flag); the model file records its inputs")
     p.add_argument("--init", metavar="MODEL",
                    help="GRU: fine-tune: start from this GRU file's weights, inputs and standardisation "
                         "(e.g. a model trained on simulation, fine-tuned on a real recording's development part)")

@@ -45,8 +45,10 @@ class LaneChangePredictor:
         self.extractor = FeatureExtractor(road, period_s)
         # the sequence model's per-twin hidden states (vcfusion.prediction.sequence.SequenceState)
         self.sequence = SequenceState(model) if model.kind == "gru" else None
-        # a sequence model trained with the availability flags also reads them (its file says so)
-        self.availability = model.kind == "gru" and tuple(model.feature_names) == SEQUENCE_INPUT_SETS["availability"]
+        # a sequence model trained with the availability flags (and the lateral motion) also reads them
+        names = tuple(model.feature_names)
+        self.lateral = model.kind == "gru" and names == SEQUENCE_INPUT_SETS["lateral"]
+        self.availability = model.kind == "gru" and (self.lateral or names == SEQUENCE_INPUT_SETS["availability"])
         smoothing = smoothing or model.smoothing
         self.threshold = model.threshold_for(smoothing) if threshold is None else threshold
         self.smoother = StreamingSmoother(
@@ -62,7 +64,8 @@ class LaneChangePredictor:
             # (called, the extractor and the smoother forgot every twin)
             return {"lc_prob": np.zeros(0), "lc_decision": np.zeros(0, np.int8)}
         if self.sequence is not None:  # the GRU: one step per twin, its state carried to the next tick
-            features = self.extractor.from_twins(twins, extras=True, availability=self.availability)
+            features = self.extractor.from_twins(twins, extras=True, availability=self.availability,
+                                                 lateral=self.lateral)
             prob = self.sequence(twins.ids, twins.time, features)
         else:
             features = self.extractor.from_twins(twins)

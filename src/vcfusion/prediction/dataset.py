@@ -22,7 +22,8 @@ import numpy as np
 import pandas as pd
 
 from vcfusion.errors import InputError
-from vcfusion.prediction.features import FEATURE_NAMES, SEQUENCE_EXTRA_NAMES, features_from_twins_table
+from vcfusion.prediction.features import (FEATURE_NAMES, LATERAL_NAMES, SEQUENCE_EXTRA_NAMES,
+                                          features_from_twins_table)
 from vcfusion.prediction.labels import label_samples
 from vcfusion.studies.batch import SeedOutcome, check_kept_runs, complete_seeds, run_batch, seed_folder
 from vcfusion.traffic.network import read_road
@@ -64,7 +65,7 @@ def build_samples(tables: dict[str, pd.DataFrame], road, period_s: float, seed: 
         "window_label": labels["window_label"].to_numpy(),
         "stream_label": labels["stream_label"].to_numpy(),
     })
-    for name in (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES):
+    for name in (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES, *LATERAL_NAMES):
         out[name] = feats[name].to_numpy(dtype=np.float32)
     return out
 

@@ -129,7 +129,7 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
         file_names = tuple(model_feature_names(model_path))
         model_names = (list(file_names) if file_names in SEQUENCE_INPUT_SETS.values()
                        else names + list(SEQUENCE_EXTRA_NAMES))
-        check_sequence_columns([info])
+        check_sequence_columns([info], model_names)
     else:
         model_names = names + privileged if ceiling else names
     model = load_model(model_path, expected_features=model_names)

@@ -51,8 +51,9 @@ class SequenceConfig:
     # on traffic never tuned on, and a threshold tuned to exactly 2 on validation lands on either
     # side of 2 elsewhere (validation is a sample, and families differ), so tune with a 25 % margin.
     false_alarm_budget: float = 1.5
-    # Inputs: features.SEQUENCE_INPUT_SETS["availability"] (with the availability flags) or "base".
-    availability: bool = False
+    # Inputs: the name of one of features.SEQUENCE_INPUT_SETS: base | availability (with the
+    # availability flags) | lateral (flags and lateral motion).
+    inputs: str = "base"
     # Fine-tuning: start from this GRU file's weights and input standardisation (its inputs, its
     # hidden size) instead of a random initialisation; None = from scratch.
     init: str | None = None
@@ -176,7 +177,7 @@ def train_sequence_model(datasets: list[Path], out: Path, cfg: SequenceConfig, p
     infos = load_datasets(datasets)
     init = _init_model(cfg.init) if cfg.init else None
     names = list(init.feature_names if init is not None
-                 else SEQUENCE_INPUT_SETS["availability" if cfg.availability else "base"])
+                 else SEQUENCE_INPUT_SETS[cfg.inputs])
     tau, tau_g, period = infos[0].tau, infos[0].tau_g, infos[0].period_s
     if init is not None and (init.tau, init.tau_g, init.period_s) != (tau, tau_g, period):
         raise DatasetError(f"{cfg.init}: tau / tau_g / V2C period {init.tau, init.tau_g, init.period_s} differ from "
@@ -227,17 +228,19 @@ def train_sequence_model(datasets: list[Path], out: Path, cfg: SequenceConfig, p
     return "\n".join(lines + tuning_report(tuned, default, out))
 
 
-def check_sequence_columns(infos) -> None:
-    """The sequence model's extra inputs must be in the samples (datasets built before they existed
-    are brought up to date with `vcfusion dataset ... --refeature`)."""
+def check_sequence_columns(infos, names=None) -> None:
+    """The sequence model's extra inputs (and those of `names`, a model's input list) must be in the
+    samples (datasets built before they existed are brought up to date with `vcfusion dataset ...
+    --refeature`; an imported recording: import it again)."""
     import pyarrow.parquet as pq
 
-    from vcfusion.prediction.features import SEQUENCE_EXTRA_NAMES
+    from vcfusion.prediction.features import SEQUENCE_EXTRA_NAMES, stored_columns
 
+    needed = [*SEQUENCE_EXTRA_NAMES, *[n for n in stored_columns(names or ()) if n not in SEQUENCE_EXTRA_NAMES]]
     for info in infos:
         for seed in info.seeds("all"):
             f = info.samples_file(seed)
-            missing = [n for n in SEQUENCE_EXTRA_NAMES if n not in pq.read_schema(f).names]
+            missing = [n for n in needed if n not in pq.read_schema(f).names]
             if missing:
                 raise DatasetError(f"{f}: missing columns {missing} (the sequence model's inputs); bring the dataset up "
                                    "to date with `vcfusion dataset SCENARIO --seeds ... --out DIR --refeature`")

@@ -36,6 +36,10 @@ def vehicle_table(model_path: Path, dataset: Path, split: str = "test", horizon_
     model = load_model(model_path)
     info = load_dataset(dataset)
     names = list(model.feature_names)
+    if model.kind == "gru":
+        from vcfusion.prediction.train_sequence import check_sequence_columns
+
+        check_sequence_columns([info], names)
     stream, events = stream_with_events(info, split, columns=["seed", "vehicle_id", "time", *stored_columns(names)])
     with_derived_columns(stream, names)
     prob = model.stream_proba(stream, names)
