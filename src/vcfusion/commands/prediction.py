@@ -170,7 +170,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     for option in ("twins", "repeats"):
         if getattr(args, option) < 1:
             raise UsageError(f"--{option}: expected a positive number, got {getattr(args, option)}")
-    print(run_bench(args.twins, args.repeats))
+    print(run_bench(args.twins, args.repeats, args.model))
     return 0
 
 
@@ -264,4 +264,6 @@ def add_parsers(sub) -> None:
     p = sub.add_parser("bench-predict", help="time the cloud lane-change predictor for N twins in one tick")
     p.add_argument("--twins", type=int, default=100)
     p.add_argument("--repeats", type=int, default=2000)
+    p.add_argument("--model", action="append", metavar="FILE",
+                   help="also time this model file (after the shipped ones); repeat for several")
     p.set_defaults(func=cmd_bench)
