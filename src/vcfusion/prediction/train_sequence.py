@@ -215,13 +215,15 @@ def train_sequence_model(datasets: list[Path], out: Path, cfg: SequenceConfig, p
     model.tau_a_ticks = int(tuned["aggressive"]["tau_ticks"])
     model.tau_c_ticks = int(tuned["conservative"]["tau_ticks"])
     model.info = {
-        "kind": "gru", "datasets": [Path(d).name for d in datasets], "init": Path(cfg.init).name if cfg.init else None,
+        "kind": "gru", "datasets": [str(Path(d).absolute()) for d in datasets],
+        "init": str(Path(cfg.init).absolute()) if cfg.init else None,
         "scenarios": [i.meta.get("scenario") for i in infos], "config": asdict(cfg), "fit": fit,
         "train_rows": int(len(tr)), "train_segments": len(b_tr), "splits": [i.splits for i in infos],
         "tuning": tuned, "calibration": list(model.calibration),
     }
     save_sequence_model(model, out)
-    lines = [f"trained gru (hidden {model.hidden}{', fine-tuned from ' + str(cfg.init) if cfg.init else ''}) on {len(b_tr)} segments / {len(tr)} ticks of "
+    start = f", fine-tuned from {cfg.init}" if cfg.init else ""
+    lines = [f"trained gru (hidden {model.hidden}{start}) on {len(b_tr)} segments / {len(tr)} ticks of "
              f"{sum(len(i.splits['train']) for i in infos)} seeds of {len(infos)} datasets in "
              f"{wallclock.perf_counter() - started:.1f} s: best epoch {fit['best_epoch'] + 1} of {fit['epochs_run']}, "
              f"validation loss {fit['best_val_loss']:.4f}"]
