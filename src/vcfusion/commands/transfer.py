@@ -123,7 +123,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing --out")
     p.set_defaults(func=cmd_retune, interrupted="the model file was not written; run the same command again")
 
-    p = sub.add_parser("sim-to-real", help="the sim-to-real table: lane-change models x evaluation sets, with 95 %% "
+    p = sub.add_parser("sim-to-real", help="the sim-to-real table: lane-change models x evaluation sets, with "
                                            "bootstrap intervals over vehicles (CSV + markdown)")
     p.add_argument("--model", action="append", required=True, metavar="LABEL=FILE",
                    help="a model file and its row label; repeat for each model")
