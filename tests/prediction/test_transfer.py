@@ -171,6 +171,11 @@ def tiny_recording(tmp_path_factory):
 
 def test_frozen_split_by_vehicle_and_the_sim_to_real_table(tiny_recording, tmp_path):
     _, data = tiny_recording
+    # the import says which vehicle had no lateral position: its lateral inputs are flagged unknown
+    rec = pd.concat([pd.read_parquet(f) for f in sorted((data / "runs").glob("seed_*/samples.parquet"))])
+    assert (rec.loc[rec["vehicle_id"] == "12", "lateral_known"] == 0).all()
+    assert (rec.loc[rec["vehicle_id"] == "12", ["lateral_speed_mps", "lateral_drift_m"]].to_numpy() == 0).all()
+    assert (rec.loc[rec["vehicle_id"] == "1", "lateral_known"] == 1).all()
     split = tmp_path / "split.json"
     assert main(["real-split", "freeze", str(data), "--by", "vehicle", "--out", str(split), "--seed", "3"]) == 0
     frozen = json.loads(split.read_text())
