@@ -287,6 +287,7 @@ train / validation / test are in `dataset.json`.
 | stream_label | every-tick truth: 1 when 0 <= time_to_lc < tau, else 0 |
 | FEATURES... | float32, see vcfusion/prediction/features.py: longitudinal only, no lateral position/speed, heading, steering, blinker or SUMO lane-change state |
 | lane_end_ahead_m | float32: distance to where the own lane ends ahead (400 m when it does not end within that); an input of the sequence model only |
+| lateral_known, lateral_speed_mps, lateral_drift_m | float32: lateral motion across the road (left positive; 0 with lateral_known = 0 where the source had no lateral position); inputs of a sequence model of the `lateral` input set only |
 
 Features: {features}
 
