@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from vcfusion.commands import main
-from vcfusion.prediction.features import FEATURE_NAMES, SEQUENCE_EXTRA_NAMES
+from vcfusion.prediction.features import FEATURE_NAMES, LATERAL_NAMES, SEQUENCE_EXTRA_NAMES
 from vcfusion.prediction.sources.ngsim import NGSIM_COLUMNS
 from vcfusion.prediction.sources.trajectories import (END_AFTER_MID_S, SAMPLE_COLUMNS, Recording, clean_lane_flicker,
                                                       straight_road, twin_tracks)
@@ -134,7 +134,7 @@ def test_ngsim_labels_and_features_are_the_simulation_code(ngsim_dataset):
     samples = _tables(out, "samples")
     assert list(samples.columns[:9]) == ["seed", "time", "vehicle_id", "event_id", "lc_reason", "time_to_lc",
                                          "time_since_lc", "window_label", "stream_label"]
-    assert list(samples.columns[9:]) == [*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES]
+    assert list(samples.columns[9:]) == [*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES, *LATERAL_NAMES]
     lc = _tables(out, "lane_changes").set_index("vehicle_id")
     one = samples[samples["vehicle_id"] == "1"].set_index("time")
     end = lc.loc["1", "end_time"]

@@ -26,7 +26,7 @@ def package_version() -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     from vcfusion.commands import (bench, control, detection, drive, explain, lane_changes, metrics, prediction,
-                                   simulation, study, traffic)
+                                   simulation, study, traffic, transfer)
 
     parser = argparse.ArgumentParser(prog="vcfusion", description=__doc__)
     parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
@@ -42,6 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_parsers(sub)  # bench, bench-render
     prediction.add_parsers(sub)  # dataset, train, evaluate, bench-predict
     lane_changes.add_parsers(sub)  # compare-lane-changes, calibrate-lane-changes
+    transfer.add_parsers(sub)  # real-split, sim-to-real
     detection.add_parsers(sub)  # train-detector, eval-detector, render-scenes, resize-dataset, coco-check, export-onnx
     metrics.add_parsers(sub)  # metrics, report
     control.add_parsers(sub)  # export-commonroad

@@ -112,6 +112,13 @@ def cmd_train(args: argparse.Namespace) -> int:
                          f"{args.background_negatives}")
     if gru and args.privileged:
         raise UsageError("--privileged: the ceiling is an MLP (--kind mlp)")
+    if not gru and (args.inputs != "base" or args.init or args.false_alarm_budget is not None):
+        raise UsageError("--inputs / --init / --false-alarm-budget: options of the GRU (--kind gru)")
+    if args.false_alarm_budget is not None and not args.false_alarm_budget > 0:
+        raise UsageError(f"--false-alarm-budget: expected a positive rate per vehicle-hour, got {args.false_alarm_budget}")
+    if args.init and args.inputs != "base":
+        raise UsageError("--init and --inputs: a fine-tuned model keeps its initial model's inputs; "
+                         "give one of them")
     out = Path(args.out)
     if out.exists() and not args.force:
         raise UsageError(f"--out: {out} already exists (use --force to replace it)")
@@ -120,11 +127,18 @@ def cmd_train(args: argparse.Namespace) -> int:
     if gru:
         from vcfusion.prediction.train import load_datasets
 
-        check_sequence_columns(load_datasets(datasets))  # before any training: a bad folder stops here
+        from vcfusion.prediction.features import SEQUENCE_INPUT_SETS
+        from vcfusion.prediction.model import load_model
+
+        names = load_model(args.init).feature_names if args.init else SEQUENCE_INPUT_SETS[args.inputs]
+        check_sequence_columns(load_datasets(datasets), names)  # before any training: a bad folder stops here
         cfg = SequenceConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
                              background_negatives=args.background_negatives, threads=args.threads,
                              learning_rate=args.learning_rate, weight_decay=args.weight_decay,
-                             bptt_ticks=args.bptt_ticks)
+                             bptt_ticks=args.bptt_ticks, inputs=args.inputs,
+                             init=str(args.init) if args.init else None,
+                             **({} if args.false_alarm_budget is None else
+                                {"false_alarm_budget": args.false_alarm_budget}))
         report = train_sequence_model(datasets, out, cfg)
     else:
         cfg = TrainConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
@@ -156,7 +170,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     for option in ("twins", "repeats"):
         if getattr(args, option) < 1:
             raise UsageError(f"--{option}: expected a positive number, got {getattr(args, option)}")
-    print(run_bench(args.twins, args.repeats))
+    print(run_bench(args.twins, args.repeats, args.model))
     return 0
 
 
@@ -222,6 +236,16 @@ def add_parsers(sub) -> None:
     p.add_argument("--privileged", action="store_true",
                    help="the privileged ceiling: also feed SUMO's lane-change state (a dataset built with "
                         "--privileged); such a model cannot run in the cloud")
+    p.add_argument("--inputs", choices=["base", "availability", "lateral"], default="base",
+                   help="GRU inputs (features.SEQUENCE_INPUT_SETS): base (the shipped GRU's), availability (also "
+                        "the flags: a neighbour observed or not), lateral (also the lateral motion: drift and "
+                        "lateral speed, with a known-flag); the model file records its inputs")
+    p.add_argument("--init", metavar="MODEL",
+                   help="GRU: fine-tune: start from this GRU file's weights, inputs and standardisation "
+                        "(e.g. a model trained on simulation, fine-tuned on a real recording's development part)")
+    p.add_argument("--false-alarm-budget", dest="false_alarm_budget", type=float, default=None,
+                   help="GRU: the decision settings' false alarms per vehicle-hour on the validation seeds "
+                        "(default 1.5)")
     p.set_defaults(func=cmd_train, interrupted="the model file was not written; run the same command again")
 
     p = sub.add_parser("evaluate", help="frame- and event-level evaluation of a model on a dataset's test seeds")
@@ -240,4 +264,6 @@ def add_parsers(sub) -> None:
     p = sub.add_parser("bench-predict", help="time the cloud lane-change predictor for N twins in one tick")
     p.add_argument("--twins", type=int, default=100)
     p.add_argument("--repeats", type=int, default=2000)
+    p.add_argument("--model", action="append", metavar="FILE",
+                   help="also time this model file (after the shipped ones); repeat for several")
     p.set_defaults(func=cmd_bench)

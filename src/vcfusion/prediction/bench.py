@@ -40,7 +40,8 @@ def bench_model(path, n_twins: int = 100, repeats: int = 2000) -> list[str]:
     predictor = LaneChangePredictor(model, road, 0.1)
     predictor(twins)  # warm-up, fills the per-twin memory
     gru = model.kind == "gru"
-    features = predictor.extractor.from_twins(twins, extras=gru)
+    flags = {"extras": gru, "availability": predictor.availability, "lateral": predictor.lateral}  # the model's inputs
+    features = predictor.extractor.from_twins(twins, **flags)
     if gru:
         ticks = iter(range(1, 10**9))  # each call one tick later: the per-twin states are carried, never reset
         prob = predictor.sequence(twins.ids, twins.time, features)
@@ -51,7 +52,7 @@ def bench_model(path, n_twins: int = 100, repeats: int = 2000) -> list[str]:
         step = lambda: model.predict_proba(features)  # noqa: E731
         size = f"MLP, hidden {model.weights[0][0].shape[0]}"
     raw = (prob > predictor.threshold).astype(np.int8)
-    t_features = median_us(lambda: predictor.extractor.from_twins(twins, extras=gru), repeats)
+    t_features = median_us(lambda: predictor.extractor.from_twins(twins, **flags), repeats)
     t_model = median_us(step, repeats)
     t_smooth = median_us(lambda: predictor.smoother(twins.ids, raw), repeats)
     # one snapshot per tick, each 0.1 s later (built beforehand: the timing is the predictor's)
@@ -91,13 +92,14 @@ def bench_model(path, n_twins: int = 100, repeats: int = 2000) -> list[str]:
     return lines
 
 
-def run_bench(n_twins: int = 100, repeats: int = 2000) -> str:
-    """The shipped default model first, then every other model shipped in vcfusion/assets."""
+def run_bench(n_twins: int = 100, repeats: int = 2000, models=None) -> str:
+    """The shipped default model first, then every other model shipped in vcfusion/assets, then
+    the model files `models`."""
     from vcfusion.prediction.model import SHIPPED_MODEL_NAMES, default_model_path
 
     default = default_model_path()
     paths = [default] + [default.with_name(n) for n in SHIPPED_MODEL_NAMES
-                         if n != default.name and default.with_name(n).is_file()]
+                         if n != default.name and default.with_name(n).is_file()] + [Path(m) for m in models or ()]
     lines = []
     for k, path in enumerate(paths):
         lines += bench_model(path, n_twins, repeats)

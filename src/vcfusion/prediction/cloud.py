@@ -22,7 +22,7 @@ import pandas as pd
 
 from vcfusion.runio import vehicle_tracks
 
-from vcfusion.prediction.features import FeatureExtractor
+from vcfusion.prediction.features import SEQUENCE_INPUT_SETS, FeatureExtractor
 from vcfusion.prediction.model import LaneChangeModel, load_model
 from vcfusion.prediction.sequence import SequenceModel, SequenceState
 from vcfusion.prediction.smoothing import StreamingSmoother
@@ -45,6 +45,10 @@ class LaneChangePredictor:
         self.extractor = FeatureExtractor(road, period_s)
         # the sequence model's per-twin hidden states (vcfusion.prediction.sequence.SequenceState)
         self.sequence = SequenceState(model) if model.kind == "gru" else None
+        # a sequence model trained with the availability flags (and the lateral motion) also reads them
+        names = tuple(model.feature_names)
+        self.lateral = model.kind == "gru" and names == SEQUENCE_INPUT_SETS["lateral"]
+        self.availability = model.kind == "gru" and (self.lateral or names == SEQUENCE_INPUT_SETS["availability"])
         smoothing = smoothing or model.smoothing
         self.threshold = model.threshold_for(smoothing) if threshold is None else threshold
         self.smoother = StreamingSmoother(
@@ -60,7 +64,8 @@ class LaneChangePredictor:
             # (called, the extractor and the smoother forgot every twin)
             return {"lc_prob": np.zeros(0), "lc_decision": np.zeros(0, np.int8)}
         if self.sequence is not None:  # the GRU: one step per twin, its state carried to the next tick
-            features = self.extractor.from_twins(twins, extras=True)
+            features = self.extractor.from_twins(twins, extras=True, availability=self.availability,
+                                                 lateral=self.lateral)
             prob = self.sequence(twins.ids, twins.time, features)
         else:
             features = self.extractor.from_twins(twins)

@@ -22,7 +22,8 @@ import numpy as np
 import pandas as pd
 
 from vcfusion.errors import InputError
-from vcfusion.prediction.features import FEATURE_NAMES, SEQUENCE_EXTRA_NAMES, features_from_twins_table
+from vcfusion.prediction.features import (FEATURE_NAMES, LATERAL_NAMES, SEQUENCE_EXTRA_NAMES,
+                                          features_from_twins_table)
 from vcfusion.prediction.labels import label_samples
 from vcfusion.studies.batch import SeedOutcome, check_kept_runs, complete_seeds, run_batch, seed_folder
 from vcfusion.traffic.network import read_road
@@ -64,7 +65,7 @@ def build_samples(tables: dict[str, pd.DataFrame], road, period_s: float, seed: 
         "window_label": labels["window_label"].to_numpy(),
         "stream_label": labels["stream_label"].to_numpy(),
     })
-    for name in (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES):
+    for name in (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES, *LATERAL_NAMES):
         out[name] = feats[name].to_numpy(dtype=np.float32)
     return out
 
@@ -286,6 +287,7 @@ train / validation / test are in `dataset.json`.
 | stream_label | every-tick truth: 1 when 0 <= time_to_lc < tau, else 0 |
 | FEATURES... | float32, see vcfusion/prediction/features.py: longitudinal only, no lateral position/speed, heading, steering, blinker or SUMO lane-change state |
 | lane_end_ahead_m | float32: distance to where the own lane ends ahead (400 m when it does not end within that); an input of the sequence model only |
+| lateral_known, lateral_speed_mps, lateral_drift_m | float32: lateral motion across the road (left positive; 0 with lateral_known = 0 where the source had no lateral position); inputs of a sequence model of the `lateral` input set only |
 
 Features: {features}
 

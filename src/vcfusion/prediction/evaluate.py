@@ -36,7 +36,8 @@ from scipy.stats import rankdata
 
 from vcfusion.prediction.dataset import DatasetError, load_dataset, load_samples
 from vcfusion.prediction.events import event_scores, smooth_stream, smoothing_bounds, track_bounds
-from vcfusion.prediction.features import SEQUENCE_EXTRA_NAMES
+from vcfusion.prediction.features import (SEQUENCE_EXTRA_NAMES, SEQUENCE_INPUT_SETS, stored_columns,
+                                          with_derived_columns)
 from vcfusion.prediction.model import LaneChangeModel, feature_scaling, load_model, model_feature_names, model_kind
 from vcfusion.prediction.train_sequence import check_sequence_columns
 from vcfusion.prediction.privileged import SumoWantsRule
@@ -125,8 +126,10 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
     # a ceiling model (`vcfusion train --privileged`) also takes the privileged columns
     ceiling = bool(privileged) and set(privileged) <= set(model_feature_names(model_path))
     if model_kind(model_path) == "gru":  # the sequence model also reads the extra sample columns
-        model_names = names + list(SEQUENCE_EXTRA_NAMES)
-        check_sequence_columns([info])
+        file_names = tuple(model_feature_names(model_path))
+        model_names = (list(file_names) if file_names in SEQUENCE_INPUT_SETS.values()
+                       else names + list(SEQUENCE_EXTRA_NAMES))
+        check_sequence_columns([info], model_names)
     else:
         model_names = names + privileged if ceiling else names
     model = load_model(model_path, expected_features=model_names)
@@ -168,8 +171,9 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
                           "no baselines: --no-baselines" if not baselines else
                           "no baselines: the dataset has no train and validation seeds (fewer than 3 seeds)")}
     stream, events = stream_with_events(info, split, columns=["seed", "vehicle_id", "time", "window_label",
-                                                               "stream_label", *dict.fromkeys([*names, *privileged,
-                                                                                               *model_names])])
+                                                               "stream_label", *dict.fromkeys(stored_columns(
+                                                                   [*names, *privileged, *model_names]))])
+    with_derived_columns(stream, model_names)
     bounds, stretches = track_bounds(stream), smoothing_bounds(stream)
     in_window = stream["window_label"].to_numpy() >= 0
     y_window = stream["window_label"].to_numpy()[in_window] == 1

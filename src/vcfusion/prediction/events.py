@@ -73,9 +73,11 @@ def smooth_stream(bounds: list[tuple[int, int]], decisions: np.ndarray, method: 
 
 
 def event_scores(stream: pd.DataFrame, decisions: np.ndarray, events: pd.DataFrame, period_s: float,
-                 horizon_s: float, bounds: list[tuple[int, int]] | None = None) -> tuple[dict, pd.DataFrame]:
+                 horizon_s: float, bounds: list[tuple[int, int]] | None = None,
+                 false_alarms_by_vehicle: dict | None = None) -> tuple[dict, pd.DataFrame]:
     """stream: seed, vehicle_id, time sorted by (seed, vehicle_id, time); events: seed, event_id,
-    vehicle_id, end, mid. Returns (summary, per-event table)."""
+    vehicle_id, end, mid. Returns (summary, per-event table). `false_alarms_by_vehicle`: a dict
+    that receives each (seed, vehicle_id)'s false alarms (for intervals over vehicles)."""
     rows = []
     false_alarms = 0
     alarms = 0
@@ -94,6 +96,8 @@ def event_scores(stream: pd.DataFrame, decisions: np.ndarray, events: pd.DataFra
         for s0, s1 in zip(starts, stops):
             if not np.any((ends >= t[s0] - _EPS) & (ends <= t[s1] + horizon_s + _EPS)):
                 false_alarms += 1
+                if false_alarms_by_vehicle is not None:
+                    false_alarms_by_vehicle[key] = false_alarms_by_vehicle.get(key, 0) + 1
         if g is None:
             continue
         prev = -np.inf

@@ -88,6 +88,36 @@ assert FEATURE_NAMES[_N_TICK:] == ("speed_trend", *[f"{n}_trend" for n in HISTOR
 # MLP's input list stays FEATURE_NAMES, so the shipped MLP file keeps loading).
 SEQUENCE_EXTRA_NAMES: tuple[str, ...] = ("lane_end_ahead_m",)
 
+# Availability flags (issue 46), inputs of a sequence model trained with them (SEQUENCE_INPUT_SETS
+# "availability"): 1 where a neighbour was observed within RANGE_M, 0 where the twin's lane on that
+# side does not exist, the twin is off the road, or no twin was seen there. Without them a missing
+# neighbour reads as a free lane (gap RANGE_M, speed difference 0), which is what a truncated
+# recording (NGSIM sorted by vehicle id), a short window (CommonRoad) or a partly connected fleet
+# show the cloud. They are functions of FEATURE_NAMES (computed when read: datasets need no
+# rebuild), from the data every source has; no lateral quantity is among the features, so none is
+# flagged.
+AVAILABILITY_NAMES: tuple[str, ...] = tuple(f"{kind}_found_{side}" for side in ("own", "left", "right")
+                                            for kind in ("lead", "foll"))
+# Lateral motion (issue 46), inputs of a sequence model of the "lateral" input set only (the
+# paper's features and the shipped models use no lateral quantity): recorded drivers drift
+# towards the line for seconds before a change (docs/components/real-data.md), which no
+# longitudinal feature shows. From the twin's position across the road d (the road frame's,
+# left positive: the cloud's GNSS position, a recording's lateral position), per twin:
+# `lateral_speed_mps` = (fast - slow EMA of d) / (HISTORY_SLOW_S - HISTORY_FAST_S), the lateral
+# speed of a steady drift; `lateral_drift_m` = d - its LATERAL_REFERENCE_S EMA, the displacement
+# of the last ~10 s. Neither uses the lane geometry, so the map-matched lane's flip leaves no jump.
+# `lateral_known` = 0 where the source has no lateral position (an NGSIM release without Local_X:
+# the twins table's `d_known`); the two quantities are then 0 and their averages start afresh
+# when it is known again.
+LATERAL_REFERENCE_S = 10.0
+LATERAL_NAMES: tuple[str, ...] = ("lateral_known", "lateral_speed_mps", "lateral_drift_m")
+# the model input lists this version computes for a sequence model: a model file records its own
+SEQUENCE_INPUT_SETS: dict[str, tuple[str, ...]] = {
+    "base": (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES),
+    "availability": (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES, *AVAILABILITY_NAMES),
+    "lateral": (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES, *AVAILABILITY_NAMES, *LATERAL_NAMES),
+}
+
 _LANE_KEY = 1.0e6  # lane * _LANE_KEY + s orders twins by lane, then along the road
 
 
@@ -299,6 +329,10 @@ class FeatureExtractor:
         # is overwritten after)
         self._alphas = np.concatenate([[self._alpha, 0.0], np.full(self._n_hist, self._alpha_fast),
                                        np.full(self._n_hist, self._alpha_slow)])
+        # lateral motion (LATERAL_NAMES): fast, slow and reference EMA of d per twin
+        self._lateral = TwinMemory(3)
+        self._alpha_lateral = np.array([self._alpha_fast, self._alpha_slow,
+                                        1.0 - np.exp(-period_s / LATERAL_REFERENCE_S)])
         self._col_speed_minus_ema = FEATURE_NAMES.index("speed_minus_ema")
         self._col_below_max = FEATURE_NAMES.index("speed_below_recent_max")
         split = [name.rsplit("_", 1) for name in HISTORY_MEAN_SOURCES]  # e.g. ("gap_lead", "left")
@@ -318,14 +352,41 @@ class FeatureExtractor:
         self._memory.keep(ids, state)
         return out
 
-    def from_twins(self, twins, extras: bool = False) -> np.ndarray:
+    def lateral(self, ids, d: np.ndarray, known: np.ndarray | None = None) -> np.ndarray:
+        """(N, len(LATERAL_NAMES)) lateral-motion inputs of the N twins of one snapshot, in time
+        order like __call__; `d` across the road (left positive), `known` False where the source
+        has no lateral position (default: all known)."""
+        d = np.asarray(d, dtype=float)
+        known = np.ones(len(d), dtype=bool) if known is None else np.asarray(known, dtype=bool)
+        prev = self._lateral.previous_rows(ids)
+        old = np.full((len(d), 3), np.nan)
+        seen = prev >= 0
+        old[seen] = self._lateral.state[prev[seen]]
+        old = np.where(np.isnan(old), d[:, None], old)  # a new twin (or d unknown until now) starts at d
+        state = old + self._alpha_lateral * (d[:, None] - old)
+        state[~known] = np.nan
+        self._lateral.keep(ids, state)
+        out = np.zeros((len(d), len(LATERAL_NAMES)))
+        out[:, 0] = known
+        out[known, 1] = (state[known, 0] - state[known, 1]) / (HISTORY_SLOW_S - HISTORY_FAST_S)
+        out[known, 2] = d[known] - state[known, 2]
+        return out
+
+    def from_twins(self, twins, extras: bool = False, availability: bool = False,
+                   lateral: bool = False) -> np.ndarray:
         """Features of a TwinStates snapshot (the run-time path); extras: with the
-        SEQUENCE_EXTRA_NAMES columns appended (the sequence model's inputs)."""
-        s = twins.road_frame(self.road)[0]
+        SEQUENCE_EXTRA_NAMES columns appended (the sequence model's inputs); availability: then
+        also AVAILABILITY_NAMES; lateral: then also LATERAL_NAMES (SEQUENCE_INPUT_SETS)."""
+        s, d = twins.road_frame(self.road)
         out = self(twins.ids, s, twins.lane, twins.speed, twins.accel, twins.length)
         if not extras:
             return out
-        return np.column_stack([out, lane_end_ahead_m(self.road, s, twins.lane)])
+        columns = [out, lane_end_ahead_m(self.road, s, twins.lane)[:, None]]
+        if availability or lateral:
+            columns.append(availability_flags(out))
+        if lateral:
+            columns.append(self.lateral(twins.ids, d))
+        return np.hstack(columns)
 
 
 def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road: RoadFrame,
@@ -333,7 +394,7 @@ def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road:
     """Replay a run's `twins` table snapshot by snapshot through a FeatureExtractor.
 
     Returns time, vehicle_id and one column per feature (FEATURE_NAMES, then
-    SEQUENCE_EXTRA_NAMES), sorted by time then vehicle id.
+    SEQUENCE_EXTRA_NAMES, then LATERAL_NAMES), sorted by time then vehicle id.
     Lengths come from the `vehicles` table (they are what each vehicle reports to the cloud).
     """
     length_of = vehicles.set_index("vehicle_id")["length"]
@@ -345,14 +406,62 @@ def features_from_twins_table(twins: pd.DataFrame, vehicles: pd.DataFrame, road:
     starts = np.concatenate([[0], bounds]) if len(times) else np.zeros(0, dtype=int)
     ends = np.concatenate([bounds, [len(times)]]) if len(times) else np.zeros(0, dtype=int)
     ids = twins["vehicle_id"].to_numpy(dtype=str)
-    s, _ = road.to_road_frame(twins["x"].to_numpy(float), twins["y"].to_numpy(float))
+    s, d = road.to_road_frame(twins["x"].to_numpy(float), twins["y"].to_numpy(float))
+    # a recording without lateral position says so (`d_known`); a simulated twin's GNSS position has one
+    d_known = (twins["d_known"].to_numpy(dtype=bool) if "d_known" in twins.columns
+               else np.ones(len(twins), dtype=bool))
     lane = twins["lane"].to_numpy()
     speed, accel = twins["speed"].to_numpy(float), twins["accel"].to_numpy(float)
     blocks = [extractor(ids[a:b], s[a:b], lane[a:b], speed[a:b], accel[a:b], length[a:b])
               for a, b in zip(starts, ends)]
+    lateral = [extractor.lateral(ids[a:b], d[a:b], d_known[a:b]) for a, b in zip(starts, ends)]
     values = np.concatenate(blocks) if blocks else np.zeros((0, len(FEATURE_NAMES)))
     out = pd.DataFrame(values, columns=list(FEATURE_NAMES))
     out["lane_end_ahead_m"] = lane_end_ahead_m(road, s, lane) if len(times) else np.zeros(0)
+    lateral_values = np.concatenate(lateral) if lateral else np.zeros((0, len(LATERAL_NAMES)))
+    for k, name in enumerate(LATERAL_NAMES):
+        out[name] = lateral_values[:, k]
     out.insert(0, "vehicle_id", twins["vehicle_id"].astype(str).to_numpy())
     out.insert(0, "time", times)
     return out
+
+
+def _availability_columns(col) -> np.ndarray:
+    """(N, len(AVAILABILITY_NAMES)) 0/1 flags from the FEATURE_NAMES columns `col(name)`."""
+    on_road = col("lane") >= 0  # _tick_matrix leaves lane = -1 for a twin off the road
+    exists = {"own": on_road, "left": on_road & (col("left_lane_exists") > 0.5),
+              "right": on_road & (col("right_lane_exists") > 0.5)}
+    flags = [exists[side] & (col(f"gap_{kind}_{side}") < RANGE_M) for side in ("own", "left", "right")
+             for kind in ("lead", "foll")]
+    return np.column_stack(flags).astype(np.float64) if flags else np.zeros((0, 0))
+
+
+_FEATURE_INDEX = {name: i for i, name in enumerate(FEATURE_NAMES)}
+
+
+def availability_flags(features: np.ndarray) -> np.ndarray:
+    """AVAILABILITY_NAMES of an (N, len(FEATURE_NAMES)) feature matrix (the cloud's per-tick path)."""
+    features = np.asarray(features)
+    return _availability_columns(lambda name: features[:, _FEATURE_INDEX[name]])
+
+
+def stored_columns(names) -> list[str]:
+    """The sample columns a list of model inputs is computed from (AVAILABILITY_NAMES are derived)."""
+    needed = [n for n in names if n not in AVAILABILITY_NAMES]
+    if any(n in AVAILABILITY_NAMES for n in names):
+        needed += [n for n in _AVAILABILITY_SOURCES if n not in needed]
+    return needed
+
+
+_AVAILABILITY_SOURCES = ("lane", "left_lane_exists", "right_lane_exists",
+                         *[f"gap_{kind}_{side}" for side in ("own", "left", "right") for kind in ("lead", "foll")])
+
+
+def with_derived_columns(frame: pd.DataFrame, names) -> pd.DataFrame:
+    """`frame` (samples) with the AVAILABILITY_NAMES among `names` added (in place; returned)."""
+    wanted = [n for n in names if n in AVAILABILITY_NAMES]
+    if wanted:
+        flags = _availability_columns(lambda name: frame[name].to_numpy(dtype=float))
+        for name in wanted:
+            frame[name] = flags[:, AVAILABILITY_NAMES.index(name)]
+    return frame

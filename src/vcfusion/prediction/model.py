@@ -211,7 +211,7 @@ def model_feature_names(path: str | Path) -> tuple[str, ...]:
 def load_model(path: str | Path | None = None, expected_features=None) -> "LaneChangeModel | SequenceModel":
     """Read a model file (None = the shipped default); checks it against the current feature list
     (expected_features; None = what this version computes for the file's kind: FEATURE_NAMES for
-    the MLP, FEATURE_NAMES + SEQUENCE_EXTRA_NAMES for the sequence model). The file says its kind
+    the MLP, one of features.SEQUENCE_INPUT_SETS for the sequence model). The file says its kind
     (`meta.format`): the MLP (:class:`LaneChangeModel`) or the GRU
     (:class:`vcfusion.prediction.sequence.SequenceModel`).
 
@@ -269,7 +269,12 @@ def _load_model_file(name: str, _mtime_ns: int, expected_features: tuple[str, ..
                              "expected a .npz written by `vcfusion train`") from None
     if meta["format"] == SEQUENCE_FORMAT:
         seq = sequence_model_from_file(path, meta, arrays)
-        seq.check_features(expected_features or (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES), source=str(path))
+        if expected_features is None:  # any input list this version computes (the file records its own)
+            from vcfusion.prediction.features import SEQUENCE_INPUT_SETS
+
+            known = [names for names in SEQUENCE_INPUT_SETS.values() if names == seq.feature_names]
+            expected_features = known[0] if known else (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES)
+        seq.check_features(expected_features, source=str(path))
         return seq
     expected_features = expected_features or FEATURE_NAMES
     weights, mean, std = _checked_arrays(path, meta, arrays)

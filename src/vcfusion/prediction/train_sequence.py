@@ -20,6 +20,7 @@
 
 from __future__ import annotations
 
+import copy
 import time as wallclock
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -50,6 +51,12 @@ class SequenceConfig:
     # on traffic never tuned on, and a threshold tuned to exactly 2 on validation lands on either
     # side of 2 elsewhere (validation is a sample, and families differ), so tune with a 25 % margin.
     false_alarm_budget: float = 1.5
+    # Inputs: the name of one of features.SEQUENCE_INPUT_SETS: base | availability (with the
+    # availability flags) | lateral (flags and lateral motion).
+    inputs: str = "base"
+    # Fine-tuning: start from this GRU file's weights and input standardisation (its inputs, its
+    # hidden size) instead of a random initialisation; None = from scratch.
+    init: str | None = None
 
 
 def loss_weights(stream: pd.DataFrame, tau: float, tau_g: float, background: float) -> tuple[np.ndarray, np.ndarray]:
@@ -92,14 +99,20 @@ class _Batches:
         return torch.from_numpy(xb), torch.from_numpy(yb), torch.from_numpy(wb)
 
 
-def _fit(train: _Batches, val: _Batches, n_inputs: int, cfg: SequenceConfig, progress: bool):
+def _fit(train: _Batches, val: _Batches, n_inputs: int, cfg: SequenceConfig, progress: bool, init=None):
     import torch
     from tqdm import tqdm
 
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(max(1, cfg.threads))
-    gru = torch.nn.GRU(n_inputs, cfg.hidden, batch_first=True)
-    head = torch.nn.Linear(cfg.hidden, 1)
+    hidden = cfg.hidden if init is None else init.hidden
+    gru = torch.nn.GRU(n_inputs, hidden, batch_first=True)
+    head = torch.nn.Linear(hidden, 1)
+    if init is not None:  # fine-tuning: the pretrained weights
+        with torch.no_grad():
+            for p, a in ((gru.weight_ih_l0, init.w_ih), (gru.weight_hh_l0, init.w_hh), (gru.bias_ih_l0, init.b_ih),
+                         (gru.bias_hh_l0, init.b_hh), (head.weight, init.w_out), (head.bias, init.b_out)):
+                p.copy_(torch.from_numpy(np.array(a, dtype=np.float32)))
     params = list(gru.parameters()) + list(head.parameters())
     opt = torch.optim.Adam(params, lr=cfg.learning_rate, weight_decay=cfg.weight_decay)
     rng = np.random.default_rng(cfg.seed)
@@ -156,21 +169,29 @@ def _fit(train: _Batches, val: _Batches, n_inputs: int, cfg: SequenceConfig, pro
 def train_sequence_model(datasets: list[Path], out: Path, cfg: SequenceConfig, progress: bool = True) -> str:
     """Train the GRU on the train seeds of `datasets`, calibrate and tune on their validation
     seeds, save the model file; returns a report."""
-    from vcfusion.prediction.features import FEATURE_NAMES, SEQUENCE_EXTRA_NAMES
+    from vcfusion.prediction.features import SEQUENCE_INPUT_SETS, stored_columns, with_derived_columns
     from vcfusion.prediction.train import (choose_default, combined_stream, load_datasets, require_both_labels,
                                            tune_decisions, tuning_report)
 
     started = wallclock.perf_counter()
     infos = load_datasets(datasets)
-    names = [*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES]
+    init = _init_model(cfg.init) if cfg.init else None
+    names = list(init.feature_names if init is not None
+                 else SEQUENCE_INPUT_SETS[cfg.inputs])
     tau, tau_g, period = infos[0].tau, infos[0].tau_g, infos[0].period_s
-    columns = ["seed", "vehicle_id", "time", "window_label", "time_to_lc", "stream_label", *names]
+    if init is not None and (init.tau, init.tau_g, init.period_s) != (tau, tau_g, period):
+        raise DatasetError(f"{cfg.init}: tau / tau_g / V2C period {init.tau, init.tau_g, init.period_s} differ from "
+                           f"the datasets' {tau, tau_g, period}; fine-tune on datasets of the same labels")
+    columns = ["seed", "vehicle_id", "time", "window_label", "time_to_lc", "stream_label", *stored_columns(names)]
     tr, _ = combined_stream(infos, "train", columns)
     va, va_events = combined_stream(infos, "validation", columns)
+    with_derived_columns(tr, names)
+    with_derived_columns(va, names)
     require_both_labels((tr["window_label"] == 1).to_numpy(), "train")
     require_both_labels((va["window_label"] == 1).to_numpy(), "validation")
     x_tr = tr[names].to_numpy(np.float32)
-    mean, std = feature_scaling(x_tr)
+    # a fine-tuned model keeps the pretrained standardisation (its weights were learnt on it)
+    mean, std = (init.mean, init.std) if init is not None else feature_scaling(x_tr)
     norm = lambda a: ((a - mean) / std).astype(np.float32)  # noqa: E731
     y_tr, w_tr = loss_weights(tr, tau, tau_g, cfg.background_negatives)
     y_va, w_va = loss_weights(va, tau, tau_g, cfg.background_negatives)
@@ -178,7 +199,7 @@ def train_sequence_model(datasets: list[Path], out: Path, cfg: SequenceConfig, p
     b_va = segment_bounds(va, period, cfg.reset_gap_ticks)
     arrays, fit = _fit(_Batches(norm(x_tr), y_tr, w_tr, b_tr, cfg.batch_segments),
                        _Batches(norm(va[names].to_numpy(np.float32)), y_va, w_va, b_va, cfg.batch_segments),
-                       len(names), cfg, progress)
+                       len(names), cfg, progress, init)
     del x_tr
     model = SequenceModel(tuple(names), mean, std, **arrays, tau=tau, tau_g=tau_g, period_s=period,
                           reset_gap_ticks=cfg.reset_gap_ticks)
@@ -195,29 +216,85 @@ def train_sequence_model(datasets: list[Path], out: Path, cfg: SequenceConfig, p
     model.tau_c_ticks = int(tuned["conservative"]["tau_ticks"])
     model.info = {
         "kind": "gru", "datasets": [str(Path(d).absolute()) for d in datasets],
+        "init": str(Path(cfg.init).absolute()) if cfg.init else None,
         "scenarios": [i.meta.get("scenario") for i in infos], "config": asdict(cfg), "fit": fit,
         "train_rows": int(len(tr)), "train_segments": len(b_tr), "splits": [i.splits for i in infos],
         "tuning": tuned, "calibration": list(model.calibration),
     }
     save_sequence_model(model, out)
-    lines = [f"trained gru (hidden {cfg.hidden}) on {len(b_tr)} segments / {len(tr)} ticks of "
+    start = f", fine-tuned from {cfg.init}" if cfg.init else ""
+    lines = [f"trained gru (hidden {model.hidden}{start}) on {len(b_tr)} segments / {len(tr)} ticks of "
              f"{sum(len(i.splits['train']) for i in infos)} seeds of {len(infos)} datasets in "
              f"{wallclock.perf_counter() - started:.1f} s: best epoch {fit['best_epoch'] + 1} of {fit['epochs_run']}, "
              f"validation loss {fit['best_val_loss']:.4f}"]
     return "\n".join(lines + tuning_report(tuned, default, out))
 
 
-def check_sequence_columns(infos) -> None:
-    """The sequence model's extra inputs must be in the samples (datasets built before they existed
-    are brought up to date with `vcfusion dataset ... --refeature`)."""
+def check_sequence_columns(infos, names=None) -> None:
+    """The sequence model's extra inputs (and those of `names`, a model's input list) must be in the
+    samples (datasets built before they existed are brought up to date with `vcfusion dataset ...
+    --refeature`; an imported recording: import it again)."""
     import pyarrow.parquet as pq
 
-    from vcfusion.prediction.features import SEQUENCE_EXTRA_NAMES
+    from vcfusion.prediction.features import SEQUENCE_EXTRA_NAMES, stored_columns
 
+    needed = [*SEQUENCE_EXTRA_NAMES, *[n for n in stored_columns(names or ()) if n not in SEQUENCE_EXTRA_NAMES]]
     for info in infos:
         for seed in info.seeds("all"):
             f = info.samples_file(seed)
-            missing = [n for n in SEQUENCE_EXTRA_NAMES if n not in pq.read_schema(f).names]
+            missing = [n for n in needed if n not in pq.read_schema(f).names]
             if missing:
                 raise DatasetError(f"{f}: missing columns {missing} (the sequence model's inputs); bring the dataset up "
                                    "to date with `vcfusion dataset SCENARIO --seeds ... --out DIR --refeature`")
+
+
+def _init_model(path) -> SequenceModel:
+    """The GRU a fine-tuning starts from (a ModelFileError for anything else)."""
+    from vcfusion.prediction.model import ModelFileError, load_model
+
+    model = load_model(path)
+    if model.kind != "gru":
+        raise ModelFileError(f"{path}: --init: expected a GRU file (`vcfusion train --kind gru`), got an MLP")
+    return model
+
+
+def retune_decisions(model_path: Path, datasets: list[Path], out: Path, false_alarm_budget: float,
+                     horizon_s: float = 10.0) -> str:
+    """Re-calibrate (Platt) and re-tune the decision settings of a model file on the validation
+    seeds of `datasets` (the target kind's validation data: a real recording's validation part),
+    weights unchanged; writes the new file, returns a report."""
+    from vcfusion.prediction.features import stored_columns, with_derived_columns
+    from vcfusion.prediction.model import fit_platt, load_model, save_model
+    from vcfusion.prediction.train import choose_default, combined_stream, load_datasets, tune_decisions, tuning_report
+
+    model = copy.deepcopy(load_model(model_path))
+    infos = load_datasets(datasets)
+    names = list(model.feature_names)
+    columns = ["seed", "vehicle_id", "time", "stream_label", *stored_columns(names)]
+    va, va_events = combined_stream(infos, "validation", columns)
+    with_derived_columns(va, names)
+    if model.kind == "gru":
+        logits = model.sequence_logits(va[names].to_numpy(np.float32),
+                                       segment_bounds(va, model.period_s, model.reset_gap_ticks))
+    else:
+        logits = model.logits(va[names].to_numpy(np.float32))
+    model.calibration = fit_platt(logits, va["stream_label"].to_numpy() == 1)
+    if model.kind == "gru":
+        prob = model.calibrated(logits)
+    else:
+        prob = model.predict_proba(va[names].to_numpy(np.float32))
+    tuned = tune_decisions(prob, va, va_events, model.period_s, horizon_s, model.conservative_threshold,
+                           false_alarm_budget)
+    default = choose_default(tuned, false_alarm_budget)
+    model.smoothing = default
+    model.thresholds = {m: float(t["threshold"]) for m, t in tuned.items()}
+    model.threshold = model.thresholds[default]
+    model.tau_a_ticks = int(tuned["aggressive"]["tau_ticks"])
+    model.tau_c_ticks = int(tuned["conservative"]["tau_ticks"])
+    model.info = {**model.info, "retuned": {"from": Path(model_path).name, "datasets": [Path(d).name for d in datasets],
+                                            "false_alarm_budget": false_alarm_budget, "tuning": tuned,
+                                            "calibration": list(model.calibration)}}
+    (save_sequence_model if model.kind == "gru" else save_model)(model, out)
+    head = (f"re-tuned {model_path} on the validation seeds of {len(infos)} datasets ({len(va_events)} lane changes, "
+            f"{len(va) * model.period_s / 3600:.2f} vehicle-hours), false-alarm budget {false_alarm_budget:g} / veh-h")
+    return "\n".join([head] + tuning_report(tuned, default, out))

@@ -1,0 +1,75 @@
+#!/bin/sh
+# The sim-to-real table of the lane-change predictors (docs/components/real-data.md, "The
+# sim-to-real table"), from nothing but the two US-101 development files: imports, the frozen
+# splits (splits/), simulated datasets, the trained models, the re-tuned decisions and the table.
+# Seeded throughout (training: --seed 0 --threads 1); about 80 min on 2 CPU cores, most of it
+# simulation and training. Steps already done (their output exists) are skipped.
+#   tools/sim_to_real.sh NGSIM_FILE COMMONROAD_ARCHIVE [WORK_DIR]   (default runs/sim-to-real)
+# NGSIM_FILE: ngsim_us101_0750-0805_first65535rows.csv.gz; COMMONROAD_ARCHIVE:
+# commonroad_ngsim_us101.tar.xz (their README says where they come from). The table lands in
+# WORK_DIR/table/sim_to_real.{md,csv,json}.
+set -eu
+NGSIM="$1"; CR="$2"; W="${3:-runs/sim-to-real}"
+V="${PYTHON:-python} -m vcfusion"
+D="$W/data"; M="$W/models"
+mkdir -p "$D" "$M"
+step() { [ -e "$1" ] && return 0; shift; echo "+ $*"; "$@"; }
+
+# real recordings and their frozen splits (train = development, validation, test = held-out)
+step "$D/ngsim" $V dataset --from-ngsim "$NGSIM" --out "$D/ngsim"
+step "$D/cr" $V dataset --from-commonroad "$CR" --out "$D/cr"
+step "$D/ngsim-split" $V real-split apply "$D/ngsim" splits/us101_ngsim_0750.json --out "$D/ngsim-split"
+step "$D/cr-split" $V real-split apply "$D/cr" splits/us101_commonroad.json --out "$D/cr-split"
+REAL="$D/ngsim-split $D/cr-split"
+
+# simulated families: calibrated (SL2015 tuned to US-101) and SUMO's LC2013; heavy is held out
+CAL=""; LC=""
+for f in dense free onramp accident_left accident_middle v2c_poor; do
+  step "$D/${f}_us101/dataset.json" $V dataset "scenarios/calibrated/${f}_us101.yaml" --seeds 0-19 \
+      --out "$D/${f}_us101" --workers 2
+  step "$D/lc_$f/dataset.json" $V dataset "scenarios/families/$f.yaml" --seeds 0-19 --out "$D/lc_$f" --workers 2
+  CAL="$CAL $D/${f}_us101"; LC="$LC $D/lc_$f"
+done
+step "$D/heavy_us101/dataset.json" $V dataset scenarios/calibrated/heavy_us101.yaml --seeds 0,2-6 \
+    --out "$D/heavy_us101" --workers 2
+step "$D/heavy/dataset.json" $V dataset scenarios/families/heavy.yaml --seeds 0,2-6 --out "$D/heavy" --workers 2
+
+# models: on calibrated simulation (two input sets), on real development data, on simulation
+# then fine-tuned on real development data; decisions tuned on the validation seeds they name
+T="--kind gru --seed 0 --threads 1"
+# shellcheck disable=SC2086
+{
+step "$M/sim_base.npz" $V train $CAL $T --inputs base --epochs 3 --out "$M/sim_base.npz"
+step "$M/sim_lat.npz" $V train $CAL $T --inputs lateral --epochs 3 --out "$M/sim_lat.npz"
+step "$M/mix_lat.npz" $V train $LC $CAL $T --inputs lateral --epochs 3 --out "$M/mix_lat.npz"
+step "$M/real_lat.npz" $V train $REAL $T --inputs lateral --epochs 10 --patience 4 --false-alarm-budget 5 \
+    --out "$M/real_lat.npz"
+for base in sim_lat mix_lat; do
+  step "$M/ft_$base.npz" $V train $REAL $T --init "$M/$base.npz" --epochs 10 --patience 4 --learning-rate 3e-4 \
+      --false-alarm-budget 5 --out "$M/ft_$base.npz"
+  SIM="$CAL"; [ "$base" = mix_lat ] && SIM="$LC $CAL"  # the simulation the model was pretrained on
+  step "$M/ft_${base}_simtuned.npz" $V retune "$M/ft_$base.npz" $SIM --false-alarm-budget 1.5 \
+      --out "$M/ft_${base}_simtuned.npz"
+done
+A=src/vcfusion/assets
+for m in "$A/lane_change_gru.npz:shipped_gru" "$A/lane_change_mlp.npz:shipped_mlp" "$M/sim_base.npz:sim_base" \
+         "$M/sim_lat.npz:sim_lat" "$M/mix_lat.npz:mix_lat"; do
+  step "$M/${m#*:}_realtuned.npz" $V retune "${m%%:*}" $REAL --false-alarm-budget 5 --out "$M/${m#*:}_realtuned.npz"
+done
+}
+
+$V sim-to-real --bootstrap 1000 --seed 0 --out "$W/table" \
+  --model "shipped MLP=$A/lane_change_mlp.npz" --model "shipped MLP, real-tuned=$M/shipped_mlp_realtuned.npz" \
+  --model "shipped GRU=$A/lane_change_gru.npz" --model "shipped GRU, real-tuned=$M/shipped_gru_realtuned.npz" \
+  --model "calibrated-sim GRU=$M/sim_base.npz" --model "calibrated-sim GRU, real-tuned=$M/sim_base_realtuned.npz" \
+  --model "calibrated-sim GRU lateral=$M/sim_lat.npz" \
+  --model "calibrated-sim GRU lateral, real-tuned=$M/sim_lat_realtuned.npz" \
+  --model "mixed-sim GRU lateral=$M/mix_lat.npz" --model "mixed-sim GRU lateral, real-tuned=$M/mix_lat_realtuned.npz" \
+  --model "real-trained GRU lateral=$M/real_lat.npz" \
+  --model "fine-tuned GRU lateral (calibrated-sim)=$M/ft_sim_lat.npz" \
+  --model "fine-tuned GRU lateral (calibrated-sim), sim-tuned=$M/ft_sim_lat_simtuned.npz" \
+  --model "fine-tuned GRU lateral (mixed-sim)=$M/ft_mix_lat.npz" \
+  --model "fine-tuned GRU lateral (mixed-sim), sim-tuned=$M/ft_mix_lat_simtuned.npz" \
+  --eval "heavy LC2013 (held-out family)=$D/heavy:all" \
+  --eval "heavy_us101 calibrated (held-out family)=$D/heavy_us101:all" \
+  --eval "NGSIM US-101 held-out=$D/ngsim-split:test" --eval "CommonRoad US-101 held-out=$D/cr-split:test"
