@@ -56,10 +56,12 @@ def commands_in(path: Path) -> list[tuple[int, list[str]]]:
         except ValueError:  # not shell (a YAML or Python line with an odd quote)
             continue
         joined = " ".join(words)
-        match = COMMAND.search(joined)
-        if match is None or "-m vcfusion" in joined:
+        if COMMAND.search(joined) is None or "-m vcfusion" in joined:
             continue
-        argv = shlex.split(match.group(1) or "")
+        # the words after the last `vcfusion` word, each as the shell would pass it (quoted
+        # words with spaces stay one word)
+        at = max(i for i, word in enumerate(words) if COMMAND.search(word))
+        argv = words[at + 1:]
         # a shell loop's body or a command list: stop at the shell's own separators
         for i, word in enumerate(argv):
             if word in (";", "&&", "||", "|", "done"):
