@@ -24,11 +24,17 @@ from vcfusion.errors import InputError
 from vcfusion.metrics.highlights import MIN_VISIBLE_PX, RIGHT_IOU
 
 COLUMNS = ["episode", "twin", "outcome", "start_s", "end_s", "updates", "level", "lc_prob_max", "box_vehicle_id",
-           "gt_iou", "visible_px", "x1", "y1", "x2", "y2", "frame", "why"]
+           "gt_iou", "visible_px", "x1", "y1", "x2", "y2", "frame", "undrawn", "why"]
 
 
-def why(outcome: str, twin: str, shown: str, iou: float, visible_px: float) -> str:
-    """The judgement of one AR update in words (the rules of vcfusion.metrics.highlights)."""
+UNDRAWN_WHY = {"no_match": "no box was matched to its twin",
+               "hidden": "a box was matched but not drawn: the twins in front of it hide its whole outline",
+               "too_large": "a box was matched but not drawn: it is too large for the twin's outline"}
+
+
+def why(outcome: str, twin: str, shown: str, iou: float, visible_px: float, undrawn: str = "no_match") -> str:
+    """The judgement of one AR update in words (the rules of vcfusion.metrics.highlights;
+    `undrawn`: why nothing was drawn, vcfusion.fusion.fuse.undrawn_reason)."""
     if outcome == "right":
         return (f"the box drawn for {twin} lies on {twin}: IoU {iou:.2f} with its visible box "
                 f"(>= {RIGHT_IOU:g})")
@@ -43,7 +49,8 @@ def why(outcome: str, twin: str, shown: str, iou: float, visible_px: float) -> s
         return (f"the box drawn for {twin} shows {shown or 'no vehicle'}: IoU {iou:.2f} with {twin}'s visible box "
                 f"(< {RIGHT_IOU:g})")
     if outcome == "missed":
-        return f"{twin} is visible ({visible_px:.0f} px) and warned, but no box was matched to its twin: nothing drawn"
+        return (f"{twin} is visible ({visible_px:.0f} px) and warned, but "
+                f"{UNDRAWN_WHY.get(undrawn, UNDRAWN_WHY['no_match'])}: nothing drawn")
     return (f"{twin} is warned but not visible ({visible_px:.0f} px < {MIN_VISIBLE_PX:g}: hidden or too small); "
             "nothing drawn, not a miss")
 
@@ -72,7 +79,9 @@ def explain_episodes(fusion: pd.DataFrame, period_s: float) -> pd.DataFrame:
                          "gt_iou": float(mid["gt_iou"]), "visible_px": float(mid["visible_px"]),
                          "x1": float(mid["x1"]), "y1": float(mid["y1"]), "x2": float(mid["x2"]), "y2": float(mid["y2"]),
                          "frame": frame,
-                         "why": why(str(outcome), str(twin), str(shown), float(mid["gt_iou"]), float(mid["visible_px"]))})
+                         "undrawn": str(mid["undrawn"]) if "undrawn" in ep else "",
+                         "why": why(str(outcome), str(twin), str(shown), float(mid["gt_iou"]), float(mid["visible_px"]),
+                                    str(mid["undrawn"]) if "undrawn" in ep and mid["undrawn"] else "no_match")})
     out = pd.DataFrame(rows, columns=[c for c in COLUMNS if c != "episode"])
     out = out.sort_values(["start_s", "twin"]).reset_index(drop=True)
     out.insert(0, "episode", np.arange(len(out)))
