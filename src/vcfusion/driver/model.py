@@ -64,8 +64,8 @@ DISPLACED_M = 0.1
 
 def stopping_decel(gap_m: float, closing_mps: float) -> float:
     """The constant deceleration (m/s^2) that ends a closing speed `closing_mps` within `gap_m`
-    (v^2 / 2 s; 0 when not closing): what a prospective leader asks for beyond the comfortable
-    deceleration, so the driver never keeps closing on a vehicle moving into its path at a rate it
+    (v^2 / 2 s; 0 when not closing): what a prospective leader that moves into the ego's path asks
+    for beyond the comfortable deceleration, so the driver never keeps closing on it at a rate it
     cannot stop from (curved.yaml seed 16: a truck sliding over from two lanes across, 19 m ahead
     at 11 m/s closing, needs 3.2 m/s^2; the comfortable b of 1.5-2.5 m/s^2 hit it)."""
     if closing_mps <= 0:
@@ -275,7 +275,10 @@ class DriverModel:
                 gap, v_lead = gap_now, seen.speed[vid]
             acc = idm_acceleration(self.idm, ego_speed, max(gap, 0.1), v_lead)
             if prospective:
-                acc = max(acc, -max(self.p.comfort_decel_mps2, stopping_decel(gap, ego_speed - v_lead)))
+                # b at most; for a vehicle moving into the path, what stopping behind it needs where
+                # that is more (a highlighted vehicle that only stands close by asks for b at most)
+                need = stopping_decel(gap, ego_speed - v_lead) if moved_over else 0.0
+                acc = max(acc, -max(self.p.comfort_decel_mps2, need))
             if acc < desired:
                 desired, leader, kind, leader_gap = acc, vid, "lane" if in_lane else "prospective", gap
         desired = min(max(float(desired), -self.limits.max_decel_mps2), self.limits.max_accel_mps2)
