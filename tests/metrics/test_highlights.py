@@ -53,19 +53,31 @@ def test_a_frame_without_ground_truth_boxes():
 def test_the_overlay_draws_no_box_many_times_the_twins_outline():
     from vcfusion.fusion.fuse import MAX_BOX_TO_OUTLINE_AREA, drawable_box
 
-    outline = (100.0, 100.0, 106.0, 110.0)  # a far car: 6 x 10 px
-    own = (100.0, 101.0, 106.0, 110.0)
-    truck = (98.0, 95.0, 113.0, 116.0)  # 15 x 21 px: 5.25 times the outline
+    outline = (100.0, 100.0, 112.0, 120.0)  # a car at ~70 m: 12 x 20 px
+    own = (100.0, 102.0, 112.0, 120.0)
+    truck = (94.0, 90.0, 124.0, 128.0)  # 30 x 38 px: 4.75 times the outline
     assert drawable_box(own, outline) == own
     assert drawable_box(truck, outline) is None
     assert drawable_box(truck, outline, max_ratio=6.0) == truck
     assert drawable_box(None, outline) is None and MAX_BOX_TO_OUTLINE_AREA == 3.0
     assert drawable_box(own, outline, hidden_share=1.0) is None  # hidden whole: a sliver shows at most
-    assert drawable_box(own, outline, hidden_share=0.9) == own
+    assert drawable_box(own, outline, hidden_share=0.5) == own  # 120 px of it left
     from vcfusion.fusion.fuse import undrawn_reason
 
     assert [undrawn_reason(b, outline, h) for b, h in ((own, 0.0), (None, 0.0), (own, 1.0), (truck, 0.0))] == \
         ["", "no_match", "hidden", "too_large"]
+
+
+def test_the_overlay_draws_no_box_for_a_twin_it_expects_under_the_visible_threshold():
+    from vcfusion.fusion.fuse import drawable_box, undrawn_reason
+
+    far = (100.0, 100.0, 106.0, 104.0)  # a car at ~180 m: 6 x 4 px, under MIN_VISIBLE_PX
+    box = (99.0, 98.0, 105.0, 106.0)  # 6 x 8 px: the top of the truck beside it (curved seed 101)
+    assert drawable_box(box, far) is None and undrawn_reason(box, far) == "small"
+    outline = (100.0, 100.0, 120.0, 120.0)  # 400 px, 7/8 of it behind the car in front: 50 px left
+    assert undrawn_reason((100.0, 100.0, 120.0, 120.0), outline, 0.875) == "small"
+    assert undrawn_reason((100.0, 100.0, 120.0, 120.0), outline, 0.7) == ""  # 120 px left: drawn
+    assert 6 * 4 < MIN_VISIBLE_PX <= 120
 
 
 def _judged(twin, sequence, t0=1.0, shown=None):
