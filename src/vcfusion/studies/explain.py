@@ -23,7 +23,8 @@ import pandas as pd
 from vcfusion.errors import InputError
 from vcfusion.metrics.highlights import MIN_VISIBLE_PX, RIGHT_IOU, warning_episodes
 
-COLUMNS = ["episode", "twin", "outcome", "start_s", "end_s", "updates", "bridged", "level", "lc_prob_max", "box_vehicle_id",
+COLUMNS = ["episode", "twin", "outcome", "start_s", "end_s", "updates", "bridged", "level", "lc_prob_max",
+           "box_vehicle_id",
            "gt_iou", "visible_px", "x1", "y1", "x2", "y2", "frame", "undrawn", "why"]
 
 

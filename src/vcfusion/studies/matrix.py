@@ -38,7 +38,8 @@ def highlight_table(trips: pd.DataFrame, group: str) -> dict:
                      "wrong_pct_of_drawn": 100 * sums["highlights_wrong"] / drawn if drawn else float("nan"),
                      "missed_pct_of_drawn": 100 * sums["missed_warnings"] / drawn if drawn else float("nan"),
                      **ups,
-                     "updates_wrong_pct_of_drawn": 100 * ups["updates_wrong"] / drawn_ups if drawn_ups else float("nan"),
+                     "updates_wrong_pct_of_drawn": (100 * ups["updates_wrong"] / drawn_ups if drawn_ups
+                                                    else float("nan")),
                      "updates_missed_pct_of_drawn": (100 * ups["updates_missed"] / drawn_ups if drawn_ups
                                                      else float("nan")),
                      "collision_seeds": " ".join(map(str, hit)),
@@ -95,7 +96,8 @@ def run_matrix(scenarios: list[Path], trips: int, workers: int, out: Path, tuned
                          + ("" if r.updates_right != r.updates_right else
                             f"; per update: wrong {r.updates_wrong_pct_of_drawn:.1f} %, missed "
                             f"{r.updates_missed_pct_of_drawn:.1f} % of {r.updates_right + r.updates_wrong:.0f} drawn")
-                         + f"; ego collisions in seeds [{r.collision_seeds}] (none arm: [{r.reference_collision_seeds}])")
+                         + f"; ego collisions in seeds [{r.collision_seeds}] "
+                           f"(none arm: [{r.reference_collision_seeds}])")
         part = summary[(summary["group"] == group) & summary["metric"].isin(KEY_METRICS)]
         for r in part.itertuples(index=False):
             lines.append(f"  {r.arm} vs none  {r.label[:40]:<40} n={r.n_pairs:3d}  {r.mean_diff:+9.3g} "
