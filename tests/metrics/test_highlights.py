@@ -68,16 +68,18 @@ def test_the_overlay_draws_no_box_many_times_the_twins_outline():
         ["", "no_match", "hidden", "too_large"]
 
 
-def test_the_overlay_draws_no_box_for_a_twin_it_expects_under_the_visible_threshold():
+def test_the_overlay_draws_no_box_for_a_twin_it_expects_too_small_to_see():
     from vcfusion.fusion.fuse import drawable_box, undrawn_reason
 
     far = (100.0, 100.0, 106.0, 104.0)  # a car at ~180 m: 6 x 4 px, under MIN_VISIBLE_PX
     box = (99.0, 98.0, 105.0, 106.0)  # 6 x 8 px: the top of the truck beside it (curved seed 101)
     assert drawable_box(box, far) is None and undrawn_reason(box, far) == "small"
-    outline = (100.0, 100.0, 120.0, 120.0)  # 400 px, 7/8 of it behind the car in front: 50 px left
-    assert undrawn_reason((100.0, 100.0, 120.0, 120.0), outline, 0.875) == "small"
-    assert undrawn_reason((100.0, 100.0, 120.0, 120.0), outline, 0.7) == ""  # 120 px left: drawn
-    assert 6 * 4 < MIN_VISIBLE_PX <= 120
+    outline = (100.0, 100.0, 120.0, 120.0)  # 400 px, 15/16 of it behind the car in front: 25 px left
+    assert undrawn_reason((100.0, 100.0, 120.0, 120.0), outline, 0.9375) == "small"
+    assert undrawn_reason((100.0, 100.0, 120.0, 120.0), outline, 0.8) == ""  # 80 px left: drawn
+    from vcfusion.fusion.fuse import MIN_DRAWN_VISIBLE_PX
+
+    assert 6 * 4 < MIN_DRAWN_VISIBLE_PX <= 80 and MIN_DRAWN_VISIBLE_PX <= MIN_VISIBLE_PX
 
 
 def _judged(twin, sequence, t0=1.0, shown=None):
