@@ -349,3 +349,53 @@ def test_the_gap_is_not_extrapolated_past_the_age_of_the_first_views():
         assert drv.log_rows[-1]["perceived_gap_m"] == pytest.approx(20.0 - 0.5 * k)
         ego_s += 1.9
         lead_s += 1.4
+
+
+def _truck_slide(driver, gap_m, ego_v=12.0, lateral_mps=0.6, until=14.0):
+    """A stopped truck (12 x 2.5 m) `gap_m` ahead of the ego's front, sliding from lane 0's centre
+    over lane 1 into the ego lane (lane 2) at `lateral_mps`, as a truck blocked before a closure
+    does (curved.yaml seed 16); the ego from `ego_v` moves as the driver asks. The smallest gap (m)
+    between the ego's front and the truck's rear while the truck's body leaves the ego's less than
+    SUMO's lane-change bookkeeping allows (the truck's centre beyond lane 1's: SUMO counts it in
+    the ego lane), and the driver."""
+    d0, d2 = ROAD.lane_centre_d(0), ROAD.lane_centre_d(2)
+    ego_s, ego_v = 100.0, ego_v
+    truck_s = ego_s + 2.3 + gap_m + 6.0
+    worst = np.inf
+    for k in range(int(until / 0.1) + 1):
+        t = round(k * 0.1, 6)
+        d = min(d2, d0 + lateral_mps * t)
+        s, dd = np.array([ego_s, truck_s]), np.array([d2, d])
+        x, y = ROAD.to_world(s, dd)
+        truth = VehicleStates(time=t, ids=("ego", "truck"), vtype=("ego", "truck"), vclass=("passenger", "truck"),
+                              x=x, y=y, z=np.zeros(2), heading=np.zeros(2), speed=np.array([ego_v, 0.0]),
+                              accel=np.zeros(2), lane=np.array([2, 0], dtype=np.int16), lateral_offset=np.zeros(2),
+                              length=np.array([4.6, 12.0]), width=np.array([1.8, 2.5]), height=np.array([1.5, 3.6]))
+        a = driver.acceleration(Tick(t, truth, None, None, None, guidance=GuidanceSet((), "none")))
+        if d > ROAD.lane_centre_d(1):
+            worst = min(worst, (truck_s - 6.0) - (ego_s + 2.3))
+        ego_s += ego_v * 0.1 + 0.5 * a * 0.01
+        ego_v = max(0.0, ego_v + a * 0.1)
+    return worst, driver
+
+
+def test_a_stopped_truck_sliding_over_from_two_lanes_across_is_noticed_and_stopped_for():
+    # the truck's move toward the ego lane is noticed as it enters the adjacent lane's band, having
+    # moved more than lateral_notice_m (not only 0.4 m past lane 1's centre), and the ego, arriving as the truck
+    # crosses lane 1, stops behind it: braking beyond the comfortable deceleration where the gap
+    # asks for it (v^2 / 2 s)
+    kw = dict(lateral_notice_m=0.4, cutin_reaction_s=1.25, comfort_decel_mps2=2.0, pedal_time_constant_s=0.3,
+              follow_reaction_s=0.9)
+    for gap in (80.0, 95.0, 110.0):
+        worst, drv = _truck_slide(_driver(False, **kw), gap)
+        cue = next(e for e in drv.events if e["cue"] == "lateral")
+        # the adjacent band starts 1.5 lane widths from the ego lane's centre: 0.5 w of slide
+        assert cue["time"] == pytest.approx(0.5 * W / 0.6, abs=0.11)
+        assert worst > 0.5, gap
+
+
+def test_a_prospective_leader_asks_beyond_the_comfortable_deceleration_only_when_the_gap_needs_it():
+    from vcfusion.driver.model import stopping_decel
+
+    assert stopping_decel(20.0, 10.0) == pytest.approx(2.5)
+    assert stopping_decel(20.0, -3.0) == 0.0 and stopping_decel(0.0, 1.0) == pytest.approx(5.0)

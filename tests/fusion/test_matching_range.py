@@ -19,7 +19,8 @@ def test_reach_is_the_view_range_plus_the_depth_gate_there():
     assert 190 < matching_reach_m(150.0) <= 200  # the shipped ego scenarios' 200 m covers it
 
 
-@pytest.mark.parametrize("name", ["accident.yaml", "curved.yaml", "onramp_camera.yaml"])
+@pytest.mark.parametrize("name", ["accident.yaml", "curved.yaml", "onramp_camera.yaml", "exit_camera.yaml",
+                                  "accident_heavy.yaml"])
 def test_the_shipped_ego_scenarios_cover_the_reach(name):
     require_matching_range(load_scenario(REPO / "scenarios" / name))
 

@@ -53,12 +53,71 @@ def test_a_frame_without_ground_truth_boxes():
 def test_the_overlay_draws_no_box_many_times_the_twins_outline():
     from vcfusion.fusion.fuse import MAX_BOX_TO_OUTLINE_AREA, drawable_box
 
-    outline = (100.0, 100.0, 106.0, 110.0)  # a far car: 6 x 10 px
-    own = (100.0, 101.0, 106.0, 110.0)
-    truck = (98.0, 95.0, 113.0, 116.0)  # 15 x 21 px: 5.25 times the outline
+    outline = (100.0, 100.0, 112.0, 120.0)  # a car at ~70 m: 12 x 20 px
+    own = (100.0, 102.0, 112.0, 120.0)
+    truck = (94.0, 90.0, 124.0, 128.0)  # 30 x 38 px: 4.75 times the outline
     assert drawable_box(own, outline) == own
     assert drawable_box(truck, outline) is None
     assert drawable_box(truck, outline, max_ratio=6.0) == truck
     assert drawable_box(None, outline) is None and MAX_BOX_TO_OUTLINE_AREA == 3.0
     assert drawable_box(own, outline, hidden_share=1.0) is None  # hidden whole: a sliver shows at most
-    assert drawable_box(own, outline, hidden_share=0.9) == own
+    assert drawable_box(own, outline, hidden_share=0.5) == own  # 120 px of it left
+    from vcfusion.fusion.fuse import undrawn_reason
+
+    assert [undrawn_reason(b, outline, h) for b, h in ((own, 0.0), (None, 0.0), (own, 1.0), (truck, 0.0))] == \
+        ["", "no_match", "hidden", "too_large"]
+
+
+def test_the_overlay_draws_no_box_for_a_twin_it_expects_too_small_to_see():
+    from vcfusion.fusion.fuse import drawable_box, undrawn_reason
+
+    far = (100.0, 100.0, 106.0, 104.0)  # a car at ~180 m: 6 x 4 px, under MIN_VISIBLE_PX
+    box = (99.0, 98.0, 105.0, 106.0)  # 6 x 8 px: the top of the truck beside it (curved seed 101)
+    assert drawable_box(box, far) is None and undrawn_reason(box, far) == "small"
+    outline = (100.0, 100.0, 120.0, 120.0)  # 400 px, 15/16 of it behind the car in front: 25 px left
+    assert undrawn_reason((100.0, 100.0, 120.0, 120.0), outline, 0.9375) == "small"
+    assert undrawn_reason((100.0, 100.0, 120.0, 120.0), outline, 0.8) == ""  # 80 px left: drawn
+    from vcfusion.fusion.fuse import MIN_DRAWN_VISIBLE_PX
+
+    assert 6 * 4 < MIN_DRAWN_VISIBLE_PX <= 80 and MIN_DRAWN_VISIBLE_PX <= MIN_VISIBLE_PX
+
+
+def _judged(twin, sequence, t0=1.0, shown=None):
+    """Judged rows of one twin: one outcome letter per 0.1 s update (r right, w wrong on `other`,
+    m missed, u unseen)."""
+    import pandas as pd
+
+    names = {"r": "right", "w": "wrong", "m": "missed", "u": "unseen"}
+    return pd.DataFrame([{"time": round(t0 + 0.1 * k, 6), "vehicle_id": twin, "outcome": names[c],
+                          "box_vehicle_id": {"r": twin, "w": shown or "other"}.get(c, "")}
+                         for k, c in enumerate(sequence)])
+
+
+def _episodes(rows, hold_s=0.3):
+    from vcfusion.metrics.highlights import warning_episodes
+
+    return [(e.outcome, len(e.rows), e.bridged) for e in warning_episodes(rows, 0.1, hold_s)]
+
+
+def test_a_right_box_that_flickers_for_up_to_the_drivers_hold_is_one_episode():
+    # right, one update without a box, right, three without (0.3 s: the hold), right: one right episode
+    assert _episodes(_judged("a", "rrmrrmmmr")) == [("right", 5, 4)]
+    assert _episodes(_judged("a", "rrururr")) == [("right", 5, 2)]  # unseen gaps alike
+    # four updates without a box (0.4 s) are longer than the hold: a missed episode between two right ones
+    assert _episodes(_judged("a", "rrmmmmr")) == [("right", 2, 0), ("missed", 4, 0), ("right", 1, 0)]
+    # with no hold every gap is an episode (the rule before the hold)
+    assert _episodes(_judged("a", "rmr"), hold_s=0.0) == [("right", 1, 0), ("missed", 1, 0), ("right", 1, 0)]
+
+
+def test_no_gap_is_bridged_at_the_ends_or_around_a_wrong_box():
+    # a gap before the first box or after the last stays a missed episode, however short
+    assert _episodes(_judged("a", "mrrm")) == [("missed", 1, 0), ("right", 2, 0), ("missed", 1, 0)]
+    # a wrong box that flickers is a wrong episode each time it appears
+    assert _episodes(_judged("a", "wmw")) == [("wrong", 1, 0), ("missed", 1, 0), ("wrong", 1, 0)]
+    # a gap between a right box and a wrong one is not bridged either
+    assert _episodes(_judged("a", "rmw")) == [("right", 1, 0), ("missed", 1, 0), ("wrong", 1, 0)]
+    # two twins are episodes of their own; a time gap of more than 1.5 updates ends an episode
+    import pandas as pd
+
+    two = pd.concat([_judged("a", "rr"), _judged("b", "rmr"), _judged("a", "rr", t0=2.0)], ignore_index=True)
+    assert _episodes(two) == [("right", 2, 0), ("right", 2, 1), ("right", 2, 0)]

@@ -113,3 +113,18 @@ def test_paired_summary_of_a_constant_difference_is_certain_unless_it_is_zero():
     x, y = s.iloc[0], s.iloc[1]
     assert (x["mean_diff"], x["ci95_low"], x["ci95_high"], x["p_value"]) == pytest.approx((0.5, 0.5, 0.5, 0.0))
     assert (y["mean_diff"], y["p_value"]) == (0.0, 1.0)
+
+
+def test_highlight_updates_are_counted_per_warned_twin_and_update_without_episodes():
+    from vcfusion.studies.guidance import HIGHLIGHT_UPDATES, highlight_counts, highlight_update_counts
+
+    rows = [("a", "high", "right", "a"), ("a", "high", "missed", ""), ("a", "high", "right", "a"),
+            ("b", "medium", "wrong", "c"), ("b", "medium", "unseen", ""), ("c", "none", "missed", "")]
+    fusion = pd.DataFrame([{"time": round(1.0 + 0.1 * (k % 3), 6), "vehicle_id": v, "level": lv, "outcome": o,
+                            "box_vehicle_id": s} for k, (v, lv, o, s) in enumerate(rows)])
+    # the calm twin (level none) is no warning; the one-update gap of a's right box is bridged in episodes only
+    assert highlight_update_counts(fusion) == {"updates_right": 2, "updates_wrong": 1, "updates_missed": 1,
+                                               "updates_unseen": 1}
+    assert highlight_counts(None, fusion, 0.1) == {"highlights_right": 1, "highlights_wrong": 1,
+                                                   "missed_warnings": 0, "unseen_warnings": 1}
+    assert all(math.isnan(v) for v in highlight_update_counts(None).values()) and len(HIGHLIGHT_UPDATES) == 4

@@ -62,6 +62,17 @@ STOPPED_MPS = 0.5
 DISPLACED_M = 0.1
 
 
+def stopping_decel(gap_m: float, closing_mps: float) -> float:
+    """The constant deceleration (m/s^2) that ends a closing speed `closing_mps` within `gap_m`
+    (v^2 / 2 s; 0 when not closing): what a prospective leader that moves into the ego's path asks
+    for beyond the comfortable deceleration, so the driver never keeps closing on it at a rate it
+    cannot stop from (curved.yaml seed 16: a truck sliding over from two lanes across, 19 m ahead
+    at 11 m/s closing, needs 3.2 m/s^2; the comfortable b of 1.5-2.5 m/s^2 hit it)."""
+    if closing_mps <= 0:
+        return 0.0
+    return closing_mps * closing_mps / (2.0 * max(gap_m, 0.1))
+
+
 @dataclass
 class _Seen:
     time: float
@@ -106,6 +117,10 @@ class DriverModel:
         self._last_time: float | None = None
         self.visual_response: dict[str, float] = {}  # vid -> time the driver responds (lateral cue)
         self._lateral_before: dict[str, float] = {}  # vid -> distance from the ego lane's centre, last tick
+        # vid -> distance from the ego lane's centre where its present move toward the ego lane began
+        # (where it was first seen, or last stood still or moved away)
+        self._lateral_start: dict[str, float] = {}
+        self._toward: set[str] = set()  # seen vehicles moving toward the ego lane at this tick
         self.anticipated: set[str] = set()  # vehicles the driver expects to merge
         self.warnings: dict[str, _Warning] = {}  # active warnings by the vehicle seen highlighted
         self.events: list[dict] = []
@@ -189,17 +204,29 @@ class DriverModel:
                 self.anticipated.add(vid)
                 self._event(now, vid, "anticipation", math.nan)
         # a lateral cue ends once its vehicle is back at its lane centre (an aborted move), in the
-        # ego lane (a leader now) or beyond the adjacent lane: its next move over is a new cue
+        # ego lane (a leader now) or beyond the adjacent lane, and not moving toward the ego lane
+        # (crossing the adjacent lane from the next one over): its next move over is a new cue
         for vid in [v for v, due in self.visual_response.items() if due <= now and v in lateral
-                    and not (policy.in_adjacent_lane(lateral[v]) and lateral[v] < w - DISPLACED_M)]:
+                    and not (policy.in_adjacent_lane(lateral[v]) and lateral[v] < w - DISPLACED_M)
+                    and not (policy.in_adjacent_lane(lateral[v]) and lateral[v] < self._lateral_before.get(v, -1.0))]:
             del self.visual_response[vid]
+        start, self._toward = {}, set()
+        for vid, lat in lateral.items():  # where each seen vehicle's move toward the ego lane began
+            toward = lat < self._lateral_before.get(vid, -math.inf)
+            start[vid] = self._lateral_start.get(vid, lat) if toward else lat
+            if toward:
+                self._toward.add(vid)
+        self._lateral_start = start
         for vid in ahead:
             if vid in self.visual_response:
                 continue
-            # an adjacent-lane neighbour that has moved toward the ego lane by the noticed amount and
-            # is still moving toward it (a car leaving the ego lane crosses the same band moving away)
+            # an adjacent-lane neighbour that has moved toward the ego lane by the noticed amount (from
+            # its lane's centre, or from where its move began: a vehicle crossing the adjacent lane
+            # from the next one over) and is still moving toward it (a car leaving the ego lane
+            # crosses the same band moving away)
             toward = lateral[vid] < self._lateral_before.get(vid, -math.inf)
-            if toward and policy.in_adjacent_lane(lateral[vid]) and lateral[vid] <= w - self.p.lateral_notice_m:
+            moved = lateral[vid] <= w - self.p.lateral_notice_m or start[vid] - lateral[vid] >= self.p.lateral_notice_m
+            if toward and policy.in_adjacent_lane(lateral[vid]) and moved:
                 expected = vid in self.anticipated or vid in self.warnings
                 delay = self.p.guidance_reaction_s if expected else self.p.cutin_reaction_s
                 self.visual_response[vid] = now + delay
@@ -230,9 +257,10 @@ class DriverModel:
                 continue
             in_lane = policy.in_ego_lane(dist)
             gap_now = seen.rear[vid] - seen.ego_front
-            # prospective: responded to after it moved over (still displaced toward the lane), or
-            # highlighted, responded to, and the gap to it closes
-            moved_over = self.visual_response.get(vid, math.inf) <= now and dist < w - DISPLACED_M
+            # prospective: responded to after it moved over (still displaced toward the lane or
+            # still moving toward it), or highlighted, responded to, and the gap to it closes
+            moved_over = (self.visual_response.get(vid, math.inf) <= now
+                          and (dist < w - DISPLACED_M or (vid in self._toward and policy.in_adjacent_lane(dist))))
             gap_closes = (vid in responding and policy.in_adjacent_lane(dist)
                           and gap_now < desired_gap and seen.speed[vid] < ego_speed)
             prospective = not in_lane and (moved_over or gap_closes)
@@ -247,7 +275,10 @@ class DriverModel:
                 gap, v_lead = gap_now, seen.speed[vid]
             acc = idm_acceleration(self.idm, ego_speed, max(gap, 0.1), v_lead)
             if prospective:
-                acc = max(acc, -self.p.comfort_decel_mps2)
+                # b at most; for a vehicle moving into the path, what stopping behind it needs where
+                # that is more (a highlighted vehicle that only stands close by asks for b at most)
+                need = stopping_decel(gap, ego_speed - v_lead) if moved_over else 0.0
+                acc = max(acc, -max(self.p.comfort_decel_mps2, need))
             if acc < desired:
                 desired, leader, kind, leader_gap = acc, vid, "lane" if in_lane else "prospective", gap
         desired = min(max(float(desired), -self.limits.max_decel_mps2), self.limits.max_accel_mps2)

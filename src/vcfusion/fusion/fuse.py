@@ -321,24 +321,51 @@ MAX_HIDDEN_SHARE_DRAWN = 1.0
 # whose outline is about 6 x 10 px), which the identification study, judging visible targets
 # only, never sees.
 MAX_BOX_TO_OUTLINE_AREA = 3.0
+# A twin whose projected outline, less the share nearer twins' outlines hide (twin data only), is
+# smaller than this many pixels gets no box drawn: a car of about 7 x 7 px, ~200 m away with the
+# shipped 90-degree 640 px camera. Cause: far cars showing 15-30 px took boxes on the truck or car
+# next to them (curved.yaml seed 101: cars13 at 20-24 px on trucks2's box for 1.2 s, cars6 hidden
+# behind f0.1 at a hidden share of 0.75-0.88 on f0.1's box), which the detector cannot resolve and
+# the driver cannot check. Chosen on the guidance matrix's seeds 100-101 (five scenarios, fusion
+# arm): 50 px keeps 86 % of the drawn updates and leaves 1 wrong of 1092; the highlight
+# definition's 100 px (vcfusion.metrics.highlights.MIN_VISIBLE_PX) kept 61 % and lost the guided
+# driver's gap (docs/components/guidance-loop.md).
+MIN_DRAWN_VISIBLE_PX = 50.0
 
 
 def drawable_box(box, expected_box, hidden_share: float = 0.0, max_ratio: float | None = None,
                  max_hidden: float | None = None):
     """`box` unless it is more than `max_ratio` (default MAX_BOX_TO_OUTLINE_AREA) times the area
-    of the twin's projected outline `expected_box`, or nearer twins hide at least `max_hidden`
-    (default MAX_HIDDEN_SHARE_DRAWN) of that outline (then None: nothing is drawn for the twin).
+    of the twin's projected outline `expected_box`, nearer twins hide at least `max_hidden`
+    (default MAX_HIDDEN_SHARE_DRAWN) of that outline, or the part they leave is under
+    MIN_DRAWN_VISIBLE_PX (then None: nothing is drawn for the twin).
     Boxes (x1, y1, x2, y2) px."""
+    return box if undrawn_reason(box, expected_box, hidden_share, max_ratio, max_hidden) == "" else None
+
+
+UNDRAWN_REASONS = ("", "no_match", "hidden", "small", "too_large")
+
+
+def undrawn_reason(box, expected_box, hidden_share: float = 0.0, max_ratio: float | None = None,
+                   max_hidden: float | None = None) -> str:
+    """Why nothing is drawn for a twin matched to `box` (:func:`drawable_box`'s rules): "" (drawn),
+    "no_match" (no box matched), "hidden" (nearer twins hide its outline), "small" (the part of its
+    outline nearer twins leave visible is under MIN_DRAWN_VISIBLE_PX), "too_large" (the box is too
+    large for its outline)."""
     max_ratio = MAX_BOX_TO_OUTLINE_AREA if max_ratio is None else max_ratio
     max_hidden = MAX_HIDDEN_SHARE_DRAWN if max_hidden is None else max_hidden
-    if box is None or expected_box is None:
-        return box
+    if box is None:
+        return "no_match"
+    if expected_box is None:
+        return ""
     if hidden_share >= max_hidden:
-        return None
+        return "hidden"
     e = np.asarray(expected_box, dtype=float)
     outline = max(float((e[2] - e[0]) * (e[3] - e[1])), 1.0)
+    if outline * (1.0 - hidden_share) < MIN_DRAWN_VISIBLE_PX:
+        return "small"
     area = float((box[2] - box[0]) * (box[3] - box[1]))
-    return None if area > max_ratio * outline else box
+    return "too_large" if area > max_ratio * outline else ""
 
 
 class VisionFusionHook:
@@ -349,7 +376,7 @@ class VisionFusionHook:
 
     table = "fusion"
     columns = ("time", "vehicle_id", "method", "lc_prob", "level", "matched", "box_vehicle_id", "x1", "y1", "x2", "y2",
-               "outcome", "gt_iou", "visible_px", "frame")
+               "outcome", "gt_iou", "visible_px", "frame", "undrawn", "hidden_share")
     provides = ("detections", "guidance")
 
     def __init__(self, frame_source: FrameSource | None, detector: Detector, seed: int, policy: GuidancePolicy,
@@ -414,8 +441,9 @@ class VisionFusionHook:
             count_depth_step(self.depth_counts, key, v)
         lc = np.asarray(twins.outputs.get("lc_prob", np.full(len(twins), np.nan)), dtype=float)
         view = np.flatnonzero(result.in_view)
-        boxes = [drawable_box(result.box_of(self.method, i), result.expected_boxes[i], result.hidden_share[i])
-                 for i in view]
+        reasons = [undrawn_reason(result.box_of(self.method, i), result.expected_boxes[i], result.hidden_share[i])
+                   for i in view]
+        boxes = [result.box_of(self.method, i) if r == "" else None for i, r in zip(view, reasons)]
         chosen = [int(result.choice[self.method][i]) for i in view]
         decision = twins.outputs.get("lc_decision")
         in_view = make_guidance(tick.time, [twins.ids[i] for i in view], lc[view], boxes, self.policy,
@@ -442,12 +470,13 @@ class VisionFusionHook:
         # every twin in view, matched or not, with its judgement: an unmatched warning on a
         # visible vehicle is missed, on a vehicle the frame does not show unseen
         rows = []
-        for g, j in zip(in_view, judged):
+        for g, j, why, i in zip(in_view, judged, reasons, view):
             b = g.box if g.box is not None else (np.nan,) * 4
             rows.append({"time": round(tick.time, 6), "vehicle_id": g.vehicle_id, "method": self.method,
                          "lc_prob": g.lc_prob, "level": g.level, "matched": g.box is not None,
                          "box_vehicle_id": g.box_vehicle_id or "",
                          "x1": b[0], "y1": b[1], "x2": b[2], "y2": b[3],
-                         "outcome": j.outcome, "gt_iou": j.iou, "visible_px": j.visible_px, "frame": frame_index})
+                         "outcome": j.outcome, "gt_iou": j.iou, "visible_px": j.visible_px, "frame": frame_index,
+                         "undrawn": why, "hidden_share": float(result.hidden_share[i])})
         return rows
 

@@ -91,3 +91,69 @@ def instance_boxes(instances, vehicle_ids) -> tuple[np.ndarray, tuple[str, ...]]
         boxes.append((c.min(), r.min(), c.max() + 1, r.max() + 1))
         ids.append(str(vehicle_ids[int(k)]))
     return np.asarray(boxes, dtype=float), tuple(ids)
+
+
+def warning_hold_s() -> float:
+    """How long a highlight gap goes unnoticed: the driver model's warning hold (a warning stays
+    active this long after it was last shown, vcfusion.driver.params.DriverParams.warning_hold_s)."""
+    from vcfusion.driver.params import DriverParams
+
+    return float(DriverParams.warning_hold_s)
+
+
+@dataclass(frozen=True)
+class Episode:
+    """A warning episode of one twin: consecutive AR updates with one outcome and one vehicle in
+    the box. `rows`: positions (in the judged table given) of its updates; `bridged`: updates
+    without a box inside it that the hold spans (see :func:`warning_episodes`)."""
+
+    twin: str
+    outcome: str
+    box_vehicle_id: str
+    rows: tuple[int, ...]
+    bridged: int = 0
+
+
+def warning_episodes(judged, period_s: float, hold_s: float | None = None) -> list[Episode]:
+    """The warning episodes of judged rows (a DataFrame with ``time``, ``vehicle_id``,
+    ``outcome``, ``box_vehicle_id``; one row per warned twin and AR update), in order of start.
+
+    An episode is a run of updates of one twin with one outcome and one vehicle in the box, a gap
+    of more than 1.5 periods ending it. Where a box drawn on one vehicle is missing for at most
+    `hold_s` (default :func:`warning_hold_s`, 0.3 s: three 0.1 s updates) between two right runs
+    (the box on the twin's vehicle before and after), the gap is no episode of its own (no missed
+    or unseen warning): the warning the driver sees spans it, as the driver model's does (a flicker
+    of the box); the two right runs are one episode and the gap's updates are counted as `bridged`.
+    Nothing else is bridged: a wrong box that flickers is a wrong episode each time it appears, and
+    a gap before the first box or after the last is a missed (or unseen) episode however short."""
+    hold_s = warning_hold_s() if hold_s is None else hold_s
+    episodes: list[Episode] = []
+    if judged is None or not len(judged):
+        return episodes
+    t_all = judged["time"].to_numpy(dtype=float)
+    twins = judged["vehicle_id"].astype(str).to_numpy()
+    outcomes = judged["outcome"].astype(str).to_numpy()
+    shown = judged["box_vehicle_id"].fillna("").astype(str).to_numpy()
+    for twin in dict.fromkeys(twins):
+        idx = np.flatnonzero(twins == twin)
+        idx = idx[np.argsort(t_all[idx], kind="stable")]
+        runs: list[list] = []  # [outcome, shown, positions, bridged]
+        for k in idx:
+            last = runs[-1] if runs else None
+            if (last is not None and last[0] == outcomes[k] and last[1] == shown[k]
+                    and t_all[k] - t_all[last[2][-1]] <= 1.5 * period_s + 1e-9):
+                last[2].append(int(k))
+            else:
+                runs.append([outcomes[k], shown[k], [int(k)], 0])
+            # a short gap without a box between two runs drawn on the same vehicle: one episode
+            if (len(runs) >= 3 and runs[-1][0] in ("right", "wrong") and runs[-2][0] in ("missed", "unseen")
+                    and (runs[-1][0], runs[-1][1]) == (runs[-3][0], runs[-3][1])):
+                a, gap, b = runs[-3], runs[-2], runs[-1]
+                span = t_all[b[2][0]] - t_all[a[2][-1]] - period_s  # the time without a box
+                joined = (t_all[gap[2][0]] - t_all[a[2][-1]] <= 1.5 * period_s + 1e-9
+                          and t_all[b[2][0]] - t_all[gap[2][-1]] <= 1.5 * period_s + 1e-9)
+                if joined and span <= hold_s + 1e-9 and a[0] == "right":
+                    runs[-3:] = [[a[0], a[1], a[2] + b[2], a[3] + gap[3] + len(gap[2])]]
+        episodes += [Episode(str(twin), o, s, tuple(p), n) for o, s, p, n in runs]
+    episodes.sort(key=lambda e: (t_all[e.rows[0]], e.twin))
+    return episodes

@@ -21,14 +21,23 @@ import numpy as np
 import pandas as pd
 
 from vcfusion.errors import InputError
-from vcfusion.metrics.highlights import MIN_VISIBLE_PX, RIGHT_IOU
+from vcfusion.metrics.highlights import MIN_VISIBLE_PX, RIGHT_IOU, warning_episodes
 
-COLUMNS = ["episode", "twin", "outcome", "start_s", "end_s", "updates", "level", "lc_prob_max", "box_vehicle_id",
-           "gt_iou", "visible_px", "x1", "y1", "x2", "y2", "frame", "why"]
+COLUMNS = ["episode", "twin", "outcome", "start_s", "end_s", "updates", "bridged", "level", "lc_prob_max",
+           "box_vehicle_id",
+           "gt_iou", "visible_px", "x1", "y1", "x2", "y2", "frame", "undrawn", "why"]
 
 
-def why(outcome: str, twin: str, shown: str, iou: float, visible_px: float) -> str:
-    """The judgement of one AR update in words (the rules of vcfusion.metrics.highlights)."""
+UNDRAWN_WHY = {"no_match": "no box was matched to its twin",
+               "hidden": "a box was matched but not drawn: the twins in front of it hide its whole outline",
+               "small": "a box was matched but not drawn: the part of the twin's outline the twins in front "
+                        "leave visible is under 50 px (fusion.fuse.MIN_DRAWN_VISIBLE_PX)",
+               "too_large": "a box was matched but not drawn: it is too large for the twin's outline"}
+
+
+def why(outcome: str, twin: str, shown: str, iou: float, visible_px: float, undrawn: str = "no_match") -> str:
+    """The judgement of one AR update in words (the rules of vcfusion.metrics.highlights;
+    `undrawn`: why nothing was drawn, vcfusion.fusion.fuse.undrawn_reason)."""
     if outcome == "right":
         return (f"the box drawn for {twin} lies on {twin}: IoU {iou:.2f} with its visible box "
                 f"(>= {RIGHT_IOU:g})")
@@ -43,7 +52,8 @@ def why(outcome: str, twin: str, shown: str, iou: float, visible_px: float) -> s
         return (f"the box drawn for {twin} shows {shown or 'no vehicle'}: IoU {iou:.2f} with {twin}'s visible box "
                 f"(< {RIGHT_IOU:g})")
     if outcome == "missed":
-        return f"{twin} is visible ({visible_px:.0f} px) and warned, but no box was matched to its twin: nothing drawn"
+        return (f"{twin} is visible ({visible_px:.0f} px) and warned, but "
+                f"{UNDRAWN_WHY.get(undrawn, UNDRAWN_WHY['no_match'])}: nothing drawn")
     return (f"{twin} is warned but not visible ({visible_px:.0f} px < {MIN_VISIBLE_PX:g}: hidden or too small); "
             "nothing drawn, not a miss")
 
@@ -56,23 +66,25 @@ def explain_episodes(fusion: pd.DataFrame, period_s: float) -> pd.DataFrame:
     if "outcome" not in fusion:
         raise InputError("fusion table: no 'outcome' column (the judged highlight of each twin); expected a run "
                          "written by a version that judges highlights (vcfusion.metrics.highlights)")
-    warned = fusion[fusion["level"].isin(WARNING_LEVELS)].sort_values("time")
+    warned = fusion[fusion["level"].isin(WARNING_LEVELS)].sort_values("time", kind="stable").reset_index(drop=True)
     rows = []
-    for (twin, outcome, shown), g in warned.groupby(["vehicle_id", "outcome", "box_vehicle_id"], sort=False):
-        t = g["time"].to_numpy(dtype=float)
-        cuts = np.flatnonzero(np.diff(t) > 1.5 * period_s + 1e-9) + 1
-        for part in np.split(np.arange(len(g)), cuts):
-            ep = g.iloc[part]
-            mid = ep.iloc[len(ep) // 2]
-            frame = int(mid["frame"]) if "frame" in ep and not pd.isna(mid["frame"]) else -1
-            rows.append({"twin": str(twin), "outcome": str(outcome), "start_s": float(ep["time"].iloc[0]),
-                         "end_s": float(ep["time"].iloc[-1]), "updates": len(ep),
-                         "level": "high" if (ep["level"] == "high").any() else "medium",
-                         "lc_prob_max": float(ep["lc_prob"].max()), "box_vehicle_id": str(shown),
-                         "gt_iou": float(mid["gt_iou"]), "visible_px": float(mid["visible_px"]),
-                         "x1": float(mid["x1"]), "y1": float(mid["y1"]), "x2": float(mid["x2"]), "y2": float(mid["y2"]),
-                         "frame": frame,
-                         "why": why(str(outcome), str(twin), str(shown), float(mid["gt_iou"]), float(mid["visible_px"]))})
+    for episode in warning_episodes(warned, period_s):
+        twin, outcome, shown = episode.twin, episode.outcome, episode.box_vehicle_id
+        ep = warned.iloc[list(episode.rows)]
+        mid = ep.iloc[len(ep) // 2]
+        frame = int(mid["frame"]) if "frame" in ep and not pd.isna(mid["frame"]) else -1
+        rows.append({"twin": str(twin), "outcome": str(outcome), "start_s": float(ep["time"].iloc[0]),
+                     "end_s": float(ep["time"].iloc[-1]), "updates": len(ep), "bridged": episode.bridged,
+                     "level": "high" if (ep["level"] == "high").any() else "medium",
+                     "lc_prob_max": float(ep["lc_prob"].max()), "box_vehicle_id": str(shown),
+                     "gt_iou": float(mid["gt_iou"]), "visible_px": float(mid["visible_px"]),
+                     "x1": float(mid["x1"]), "y1": float(mid["y1"]), "x2": float(mid["x2"]), "y2": float(mid["y2"]),
+                     "frame": frame,
+                     "undrawn": str(mid["undrawn"]) if "undrawn" in ep else "",
+                     "why": why(str(outcome), str(twin), str(shown), float(mid["gt_iou"]), float(mid["visible_px"]),
+                                str(mid["undrawn"]) if "undrawn" in ep and mid["undrawn"] else "no_match")
+                      + (f"; {episode.bridged} update(s) without a box inside it, spanned by the driver's "
+                         "warning hold (a flicker, no missed warning)" if episode.bridged else "")})
     out = pd.DataFrame(rows, columns=[c for c in COLUMNS if c != "episode"])
     out = out.sort_values(["start_s", "twin"]).reset_index(drop=True)
     out.insert(0, "episode", np.arange(len(out)))

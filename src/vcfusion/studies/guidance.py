@@ -204,11 +204,25 @@ def highlight_episodes(rows: pd.DataFrame, period_s: float, by=("vehicle_id", "b
 
 
 HIGHLIGHT_COUNTS = ("highlights_right", "highlights_wrong", "missed_warnings", "unseen_warnings")
+# the same judgements per AR update (warned twins in view), without episodes
+HIGHLIGHT_UPDATES = ("updates_right", "updates_wrong", "updates_missed", "updates_unseen")
+
+
+def highlight_update_counts(fusion: pd.DataFrame | None) -> dict:
+    """Warned twin-updates of a camera run's ``fusion`` table by outcome (HIGHLIGHT_UPDATES);
+    NaN without one (no camera: nothing judged per frame)."""
+    from vcfusion.guidance import WARNING_LEVELS
+
+    if fusion is None or not len(fusion) or "outcome" not in fusion:
+        return dict.fromkeys(HIGHLIGHT_UPDATES, math.nan)
+    warned = fusion[fusion["level"].isin(WARNING_LEVELS)]
+    return {f"updates_{o}": int((warned["outcome"] == o).sum()) for o in ("right", "wrong", "missed", "unseen")}
 
 
 def highlight_counts(guidance: pd.DataFrame | None, fusion: pd.DataFrame | None, period_s: float) -> dict:
     """Highlight episodes of one run, judged by the one definition (vcfusion.metrics.highlights):
-    runs of frames in which a warned twin has the same outcome and the same vehicle in its box.
+    runs of frames in which a warned twin has the same outcome and the same vehicle in its box, a
+    flicker of a right box bridged (vcfusion.metrics.highlights.warning_episodes).
 
     With a camera (a ``fusion`` table: one judged row per twin in view and AR update):
     ``highlights_right`` / ``highlights_wrong`` (a box drawn for the twin, on its vehicle or not),
@@ -225,10 +239,12 @@ def highlight_counts(guidance: pd.DataFrame | None, fusion: pd.DataFrame | None,
 
             raise InputError("fusion table: no 'outcome' column (the judged highlight of each twin); expected a "
                              "run written by a version that judges highlights (vcfusion.metrics.highlights)")
+        from vcfusion.metrics.highlights import warning_episodes
+
         warned = fusion[fusion["level"].isin(WARNING_LEVELS)]
-        for _, outcome, _, _ in highlight_episodes(warned, period_s, ("vehicle_id", "outcome", "box_vehicle_id")):
+        for ep in warning_episodes(warned, period_s):
             key = {"right": "highlights_right", "wrong": "highlights_wrong", "missed": "missed_warnings",
-                   "unseen": "unseen_warnings"}[outcome]
+                   "unseen": "unseen_warnings"}[ep.outcome]
             out[key] += 1
         return out
     if guidance is not None and len(guidance):
@@ -284,6 +300,8 @@ def arm_metrics(run: dict, target_id: str | None) -> dict:
         counts["highlights_right"], counts["highlights_wrong"] = drawn["highlights_right"], drawn["highlights_wrong"]
     for key in HIGHLIGHT_COUNTS:
         row[key] = counts.get(key, nan)
+    row.update(highlight_update_counts(tables.get("fusion")) if arm != REFERENCE_ARM
+               else dict.fromkeys(HIGHLIGHT_UPDATES, nan))
     # the driver's first response to the seed's vehicle (any cue)
     events = tables.get("driver_events")
     row["response_time_s"], row["response_cue"] = nan, ""

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from vcfusion.studies.guidance import (DEFAULT_ARMS, HIGHLIGHT_COUNTS, REFERENCE_ARM, paired_summary,
-                                       run_guidance_study)
+from vcfusion.studies.guidance import (DEFAULT_ARMS, HIGHLIGHT_COUNTS, HIGHLIGHT_UPDATES, REFERENCE_ARM,
+                                       paired_summary, run_guidance_study)
 
 KEY_METRICS = ("min_gap_to_target_m", "avg_ttc_clipped_s", "avg_abs_accel_mps2", "fuel_g_per_km", "collisions")
 
@@ -30,11 +30,18 @@ def highlight_table(trips: pd.DataFrame, group: str) -> dict:
     for arm, t in trips[trips["arm"] != REFERENCE_ARM].groupby("arm", sort=False):
         sums = {k: int(t[k].sum()) for k in HIGHLIGHT_COUNTS}
         drawn = sums["highlights_right"] + sums["highlights_wrong"]
+        ups = {k: (int(t[k].sum()) if k in t and t[k].notna().any() else float("nan")) for k in HIGHLIGHT_UPDATES}
+        drawn_ups = ups["updates_right"] + ups["updates_wrong"]
         hit = t.loc[t["collisions"].fillna(0) > 0, "seed"].tolist()
         ref = trips[(trips["arm"] == REFERENCE_ARM) & (trips["collisions"].fillna(0) > 0)]
         rows.append({"group": group, "arm": arm, "trips": int(len(t)), **sums,
                      "wrong_pct_of_drawn": 100 * sums["highlights_wrong"] / drawn if drawn else float("nan"),
                      "missed_pct_of_drawn": 100 * sums["missed_warnings"] / drawn if drawn else float("nan"),
+                     **ups,
+                     "updates_wrong_pct_of_drawn": (100 * ups["updates_wrong"] / drawn_ups if drawn_ups
+                                                    else float("nan")),
+                     "updates_missed_pct_of_drawn": (100 * ups["updates_missed"] / drawn_ups if drawn_ups
+                                                     else float("nan")),
                      "collision_seeds": " ".join(map(str, hit)),
                      "reference_collision_seeds": " ".join(map(str, ref["seed"].tolist()))})
     return rows
@@ -85,8 +92,12 @@ def run_matrix(scenarios: list[Path], trips: int, workers: int, out: Path, tuned
         for r in hl[hl["group"] == group].itertuples(index=False):
             lines.append(f"  {r.arm}: highlight episodes right {r.highlights_right}, wrong {r.highlights_wrong} "
                          f"({r.wrong_pct_of_drawn:.1f} % of drawn), missed {r.missed_warnings} "
-                         f"({r.missed_pct_of_drawn:.1f} %), unseen {r.unseen_warnings}; ego collisions in seeds "
-                         f"[{r.collision_seeds}] (none arm: [{r.reference_collision_seeds}])")
+                         f"({r.missed_pct_of_drawn:.1f} %), unseen {r.unseen_warnings}"
+                         + ("" if r.updates_right != r.updates_right else
+                            f"; per update: wrong {r.updates_wrong_pct_of_drawn:.1f} %, missed "
+                            f"{r.updates_missed_pct_of_drawn:.1f} % of {r.updates_right + r.updates_wrong:.0f} drawn")
+                         + f"; ego collisions in seeds [{r.collision_seeds}] "
+                           f"(none arm: [{r.reference_collision_seeds}])")
         part = summary[(summary["group"] == group) & summary["metric"].isin(KEY_METRICS)]
         for r in part.itertuples(index=False):
             lines.append(f"  {r.arm} vs none  {r.label[:40]:<40} n={r.n_pairs:3d}  {r.mean_diff:+9.3g} "
