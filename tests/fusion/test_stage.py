@@ -78,7 +78,9 @@ def test_fusion_hook_reads_the_camera_hooks_frame(tmp_path):
         fusion = build_fusion_hook(sc, 1, GuidancePolicy.from_scenario(sc, read_road(sc.network)), rec)
         result = CoSimulation(sc, 1, controller=IdmController.for_scenario(sc), hooks=[FakeCameraHook(), fusion]).run()
     table = result.tables["fusion"]
-    assert table["matched"].mean() > 0.9
+    # twins the overlay rules leave undrawn (a far car of a few pixels: "small") are not matches to count
+    drawable = table[table["undrawn"].isin(["", "no_match"])]
+    assert len(drawable) > 0.5 * len(table) and drawable["matched"].mean() > 0.9
     # the AR period (0.2 s) halves the V2C tick rate (0.1 s)
     assert table["time"].nunique() == pytest.approx(3.0 / 0.2, abs=1) == rec.count
 
@@ -93,7 +95,8 @@ def test_run_with_rendered_camera_writes_fusion_table_and_video(tmp_path, monkey
                          ar={"video": True})
     assert main(["run", str(path), "--seed", "1", "--out", "runs/a"]) == 0
     table = pd.read_parquet(tmp_path / "runs" / "a" / "fusion.parquet")
-    assert len(table) > 20 and table["matched"].mean() > 0.9
+    drawable = table[table["undrawn"].isin(["", "no_match"])]
+    assert len(drawable) > 20 and drawable["matched"].mean() > 0.9
     # everything the run writes is in its run folder, listed by its summary
     run = tmp_path / "runs" / "a"
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name, "runs"]
