@@ -203,20 +203,21 @@ class DriverModel:
             if any(ln == lane[vid] and rear > seen.rear[vid] for ln, rear in stopped):
                 self.anticipated.add(vid)
                 self._event(now, vid, "anticipation", math.nan)
-        # a lateral cue ends once its vehicle is back at its lane centre (an aborted move), in the
-        # ego lane (a leader now) or beyond the adjacent lane, and not moving toward the ego lane
-        # (crossing the adjacent lane from the next one over): its next move over is a new cue
-        for vid in [v for v, due in self.visual_response.items() if due <= now and v in lateral
-                    and not (policy.in_adjacent_lane(lateral[v]) and lateral[v] < w - DISPLACED_M)
-                    and not (policy.in_adjacent_lane(lateral[v]) and lateral[v] < self._lateral_before.get(v, -1.0))]:
-            del self.visual_response[vid]
+        # where each seen vehicle's move toward the ego lane began, and which move toward it now
         start, self._toward = {}, set()
-        for vid, lat in lateral.items():  # where each seen vehicle's move toward the ego lane began
+        for vid, lat in lateral.items():
             toward = lat < self._lateral_before.get(vid, -math.inf)
             start[vid] = self._lateral_start.get(vid, lat) if toward else lat
             if toward:
                 self._toward.add(vid)
         self._lateral_start = start
+        # a lateral cue ends once its vehicle is back at its lane centre (an aborted move), in the
+        # ego lane (a leader now) or beyond the adjacent lane, and not moving toward the ego lane
+        # (crossing the adjacent lane from the next one over): its next move over is a new cue
+        for vid in [v for v, due in self.visual_response.items() if due <= now and v in lateral
+                    and not (policy.in_adjacent_lane(lateral[v])
+                             and (lateral[v] < w - DISPLACED_M or v in self._toward))]:
+            del self.visual_response[vid]
         for vid in ahead:
             if vid in self.visual_response:
                 continue
@@ -224,7 +225,7 @@ class DriverModel:
             # its lane's centre, or from where its move began: a vehicle crossing the adjacent lane
             # from the next one over) and is still moving toward it (a car leaving the ego lane
             # crosses the same band moving away)
-            toward = lateral[vid] < self._lateral_before.get(vid, -math.inf)
+            toward = vid in self._toward
             moved = lateral[vid] <= w - self.p.lateral_notice_m or start[vid] - lateral[vid] >= self.p.lateral_notice_m
             if toward and policy.in_adjacent_lane(lateral[vid]) and moved:
                 expected = vid in self.anticipated or vid in self.warnings
