@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from vcfusion.accel import DEVICE_ENV, GL_ENV, nvidia_gpu_present
+from vcfusion.fusion.matching import box_iou
 
 SCENARIO = "accident_ar"
 SEED = 0
@@ -80,17 +81,6 @@ def compare_instances(ref: np.ndarray, other: np.ndarray, tol: dict = TOLERANCES
         return {"pass": False, "problem": f"shapes differ: {ref.shape} vs {other.shape}"}
     agree = float((ref == other).mean())
     return {"pass": bool(agree >= tol["instances_agree"]), "instances_agree": round(agree, 5)}
-
-
-def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(len(a), len(b)) IoU of x1, y1, x2, y2 boxes."""
-    a, b = np.asarray(a, dtype=float).reshape(-1, 4), np.asarray(b, dtype=float).reshape(-1, 4)
-    w = np.clip(np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None)
-    h = np.clip(np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None)
-    inter = w * h
-    area = lambda x: (x[:, 2] - x[:, 0]) * (x[:, 3] - x[:, 1])  # noqa: E731
-    union = area(a)[:, None] + area(b)[None, :] - inter
-    return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
 
 
 def compare_boxes(ref: list[tuple[np.ndarray, np.ndarray]], other: list[tuple[np.ndarray, np.ndarray]],
