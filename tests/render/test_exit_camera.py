@@ -6,13 +6,8 @@ deceleration lane and leave by the exit."""
 import pytest
 
 from scenario_files import SCENARIOS, write_scenario
-from vcfusion.cosim import CoSimulation
-from vcfusion.driver.idm import IdmController
-from vcfusion.records import gnss_antenna_points
-from vcfusion.render.camera import project_points
-from vcfusion.render.gt_boxes import ground_truth_boxes
+from support.camera_runs import check_anchors_and_cuboids, rendered, simulate
 from vcfusion.render.meshes import road_layouts
-from vcfusion.render.renderer import EgoCameraRenderer
 from vcfusion.scenario import load_scenario
 from vcfusion.traffic.network import read_road
 
@@ -35,33 +30,6 @@ def test_the_exit_lane_goes_on_as_the_exit():
 
 @pytest.mark.slow
 def test_anchors_in_boxes_at_the_exit(tmp_path):
-    sc = exit_with_ego(tmp_path)
-    sc = sc.model_copy(update={"simulation": sc.simulation.model_copy(update={"max_time_s": 8.0}),
-                               "camera": sc.camera.model_copy(update={"width_px": 640, "height_px": 480})})
-    states = []
-
-    class Collect:
-        table = "collect"
-
-        def __call__(self, tick):
-            if "ego" in tick.truth.ids and abs(tick.time * 2 - round(tick.time * 2)) < 1e-6:
-                states.append(tick.truth)  # every 0.5 s
-
-    CoSimulation(sc, 0, controller=IdmController.for_scenario(sc), hooks=[Collect()]).run()
-    anchors = 0
-    with EgoCameraRenderer.for_scenario(sc) as renderer:
-        for truth in states:
-            frame = renderer.render(truth)
-            gt = ground_truth_boxes(frame, truth, renderer)
-            index = {vid: i for i, vid in enumerate(truth.ids)}
-            for j, vid in enumerate(gt.vehicle_ids):
-                if not (gt.visible_fraction[j] >= 0.999 and gt.truncation[j] == 0.0 and gt.pixels[j] >= 30):
-                    continue
-                i = index[vid]
-                point = gnss_antenna_points(truth.x[i:i + 1], truth.y[i:i + 1], truth.z[i:i + 1],
-                                            truth.height[i:i + 1])
-                u, v = project_points(point, frame.K, frame.T_world_to_camera, frame.width, frame.height).uv[0]
-                x1, y1, x2, y2 = gt.box[j]
-                assert x1 <= u < x2 and y1 <= v < y2, (vid, frame.time, (u, v), gt.box[j])
-                anchors += 1
+    sc, states = simulate(exit_with_ego(tmp_path), 8.0)
+    anchors, _ = check_anchors_and_cuboids(rendered(sc, states))
     assert anchors >= 10 and len(states) >= 12

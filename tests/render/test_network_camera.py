@@ -12,17 +12,13 @@ import numpy as np
 import pytest
 
 from scenario_files import SCENARIOS, write_scenario
-from vcfusion.cosim import CoSimulation
-from vcfusion.driver.idm import IdmController
-from vcfusion.records import VehicleStates, gnss_antenna_points
+from support.camera_runs import check_anchors_and_cuboids, rendered, simulate
+from vcfusion.records import VehicleStates
 from vcfusion.render.camera import project_points
 from vcfusion.render.meshes import MARK_Z
-from vcfusion.render.gt_boxes import box_corners, ground_truth_boxes, projected_box_polygon
+from vcfusion.render.gt_boxes import ground_truth_boxes
 from vcfusion.render.renderer import EgoCameraRenderer, camera_road
 from vcfusion.scenario import load_scenario
-
-SIZE = dict(width_px=640, height_px=480)
-
 
 def onramp_with_ego(tmp_path, depart_pos_m=560.0, lane=1):
     """scenarios/onramp.yaml with an ego on the main line before the merge, camera on."""
@@ -38,32 +34,6 @@ def curved_with_camera(depart_pos_m=380.0):
                                  "vision": sc.vision.model_copy(update={"enabled": True})})
 
 
-def simulate(sc, seconds):
-    sc = sc.model_copy(update={"simulation": sc.simulation.model_copy(update={"max_time_s": seconds}),
-                               "camera": sc.camera.model_copy(update=SIZE)})
-    states = []
-
-    class Collect:
-        table = "collect"
-
-        def __call__(self, tick):
-            if "ego" in tick.truth.ids and abs(tick.time * 2 - round(tick.time * 2)) < 1e-6:
-                states.append(tick.truth)  # every 0.5 s
-
-    CoSimulation(sc, 0, controller=IdmController.for_scenario(sc), hooks=[Collect()]).run()
-    return sc, states
-
-
-def rendered(sc, states):
-    """(truth, frame, ground-truth boxes) per state; the boxes taken right after each render."""
-    out = []
-    with EgoCameraRenderer.for_scenario(sc) as renderer:
-        for truth in states:
-            frame = renderer.render(truth)
-            out.append((truth, frame, ground_truth_boxes(frame, truth, renderer)))
-    return out
-
-
 @pytest.fixture(scope="module")
 def curved_frames():
     sc, states = simulate(curved_with_camera(), 6.0)
@@ -74,38 +44,6 @@ def curved_frames():
 def onramp_frames(tmp_path_factory):
     sc, states = simulate(onramp_with_ego(tmp_path_factory.mktemp("onramp")), 6.0)
     return sc, rendered(sc, states)
-
-
-def _iou(a, b) -> float:
-    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    inter = ix * iy
-    return inter / ((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter)
-
-
-def check_anchors_and_cuboids(frames):
-    """Counts (anchors checked, cuboid boxes checked) over the frames; asserts every check."""
-    anchors = cuboids = 0
-    for truth, frame, gt in frames:
-        index = {vid: i for i, vid in enumerate(truth.ids)}
-        for j, vid in enumerate(gt.vehicle_ids):
-            if not (gt.visible_fraction[j] >= 0.999 and gt.truncation[j] == 0.0 and gt.pixels[j] >= 30):
-                continue
-            i = index[vid]
-            anchor = gnss_antenna_points(truth.x[i:i + 1], truth.y[i:i + 1], truth.z[i:i + 1], truth.height[i:i + 1])
-            p = project_points(anchor, frame.K, frame.T_world_to_camera, frame.width, frame.height)
-            x1, y1, x2, y2 = gt.box[j]
-            u, v = p.uv[0]
-            assert x1 <= u < x2 and y1 <= v < y2, (vid, frame.time, (u, v), gt.box[j])
-            anchors += 1
-            if gt.pixels[j] >= 200:
-                corners = box_corners(truth.x[i], truth.y[i], truth.z[i], truth.heading[i], truth.length[i],
-                                      truth.width[i], truth.height[i])
-                hull = projected_box_polygon(corners, frame.K, frame.T_world_to_camera, 0.3)
-                cuboid = (*(hull.min(axis=0)), *(hull.max(axis=0)))
-                assert _iou(gt.box[j], cuboid) >= 0.8, (vid, frame.time, gt.box[j], cuboid)
-                cuboids += 1
-    return anchors, cuboids
 
 
 def test_anchors_in_boxes_and_cuboids_on_the_curved_road(curved_frames):
