@@ -94,23 +94,10 @@ def test_braking_pitches_the_camera_down_after_the_suspension_lag():
 
 
 def test_the_sensors_change_what_the_fusion_sees_never_the_ground_truth():
-    from dataclasses import dataclass
-
     from vcfusion.fusion.sensors import SensorModel
     from vcfusion.fusion.stage import frame_from_render
     from vcfusion.records import VehicleStates
-
-    @dataclass(frozen=True)
-    class Rendered:  # the render's Frame fields frame_from_render reads
-        time: float
-        rgb: np.ndarray
-        depth: np.ndarray
-        instances: np.ndarray
-        vehicle_ids: tuple
-        K: np.ndarray
-        T_world_to_camera: np.ndarray
-        width: int = 640
-        height: int = 480
+    from vcfusion.render.renderer import Frame
 
     n = 2
     truth = VehicleStates(time=1.0, ids=("ego", "car"), vtype=("ego", "car"), vclass=("passenger",) * n,
@@ -121,7 +108,7 @@ def test_the_sensors_change_what_the_fusion_sees_never_the_ground_truth():
     depth = np.full((480, 640), 60.0, np.float32)
     instances = np.full((480, 640), -1, np.int32)
     depth[200:260, 280:360], instances[200:260, 280:360] = 17.75, 0
-    frame = Rendered(1.0, np.zeros((480, 640, 3), np.uint8), depth, instances, ("car",), K, T)
+    frame = Frame(1.0, np.zeros((480, 640, 3), np.uint8), depth, instances, ("car",), K, T)
     exact = frame_from_render(frame, truth)
     sensed = frame_from_render(frame, truth, SensorModel("stereo", FLAT, PoseNoiseParams(mount_std_deg=0.3),
                                                          rng=np.random.default_rng(4)))

@@ -6,7 +6,7 @@ those of the boxes drawn.
 Real fusion hook, real HumanDriver display path and the study's highlight counting on hand-made
 ticks; frames from the test-only cuboid frame source, given a pinhole K and extrinsics here."""
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +24,7 @@ from vcfusion.hitl.display import cloud_boxes, tracked_boxes
 from vcfusion.hitl.driver import HumanDriver
 from vcfusion.hitl.vehicle import ControlSample, VehicleState
 from vcfusion.records import Guidance, TwinStates, VehicleStates
+from vcfusion.render.renderer import Frame
 from vcfusion.studies.guidance import highlight_counts
 from vcfusion.traffic.network import read_road
 
@@ -58,27 +59,6 @@ def _twins(truth, offset_x=0.0):
                       outputs={"lc_prob": np.array([0.9, 0.05]), "lc_decision": np.array([True, False])})
 
 
-@dataclass(frozen=True)
-class PinholeFrame:
-    """The render's Frame fields the display reads."""
-
-    time: float
-    rgb: np.ndarray
-    depth: np.ndarray
-    instances: np.ndarray
-    vehicle_ids: tuple
-    K: np.ndarray
-    T_world_to_camera: np.ndarray
-
-    @property
-    def width(self):
-        return self.rgb.shape[1]
-
-    @property
-    def height(self):
-        return self.rgb.shape[0]
-
-
 class PinholeCuboids(CuboidFrameSource):
     """The cuboid frame source as a renderer: frames with K and the extrinsics of its camera."""
 
@@ -96,7 +76,7 @@ class PinholeCuboids(CuboidFrameSource):
     def render(self, truth):
         f = self(Tick(truth.time, truth, None, None, None))
         K, T = self.pose(truth)
-        return PinholeFrame(truth.time, f.image, f.depth, f.instances, f.instance_ids, K, T)
+        return Frame(truth.time, f.image, f.depth, f.instances, f.instance_ids, K, T)
 
 
 class OwnBoxes:
