@@ -145,14 +145,14 @@ def warning_episodes(judged, period_s: float, hold_s: float | None = None) -> li
                 last[2].append(int(k))
             else:
                 runs.append([outcomes[k], shown[k], [int(k)], 0])
-            # a short gap without a box between two runs drawn on the same vehicle: one episode
-            if (len(runs) >= 3 and runs[-1][0] in ("right", "wrong") and runs[-2][0] in ("missed", "unseen")
+            # a short gap without a box between two right runs on the same vehicle: one episode
+            if (len(runs) >= 3 and runs[-1][0] == "right" and runs[-2][0] in ("missed", "unseen")
                     and (runs[-1][0], runs[-1][1]) == (runs[-3][0], runs[-3][1])):
                 a, gap, b = runs[-3], runs[-2], runs[-1]
                 span = t_all[b[2][0]] - t_all[a[2][-1]] - period_s  # the time without a box
                 joined = (t_all[gap[2][0]] - t_all[a[2][-1]] <= 1.5 * period_s + 1e-9
                           and t_all[b[2][0]] - t_all[gap[2][-1]] <= 1.5 * period_s + 1e-9)
-                if joined and span <= hold_s + 1e-9 and a[0] == "right":
+                if joined and span <= hold_s + 1e-9:
                     runs[-3:] = [[a[0], a[1], a[2] + b[2], a[3] + gap[3] + len(gap[2])]]
         episodes += [Episode(str(twin), o, s, tuple(p), n) for o, s, p, n in runs]
     episodes.sort(key=lambda e: (t_all[e.rows[0]], e.twin))
