@@ -121,7 +121,8 @@ def test_cloud_path_equals_the_dataset_path_for_a_lateral_model():
 def test_bootstrap_interval_on_a_known_case():
     # two vehicles: A predicts its change and raises no alarm, B misses its change and raises 2 alarms
     table = pd.DataFrame({"lane_changes": [1, 1], "predicted": [1, 0], "before_mid": [1, 0],
-                          "advance_sum_s": [4.0, 0.0], "false_alarms": [0, 2], "hours": [1.0, 1.0]})
+                          "advance_sum_s": [4.0, 0.0], "false_alarms": [0, 2], "false_alarms_censored": [0, 1],
+                          "hours": [1.0, 1.0]})
     got = bootstrap(table, n_boot=2000, seed=0)
     assert got["predicted"]["value"] == 0.5 and got["false_alarms_per_veh_h"]["value"] == 1.0
     # resamples: AA (1/4), AB (1/2), BB (1/4): both extremes are inside the 95 % interval

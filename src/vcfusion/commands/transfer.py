@@ -54,6 +54,21 @@ def cmd_retune(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_set_decision(args: argparse.Namespace) -> int:
+    from vcfusion.prediction.model import ModelFileError
+    from vcfusion.prediction.train_sequence import set_decision
+
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise UsageError(f"--out: {out} already exists (use --force to replace it)")
+    check_folder_path(out.parent)
+    try:
+        print(set_decision(Path(args.model), out, args.smoothing, args.threshold, args.tau_ticks, args.reason))
+    except (ValueError, ModelFileError) as exc:
+        raise UsageError(str(exc)) from None
+    return 0
+
+
 def _labelled(values: list[str], option: str) -> list[tuple[str, str]]:
     out = []
     for v in values:
@@ -122,6 +137,21 @@ def add_parsers(sub) -> None:
     p.add_argument("--horizon", type=float, default=10.0, help="event horizon, s (as `vcfusion evaluate`)")
     p.add_argument("--force", action="store_true", help="replace an existing --out")
     p.set_defaults(func=cmd_retune, interrupted="the model file was not written; run the same command again")
+
+    p = sub.add_parser("set-decision", help="write a lane-change model file with the decision settings given "
+                                            "(smoothing, threshold, window); weights and calibration unchanged")
+    p.add_argument("model", help="model file (MLP or GRU)")
+    p.add_argument("--out", required=True, help="model file to write")
+    p.add_argument("--smoothing", required=True, choices=["none", "aggressive", "conservative"],
+                   help="the default smoothing (paper Algorithms 3 / 4, or none)")
+    p.add_argument("--threshold", required=True, type=float, help="probability threshold of that smoothing, in (0, 1)")
+    p.add_argument("--tau-ticks", dest="tau_ticks", type=int, default=0,
+                   help="its window: tau_a (aggressive hold) or tau_c (conservative vote), V2C ticks")
+    p.add_argument("--reason", required=True,
+                   help="where the settings were chosen (recorded in the file, e.g. the cross-fitted validation "
+                        "streams and the false-alarm budget)")
+    p.add_argument("--force", action="store_true", help="replace an existing --out")
+    p.set_defaults(func=cmd_set_decision, interrupted="the model file was not written; run the same command again")
 
     p = sub.add_parser("sim-to-real", help="the sim-to-real table: lane-change models x evaluation sets, with "
                                            "bootstrap intervals over vehicles (CSV + markdown)")

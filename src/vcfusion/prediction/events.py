@@ -11,6 +11,11 @@ For each lane change of a vehicle (end E, the previous change of the same vehicl
   centre crosses the lane line, when the map-matched lane flips).
 A *false alarm* is an uninterrupted positive run [a, b] of a vehicle with no lane change of that
 vehicle ending in [a, b + horizon]. Rates are per vehicle-hour of twin ticks.
+A false alarm is *censored* when b + horizon lies after the vehicle's last tick: part of the
+window that would have confirmed it was not observed (a short CommonRoad track, a vehicle leaving
+the recorded stretch, a file cut off). Censored false alarms are still false alarms (the headline
+rate counts them); they are also counted apart (`false_alarms_censored`) so that a set of short
+tracks can be read with that in mind.
 """
 
 from __future__ import annotations
@@ -74,12 +79,15 @@ def smooth_stream(bounds: list[tuple[int, int]], decisions: np.ndarray, method: 
 
 def event_scores(stream: pd.DataFrame, decisions: np.ndarray, events: pd.DataFrame, period_s: float,
                  horizon_s: float, bounds: list[tuple[int, int]] | None = None,
-                 false_alarms_by_vehicle: dict | None = None) -> tuple[dict, pd.DataFrame]:
+                 false_alarms_by_vehicle: dict | None = None,
+                 censored_by_vehicle: dict | None = None) -> tuple[dict, pd.DataFrame]:
     """stream: seed, vehicle_id, time sorted by (seed, vehicle_id, time); events: seed, event_id,
-    vehicle_id, end, mid. Returns (summary, per-event table). `false_alarms_by_vehicle`: a dict
-    that receives each (seed, vehicle_id)'s false alarms (for intervals over vehicles)."""
+    vehicle_id, end, mid. Returns (summary, per-event table). `false_alarms_by_vehicle` and
+    `censored_by_vehicle`: dicts that receive each (seed, vehicle_id)'s false alarms and censored
+    false alarms (for intervals over vehicles)."""
     rows = []
     false_alarms = 0
+    censored = 0
     alarms = 0
     ev_groups = {k: g.sort_values("end") for k, g in events.groupby(["seed", "vehicle_id"], sort=False)}
     seeds = stream["seed"].to_numpy()
@@ -98,6 +106,10 @@ def event_scores(stream: pd.DataFrame, decisions: np.ndarray, events: pd.DataFra
                 false_alarms += 1
                 if false_alarms_by_vehicle is not None:
                     false_alarms_by_vehicle[key] = false_alarms_by_vehicle.get(key, 0) + 1
+                if t[s1] + horizon_s > t[-1] + _EPS:  # the confirming window runs past the track's end
+                    censored += 1
+                    if censored_by_vehicle is not None:
+                        censored_by_vehicle[key] = censored_by_vehicle.get(key, 0) + 1
         if g is None:
             continue
         prev = -np.inf
@@ -132,6 +144,7 @@ def event_scores(stream: pd.DataFrame, decisions: np.ndarray, events: pd.DataFra
         "advance_first_median_s": float(pred["advance_first_s"].median()) if len(pred) else float("nan"),
         "alarms": int(alarms),
         "false_alarms": int(false_alarms),
+        "false_alarms_censored": int(censored),
         "vehicle_hours": float(vehicle_hours),
         "false_alarms_per_vehicle_hour": float(false_alarms / vehicle_hours) if vehicle_hours else float("nan"),
     }

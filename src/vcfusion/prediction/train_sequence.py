@@ -298,3 +298,45 @@ def retune_decisions(model_path: Path, datasets: list[Path], out: Path, false_al
     head = (f"re-tuned {model_path} on the validation seeds of {len(infos)} datasets ({len(va_events)} lane changes, "
             f"{len(va) * model.period_s / 3600:.2f} vehicle-hours), false-alarm budget {false_alarm_budget:g} / veh-h")
     return "\n".join([head] + tuning_report(tuned, default, out))
+
+
+def set_decision(model_path: Path, out: Path, smoothing: str, threshold: float, tau_ticks: int,
+                 reason: str) -> str:
+    """Write `model_path` with the decision settings given (weights and calibration unchanged): the
+    smoothing made default, its probability threshold and its window (tau_a or tau_c ticks). For a
+    decision chosen outside the model's own validation tuning, e.g. on the cross-fitted validation
+    streams of a small recording (docs: components/real-data.md, "False alarms on real data");
+    `reason` is recorded in the file's info (`decision_set`) with the settings it replaced."""
+    from vcfusion.prediction.model import load_model, save_model
+    from vcfusion.prediction.smoothing import _METHODS
+
+    if smoothing not in _METHODS:
+        raise ValueError(f"smoothing: expected one of {', '.join(_METHODS)}, got {smoothing!r}")
+    if not 0.0 < threshold < 1.0:
+        raise ValueError(f"threshold: expected a probability in (0, 1), got {threshold}")
+    if int(tau_ticks) != tau_ticks or tau_ticks < 0:
+        raise ValueError(f"tau ticks: expected a whole number >= 0, got {tau_ticks}")
+    if not reason.strip():
+        raise ValueError("reason: expected a note saying where the settings were chosen")
+    model = copy.deepcopy(load_model(model_path))
+    before = {"smoothing": model.smoothing, "thresholds": dict(model.thresholds), "threshold": model.threshold,
+              "tau_a_ticks": model.tau_a_ticks, "tau_c_ticks": model.tau_c_ticks}
+    model.smoothing = smoothing
+    model.thresholds = {**model.thresholds, smoothing: float(threshold)}
+    model.threshold = float(threshold)
+    if smoothing == "aggressive":
+        model.tau_a_ticks = int(tau_ticks)
+    elif smoothing == "conservative":
+        model.tau_c_ticks = int(tau_ticks)
+    model.info = {**model.info, "decision_set": {"from": Path(model_path).name, "smoothing": smoothing,
+                                                 "threshold": float(threshold), "tau_ticks": int(tau_ticks),
+                                                 "reason": reason, "replaced": before}}
+    (save_sequence_model if model.kind == "gru" else save_model)(model, out)
+    return (f"{out}: {smoothing}, threshold {threshold:g}, tau {int(tau_ticks)} ticks "
+            f"(was {before['smoothing']}, threshold {model_threshold(before):g}); weights and calibration of "
+            f"{model_path}")
+
+
+def model_threshold(settings: dict) -> float:
+    """The default smoothing's threshold of a settings record of :func:`set_decision`."""
+    return float(settings["thresholds"].get(settings["smoothing"], settings["threshold"]))

@@ -1,0 +1,114 @@
+"""False alarms cut off by a track's end (censored) and decision settings written into a model file
+(`vcfusion set-decision`), on hand-made streams and a tiny GRU."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from vcfusion.commands import main
+from vcfusion.prediction.cloud import LaneChangePredictor
+from vcfusion.prediction.events import event_scores, track_bounds
+from vcfusion.prediction.features import SEQUENCE_INPUT_SETS
+from vcfusion.prediction.model import load_model
+from vcfusion.prediction.sequence import SequenceModel, save_sequence_model
+from vcfusion.prediction.transfer import bootstrap
+from vcfusion.traffic.network import Road
+
+
+def _stream(tracks: dict[str, float]) -> pd.DataFrame:
+    """One seed; each vehicle observed from 0 s to its given last time, every 0.1 s."""
+    frames = [pd.DataFrame({"seed": 0, "vehicle_id": vid, "time": np.round(np.arange(0.0, last + 1e-9, 0.1), 1)})
+              for vid, last in tracks.items()]
+    return pd.concat(frames, ignore_index=True)
+
+
+def _on(stream: pd.DataFrame, vid: str, a: float, b: float) -> np.ndarray:
+    t = stream["time"].to_numpy()
+    return ((stream["vehicle_id"].to_numpy() == vid) & (t >= a - 1e-9) & (t <= b + 1e-9)).astype(np.int8)
+
+
+def test_false_alarms_whose_confirming_window_passes_the_track_end_are_counted_apart():
+    # "short": an 8 s track with an alarm at 3-4 s (window to 14 s: censored);
+    # "long": 40 s, an alarm at 5-6 s (window to 16 s, observed: a plain false alarm) and one at
+    # 20-21 s before its change ending at 25 s (a hit, neither false nor censored)
+    stream = _stream({"long": 40.0, "short": 8.0})
+    events = pd.DataFrame({"seed": [0], "event_id": [1], "vehicle_id": ["long"], "end": [25.0], "mid": [23.0]})
+    dec = _on(stream, "short", 3.0, 4.0) | _on(stream, "long", 5.0, 6.0) | _on(stream, "long", 20.0, 21.0)
+    fa, censored = {}, {}
+    summary, per_event = event_scores(stream, dec, events, 0.1, 10.0, track_bounds(stream), fa, censored)
+    assert summary["alarms"] == 3 and summary["false_alarms"] == 2 and summary["false_alarms_censored"] == 1
+    assert fa == {(0, "long"): 1, (0, "short"): 1} and censored == {(0, "short"): 1}
+    assert bool(per_event["predicted"].iloc[0])
+    # with a 3 s horizon the short track's window (to 7 s) is observed: not censored (and the alarm
+    # 4 s before the change is now false too)
+    summary3, _ = event_scores(stream, dec, events, 0.1, 3.0, track_bounds(stream))
+    assert summary3["false_alarms_censored"] == 0 and summary3["false_alarms"] == 3
+
+
+def test_bootstrap_gives_the_censored_share_of_the_false_alarms():
+    table = pd.DataFrame({"lane_changes": [1, 0], "predicted": [1, 0], "before_mid": [1, 0], "advance_sum_s": [3.0, 0.0],
+                          "false_alarms": [1, 3], "false_alarms_censored": [0, 3], "hours": [1.0, 1.0]})
+    got = bootstrap(table, n_boot=500, seed=0)
+    assert got["censored_false_alarms_share"]["value"] == pytest.approx(0.75)
+    assert got["censored_false_alarms_share"]["low"] == 0.0 and got["censored_false_alarms_share"]["high"] == 1.0
+
+
+def _tiny_gru(threshold=0.3) -> SequenceModel:
+    names = SEQUENCE_INPUT_SETS["lateral"]
+    rng = np.random.default_rng(0)
+    f, h = len(names), 4
+    return SequenceModel(tuple(names), np.zeros(f), np.full(f, 10.0), rng.normal(0, 0.5, (3 * h, f)),
+                         rng.normal(0, 0.5, (3 * h, h)), np.zeros(3 * h), np.zeros(3 * h), rng.normal(0, 1.0, (1, h)),
+                         np.array([0.0]), tau=5.0, tau_g=2.0, period_s=0.1, threshold=threshold,
+                         thresholds={"aggressive": threshold, "conservative": 0.6}, smoothing="aggressive",
+                         tau_a_ticks=10, tau_c_ticks=5, calibration=(0.8, -0.2))
+
+
+def test_set_decision_writes_the_settings_and_the_reason_and_keeps_the_weights(tmp_path):
+    src = tmp_path / "gru.npz"
+    save_sequence_model(_tiny_gru(), src)
+    out = tmp_path / "gru-set.npz"
+    assert main(["set-decision", str(src), "--out", str(out), "--smoothing", "aggressive", "--threshold", "0.43",
+                 "--tau-ticks", "50", "--reason", "cross-fitted validation streams"]) == 0
+    before, after = load_model(src), load_model(out)
+    assert (after.smoothing, after.threshold_for("aggressive"), after.tau_a_ticks) == ("aggressive", 0.43, 50)
+    assert after.threshold_for("conservative") == 0.6 and after.tau_c_ticks == 5  # the other smoothing unchanged
+    assert after.calibration == before.calibration
+    assert np.array_equal(after.w_ih, before.w_ih) and np.array_equal(after.w_out, before.w_out)
+    note = after.info["decision_set"]
+    assert note["reason"] == "cross-fitted validation streams" and note["replaced"]["thresholds"]["aggressive"] == 0.3
+    # the cloud's predictor decides with the written settings
+    pred = LaneChangePredictor(after, Road("hw", (0.0, 0.0), (2000.0, 0.0), 3, 3.5, 25.0), 0.1)
+    assert pred.threshold == 0.43 and pred.smoother.tau_a == 50
+    # conservative: the window goes to tau_c
+    cons = tmp_path / "gru-cons.npz"
+    assert main(["set-decision", str(src), "--out", str(cons), "--smoothing", "conservative", "--threshold", "0.5",
+                 "--tau-ticks", "20", "--reason", "r"]) == 0
+    c = load_model(cons)
+    assert (c.smoothing, c.threshold_for("conservative"), c.tau_c_ticks, c.tau_a_ticks) == ("conservative", 0.5, 20, 10)
+
+
+@pytest.mark.parametrize("args", [["--threshold", "1.5", "--reason", "r"], ["--threshold", "0.4", "--reason", " "],
+                                  ["--threshold", "0.4", "--tau-ticks", "-1", "--reason", "r"]])
+def test_set_decision_refuses_bad_settings_and_writes_nothing(tmp_path, args, capsys):
+    src = tmp_path / "gru.npz"
+    save_sequence_model(_tiny_gru(), src)
+    out = tmp_path / "x.npz"
+    assert main(["set-decision", str(src), "--out", str(out), "--smoothing", "aggressive", *args]) == 2
+    assert not out.exists()
+    err = capsys.readouterr().err
+    assert any(word in err for word in ("threshold", "reason", "tau ticks"))
+
+
+def test_set_decision_does_not_replace_a_file_unasked(tmp_path):
+    src = tmp_path / "gru.npz"
+    save_sequence_model(_tiny_gru(), src)
+    out = tmp_path / "exists.npz"
+    out.write_bytes(b"keep")
+    args = ["set-decision", str(src), "--out", str(out), "--smoothing", "none", "--threshold", "0.5", "--reason", "r"]
+    assert main(args) == 2 and out.read_bytes() == b"keep"
+    assert main(args + ["--force"]) == 0 and load_model(out).smoothing == "none"
+    assert json.loads(json.dumps(load_model(out).info["decision_set"]))["from"] == Path(src).name
