@@ -2,7 +2,7 @@
 # The sim-to-real table of the lane-change predictors (docs/components/real-data.md, "The
 # sim-to-real table"), from nothing but the two US-101 development files: imports, the frozen
 # splits (splits/), simulated datasets, the trained models, the re-tuned decisions and the table.
-# Seeded throughout (training: --seed 0 --threads 1); about 80 min on 2 CPU cores, most of it
+# Seeded throughout (training: --seed 0 --threads 1); about 85 min on 2 CPU cores, most of it
 # simulation and training. Steps already done (their output exists) are skipped.
 #   tools/sim_to_real.sh NGSIM_FILE COMMONROAD_ARCHIVE [WORK_DIR]   (default runs/sim-to-real)
 # NGSIM_FILE: ngsim_us101_0750-0805_first65535rows.csv.gz; COMMONROAD_ARCHIVE:
@@ -51,6 +51,10 @@ for base in sim_lat mix_lat; do
   step "$M/ft_${base}_simtuned.npz" $V retune "$M/ft_$base.npz" $SIM --false-alarm-budget 1.5 \
       --out "$M/ft_${base}_simtuned.npz"
 done
+# the mixed-sim fine-tuned GRU with a decision chosen on cross-fitted validation streams of the
+# development and validation parts (docs/components/real-data.md, "False alarms on real data")
+step "$M/ft_mix_lat_cv.npz" ${PYTHON:-python} tools/real_alarms_cv.py "$D/ngsim" "$D/cr" "$M/mix_lat.npz" "$W/cv-mix" \
+    --apply "$M/ft_mix_lat.npz" --out "$M/ft_mix_lat_cv.npz"
 A=src/vcfusion/assets
 for m in "$A/lane_change_gru.npz:shipped_gru" "$A/lane_change_mlp.npz:shipped_mlp" "$M/sim_base.npz:sim_base" \
          "$M/sim_lat.npz:sim_lat" "$M/mix_lat.npz:mix_lat"; do
@@ -70,6 +74,7 @@ $V sim-to-real --bootstrap 1000 --seed 0 --out "$W/table" \
   --model "fine-tuned GRU lateral (calibrated-sim), sim-tuned=$M/ft_sim_lat_simtuned.npz" \
   --model "fine-tuned GRU lateral (mixed-sim)=$M/ft_mix_lat.npz" \
   --model "fine-tuned GRU lateral (mixed-sim), sim-tuned=$M/ft_mix_lat_simtuned.npz" \
+  --model "fine-tuned GRU lateral (mixed-sim), cross-fit decision=$M/ft_mix_lat_cv.npz" \
   --eval "heavy LC2013 (held-out family)=$D/heavy:all" \
   --eval "heavy_us101 calibrated (held-out family)=$D/heavy_us101:all" \
   --eval "NGSIM US-101 held-out=$D/ngsim-split:test" --eval "CommonRoad US-101 held-out=$D/cr-split:test"
