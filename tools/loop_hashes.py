@@ -4,6 +4,7 @@ the printed lines (one per run, then a total).
 
     PYTHONPATH=src python tools/loop_hashes.py            # the default set
     PYTHONPATH=src python tools/loop_hashes.py --quick    # accident seeds 0-1, curved, v2c_poor
+    PYTHONPATH=src python tools/loop_hashes.py --vision   # and 6 s of accident_ar (renders, detects)
 
 Each table's hash covers its column names, dtypes and values (pandas' row hashes, NaN included);
 the summary's covers its JSON with sorted keys (floats written with repr).
@@ -29,6 +30,8 @@ DEFAULT_RUNS = [
     ("scenarios/families/v2c_poor.yaml", 0, 30.0), ("scenarios/families/v2c_poor.yaml", 1, 30.0),
 ]
 QUICK_RUNS = [DEFAULT_RUNS[0], DEFAULT_RUNS[1], DEFAULT_RUNS[6], DEFAULT_RUNS[8]]
+# the full vision tick (camera, detector, fusion, overlay): PYOPENGL_PLATFORM=osmesa without a display
+VISION_RUNS = [("scenarios/accident_ar.yaml", 0, 6.0)]
 
 
 def table_hash(frame: pd.DataFrame) -> str:
@@ -54,9 +57,10 @@ def run_hashes(path: str, seed: int, max_time_s: float | None) -> dict[str, str]
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="four runs instead of ten")
+    p.add_argument("--vision", action="store_true", help="also 6 s of accident_ar with the full vision tick")
     args = p.parse_args(argv)
     total = hashlib.sha256()
-    for path, seed, max_time_s in QUICK_RUNS if args.quick else DEFAULT_RUNS:
+    for path, seed, max_time_s in (QUICK_RUNS if args.quick else DEFAULT_RUNS) + (VISION_RUNS if args.vision else []):
         hashes = run_hashes(path, seed, max_time_s)
         line = json.dumps(hashes, sort_keys=True)
         total.update(line.encode())
