@@ -94,8 +94,8 @@ def _bare_sumo_block(scenario, durations: dict[int, float], trip_cpu: dict[int, 
 def least_time_ratio(times: dict, baseline: dict) -> float:
     """Sum over trips of each trip's least time (over its repeats) in `times`, over the same for
     `baseline` (trip -> list of times, the same trips in both). Other work on the machine only adds
-    time, so each trip's least is its least-disturbed run: steadier than a block's ratio where
-    other work shares the cores (docs/performance.md, the traffic-only closed loop)."""
+    time, so each trip's least is its least-disturbed run, the more so the more repeats (six in
+    docs/performance.md's comparison of the traffic-only closed loop)."""
     if set(times) != set(baseline) or not times:
         raise ValueError(f"least_time_ratio: expected the same trips in both, got {sorted(times)} and {sorted(baseline)}")
     return sum(min(t) for t in times.values()) / sum(min(t) for t in baseline.values())
