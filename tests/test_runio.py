@@ -298,3 +298,29 @@ def test_json_null_for_nan_leaves_numbers_and_nulls_non_finite_floats():
 
     data = {"a": float("nan"), "b": [1.5, float("inf"), {"c": -float("inf"), "d": "NaN"}], "e": (2, None), "f": 0}
     assert json_null_for_nan(data) == {"a": None, "b": [1.5, None, {"c": None, "d": "NaN"}], "e": [2, None], "f": 0}
+
+
+def test_table_sink_writes_a_narrower_type_in_place_and_equals_concatenating(tmp_path):
+    """A chunk whose type the buffer already holds (a shorter string after a longer one, ints into a
+    float column) is written without a new buffer; the table is np.concatenate's all the same."""
+    resized = []
+
+    class Counting(TableSink):
+        def _resized(self, *args):
+            resized.append(args[1])
+            return super()._resized(*args)
+
+    chunks = [{"id": np.array(["abcdef", "b"]), "x": np.array([0.5, 1.5])},
+              {"id": np.array(["c"]), "x": np.array([3], dtype=np.int64)},
+              {"id": np.array(["dd", "eee"]), "x": np.array([7, 8], dtype=np.int16)},
+              {"id": np.array(["abcdefghij"]), "x": np.array([2.25])}]
+    sink = Counting(tmp_path / "t.parquet")
+    for c in chunks:
+        sink.append(c)
+    got = sink.close().to_pandas()
+    for name in ("id", "x"):
+        want = np.concatenate([c[name] for c in chunks])
+        np.testing.assert_array_equal(got[name].to_numpy(), want.astype(str) if want.dtype.kind == "U" else want)
+    assert got["x"].dtype == np.float64
+    # the first chunk's two buffers, then the longer string; never for the narrower chunks between
+    assert [str(d) for d in resized] == ["<U6", "float64", "<U10"]

@@ -335,6 +335,9 @@ class CoSimulation:
         bar = tqdm(total=max_steps, unit="step", desc=f"{sc.name} seed {self.seed}", disable=not progress,
                    leave=False, mininterval=0.5)
         k = int(round(session.time / dt))
+        # the session's per-step calls bound once (the loop runs 100 times per simulated second)
+        ego_state, set_ego_speed, sumo_step = session.ego_state, session.set_ego_speed, session.step
+        no_leader = ("", np.nan)
         while k < max_steps:
             is_tick = k % tick_every == 0
             is_traj = k % traj_every == 0
@@ -343,7 +346,7 @@ class CoSimulation:
                 if is_traj:
                     sinks["trajectories"].append(_truth_rows(truth, session.road))
             if ego_cfg is not None:
-                state = session.ego_state()
+                state = ego_state()
                 if state is None:
                     end_reason = "ego_off_route" if session.ego_off_route else "ego_left"
                     break
@@ -384,20 +387,20 @@ class CoSimulation:
                 ego_accel = float(command.accel)
             if ego_cfg is not None:
                 # session.time is the nearest double to a whole number of milliseconds: its own round(.., 6)
-                ego_rows.append((session.time, s_front, ego_speed_now, sumo_acc, ego_accel,
-                                 *(leader or ("", np.nan))))
+                ego_rows.append((session.time, s_front, ego_speed_now, sumo_acc, ego_accel, *(leader or no_leader)))
                 if len(ego_rows) >= 1000:
                     sinks["ego"].append(_ego_columns(ego_rows))
                     ego_rows = []
                 ego_speed = max(0.0, ego_speed + ego_accel * dt)
-                session.set_ego_speed(ego_speed)
+                set_ego_speed(ego_speed)
                 if command is not None and command.d is not None:
                     # SUMO moves its vehicles s += v dt with the new speed; the placed ego does the same
                     session.place_ego(s_front + ego_speed * dt * np.cos(command.yaw), command.d, command.yaw)
-            session.step()
+            sumo_step()
             k += 1
             if k % tick_every == 0:
-                bar.update(tick_every)
+                if progress:
+                    bar.update(tick_every)
                 if not sc.flows and session.vehicle_count() == 0:
                     end_reason = "no_vehicles"
                     break

@@ -144,13 +144,17 @@ class TableSink:
         if n == 0:
             return
         start, stop = self._buffered, self._buffered + n
+        buffers = self._columns
         for name, values in columns.items():
             values = np.asarray(values)
-            buffer = self._columns.get(name)
-            if buffer is None and start:
-                raise KeyError(f"{self.path.name}: column {name!r} was not in the earlier rows")
-            if buffer is None or buffer.dtype != values.dtype or stop > len(buffer):
-                buffer = self._columns[name] = self._resized(buffer, values.dtype, start, stop, n)
+            buffer = buffers.get(name)
+            if buffer is None or stop > len(buffer) or (buffer.dtype != values.dtype
+                                                         and np.result_type(buffer.dtype, values.dtype) != buffer.dtype):
+                if buffer is None and start:
+                    raise KeyError(f"{self.path.name}: column {name!r} was not in the earlier rows")
+                buffer = buffers[name] = self._resized(buffer, values.dtype, start, stop, n)
+            # a narrower type the buffer's holds (a shorter string, an int into floats) is written as
+            # it is: the copy into a buffer of the same promoted type would hold the same values
             buffer[start:stop] = values
         self._buffered = stop
         self.rows += n

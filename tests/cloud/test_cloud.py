@@ -34,6 +34,22 @@ def test_latency_delivers_exactly_after_delay():
     assert ch.deliver(5.0) == []
 
 
+def test_a_report_arrives_at_the_tick_its_microsecond_arrival_time_is_due():
+    """deliver() rounds the tick's time to microseconds as to_us rounds the arrival times (half to
+    even): a report due at the tick arrives at it, at times whose decimal sum is not exact."""
+    from vcfusion.cloud.channel import to_us
+
+    rng = np.random.default_rng(5)
+    for t in [0.1 + 0.2, 0.7 + 0.1, 1e-7 * 5, 2.5e-6, 3.5e-6, *rng.uniform(0.0, 3600.0, 200)]:
+        assert round(float(t) * 1_000_000) == int(to_us(t))
+    for t0 in (0.1 + 0.2, 12.3, 99.9):
+        ch = V2CChannel(V2CConfig(latency_s=0.1), np.random.default_rng(0))
+        ch.send(ch.measure(states(t0)))
+        due = t0 + 0.1
+        assert ch.deliver(np.nextafter(due, 0.0) - 1e-6) == []
+        assert len(ch.deliver(due)) == 1
+
+
 def test_loss_probability():
     ch = V2CChannel(V2CConfig(loss_probability=0.5), np.random.default_rng(1))
     for k in range(1000):

@@ -66,7 +66,9 @@ class V2CChannel:
 
     def deliver(self, now: float) -> list[GnssReports]:
         """Reports that have arrived by `now`, in sending order."""
-        now_us = to_us(now)
+        # to_us of a scalar without the array calls: the same product of doubles, and Python's
+        # round() of a float is np.rint's (the nearest integer, half to even)
+        now_us = round(float(now) * _US)
         arrived, still = [], []
         for arrival, batch in self._in_flight:
             done = arrival <= now_us

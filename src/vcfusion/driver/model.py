@@ -151,13 +151,14 @@ class DriverModel:
         s, d = truth.road_frame(self.road)
         seen_mask = visible_vehicles(s, d, truth.length, truth.width, truth.height, i, self.policy, self.view)
         ego_front = float(s[i] + truth.length[i] / 2)
-        idx = seen_mask.nonzero()[0].tolist()
-        ids = [truth.ids[k] for k in idx]
+        idx = seen_mask.nonzero()[0]  # an index array: each selection below converts no list
+        ids = [truth.ids[k] for k in idx.tolist()]
+        d_seen = d[idx]
         # plain dicts of plain floats, seen vehicles only (the loops below run over ~10 vehicles)
         rear = dict(zip(ids, (s[idx] - truth.length[idx] / 2).tolist()))
         speed = dict(zip(ids, truth.speed[idx].tolist()))
-        lateral = dict(zip(ids, self.policy.lateral_m(d[idx]).tolist()))
-        lane = dict(zip(ids, np.rint((d[idx] - self.policy.ego_lane_centre_d) / self.policy.lane_width_m).tolist()))
+        lateral = dict(zip(ids, self.policy.lateral_m(d_seen).tolist()))
+        lane = dict(zip(ids, np.rint((d_seen - self.policy.ego_lane_centre_d) / self.policy.lane_width_m).tolist()))
         seen = _Seen(tick.time, ego_front, float(truth.speed[i]), rear, speed)
         self._memory.append(seen)
         return seen, lateral, lane

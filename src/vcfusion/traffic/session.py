@@ -15,6 +15,7 @@ from typing import Callable
 
 import libsumo
 import numpy as np
+from libsumo import _libsumo
 from traci import constants as tc
 
 from vcfusion.records import EGO_ID, VehicleStates
@@ -31,6 +32,13 @@ LEADER_HORIZON_M = 250.0
 _LANE_POSITION, _SPEED, _ACCELERATION, _LEADER, _LANE_ID = (tc.VAR_LANEPOSITION, tc.VAR_SPEED, tc.VAR_ACCELERATION,
                                                              tc.VAR_LEADER, tc.VAR_LANE_ID)
 _EGO_VARS = (_LANE_POSITION, _SPEED, _ACCELERATION, _LEADER)
+# libsumo's compiled functions, called without the Python wrapper each of them has in libsumo.py
+# (a function frame per call; the calls below run every step or for every vehicle every tick)
+_ego_results = _libsumo.vehicle_getSubscriptionResults
+_set_speed = _libsumo.vehicle_setSpeed
+_getters = (_libsumo.vehicle_getIDList, _libsumo.vehicle_getPosition3D, _libsumo.vehicle_getAngle,
+            _libsumo.vehicle_getSpeed, _libsumo.vehicle_getAcceleration, _libsumo.vehicle_getLaneIndex,
+            _libsumo.vehicle_getLateralLanePosition, _libsumo.vehicle_getLaneID)
 
 
 class RunError(RuntimeError):
@@ -454,7 +462,7 @@ class SumoSession:
                     libsumo.vehicle.setMaxSpeedLat(vid, self.road.lane_width_m / duration)
 
     def set_ego_speed(self, speed_mps: float) -> None:
-        libsumo.vehicle.setSpeed(EGO_ID, max(0.0, speed_mps))
+        _set_speed(EGO_ID, max(0.0, speed_mps))
 
     def change_ego_lane(self, direction: int) -> None:
         """Start the ego's change to the adjacent lane on its left (+1) or right (-1), taking
@@ -481,7 +489,7 @@ class SumoSession:
         leader is SUMO's (id, bumper-to-bumper gap) within LEADER_HORIZON_M or None; None once the
         ego left. One call per SUMO step (it runs 100 times per simulated second): the values of
         the ego's subscription (_populate)."""
-        found = libsumo.vehicle.getSubscriptionResults(EGO_ID)
+        found = _ego_results(EGO_ID)
         if not found:  # the ego has left the simulation, and its subscription with it
             return None
         pos, speed, accel = found[_LANE_POSITION], found[_SPEED], found[_ACCELERATION]
@@ -510,13 +518,12 @@ class SumoSession:
         only every V2C tick (10 steps).
         """
         v = libsumo.vehicle
-        ids = tuple(v.getIDList())
+        id_list, position, angle, speed, accel, lane_index, lateral, lane_id = _getters
+        ids = tuple(id_list())
         n = len(ids)
-        position, angle, speed, accel = v.getPosition3D, v.getAngle, v.getSpeed, v.getAcceleration
-        lane_index, lateral = v.getLaneIndex, v.getLateralLanePosition
         if not self._lane_by_index:  # the track of the lane (-1 off the route: a ramp, another road)
             track_of = self.road.track_of
-            lane_index = lambda vid: track_of.get(v.getLaneID(vid), -1)  # noqa: E731
+            lane_index = lambda vid: track_of.get(lane_id(vid), -1)  # noqa: E731
         # one row of plain floats per vehicle, one conversion for all (fewer NumPy calls per tick)
         cols = np.array([(*position(vid), angle(vid), speed(vid), accel(vid), lane_index(vid), lateral(vid))
                          for vid in ids], dtype=float).reshape(n, 8).T.copy()
