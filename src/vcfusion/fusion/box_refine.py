@@ -81,6 +81,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import cv2
+import numba
 import numpy as np
 from scipy.ndimage import find_objects
 
@@ -970,63 +971,61 @@ def fill_scan_gaps(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: 
     ``inf`` (a return with nothing within range) counts as a return. ``occlusion_side="left"`` (along
     rows of a stereo pair's left image): a gap whose right end is nearer than its left by a depth
     jump is the band the right camera could not see behind the nearer surface's left edge, and takes
-    the farther depth whole."""
+    the farther depth whole. One compiled pass along each line (:func:`_fill_lines`)."""
     if occlusion_side not in (None, "left"):
         raise ValueError(f"occlusion_side: expected None or 'left', got {occlusion_side!r}")
     if axis not in (0, 1):
         raise ValueError(f"axis: expected 0 (columns) or 1 (rows), got {axis}")
     z = np.asarray(depth, np.float32)
-    measured = ~np.isnan(z)
-    # only the rows holding returns can hold a gap between two of them (the sky above a scan's highest
-    # beam holds none)
-    rows = np.flatnonzero(measured.any(axis=1))
-    if not len(rows):
-        return z.copy()
-    if rows[0] > 0 or rows[-1] < z.shape[0] - 1:
-        lo, hi = int(rows[0]), int(rows[-1]) + 1
-        out = z.copy()
-        out[lo:hi] = fill_scan_gaps(z[lo:hi], max_gap_px, jump_m, jump_rel, axis,
-                                    None if on_road is None else on_road[lo:hi], occlusion_side)
-        return out
-    H, W = z.shape
-    # per pixel, how far the nearest return lies before (above / left) and after it along the axis,
-    # within max_gap_px + 1 (0: none that near); one shifted comparison per distance
-    before = np.zeros(z.shape, np.int16)
-    after = np.zeros(z.shape, np.int16)
-    n = H if axis == 0 else W
-    for d in range(1, min(max_gap_px + 1, n - 1) + 1):
-        if axis == 0:
-            b_view, b_src, a_view, a_src = before[d:], measured[:-d], after[:-d], measured[d:]
-        else:
-            b_view, b_src, a_view, a_src = before[:, d:], measured[:, :-d], after[:, :-d], measured[:, d:]
-        b_view[(b_view == 0) & b_src] = d
-        a_view[(a_view == 0) & a_src] = d
-    gap = ~measured & (before > 0) & (after > 0) & (before + after <= max_gap_px + 1)
-    if not gap.any():
-        return z.copy()
-    r, c = np.nonzero(gap)
-    da, db = before[r, c], after[r, c]
-    if axis == 0:
-        za, zb = z[r - da, c], z[r + db, c]
-        road_a, road_b = (None, None) if on_road is None else (on_road[r - da, c], on_road[r + db, c])
-    else:
-        za, zb = z[r, c - da], z[r, c + db]
-        road_a, road_b = (None, None) if on_road is None else (on_road[r, c - da], on_road[r, c + db])
-    t = (da / (da + db)).astype(np.float32)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        same = np.isfinite(za) & np.isfinite(zb) & (za > 0) & (zb > 0) & _same_surface(za, zb, jump_m, jump_rel)
-        if on_road is not None:
-            same |= np.isfinite(za) & np.isfinite(zb) & road_a & road_b
-        inverse = np.float32(1) / (np.float32(1) / za + t * (np.float32(1) / zb - np.float32(1) / za))
-        edge = np.where(t <= 0.5, za, zb)
-        if occlusion_side == "left":
-            # a stereo pair's occlusion band: left of a nearer surface, the farther one the right
-            # camera could not see (the right end nearer than the left by a jump): the farther's
-            edge = np.where(_farther(za, zb, jump_m, jump_rel), za, edge)
-        value = np.where(same, inverse, edge)
+    if z.ndim != 2:
+        raise ValueError(f"depth: expected a 2-D depth image (H, W), got shape {z.shape}")
+    if on_road is not None and np.shape(on_road) != z.shape:
+        raise ValueError(f"on_road: expected a mask of the depth's shape {z.shape}, got {np.shape(on_road)}")
     out = z.copy()
-    out[r, c] = value
+    road = np.zeros((0, 0), np.bool_) if on_road is None else np.asarray(on_road, np.bool_)
+    along = out
+    if axis == 0:  # down the columns: the same pass on the transposed views
+        z, along, road = z.T, out.T, road.T
+    _fill_lines(z, along, road, on_road is not None, int(max_gap_px), np.float32(jump_m),
+                np.float32(1 + jump_rel), occlusion_side == "left")
     return out
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _fill_lines(z, out, on_road, use_road, max_gap_px, jump_m, one_plus_rel, occlusion_left):
+    """fill_scan_gaps along each row of `z` into `out` (float32 arithmetic as _farther's): a gap of at
+    most max_gap_px pixels between two returns (not nan) is filled, pixel p at t = (p - a) / (b - a)
+    of the way from return a to return b."""
+    H, W = z.shape
+    half = np.float32(0.5)
+    one = np.float32(1.0)
+    for r in range(H):
+        prev = -1
+        for c in range(W):
+            zb = z[r, c]
+            if np.isnan(zb):
+                continue
+            if prev >= 0 and 1 < c - prev <= max_gap_px + 1:
+                za = z[r, prev]
+                finite = np.isfinite(za) and np.isfinite(zb)
+                same = (finite and za > 0 and zb > 0 and not za > zb * one_plus_rel + jump_m
+                        and not zb > za * one_plus_rel + jump_m)
+                if use_road and finite and on_road[r, prev] and on_road[r, c]:
+                    same = True
+                far_left = za > zb * one_plus_rel + jump_m
+                inv_a = one / za
+                step = one / zb - inv_a
+                for p in range(prev + 1, c):
+                    t = np.float32((p - prev) / (c - prev))
+                    if same:
+                        out[r, p] = one / (inv_a + t * step)
+                    elif occlusion_left and far_left:
+                        out[r, p] = za
+                    elif t <= half:
+                        out[r, p] = za
+                    else:
+                        out[r, p] = zb
+            prev = c
 
 
 def on_road_mask(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, noise,
