@@ -5,8 +5,47 @@ with depth jumps, sky (inf) and zeros."""
 import numpy as np
 import pytest
 
-from support.depth_reference import fill_scan_gaps_reference
-from vcfusion.fusion.box_refine import fill_scan_gaps
+from support.depth_reference import (fill_scan_gaps_reference, median_reference, object_segments_reference,
+                                     on_road_mask_reference, restore_outlines_reference)
+from vcfusion.fusion.box_refine import (BoxRefineParams, _components, _jump_free, _restore_outlines, fill_scan_gaps,
+                                       object_segments, on_road_mask)
+from vcfusion.fusion.fuse import _median
+from vcfusion.fusion.road import DepthNoise
+from vcfusion.fusion.sensors import SensorModel, _rotation
+
+W, H, F, CAM_H = 160, 120, 230.0, 1.4
+K = np.array([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])
+
+
+def _pose(pitch_deg: float) -> np.ndarray:
+    """Camera 1.4 m above the road at the origin, looking along +x, pitched down."""
+    T = np.eye(4)
+    T[:3, :3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]]
+    T[:3, 3] = -T[:3, :3] @ np.array([0.0, 0.0, CAM_H])
+    T[:3, :] = _rotation(pitch_deg, 0.0, 0.0).T @ T[:3, :]
+    return T
+
+
+def _scene(rng: np.random.Generator, T: np.ndarray) -> np.ndarray:
+    """A flat road seen from T (sky: inf) with a few fronto-parallel blocks standing on it."""
+    vs, us = np.mgrid[0:H, 0:W]
+    rays = np.stack([us, vs, np.ones_like(us)], axis=-1).reshape(-1, 3) @ np.linalg.inv(K).T
+    R, t = T[:3, :3], T[:3, 3]
+    world_dir = rays @ R
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -(-R.T @ t)[2] / world_dir[:, 2]
+    depth = np.where((world_dir[:, 2] < 0) & (s < 300), s, np.inf).reshape(H, W).astype(np.float32)
+    road = depth.copy()
+    for _ in range(rng.integers(2, 6)):
+        bottom = int(rng.integers(H // 2, H))
+        x0 = int(rng.integers(0, W - 8))
+        d = float(road[bottom, x0])
+        if not np.isfinite(d):
+            continue
+        w, h = max(int(2.0 * F / d), 2), max(int(rng.uniform(1.4, 3.5) * F / d), 2)
+        block = np.s_[max(bottom - h, 0):bottom + 1, x0:x0 + w]
+        depth[block] = np.minimum(depth[block], d)
+    return depth
 
 
 def _synthetic_depth(rng: np.random.Generator, shape=(60, 80), hole_share: float = 0.5) -> np.ndarray:
@@ -46,3 +85,57 @@ def test_the_compiled_gap_fill_is_the_numpy_fill(seed):
 def test_the_gap_fill_names_a_mask_of_another_shape():
     with pytest.raises(ValueError, match="on_road"):
         fill_scan_gaps(np.ones((4, 5), np.float32), 2, 0.5, 0.045, 0, np.ones((5, 4), bool))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_compiled_outline_restore_is_the_numpy_restore(seed):
+    rng = np.random.default_rng(seed)
+    for hole_share in (0.0, 0.2, 0.5):
+        z = _synthetic_depth(rng, hole_share=hole_share)
+        valid = np.isfinite(z) & (z > 0)
+        z = np.where(valid, z, np.float32(0))
+        obj = valid & (rng.random(z.shape) < 0.9)
+        keep = obj & _jump_free(z, valid, 0.5, 0.045)
+        labels = _components(keep)
+        removed = obj & ~keep
+        fast = _restore_outlines(labels, removed, z, 0.5, 0.045)
+        reference = restore_outlines_reference(labels, removed, z, 0.5, 0.045)
+        assert fast.dtype == reference.dtype
+        np.testing.assert_array_equal(fast, reference)
+        assert (fast[removed] > 0).sum() > 0  # pixels were given back
+    # a strip given back over several passes, and a pixel with no neighbour on its surface left out
+    labels = np.zeros((3, 6), np.int32)
+    labels[:, 0] = 1
+    removed = np.zeros((3, 6), bool)
+    removed[1, 1:5] = True
+    z = np.full((3, 6), 10.0, np.float32)
+    z[1, 4] = 30.0
+    np.testing.assert_array_equal(_restore_outlines(labels, removed, z, 0.5, 0.045)[1], [1, 1, 1, 1, 0, 0])
+
+
+@pytest.mark.parametrize("sensor", ["exact", "stereo", "lidar"])
+def test_the_row_cropped_road_mask_segments_and_median_are_the_full_image_ones(sensor):
+    rng = np.random.default_rng(1)
+    refine = BoxRefineParams()
+    for pitch in (1.0, 3.0, 8.0):
+        T = _pose(pitch)
+        truth = _scene(rng, T)
+        model = SensorModel(sensor, rng=rng)
+        image = rng.integers(0, 255, (H, W, 3), dtype=np.uint8)
+        depth, noise = model.depth(truth, K, T, image), model.noise(K)
+        np.testing.assert_array_equal(on_road_mask(depth, K, T, noise, refine),
+                                      on_road_mask_reference(depth, K, T, noise, refine))
+        np.testing.assert_array_equal(_median(depth, 5), median_reference(depth, 5))
+        dense = fill_scan_gaps(fill_scan_gaps(depth, 2, 0.5, 0.045, 1), 6, 0.5, 0.045, 0)
+        for z, n in ((truth, DepthNoise()), (dense, noise)):
+            fast, reference = object_segments(z, K, T, refine, n), object_segments_reference(z, K, T, refine, n)
+            assert fast is not None and reference is not None
+            assert fast.y_lo == reference.y_lo and fast.regions == reference.regions
+            for name in ("z", "valid", "obj", "height", "labels", "areas"):
+                np.testing.assert_array_equal(getattr(fast, name), getattr(reference, name))
+    # rows without any depth: the road mask is empty, the median all holes, no segments
+    empty = np.full((H, W), np.nan, np.float32)
+    empty[:10] = np.inf
+    assert not on_road_mask(empty, K, T, DepthNoise(), refine).any()
+    np.testing.assert_array_equal(_median(empty, 5), median_reference(empty, 5))
+    assert object_segments(empty, K, T, refine) is None

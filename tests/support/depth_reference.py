@@ -4,9 +4,12 @@ before: the fast code in vcfusion.fusion.box_refine must give the same results o
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
+from scipy.ndimage import find_objects
 
-from vcfusion.fusion.box_refine import _farther, _same_surface
+from vcfusion.fusion.box_refine import (ObjectSegments, _components, _farther, _Heights, _join_across_outlines,
+                                       _jump_free, _restore_outlines, _same_surface)
 
 
 def fill_scan_gaps_reference(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: float, axis: int = 0,
@@ -78,3 +81,95 @@ def fill_scan_gaps_reference(depth: np.ndarray, max_gap_px: int, jump_m: float, 
     out = z.copy()
     out[r, c] = value
     return out
+
+
+def restore_outlines_reference(labels: np.ndarray, removed: np.ndarray, z: np.ndarray, jump_m: float,
+                      jump_rel: float) -> np.ndarray:
+    """Segment labels with the pixels the cut removed given back: each removed pixel (the farther of
+    a jumping pair, so the outline of a vehicle a nearer one hides) takes the label of a 4-neighbour
+    on its own surface (no jump either way), pass after pass until no pixel changes, so a strip of
+    them (the lower part of a truck seen 1-2 px wide between two nearer vehicles, where every pixel
+    is the farther one of some pair) goes back to its surface whole, not one pixel deep. Without
+    this a sliver of a hidden car, 12 px wide, loses a pixel on each hidden side and its box misses
+    IoU 0.7 with the true one. Each pass reads the labels the previous one left; of several
+    neighbours, right, left, below, above is the order of preference."""
+    H, W = labels.shape
+    idx = np.flatnonzero(removed & (labels == 0))  # the pixels still to give back
+    if not idx.size:
+        return labels.copy()
+    outside = H * W  # one slot past the image: label 0, infinitely far, so never taken
+    flat = np.zeros(outside + 1, labels.dtype)
+    flat[:-1] = labels.ravel()
+    z_flat = np.append(np.asarray(z, np.float32).ravel(), np.float32(np.inf))
+    ys, xs = np.divmod(idx, W)
+    neighbours = np.stack([np.where(xs + 1 < W, idx + 1, outside), np.where(xs > 0, idx - 1, outside),
+                           np.where(ys + 1 < H, idx + W, outside), np.where(ys > 0, idx - W, outside)])
+    # a neighbour off the pixel's surface is never taken: pointed at the empty slot once, not tested each pass
+    on_surface = _same_surface(z_flat[idx][None], z_flat[neighbours], jump_m, jump_rel)
+    neighbours = np.where(on_surface, neighbours, outside)
+    while idx.size:
+        found = flat[neighbours]  # (4, n): each pass reads the labels the previous one left
+        found = found[(found > 0).argmax(axis=0), np.arange(idx.size)]  # the first labelled one
+        given = found > 0
+        if not given.any():
+            break
+        flat[idx[given]] = found[given]
+        idx, neighbours = idx[~given], neighbours[:, ~given]
+    return flat[:-1].reshape(H, W)
+
+
+def on_road_mask_reference(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, noise,
+                 refine) -> np.ndarray:
+    """(H, W) bool: the measured pixels within ``refine.scan_road_m`` (+ ``noise_k`` sigma of their
+    height's noise) of the road whose z = 0 plane `T_world_to_camera` defines (a fitted road's pose)."""
+    heights = _Heights(K, T_world_to_camera)
+    finite = np.isfinite(depth)
+    z = np.where(finite, depth, np.float32(0)).astype(np.float32)
+    tolerance = refine.scan_road_m + heights.noise_margin(z, noise, refine.noise_k)
+    return finite & (np.abs(heights.window(z, 0, 0)) < tolerance)
+
+
+def object_segments_reference(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray,
+                    refine, noise=None) -> ObjectSegments | None:
+    """The image's object pixels cut into segments (module docstring); None when it holds none
+    (``noise``: the depth's DepthNoise, raising the object pixels' height threshold)."""
+    params = refine.proposals
+    if params is None:
+        raise ValueError("depth segments: the proposals are switched off (BoxRefineParams.proposals is None)")
+    z = np.asarray(depth, np.float32)
+    valid = np.isfinite(z) & (z > 0)
+    z = np.where(valid, z, np.float32(0))
+    heights = _Heights(K, T_world_to_camera)
+    height = heights.window(z, 0, 0)
+    obj = valid & (height > params.min_height_m + heights.noise_margin(z, noise, refine.noise_k)) \
+        & (height < refine.max_height_m)
+    rows = np.flatnonzero(obj.any(axis=1))
+    if not len(rows):
+        return None
+    # only the rows holding object pixels (the sky and the road ahead hold none)
+    y_lo, y_hi = int(rows[0]), int(rows[-1]) + 1
+    y_lo = max(y_lo - 1, 0)  # and the row above them: what stands above a segment's top
+    obj, height, z, valid = obj[y_lo:y_hi], height[y_lo:y_hi], z[y_lo:y_hi], valid[y_lo:y_hi]
+    # cut at depth jumps: the farther pixel of each jumping neighbour pair leaves the mask
+    keep = obj & _jump_free(z, valid, refine.jump_m, refine.jump_rel)
+    labels = _restore_outlines(_components(keep), obj & ~keep, z, refine.jump_m, refine.jump_rel)
+    # what no neighbour on its surface took back is a segment of its own, not left out: a vehicle seen
+    # 1 px wide between nearer things (every pixel the farther one of a jumping pair), e.g. the piece
+    # of a sliver below a mirror of the car beside it, which then joins its box (join_fragments)
+    islands = obj & (labels == 0)
+    if islands.any():
+        labels = np.where(islands, _components(islands) + labels.max(), labels)
+    labels = _join_across_outlines(labels, z, refine.jump_m, refine.jump_rel)
+    return ObjectSegments(z, valid, obj, height, labels, np.bincount(labels.ravel()),
+                          find_objects(labels), y_lo)
+
+
+def median_reference(depth: np.ndarray, size: int) -> np.ndarray:
+    """A size x size median of a depth image with holes (nan): holes stay holes, and a pixel the
+    median takes into a hole (more than half its window missing) becomes one."""
+    z = np.asarray(depth, np.float32)
+    hole = ~np.isfinite(z)
+    far = np.isposinf(z)
+    filled = np.where(hole, np.float32(0), z)
+    out = cv2.medianBlur(filled, size)
+    return np.where(far, np.float32(np.inf), np.where(hole | (out <= 0), np.float32(np.nan), out)).astype(np.float32)

@@ -254,6 +254,12 @@ class _Heights:
         v = np.arange(y0, y0 + h, dtype=np.float32) * np.float32(self.per_v) + np.float32(self.const)
         return z * (v[:, None] + u[None, :]) - np.float32(self.offset)
 
+    def rows(self, z: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """:meth:`window` of image rows ``rows`` (z: (len(rows), W), from column 0), the same values."""
+        u = np.arange(0, z.shape[1], dtype=np.float32) * np.float32(self.per_u)
+        v = np.asarray(rows).astype(np.float32) * np.float32(self.per_v) + np.float32(self.const)
+        return z * (v[:, None] + u[None, :]) - np.float32(self.offset)
+
 
 def _farther(a, b, jump_m: float, jump_rel: float):
     """Whether depth a lies behind depth b by a jump: more than jump_m + jump_rel of the depth (the
@@ -288,29 +294,78 @@ def _restore_outlines(labels: np.ndarray, removed: np.ndarray, z: np.ndarray, ju
     this a sliver of a hidden car, 12 px wide, loses a pixel on each hidden side and its box misses
     IoU 0.7 with the true one. Each pass reads the labels the previous one left; of several
     neighbours, right, left, below, above is the order of preference."""
+    z = np.asarray(z, np.float32)
+    if labels.shape != removed.shape or labels.shape != z.shape:
+        raise ValueError(f"labels, removed, z: expected one shape, got {labels.shape}, {removed.shape}, {z.shape}")
+    return _restore_kernel(labels, np.asarray(removed, np.bool_), z, np.float32(jump_m), np.float32(1 + jump_rel))
+
+
+@numba.njit(cache=True)
+def _restore_kernel(labels, removed, z, jump_m, one_plus_rel):
+    """_restore_outlines compiled: the pixels to give back in row-major order, each with its
+    neighbours on its own surface (right, left, below, above; -1: off the image or off its surface),
+    then passes that each read the labels the previous one left (all found, then all written)."""
     H, W = labels.shape
-    idx = np.flatnonzero(removed & (labels == 0))  # the pixels still to give back
-    if not idx.size:
-        return labels.copy()
-    outside = H * W  # one slot past the image: label 0, infinitely far, so never taken
-    flat = np.zeros(outside + 1, labels.dtype)
-    flat[:-1] = labels.ravel()
-    z_flat = np.append(np.asarray(z, np.float32).ravel(), np.float32(np.inf))
-    ys, xs = np.divmod(idx, W)
-    neighbours = np.stack([np.where(xs + 1 < W, idx + 1, outside), np.where(xs > 0, idx - 1, outside),
-                           np.where(ys + 1 < H, idx + W, outside), np.where(ys > 0, idx - W, outside)])
-    # a neighbour off the pixel's surface is never taken: pointed at the empty slot once, not tested each pass
-    on_surface = _same_surface(z_flat[idx][None], z_flat[neighbours], jump_m, jump_rel)
-    neighbours = np.where(on_surface, neighbours, outside)
-    while idx.size:
-        found = flat[neighbours]  # (4, n): each pass reads the labels the previous one left
-        found = found[(found > 0).argmax(axis=0), np.arange(idx.size)]  # the first labelled one
-        given = found > 0
-        if not given.any():
+    out = labels.copy()
+    n = 0
+    for y in range(H):
+        for x in range(W):
+            if removed[y, x] and labels[y, x] == 0:
+                n += 1
+    pending = np.empty(n, np.int64)
+    neighbours = np.full((n, 4), -1, np.int64)
+    k = 0
+    for y in range(H):
+        for x in range(W):
+            if not (removed[y, x] and labels[y, x] == 0):
+                continue
+            pending[k] = y * W + x
+            a = z[y, x]
+            for d in range(4):
+                ny, nx = y, x
+                if d == 0:
+                    nx = x + 1
+                elif d == 1:
+                    nx = x - 1
+                elif d == 2:
+                    ny = y + 1
+                else:
+                    ny = y - 1
+                if ny < 0 or ny >= H or nx < 0 or nx >= W:
+                    continue
+                b = z[ny, nx]
+                if not (a > b * one_plus_rel + jump_m) and not (b > a * one_plus_rel + jump_m):
+                    neighbours[k, d] = ny * W + nx
+            k += 1
+    flat = out.reshape(-1)
+    found = np.zeros(n, out.dtype)
+    left = np.arange(n)
+    while len(left):
+        given = 0
+        for j in range(len(left)):
+            i = left[j]
+            f = 0
+            for d in range(4):
+                q = neighbours[i, d]
+                if q >= 0 and flat[q] > 0:
+                    f = flat[q]
+                    break
+            found[i] = f
+            if f > 0:
+                given += 1
+        if given == 0:
             break
-        flat[idx[given]] = found[given]
-        idx, neighbours = idx[~given], neighbours[:, ~given]
-    return flat[:-1].reshape(H, W)
+        rest = np.empty(len(left) - given, np.int64)
+        r = 0
+        for j in range(len(left)):
+            i = left[j]
+            if found[i] > 0:
+                flat[pending[i]] = found[i]
+            else:
+                rest[r] = i
+                r += 1
+        left = rest
+    return out
 
 
 def _join_across_outlines(labels: np.ndarray, z: np.ndarray, jump_m: float, jump_rel: float) -> np.ndarray:
@@ -634,18 +689,24 @@ def object_segments(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         raise ValueError("depth segments: the proposals are switched off (BoxRefineParams.proposals is None)")
     z = np.asarray(depth, np.float32)
     valid = np.isfinite(z) & (z > 0)
-    z = np.where(valid, z, np.float32(0))
+    # the heights on the rows holding depth only (and the row above them: what stands above a top)
+    depth_rows = np.flatnonzero(valid.any(axis=1))
+    if not len(depth_rows):
+        return None
+    lo, hi = max(int(depth_rows[0]) - 1, 0), int(depth_rows[-1]) + 1
+    z, valid = np.where(valid[lo:hi], z[lo:hi], np.float32(0)), valid[lo:hi]
     heights = _Heights(K, T_world_to_camera)
-    height = heights.window(z, 0, 0)
+    height = heights.window(z, 0, lo)
     obj = valid & (height > params.min_height_m + heights.noise_margin(z, noise, refine.noise_k)) \
         & (height < refine.max_height_m)
     rows = np.flatnonzero(obj.any(axis=1))
     if not len(rows):
         return None
     # only the rows holding object pixels (the sky and the road ahead hold none)
-    y_lo, y_hi = int(rows[0]), int(rows[-1]) + 1
+    y_lo, y_hi = int(rows[0]) + lo, int(rows[-1]) + 1 + lo
     y_lo = max(y_lo - 1, 0)  # and the row above them: what stands above a segment's top
-    obj, height, z, valid = obj[y_lo:y_hi], height[y_lo:y_hi], z[y_lo:y_hi], valid[y_lo:y_hi]
+    a, b = y_lo - lo, y_hi - lo
+    obj, height, z, valid = obj[a:b], height[a:b], z[a:b], valid[a:b]
     # cut at depth jumps: the farther pixel of each jumping neighbour pair leaves the mask
     keep = obj & _jump_free(z, valid, refine.jump_m, refine.jump_rel)
     labels = _restore_outlines(_components(keep), obj & ~keep, z, refine.jump_m, refine.jump_rel)
@@ -1031,9 +1092,16 @@ def _fill_lines(z, out, on_road, use_road, max_gap_px, jump_m, one_plus_rel, occ
 def on_road_mask(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, noise,
                  refine: BoxRefineParams = BoxRefineParams()) -> np.ndarray:
     """(H, W) bool: the measured pixels within ``refine.scan_road_m`` (+ ``noise_k`` sigma of their
-    height's noise) of the road whose z = 0 plane `T_world_to_camera` defines (a fitted road's pose)."""
+    height's noise) of the road whose z = 0 plane `T_world_to_camera` defines (a fitted road's pose).
+    Computed on the rows holding a measurement only (a scan filled along its beams' rows: a few of them)."""
     heights = _Heights(K, T_world_to_camera)
     finite = np.isfinite(depth)
-    z = np.where(finite, depth, np.float32(0)).astype(np.float32)
+    out = np.zeros(finite.shape, bool)
+    rows = np.flatnonzero(finite.any(axis=1))
+    if not len(rows):
+        return out
+    finite = finite[rows]
+    z = np.where(finite, depth[rows], np.float32(0)).astype(np.float32)
     tolerance = refine.scan_road_m + heights.noise_margin(z, noise, refine.noise_k)
-    return finite & (np.abs(heights.window(z, 0, 0)) < tolerance)
+    out[rows] = finite & (np.abs(heights.rows(z, rows)) < tolerance)
+    return out

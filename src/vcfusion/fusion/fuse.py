@@ -111,9 +111,17 @@ def _median(depth: np.ndarray, size: int) -> np.ndarray:
     z = np.asarray(depth, np.float32)
     hole = ~np.isfinite(z)
     far = np.isposinf(z)
-    filled = np.where(hole, np.float32(0), z)
-    out = cv2.medianBlur(filled, size)
-    return np.where(far, np.float32(np.inf), np.where(hole | (out <= 0), np.float32(np.nan), out)).astype(np.float32)
+    # filtered on the rows within size // 2 of a measurement only: elsewhere every pixel of the
+    # window is a hole, and so is the median (the sky stays inf)
+    out = np.where(far, np.float32(np.inf), np.float32(np.nan)).astype(np.float32)
+    rows = np.flatnonzero(~hole.all(axis=1))
+    if not len(rows):
+        return out
+    lo, hi = max(int(rows[0]) - size // 2, 0), min(int(rows[-1]) + size // 2 + 1, z.shape[0])
+    hole, far = hole[lo:hi], far[lo:hi]
+    med = cv2.medianBlur(np.where(hole, np.float32(0), z[lo:hi]), size)
+    out[lo:hi] = np.where(far, np.float32(np.inf), np.where(hole | (med <= 0), np.float32(np.nan), med))
+    return out
 
 
 def _without_flying_pixels(depth: np.ndarray, refine: BoxRefineParams) -> np.ndarray:
