@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from support.depth_reference import (fill_scan_gaps_reference, median_reference, object_segments_reference,
-                                     on_road_mask_reference, restore_outlines_reference)
+                                     on_road_mask_reference, refine_boxes_reference, restore_outlines_reference)
 from vcfusion.fusion.box_refine import (BoxRefineParams, _components, _jump_free, _restore_outlines, fill_scan_gaps,
-                                       object_segments, on_road_mask)
+                                       object_segments, on_road_mask, refine_boxes)
 from vcfusion.fusion.fuse import _median
 from vcfusion.fusion.road import DepthNoise
 from vcfusion.fusion.sensors import SensorModel, _rotation
@@ -139,3 +139,37 @@ def test_the_row_cropped_road_mask_segments_and_median_are_the_full_image_ones(s
     assert not on_road_mask(empty, K, T, DepthNoise(), refine).any()
     np.testing.assert_array_equal(_median(empty, 5), median_reference(empty, 5))
     assert object_segments(empty, K, T, refine) is None
+
+
+# support 0 keeps empty columns, whose median depth (_lateral_extent) is nan, in both versions
+@pytest.mark.filterwarnings("ignore:Mean of empty slice", "ignore:invalid value encountered in divide")
+@pytest.mark.parametrize("sensor", ["exact", "stereo", "lidar"])
+def test_the_refinement_on_bounding_boxes_of_segments_is_the_whole_window_one(sensor):
+    rng = np.random.default_rng(2)
+    snapped = 0
+    for pitch, support in ((1.0, 0.03), (3.0, 0.03), (3.0, 0.0), (8.0, 0.1)):
+        T = _pose(pitch)
+        truth = _scene(rng, T)
+        model = SensorModel(sensor, rng=rng)
+        depth, noise = model.depth(truth, K, T, rng.integers(0, 255, (H, W, 3), dtype=np.uint8)), model.noise(K)
+        returns = None
+        if sensor == "lidar":
+            returns = ~np.isnan(depth)
+            depth = fill_scan_gaps(fill_scan_gaps(depth, 2, 0.5, 0.045, 1), 6, 0.5, 0.045, 0)
+        # loose, tight, shifted and wide boxes around the blocks' object pixels, and boxes anywhere
+        obj = np.isfinite(truth) & (truth < np.nanmax(np.where(np.isfinite(truth), truth, 0)) * 0.99)
+        boxes = [[x, y, x + rng.uniform(4, 60), y + rng.uniform(4, 40)]
+                 for x, y in zip(rng.uniform(0, W - 10, 12), rng.uniform(H / 3, H - 10, 12))]
+        labels = _components(obj)
+        for k in range(1, labels.max() + 1):
+            ys, xs = np.nonzero(labels == k)
+            box = np.array([xs.min(), ys.min(), xs.max(), ys.max()], float)
+            boxes += [box + rng.uniform(-4, 4, 4), box + [-6, -3, 6, 3]]
+        boxes = np.clip(np.array(boxes), 0, [W - 1, H - 1, W - 1, H - 1])
+        params = BoxRefineParams(road="from_depth", support=support)
+        fast = refine_boxes(np.array(boxes), depth, K, T, params, noise, returns)
+        reference = refine_boxes_reference(np.array(boxes), depth, K, T, params, noise, returns)
+        for name in ("boxes", "refined", "top_m", "gated"):
+            np.testing.assert_array_equal(getattr(fast, name), getattr(reference, name))
+        snapped += int(fast.refined.sum())
+    assert snapped >= 5  # the test snaps boxes, not only keeps them

@@ -8,8 +8,9 @@ import cv2
 import numpy as np
 from scipy.ndimage import find_objects
 
-from vcfusion.fusion.box_refine import (ObjectSegments, _components, _farther, _Heights, _join_across_outlines,
-                                       _jump_free, _restore_outlines, _same_surface)
+from vcfusion.fusion.box_refine import (ObjectSegments, RefinedBoxes, _box_iou, _components, _core, _farther,
+                                       _Heights, _join_across_outlines, _jump_free, _lateral_extent, _restore_outlines,
+                                       _same_surface, _segment_box, _spans_jump, _unmeasured_sides, gate_by_noise)
 
 
 def fill_scan_gaps_reference(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: float, axis: int = 0,
@@ -173,3 +174,111 @@ def median_reference(depth: np.ndarray, size: int) -> np.ndarray:
     filled = np.where(hole, np.float32(0), z)
     out = cv2.medianBlur(filled, size)
     return np.where(far, np.float32(np.inf), np.where(hole | (out <= 0), np.float32(np.nan), out)).astype(np.float32)
+
+
+def refine_boxes_reference(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray,
+                 params, noise=None,
+                 returns: np.ndarray | None = None) -> RefinedBoxes:
+    """Each box snapped to the depth segment that explains it best (module docstring); with
+    ``noise`` (vcfusion.fusion.road.DepthNoise of `depth`), a box depth cannot decide is gated.
+    ``returns``: (H, W) bool, the pixels a scan measured when `depth` is a scan with its gaps filled
+    (:func:`fill_scan_gaps`): a box crossed by fewer than ``scan_min_rows`` of the scan's rows is
+    gated, and a side of a snapped box that ends where the scan measured nothing is the detector's
+    (:func:`_unmeasured_sides`)."""
+    boxes = np.asarray(boxes, float).reshape(-1, 4)
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise ValueError(f"depth: expected a 2-D depth image (H, W), got shape {depth.shape}")
+    heights = _Heights(K, T_world_to_camera)
+    K = np.asarray(K, float)
+    H, W = depth.shape
+    out = boxes.copy()
+    refined = np.zeros(len(boxes), bool)
+    top_m = np.full(len(boxes), np.nan)
+    gated = np.zeros(len(boxes), bool)
+    p = params
+    for i, b in enumerate(boxes):
+        w, h = b[2] - b[0], b[3] - b[1]
+        if not (w > 0 and h > 0):
+            continue
+        mx, my = max(p.margin * w, 3.0), max(p.margin * h, 3.0)
+        x0, y0 = max(0, int(np.floor(b[0] - mx))), max(0, int(np.floor(b[1] - my)))
+        x1, y1 = min(W, int(np.ceil(b[2] + mx)) + 1), min(H, int(np.ceil(b[3] + my)) + 1)
+        if x1 <= x0 or y1 <= y0:
+            continue
+        z = depth[y0:y1, x0:x1].astype(np.float32)
+        core = _core(b, x0, y0)  # at least one pixel
+        if np.isnan(z[core]).mean() > 1 - p.gate_valid_share:  # no measurement (holes, a sparse scan)
+            gated[i] = True
+            continue
+        if returns is not None:
+            # a box crossed by too few of the scan's rows: its outline lies between them, unseen
+            core_returns = returns[y0:y1, x0:x1][core]
+            if not core_returns.size or np.median(core_returns.sum(axis=0)) < p.scan_min_rows:
+                gated[i] = True
+                continue
+        valid = np.isfinite(z) & (z > 0)
+        if noise is not None and not noise.exact and valid[core].any() \
+                and gate_by_noise(float(np.median(z[core][valid[core]])), noise, p):
+            gated[i] = True  # too noisy at this depth to tell one surface from the next
+            continue
+        z = np.where(valid, z, np.float32(0))
+        height = heights.window(z, x0, y0)
+        obj = valid & (height > p.min_height_m + heights.noise_margin(z, noise, p.noise_k))
+        core_z = z[core][obj[core]]
+        if core_z.size < 3:
+            continue
+        jump_free = _jump_free(z, valid, p.jump_m, p.jump_rel)
+        log_z = np.log(core_z)
+        edges = np.arange(log_z.min(), log_z.max() + 0.05, 0.04)
+        hist, edges = np.histogram(log_z, bins=edges)
+        jump = ~jump_free
+        segmentations = []  # (labels, cut at depth jumps) per way of splitting the window's object pixels
+        for j in np.argsort(-hist, kind="stable")[: p.candidates]:
+            if hist[j] == 0:
+                break
+            z0 = float(np.exp(edges[j]))
+            band = obj & (z > z0 - 0.3 * p.band_m - 0.03 * z0) & (z < z0 + p.band_m + 0.03 * z0)
+            segmentations.append((_components(band), False))
+            cut = band & jump_free
+            if (band > cut).any():
+                segmentations.append((_restore_outlines(_components(cut), band & ~cut, z, p.jump_m, p.jump_rel), True))
+        # and the surfaces whole, however deep (the side of a truck in the next lane runs 15 m away)
+        whole = obj & jump_free
+        segmentations.append((_restore_outlines(_components(whole), obj & ~whole, z, p.jump_m, p.jump_rel), True))
+        candidates = []  # (IoU with the detected box, segment box, segment mask, cut at depth jumps)
+        for labels, is_cut in segmentations:
+            for label in np.unique(labels[core]):
+                if label == 0:
+                    continue
+                sel = labels == label
+                candidate = _segment_box(sel, p.support, x0, y0)
+                iou = _box_iou(candidate, b)
+                if iou > p.min_iou:
+                    candidates.append((iou, candidate, sel, is_cut))
+        best = best_sel = None
+        if candidates:
+            candidates.sort(key=lambda c: -c[0])  # stable: of equal overlaps, the first found
+            _, best, best_sel, best_is_cut = candidates[0]
+            # a box over two vehicles side by side (two trucks in neighbouring lanes a few metres
+            # apart in depth, inside one band) snaps best to the pair: when that segment spans a depth
+            # jump and is wider than any vehicle, a jump-free segment no wider that still explains the
+            # box takes its place, and the other vehicle, no longer inside a box, becomes a proposal.
+            # Jump-free, because a car mid lane change, seen at an angle, is 3-4 m across the view
+            # with its side, one surface: its wheels and mirrors must not pass for a second vehicle
+            if (_spans_jump(best_sel, best_is_cut, jump)
+                    and _lateral_extent(best_sel, z, x0, K, p.support) > p.pair_width_m):
+                for iou, candidate, sel, is_cut in candidates[1:]:
+                    if iou < p.pair_min_iou:
+                        break
+                    if (not _spans_jump(sel, is_cut, jump)
+                            and _lateral_extent(sel, z, x0, K, p.support) <= p.pair_width_m):
+                        best, best_sel = candidate, sel
+                        break
+        if best is not None:
+            if returns is not None:
+                best = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share)
+            out[i] = best
+            refined[i] = True
+            top_m[i] = float(np.percentile(height[best_sel], 95))
+    return RefinedBoxes(out, refined, top_m, gated)

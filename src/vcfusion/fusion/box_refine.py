@@ -498,41 +498,50 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
         # and the surfaces whole, however deep (the side of a truck in the next lane runs 15 m away)
         whole = obj & jump_free
         segmentations.append((_restore_outlines(_components(whole), obj & ~whole, z, p.jump_m, p.jump_rel), True))
-        candidates = []  # (IoU with the detected box, segment box, segment mask, cut at depth jumps)
+        # (IoU with the detected box, segment box, (rows, columns) of the window holding the segment,
+        # its mask there, cut at depth jumps): each segment's mask within its bounding box only
+        candidates = []
+        whole_window = (slice(None), slice(None))
         for labels, is_cut in segmentations:
-            for label in np.unique(labels[core]):
-                if label == 0:
-                    continue
-                sel = labels == label
-                candidate = _segment_box(sel, p.support, x0, y0)
+            in_core = np.unique(labels[core])
+            in_core = in_core[in_core > 0]
+            if not in_core.size:
+                continue
+            # with support 0 every column of the window counts (_segment_box): the whole window then
+            regions = find_objects(labels, max_label=int(in_core[-1])) if p.support > 0 else None
+            for label in in_core:
+                r = regions[label - 1] if regions is not None else whole_window
+                sel = labels[r] == label
+                candidate = _segment_box(sel, p.support, x0 + (r[1].start or 0), y0 + (r[0].start or 0))
                 iou = _box_iou(candidate, b)
                 if iou > p.min_iou:
-                    candidates.append((iou, candidate, sel, is_cut))
+                    candidates.append((iou, candidate, r, sel, is_cut))
         best = best_sel = None
         if candidates:
             candidates.sort(key=lambda c: -c[0])  # stable: of equal overlaps, the first found
-            _, best, best_sel, best_is_cut = candidates[0]
+            _, best, best_r, best_sel, best_is_cut = candidates[0]
             # a box over two vehicles side by side (two trucks in neighbouring lanes a few metres
             # apart in depth, inside one band) snaps best to the pair: when that segment spans a depth
             # jump and is wider than any vehicle, a jump-free segment no wider that still explains the
             # box takes its place, and the other vehicle, no longer inside a box, becomes a proposal.
             # Jump-free, because a car mid lane change, seen at an angle, is 3-4 m across the view
             # with its side, one surface: its wheels and mirrors must not pass for a second vehicle
-            if (_spans_jump(best_sel, best_is_cut, jump)
-                    and _lateral_extent(best_sel, z, x0, K, p.support) > p.pair_width_m):
-                for iou, candidate, sel, is_cut in candidates[1:]:
+            if (_spans_jump(best_sel, best_is_cut, jump[best_r])
+                    and _lateral_extent(best_sel, z[best_r], x0 + (best_r[1].start or 0), K, p.support)
+                    > p.pair_width_m):
+                for iou, candidate, r, sel, is_cut in candidates[1:]:
                     if iou < p.pair_min_iou:
                         break
-                    if (not _spans_jump(sel, is_cut, jump)
-                            and _lateral_extent(sel, z, x0, K, p.support) <= p.pair_width_m):
-                        best, best_sel = candidate, sel
+                    if (not _spans_jump(sel, is_cut, jump[r])
+                            and _lateral_extent(sel, z[r], x0 + (r[1].start or 0), K, p.support) <= p.pair_width_m):
+                        best, best_r, best_sel = candidate, r, sel
                         break
         if best is not None:
             if returns is not None:
                 best = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share)
             out[i] = best
             refined[i] = True
-            top_m[i] = float(np.percentile(height[best_sel], 95))
+            top_m[i] = float(np.percentile(height[best_r][best_sel], 95))
     return RefinedBoxes(out, refined, top_m, gated)
 
 
