@@ -7,8 +7,8 @@ import pytest
 
 from support.depth_reference import (fill_scan_gaps_reference, median_reference, object_segments_reference,
                                      on_road_mask_reference, refine_boxes_reference, restore_outlines_reference)
-from vcfusion.fusion.box_refine import (BoxRefineParams, _components, _jump_free, _restore_outlines, fill_scan_gaps,
-                                       object_segments, on_road_mask, refine_boxes)
+from vcfusion.fusion.box_refine import (BoxRefineParams, _components, _jump_free, _label_boxes, _restore_outlines,
+                                       fill_scan_gaps, object_segments, on_road_mask, refine_boxes)
 from vcfusion.fusion.fuse import _median
 from vcfusion.fusion.road import DepthNoise
 from vcfusion.fusion.sensors import SensorModel, _rotation
@@ -173,3 +173,19 @@ def test_the_refinement_on_bounding_boxes_of_segments_is_the_whole_window_one(se
             np.testing.assert_array_equal(getattr(fast, name), getattr(reference, name))
         snapped += int(fast.refined.sum())
     assert snapped >= 5  # the test snaps boxes, not only keeps them
+
+
+def test_the_compiled_label_boxes_are_find_objects_slices():
+    from scipy.ndimage import find_objects
+
+    rng = np.random.default_rng(3)
+    labels = _components(rng.random((40, 50)) < 0.45)
+    labels[labels == 3] = 0  # a label with no pixel
+    n = int(labels.max())
+    boxes = _label_boxes(labels, n)
+    for k, region in enumerate(find_objects(labels, max_label=n)):
+        if region is None:
+            assert boxes[k, 0] == -1
+        else:
+            assert (region[0].start, region[0].stop, region[1].start, region[1].stop) == tuple(boxes[k])
+    assert (_label_boxes(labels, 2)[:, 0] >= 0).all()  # only labels up to n

@@ -83,7 +83,6 @@ from functools import cached_property
 import cv2
 import numba
 import numpy as np
-from scipy.ndimage import find_objects
 
 # the renderer's flat world: the road surface lies at world z = 0
 ROAD_Z_M = 0.0
@@ -282,6 +281,29 @@ def _jump_free(z: np.ndarray, valid: np.ndarray, jump_m: float, jump_rel: float)
         a_view &= ~_farther(a, b, jump_m, jump_rel)
         b_view &= ~_farther(b, a, jump_m, jump_rel)
     return keep
+
+
+@numba.njit(cache=True)
+def _label_boxes(labels, n):
+    """(n, 4) row start, row stop, column start, column stop of each label 1..n in `labels` (as
+    scipy.ndimage.find_objects' slices; -1 where a label holds no pixel), in one pass."""
+    out = np.full((n, 4), -1, np.int64)
+    H, W = labels.shape
+    for y in range(H):
+        for x in range(W):
+            k = labels[y, x]
+            if k < 1 or k > n:
+                continue
+            b = out[k - 1]
+            if b[0] < 0:
+                b[0], b[1], b[2], b[3] = y, y + 1, x, x + 1
+            else:
+                b[1] = y + 1  # rows come in order
+                if x < b[2]:
+                    b[2] = x
+                if x + 1 > b[3]:
+                    b[3] = x + 1
+    return out
 
 
 def _restore_outlines(labels: np.ndarray, removed: np.ndarray, z: np.ndarray, jump_m: float,
@@ -508,9 +530,12 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
             if not in_core.size:
                 continue
             # with support 0 every column of the window counts (_segment_box): the whole window then
-            regions = find_objects(labels, max_label=int(in_core[-1])) if p.support > 0 else None
+            regions = _label_boxes(labels, int(in_core[-1])) if p.support > 0 else None
             for label in in_core:
-                r = regions[label - 1] if regions is not None else whole_window
+                r = whole_window
+                if regions is not None:
+                    r0, r1, c0, c1 = regions[label - 1]
+                    r = (slice(int(r0), int(r1)), slice(int(c0), int(c1)))
                 sel = labels[r] == label
                 candidate = _segment_box(sel, p.support, x0 + (r[1].start or 0), y0 + (r[0].start or 0))
                 iou = _box_iou(candidate, b)
@@ -726,8 +751,9 @@ def object_segments(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     if islands.any():
         labels = np.where(islands, _components(islands) + labels.max(), labels)
     labels = _join_across_outlines(labels, z, refine.jump_m, refine.jump_rel)
-    return ObjectSegments(z, valid, obj, height, labels, np.bincount(labels.ravel()),
-                          find_objects(labels), y_lo)
+    regions = [None if b[0] < 0 else (slice(int(b[0]), int(b[1])), slice(int(b[2]), int(b[3])))
+               for b in _label_boxes(labels, int(labels.max()))]  # as scipy.ndimage.find_objects gives them
+    return ObjectSegments(z, valid, obj, height, labels, np.bincount(labels.ravel()), regions, y_lo)
 
 
 def _min_top(params: ProposalParams, refine: BoxRefineParams, truncated: bool, width_m: float,
