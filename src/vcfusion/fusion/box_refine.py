@@ -1140,3 +1140,21 @@ def on_road_mask(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray
     tolerance = refine.scan_road_m + heights.noise_margin(z, noise, refine.noise_k)
     out[rows] = finite & (np.abs(heights.rows(z, rows)) < tolerance)
     return out
+
+
+def warm_kernels() -> None:
+    """Load the depth step's compiled kernels (numba's cache) for the argument types a frame uses,
+    with tiny inputs: a forked worker that imports this first fuses its first frame without the
+    load (vcfusion.worker_preload)."""
+    z = np.full((3, 4), np.nan, np.float32)
+    z[:, 0] = z[:, 3] = 10.0
+    road = np.ones(z.shape, bool)
+    fill_scan_gaps(z, 2, 0.5, 0.045, 1)
+    fill_scan_gaps(z, 2, 0.5, 0.045, 0)
+    fill_scan_gaps(z, 2, 0.5, 0.045, 0, road)
+    fill_scan_gaps(z, 2, 0.5, 0.045, 1, road, "left")
+    labels = _components(road)
+    _restore_outlines(labels, ~road, np.zeros(z.shape, np.float32), 0.5, 0.045)
+    _label_boxes(labels, 1)
+    _label_boxes(labels.astype(np.int64), 1)
+
