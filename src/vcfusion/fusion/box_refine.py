@@ -253,12 +253,6 @@ class _Heights:
         v = np.arange(y0, y0 + h, dtype=np.float32) * np.float32(self.per_v) + np.float32(self.const)
         return z * (v[:, None] + u[None, :]) - np.float32(self.offset)
 
-    def rows(self, z: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """:meth:`window` of image rows ``rows`` (z: (len(rows), W), from column 0), the same values."""
-        u = np.arange(0, z.shape[1], dtype=np.float32) * np.float32(self.per_u)
-        v = np.asarray(rows).astype(np.float32) * np.float32(self.per_v) + np.float32(self.const)
-        return z * (v[:, None] + u[None, :]) - np.float32(self.offset)
-
 
 def _farther(a, b, jump_m: float, jump_rel: float):
     """Whether depth a lies behind depth b by a jump: more than jump_m + jump_rel of the depth (the
@@ -1128,18 +1122,39 @@ def on_road_mask(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray
                  refine: BoxRefineParams = BoxRefineParams()) -> np.ndarray:
     """(H, W) bool: the measured pixels within ``refine.scan_road_m`` (+ ``noise_k`` sigma of their
     height's noise) of the road whose z = 0 plane `T_world_to_camera` defines (a fitted road's pose).
-    Computed on the rows holding a measurement only (a scan filled along its beams' rows: a few of them)."""
+    One compiled pass (:func:`_road_kernel`), in _Heights' float32 arithmetic."""
     heights = _Heights(K, T_world_to_camera)
-    finite = np.isfinite(depth)
-    out = np.zeros(finite.shape, bool)
-    rows = np.flatnonzero(finite.any(axis=1))
-    if not len(rows):
-        return out
-    finite = finite[rows]
-    z = np.where(finite, depth[rows], np.float32(0)).astype(np.float32)
-    tolerance = refine.scan_road_m + heights.noise_margin(z, noise, refine.noise_k)
-    out[rows] = finite & (np.abs(heights.rows(z, rows)) < tolerance)
+    z = np.asarray(depth, np.float32)
+    if z.ndim != 2:
+        raise ValueError(f"depth: expected a 2-D depth image (H, W), got shape {z.shape}")
+    noisy = noise is not None and not noise.exact
+    a, b, c = (noise.a, noise.b, noise.c) if noisy else (0.0, 0.0, 0.0)
+    out = np.zeros(z.shape, np.bool_)
+    f32 = np.float32
+    _road_kernel(z, f32(heights.per_u), f32(heights.per_v), f32(heights.const), f32(heights.offset),
+                 f32(refine.scan_road_m), noisy, f32(refine.noise_k), f32(a), f32(b), f32(c),
+                 f32(max(-heights.offset, 0.5)), out)
     return out
+
+
+@numba.njit(cache=True)
+def _road_kernel(z, per_u, per_v, const, offset, tolerance, noisy, k, a, b, c, cam_h, out):
+    """on_road_mask per pixel: |height| < tolerance (+ k sigma_z(z) cam_h / max(z, 1) when noisy),
+    height = z (v per_v + const + u per_u) - offset, as _Heights.window and noise_margin compute them."""
+    H, W = z.shape
+    one = np.float32(1.0)
+    for y in range(H):
+        v = np.float32(y) * per_v + const
+        for x in range(W):
+            d = z[y, x]
+            if not np.isfinite(d):
+                continue
+            h = d * (v + np.float32(x) * per_u) - offset
+            tol = tolerance
+            if noisy:
+                sigma = (a + b * d) + (c * d) * d
+                tol = tolerance + k * sigma * cam_h / max(d, one)
+            out[y, x] = abs(h) < tol
 
 
 def warm_kernels() -> None:
@@ -1157,4 +1172,6 @@ def warm_kernels() -> None:
     _restore_outlines(labels, ~road, np.zeros(z.shape, np.float32), 0.5, 0.045)
     _label_boxes(labels, 1)
     _label_boxes(labels.astype(np.int64), 1)
+    eye = np.eye(4)
+    on_road_mask(z, np.eye(3), eye, None)
 
