@@ -5,10 +5,12 @@ with depth jumps, sky (inf) and zeros."""
 import numpy as np
 import pytest
 
-from support.depth_reference import (fill_scan_gaps_reference, median_reference, object_segments_reference,
-                                     on_road_mask_reference, refine_boxes_reference, restore_outlines_reference)
-from vcfusion.fusion.box_refine import (BoxRefineParams, _components, _jump_free, _label_boxes, _restore_outlines,
-                                       fill_scan_gaps, object_segments, on_road_mask, refine_boxes)
+from support.depth_reference import (fill_scan_gaps_reference, lowest_row_on_its_surface_reference, median_reference,
+                                     object_segments_reference, on_road_mask_reference, refine_boxes_reference,
+                                     restore_outlines_reference)
+from vcfusion.fusion.box_refine import (BoxRefineParams, _components, _Heights, _jump_free, _label_boxes,
+                                       _lowest_row_on_its_surface, _restore_outlines, fill_scan_gaps, object_segments,
+                                       on_road_mask, refine_boxes)
 from vcfusion.fusion.fuse import _median
 from vcfusion.fusion.road import DepthNoise
 from vcfusion.fusion.sensors import SensorModel, _rotation
@@ -189,3 +191,28 @@ def test_the_compiled_label_boxes_are_find_objects_slices():
         else:
             assert (region[0].start, region[0].stop, region[1].start, region[1].stop) == tuple(boxes[k])
     assert (_label_boxes(labels, 2)[:, 0] >= 0).all()  # only labels up to n
+
+
+@pytest.mark.parametrize("sensor", ["exact", "stereo", "lidar"])
+def test_the_compiled_walk_down_a_surface_is_the_numpy_walk(sensor):
+    rng = np.random.default_rng(4)
+    walked = 0
+    for pitch in (1.0, 3.0, 8.0):
+        T = _pose(pitch)
+        truth = _scene(rng, T)
+        depth = SensorModel(sensor, rng=rng).depth(truth, K, T, rng.integers(0, 255, (H, W, 3), dtype=np.uint8))
+        if sensor == "lidar":
+            depth = fill_scan_gaps(fill_scan_gaps(depth, 2, 0.5, 0.045, 1), 6, 0.5, 0.045, 0)
+        heights = _Heights(K, T)
+        segments = object_segments(depth, K, T, BoxRefineParams())
+        for label, region in enumerate(segments.regions if segments is not None else [], start=1):
+            if region is None:
+                continue
+            sel = segments.labels[region] == label
+            x, y = region[1].start, region[0].start + segments.y_lo
+            for min_height in (0.05, 0.3):
+                fast = _lowest_row_on_its_surface(sel, x, y, depth, heights, min_height, 0.5, 0.045)
+                reference = lowest_row_on_its_surface_reference(sel, x, y, depth, heights, min_height, 0.5, 0.045)
+                assert fast == reference
+                walked += int(fast > y + sel.shape[0] - 1)
+    assert walked > 0  # some segments were followed below their lowest pixel

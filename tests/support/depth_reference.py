@@ -282,3 +282,30 @@ def refine_boxes_reference(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, 
             refined[i] = True
             top_m[i] = float(np.percentile(height[best_sel], 95))
     return RefinedBoxes(out, refined, top_m, gated)
+
+
+def lowest_row_on_its_surface_reference(sel: np.ndarray, x: int, y: int, depth: np.ndarray, heights: _Heights,
+                               min_height_m: float, jump_m: float, jump_rel: float) -> int:
+    """The lowest image row a segment reaches when each of its columns is followed down from its
+    lowest pixel over the same surface (no depth jump from the pixel above) while the pixels stand
+    more than ``min_height_m`` above the road. `sel` is the segment's mask in its bounding box, whose
+    pixel (0, 0) is image pixel (x, y). Why: the proposals' object pixels stand 0.3 m above the road
+    (no kerbs or markings), so a proposed vehicle's box stopped above its bumper and tyres, which the
+    ground truth spans: 17 px for a car 8 m ahead."""
+    cols = np.flatnonzero(sel.any(axis=0))
+    rows = y + sel.shape[0] - 1 - np.argmax(sel[::-1, cols], axis=0)  # each column's lowest pixel
+    row0 = int(rows.min())
+    if row0 >= depth.shape[0] - 1:
+        return int(rows.max())
+    z = np.asarray(depth[row0:, x:x + sel.shape[1]], np.float32)
+    z = np.where(np.isfinite(z) & (z > 0), z, np.float32(0))  # no depth: off any surface
+    h = heights.window(z, x, row0)[:, cols]
+    z = z[:, cols]
+    k = np.arange(len(cols))
+    at = rows - row0  # per column: the row reached, in the window
+    going = np.ones(len(cols), bool)
+    while going.any():
+        nxt = np.minimum(at + 1, len(z) - 1)
+        going &= (nxt > at) & (h[nxt, k] > min_height_m) & _same_surface(z[nxt, k], z[at, k], jump_m, jump_rel)
+        at = np.where(going, nxt, at)
+    return int(row0 + at.max())

@@ -779,18 +779,42 @@ def _lowest_row_on_its_surface(sel: np.ndarray, x: int, y: int, depth: np.ndarra
     row0 = int(rows.min())
     if row0 >= depth.shape[0] - 1:
         return int(rows.max())
-    z = np.asarray(depth[row0:, x:x + sel.shape[1]], np.float32)
-    z = np.where(np.isfinite(z) & (z > 0), z, np.float32(0))  # no depth: off any surface
-    h = heights.window(z, x, row0)[:, cols]
-    z = z[:, cols]
-    k = np.arange(len(cols))
-    at = rows - row0  # per column: the row reached, in the window
-    going = np.ones(len(cols), bool)
-    while going.any():
-        nxt = np.minimum(at + 1, len(z) - 1)
-        going &= (nxt > at) & (h[nxt, k] > min_height_m) & _same_surface(z[nxt, k], z[at, k], jump_m, jump_rel)
-        at = np.where(going, nxt, at)
-    return int(row0 + at.max())
+    f32 = np.float32
+    return row0 + _walk_down(np.asarray(depth[row0:], np.float32), (x + cols).astype(np.int64),
+                             (rows - row0).astype(np.int64), f32(heights.per_u), f32(heights.per_v),
+                             f32(heights.const), f32(heights.offset), f32(min_height_m), row0, f32(jump_m),
+                             f32(1 + jump_rel))
+
+
+@numba.njit(cache=True)
+def _walk_down(z, cols, start, per_u, per_v, const, offset, min_height, row0, jump_m, one_plus_rel):
+    """_lowest_row_on_its_surface's walk, compiled: each column of `cols` followed down from its row
+    `start` (rows of `z`, whose row 0 is image row row0) while the next pixel stands more than
+    min_height above the road (_Heights.window's float32 arithmetic; no depth counts as 0) and lies
+    on the same surface as the last; the lowest row reached."""
+    H = z.shape[0]
+    lowest = 0
+    for j in range(len(cols)):
+        c = cols[j]
+        u = np.float32(c) * per_u
+        r = start[j]
+        za = z[r, c]
+        if not (np.isfinite(za) and za > 0):
+            za = np.float32(0.0)
+        while r + 1 < H:
+            zn = z[r + 1, c]
+            if not (np.isfinite(zn) and zn > 0):
+                zn = np.float32(0.0)
+            v = np.float32(row0 + r + 1) * per_v + const
+            if not (zn * (v + u) - offset > min_height):
+                break
+            if zn > za * one_plus_rel + jump_m or za > zn * one_plus_rel + jump_m:
+                break
+            r += 1
+            za = zn
+        if r > lowest:
+            lowest = r
+    return lowest
 
 
 def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
@@ -1174,4 +1198,5 @@ def warm_kernels() -> None:
     _label_boxes(labels.astype(np.int64), 1)
     eye = np.eye(4)
     on_road_mask(z, np.eye(3), eye, None)
+    _lowest_row_on_its_surface(road[:1], 0, 0, z, _Heights(np.eye(3), eye), 0.05, 0.5, 0.045)
 
