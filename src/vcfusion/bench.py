@@ -275,11 +275,14 @@ class _Timed:
         return rows
 
 
-def p2_vision(seeds: int) -> dict:
+def p2_vision(seeds: int, depth_sensor: str | None = None, pose_noise_deg: float | None = None) -> dict:
     """The full vision tick in real runs of the accident scenario at 640x480: render, detect
     (shipped CNN), depth evaluation, matching, overlay drawn and handed to the
     recorder, whose thread writes the PNGs and the mp4 alongside the next ticks (its cost shows as
-    contention in the other stages and in the closed-loop real-time factor)."""
+    contention in the other stages and in the closed-loop real-time factor). ``depth_sensor`` and
+    ``pose_noise_deg`` (None: the scenario's): the camera's depth sensor (exact, stereo, tof, lidar)
+    and its mount error std in degrees with body motion when > 0, as `vcfusion study identification`
+    sets them; the depth step's road then follows (vcfusion.fusion.stage.scenario_road)."""
     import numpy as np
     import torch
 
@@ -293,6 +296,14 @@ def p2_vision(seeds: int) -> dict:
     sc = load_scenario(ACCIDENT)
     sc = sc.model_copy(update={"vision": sc.vision.model_copy(update={"enabled": True}),
                                "fusion": sc.fusion.model_copy(update={"enabled": True})})
+    camera_update: dict = {}
+    if depth_sensor is not None:
+        camera_update["depth"] = depth_sensor
+    if pose_noise_deg is not None:
+        camera_update["pose_noise"] = sc.camera.pose_noise.model_copy(
+            update={"mount_std_deg": pose_noise_deg, "body_motion": pose_noise_deg > 0})
+    if camera_update:
+        sc = sc.model_copy(update={"camera": sc.camera.model_copy(update=camera_update)})
     rows, simulated, wall = [], 0.0, 0.0
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(seeds):
@@ -311,7 +322,8 @@ def p2_vision(seeds: int) -> dict:
             rows += timings[3:]  # the first ticks include building the scene and warming up
     stages = {k: 1e3 * float(np.median([r[k] for r in rows])) for k in rows[0]}
     tick_ms = 1e3 * float(np.median([sum(r.values()) for r in rows]))
-    return {"name": "P2 vision tick 640x480", "ticks": len(rows),
+    return {"name": "P2 vision tick 640x480", "ticks": len(rows), "depth_sensor": sc.camera.depth,
+            "pose_noise_deg": sc.camera.pose_noise.mount_std_deg,
             **{f"{k}_ms": round(v, 2) for k, v in stages.items()},
             "tick_median_ms": round(tick_ms, 1), "real_time_factor_at_0.1s": round(100.0 / tick_ms, 2),
             "closed_loop_real_time_factor": round(simulated / wall, 2), "target": "<= 100 ms"}
@@ -477,10 +489,13 @@ SIZES = {"full": {"P1": 20, "P2": 3, "P3": 6, "P4": 240, "P5": 1.0, "P6": 60.0, 
          "quick": {"P1": 3, "P2": 1, "P3": 2, "P4": 6, "P5": 0.3, "P6": 3.0, "P7": 4, "P8": 3, "GPU": 2}}
 
 
-def run_section(name: str, size: str) -> dict:
-    """Run one section in a fresh interpreter; returns its figures."""
-    code = "import sys; from vcfusion.bench import print_section; print_section(sys.argv[1], sys.argv[2])"
-    proc = subprocess.run([sys.executable, "-c", code, name, size], capture_output=True, text=True)
+def run_section(name: str, size: str, options: dict | None = None) -> dict:
+    """Run one section in a fresh interpreter (``options``: keyword arguments of its function, e.g.
+    P2's depth_sensor); returns its figures."""
+    code = ("import sys, json; from vcfusion.bench import print_section; "
+            "print_section(sys.argv[1], sys.argv[2], **json.loads(sys.argv[3]))")
+    proc = subprocess.run([sys.executable, "-c", code, name, size, json.dumps(options or {})], capture_output=True,
+                          text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"benchmark {name} failed:\n{proc.stderr[-2000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -494,19 +509,20 @@ def to_markdown(results: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run_suite(sections: list[str], size: str, out: Path) -> list[dict]:
+def run_suite(sections: list[str], size: str, out: Path, options: dict[str, dict] | None = None) -> list[dict]:
+    """Run the sections (``options``: per section name, keyword arguments of its function)."""
     from tqdm import tqdm
 
     results = []
     for name in tqdm(sections, desc="bench", unit="section"):
-        results.append(run_section(name, size))
+        results.append(run_section(name, size, (options or {}).get(name)))
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench.json").write_text(json.dumps(results, indent=2) + "\n")
     (out / "bench.md").write_text(to_markdown(results))
     return results
 
 
-def print_section(name: str, size: str) -> None:
+def print_section(name: str, size: str, **options) -> None:
     """Run one section in this process and print its figures as one JSON line (run_section reads it)."""
-    figures = SECTIONS[name](SIZES[size][name])
+    figures = SECTIONS[name](SIZES[size][name], **options)
     print(json.dumps({**figures, **_peak_rss_mb()}))

@@ -7,6 +7,7 @@ import numpy as np
 import vcfusion.run  # noqa: F401  (the run code and everything it imports)
 from vcfusion.cloud.twins import TwinStore
 from vcfusion.driver.perception import DriverView, visible_vehicles
+from vcfusion.fusion.fuse import warm_depth_kernels
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.prediction.features import FeatureExtractor
 from vcfusion.prediction.smoothing import StreamingSmoother
@@ -26,3 +27,4 @@ _store.ingest(GnssReports(measured_time=np.zeros(2), ids=("a", "b"), x=_ones, y=
 _pos = np.array([10.0, 30.0])
 visible_vehicles(_pos, _ones, _ones, _ones, _ones, 0, GuidancePolicy.on_road(_road, 0, 0.3, 0.6, 150.0),
                  DriverView())
+warm_depth_kernels()  # the depth step's (vcfusion.fusion.box_refine, vcfusion.fusion.fuse)

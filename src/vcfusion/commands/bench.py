@@ -15,7 +15,17 @@ def cmd_bench(args: argparse.Namespace) -> int:
     unknown = [s for s in sections if s not in SECTIONS]
     if unknown:
         raise UsageError(f"--sections: unknown {unknown}; expected some of {sorted(SECTIONS)}")
-    results = run_suite(sections, "quick" if args.quick else "full", Path(args.out))
+    p2: dict = {}
+    if args.depth_sensor is not None:
+        p2["depth_sensor"] = args.depth_sensor
+    if args.pose_noise_deg is not None:
+        from vcfusion.commands.checks import check_pose_noise_deg
+
+        p2["pose_noise_deg"] = check_pose_noise_deg(args.pose_noise_deg)
+    if p2 and "P2" not in sections:
+        raise UsageError("--depth-sensor / --pose-noise-deg: they set P2's camera; expected P2 among --sections, got "
+                         f"{','.join(sections)}")
+    results = run_suite(sections, "quick" if args.quick else "full", Path(args.out), {"P2": p2})
     print(to_markdown(results))
     print(f"written: {Path(args.out) / 'bench.json'}, {Path(args.out) / 'bench.md'}")
     failed = 0
@@ -46,6 +56,11 @@ def add_parsers(sub) -> None:
                                       "checked against the CPU path (says 'no GPU: skipped' without one)")
     p.add_argument("--quick", action="store_true", help="small sizes (a smoke run, not figures to report)")
     p.add_argument("--out", default="runs/bench")
+    p.add_argument("--depth-sensor", choices=("exact", "stereo", "tof", "lidar"),
+                   help="P2: the camera's depth sensor (default: the accident scenario's, exact)")
+    p.add_argument("--pose-noise-deg", type=float, metavar="DEG",
+                   help="P2: camera mount calibration error std (pitch, yaw, roll), deg, with body motion when > 0 "
+                        "(default: the scenario's)")
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("bench-render", help="time RGB + depth + instance rendering (median ms per frame)")

@@ -81,8 +81,8 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import cv2
+import numba
 import numpy as np
-from scipy.ndimage import find_objects
 
 # the renderer's flat world: the road surface lies at world z = 0
 ROAD_Z_M = 0.0
@@ -277,6 +277,29 @@ def _jump_free(z: np.ndarray, valid: np.ndarray, jump_m: float, jump_rel: float)
     return keep
 
 
+@numba.njit(cache=True)
+def _label_boxes(labels, n):
+    """(n, 4) row start, row stop, column start, column stop of each label 1..n in `labels` (as
+    scipy.ndimage.find_objects' slices; -1 where a label holds no pixel), in one pass."""
+    out = np.full((n, 4), -1, np.int64)
+    H, W = labels.shape
+    for y in range(H):
+        for x in range(W):
+            k = labels[y, x]
+            if k < 1 or k > n:
+                continue
+            b = out[k - 1]
+            if b[0] < 0:
+                b[0], b[1], b[2], b[3] = y, y + 1, x, x + 1
+            else:
+                b[1] = y + 1  # rows come in order
+                if x < b[2]:
+                    b[2] = x
+                if x + 1 > b[3]:
+                    b[3] = x + 1
+    return out
+
+
 def _restore_outlines(labels: np.ndarray, removed: np.ndarray, z: np.ndarray, jump_m: float,
                       jump_rel: float) -> np.ndarray:
     """Segment labels with the pixels the cut removed given back: each removed pixel (the farther of
@@ -287,29 +310,78 @@ def _restore_outlines(labels: np.ndarray, removed: np.ndarray, z: np.ndarray, ju
     this a sliver of a hidden car, 12 px wide, loses a pixel on each hidden side and its box misses
     IoU 0.7 with the true one. Each pass reads the labels the previous one left; of several
     neighbours, right, left, below, above is the order of preference."""
+    z = np.asarray(z, np.float32)
+    if labels.shape != removed.shape or labels.shape != z.shape:
+        raise ValueError(f"labels, removed, z: expected one shape, got {labels.shape}, {removed.shape}, {z.shape}")
+    return _restore_kernel(labels, np.asarray(removed, np.bool_), z, np.float32(jump_m), np.float32(1 + jump_rel))
+
+
+@numba.njit(cache=True)
+def _restore_kernel(labels, removed, z, jump_m, one_plus_rel):
+    """_restore_outlines compiled: the pixels to give back in row-major order, each with its
+    neighbours on its own surface (right, left, below, above; -1: off the image or off its surface),
+    then passes that each read the labels the previous one left (all found, then all written)."""
     H, W = labels.shape
-    idx = np.flatnonzero(removed & (labels == 0))  # the pixels still to give back
-    if not idx.size:
-        return labels.copy()
-    outside = H * W  # one slot past the image: label 0, infinitely far, so never taken
-    flat = np.zeros(outside + 1, labels.dtype)
-    flat[:-1] = labels.ravel()
-    z_flat = np.append(np.asarray(z, np.float32).ravel(), np.float32(np.inf))
-    ys, xs = np.divmod(idx, W)
-    neighbours = np.stack([np.where(xs + 1 < W, idx + 1, outside), np.where(xs > 0, idx - 1, outside),
-                           np.where(ys + 1 < H, idx + W, outside), np.where(ys > 0, idx - W, outside)])
-    # a neighbour off the pixel's surface is never taken: pointed at the empty slot once, not tested each pass
-    on_surface = _same_surface(z_flat[idx][None], z_flat[neighbours], jump_m, jump_rel)
-    neighbours = np.where(on_surface, neighbours, outside)
-    while idx.size:
-        found = flat[neighbours]  # (4, n): each pass reads the labels the previous one left
-        found = found[(found > 0).argmax(axis=0), np.arange(idx.size)]  # the first labelled one
-        given = found > 0
-        if not given.any():
+    out = labels.copy()
+    n = 0
+    for y in range(H):
+        for x in range(W):
+            if removed[y, x] and labels[y, x] == 0:
+                n += 1
+    pending = np.empty(n, np.int64)
+    neighbours = np.full((n, 4), -1, np.int64)
+    k = 0
+    for y in range(H):
+        for x in range(W):
+            if not (removed[y, x] and labels[y, x] == 0):
+                continue
+            pending[k] = y * W + x
+            a = z[y, x]
+            for d in range(4):
+                ny, nx = y, x
+                if d == 0:
+                    nx = x + 1
+                elif d == 1:
+                    nx = x - 1
+                elif d == 2:
+                    ny = y + 1
+                else:
+                    ny = y - 1
+                if ny < 0 or ny >= H or nx < 0 or nx >= W:
+                    continue
+                b = z[ny, nx]
+                if not (a > b * one_plus_rel + jump_m) and not (b > a * one_plus_rel + jump_m):
+                    neighbours[k, d] = ny * W + nx
+            k += 1
+    flat = out.reshape(-1)
+    found = np.zeros(n, out.dtype)
+    left = np.arange(n)
+    while len(left):
+        given = 0
+        for j in range(len(left)):
+            i = left[j]
+            f = 0
+            for d in range(4):
+                q = neighbours[i, d]
+                if q >= 0 and flat[q] > 0:
+                    f = flat[q]
+                    break
+            found[i] = f
+            if f > 0:
+                given += 1
+        if given == 0:
             break
-        flat[idx[given]] = found[given]
-        idx, neighbours = idx[~given], neighbours[:, ~given]
-    return flat[:-1].reshape(H, W)
+        rest = np.empty(len(left) - given, np.int64)
+        r = 0
+        for j in range(len(left)):
+            i = left[j]
+            if found[i] > 0:
+                flat[pending[i]] = found[i]
+            else:
+                rest[r] = i
+                r += 1
+        left = rest
+    return out
 
 
 def _join_across_outlines(labels: np.ndarray, z: np.ndarray, jump_m: float, jump_rel: float) -> np.ndarray:
@@ -442,41 +514,53 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
         # and the surfaces whole, however deep (the side of a truck in the next lane runs 15 m away)
         whole = obj & jump_free
         segmentations.append((_restore_outlines(_components(whole), obj & ~whole, z, p.jump_m, p.jump_rel), True))
-        candidates = []  # (IoU with the detected box, segment box, segment mask, cut at depth jumps)
+        # (IoU with the detected box, segment box, (rows, columns) of the window holding the segment,
+        # its mask there, cut at depth jumps): each segment's mask within its bounding box only
+        candidates = []
+        whole_window = (slice(None), slice(None))
         for labels, is_cut in segmentations:
-            for label in np.unique(labels[core]):
-                if label == 0:
-                    continue
-                sel = labels == label
-                candidate = _segment_box(sel, p.support, x0, y0)
+            in_core = np.unique(labels[core])
+            in_core = in_core[in_core > 0]
+            if not in_core.size:
+                continue
+            # with support 0 every column of the window counts (_segment_box): the whole window then
+            regions = _label_boxes(labels, int(in_core[-1])) if p.support > 0 else None
+            for label in in_core:
+                r = whole_window
+                if regions is not None:
+                    r0, r1, c0, c1 = regions[label - 1]
+                    r = (slice(int(r0), int(r1)), slice(int(c0), int(c1)))
+                sel = labels[r] == label
+                candidate = _segment_box(sel, p.support, x0 + (r[1].start or 0), y0 + (r[0].start or 0))
                 iou = _box_iou(candidate, b)
                 if iou > p.min_iou:
-                    candidates.append((iou, candidate, sel, is_cut))
+                    candidates.append((iou, candidate, r, sel, is_cut))
         best = best_sel = None
         if candidates:
             candidates.sort(key=lambda c: -c[0])  # stable: of equal overlaps, the first found
-            _, best, best_sel, best_is_cut = candidates[0]
+            _, best, best_r, best_sel, best_is_cut = candidates[0]
             # a box over two vehicles side by side (two trucks in neighbouring lanes a few metres
             # apart in depth, inside one band) snaps best to the pair: when that segment spans a depth
             # jump and is wider than any vehicle, a jump-free segment no wider that still explains the
             # box takes its place, and the other vehicle, no longer inside a box, becomes a proposal.
             # Jump-free, because a car mid lane change, seen at an angle, is 3-4 m across the view
             # with its side, one surface: its wheels and mirrors must not pass for a second vehicle
-            if (_spans_jump(best_sel, best_is_cut, jump)
-                    and _lateral_extent(best_sel, z, x0, K, p.support) > p.pair_width_m):
-                for iou, candidate, sel, is_cut in candidates[1:]:
+            if (_spans_jump(best_sel, best_is_cut, jump[best_r])
+                    and _lateral_extent(best_sel, z[best_r], x0 + (best_r[1].start or 0), K, p.support)
+                    > p.pair_width_m):
+                for iou, candidate, r, sel, is_cut in candidates[1:]:
                     if iou < p.pair_min_iou:
                         break
-                    if (not _spans_jump(sel, is_cut, jump)
-                            and _lateral_extent(sel, z, x0, K, p.support) <= p.pair_width_m):
-                        best, best_sel = candidate, sel
+                    if (not _spans_jump(sel, is_cut, jump[r])
+                            and _lateral_extent(sel, z[r], x0 + (r[1].start or 0), K, p.support) <= p.pair_width_m):
+                        best, best_r, best_sel = candidate, r, sel
                         break
         if best is not None:
             if returns is not None:
                 best = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share)
             out[i] = best
             refined[i] = True
-            top_m[i] = float(np.percentile(height[best_sel], 95))
+            top_m[i] = float(np.percentile(height[best_r][best_sel], 95))
     return RefinedBoxes(out, refined, top_m, gated)
 
 
@@ -633,18 +717,24 @@ def object_segments(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         raise ValueError("depth segments: the proposals are switched off (BoxRefineParams.proposals is None)")
     z = np.asarray(depth, np.float32)
     valid = np.isfinite(z) & (z > 0)
-    z = np.where(valid, z, np.float32(0))
+    # the heights on the rows holding depth only (and the row above them: what stands above a top)
+    depth_rows = np.flatnonzero(valid.any(axis=1))
+    if not len(depth_rows):
+        return None
+    lo, hi = max(int(depth_rows[0]) - 1, 0), int(depth_rows[-1]) + 1
+    z, valid = np.where(valid[lo:hi], z[lo:hi], np.float32(0)), valid[lo:hi]
     heights = _Heights(K, T_world_to_camera)
-    height = heights.window(z, 0, 0)
+    height = heights.window(z, 0, lo)
     obj = valid & (height > params.min_height_m + heights.noise_margin(z, noise, refine.noise_k)) \
         & (height < refine.max_height_m)
     rows = np.flatnonzero(obj.any(axis=1))
     if not len(rows):
         return None
     # only the rows holding object pixels (the sky and the road ahead hold none)
-    y_lo, y_hi = int(rows[0]), int(rows[-1]) + 1
+    y_lo, y_hi = int(rows[0]) + lo, int(rows[-1]) + 1 + lo
     y_lo = max(y_lo - 1, 0)  # and the row above them: what stands above a segment's top
-    obj, height, z, valid = obj[y_lo:y_hi], height[y_lo:y_hi], z[y_lo:y_hi], valid[y_lo:y_hi]
+    a, b = y_lo - lo, y_hi - lo
+    obj, height, z, valid = obj[a:b], height[a:b], z[a:b], valid[a:b]
     # cut at depth jumps: the farther pixel of each jumping neighbour pair leaves the mask
     keep = obj & _jump_free(z, valid, refine.jump_m, refine.jump_rel)
     labels = _restore_outlines(_components(keep), obj & ~keep, z, refine.jump_m, refine.jump_rel)
@@ -655,8 +745,9 @@ def object_segments(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     if islands.any():
         labels = np.where(islands, _components(islands) + labels.max(), labels)
     labels = _join_across_outlines(labels, z, refine.jump_m, refine.jump_rel)
-    return ObjectSegments(z, valid, obj, height, labels, np.bincount(labels.ravel()),
-                          find_objects(labels), y_lo)
+    regions = [None if b[0] < 0 else (slice(int(b[0]), int(b[1])), slice(int(b[2]), int(b[3])))
+               for b in _label_boxes(labels, int(labels.max()))]  # as scipy.ndimage.find_objects gives them
+    return ObjectSegments(z, valid, obj, height, labels, np.bincount(labels.ravel()), regions, y_lo)
 
 
 def _min_top(params: ProposalParams, refine: BoxRefineParams, truncated: bool, width_m: float,
@@ -688,18 +779,42 @@ def _lowest_row_on_its_surface(sel: np.ndarray, x: int, y: int, depth: np.ndarra
     row0 = int(rows.min())
     if row0 >= depth.shape[0] - 1:
         return int(rows.max())
-    z = np.asarray(depth[row0:, x:x + sel.shape[1]], np.float32)
-    z = np.where(np.isfinite(z) & (z > 0), z, np.float32(0))  # no depth: off any surface
-    h = heights.window(z, x, row0)[:, cols]
-    z = z[:, cols]
-    k = np.arange(len(cols))
-    at = rows - row0  # per column: the row reached, in the window
-    going = np.ones(len(cols), bool)
-    while going.any():
-        nxt = np.minimum(at + 1, len(z) - 1)
-        going &= (nxt > at) & (h[nxt, k] > min_height_m) & _same_surface(z[nxt, k], z[at, k], jump_m, jump_rel)
-        at = np.where(going, nxt, at)
-    return int(row0 + at.max())
+    f32 = np.float32
+    return row0 + _walk_down(np.asarray(depth[row0:], np.float32), (x + cols).astype(np.int64),
+                             (rows - row0).astype(np.int64), f32(heights.per_u), f32(heights.per_v),
+                             f32(heights.const), f32(heights.offset), f32(min_height_m), row0, f32(jump_m),
+                             f32(1 + jump_rel))
+
+
+@numba.njit(cache=True)
+def _walk_down(z, cols, start, per_u, per_v, const, offset, min_height, row0, jump_m, one_plus_rel):
+    """_lowest_row_on_its_surface's walk, compiled: each column of `cols` followed down from its row
+    `start` (rows of `z`, whose row 0 is image row row0) while the next pixel stands more than
+    min_height above the road (_Heights.window's float32 arithmetic; no depth counts as 0) and lies
+    on the same surface as the last; the lowest row reached."""
+    H = z.shape[0]
+    lowest = 0
+    for j in range(len(cols)):
+        c = cols[j]
+        u = np.float32(c) * per_u
+        r = start[j]
+        za = z[r, c]
+        if not (np.isfinite(za) and za > 0):
+            za = np.float32(0.0)
+        while r + 1 < H:
+            zn = z[r + 1, c]
+            if not (np.isfinite(zn) and zn > 0):
+                zn = np.float32(0.0)
+            v = np.float32(row0 + r + 1) * per_v + const
+            if not (zn * (v + u) - offset > min_height):
+                break
+            if zn > za * one_plus_rel + jump_m or za > zn * one_plus_rel + jump_m:
+                break
+            r += 1
+            za = zn
+        if r > lowest:
+            lowest = r
+    return lowest
 
 
 def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
@@ -970,71 +1085,118 @@ def fill_scan_gaps(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: 
     ``inf`` (a return with nothing within range) counts as a return. ``occlusion_side="left"`` (along
     rows of a stereo pair's left image): a gap whose right end is nearer than its left by a depth
     jump is the band the right camera could not see behind the nearer surface's left edge, and takes
-    the farther depth whole."""
+    the farther depth whole. One compiled pass along each line (:func:`_fill_lines`)."""
     if occlusion_side not in (None, "left"):
         raise ValueError(f"occlusion_side: expected None or 'left', got {occlusion_side!r}")
     if axis not in (0, 1):
         raise ValueError(f"axis: expected 0 (columns) or 1 (rows), got {axis}")
     z = np.asarray(depth, np.float32)
-    measured = ~np.isnan(z)
-    # only the rows holding returns can hold a gap between two of them (the sky above a scan's highest
-    # beam holds none)
-    rows = np.flatnonzero(measured.any(axis=1))
-    if not len(rows):
-        return z.copy()
-    if rows[0] > 0 or rows[-1] < z.shape[0] - 1:
-        lo, hi = int(rows[0]), int(rows[-1]) + 1
-        out = z.copy()
-        out[lo:hi] = fill_scan_gaps(z[lo:hi], max_gap_px, jump_m, jump_rel, axis,
-                                    None if on_road is None else on_road[lo:hi], occlusion_side)
-        return out
-    H, W = z.shape
-    # per pixel, how far the nearest return lies before (above / left) and after it along the axis,
-    # within max_gap_px + 1 (0: none that near); one shifted comparison per distance
-    before = np.zeros(z.shape, np.int16)
-    after = np.zeros(z.shape, np.int16)
-    n = H if axis == 0 else W
-    for d in range(1, min(max_gap_px + 1, n - 1) + 1):
-        if axis == 0:
-            b_view, b_src, a_view, a_src = before[d:], measured[:-d], after[:-d], measured[d:]
-        else:
-            b_view, b_src, a_view, a_src = before[:, d:], measured[:, :-d], after[:, :-d], measured[:, d:]
-        b_view[(b_view == 0) & b_src] = d
-        a_view[(a_view == 0) & a_src] = d
-    gap = ~measured & (before > 0) & (after > 0) & (before + after <= max_gap_px + 1)
-    if not gap.any():
-        return z.copy()
-    r, c = np.nonzero(gap)
-    da, db = before[r, c], after[r, c]
-    if axis == 0:
-        za, zb = z[r - da, c], z[r + db, c]
-        road_a, road_b = (None, None) if on_road is None else (on_road[r - da, c], on_road[r + db, c])
-    else:
-        za, zb = z[r, c - da], z[r, c + db]
-        road_a, road_b = (None, None) if on_road is None else (on_road[r, c - da], on_road[r, c + db])
-    t = (da / (da + db)).astype(np.float32)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        same = np.isfinite(za) & np.isfinite(zb) & (za > 0) & (zb > 0) & _same_surface(za, zb, jump_m, jump_rel)
-        if on_road is not None:
-            same |= np.isfinite(za) & np.isfinite(zb) & road_a & road_b
-        inverse = np.float32(1) / (np.float32(1) / za + t * (np.float32(1) / zb - np.float32(1) / za))
-        edge = np.where(t <= 0.5, za, zb)
-        if occlusion_side == "left":
-            # a stereo pair's occlusion band: left of a nearer surface, the farther one the right
-            # camera could not see (the right end nearer than the left by a jump): the farther's
-            edge = np.where(_farther(za, zb, jump_m, jump_rel), za, edge)
-        value = np.where(same, inverse, edge)
+    if z.ndim != 2:
+        raise ValueError(f"depth: expected a 2-D depth image (H, W), got shape {z.shape}")
+    if on_road is not None and np.shape(on_road) != z.shape:
+        raise ValueError(f"on_road: expected a mask of the depth's shape {z.shape}, got {np.shape(on_road)}")
     out = z.copy()
-    out[r, c] = value
+    road = np.zeros((0, 0), np.bool_) if on_road is None else np.asarray(on_road, np.bool_)
+    along = out
+    if axis == 0:  # down the columns: the same pass on the transposed views
+        z, along, road = z.T, out.T, road.T
+    _fill_lines(z, along, road, on_road is not None, int(max_gap_px), np.float32(jump_m),
+                np.float32(1 + jump_rel), occlusion_side == "left")
     return out
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _fill_lines(z, out, on_road, use_road, max_gap_px, jump_m, one_plus_rel, occlusion_left):
+    """fill_scan_gaps along each row of `z` into `out` (float32 arithmetic as _farther's): a gap of at
+    most max_gap_px pixels between two returns (not nan) is filled, pixel p at t = (p - a) / (b - a)
+    of the way from return a to return b."""
+    H, W = z.shape
+    half = np.float32(0.5)
+    one = np.float32(1.0)
+    for r in range(H):
+        prev = -1
+        for c in range(W):
+            zb = z[r, c]
+            if np.isnan(zb):
+                continue
+            if prev >= 0 and 1 < c - prev <= max_gap_px + 1:
+                za = z[r, prev]
+                finite = np.isfinite(za) and np.isfinite(zb)
+                same = (finite and za > 0 and zb > 0 and not za > zb * one_plus_rel + jump_m
+                        and not zb > za * one_plus_rel + jump_m)
+                if use_road and finite and on_road[r, prev] and on_road[r, c]:
+                    same = True
+                far_left = za > zb * one_plus_rel + jump_m
+                inv_a = one / za
+                step = one / zb - inv_a
+                for p in range(prev + 1, c):
+                    t = np.float32((p - prev) / (c - prev))
+                    if same:
+                        out[r, p] = one / (inv_a + t * step)
+                    elif occlusion_left and far_left:
+                        out[r, p] = za
+                    elif t <= half:
+                        out[r, p] = za
+                    else:
+                        out[r, p] = zb
+            prev = c
 
 
 def on_road_mask(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, noise,
                  refine: BoxRefineParams = BoxRefineParams()) -> np.ndarray:
     """(H, W) bool: the measured pixels within ``refine.scan_road_m`` (+ ``noise_k`` sigma of their
-    height's noise) of the road whose z = 0 plane `T_world_to_camera` defines (a fitted road's pose)."""
+    height's noise) of the road whose z = 0 plane `T_world_to_camera` defines (a fitted road's pose).
+    One compiled pass (:func:`_road_kernel`), in _Heights' float32 arithmetic."""
     heights = _Heights(K, T_world_to_camera)
-    finite = np.isfinite(depth)
-    z = np.where(finite, depth, np.float32(0)).astype(np.float32)
-    tolerance = refine.scan_road_m + heights.noise_margin(z, noise, refine.noise_k)
-    return finite & (np.abs(heights.window(z, 0, 0)) < tolerance)
+    z = np.asarray(depth, np.float32)
+    if z.ndim != 2:
+        raise ValueError(f"depth: expected a 2-D depth image (H, W), got shape {z.shape}")
+    noisy = noise is not None and not noise.exact
+    a, b, c = (noise.a, noise.b, noise.c) if noisy else (0.0, 0.0, 0.0)
+    out = np.zeros(z.shape, np.bool_)
+    f32 = np.float32
+    _road_kernel(z, f32(heights.per_u), f32(heights.per_v), f32(heights.const), f32(heights.offset),
+                 f32(refine.scan_road_m), noisy, f32(refine.noise_k), f32(a), f32(b), f32(c),
+                 f32(max(-heights.offset, 0.5)), out)
+    return out
+
+
+@numba.njit(cache=True)
+def _road_kernel(z, per_u, per_v, const, offset, tolerance, noisy, k, a, b, c, cam_h, out):
+    """on_road_mask per pixel: |height| < tolerance (+ k sigma_z(z) cam_h / max(z, 1) when noisy),
+    height = z (v per_v + const + u per_u) - offset, as _Heights.window and noise_margin compute them."""
+    H, W = z.shape
+    one = np.float32(1.0)
+    for y in range(H):
+        v = np.float32(y) * per_v + const
+        for x in range(W):
+            d = z[y, x]
+            if not np.isfinite(d):
+                continue
+            h = d * (v + np.float32(x) * per_u) - offset
+            tol = tolerance
+            if noisy:
+                sigma = (a + b * d) + (c * d) * d
+                tol = tolerance + k * sigma * cam_h / max(d, one)
+            out[y, x] = abs(h) < tol
+
+
+def warm_kernels() -> None:
+    """Load the depth step's compiled kernels (numba's cache) for the argument types a frame uses,
+    with tiny inputs: a forked worker that imports this first fuses its first frame without the
+    load (vcfusion.worker_preload)."""
+    z = np.full((3, 4), np.nan, np.float32)
+    z[:, 0] = z[:, 3] = 10.0
+    road = np.ones(z.shape, bool)
+    fill_scan_gaps(z, 2, 0.5, 0.045, 1)
+    fill_scan_gaps(z, 2, 0.5, 0.045, 0)
+    fill_scan_gaps(z, 2, 0.5, 0.045, 0, road)
+    fill_scan_gaps(z, 2, 0.5, 0.045, 1, road, "left")
+    labels = _components(road)
+    _restore_outlines(labels, ~road, np.zeros(z.shape, np.float32), 0.5, 0.045)
+    _label_boxes(labels, 1)
+    _label_boxes(labels.astype(np.int64), 1)
+    eye = np.eye(4)
+    on_road_mask(z, np.eye(3), eye, None)
+    _lowest_row_on_its_surface(road[:1], 0, 0, z, _Heights(np.eye(3), eye), 0.05, 0.5, 0.045)
+

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import cv2
+import numba
 import numpy as np
 
 from vcfusion.guidance import GuidancePolicy
@@ -107,13 +108,69 @@ def depth_view(frame: CameraFrame, refine: BoxRefineParams) -> DepthView:
 
 def _median(depth: np.ndarray, size: int) -> np.ndarray:
     """A size x size median of a depth image with holes (nan): holes stay holes, and a pixel the
-    median takes into a hole (more than half its window missing) becomes one."""
+    median takes into a hole (more than half its window missing) becomes one. Filtered on the rows
+    within size // 2 of a measurement only: elsewhere every pixel of the window is a hole, and so is
+    the median (the sky stays inf)."""
     z = np.asarray(depth, np.float32)
-    hole = ~np.isfinite(z)
-    far = np.isposinf(z)
-    filled = np.where(hole, np.float32(0), z)
-    out = cv2.medianBlur(filled, size)
-    return np.where(far, np.float32(np.inf), np.where(hole | (out <= 0), np.float32(np.nan), out)).astype(np.float32)
+    if z.ndim != 2:
+        raise ValueError(f"depth: expected a 2-D depth image (H, W), got shape {z.shape}")
+    out, filled, lo = _median_prepare(z, size // 2)
+    if len(filled):
+        _median_finish(z, cv2.medianBlur(filled, size), lo, out)
+    return out
+
+
+@numba.njit(cache=True)
+def _median_prepare(z, reach):
+    """(out: inf where z is +inf, nan elsewhere; the rows lo.. within `reach` of a measurement with
+    holes as 0, the median's input; lo)."""
+    H, W = z.shape
+    out = np.empty((H, W), np.float32)
+    first, last = H, -1
+    for y in range(H):
+        for x in range(W):
+            d = z[y, x]
+            out[y, x] = np.inf if d == np.inf else np.nan
+            if np.isfinite(d):
+                if y < first:
+                    first = y
+                last = y
+    if last < 0:
+        return out, np.zeros((0, W), np.float32), 0
+    lo, hi = max(first - reach, 0), min(last + reach + 1, H)
+    filled = np.empty((hi - lo, W), np.float32)
+    for y in range(lo, hi):
+        for x in range(W):
+            d = z[y, x]
+            filled[y - lo, x] = d if np.isfinite(d) else np.float32(0.0)
+    return out, filled, lo
+
+
+@numba.njit(cache=True)
+def _median_finish(z, med, lo, out):
+    """out's rows lo.. from the median: inf where z is +inf, nan where z is a hole or the median not
+    positive, else the median."""
+    for r in range(med.shape[0]):
+        y = lo + r
+        for x in range(z.shape[1]):
+            d = z[y, x]
+            if d == np.inf:
+                out[y, x] = np.inf
+            elif not np.isfinite(d) or med[r, x] <= 0:
+                out[y, x] = np.nan
+            else:
+                out[y, x] = med[r, x]
+
+
+def warm_depth_kernels() -> None:
+    """Load the depth step's compiled kernels (numba's cache) with tiny inputs, so that a forked
+    worker's first frame does not (vcfusion.worker_preload)."""
+    from vcfusion.fusion.box_refine import warm_kernels
+
+    warm_kernels()
+    z = np.full((6, 6), np.nan, np.float32)
+    z[:, :3] = 10.0
+    _median(z, 5)
 
 
 def _without_flying_pixels(depth: np.ndarray, refine: BoxRefineParams) -> np.ndarray:
