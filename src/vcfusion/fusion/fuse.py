@@ -56,8 +56,9 @@ class CameraFrame:
 class DepthView:
     """What the depth step works on for one frame (:func:`depth_view`): the depth (a stereo pair's
     holes and a LiDAR scan's gaps filled, box_refine.fill_scan_gaps; median-filtered when noisy and
-    dense, a scan not), the pose whose z = 0 plane is the road, the depth's noise after the filter, the road fit, whether
-    the image holds too little measured depth for proposals, and a filled scan's own returns."""
+    dense, a scan not), the pose whose z = 0 plane is the road, the depth's noise after the filter,
+    the road fit, whether the image holds too little measured depth for proposals, and a filled
+    scan's own returns."""
 
     depth: np.ndarray
     T: np.ndarray
