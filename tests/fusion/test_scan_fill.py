@@ -7,7 +7,7 @@ import numpy as np
 
 from vcfusion.detection.detectors import Detections
 from vcfusion.fusion.box_refine import BoxRefineParams, _Heights, fill_scan_gaps, refine_boxes
-from vcfusion.fusion.fuse import CameraFrame, depth_step
+from vcfusion.fusion.fuse import CameraFrame, depth_step, depth_view
 from vcfusion.fusion.matching import box_iou
 from vcfusion.fusion.road import DepthNoise
 from vcfusion.fusion.sensors import SensorModel, _rotation
@@ -131,6 +131,33 @@ def test_the_depth_step_snaps_boxes_on_a_lidar_scan():
     out = depth_step(frame, Detections.of(loose, np.array([0.9]), np.array([1])),
                      BoxRefineParams(road="from_depth", scan_fill_px=None), stats=kept)
     assert kept["boxes_gated"] == 1 and np.array_equal(out.boxes, loose)
+
+
+def test_a_filled_scan_is_not_median_filtered_so_a_far_car_does_not_widen():
+    """A 5 x 5 median over a filled scan mixed a far car's depth with the road's beside its lower half
+    (the road's depth changes by metres per row there) and stood those pixels above the road."""
+    T = _pose(1.0)
+    road = _road_depth(T)[:, 160]
+    for d, min_iou in ((50.0, 0.75), (70.0, 0.7)):
+        row = int(np.argmin(np.abs(np.where(np.isfinite(road), road, 1e9) - d)))  # the car stands on this row
+        h_px, w_px = round(1.5 * F / d), round(1.8 * F / d)
+        car = (160 - w_px // 2, row - h_px + 1, 160 - w_px // 2 + w_px, row + 1)
+        sensor = SensorModel("lidar", rng=np.random.default_rng(5))
+        truth = _road_depth(T, cars=[(*car, d)])
+        frame = CameraFrame(0.0, np.zeros((H, W, 3), np.uint8), sensor.depth(truth, K, T),
+                            camera_view(K, T, W, H, 0.0), depth_noise=sensor.noise(K))
+        view = depth_view(frame, BoxRefineParams(road="flat"))
+        assert view.returns is not None and not view.sparse  # a scan, its gaps filled
+        beside = np.zeros((H, W), bool)  # the columns either side of the car, around its rows
+        beside[car[1] - 4:car[3] + 4, car[0] - 6:car[2] + 6] = True
+        beside[:, car[0]:car[2]] = False
+        at_car = np.isfinite(view.depth) & (np.abs(view.depth - d) < 0.1 * d) & (_heights(view.depth, T) > 0.05)
+        assert not (beside & at_car).any()  # with the median: 11 (50 m), 12 (70 m) such pixels
+        true_box = np.array([[car[0] - 0.5, car[1] - 0.5, car[2] - 0.5, car[3] - 0.5]])
+        loose = true_box + np.array([[-1.0, -1.0, 1.0, 1.0]])
+        out = depth_step(frame, Detections.of(loose, np.array([0.9]), np.array([1])),
+                         BoxRefineParams(road="from_depth"), stats={})
+        assert box_iou(out.boxes[:1], true_box)[0, 0] > min_iou  # with the median: 0.74 (50 m), 0.63 (70 m)
 
 
 def test_the_depth_step_snaps_a_car_whose_stereo_depth_has_a_textureless_hole_across_it():

@@ -149,10 +149,11 @@ class BoxRefineParams:
     # nominal pose's flat road ("flat", exact where depth and pose are: a scenario's fusion.road
     # "auto" picks it there, vcfusion.fusion.stage.road_model)
     road: str = "flat"
-    # noisy depth (a sensor's DepthNoise): a 5 x 5 median first (sigma about 0.25 of a pixel's for
-    # Gaussian noise, 1.2533 / 5; 0.3 assumed), then object pixels stand noise_k sigma of their
-    # height's noise above min_height_m, and a box or segment whose depth's sigma exceeds gate_noise
-    # of the depth-jump threshold there (jump_m + jump_rel z) keeps the detector's box (gated)
+    # noisy dense depth (a sensor's DepthNoise; a LiDAR scan is not filtered, fuse.depth_view): a 5 x 5
+    # median first (sigma about 0.25 of a pixel's for Gaussian noise, 1.2533 / 5; 0.3 assumed), then
+    # object pixels stand noise_k sigma of their height's noise above min_height_m, and a box or
+    # segment whose depth's sigma exceeds gate_noise of the depth-jump threshold there (jump_m +
+    # jump_rel z) keeps the detector's box (gated)
     denoise_px: int = 5
     denoise_passes: int = 1
     denoise_sigma_share: float = 0.3
@@ -166,7 +167,8 @@ class BoxRefineParams:
     # a sparse scan (less than gate_valid_share measured) first has its gaps filled between returns at
     # most this many pixels apart (down a column, along a row; px): fill_scan_gaps. A 64-beam scan's
     # rows lie 3-4 px apart at f = 457 px and its returns 1-2 px apart along a row; development
-    # folders, LiDAR + 0.3 deg: 72.1 % kept sparse (every box gated), 86.0 % filled. None: kept sparse
+    # folders, LiDAR + 0.3 deg: 72.1 % kept sparse (every box gated), 86.0 % filled and then median-
+    # filtered, 91.5 % filled (a filled scan is not median-filtered: fuse.depth_view). None: kept sparse
     scan_fill_px: tuple[int, int] | None = (6, 2)
     # a scan's return within this of the fitted road (m, + noise_k sigma of its height's noise) is the
     # road's: two such returns bound a gap filled along the plane (nearest-return fill of the road: 56.6 %
@@ -179,7 +181,7 @@ class BoxRefineParams:
     unmeasured_share: float = 0.5
     scan_min_rows: int = 5  # a box whose core's columns hold fewer of a scan's returns than this (median
     # over its columns) is gated: its outline lies between the scan's rows (development folders, LiDAR
-    # and 0.3 deg: 84.5 % at 3, 86.0 % at 5, 86.8 % at 7)
+    # and 0.3 deg, the filled scan median-filtered: 84.5 % at 3, 86.0 % at 5, 86.8 % at 7)
     hole_fill_px: int = 16  # px; stereo depth (DepthNoise.c > 0): holes up to this wide filled along rows
     # (fill_scan_gaps, occlusion bands with the farther depth; development folders, stereo + 0.3 deg:
     # 81.4 % without, 82.9 % at 16 px, 82.2 % at 48 px)

@@ -55,9 +55,10 @@ class CameraFrame:
 @dataclass(frozen=True)
 class DepthView:
     """What the depth step works on for one frame (:func:`depth_view`): the depth (a stereo pair's
-    holes and a LiDAR scan's gaps filled, box_refine.fill_scan_gaps; median-filtered when noisy),
-    the pose whose z = 0 plane is the road, the depth's noise after the filter, the road fit, whether
-    the image holds too little measured depth for proposals, and a filled scan's own returns."""
+    holes and a LiDAR scan's gaps filled, box_refine.fill_scan_gaps; median-filtered when noisy and
+    dense, a scan not), the pose whose z = 0 plane is the road, the depth's noise after the filter,
+    the road fit, whether the image holds too little measured depth for proposals, and a filled
+    scan's own returns."""
 
     depth: np.ndarray
     T: np.ndarray
@@ -93,7 +94,12 @@ def depth_view(frame: CameraFrame, refine: BoxRefineParams) -> DepthView:
         sparse = bool(np.isnan(depth).mean() > 1 - refine.gate_valid_share)
     if not sparse and noise.c > 0 and refine.hole_fill_px:  # stereo: its holes filled along the rows
         depth = fill_scan_gaps(depth, refine.hole_fill_px, refine.jump_m, refine.jump_rel, 1, None, "left")
-    if not noise.exact and refine.denoise_px and not sparse:  # (a sparse scan has no neighbours to filter with)
+    # a scan (filled or not) is not median-filtered: its range noise (centimetres) needs no filter, and
+    # most of a 5 x 5 window over a filled scan is fill, not measurement; beside a far car's lower half,
+    # where the road's depth changes by metres from row to row, the window's median mixes the car's depth
+    # with the road's and lands nearer than the road there: object pixels that widen the car's segment
+    # by 1-2 px a side (development folders, LiDAR + 0.3 deg: 86.0 % with the median, 91.5 % without)
+    if not noise.exact and refine.denoise_px and not sparse and returns is None:
         for _ in range(refine.denoise_passes):
             depth = _median(depth, refine.denoise_px)
         noise = noise.scaled(refine.denoise_sigma_share)
