@@ -124,11 +124,12 @@ def test_no_gap_is_bridged_at_the_ends_or_around_a_wrong_box():
 
 
 def test_a_twin_hidden_whole_is_drawn_where_depth_puts_its_box_at_the_twin():
-    """Nearer twins' outlines hide the whole outline (their reports are a few decimetres off), but
-    the matched box's depth lies within one of the matcher's sigmas of the twin's face and is no
-    nearer twin's: the box shows the twin and is drawn (curved seed 100 cars14: 470 px visible, was
-    missed). Depth further off, or a nearer twin's depth, keeps it undrawn ("hidden"); a confirmed
-    box whose part within the outline is under MIN_DRAWN_VISIBLE_PX is "small"."""
+    """Nearer twins' outlines hide the whole outline (their reports are a few decimetres off, their
+    cuboids coarser than the vehicles), but the matched box's depth lies within one of the matcher's
+    sigmas of the twin's face: the box shows the twin and is drawn (curved seed 100 cars14: 470 px
+    visible, was missed). Depth further off, or samples that fit a nearer twin too (unless the
+    depth is the surface drawing the box's outline), keep it undrawn ("hidden"); a confirmed box
+    whose part within the outline is under MIN_DRAWN_VISIBLE_PX is "small"."""
     from vcfusion.fusion.fuse import HIDDEN_DEPTH_CONFIRM_SIGMAS, MIN_DRAWN_VISIBLE_PX, drawable_box, undrawn_reason
 
     outline = (404.0, 214.0, 452.0, 242.0)
