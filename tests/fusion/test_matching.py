@@ -557,3 +557,72 @@ def test_the_surface_drawing_a_box_decides_between_the_vehicle_and_the_one_behin
     np.testing.assert_allclose(half[:, 0], cost_s[:, 0])
     with pytest.raises(ValueError, match="surface_depths"):
         matcher.cost_matrix(proj, boxes, samples, surface[:1])
+
+
+def test_match_details_report_the_chosen_boxes_depth_agreement_and_the_projection_used():
+    """`match_details` gives `match`'s choice with the twins as the matcher projected them and, per
+    chosen box, its depth disagreement in sigmas and whether that depth is a nearer twin's: a car
+    hidden whole behind another whose roof box measures its own depth agrees (0 sigmas, its own); a
+    far truck whose box's lower quarter measures the car in front is matched on the car's depth."""
+    from vcfusion.fusion.matching import visible_boxes
+
+    cam = pinhole_camera()
+    twins = make_twins(["car", "far"], [15.0, 27.0], [0.0, 0.0])
+    proj = project_twins(twins, cam)
+    far = proj.expected_box[1]
+    roof = far + [2, 0, -2, -(1 - 0.04) * (far[3] - far[1])]
+    boxes = np.stack([proj.expected_box[0], roof])
+    samples = np.array([np.full(30, 15.0 - 2.25), np.full(30, 27.0 - 2.25)])
+    got = JointMatcher(JointMatcherParams(smoothing_alpha=None)).match_details(twins, boxes, samples, cam)
+    assert [int(g) for g in got.choice] == [0, 1]
+    np.testing.assert_allclose(got.depth_sigmas, [0.0, 0.0], atol=1e-9)
+    assert list(got.depth_of_nearer) == [False, False]
+    assert list(got.hidden_share) == list(visible_boxes(got.projection)[2]) == [0.0, 1.0]
+    # 2 m off for the far car: 2 / (0.05 * 24.75 + 1) = 0.9 sigmas
+    off = np.array([np.full(30, 15.0 - 2.25), np.full(30, 27.0 - 2.25 + 2.0)])
+    got = JointMatcher(JointMatcherParams(smoothing_alpha=None)).match_details(twins, boxes, off, cam)
+    assert got.depth_sigmas[1] == pytest.approx(2.0 / (0.05 * 24.75 + 1.0), rel=1e-6)
+
+    twins = make_twins(["near", "far"], [40.0, 80.0], [0.0, 0.3], length=[4.5, 12.0], width=[1.8, 2.5],
+                       height=[1.5, 3.6], z_ground=[-0.75, -1.8])
+    boxes = np.stack([vehicle_box(cam, 40.0, 0.0), vehicle_box(cam, 80.0, 0.3, length=12.0, width=2.5, height=3.6)])
+    samples = np.array([np.full(30, 40.0 - 2.25), np.full(30, 40.0 - 2.25)])  # both boxes measure the car
+    got = JointMatcher().match_details(twins, boxes, samples, cam)
+    assert [int(g) for g in got.choice] == [0, 1] and list(got.depth_of_nearer) == [False, True]
+    assert got.depth_sigmas[1] > JointMatcherParams().depth_gate
+    # an unmatched twin: no depth agreement
+    got = JointMatcher().match_details(twins, boxes[:1], samples[:1], cam)
+    assert got.choice[1] == NO_MATCH and got.depth_sigmas[1] == np.inf
+
+
+def test_the_fusion_result_judges_outlines_where_the_matcher_put_the_twins():
+    """The overlay's rules read each twin's outline and hidden share from the fusion result. A car
+    10 m ahead whose report is 0.3 s old at 20 m/s is, as received, 4 m ahead: its outline then
+    covers the whole of a stopped car 25 m ahead and 2.5 m to the left, of which in fact the left
+    third shows. The joint matcher moves the report on by its age and matches both boxes; the result's
+    outlines are the matcher's, so the far car is not hidden whole and its box is drawn (as
+    received it was "hidden": a visible, matched car that got no box)."""
+    from vcfusion.detection.detectors import OracleDetector
+    from vcfusion.fusion.fuse import CameraFrame, fuse_frame, undrawn_reason
+    from vcfusion.fusion.matching import visible_boxes
+
+    cam = pinhole_camera(time=10.3)
+    near, far = vehicle_box(cam, 10.0, 0.0), vehicle_box(cam, 25.0, 2.5)
+    depth = np.full((480, 640), np.inf, np.float32)
+    for (x1, y1, x2, y2), z in ((far, 25.0 - 2.25), (near, 10.0 - 2.25)):  # the near car painted last
+        depth[int(y1):int(np.ceil(y2)), max(int(x1), 0):int(np.ceil(x2))] = z
+    seen_far = np.array([far[0], far[1], near[0], far[3]])  # the part of the far car left of the near one
+    assert seen_far[2] - seen_far[0] > 0.3 * (far[2] - far[0])
+    frame = CameraFrame(10.3, np.zeros((480, 640, 3), np.uint8), depth, cam, gt_boxes=np.stack([near, seen_far]),
+                        gt_ids=("near", "far"), gt_classes=np.array([3, 3]))
+    twins = make_twins(["near", "far"], [10.0 - 20.0 * 0.3, 25.0], [0.0, 2.5], measured_time=[10.0, 10.3],
+                       speed=[20.0, 0.0])
+    assert visible_boxes(project_twins(twins, cam))[2][1] == 1.0  # as received: hidden whole
+    result = fuse_frame(frame, twins, OracleDetector(), np.random.default_rng(0), methods=("joint",))
+    assert [int(c) for c in result.choice["joint"]] == [0, 1]
+    assert result.hidden_share[1] < 0.9
+    moved = project_twins(extrapolate_twins(twins, 10.3), cam)
+    np.testing.assert_allclose(result.expected_boxes, moved.expected_box)
+    box = result.box_of("joint", 1)
+    assert undrawn_reason(box, result.expected_boxes[1], result.hidden_share[1], depth_sigmas=result.depth_sigmas[1],
+                          depth_of_nearer=result.depth_of_nearer[1]) == ""

@@ -524,6 +524,25 @@ class JointMatcherParams:
             raise ValueError(f"hidden_within: expected a share in (0, 1], got {self.hidden_within}")
 
 
+@dataclass(frozen=True)
+class JointMatch:
+    """One frame's joint assignment (:meth:`JointMatcher.match_details`), aligned with the twins."""
+
+    choice: np.ndarray  # (N,) box index per twin, NO_MATCH where unassigned
+    projection: TwinProjection  # the twins as the matcher saw them: GNSS-smoothed, moved on by their latency
+    hidden_share: np.ndarray  # (N,) share of each twin's outline nearer twins' outlines hide (visible_boxes)
+    # (N,) disagreement of the chosen box's measured depth (its outline's surface where known, else
+    # the best quantile of its lower-quarter samples) with the twin's expected face depth, in the
+    # matcher's sigmas (depth_sigma_rel * depth + depth_sigma_abs_m); inf: no box or no depth
+    depth_sigmas: np.ndarray
+    # (N,) the chosen box's lower-quarter depth samples fit a clearly nearer twin too (the box would
+    # be allowed without depth support, JointMatcher._depth_of_nearer_twin)
+    depth_of_nearer: np.ndarray
+    # (N,) depth_sigmas is the depth of the surface drawing the chosen box's outline
+    # (box_refine.box_surface_depths), not the samples' best quantile
+    depth_on_surface: np.ndarray
+
+
 class JointMatcher:
     """Joint (Hungarian) assignment of all twins in view to detected boxes."""
 
@@ -536,9 +555,13 @@ class JointMatcher:
         return self._cost_terms(proj, boxes, box_depths, surface_depths)[:2]
 
     def _cost_terms(self, proj: TwinProjection, boxes, box_depths,
-                    surface_depths=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(cost, allowed) over (twins, boxes) and (N,) whether each twin is hidden whole (the
-        assignment's second round; computed here with the rest of :func:`visible_boxes`)."""
+                    surface_depths=None) -> tuple[np.ndarray, ...]:
+        """(cost, allowed) over (twins, boxes), (N,) whether each twin is hidden whole (the
+        assignment's second round; computed here with the rest of :func:`visible_boxes`), and over
+        (twins, boxes) the depth disagreement the cost compares, in sigmas (uncapped; inf where the
+        box has no depth), whether the box's depth is a clearly nearer twin's
+        (:meth:`_depth_of_nearer_twin`), and (D,) whether that disagreement is the surface drawing the
+        box's outline (else the best quantile of its lower-quarter samples)."""
         p = self.params
         b = as_boxes(boxes)
         depths = np.asarray(box_depths, dtype=np.float64)
@@ -584,14 +607,15 @@ class JointMatcher:
         # at its depth) measured that twin, not the vehicles behind it: for those its depth cannot
         # confirm a match but does not exclude one either (e.g. a far car whose lower part a nearer
         # one hides): allowed at the largest depth penalty, so any twin whose depth does agree wins.
-        if n > 1 and m:
-            depth_err = np.where(self._depth_of_nearer_twin(proj, b, depth_err, sigma),
-                                 np.minimum(depth_err, p.depth_gate), depth_err)
+        of_nearer = self._depth_of_nearer_twin(proj, b, depth_err, sigma) if n > 1 and m else np.zeros((n, m), bool)
+        measured_err = np.where(depth_known, depth_err, np.inf)
+        depth_err = np.where(of_nearer, np.minimum(depth_err, p.depth_gate), depth_err)
         # where the depth image tells which surface draws a box's outline, the cost compares that
         # surface's depth (box_refine.box_surface_depths): the samples' best quantile also fits a
         # vehicle of which the box shows a sliver. The gate stays with the samples: a surface
         # wrongly found must not forbid a pair the samples allow
         cost_err = depth_err
+        on_surface = np.zeros(m, bool)
         if surface_depths is not None and m:
             surface = np.asarray(surface_depths, dtype=np.float64)
             if surface.shape != (m,):
@@ -599,6 +623,8 @@ class JointMatcher:
             with np.errstate(invalid="ignore"):
                 surface_err = np.abs(surface[None, :] - expected[:, None]) / sigma
             cost_err = np.where(np.isfinite(surface_err), surface_err, depth_err)
+            measured_err = np.where(np.isfinite(surface_err), surface_err, measured_err)
+            on_surface = np.isfinite(surface)
         # the more of a twin nearer twins hide, the less likely it has a box of its own: a box wanted
         # by a mostly hidden twin and a visible one goes to the visible one
         cost = (p.w_overlap * (1.0 - iou) + p.w_anchor * np.minimum(anchor_dist, 1.0)
@@ -614,7 +640,7 @@ class JointMatcher:
             allowed[whole] |= ((depth_err[whole] <= p.depth_gate)
                                & (box_inside_share(b, proj.expected_box[whole]).T >= p.hidden_within))
         allowed &= proj.in_view[:, None]
-        return cost, allowed, hidden_whole
+        return cost, allowed, hidden_whole, measured_err, of_nearer, on_surface
 
     def _depth_of_nearer_twin(self, proj: TwinProjection, boxes: np.ndarray, depth_err: np.ndarray,
                               sigma: np.ndarray) -> np.ndarray:
@@ -639,12 +665,25 @@ class JointMatcher:
         (:func:`vcfusion.fusion.depth_eval.sample_box_depths`). ``surface_depths``: (D,) the depth of
         the surface drawing each box's outline, nan where unknown
         (:func:`vcfusion.fusion.box_refine.box_surface_depths`); None: none known."""
+        return self.match_details(twins, boxes, box_depths, camera, surface_depths).choice
+
+    def match_details(self, twins: TwinStates, boxes, box_depths, camera: CameraView,
+                      surface_depths=None) -> "JointMatch":
+        """:meth:`match`'s choice with what it was decided on (:class:`JointMatch`): the twins as
+        the matcher projects them (GNSS-smoothed, moved on by their latency) and each chosen box's
+        depth agreement."""
         if self.filter is not None:
             twins = self.filter.update(twins)
         if self.params.latency_compensation:
             twins = extrapolate_twins(twins, camera.time, self.params.use_accel)
         proj = project_twins(twins, camera)
-        return self.assign(proj, boxes, box_depths, surface_depths)
+        choice, (_, _, _, depth_err, of_nearer, on_surface) = self._assign(proj, boxes, box_depths, surface_depths)
+        n = len(choice)
+        rows, cols = np.flatnonzero(choice != NO_MATCH), choice[choice != NO_MATCH]
+        sigmas, nearer, surface = np.full(n, np.inf), np.zeros(n, bool), np.zeros(n, bool)
+        if len(rows):
+            sigmas[rows], nearer[rows], surface[rows] = depth_err[rows, cols], of_nearer[rows, cols], on_surface[cols]
+        return JointMatch(choice, proj, visible_boxes(proj)[2], sigmas, nearer, surface)
 
     def assign(self, proj: TwinProjection, boxes, box_depths, surface_depths=None) -> np.ndarray:
         """Box index per twin (NO_MATCH where unassigned), in two rounds: first the twins with a
@@ -658,10 +697,15 @@ class JointMatcher:
         the second round with the hidden twins: a far car in a chain, visible by a corner, otherwise kept
         the box of the car in front of it at 5.97 (just under ``miss_cost``), which that car, hidden but
         for its roof, fitted at 2.03."""
-        cost, allowed, hidden_whole = self._cost_terms(proj, boxes, box_depths, surface_depths)
+        return self._assign(proj, boxes, box_depths, surface_depths)[0]
+
+    def _assign(self, proj: TwinProjection, boxes, box_depths, surface_depths=None):
+        """:meth:`assign`'s choice and the cost terms it was made on (:meth:`_cost_terms`)."""
+        terms = self._cost_terms(proj, boxes, box_depths, surface_depths)
+        cost, allowed, hidden_whole = terms[:3]
         out = np.full(len(proj.anchor), NO_MATCH)
         if cost.size == 0:
-            return out
+            return out, terms
         out[~hidden_whole] = self._assign_once(cost[~hidden_whole], allowed[~hidden_whole])
         if hidden_whole.any():
             matched = np.flatnonzero(out != NO_MATCH)
@@ -673,7 +717,7 @@ class JointMatcher:
             free = np.ones(cost.shape[1], bool)
             free[out[out != NO_MATCH]] = False
             out[second] = self._assign_once(cost[second], allowed[second] & free[None, :])
-        return out
+        return out, terms
 
     def _assign_once(self, cost: np.ndarray, allowed: np.ndarray) -> np.ndarray:
         """One Hungarian assignment of (twins, boxes) cost under the allowed mask."""
