@@ -5,6 +5,7 @@ with depth jumps, sky (inf) and zeros."""
 import numpy as np
 import pytest
 
+from support.road_depth import flat_road_depth, road_camera_pose
 from support.depth_reference import (fill_scan_gaps_reference, lowest_row_on_its_surface_reference, median_reference,
                                      object_segments_reference, on_road_mask_reference, refine_boxes_reference,
                                      restore_outlines_reference)
@@ -13,7 +14,7 @@ from vcfusion.fusion.box_refine import (BoxRefineParams, _components, _Heights, 
                                        on_road_mask, refine_boxes)
 from vcfusion.fusion.fuse import _median
 from vcfusion.fusion.road import DepthNoise
-from vcfusion.fusion.sensors import SensorModel, _rotation
+from vcfusion.fusion.sensors import SensorModel
 
 W, H, F, CAM_H = 160, 120, 230.0, 1.4
 K = np.array([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])
@@ -21,22 +22,12 @@ K = np.array([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])
 
 def _pose(pitch_deg: float) -> np.ndarray:
     """Camera 1.4 m above the road at the origin, looking along +x, pitched down."""
-    T = np.eye(4)
-    T[:3, :3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]]
-    T[:3, 3] = -T[:3, :3] @ np.array([0.0, 0.0, CAM_H])
-    T[:3, :] = _rotation(pitch_deg, 0.0, 0.0).T @ T[:3, :]
-    return T
+    return road_camera_pose(pitch_deg, CAM_H)
 
 
 def _scene(rng: np.random.Generator, T: np.ndarray) -> np.ndarray:
     """A flat road seen from T (sky: inf) with a few fronto-parallel blocks standing on it."""
-    vs, us = np.mgrid[0:H, 0:W]
-    rays = np.stack([us, vs, np.ones_like(us)], axis=-1).reshape(-1, 3) @ np.linalg.inv(K).T
-    R, t = T[:3, :3], T[:3, 3]
-    world_dir = rays @ R
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = -(-R.T @ t)[2] / world_dir[:, 2]
-    depth = np.where((world_dir[:, 2] < 0) & (s < 300), s, np.inf).reshape(H, W).astype(np.float32)
+    depth = flat_road_depth(T, K, W, H, 300.0)
     road = depth.copy()
     for _ in range(rng.integers(2, 6)):
         bottom = int(rng.integers(H // 2, H))

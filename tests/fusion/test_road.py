@@ -8,7 +8,7 @@ from vcfusion.fusion.box_refine import BoxRefineParams, _Heights, refine_boxes
 from vcfusion.fusion.fuse import CameraFrame, depth_step
 from vcfusion.fusion.road import DepthNoise, fit_road_plane
 from vcfusion.fusion.stage import camera_view
-from vcfusion.fusion.sensors import _rotation
+from support.road_depth import flat_road_depth, road_camera_pose
 
 W, H, F, CAM_H = 320, 240, 250.0, 1.4
 K = np.array([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])
@@ -16,28 +16,12 @@ K = np.array([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])
 
 def _pose(pitch_deg=3.0):
     """Camera 1.4 m above the road at the origin, looking along +x, pitched down."""
-    T = np.eye(4)
-    T[:3, :3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]]
-    T[:3, 3] = -T[:3, :3] @ np.array([0.0, 0.0, CAM_H])
-    Q = _rotation(pitch_deg, 0.0, 0.0)
-    T[:3, :] = Q.T @ T[:3, :]  # the camera turned by Q
-    return T
+    return road_camera_pose(pitch_deg, CAM_H)
 
 
 def _road_depth(T, car=None):
     """Depth of a flat road (z = 0) seen from T; `car`: (x1, y1, x2, y2, depth) a fronto-parallel block."""
-    vs, us = np.mgrid[0:H, 0:W]
-    rays = np.stack([us, vs, np.ones_like(us)], axis=-1).reshape(-1, 3) @ np.linalg.inv(K).T  # camera, per unit Z
-    R, t = T[:3, :3], T[:3, 3]
-    centre = -R.T @ t
-    world_dir = rays @ R  # R^T ray
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = -centre[2] / world_dir[:, 2]
-    depth = np.where((world_dir[:, 2] < 0) & (s < 400), s, np.inf).reshape(H, W).astype(np.float32)
-    if car is not None:
-        x1, y1, x2, y2, d = car
-        depth[y1:y2, x1:x2] = np.minimum(depth[y1:y2, x1:x2], d)
-    return depth
+    return flat_road_depth(T, K, W, H, 400.0, [car] if car is not None else ())
 
 
 def test_the_road_fit_finds_the_road_the_pose_got_wrong():

@@ -5,12 +5,13 @@ answers are known)."""
 
 import numpy as np
 
+from support.road_depth import flat_road_depth, road_camera_pose
 from vcfusion.detection.detectors import Detections
 from vcfusion.fusion.box_refine import BoxRefineParams, _Heights, fill_scan_gaps, refine_boxes
 from vcfusion.fusion.fuse import CameraFrame, depth_step, depth_view
 from vcfusion.fusion.matching import box_iou
 from vcfusion.fusion.road import DepthNoise
-from vcfusion.fusion.sensors import SensorModel, _rotation
+from vcfusion.fusion.sensors import SensorModel
 from vcfusion.fusion.stage import camera_view
 
 W, H, F, CAM_H = 320, 240, 460.0, 1.4
@@ -20,25 +21,12 @@ JUMP = (BoxRefineParams().jump_m, BoxRefineParams().jump_rel)
 
 def _pose(pitch_deg=3.0):
     """Camera 1.4 m above the road at the origin, looking along +x, pitched down."""
-    T = np.eye(4)
-    T[:3, :3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]]
-    T[:3, 3] = -T[:3, :3] @ np.array([0.0, 0.0, CAM_H])
-    T[:3, :] = _rotation(pitch_deg, 0.0, 0.0).T @ T[:3, :]
-    return T
+    return road_camera_pose(pitch_deg, CAM_H)
 
 
 def _road_depth(T, cars=()):
     """Depth of a flat road (z = 0) seen from T, with fronto-parallel blocks (x1, y1, x2, y2, depth)."""
-    vs, us = np.mgrid[0:H, 0:W]
-    rays = np.stack([us, vs, np.ones_like(us)], axis=-1).reshape(-1, 3) @ np.linalg.inv(K).T
-    R, t = T[:3, :3], T[:3, 3]
-    world_dir = rays @ R
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = -(-R.T @ t)[2] / world_dir[:, 2]
-    depth = np.where((world_dir[:, 2] < 0) & (s < 400), s, np.inf).reshape(H, W).astype(np.float32)
-    for x1, y1, x2, y2, d in cars:
-        depth[y1:y2, x1:x2] = np.minimum(depth[y1:y2, x1:x2], d)
-    return depth
+    return flat_road_depth(T, K, W, H, 400.0, cars)
 
 
 def _heights(depth, T):

@@ -15,21 +15,7 @@ from vcfusion.fusion.box_refine import (ObjectSegments, RefinedBoxes, _box_iou, 
 
 def fill_scan_gaps_reference(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: float, axis: int = 0,
                    on_road: np.ndarray | None = None, occlusion_side: str | None = None) -> np.ndarray:
-    """A sparse scan's depth (nan where no return lands) with the gaps between returns filled along
-    ``axis`` (0: down each column, 1: along each row), where two returns at most ``max_gap_px + 1``
-    pixels apart bound the gap: linearly in inverse depth between them (exact on a plane) when they
-    lie on one surface (no depth jump, :func:`_same_surface`) or both on the road (``on_road``, (H, W)
-    bool: returns within the road's noise of the fitted road; far down the road two beams' returns
-    lie metres apart), else each pixel takes the nearer return's depth (the edge between two surfaces
-    half-way between the returns). A gap wider than that, or open at the image's edge, stays nan.
-    ``inf`` (a return with nothing within range) counts as a return. ``occlusion_side="left"`` (along
-    rows of a stereo pair's left image): a gap whose right end is nearer than its left by a depth
-    jump is the band the right camera could not see behind the nearer surface's left edge, and takes
-    the farther depth whole."""
-    if occlusion_side not in (None, "left"):
-        raise ValueError(f"occlusion_side: expected None or 'left', got {occlusion_side!r}")
-    if axis not in (0, 1):
-        raise ValueError(f"axis: expected 0 (columns) or 1 (rows), got {axis}")
+    """box_refine.fill_scan_gaps as shifted whole-image comparisons, one per gap width (valid arguments only)."""
     z = np.asarray(depth, np.float32)
     measured = ~np.isnan(z)
     # only the rows holding returns can hold a gap between two of them (the sky above a scan's highest
@@ -179,12 +165,7 @@ def median_reference(depth: np.ndarray, size: int) -> np.ndarray:
 def refine_boxes_reference(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray,
                  params, noise=None,
                  returns: np.ndarray | None = None) -> RefinedBoxes:
-    """Each box snapped to the depth segment that explains it best (module docstring); with
-    ``noise`` (vcfusion.fusion.road.DepthNoise of `depth`), a box depth cannot decide is gated.
-    ``returns``: (H, W) bool, the pixels a scan measured when `depth` is a scan with its gaps filled
-    (:func:`fill_scan_gaps`): a box crossed by fewer than ``scan_min_rows`` of the scan's rows is
-    gated, and a side of a snapped box that ends where the scan measured nothing is the detector's
-    (:func:`_unmeasured_sides`)."""
+    """box_refine.refine_boxes with every candidate segment measured over the whole window."""
     boxes = np.asarray(boxes, float).reshape(-1, 4)
     depth = np.asarray(depth)
     if depth.ndim != 2:
