@@ -60,14 +60,17 @@ def run(*args: str) -> None:
     subprocess.run([sys.executable, "-m", "vcfusion", *args], check=True)
 
 
-def out_of_fold(work: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+def out_of_fold(work: Path, extra_columns: tuple[str, ...] = ()) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The pooled out-of-fold streams (seed, vehicle_id, time, prob, source, original_seed and
+    `extra_columns` of the samples) and their lane changes; seeds offset per fold and source."""
     streams, events = [], []
     for k in range(FOLDS):
         model = load_model(work / f"ft_cv{k}.npz")
         names = list(model.feature_names)
         for j, name in enumerate(("ngsim", "cr")):
             info = load_dataset(work / f"{name}-cv{k}")
-            s, e = stream_with_events(info, "test", columns=["seed", "vehicle_id", "time", *stored_columns(names)])
+            wanted = ["seed", "vehicle_id", "time", *stored_columns(names)]
+            s, e = stream_with_events(info, "test", columns=wanted + [c for c in extra_columns if c not in wanted])
             with_derived_columns(s, names)
             s["prob"] = model.stream_proba(s, names)
             held_out = set(json.loads(Path(SPLITS[name]).read_text())["parts"]["held_out"])
@@ -76,7 +79,11 @@ def out_of_fold(work: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
                 keep = ~s["seed"].map(recording).isin(held_out)
             else:
                 keep = ~s["vehicle_id"].astype(str).map(base_vehicle_id).isin(held_out)
-            s = s.loc[keep.to_numpy(), ["seed", "vehicle_id", "time", "prob"]].assign(source=name)
+            original = {int(seed): m.get("original_seed", int(seed)) for seed, m in info.meta["seeds"].items()}
+            s["original_seed"] = s["seed"].map(original)
+            s = s.loc[keep.to_numpy(), ["seed", "vehicle_id", "time", "prob", "original_seed",
+                                        *[c for c in extra_columns if c not in ("seed", "vehicle_id", "time")]]]
+            s = s.assign(source=name)
             offset = (k * 2 + j) * 10_000_000  # keeps the folds' and sources' seeds apart
             s["seed"] += offset
             e = e.assign(seed=e["seed"] + offset)
