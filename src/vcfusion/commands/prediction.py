@@ -110,6 +110,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise UsageError("--learning-rate / --weight-decay / --background-negatives: expected a positive rate and "
                          f"non-negative others, got {args.learning_rate}, {args.weight_decay}, "
                          f"{args.background_negatives}")
+    if not (args.early_weight >= 0) or (args.early_weight and not gru):
+        raise UsageError(f"--early-weight: expected a non-negative weight for the GRU (--kind gru), got {args.early_weight}")
     if gru and args.privileged:
         raise UsageError("--privileged: the ceiling is an MLP (--kind mlp)")
     if not gru and (args.inputs != "base" or args.init or args.false_alarm_budget is not None):
@@ -135,7 +137,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         cfg = SequenceConfig(hidden=args.hidden, epochs=args.epochs, patience=args.patience, seed=args.seed,
                              background_negatives=args.background_negatives, threads=args.threads,
                              learning_rate=args.learning_rate, weight_decay=args.weight_decay,
-                             bptt_ticks=args.bptt_ticks, inputs=args.inputs,
+                             bptt_ticks=args.bptt_ticks, inputs=args.inputs, early_weight=args.early_weight,
                              init=str(args.init) if args.init else None,
                              **({} if args.false_alarm_budget is None else
                                 {"false_alarm_budget": args.false_alarm_budget}))
@@ -243,6 +245,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--init", metavar="MODEL",
                    help="GRU: fine-tune: start from this GRU file's weights, inputs and standardisation "
                         "(e.g. a model trained on simulation, fine-tuned on a real recording's development part)")
+    p.add_argument("--early-weight", dest="early_weight", type=float, default=0.0,
+                   help="GRU: weigh a positive tick t s before the change's end 1 + EARLY_WEIGHT x t / tau (before "
+                        "balancing): early warning counts more; default 0 (all positives alike)")
     p.add_argument("--false-alarm-budget", dest="false_alarm_budget", type=float, default=None,
                    help="GRU: the decision settings' false alarms per vehicle-hour on the validation seeds "
                         "(default 1.5)")

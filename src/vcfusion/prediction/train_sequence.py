@@ -54,14 +54,22 @@ class SequenceConfig:
     # Inputs: the name of one of features.SEQUENCE_INPUT_SETS: base | availability (with the
     # availability flags) | lateral (flags and lateral motion).
     inputs: str = "base"
+    # Early-warning weighting of the positive window: a positive tick t seconds before the change's
+    # end weighs 1 + early_weight * t / tau before the positives are balanced against the negatives
+    # (0: all positives alike, the shipped recipe; 2: the earliest weigh 3 times the latest). The
+    # early positives are the ones the advance depends on (docs/components/real-data.md, "What
+    # limits the advance").
+    early_weight: float = 0.0
     # Fine-tuning: start from this GRU file's weights and input standardisation (its inputs, its
     # hidden size) instead of a random initialisation; None = from scratch.
     init: str | None = None
 
 
-def loss_weights(stream: pd.DataFrame, tau: float, tau_g: float, background: float) -> tuple[np.ndarray, np.ndarray]:
+def loss_weights(stream: pd.DataFrame, tau: float, tau_g: float, background: float,
+                 early_weight: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(target, weight) per row: windows weight 1 (positives re-weighted to balance), far
-    negatives weighted to total `background` x the window rows, gap ticks weight 0."""
+    negatives weighted to total `background` x the window rows, gap ticks weight 0; with
+    early_weight > 0 a positive weighs 1 + early_weight x time to the end / tau before the balancing."""
     window = stream["window_label"].to_numpy()
     ttl = stream["time_to_lc"].to_numpy(dtype=float)
     target = (window == 1).astype(np.float32)
@@ -69,6 +77,9 @@ def loss_weights(stream: pd.DataFrame, tau: float, tau_g: float, background: flo
     with np.errstate(invalid="ignore"):
         far = (window < 0) & ~(ttl <= 2 * tau + tau_g)
     weight = in_window.astype(np.float64)
+    if early_weight > 0:
+        pos = target == 1
+        weight[pos] = 1.0 + early_weight * np.clip(ttl[pos], 0.0, tau) / tau
     if far.any() and background > 0:
         weight[far] = background * in_window.sum() / far.sum()
     neg_total = weight[target == 0].sum()
@@ -193,8 +204,8 @@ def train_sequence_model(datasets: list[Path], out: Path, cfg: SequenceConfig, p
     # a fine-tuned model keeps the pretrained standardisation (its weights were learnt on it)
     mean, std = (init.mean, init.std) if init is not None else feature_scaling(x_tr)
     norm = lambda a: ((a - mean) / std).astype(np.float32)  # noqa: E731
-    y_tr, w_tr = loss_weights(tr, tau, tau_g, cfg.background_negatives)
-    y_va, w_va = loss_weights(va, tau, tau_g, cfg.background_negatives)
+    y_tr, w_tr = loss_weights(tr, tau, tau_g, cfg.background_negatives, cfg.early_weight)
+    y_va, w_va = loss_weights(va, tau, tau_g, cfg.background_negatives, cfg.early_weight)
     b_tr = segment_bounds(tr, period, cfg.reset_gap_ticks)
     b_va = segment_bounds(va, period, cfg.reset_gap_ticks)
     arrays, fit = _fit(_Batches(norm(x_tr), y_tr, w_tr, b_tr, cfg.batch_segments),
