@@ -71,6 +71,15 @@ def with_lateral_position(stream: pd.DataFrame, imports: dict[str, Path]) -> pd.
     return out.reset_index(drop=True)
 
 
+def own_average(x: np.ndarray, start: np.ndarray, tc: float) -> np.ndarray:
+    """Causal EMA (time constant tc) of x per track, starting at the track's first value."""
+    a, out, m = 1.0 - np.exp(-PERIOD_S / tc), np.empty(len(x)), 0.0
+    for i, value in enumerate(x):
+        m = value if start[i] else m + a * (value - m)
+        out[i] = m
+    return out
+
+
 def detector(stream: pd.DataFrame, events: pd.DataFrame, values: np.ndarray) -> dict:
     """The signal alone as the alarm (> threshold, aggressive smoothing, TAU_TICKS hold): the threshold
     predicting most changes with <= BUDGET false alarms / veh-h in each recording (ties: advance)."""
@@ -95,7 +104,8 @@ def detector(stream: pd.DataFrame, events: pd.DataFrame, values: np.ndarray) -> 
     _, thr, pooled, per = best
     row = {"threshold": thr}
     for name, summ in (("all", pooled), *per.items()):
-        row |= {f"{name}_predicted_pct": 100 * summ["predicted_share"], f"{name}_advance_s": summ["advance_final_mean_s"],
+        row |= {f"{name}_predicted_pct": 100 * summ["predicted_share"],
+                f"{name}_advance_s": summ["advance_final_mean_s"],
                 f"{name}_fa_per_veh_h": summ["false_alarms_per_vehicle_hour"]}
     return row
 
@@ -106,6 +116,9 @@ def main() -> int:
     p.add_argument("cr")
     p.add_argument("cv_work")
     p.add_argument("--out", required=True)
+    p.add_argument("--estimators", action="store_true",
+                   help="also the Kalman grid (sigma 0.05 / 0.1 / 0.3 m x q 0.01 / 0.05 / 0.2) and the lateral speed "
+                        "over the vehicle's own recent sway, as alarms (about 10 more minutes)")
     a = p.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -127,16 +140,27 @@ def main() -> int:
         "|lateral_drift_m| (d - 10 s EMA, the feature)": np.abs(stream["lateral_drift_m"].to_numpy()),
         "|offset from the lane centre|": np.abs(stream["lane_offset_m"].to_numpy()),
     }
-    sep = separability(stream, events, signals)
+    extra = {}
+    if a.estimators:
+        for sigma in (0.05, 0.1, 0.3):
+            for q in (0.01, 0.05, 0.2):
+                extra[f"|lateral speed| Kalman (sigma {sigma} m, q {q})"] = np.abs(
+                    kalman_lateral_speed(d, start, PERIOD_S, sigma, q)[1])
+        v = stream["lateral_speed_mps"].to_numpy()
+        for tc in (10.0, 20.0, 30.0):
+            sway = np.sqrt(own_average(np.minimum(v * v, 0.25), start, tc))  # capped: one change barely moves it
+            extra[f"|lateral_speed_mps| / max(own sway RMS over {tc:g} s, 0.1 m/s)"] = np.abs(v) / np.maximum(sway, 0.1)
+    sep = separability(stream, events, {**signals, **extra})
     sep.to_csv(out / "separability.csv", index=False)
-    wide = sep.assign(cell=[f"{m:.2f} / {100 * s:.1f} % / {u:.2f}" for m, s, u in zip(sep["median"], sep["lk_above"], sep["auc"])])
+    wide = sep.assign(cell=[f"{m:.2f} / {100 * s:.1f} % / {u:.2f}"
+                            for m, s, u in zip(sep["median"], sep["lk_above"], sep["auc"])])
     wide = wide.pivot(index="before_mid_s", columns="signal", values="cell").sort_index(ascending=False)
     (out / "separability.md").write_text(markdown(wide))
     gaps = window_auc(stream, events, GAP_COLUMNS, GAP_SIDE_COLUMNS)
     gaps.to_csv(out / "gap_auc.csv", index=False)
     (out / "gap_auc.md").write_text(markdown(gaps.set_index("window").T))
     rows = []
-    for name, values in signals.items():
+    for name, values in {**signals, **extra}.items():
         rows.append({"signal": name, **detector(stream, events, values)})
         print(rows[-1], flush=True)
     det = pd.DataFrame(rows)

@@ -13,7 +13,8 @@ def _stream():
     # one change ending at t = 20 s: positives 15.1-20 s (ttl 4.9 .. 0), gap, negatives, far ticks
     t = np.round(np.arange(0.0, 20.05, 0.1), 1)
     ttl = 20.0 - t
-    window = np.where(ttl < TAU - 1e-6, 1, np.where((ttl >= TAU + TAU_G - 1e-6) & (ttl < 2 * TAU + TAU_G - 1e-6), 0, -1))
+    negative = (ttl >= TAU + TAU_G - 1e-6) & (ttl < 2 * TAU + TAU_G - 1e-6)
+    window = np.where(ttl < TAU - 1e-6, 1, np.where(negative, 0, -1))
     return pd.DataFrame({"time": t, "time_to_lc": ttl, "window_label": window})
 
 
@@ -42,7 +43,8 @@ def test_early_positives_weigh_more_and_the_balance_holds():
     assert (w[gap] == 0).all()
 
 
-@pytest.mark.parametrize("extra", [["--kind", "gru", "--early-weight", "-1"], ["--kind", "gru", "--early-weight", "nan"],
+@pytest.mark.parametrize("extra", [["--kind", "gru", "--early-weight", "-1"],
+                                   ["--kind", "gru", "--early-weight", "nan"],
                                    ["--kind", "mlp", "--early-weight", "2"]])
 def test_the_command_refuses_a_bad_early_weight(tmp_path, capsys, extra):
     from vcfusion.commands import main

@@ -111,7 +111,8 @@ def cmd_train(args: argparse.Namespace) -> int:
                          f"non-negative others, got {args.learning_rate}, {args.weight_decay}, "
                          f"{args.background_negatives}")
     if not (args.early_weight >= 0) or (args.early_weight and not gru):
-        raise UsageError(f"--early-weight: expected a non-negative weight for the GRU (--kind gru), got {args.early_weight}")
+        raise UsageError("--early-weight: expected a non-negative weight for the GRU (--kind gru), "
+                         f"got {args.early_weight}")
     if gru and args.privileged:
         raise UsageError("--privileged: the ceiling is an MLP (--kind mlp)")
     if not gru and (args.inputs != "base" or args.init or args.false_alarm_budget is not None):

@@ -72,7 +72,8 @@ def _rows_at(stream: pd.DataFrame, events: pd.DataFrame, before_s: float) -> np.
         [stream["seed"].to_numpy(), stream["vehicle_id"].astype(str).to_numpy(),
          np.round(stream["time"].to_numpy(dtype=float), 1)]))
     index = index[~index.index.duplicated()]
-    keys = list(zip(events["seed"], events["vehicle_id"].astype(str), np.round(events["mid"].to_numpy(float) - before_s, 1)))
+    keys = list(zip(events["seed"], events["vehicle_id"].astype(str),
+                    np.round(events["mid"].to_numpy(float) - before_s, 1)))
     return index.reindex(keys).fillna(-1).to_numpy(dtype=int)
 
 
