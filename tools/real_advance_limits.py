@@ -9,7 +9,8 @@ position); CV_WORK_DIR: a finished `tools/real_alarms_cv.py` work folder (fold m
 fold datasets). Writes DIR/separability.{csv,md} (each signal's changing-vs-lane-keeping separation
 at each time before the crossing), DIR/gap_auc.{csv,md} (gap-seeking quantities, by target side),
 DIR/detectors.{csv,md} (each signal alone as an alarm, with the decision rule of
-tools/real_alarms_cv.py), DIR/noise.json (the recorded lateral positions' white-noise content).
+tools/real_alarms_cv.py), DIR/noise.json (the recorded lateral positions' white-noise content),
+DIR/timing.{csv,md} (where the alarm of the model at --threshold falls in each manoeuvre).
 A few minutes on 2 CPU cores.
 """
 
@@ -110,6 +111,42 @@ def detector(stream: pd.DataFrame, events: pd.DataFrame, values: np.ndarray) -> 
     return row
 
 
+def alarm_timing(stream: pd.DataFrame, events: pd.DataFrame, cv_work: Path, threshold: float) -> pd.DataFrame:
+    """Per lane change, at the out-of-fold probability > threshold (aggressive, TAU_TICKS): predicted,
+    advance, the crossing and the manoeuvre's start (the import's rule) relative to the end E."""
+    dec = smooth_stream(smoothing_bounds(stream), (stream["prob"].to_numpy() > threshold).astype(np.int8),
+                        "aggressive", TAU_TICKS, TAU_TICKS)
+    _, per = event_scores(stream, dec, events, PERIOD_S, 10.0, track_bounds(stream))
+    tables = []
+    for seed in per["seed"].unique():  # out_of_fold's seeds: (2 fold + source) x 10^7 + the fold dataset's seed
+        block, own = divmod(int(seed), 10_000_000)
+        fold, j = divmod(block, 2)
+        run = cv_work / f"{('ngsim', 'cr')[j]}-cv{fold}" / "runs" / f"seed_{own:04d}"
+        lc = pd.read_parquet(run / "lane_changes.parquet", columns=["event_id", "vehicle_id", "start_time", "mid_time"])
+        tables.append(lc.assign(seed=seed, source=("ngsim", "cr")[j], vehicle_id=lc["vehicle_id"].astype(str)))
+    per = per.assign(vehicle_id=per["vehicle_id"].astype(str)).merge(
+        pd.concat(tables, ignore_index=True), on=["seed", "vehicle_id", "event_id"], how="left")
+    per["end_after_crossing_s"] = per["end"] - per["mid_time"]
+    per["end_after_start_s"] = per["end"] - per["start_time"]
+    per["alarm_before_crossing_s"] = per["advance_final_s"] - per["end_after_crossing_s"]
+    per["alarm_after_start_s"] = per["end_after_start_s"] - per["advance_final_s"]
+    return per
+
+
+def timing_summary(per: pd.DataFrame) -> pd.DataFrame:
+    rows = []
+    for source, g in per.groupby("source"):
+        hit, miss = g[g["predicted"]], g[~g["predicted"]]
+        rows.append({"recording": source, "changes": len(g), "predicted": len(hit),
+                     "mean advance s": hit["advance_final_s"].mean(),
+                     "end after the crossing s (mean, all)": g["end_after_crossing_s"].mean(),
+                     "end after the start s (mean, where seen)": g["end_after_start_s"].mean(),
+                     "alarm before the crossing s (mean)": hit["alarm_before_crossing_s"].mean(),
+                     "alarm after the start s (median)": hit["alarm_after_start_s"].median(),
+                     "not predicted": len(miss), "observed before E s (median, not predicted)": miss["observed_s"].median()})
+    return pd.DataFrame(rows)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("ngsim")
@@ -119,6 +156,8 @@ def main() -> int:
     p.add_argument("--estimators", action="store_true",
                    help="also the Kalman grid (sigma 0.05 / 0.1 / 0.3 m x q 0.01 / 0.05 / 0.2) and the lateral speed "
                         "over the vehicle's own recent sway, as alarms (about 10 more minutes)")
+    p.add_argument("--threshold", type=float, default=0.53,
+                   help="the model's threshold for timing.csv (default: the cross-fitted decision's 0.53)")
     a = p.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -131,6 +170,9 @@ def main() -> int:
     noise = {n: position_noise(d[(stream["source"] == n).to_numpy()], start[(stream["source"] == n).to_numpy()])
              for n in ("ngsim", "cr")}
     (out / "noise.json").write_text(json.dumps(noise, indent=1))
+    per = alarm_timing(stream, events, Path(a.cv_work), a.threshold)
+    per.to_csv(out / "timing.csv", index=False)
+    (out / "timing.md").write_text(markdown(timing_summary(per), index=False))
     _, kf_speed = kalman_lateral_speed(d, start, PERIOD_S, KF_SIGMA_M, KF_ACCEL_PSD)
     signals = {
         "model probability (fine-tuned GRU, out of fold)": stream["prob"].to_numpy(),
@@ -168,6 +210,7 @@ def main() -> int:
     (out / "detectors.md").write_text(markdown(det, index=False))
     print(f"{len(events)} lane changes, {len(stream) * PERIOD_S / 3600:.2f} vehicle-hours -> {out}")
     print(json.dumps(noise))
+    print((out / "timing.md").read_text())
     print((out / "separability.md").read_text())
     print((out / "gap_auc.md").read_text())
     return 0
