@@ -298,3 +298,15 @@ def test_batch_runs_and_full_speed_replays_never_start_the_worker(tmp_path, reco
     replay = drive(sc, tmp_path / "replay", input_spec=replay_file(tmp_path), speed=None)
     assert replay.summary["realtime"]["vision_pipeline"] is False
     assert not recorded_pipelines
+
+
+@pytest.mark.slow
+def test_the_worker_runs_nicer_than_the_loop_so_the_display_wins_a_shared_core(tmp_path):
+    from vcfusion.hitl.pipeline import WORKER_NICE, VisionPipeline
+
+    with VisionPipeline(load_scenario(small_scenario(tmp_path, 1.0)), 0) as pipeline:
+        pipeline.wait_ready()
+        loop_nice = os.getpriority(os.PRIO_PROCESS, 0)
+        worker_nice = os.getpriority(os.PRIO_PROCESS, pipeline.worker_pid)
+        assert worker_nice == min(19, loop_nice + WORKER_NICE) and (worker_nice > loop_nice or loop_nice == 19)
+    assert gone(pipeline)
