@@ -12,7 +12,11 @@ Every SUMO step (`step`):
    camera (at a tick, the camera stage's render of that tick is the same image: reused), draws
    the overlay and HUD and shows it. Frames are dropped before the simulation is
    slowed: when the step is already later than one frame period, the frame is not drawn (unless
-   no frame was shown for MAX_FRAME_GAP frame periods). A SUMO step longer than a frame period
+   no frame was shown for MAX_FRAME_GAP frame periods, or its image is the tick's render, made
+   already: showing it costs the overlay and the flip, about 1 ms, and it is counted late, not
+   dropped). A tick's render runs before the step's pacing, so its own time is in the tick's lag:
+   the frame it made was the one most often dropped (37-46 % of the drops in profiled drives, a
+   third of the frames being at ticks; `tools/hitl_frame_profile.py`). A SUMO step longer than a frame period
    (step_s 0.1 s against 30 frames/s) shows one frame per step: the frames due in between are
    counted as dropped (the display cannot be faster than the simulation's step).
 Every step's wall time, simulated time, lag, raw readings and mapped controls go to the
@@ -210,15 +214,15 @@ class HumanDriver:
 
     def _frame(self, st: EgoStep, lag: float) -> None:
         starved = self._last_shown is None or wallclock.perf_counter() - self._last_shown > MAX_FRAME_GAP * self.frame_period
-        if self.speed is not None and lag > self.frame_period and not starved:
+        tick_frame = self._tick_frame
+        rendered = tick_frame is not None and abs(tick_frame.time - st.time) < 1e-9  # this step's image is made
+        if self.speed is not None and lag > self.frame_period and not starved and not rendered:
             self._dropped(st.time, lag)  # behind the clock: drop the frame rather than slow the simulation further
             return
         f = self.frame_rows
         f["sim_time"].append(round(st.time, 6))
         started = wallclock.perf_counter()
-        tick_frame = self._tick_frame
-        frame = tick_frame if tick_frame is not None and abs(tick_frame.time - st.time) < 1e-9 \
-            else self.renderer.render(st.states())
+        frame = tick_frame if rendered else self.renderer.render(st.states())
         if self.vision is not None:
             self._take_vision_result()
         items = self._drawn(frame, st.time) if self.guidance_on else []
