@@ -74,7 +74,7 @@ class Timeline:
             self._gc_start = None
 
 
-def patch(tl: Timeline):
+def patch(tl: Timeline, full_gc_at: float | None = None):
     import vcfusion.hitl.driver as drv
     from vcfusion.hitl.display import Window
     from vcfusion.hitl.pipeline import PipelinedFusionHook, VisionPipeline
@@ -96,8 +96,13 @@ def patch(tl: Timeline):
     drv.HumanDriver._log_drawn = tl.wrap("score_drawn", drv.HumanDriver._log_drawn)
     stepped = tl.wrap("driver_step", drv.HumanDriver.step)
 
+    forced = []
+
     def step(self, st):
         tl.sample()
+        if full_gc_at is not None and not forced and st.time >= full_gc_at:
+            forced.append(st.time)
+            gc.collect()  # a full collection falling inside the drive: what it costs there
         return stepped(self, st)
     drv.HumanDriver.step = step
 
@@ -195,13 +200,15 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--max-time", type=float, default=60.0, help="simulated s (the trip ends at ~17.6 s)")
     ap.add_argument("--json", type=Path, help="write the analysis here")
+    ap.add_argument("--full-gc-at", type=float, help="make one full garbage collection at this simulated time, s "
+                    "(what one costs inside a drive)")
     args = ap.parse_args(argv)
 
     from vcfusion.hitl.drive import drive
     from vcfusion.scenario import load_scenario
 
     tl = Timeline()
-    drv = patch(tl)
+    drv = patch(tl, args.full_gc_at)
     hook_stages(tl)
     captured = {}
     original_finish = drv.HumanDriver.finish

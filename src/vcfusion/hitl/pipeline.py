@@ -101,14 +101,15 @@ def _block_bytes(width: int, height: int) -> int:
     return sum(int(np.prod(shape)) * dtype.itemsize for _, shape, dtype in _layout(width, height))
 
 
-def _worker_main(conn, scenario: Scenario, seed: int, shm_name: str, size: tuple[int, int]) -> None:
-    """The worker process: build the scenario's fusion stage, answer vision ticks until told to stop."""
+def _worker_main(conn, scenario: Scenario, seed: int, shm_name: str, size: tuple[int, int], nice: int) -> None:
+    """The worker process: build the scenario's fusion stage, answer vision ticks until told to stop
+    (at `nice` more than the loop's niceness)."""
     import gc
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the loop's process, which stops us
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    os.nice(WORKER_NICE)
+    os.nice(nice)
     shm = None
     try:
         from vcfusion.cosim import Tick
@@ -171,7 +172,7 @@ def _worker_main(conn, scenario: Scenario, seed: int, shm_name: str, size: tuple
 class VisionPipeline:
     """The worker process and the shared frame block; :attr:`hook` is the run's fusion stage."""
 
-    def __init__(self, scenario: Scenario, seed: int, *, lossless: bool = False):
+    def __init__(self, scenario: Scenario, seed: int, *, lossless: bool = False, nice: int = WORKER_NICE):
         from vcfusion.workers import worker_context
 
         self.scenario = scenario
@@ -182,7 +183,7 @@ class VisionPipeline:
         self._views = _views(self.shm.buf, *self.size)
         ctx = worker_context()
         self._conn, child = ctx.Pipe()
-        self.process = ctx.Process(target=_worker_main, args=(child, scenario, seed, self.shm.name, self.size),
+        self.process = ctx.Process(target=_worker_main, args=(child, scenario, seed, self.shm.name, self.size, nice),
                                    daemon=True, name="vcfusion-vision")
         try:
             self.process.start()
