@@ -309,4 +309,5 @@ def test_the_worker_runs_nicer_than_the_loop_so_the_display_wins_a_shared_core(t
         loop_nice = os.getpriority(os.PRIO_PROCESS, 0)
         worker_nice = os.getpriority(os.PRIO_PROCESS, pipeline.worker_pid)
         assert worker_nice == min(19, loop_nice + WORKER_NICE) and (worker_nice > loop_nice or loop_nice == 19)
+        assert pipeline.stats()["vision_worker_nice"] == WORKER_NICE
     assert gone(pipeline)

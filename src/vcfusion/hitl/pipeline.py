@@ -178,6 +178,7 @@ class VisionPipeline:
         self.scenario = scenario
         self.size = (int(scenario.camera.width_px), int(scenario.camera.height_px))
         self.lossless = lossless  # wait for each result instead of dropping ticks (tests compare with the loop)
+        self.nice = nice  # the worker's niceness above the loop's
         self.shm = shared_memory.SharedMemory(create=True, size=_block_bytes(*self.size),
                                               name=f"{SHM_PREFIX}{os.getpid()}-{id(self):x}")
         self._views = _views(self.shm.buf, *self.size)
@@ -304,6 +305,7 @@ class VisionPipeline:
         latency = np.array(self.latency_s)
         return {
             "vision_pipeline": True,
+            "vision_worker_nice": self.nice,
             "vision_ticks_due": self.submitted + len(self.dropped_times),
             "vision_results": self.results,
             "vision_ticks_dropped": len(self.dropped_times),
