@@ -2,6 +2,7 @@
 speed (vision beside the loop, headless, the keyboard idle) with the loop's parts timed.
 
     PYOPENGL_PLATFORM=osmesa PYTHONPATH=src python tools/hitl_frame_profile.py [--max-time 17.6] [--json OUT]
+        [--full-gc-at 10.0]
 
 Every part below is wrapped with a timer that records its own wall and CPU time (its children's
 taken out): SUMO steps, the truth read, each tick stage (camera render, the hand-over to the vision
@@ -10,7 +11,10 @@ window's blit and flip, the scoring of the drawn boxes, the vision result read, 
 and Python's garbage collections (gc.callbacks). The time of each part is attributed to the
 display frame period it falls in (from one due display frame's step to the next). Printed: per
 part, the median and 99th percentile per frame period and its share of the frames that overran the
-33.3 ms budget (loop work above the frame period), then the 15 worst frame periods part by part.
+33.3 ms budget (loop work above the frame period), the dropped frames and how many of them were
+due at a V2C tick (0.1 s), the loop's CPU per simulated second, then the 15 worst frame periods
+part by part and the collections over 1 ms inside the drive. `--full-gc-at T` makes one full
+collection at simulated time T (what one costs inside a drive).
 A measuring tool: its wrappers add a few microseconds per call.
 """
 
@@ -143,7 +147,7 @@ def thread_cpu(pid: int) -> dict:
     return {"nice": os.getpriority(os.PRIO_PROCESS, pid), "threads": out}
 
 
-def analyse(tl: Timeline, frames, wall0: float, budget_ms: float) -> dict:
+def analyse(tl: Timeline, frames, wall0: float, budget_ms: float, tick_s: float = 0.1) -> dict:
     due = np.asarray(frames["wall_s"], float) + wall0  # when each due frame was shown or dropped
     shown = np.asarray(frames["shown"], bool)
     ev = sorted(tl.events, key=lambda e: e[1])
@@ -172,6 +176,9 @@ def analyse(tl: Timeline, frames, wall0: float, budget_ms: float) -> dict:
            "process_cpu_ms_p99": round(1e3 * float(np.percentile(proc_cpu, 99)), 2),
            "involuntary_switches_per_frame": round(float(nivcsw.mean()), 2),
            "overrun_frames": int(over.sum()), "parts": {}}
+    sim = np.asarray(frames["sim_time"], float)
+    at_tick = np.isclose(sim / tick_s, np.round(sim / tick_s), atol=1e-6)
+    out |= {"frames_at_ticks": int(at_tick.sum()), "dropped_at_ticks": int((~shown & at_tick).sum())}
     for p in parts:
         w = wall[p]
         out["parts"][p] = {"calls": sum(1 for e in ev if e[0] == p),
@@ -226,11 +233,11 @@ def main(argv=None) -> int:
     result = drive(sc, 0, input_spec="keyboard", guidance_on=True, speed=1.0, out_dir=None, headless=True,
                    display_fps=30.0, start_screen_s=0.0, vision_pipeline=True)
     gc.callbacks.remove(tl.gc_callback)
-    out = analyse(tl, captured["frames"], captured["wall0"], 1e3 / 30.0)
+    out = analyse(tl, captured["frames"], captured["wall0"], 1e3 / 30.0, sc.v2c.period_s)
     rt = result.summary["realtime"]
     out["realtime"] = {k: rt.get(k) for k in ("display_fps_median", "dropped_frames", "max_lag_s", "ar_age_ms_median",
                                               "vision_ticks_dropped", "vision_latency_ms_median")}
-    print(json.dumps({k: v for k, v in out.items() if k not in ("parts", "worst")}))
+    print(json.dumps({k: v for k, v in out.items() if k not in ("parts", "worst", "gc", "per_frame")}))
     print("dropped at", [round(t, 2) for t, sh in zip(captured["frames"]["sim_time"], captured["frames"]["shown"]) if not sh])
     print("threads:", captured.get("threads"))
     print(f"{'part':16s} {'calls':>6s} {'p50':>7s} {'p99':>7s} {'max':>7s} {'cpu50':>7s} {'cpu99':>7s} {'overrun%':>8s}")
@@ -240,7 +247,7 @@ def main(argv=None) -> int:
     for w in out["worst"]:
         print(w)
     print("gc pauses:", out["gc_pauses"])
-    print("gc over 1 ms:", out["gc"])
+    print("gc over 1 ms inside the drive:", [g for g in out["gc"] if 0 < g["frame"] < out["frames_due"]])
     pf = out["per_frame"]
     t = np.asarray(pf["sim_time"])
     print("per simulated second: loop thread CPU ms / process CPU ms per frame period (mean), dropped")
