@@ -57,9 +57,9 @@ WORKER_CNN_THREADS = 1
 # llvmpipe rasteriser threads) and the worker want the same core, the loop's get it (weight 1024
 # against 110 for nice 10, Linux CFS) and the worker takes the rest: when the machine is short,
 # vision ticks are dropped (counted), not display frames. Measured on the shared 2-core VM under
-# overload (load 8-16, P6 drive, alternated with the worker at nice 0): dropped display frames
-# 15-234 of 531 against 168-323, AR age median 555-1340 ms against 170-340 ms; not measured on a
-# quiet machine, where the two share a core only for moments.
+# overload (load 9-10.6, the P6 drive, three rounds alternated with the worker at nice 0): dropped
+# display frames 189 / 64 / 180 of 531 against 210 / 199 / 257, AR age median 770-1070 ms against
+# 300-340 ms; not measured on a quiet machine, where the two share a core only for moments.
 WORKER_NICE = 10
 
 
