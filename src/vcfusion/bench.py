@@ -16,7 +16,9 @@ its worker processes) is its own:
 - P6 a person's drive paced to the wall clock (`vcfusion drive`) with the full vision tick at
   640x480 and a 30 frames/s display (SDL dummy driver), with the vision tick beside the loop and
   in it, alternated: display frames per second, AR age, vision results, late and
-  dropped frames, the simulation's lag behind the clock, input-to-display time;
+  dropped frames, the simulation's lag behind the clock, input-to-display time, and the loop's
+  work per frame period (`frame_work_ms_p99`, `frame_cpu_ms_p99`, `frames_over_budget`) with the
+  garbage collector's pauses in the drive (`gc_collections_full`, `gc_pause_ms_max`);
 - P8 (only when named) the Gymnasium environment (vcfusion.gym) on one core: environment steps (one V2C tick
   each) per second in kinematics mode and in camera mode (640x480 RGB), each beside the plain
   closed loop (`vcfusion run`'s tick loop with the driver model) on the same trips, alternated;
@@ -362,7 +364,8 @@ def p6_drive(max_time_s: float) -> dict:
                                "ar": sc.ar.model_copy(update={"video": False})})
     out = {"name": "P6 real-time drive 640x480 + vision tick"}
     keys = ("display_fps_median", "dropped_frames", "frames_due", "max_lag_s", "input_to_display_ms_median",
-            "ar_age_ms_median", "ar_age_ms_max")
+            "ar_age_ms_median", "ar_age_ms_max", "frame_work_ms_p99", "frame_cpu_ms_p99", "frames_over_budget",
+            "gc_collections_full", "gc_pause_ms_max")
     for prefix, pipelined in (("", True), ("in_loop_", False)):
         result = drive(sc, 0, input_spec="keyboard", guidance_on=True, speed=1.0, out_dir=None, headless=True,
                        display_fps=30.0, start_screen_s=0.0, vision_pipeline=pipelined)

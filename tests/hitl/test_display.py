@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from support.cuboid_frames import CuboidFrameSource, ShiftedOntoNeighbour
 from vcfusion.cosim import EgoStep, Tick
@@ -215,3 +216,67 @@ def test_cloud_boxes_leave_out_twins_out_of_view():
     items = [Guidance(0.0, "cutter", 0.9, "high", None), Guidance(0.0, "neighbour", 0.9, "high", None)]
     assert [g.vehicle_id for g in cloud_boxes(items, behind, cam)] == ["neighbour"]
     assert pd.Series([g.box is not None for g in cloud_boxes(items, twins, cam)]).all()
+
+
+class BurningRenderer:
+    """A display renderer that uses `cpu_ms` of the thread's CPU per frame, and collects the
+    garbage (a full collection) at the frame of time `collect_at`."""
+
+    def __init__(self, cpu_ms: float, collect_at: float):
+        self.cpu_ms, self.collect_at, self.times = cpu_ms, collect_at, []
+
+    def render(self, truth):
+        import gc
+        import time
+        from types import SimpleNamespace
+
+        started = time.thread_time()
+        while time.thread_time() - started < self.cpu_ms / 1e3:
+            pass
+        if abs(truth.time - self.collect_at) < 1e-6:
+            gc.collect()
+        self.times.append(truth.time)
+        return SimpleNamespace(time=truth.time, rgb=np.zeros((48, 64, 3), np.uint8))
+
+
+def test_each_due_frame_records_the_loops_work_cpu_and_gc_pauses_of_its_period():
+    # a paced 0.3-s drive at 100 steps/s, a 30 frames/s display whose render costs 8 ms of CPU, and
+    # one full garbage collection inside the frame at 0.2 s (on a busy machine a frame after it
+    # may be dropped)
+    from types import SimpleNamespace
+
+    from vcfusion.cosim import EgoStep
+    from vcfusion.hitl.driver import HumanDriver
+    from vcfusion.hitl.gcpause import GcPauses
+
+    control = SimpleNamespace(steer=0.0, throttle=0.0, brake=0.0, lane_change=0)
+    device = SimpleNamespace(sample=lambda t, dt: (control, {}), handle=lambda e: None)
+    state = SimpleNamespace(accel=0.0, d=1.0, yaw=0.0)
+    vehicle = SimpleNamespace(update=lambda c, dt, s: state, state=state)
+    renderer = BurningRenderer(8.0, 0.2)
+    pauses = GcPauses()
+    driver = HumanDriver(device, vehicle, 0.01, 1000.0, guidance_on=False, speed=1.0, display_fps=30.0,
+                         renderer=renderer, gc_pauses=pauses)
+    with pauses:
+        for k in range(31):
+            t = round(0.01 * k, 6)
+            driver.step(EgoStep(t, 10.0, 10.0, lambda t=t: SimpleNamespace(time=t)))
+        tables, summary = {}, {}
+        driver.finish(tables, summary)
+    frames = tables["frames"]
+    rt = summary["realtime"]
+    assert len(frames) == rt["frames_due"] == 10 and frames.shown.sum() == len(renderer.times) >= 3
+    # the render's CPU is in the period of the frame it drew (the first frame's period is its own step)
+    assert (frames.cpu_ms[frames.shown] >= 8.0).all()
+    # the work is the loop's time without the pacing sleep: at least its CPU; with the sleep the
+    # periods add up to the drive's wall time up to its last frame
+    assert (frames.work_ms >= frames.cpu_ms - 0.5).all() and driver._slept > 0.0
+    assert frames.work_ms.sum() + 1e3 * driver._slept == pytest.approx(1e3 * frames.wall_s.iloc[-1], abs=1.0)
+    assert rt["frame_work_ms_p99"] == pytest.approx(np.percentile(frames.work_ms, 99))
+    assert rt["frame_cpu_ms_p99"] == pytest.approx(np.percentile(frames.cpu_ms, 99))
+    # the collection: timed, in the period of the frame at 0.2 s, and in the summary
+    (full,) = [p for p in pauses.pauses if p[0] == 2]
+    at = frames.index[np.isclose(frames.sim_time, 0.2)][0]
+    assert frames.gc_ms[at] == pytest.approx(1e3 * full[2], rel=1e-6) and frames.gc_ms.drop(at).sum() < frames.gc_ms[at]
+    assert rt["gc_collections_full"] == 1 and rt["gc_pause_ms_max"] >= 1e3 * full[2] - 1e-9
+    assert rt["gc_collections"] == len(pauses.pauses) and rt["gc_pause_ms_total"] == pytest.approx(frames.gc_ms.sum())

@@ -94,10 +94,16 @@ def test_the_worker_gives_the_tables_of_the_fusion_stage_in_the_loop(tmp_path, r
 
 @pytest.mark.slow
 def test_a_paced_drive_records_its_vision_ticks_and_the_age_of_what_it_shows(tmp_path, recorded_pipelines):
+    import gc
+
     sc = load_scenario(small_scenario(tmp_path, 3.0))
-    result = drive(sc, tmp_path / "run", input_spec=replay_file(tmp_path), speed=1.0)
+    frozen = []  # objects frozen out of the collections when the trip's clock starts
+    result = drive(sc, tmp_path / "run", input_spec=replay_file(tmp_path), speed=1.0,
+                   on_start=lambda: frozen.append(gc.get_freeze_count()))
     (pipeline,) = recorded_pipelines
     assert gone(pipeline)
+    # the set-up's heap was frozen for the paced trip, and is given back after it
+    assert frozen[0] > 0 and gc.get_freeze_count() == 0
     rt = result.summary["realtime"]
     run = tmp_path / "run"
     camera = pd.read_parquet(run / "camera.parquet")
@@ -124,6 +130,11 @@ def test_a_paced_drive_records_its_vision_ticks_and_the_age_of_what_it_shows(tmp
     assert rt["ar_age_ms_median"] == pytest.approx(float(np.median(age[first:])))
     assert rt["ar_age_ms_max"] == pytest.approx(float(age[first:].max()))
     assert rt["vision_latency_ms_median"] > 0 and rt["frames_due"] == len(frames)
+    # each due frame's period: the loop's work and CPU time, and the trip's collections
+    assert (frames.work_ms > 0).all() and (frames.cpu_ms > 0).all() and (frames.gc_ms >= 0).all()
+    assert rt["frame_work_ms_p99"] == pytest.approx(float(np.percentile(frames.work_ms, 99)))
+    assert rt["frames_over_budget"] == int((frames.work_ms > 1000 / 30).sum())
+    assert rt["gc_pause_ms_total"] == pytest.approx(frames.gc_ms.sum(), abs=1e-6)
 
 
 @pytest.mark.slow
@@ -295,6 +306,24 @@ def test_batch_runs_and_full_speed_replays_never_start_the_worker(tmp_path, reco
     sc = load_scenario(small_scenario(tmp_path, 1.0))
     result = execute_run(sc, 0, tmp_path / "batch")
     assert len(pd.read_parquet(tmp_path / "batch" / "fusion.parquet")) > 0 and "realtime" not in result.summary
-    replay = drive(sc, tmp_path / "replay", input_spec=replay_file(tmp_path), speed=None)
+    import gc
+
+    frozen = []
+    replay = drive(sc, tmp_path / "replay", input_spec=replay_file(tmp_path), speed=None,
+                   on_start=lambda: frozen.append(gc.get_freeze_count()))
     assert replay.summary["realtime"]["vision_pipeline"] is False
+    assert frozen == [0]  # a replay at full speed keeps the collector as it is
     assert not recorded_pipelines
+
+
+@pytest.mark.slow
+def test_the_worker_runs_nicer_than_the_loop_so_the_display_wins_a_shared_core(tmp_path):
+    from vcfusion.hitl.pipeline import WORKER_NICE, VisionPipeline
+
+    with VisionPipeline(load_scenario(small_scenario(tmp_path, 1.0)), 0) as pipeline:
+        pipeline.wait_ready()
+        loop_nice = os.getpriority(os.PRIO_PROCESS, 0)
+        worker_nice = os.getpriority(os.PRIO_PROCESS, pipeline.worker_pid)
+        assert worker_nice == min(19, loop_nice + WORKER_NICE) and (worker_nice > loop_nice or loop_nice == 19)
+        assert pipeline.stats()["vision_worker_nice"] == WORKER_NICE
+    assert gone(pipeline)

@@ -7,12 +7,16 @@ study that reads run folders reads human trips too.
 
 At real speed the fusion stage runs in a worker process beside the loop (vcfusion.hitl.pipeline):
 the loop never waits for a vision tick (one due while the worker is busy is dropped and counted).
+There, too, the heap built before the trip is frozen out of the garbage collector's collections
+for the trip (vcfusion.hitl.gcpause.frozen_heap), and every collection is timed (the frames'
+`gc_ms`, the summary's `gc_collections`).
 """
 
 from __future__ import annotations
 
 import shutil
 import time as wallclock
+from contextlib import nullcontext
 from pathlib import Path
 
 from vcfusion.errors import UsageError
@@ -81,6 +85,7 @@ def drive(scenario: Scenario, seed: int, *, input_spec: str, guidance_on: bool, 
 def _drive(scenario, seed, pipeline, pygame, device, replay, *, input_spec, guidance_on, speed, out_dir, participant,
            record_video, window, display_fps, start_screen_s, on_start, shared_window):
     from vcfusion.control.stage import ControllerStage
+    from vcfusion.hitl.gcpause import GcPauses, frozen_heap
     from vcfusion.hitl.driver import HumanDriver
     from vcfusion.hitl.vehicle import VehicleModel
     from vcfusion.run import build_cosimulation, manifest_for
@@ -122,6 +127,7 @@ def _drive(scenario, seed, pipeline, pygame, device, replay, *, input_spec, guid
             Path(out_dir).parent.mkdir(parents=True, exist_ok=True)
             staging = Path(tempfile.mkdtemp(prefix=video_staging_prefix(out_dir), dir=Path(out_dir).parent))
             video = OverlayRecorder(staging / "video", fps=display_fps, write_png=False, video_name="drive.mp4")
+    gc_pauses = GcPauses()
     info = {"participant": participant, "input": device.name, "seed": seed,
             "axis_map": device.map.model_dump() if hasattr(device, "map") else None}
     # the person at the wheel, as a controller of the API (vcfusion.control)
@@ -129,7 +135,7 @@ def _drive(scenario, seed, pipeline, pygame, device, replay, *, input_spec, guid
                                                    ego.depart_pos_m + ego.trip_distance_m, guidance_on=guidance_on,
                                                    speed=speed, display_fps=display_fps, pygame=pygame, window=win,
                                                    renderer=renderer, video=video, info=info, on_start=on_start,
-                                                   vision=pipeline))
+                                                   vision=pipeline, gc_pauses=gc_pauses))
     try:
         if win is not None and not replay:
             from vcfusion.hitl.driver import forward_controls
@@ -138,7 +144,9 @@ def _drive(scenario, seed, pipeline, pygame, device, replay, *, input_spec, guid
                                forward_controls(pygame, device), start_screen_s)
         if pipeline is not None:
             pipeline.wait_ready()  # the trip's clock starts with the vision worker ready
-        result = cosim.run()
+        # paced: the set-up's heap out of the trip's collections (vcfusion.hitl.gcpause)
+        with gc_pauses, frozen_heap() if speed is not None else nullcontext():
+            result = cosim.run()
         if out_dir is not None:
             extra = {}
             if video is not None:

@@ -12,13 +12,27 @@ Every SUMO step (`step`):
    camera (at a tick, the camera stage's render of that tick is the same image: reused), draws
    the overlay and HUD and shows it. Frames are dropped before the simulation is
    slowed: when the step is already later than one frame period, the frame is not drawn (unless
-   no frame was shown for MAX_FRAME_GAP frame periods). A SUMO step longer than a frame period
+   no frame was shown for MAX_FRAME_GAP frame periods, or its image is the tick's render, made
+   already: showing it costs the overlay and the flip, about 1 ms, and it is counted late, not
+   dropped). A tick's render runs before the step's pacing, so its own time is in the tick's lag:
+   the frame it made was the one most often dropped (37-46 % of the drops in profiled drives, a
+   third of the frames being at ticks; `tools/hitl_frame_profile.py`). A SUMO step longer than a frame period
    (step_s 0.1 s against 30 frames/s) shows one frame per step: the frames due in between are
    counted as dropped (the display cannot be faster than the simulation's step).
 Every step's wall time, simulated time, lag, raw readings and mapped controls go to the
 `inputs` table; every displayed or dropped frame to `frames`; `finish` adds both and the
 summary's `realtime` block (display_fps_median, late_frames, dropped_frames, max_lag_s,
-input_to_display_ms_median) and `hitl` block. With guidance on and a display, every box drawn on a shown frame goes to `display`
+input_to_display_ms_median, the frame work figures below) and `hitl` block.
+
+Frame work: every due frame's row also says what the loop did in the frame period that ended
+with it (from the end of the previous due frame's handling to the end of its own): `work_ms`, the
+loop's wall time minus the pacing sleep (SUMO steps, tick stages, render, overlay, flip: above the
+frame period the loop cannot keep up), `cpu_ms`, the loop thread's CPU time in it (the work's own
+cost; work above it is time the thread waited for a core or for the renderer's threads), and
+`gc_ms`, Python's garbage collection pauses in it (with `gc_pauses`, vcfusion.hitl.gcpause). The
+summary gives `frame_work_ms_p50` / `_p95` / `_p99`, `frame_cpu_ms_p99`, `frames_over_budget`
+(work above one frame period) and the trip's collections (`gc_collections`, `gc_collections_full`,
+`gc_pause_ms_max`, `gc_pause_ms_total`). With guidance on and a display, every box drawn on a shown frame goes to `display`
 (time, the twin it warns of, level, source, the box, and `box_vehicle_id`: the vehicle owning most
 of the box's pixels in that frame's instance map, found after drawing, for scoring only): the
 guidance study counts a person's right and wrong highlights from it, i.e. from what was shown.
@@ -55,7 +69,7 @@ class HumanDriver:
 
     def __init__(self, device, vehicle: VehicleModel, dt: float, trip_end_s: float, *, guidance_on: bool,
                  speed: float | None = 1.0, display_fps: float = 30.0, pygame=None, window=None, renderer=None,
-                 video=None, info: dict | None = None, on_start=None, vision=None):
+                 video=None, info: dict | None = None, on_start=None, vision=None, gc_pauses=None):
         self.device = device
         self.vehicle = vehicle
         self.dt = dt
@@ -88,10 +102,17 @@ class HumanDriver:
         self._last_poll = None
         self._last_shown: float | None = None
         self._tick_frame = None
+        # frame work (module doc): the garbage collections' timer (vcfusion.hitl.gcpause.GcPauses,
+        # entered by the caller), the pacing sleep so far (s) and (wall, thread CPU, sleep, GC) at the
+        # end of the last due frame
+        self.gc_pauses = gc_pauses
+        self._slept = 0.0
+        self._mark: tuple[float, float, float, float] | None = None
         self.rows: dict[str, list] = {k: [] for k in ("wall_s", "sim_time", "lag_s", "keys", "raw_axes", "raw_buttons",
                                                       "steer", "throttle", "brake", "lane_change", "accel", "d", "yaw")}
         self.frame_rows: dict[str, list] = {k: [] for k in ("sim_time", "wall_s", "shown", "lag_s", "render_ms",
-                                                            "input_to_display_ms", "ar_age_ms")}
+                                                            "input_to_display_ms", "ar_age_ms", "work_ms",
+                                                            "cpu_ms", "gc_ms")}
         self.display_rows: list[dict] = []
 
     # -- the loop's controller interface ------------------------------------------------
@@ -119,6 +140,7 @@ class HumanDriver:
         now = wallclock.perf_counter()
         if self._wall0 is None:
             self._wall0, self._sim0, self._next_frame = now, st.time, st.time
+            self._mark = (now, wallclock.thread_time(), 0.0, self._gc_total())
             if self.on_start is not None:
                 self.on_start()
         lag = 0.0
@@ -126,7 +148,9 @@ class HumanDriver:
             due = self._wall0 + (st.time - self._sim0) / self.speed
             if now < due:
                 wallclock.sleep(due - now)
-                now = wallclock.perf_counter()
+                woke = wallclock.perf_counter()
+                self._slept += woke - now
+                now = woke
             lag = max(0.0, now - due)
         if self.pg is not None:
             for event in self.pg.event.get():
@@ -173,18 +197,32 @@ class HumanDriver:
         f["render_ms"].append(np.nan)
         f["input_to_display_ms"].append(np.nan)
         f["ar_age_ms"].append(np.nan)
+        self._close_period()
+
+    def _gc_total(self) -> float:
+        return self.gc_pauses.total_s if self.gc_pauses is not None else 0.0
+
+    def _close_period(self) -> None:
+        """The frame work of the period that ends with this due frame (module doc)."""
+        now, cpu, gc_total = wallclock.perf_counter(), wallclock.thread_time(), self._gc_total()
+        wall0, cpu0, slept0, gc0 = self._mark
+        f = self.frame_rows
+        f["work_ms"].append(1000.0 * (now - wall0 - (self._slept - slept0)))
+        f["cpu_ms"].append(1000.0 * (cpu - cpu0))
+        f["gc_ms"].append(1000.0 * (gc_total - gc0))
+        self._mark = (now, cpu, self._slept, gc_total)
 
     def _frame(self, st: EgoStep, lag: float) -> None:
         starved = self._last_shown is None or wallclock.perf_counter() - self._last_shown > MAX_FRAME_GAP * self.frame_period
-        if self.speed is not None and lag > self.frame_period and not starved:
+        tick_frame = self._tick_frame
+        rendered = tick_frame is not None and abs(tick_frame.time - st.time) < 1e-9  # this step's image is made
+        if self.speed is not None and lag > self.frame_period and not starved and not rendered:
             self._dropped(st.time, lag)  # behind the clock: drop the frame rather than slow the simulation further
             return
         f = self.frame_rows
         f["sim_time"].append(round(st.time, 6))
         started = wallclock.perf_counter()
-        tick_frame = self._tick_frame
-        frame = tick_frame if tick_frame is not None and abs(tick_frame.time - st.time) < 1e-9 \
-            else self.renderer.render(st.states())
+        frame = tick_frame if rendered else self.renderer.render(st.states())
         if self.vision is not None:
             self._take_vision_result()
         items = self._drawn(frame, st.time) if self.guidance_on else []
@@ -205,6 +243,7 @@ class HumanDriver:
         f["input_to_display_ms"].append(1000.0 * (shown - (self._last_poll or started)))
         # how old the overlay's picture of the world is: from the frame it was made from to this one
         f["ar_age_ms"].append(1000.0 * (st.time - self._update_time) if self._shown_set is not None else np.nan)
+        self._close_period()
 
     def _take_vision_result(self) -> None:
         """The vision worker's newest overlay, when it is new (as acceleration() takes a tick's)."""
@@ -257,6 +296,10 @@ class HumanDriver:
         import pandas as pd
         import pyarrow as pa
 
+        # the trip's collections, from its clock's start to its last due frame (those of the tables
+        # made below are not the drive's)
+        pauses = [p for p in self.gc_pauses.since(self._wall0) if p[1] <= self._mark[0]] \
+            if self.gc_pauses is not None and self._wall0 is not None else None
         r = self.rows
         columns = {k: v for k, v in r.items() if k not in ("raw_axes", "raw_buttons")}
         inputs = pa.table({**{k: pa.array(v) for k, v in columns.items()},
@@ -268,7 +311,7 @@ class HumanDriver:
         tables["frames"] = pd.DataFrame(self.frame_rows)
         if self.renderer is not None and self.guidance_on:  # a trip with a display that drew guidance
             tables["display"] = pd.DataFrame(self.display_rows, columns=list(DISPLAY_COLUMNS))
-        summary["realtime"] = realtime_summary(self.frame_rows, r["lag_s"], self.speed, self.frame_period) | (
+        summary["realtime"] = realtime_summary(self.frame_rows, r["lag_s"], self.speed, self.frame_period, pauses) | (
             self.vision.stats() if self.vision is not None else {"vision_pipeline": False, "vision_ticks_dropped": 0})
         summary["hitl"] = self.info | {"guidance": "on" if self.guidance_on else "off",
                                       "speed": "max" if self.speed is None else self.speed,
@@ -277,8 +320,9 @@ class HumanDriver:
 
 
 def realtime_summary(frames: dict[str, list], step_lags: list[float], speed: float | None,
-                     frame_period: float = 1.0 / 30.0) -> dict:
-    """How well the trip kept to the wall clock (see the module doc)."""
+                     frame_period: float = 1.0 / 30.0, gc_pauses: list[tuple[int, float, float]] | None = None) -> dict:
+    """How well the trip kept to the wall clock (see the module doc). `gc_pauses`: the trip's
+    garbage collections (generation, start, pause s); None: not timed."""
     shown = np.array(frames["shown"], dtype=bool)
     wall = np.array(frames["wall_s"], dtype=float)[shown]
     intervals = np.diff(wall)
@@ -287,6 +331,12 @@ def realtime_summary(frames: dict[str, list], step_lags: list[float], speed: flo
     age = np.array(frames.get("ar_age_ms", [np.nan] * len(shown)), dtype=float)[shown]
     age = age[np.isfinite(age)]
     late_limit = frame_period  # a frame more than one frame period behind its simulated time
+    work = np.array(frames.get("work_ms", []), dtype=float)
+    cpu = np.array(frames.get("cpu_ms", []), dtype=float)
+
+    def pct(values: np.ndarray, q: float) -> float | None:
+        return float(np.percentile(values, q)) if len(values) else None
+    pause_ms = np.array([1000.0 * p[2] for p in gc_pauses or ()])
     return {
         "frames_due": int(len(shown)),
         "frames_shown": int(shown.sum()),
@@ -297,6 +347,15 @@ def realtime_summary(frames: dict[str, list], step_lags: list[float], speed: flo
         "input_to_display_ms_median": float(np.median(to_display)) if len(to_display) else None,
         "ar_age_ms_median": float(np.median(age)) if len(age) else None,
         "ar_age_ms_max": float(age.max()) if len(age) else None,
+        "frame_work_ms_p50": pct(work, 50),
+        "frame_work_ms_p95": pct(work, 95),
+        "frame_work_ms_p99": pct(work, 99),
+        "frame_cpu_ms_p99": pct(cpu, 99),
+        "frames_over_budget": int((work > 1000.0 * frame_period).sum()),
+        "gc_collections": len(gc_pauses) if gc_pauses is not None else None,
+        "gc_collections_full": sum(1 for p in gc_pauses if p[0] == 2) if gc_pauses is not None else None,
+        "gc_pause_ms_max": float(pause_ms.max()) if len(pause_ms) else (0.0 if gc_pauses is not None else None),
+        "gc_pause_ms_total": float(pause_ms.sum()) if gc_pauses is not None else None,
     }
 
 
