@@ -1,0 +1,66 @@
+"""The threshold curve of one decision rule on pooled streams of several recordings, and the
+threshold a per-recording false-alarm budget allows (`tools/real_alarms_cv.py`).
+
+Each row of the curve is one threshold of the aggressive smoothing (hold `tau_ticks`), scored
+with :func:`vcfusion.prediction.events.event_scores` on all streams together ("all") and on each
+recording's alone: `{part}_predicted`, `{part}_advance_s`, `{part}_fa` (false alarms),
+`{part}_fa_censored`, `{part}_fa_per_veh_h` (the headline rate: every false alarm over all
+vehicle-hours), `{part}_fa_judged`, `{part}_judged_veh_h` and `{part}_fa_judged_per_veh_h` (the
+judged, censoring-aware rate: uncensored false alarms over the exposure where the confirming
+window fits in the track).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from vcfusion.prediction.events import FALSE_ALARM_RATES, event_scores, smooth_stream, smoothing_bounds, track_bounds
+
+# the curve's column of each false-alarm rate of :data:`vcfusion.prediction.events.FALSE_ALARM_RATES`
+RATE_COLUMN = {"all": "fa_per_veh_h", "judged": "fa_judged_per_veh_h"}
+assert set(RATE_COLUMN) == set(FALSE_ALARM_RATES)
+
+
+def threshold_curve(stream: pd.DataFrame, events: pd.DataFrame, thresholds, tau_ticks: int, period_s: float,
+                    horizon_s: float, source: str = "source") -> pd.DataFrame:
+    """stream: seed, vehicle_id, time, prob and `source` (the recording of each row), sorted by
+    seed, vehicle, time; events: the lane changes (seed, event_id, vehicle_id, end, mid)."""
+    prob, stretches = stream["prob"].to_numpy(), smoothing_bounds(stream)
+    names = list(dict.fromkeys(stream[source].tolist()))
+    parts = {"all": None, **{n: (stream[source] == n).to_numpy() for n in names}}
+    rows = []
+    for thr in thresholds:
+        dec = smooth_stream(stretches, (prob > thr).astype(np.int8), "aggressive", tau_ticks, tau_ticks)
+        row = {"threshold": float(thr)}
+        for name, mask in parts.items():
+            s = stream if mask is None else stream[mask].reset_index(drop=True)
+            d = dec if mask is None else dec[mask]
+            e = events[events["seed"].isin(s["seed"].unique())]
+            summary, _ = event_scores(s, d, e, period_s, horizon_s, track_bounds(s))
+            row |= {f"{name}_predicted": summary["predicted_share"], f"{name}_advance_s": summary["advance_final_mean_s"],
+                    f"{name}_fa_per_veh_h": summary["false_alarms_per_vehicle_hour"],
+                    f"{name}_fa_censored": summary["false_alarms_censored"], f"{name}_fa": summary["false_alarms"],
+                    f"{name}_fa_judged": summary["false_alarms_judged"],
+                    f"{name}_judged_veh_h": summary["judged_vehicle_hours"],
+                    f"{name}_fa_judged_per_veh_h": summary["false_alarms_judged_per_vehicle_hour"]}
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def choose_threshold(curve: pd.DataFrame, budget: float, recordings, rate: str = "all") -> pd.Series | None:
+    """The curve's row predicting most lane changes (ties: larger mean advance, then the lower
+    pooled rate) whose false-alarm rate `rate` ("all" or "judged") is <= budget in each of
+    `recordings`; None if no row is. A recording without judged exposure cannot bound the judged
+    rate: ValueError, not a pass."""
+    if rate not in RATE_COLUMN:
+        raise ValueError(f"false-alarm rate: expected one of {sorted(RATE_COLUMN)}, got {rate!r}")
+    col = RATE_COLUMN[rate]
+    for name in recordings:
+        if rate == "judged" and not (curve[f"{name}_judged_veh_h"] > 0).all():
+            raise ValueError(f"{name}: no judged exposure (no track outlasts the confirming window), so its judged "
+                             f"false-alarm rate cannot be bounded")
+    ok = curve[np.logical_and.reduce([(curve[f"{n}_{col}"] <= budget).to_numpy() for n in recordings])]
+    if not len(ok):
+        return None
+    return ok.sort_values(["all_predicted", "all_advance_s", f"all_{col}"], ascending=[False, False, True]).iloc[0]
