@@ -53,9 +53,15 @@ def test_false_alarms_whose_confirming_window_passes_the_track_end_are_counted_a
 
 def test_bootstrap_gives_the_censored_share_of_the_false_alarms():
     table = pd.DataFrame({"lane_changes": [1, 0], "predicted": [1, 0], "before_mid": [1, 0], "advance_sum_s": [3.0, 0.0],
-                          "false_alarms": [1, 3], "false_alarms_censored": [0, 3], "hours": [1.0, 1.0]})
+                          "false_alarms": [1, 3], "false_alarms_censored": [0, 3], "hours": [1.0, 1.0],
+                          "judged_hours": [0.5, 0.0]})
     got = bootstrap(table, n_boot=500, seed=0)
     assert got["censored_false_alarms_share"]["value"] == pytest.approx(0.75)
+    # judged: the one uncensored false alarm over the 0.5 h where a window fits; the headline rate stays 4 / 2 h
+    assert got["false_alarms_judged_per_veh_h"]["value"] == pytest.approx(2.0)
+    assert got["false_alarms_per_veh_h"]["value"] == pytest.approx(2.0)
+    # resamples of the second vehicle alone have no judged exposure (undefined, left out); all others give 2
+    assert got["false_alarms_judged_per_veh_h"]["low"] == got["false_alarms_judged_per_veh_h"]["high"] == 2.0
     assert got["censored_false_alarms_share"]["low"] == 0.0 and got["censored_false_alarms_share"]["high"] == 1.0
 
 

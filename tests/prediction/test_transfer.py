@@ -122,8 +122,10 @@ def test_bootstrap_interval_on_a_known_case():
     # two vehicles: A predicts its change and raises no alarm, B misses its change and raises 2 alarms
     table = pd.DataFrame({"lane_changes": [1, 1], "predicted": [1, 0], "before_mid": [1, 0],
                           "advance_sum_s": [4.0, 0.0], "false_alarms": [0, 2], "false_alarms_censored": [0, 1],
-                          "hours": [1.0, 1.0]})
+                          "hours": [1.0, 1.0], "judged_hours": [0.5, 0.5]})
     got = bootstrap(table, n_boot=2000, seed=0)
+    # judged: B's one uncensored false alarm over the 1.0 judged hours of both
+    assert got["false_alarms_judged_per_veh_h"]["value"] == 1.0
     assert got["predicted"]["value"] == 0.5 and got["false_alarms_per_veh_h"]["value"] == 1.0
     # resamples: AA (1/4), AB (1/2), BB (1/4): both extremes are inside the 95 % interval
     assert (got["predicted"]["low"], got["predicted"]["high"]) == (0.0, 1.0)
@@ -213,6 +215,8 @@ def test_frozen_split_by_vehicle_and_the_sim_to_real_table(tiny_recording, tmp_p
                  "--bootstrap", "100"]) == 0
     table = pd.read_csv(out / "sim_to_real.csv")
     assert len(table) == 4 and "tiny GRU" in (out / "sim_to_real.md").read_text()
+    assert "judged false alarms / veh-h" in (out / "sim_to_real.md").read_text()
+    assert "false_alarms_judged_per_veh_h_low" in table.columns
     row = table[(table["model"] == "MLP") & (table["eval"] == "every vehicle")].iloc[0]
     assert row["vehicles"] == 12 and row["lane_changes"] == 6
     held_row = table[(table["model"] == "MLP") & (table["eval"] == "held-out")].iloc[0]
