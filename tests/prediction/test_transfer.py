@@ -12,6 +12,7 @@ from vcfusion.commands import main
 from vcfusion.prediction.features import (AVAILABILITY_NAMES, FEATURE_NAMES, LATERAL_NAMES, LATERAL_REFERENCE_S,
                                           SEQUENCE_INPUT_SETS, FeatureExtractor, availability_flags,
                                           features_from_twins_table, with_derived_columns)
+from vcfusion.prediction.model import load_model
 from vcfusion.prediction.sequence import SequenceModel, save_sequence_model
 from vcfusion.prediction.sources.ngsim import NGSIM_COLUMNS
 from vcfusion.prediction.transfer import bootstrap
@@ -232,3 +233,10 @@ def test_frozen_split_by_vehicle_and_the_sim_to_real_table(tiny_recording, tmp_p
         if default["predicted"]:
             assert r["advance_s"] == pytest.approx(default["advance_final_mean_s"])
         assert r["predicted_low"] <= r["predicted"] <= r["predicted_high"]
+
+    # re-tuning on the split's validation part with the judged (censoring-aware) rate: recorded in the file
+    rt = tmp_path / "gru-judged.npz"
+    assert main(["retune", str(gru), str(ds), "--out", str(rt), "--false-alarm-rate", "judged"]) == 0
+    info = load_model(rt).info["retuned"]
+    assert info["false_alarm_rate"] == "judged"
+    assert info["tuning"]["aggressive"]["validation"]["judged_vehicle_hours"] > 0
