@@ -34,7 +34,7 @@ import numpy as np
 import pandas as pd
 
 from vcfusion.prediction.dataset import load_dataset
-from vcfusion.prediction.decision_curve import RATE_COLUMN, choose_threshold, threshold_curve
+from vcfusion.prediction.decision_curve import RATE_COLUMN, choose_threshold, threshold_curve, weak_judged_bounds
 from vcfusion.prediction.features import stored_columns, with_derived_columns
 from vcfusion.prediction.model import load_model
 from vcfusion.prediction.realsplit import base_vehicle_id
@@ -142,6 +142,9 @@ def main() -> int:
         return 1
     print(f"false-alarm rate bounded: {a.rate}")
     print(best.to_string())
+    if a.rate == "judged":
+        for note in weak_judged_bounds(best, a.budget, ("ngsim", "cr")):
+            print(f"note: {note}")
     if a.apply:
         run("set-decision", a.apply, "--out", a.out, "--smoothing", "aggressive", "--threshold", f"{best['threshold']:.2f}",
             "--tau-ticks", str(a.tau_ticks), "--force", "--reason",

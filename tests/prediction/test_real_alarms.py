@@ -11,7 +11,7 @@ import pytest
 
 from vcfusion.commands import main
 from vcfusion.prediction.cloud import LaneChangePredictor
-from vcfusion.prediction.decision_curve import choose_threshold, threshold_curve
+from vcfusion.prediction.decision_curve import choose_threshold, threshold_curve, weak_judged_bounds
 from vcfusion.prediction.events import event_scores, false_alarm_rate, judged_ticks, track_bounds
 from vcfusion.prediction.features import SEQUENCE_INPUT_SETS
 from vcfusion.prediction.model import load_model
@@ -205,5 +205,11 @@ def test_per_recording_choice_bounds_the_rate_named():
     # the judged rate of a recording with no judged exposure cannot be bounded: an error, not a pass
     with pytest.raises(ValueError, match="short: no judged exposure"):
         choose_threshold(curve, 5.0, ["long", "short"], "judged")
-    assert choose_threshold(curve, 5.0, ["long"], "judged")["threshold"] == 0.3
+    chosen = choose_threshold(curve, 5.0, ["long"], "judged")
+    assert chosen["threshold"] == 0.3
+    # 100 s of judged exposure on "long" is under 1 / 5 h: a single judged false alarm would break the budget
+    assert chosen["long_judged_veh_h"] == pytest.approx(2 * 501 * 0.1 / 3600)
+    notes = weak_judged_bounds(chosen, 5.0, ["long", "short"])
+    assert len(notes) == 2 and notes[1].startswith("short: judged exposure 0.000") and "5 censored" in notes[1]
+    assert weak_judged_bounds(chosen, 100.0, ["long"]) == []  # 1 / 100 h = 36 s < 100.2 s
     assert choose_threshold(curve.iloc[[0]], 5.0, ["long", "short"]) is None  # 5 alarms in 40 s

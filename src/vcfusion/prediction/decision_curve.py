@@ -64,3 +64,13 @@ def choose_threshold(curve: pd.DataFrame, budget: float, recordings, rate: str =
     if not len(ok):
         return None
     return ok.sort_values(["all_predicted", "all_advance_s", f"all_{col}"], ascending=[False, False, True]).iloc[0]
+
+
+def weak_judged_bounds(row: pd.Series, budget: float, recordings) -> list[str]:
+    """Notes on the recordings whose judged exposure is under 1 / budget hours: there a single judged
+    false alarm exceeds the budget, so the bound only says that none was judged false (short tracks:
+    CommonRoad's 8 s scenarios leave little time in which a 10 s confirming window fits)."""
+    return [f"{n}: judged exposure {row[f'{n}_judged_veh_h']:.3f} veh-h < 1 / budget = {1 / budget:.3f} veh-h: one "
+            f"judged false alarm would exceed the budget; the bound there is that none was judged false "
+            f"({int(row[f'{n}_fa_censored'])} censored)"
+            for n in recordings if row[f"{n}_judged_veh_h"] < 1.0 / budget]
