@@ -11,7 +11,8 @@ import pytest
 
 from vcfusion.commands import main
 from vcfusion.prediction.cloud import LaneChangePredictor
-from vcfusion.prediction.decision_curve import choose_threshold, threshold_curve, weak_judged_bounds
+from vcfusion.prediction.decision_curve import (censored_alarm_outcomes, choose_threshold, threshold_curve,
+                                                weak_judged_bounds)
 from vcfusion.prediction.events import event_scores, false_alarm_rate, judged_ticks, track_bounds
 from vcfusion.prediction.features import SEQUENCE_INPUT_SETS
 from vcfusion.prediction.model import load_model
@@ -213,3 +214,21 @@ def test_per_recording_choice_bounds_the_rate_named():
     assert len(notes) == 2 and notes[1].startswith("short: judged exposure 0.000") and "5 censored" in notes[1]
     assert weak_judged_bounds(chosen, 100.0, ["long"]) == []  # 1 / 100 h = 36 s < 100.2 s
     assert choose_threshold(curve.iloc[[0]], 5.0, ["long", "short"]) is None  # 5 alarms in 40 s
+
+
+def test_censored_alarm_outcomes_cut_long_tracks_as_short_ones_are_cut():
+    # short track "c" (0-8 s): a false alarm at 5-6 s, censored, observed 3 s after its start.
+    # long track "L" (0-60 s): a run at 10-11 s before a change ending at 20 s (cut at 13 s:
+    # unconfirmed there, true in full); a run at 30-31 s with no change (cut: unconfirmed, false);
+    # a run at 44-45 s before a change ending at 46 s (confirmed within the cut); a run at 55-56 s
+    # (its full window passes the track's end: left out)
+    stream = _stream({"L": 60.0, "c": 8.0})
+    stream["source"] = np.where(stream["vehicle_id"] == "c", "short", "long")
+    events = pd.DataFrame({"seed": [0, 0], "event_id": [1, 2], "vehicle_id": ["L", "L"], "end": [20.0, 46.0],
+                           "mid": [18.0, 45.0]})
+    dec = (_on(stream, "c", 5.0, 6.0) | _on(stream, "L", 10.0, 11.0) | _on(stream, "L", 30.0, 31.0)
+           | _on(stream, "L", 44.0, 45.0) | _on(stream, "L", 55.0, 56.0))
+    got = censored_alarm_outcomes(stream, dec, events, 10.0, short="short", long="long")
+    assert got["short_censored_false_alarms"] == 1 and got["short_span_median_s"] == pytest.approx(3.0)
+    assert got["long_runs"] == 4
+    assert (got["pairs"], got["pairs_false"], got["runs"], got["runs_false"]) == (2, 1, 2, 1)

@@ -15,7 +15,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from vcfusion.prediction.events import FALSE_ALARM_RATES, event_scores, smooth_stream, smoothing_bounds, track_bounds
+from vcfusion.prediction.events import (FALSE_ALARM_RATES, _runs, event_scores, smooth_stream, smoothing_bounds,
+                                        track_bounds)
 
 # the curve's column of each false-alarm rate of :data:`vcfusion.prediction.events.FALSE_ALARM_RATES`
 RATE_COLUMN = {"all": "fa_per_veh_h", "judged": "fa_judged_per_veh_h"}
@@ -74,3 +75,52 @@ def weak_judged_bounds(row: pd.Series, budget: float, recordings) -> list[str]:
             f"judged false alarm would exceed the budget; the bound there is that none was judged false "
             f"({int(row[f'{n}_fa_censored'])} censored)"
             for n in recordings if row[f"{n}_judged_veh_h"] < 1.0 / budget]
+
+
+def censored_alarm_outcomes(stream: pd.DataFrame, decisions: np.ndarray, events: pd.DataFrame, horizon_s: float,
+                            short: str, long: str, source: str = "source") -> dict:
+    """How the censored false alarms of recording `short` (short tracks) might have turned out,
+    estimated on recording `long` (long tracks, windows observed).
+
+    Each censored false alarm of `short` gives the span observed after its run's start (track end
+    - run start). Each alarm run [a, b] of `long` is cut at a + span, for every span: when no
+    change of the vehicle ends in [a, cut] and the cut run's window passes the cut, it is
+    *censored-like*, and the full track says whether a change ends in [a, b + horizon] (true) or
+    not (false). Pairs whose full window passes the long track's own end are left out. Returns
+    the counts over (run, span) pairs and over distinct runs (censored-like for some span).
+    stream: seed, vehicle_id, time, `source`, sorted by seed, vehicle, time; decisions: 0/1 per row."""
+    eps = 1e-6
+    seeds, vids = stream["seed"].to_numpy(), stream["vehicle_id"].to_numpy()
+    times, src = stream["time"].to_numpy(dtype=float), stream[source].to_numpy()
+    ends_of = {k: g["end"].to_numpy(dtype=float) for k, g in events.groupby(["seed", "vehicle_id"], sort=False)}
+    spans, runs = [], []
+    for a0, b0 in track_bounds(stream):
+        if src[a0] not in (short, long):
+            continue
+        t, ends = times[a0:b0], ends_of.get((seeds[a0], vids[a0]), np.zeros(0))
+        for s0, s1 in zip(*_runs(decisions[a0:b0])):
+            a, b = t[s0], t[s1]
+            true = bool(np.any((ends >= a - eps) & (ends <= b + horizon_s + eps)))
+            if src[a0] == short and not true and b + horizon_s > t[-1] + eps:
+                spans.append(t[-1] - a)
+            elif src[a0] == long:
+                runs.append((a, b, t[-1], ends, true))
+    pairs = pairs_false = runs_like = runs_false = 0
+    for a, b, last, ends, true in runs:
+        if b + horizon_s > last + eps:  # the full window is not observed on the long track either
+            continue
+        like = 0
+        for span in spans:
+            cut = a + span
+            if np.any((ends >= a - eps) & (ends <= cut + eps)) or min(b, cut) + horizon_s <= cut + eps:
+                continue  # confirmed within the cut track, or its window observed there
+            like += 1
+        pairs += like
+        pairs_false += like * (not true)
+        if like:
+            runs_like += 1
+            runs_false += int(not true)
+    return {"short_censored_false_alarms": len(spans),
+            "short_span_median_s": float(np.median(spans)) if spans else float("nan"),
+            "long_runs": len(runs), "pairs": pairs, "pairs_false": pairs_false,
+            "runs": runs_like, "runs_false": runs_false}
