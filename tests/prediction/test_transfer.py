@@ -12,6 +12,7 @@ from vcfusion.commands import main
 from vcfusion.prediction.features import (AVAILABILITY_NAMES, FEATURE_NAMES, LATERAL_NAMES, LATERAL_REFERENCE_S,
                                           SEQUENCE_INPUT_SETS, FeatureExtractor, availability_flags,
                                           features_from_twins_table, with_derived_columns)
+from vcfusion.prediction.model import load_model
 from vcfusion.prediction.sequence import SequenceModel, save_sequence_model
 from vcfusion.prediction.sources.ngsim import NGSIM_COLUMNS
 from vcfusion.prediction.transfer import bootstrap
@@ -122,8 +123,10 @@ def test_bootstrap_interval_on_a_known_case():
     # two vehicles: A predicts its change and raises no alarm, B misses its change and raises 2 alarms
     table = pd.DataFrame({"lane_changes": [1, 1], "predicted": [1, 0], "before_mid": [1, 0],
                           "advance_sum_s": [4.0, 0.0], "false_alarms": [0, 2], "false_alarms_censored": [0, 1],
-                          "hours": [1.0, 1.0]})
+                          "hours": [1.0, 1.0], "judged_hours": [0.5, 0.5]})
     got = bootstrap(table, n_boot=2000, seed=0)
+    # judged: B's one uncensored false alarm over the 1.0 judged hours of both
+    assert got["false_alarms_judged_per_veh_h"]["value"] == 1.0
     assert got["predicted"]["value"] == 0.5 and got["false_alarms_per_veh_h"]["value"] == 1.0
     # resamples: AA (1/4), AB (1/2), BB (1/4): both extremes are inside the 95 % interval
     assert (got["predicted"]["low"], got["predicted"]["high"]) == (0.0, 1.0)
@@ -213,6 +216,8 @@ def test_frozen_split_by_vehicle_and_the_sim_to_real_table(tiny_recording, tmp_p
                  "--bootstrap", "100"]) == 0
     table = pd.read_csv(out / "sim_to_real.csv")
     assert len(table) == 4 and "tiny GRU" in (out / "sim_to_real.md").read_text()
+    assert "judged false alarms / veh-h" in (out / "sim_to_real.md").read_text()
+    assert "false_alarms_judged_per_veh_h_low" in table.columns
     row = table[(table["model"] == "MLP") & (table["eval"] == "every vehicle")].iloc[0]
     assert row["vehicles"] == 12 and row["lane_changes"] == 6
     held_row = table[(table["model"] == "MLP") & (table["eval"] == "held-out")].iloc[0]
@@ -228,3 +233,10 @@ def test_frozen_split_by_vehicle_and_the_sim_to_real_table(tiny_recording, tmp_p
         if default["predicted"]:
             assert r["advance_s"] == pytest.approx(default["advance_final_mean_s"])
         assert r["predicted_low"] <= r["predicted"] <= r["predicted_high"]
+
+    # re-tuning on the split's validation part with the judged (censoring-aware) rate: recorded in the file
+    rt = tmp_path / "gru-judged.npz"
+    assert main(["retune", str(gru), str(ds), "--out", str(rt), "--false-alarm-rate", "judged"]) == 0
+    info = load_model(rt).info["retuned"]
+    assert info["false_alarm_rate"] == "judged"
+    assert info["tuning"]["aggressive"]["validation"]["judged_vehicle_hours"] > 0

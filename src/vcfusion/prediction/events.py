@@ -16,6 +16,15 @@ window that would have confirmed it was not observed (a short CommonRoad track, 
 the recorded stretch, a file cut off). Censored false alarms are still false alarms (the headline
 rate counts them); they are also counted apart (`false_alarms_censored`) so that a set of short
 tracks can be read with that in mind.
+
+The *judged* (censoring-aware) false-alarm rate counts only the alarms that can be judged: the
+false alarms that are not censored, divided by the *judged exposure*, the ticks t of each track
+with t + horizon <= its last tick (vehicle-hours less each track's last `horizon` seconds; a track
+shorter than the horizon adds none). An alarm run is judged exactly when its last tick lies in
+that exposure, so numerator and denominator cover the same ticks: the rate is that of false
+alarms among the alarms that could have been confirmed, the way a right-censored observation is
+left out of both the events and the time at risk. It is undefined (NaN) without judged exposure.
+:data:`FALSE_ALARM_RATES` names the two rates for the decision-selection code.
 """
 
 from __future__ import annotations
@@ -26,6 +35,25 @@ import pandas as pd
 from vcfusion.prediction.smoothing import smooth
 
 _EPS = 1e-6
+
+# The false-alarm rates a decision rule can bound (summary keys of :func:`event_scores`):
+# "all" counts every false alarm over all vehicle-hours (the headline rate); "judged" counts the
+# uncensored ones over the judged exposure (module docstring).
+FALSE_ALARM_RATES = {"all": "false_alarms_per_vehicle_hour", "judged": "false_alarms_judged_per_vehicle_hour"}
+
+
+def judged_ticks(times: np.ndarray, horizon_s: float) -> int:
+    """Ticks of one track (times sorted) at which an alarm run ending there could be confirmed or
+    refuted: t + horizon <= the track's last tick."""
+    return int(np.count_nonzero(times + horizon_s <= times[-1] + _EPS)) if len(times) else 0
+
+
+def false_alarm_rate(summary: dict, which: str = "all") -> float:
+    """The false-alarm rate `which` ("all" or "judged", :data:`FALSE_ALARM_RATES`) of a summary of
+    :func:`event_scores`."""
+    if which not in FALSE_ALARM_RATES:
+        raise ValueError(f"false-alarm rate: expected one of {sorted(FALSE_ALARM_RATES)}, got {which!r}")
+    return summary[FALSE_ALARM_RATES[which]]
 
 
 def _runs(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -89,6 +117,7 @@ def event_scores(stream: pd.DataFrame, decisions: np.ndarray, events: pd.DataFra
     false_alarms = 0
     censored = 0
     alarms = 0
+    judged = 0
     ev_groups = {k: g.sort_values("end") for k, g in events.groupby(["seed", "vehicle_id"], sort=False)}
     seeds = stream["seed"].to_numpy()
     vids = stream["vehicle_id"].to_numpy()
@@ -101,6 +130,7 @@ def event_scores(stream: pd.DataFrame, decisions: np.ndarray, events: pd.DataFra
         ends = g["end"].to_numpy() if g is not None else np.zeros(0)
         starts, stops = _runs(d)
         alarms += len(starts)
+        judged += judged_ticks(t, horizon_s)
         for s0, s1 in zip(starts, stops):
             if not np.any((ends >= t[s0] - _EPS) & (ends <= t[s1] + horizon_s + _EPS)):
                 false_alarms += 1
@@ -147,5 +177,9 @@ def event_scores(stream: pd.DataFrame, decisions: np.ndarray, events: pd.DataFra
         "false_alarms_censored": int(censored),
         "vehicle_hours": float(vehicle_hours),
         "false_alarms_per_vehicle_hour": float(false_alarms / vehicle_hours) if vehicle_hours else float("nan"),
+        "false_alarms_judged": int(false_alarms - censored),
+        "judged_vehicle_hours": float(judged * period_s / 3600.0),
+        "false_alarms_judged_per_vehicle_hour": (float((false_alarms - censored) / (judged * period_s / 3600.0))
+                                                 if judged else float("nan")),
     }
     return summary, per_event

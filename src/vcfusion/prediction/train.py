@@ -23,7 +23,8 @@ import numpy as np
 import pandas as pd
 
 from vcfusion.prediction.dataset import DatasetError, DatasetInfo, load_dataset, load_samples
-from vcfusion.prediction.events import event_scores, smooth_stream, smoothing_bounds, track_bounds
+from vcfusion.prediction.events import event_scores, judged_ticks, smooth_stream, smoothing_bounds, track_bounds
+from vcfusion.prediction.events import false_alarm_rate as rate_of
 from vcfusion.prediction.model import LaneChangeModel, build_torch_mlp, feature_scaling, fit_platt, save_model
 
 # Run-time settings searched on the validation stream. Thresholds are calibrated probabilities
@@ -190,8 +191,13 @@ def combined_stream(infos: list[DatasetInfo], split: str, columns: list[str] | N
 
 def tune_decisions(prob: np.ndarray, stream: pd.DataFrame, events: pd.DataFrame, period_s: float,
                    horizon_s: float, conservative_threshold: float = 0.5,
-                   max_false_alarms: float = MAX_FALSE_ALARMS_PER_VH) -> dict:
+                   max_false_alarms: float = MAX_FALSE_ALARMS_PER_VH, false_alarm_rate: str = "all") -> dict:
     """Pick threshold / tau_a / tau_c on a validation stream.
+
+    `false_alarm_rate`: the rate bounded by `max_false_alarms`, "all" (every false alarm over all
+    vehicle-hours) or "judged" (the uncensored false alarms over the exposure where a confirming
+    window fits in the track; :mod:`vcfusion.prediction.events`); a stream without judged exposure
+    cannot bound the judged rate (ValueError).
 
     For each smoothing and each tau, the lowest threshold of THRESHOLDS with at most
     `max_false_alarms` false alarms per vehicle-hour, found by bisection. That assumes false
@@ -204,6 +210,12 @@ def tune_decisions(prob: np.ndarray, stream: pd.DataFrame, events: pd.DataFrame,
     """
     best: dict = {}
     bounds, stretches = track_bounds(stream), smoothing_bounds(stream)
+    rate = lambda summary: rate_of(summary, false_alarm_rate)  # noqa: E731
+    if false_alarm_rate == "judged":
+        times = stream["time"].to_numpy(dtype=float)
+        if not sum(judged_ticks(times[a:b], horizon_s) for a, b in bounds):
+            raise ValueError(f"judged false-alarm rate: no validation track is longer than the {horizon_s:g} s "
+                             f"confirming window, so no false alarm can be judged")
     for method, taus in (("none", (0,)), ("aggressive", TAU_A_TICKS), ("conservative", TAU_C_TICKS)):
         candidates = []
         for tau in taus:
@@ -217,7 +229,7 @@ def tune_decisions(prob: np.ndarray, stream: pd.DataFrame, events: pd.DataFrame,
                     cache[i] = event_scores(stream, dec, events, period_s, horizon_s, bounds)[0]
                 return cache[i]
 
-            ok = lambda i: score(i)["false_alarms_per_vehicle_hour"] <= max_false_alarms  # noqa: E731
+            ok = lambda i: rate(score(i)) <= max_false_alarms  # noqa: E731
             lo, hi = 0, len(THRESHOLDS) - 1
             if ok(lo):
                 hi = lo
@@ -229,25 +241,26 @@ def tune_decisions(prob: np.ndarray, stream: pd.DataFrame, events: pd.DataFrame,
                     else:
                         lo = mid
             candidates += [(THRESHOLDS[i], tau, summary) for i, summary in cache.items()]
-        ok_c = [c for c in candidates if c[2]["false_alarms_per_vehicle_hour"] <= max_false_alarms]
+        ok_c = [c for c in candidates if rate(c[2]) <= max_false_alarms]
         if ok_c:
             thr, tau, summary = max(ok_c, key=lambda c: (c[2]["predicted_share"], c[2]["advance_final_mean_s"]))
         else:
-            thr, tau, summary = min(candidates, key=lambda c: (c[2]["false_alarms_per_vehicle_hour"],
-                                                               -c[2]["predicted_share"]))
+            thr, tau, summary = min(candidates, key=lambda c: (rate(c[2]), -c[2]["predicted_share"]))
         best[method] = {"threshold": thr, "tau_ticks": tau, "validation": summary}
     return best
 
 
-def choose_default(tuned: dict, max_false_alarms: float = MAX_FALSE_ALARMS_PER_VH) -> str:
+def choose_default(tuned: dict, max_false_alarms: float = MAX_FALSE_ALARMS_PER_VH, false_alarm_rate: str = "all") -> str:
     """The smoothing a model file makes default: among the variants that meet the false-alarm bound
     on validation, the one predicting most lane changes; if none meets it, the one with the fewest
-    false alarms. Ties go to the aggressive variant (the paper's choice)."""
+    false alarms. Ties go to the aggressive variant (the paper's choice). `false_alarm_rate`: as
+    :func:`tune_decisions`."""
     order = ("aggressive", "conservative", "none")
-    ok = [m for m in order if tuned[m]["validation"]["false_alarms_per_vehicle_hour"] <= max_false_alarms]
+    rate = lambda m: rate_of(tuned[m]["validation"], false_alarm_rate)  # noqa: E731
+    ok = [m for m in order if rate(m) <= max_false_alarms]
     if ok:
         return max(ok, key=lambda m: (tuned[m]["validation"]["predicted_share"], -order.index(m)))
-    return min(order, key=lambda m: (tuned[m]["validation"]["false_alarms_per_vehicle_hour"], order.index(m)))
+    return min(order, key=lambda m: (rate(m), order.index(m)))
 
 
 def train_model(datasets: Path | list[Path], out: Path, cfg: TrainConfig, progress: bool = True) -> str:
@@ -305,13 +318,16 @@ def train_model(datasets: Path | list[Path], out: Path, cfg: TrainConfig, progre
     return "\n".join(lines + tuning_report(tuned, default, out))
 
 
-def tuning_report(tuned: dict, default: str, out: Path) -> list[str]:
-    """The validation figures of each smoothing method, as printed after training (MLP and GRU alike)."""
+def tuning_report(tuned: dict, default: str, out: Path, false_alarm_rate: str = "all") -> list[str]:
+    """The validation figures of each smoothing method, as printed after training (MLP and GRU alike);
+    with `false_alarm_rate` "judged" also the judged (censoring-aware) rate."""
     lines = []
     for method, t in tuned.items():
         v = t["validation"]
+        judged = (f" (judged {v['false_alarms_judged_per_vehicle_hour']:.2f} over "
+                  f"{v['judged_vehicle_hours']:.2f} veh-h)" if false_alarm_rate == "judged" else "")
         lines.append(f"  {method:12s} threshold {t['threshold']:.2f} tau {t['tau_ticks']:2d} ticks: "
                      f"{100 * v['predicted_share']:.1f}% predicted, mean advance {v['advance_final_mean_s']:.2f} s, "
-                     f"{v['false_alarms_per_vehicle_hour']:.2f} false alarms/veh-h (validation)")
+                     f"{v['false_alarms_per_vehicle_hour']:.2f} false alarms/veh-h{judged} (validation)")
     lines.append(f"  default smoothing: {default}; model file: {out}")
     return lines

@@ -270,10 +270,11 @@ def _init_model(path) -> SequenceModel:
 
 
 def retune_decisions(model_path: Path, datasets: list[Path], out: Path, false_alarm_budget: float,
-                     horizon_s: float = 10.0) -> str:
+                     horizon_s: float = 10.0, false_alarm_rate: str = "all") -> str:
     """Re-calibrate (Platt) and re-tune the decision settings of a model file on the validation
     seeds of `datasets` (the target kind's validation data: a real recording's validation part),
-    weights unchanged; writes the new file, returns a report."""
+    weights unchanged; writes the new file, returns a report. `false_alarm_rate`: the rate the
+    budget bounds, "all" or "judged" (censoring-aware; :func:`vcfusion.prediction.train.tune_decisions`)."""
     from vcfusion.prediction.features import stored_columns, with_derived_columns
     from vcfusion.prediction.model import fit_platt, load_model, save_model
     from vcfusion.prediction.train import choose_default, combined_stream, load_datasets, tune_decisions, tuning_report
@@ -295,20 +296,22 @@ def retune_decisions(model_path: Path, datasets: list[Path], out: Path, false_al
     else:
         prob = model.predict_proba(va[names].to_numpy(np.float32))
     tuned = tune_decisions(prob, va, va_events, model.period_s, horizon_s, model.conservative_threshold,
-                           false_alarm_budget)
-    default = choose_default(tuned, false_alarm_budget)
+                           false_alarm_budget, false_alarm_rate)
+    default = choose_default(tuned, false_alarm_budget, false_alarm_rate)
     model.smoothing = default
     model.thresholds = {m: float(t["threshold"]) for m, t in tuned.items()}
     model.threshold = model.thresholds[default]
     model.tau_a_ticks = int(tuned["aggressive"]["tau_ticks"])
     model.tau_c_ticks = int(tuned["conservative"]["tau_ticks"])
     model.info = {**model.info, "retuned": {"from": Path(model_path).name, "datasets": [Path(d).name for d in datasets],
-                                            "false_alarm_budget": false_alarm_budget, "tuning": tuned,
+                                            "false_alarm_budget": false_alarm_budget,
+                                            "false_alarm_rate": false_alarm_rate, "tuning": tuned,
                                             "calibration": list(model.calibration)}}
     (save_sequence_model if model.kind == "gru" else save_model)(model, out)
     head = (f"re-tuned {model_path} on the validation seeds of {len(infos)} datasets ({len(va_events)} lane changes, "
-            f"{len(va) * model.period_s / 3600:.2f} vehicle-hours), false-alarm budget {false_alarm_budget:g} / veh-h")
-    return "\n".join([head] + tuning_report(tuned, default, out))
+            f"{len(va) * model.period_s / 3600:.2f} vehicle-hours), false-alarm budget {false_alarm_budget:g} / veh-h "
+            f"({false_alarm_rate})")
+    return "\n".join([head] + tuning_report(tuned, default, out, false_alarm_rate))
 
 
 def set_decision(model_path: Path, out: Path, smoothing: str, threshold: float, tau_ticks: int,

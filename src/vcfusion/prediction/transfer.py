@@ -13,6 +13,10 @@ changes, sum of advances / predicted changes, false alarms / vehicle-hours), and
 percentiles are the interval. Vehicles, not samples: a vehicle's ticks are not independent.
 `censored_false_alarms_share`: the share of the false alarms whose confirming window (run end +
 horizon) runs past the vehicle's last tick (:func:`vcfusion.prediction.events.event_scores`).
+`false_alarms_judged_per_veh_h`: the judged (censoring-aware) rate, the uncensored false alarms
+over the vehicle-hours at which a confirming window fits in the track (each track less its last
+`horizon` seconds); shown beside the headline rate, which counts every false alarm over every
+vehicle-hour. Undefined ("-") for a set without such exposure (tracks all shorter than the horizon).
 """
 
 from __future__ import annotations
@@ -24,17 +28,19 @@ import numpy as np
 import pandas as pd
 
 from vcfusion.prediction.dataset import load_dataset
-from vcfusion.prediction.events import event_scores, smooth_stream, smoothing_bounds, track_bounds
+from vcfusion.prediction.events import event_scores, judged_ticks, smooth_stream, smoothing_bounds, track_bounds
 from vcfusion.prediction.features import stored_columns, with_derived_columns
 from vcfusion.prediction.model import load_model
 from vcfusion.prediction.train import stream_with_events
 
-STATISTICS = ("predicted", "before_mid", "advance_s", "false_alarms_per_veh_h", "censored_false_alarms_share")
+STATISTICS = ("predicted", "before_mid", "advance_s", "false_alarms_per_veh_h", "false_alarms_judged_per_veh_h",
+              "censored_false_alarms_share")
 
 
 def vehicle_table(model_path: Path, dataset: Path, split: str = "test", horizon_s: float = 10.0) -> tuple[pd.DataFrame, dict]:
-    """One row per vehicle of `split`: hours, false alarms, lane changes, predicted, predicted
-    before the midpoint, sum of advances (final run); and the model's decision settings used."""
+    """One row per vehicle of `split`: hours, judged hours (those at which a confirming window fits
+    in the track), false alarms (and of them censored), lane changes, predicted, predicted before
+    the midpoint, sum of advances (final run); and the model's decision settings used."""
     model = load_model(model_path)
     info = load_dataset(dataset)
     names = list(model.feature_names)
@@ -57,6 +63,9 @@ def vehicle_table(model_path: Path, dataset: Path, split: str = "test", horizon_
     ticks = stream.groupby(["seed", "vehicle_id"], sort=True).size().rename("ticks")
     table = ticks.to_frame()
     table["hours"] = table["ticks"] * info.period_s / 3600.0
+    judged = stream.groupby(["seed", "vehicle_id"], sort=True)["time"].agg(
+        lambda t: judged_ticks(t.to_numpy(dtype=float), horizon_s))
+    table["judged_hours"] = judged.reindex(table.index).to_numpy() * info.period_s / 3600.0
     table["false_alarms"] = [fa.get(k, 0) for k in table.index]
     table["false_alarms_censored"] = [censored.get(k, 0) for k in table.index]
     ev = per_event.assign(advance=per_event["advance_final_s"].fillna(0.0))
@@ -79,6 +88,8 @@ def _ratios(w: np.ndarray, t: pd.DataFrame) -> dict[str, np.ndarray]:
         return {"predicted": pred / lc, "before_mid": col("before_mid") / lc,
                 "advance_s": col("advance_sum_s") / pred,
                 "false_alarms_per_veh_h": col("false_alarms") / col("hours"),
+                "false_alarms_judged_per_veh_h": (col("false_alarms") - col("false_alarms_censored"))
+                / col("judged_hours"),
                 "censored_false_alarms_share": col("false_alarms_censored") / col("false_alarms")}
 
 
@@ -138,14 +149,16 @@ def _cell(row, k: str, pct: bool = False, digits: int = 1) -> str:
 
 def markdown_table(df: pd.DataFrame, n_boot: int, seed: int) -> str:
     lines = ["| model | evaluation set | vehicles | veh-h | lane changes | predicted | before midpoint | "
-             "mean advance (s) | false alarms / veh-h | of them censored |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "mean advance (s) | false alarms / veh-h | judged false alarms / veh-h | of them censored |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for _, r in df.iterrows():
         lines.append(f"| {r['model']} | {r['eval']} | {r['vehicles']} | {r['vehicle_hours']:.2f} | {r['lane_changes']} | "
                      f"{_cell(r, 'predicted', True)} | {_cell(r, 'before_mid', True)} | {_cell(r, 'advance_s', digits=2)} | "
-                     f"{_cell(r, 'false_alarms_per_veh_h')} | {_cell(r, 'censored_false_alarms_share', True, 0)} |")
+                     f"{_cell(r, 'false_alarms_per_veh_h')} | {_cell(r, 'false_alarms_judged_per_veh_h')} | "
+                     f"{_cell(r, 'censored_false_alarms_share', True, 0)} |")
     lines.append("")
     lines.append(f"[low, high]: 95 % bootstrap interval over vehicles ({n_boot} resamples, seed {seed}); each model "
                  "with the decision settings stored in its file. Censored: false alarms whose confirming window "
-                 "(run end + horizon) runs past the vehicle's last tick.")
+                 "(run end + horizon) runs past the vehicle's last tick. Judged: the false alarms that are not "
+                 "censored over the vehicle-hours at which the confirming window fits in the track (censoring-aware).")
     return "\n".join(lines) + "\n"
