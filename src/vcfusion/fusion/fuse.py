@@ -226,6 +226,9 @@ class FusionResult:
     depth_sigmas: np.ndarray | None = None
     depth_of_nearer: np.ndarray | None = None
     depth_on_surface: np.ndarray | None = None
+    # (N,) the same depth's disagreement with the part of the twin the box's columns show
+    # (JointMatch.shown_depth_sigmas); None when the joint matcher did not run
+    shown_depth_sigmas: np.ndarray | None = None
 
     def box_of(self, method: str, i: int):
         j = int(self.choice[method][i])
@@ -375,7 +378,8 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
         # hide a visible car the matcher had found
         return FusionResult(frame.time, twins.ids, detections, depths, choice, in_view, timings, n_anchor_boxes,
                             depth_counts, joint_match.projection.expected_box, joint_match.hidden_share,
-                            joint_match.depth_sigmas, joint_match.depth_of_nearer, joint_match.depth_on_surface)
+                            joint_match.depth_sigmas, joint_match.depth_of_nearer, joint_match.depth_on_surface,
+                            joint_match.shown_depth_sigmas)
     return FusionResult(frame.time, twins.ids, detections, depths, choice, in_view, timings, n_anchor_boxes,
                         depth_counts, proj.expected_box, visible_boxes(proj)[2])
 
@@ -426,11 +430,11 @@ HIDDEN_DEPTH_CONFIRM_SIGMAS = 1.0
 
 def drawable_box(box, expected_box, hidden_share: float = 0.0, max_ratio: float | None = None,
                  max_hidden: float | None = None, depth_sigmas: float = np.inf, depth_of_nearer: bool = False,
-                 depth_on_surface: bool = False):
+                 depth_on_surface: bool = False, shown_depth_sigmas: float = np.inf):
     """`box` unless :func:`undrawn_reason` gives a reason not to draw it (then None: nothing is
     drawn for the twin). Boxes (x1, y1, x2, y2) px."""
     return box if undrawn_reason(box, expected_box, hidden_share, max_ratio, max_hidden, depth_sigmas,
-                                 depth_of_nearer, depth_on_surface) == "" else None
+                                 depth_of_nearer, depth_on_surface, shown_depth_sigmas) == "" else None
 
 
 UNDRAWN_REASONS = ("", "no_match", "hidden", "small", "too_large")
@@ -438,11 +442,14 @@ UNDRAWN_REASONS = ("", "no_match", "hidden", "small", "too_large")
 
 def undrawn_reason(box, expected_box, hidden_share: float = 0.0, max_ratio: float | None = None,
                    max_hidden: float | None = None, depth_sigmas: float = np.inf,
-                   depth_of_nearer: bool = False, depth_on_surface: bool = False) -> str:
+                   depth_of_nearer: bool = False, depth_on_surface: bool = False,
+                   shown_depth_sigmas: float = np.inf) -> str:
     """Why nothing is drawn for a twin matched to `box`: "" (drawn), "no_match" (no box matched),
     "hidden" (nearer twins hide at least `max_hidden`, default MAX_HIDDEN_SHARE_DRAWN, of its
     outline `expected_box`, and the box's depth does not confirm the twin: its disagreement
-    `depth_sigmas` is over HIDDEN_DEPTH_CONFIRM_SIGMAS, or it is not the outline's surface's,
+    `depth_sigmas`, and its disagreement with the part of the twin the box's columns show,
+    `shown_depth_sigmas` (JointMatch.shown_depth_sigmas), are both over
+    HIDDEN_DEPTH_CONFIRM_SIGMAS, or it is not the outline's surface's,
     `depth_on_surface`, and the samples fit a nearer twin too, `depth_of_nearer`), "small" (the part of its outline nearer twins leave visible, or for a
     depth-confirmed hidden twin the part of the box within its outline, is under
     MIN_DRAWN_VISIBLE_PX), "too_large" (the box is more than `max_ratio`, default
@@ -456,7 +463,8 @@ def undrawn_reason(box, expected_box, hidden_share: float = 0.0, max_ratio: floa
     e = np.asarray(expected_box, dtype=float)
     outline = max(float((e[2] - e[0]) * (e[3] - e[1])), 1.0)
     if hidden_share >= max_hidden:
-        if not depth_sigmas <= HIDDEN_DEPTH_CONFIRM_SIGMAS or (depth_of_nearer and not depth_on_surface):
+        confirmed = min(depth_sigmas, shown_depth_sigmas) <= HIDDEN_DEPTH_CONFIRM_SIGMAS
+        if not confirmed or (depth_of_nearer and not depth_on_surface):
             return "hidden"
         # depth puts the box's surface at the twin: what shows of it is the box, within its outline
         b = np.asarray(box, dtype=float)
@@ -545,9 +553,12 @@ class VisionFusionHook:
         sigmas = result.depth_sigmas if result.depth_sigmas is not None else np.full(len(twins), np.inf)
         nearer = result.depth_of_nearer if result.depth_of_nearer is not None else np.zeros(len(twins), bool)
         surface = result.depth_on_surface if result.depth_on_surface is not None else np.zeros(len(twins), bool)
+        shown = (result.shown_depth_sigmas if result.shown_depth_sigmas is not None
+                 else np.full(len(twins), np.inf))
         reasons = [undrawn_reason(result.box_of(self.method, i), result.expected_boxes[i], result.hidden_share[i],
                                   depth_sigmas=float(sigmas[i]), depth_of_nearer=bool(nearer[i]),
-                                  depth_on_surface=bool(surface[i])) for i in view]
+                                  depth_on_surface=bool(surface[i]), shown_depth_sigmas=float(shown[i]))
+                   for i in view]
         boxes = [result.box_of(self.method, i) if r == "" else None for i, r in zip(view, reasons)]
         chosen = [int(result.choice[self.method][i]) for i in view]
         decision = twins.outputs.get("lc_decision")

@@ -1,0 +1,79 @@
+"""The depth of the part of a twin a box shows (matching.outline_depth_in_columns,
+JointMatch.shown_depth_sigmas) and the overlay's hidden-twin rule that reads it (fuse.undrawn_reason)."""
+
+import numpy as np
+import pytest
+
+from support.fusion_helpers import make_twins, pinhole_camera
+from vcfusion.fusion.fuse import HIDDEN_DEPTH_CONFIRM_SIGMAS, undrawn_reason
+from vcfusion.fusion.matching import JointMatcher, JointMatcherParams, outline_depth_in_columns, project_twins
+
+NAN_BOX = [np.nan] * 4
+
+
+def test_outline_depth_in_columns_is_the_nearest_outline_point_the_box_columns_hold():
+    cam = pinhole_camera()
+    # a car driving straight away, footprint centre 20 m ahead (on the road: the helper's z is the roof)
+    car = make_twins(["a"], [20.0], [0.0], length=4.5, width=1.8, height=1.5, z_ground=-0.75)
+    whole = project_twins(car, cam).expected_box
+    # its whole box: the rear face, 20 - 2.25 m
+    assert outline_depth_in_columns(car, cam, whole)[0] == pytest.approx(17.75, abs=1e-6)
+    # a box beside it holds none of its outline
+    assert np.isnan(outline_depth_in_columns(car, cam, [[0.0, 0.0, 50.0, 50.0]])[0])
+    assert np.isnan(outline_depth_in_columns(car, cam, [NAN_BOX])[0])
+    with pytest.raises(ValueError, match="one box"):
+        outline_depth_in_columns(car, cam, np.zeros((2, 4)))
+
+
+def oblique_scene():
+    """A van seen at an angle (heading 55 deg, moving left across the view), 18 m ahead, that a
+    nearer truck's outline hides whole; the camera shows its front end beside the truck (the
+    box over the leftmost fifth of its outline), metres deeper than its rear face."""
+    cam = pinhole_camera()
+    twins = make_twins(["truck", "van"], [9.0, 18.0], [0.0, 0.0], heading=[0.0, np.deg2rad(55)],
+                       length=[6.0, 7.5], width=[3.6, 1.8], height=[4.0, 1.5], z_ground=[-2.0, -0.75])
+    proj = project_twins(twins, cam)
+    e = proj.expected_box[1]
+    front = np.array([e[0] + 0.5, e[1] + 1.0, e[0] + 0.2 * (e[2] - e[0]), e[3] - 1.0])
+    return cam, twins, proj, np.stack([proj.expected_box[0], front])
+
+
+def _match(cam, twins, boxes, van_depth):
+    samples = np.stack([np.full(20, 6.0), np.full(20, van_depth)])
+    params = JointMatcherParams(smoothing_alpha=None, latency_compensation=False)
+    matcher = JointMatcher(params)
+    details = matcher.match_details(twins, boxes, samples, cam)
+    # the matcher's choice is what match returns, and it does not depend on the new figure
+    assert np.array_equal(JointMatcher(params).match(twins, boxes, samples, cam), details.choice)
+    return details
+
+
+def test_a_hidden_van_seen_at_an_angle_is_drawn_where_its_box_has_the_depth_of_its_shown_part():
+    cam, twins, proj, boxes = oblique_scene()
+    sigma = 0.05 * proj.face_z[1] + 1.0
+    shown_z = outline_depth_in_columns(twins, cam, np.stack([[np.nan] * 4, boxes[1]]))[1]
+    assert shown_z - proj.face_z[1] > 1.2 * sigma  # the part shown lies well behind the rear face
+    m = _match(cam, twins, boxes, shown_z + 0.3)
+    assert list(m.choice) == [0, 1] and m.hidden_share[1] == 1.0
+    # against the rear face the box's depth is over one sigma off: the rule before left it undrawn
+    assert m.depth_sigmas[1] > HIDDEN_DEPTH_CONFIRM_SIGMAS
+    assert m.shown_depth_sigmas[1] == pytest.approx(0.3 / sigma, abs=1e-6)
+    args = (boxes[1], proj.expected_box[1], m.hidden_share[1])
+    assert undrawn_reason(*args, depth_sigmas=m.depth_sigmas[1]) == "hidden"
+    assert undrawn_reason(*args, depth_sigmas=m.depth_sigmas[1], shown_depth_sigmas=m.shown_depth_sigmas[1]) == ""
+
+
+def test_a_box_deeper_than_the_shown_part_of_a_hidden_twin_stays_undrawn():
+    """A box 4 m behind the van's front end (the car behind it, say) is allowed to the van by the
+    matcher's gate but confirms nothing: it stays hidden."""
+    cam, twins, proj, boxes = oblique_scene()
+    shown_z = outline_depth_in_columns(twins, cam, np.stack([[np.nan] * 4, boxes[1]]))[1]
+    m = _match(cam, twins, boxes, shown_z + 4.0)
+    assert m.choice[1] == 1
+    assert m.shown_depth_sigmas[1] > HIDDEN_DEPTH_CONFIRM_SIGMAS and m.depth_sigmas[1] > HIDDEN_DEPTH_CONFIRM_SIGMAS
+    assert undrawn_reason(boxes[1], proj.expected_box[1], m.hidden_share[1], depth_sigmas=m.depth_sigmas[1],
+                          shown_depth_sigmas=m.shown_depth_sigmas[1]) == "hidden"
+    # a twin without a box has no figure
+    alone = JointMatcher(JointMatcherParams(smoothing_alpha=None, latency_compensation=False)).match_details(
+        twins, boxes[:1], np.full((1, 20), 6.0), cam)
+    assert alone.choice[1] == -1 and np.isinf(alone.shown_depth_sigmas[1])
