@@ -77,3 +77,30 @@ def test_a_box_deeper_than_the_shown_part_of_a_hidden_twin_stays_undrawn():
     alone = JointMatcher(JointMatcherParams(smoothing_alpha=None, latency_compensation=False)).match_details(
         twins, boxes[:1], np.full((1, 20), 6.0), cam)
     assert alone.choice[1] == -1 and np.isinf(alone.shown_depth_sigmas[1])
+
+
+def test_a_box_mostly_outside_the_twins_outline_is_drawn_within_it():
+    """curved.yaml seed 95 (development), cars12 at 15 m: the depth step joined the car and the truck
+    behind it, and the car's twin took the truck-high box (26 % of it within the car's outline);
+    what lies within the outline is the car. A box mostly within the outline, an outline the image's
+    side cuts (a car alongside) and a box beside the outline are left to the other rules."""
+    from vcfusion.fusion.fuse import MIN_BOX_INSIDE_OUTLINE, box_within_outline, undrawn_reason
+
+    outline = np.array([294.0, 212.0, 402.0, 258.0])
+    truck_high = np.array([326.0, 160.0, 444.0, 250.0])
+    assert np.array_equal(box_within_outline(truck_high, outline, 640, 480), [326.0, 212.0, 402.0, 250.0])
+    own = np.array([308.0, 205.0, 418.0, 256.0])  # 75 % of it within the outline
+    assert box_within_outline(own, outline, 640, 480) is own
+    # the rule's share: a box with exactly MIN_BOX_INSIDE_OUTLINE of it inside is kept whole
+    edge = np.array([294.0, 212.0 - 46.0 * (1 / MIN_BOX_INSIDE_OUTLINE - 1), 402.0, 258.0])
+    assert box_within_outline(edge, outline, 640, 480) is edge
+    # a car alongside: its outline 3 px wide at the image's right side, its box wider
+    alongside = np.array([637.0, 124.0, 639.5, 479.5])
+    box = np.array([612.0, 260.0, 640.0, 328.0])
+    assert box_within_outline(box, alongside, 640, 480) is box
+    # no overlap, or a part within the outline under MIN_DRAWN_VISIBLE_PX: nothing to draw
+    assert box_within_outline(np.array([10.0, 10.0, 60.0, 60.0]), outline, 640, 480) is None
+    assert box_within_outline(np.array([401.0, 150.0, 470.0, 262.0]), outline, 640, 480) is None  # 46 px
+    assert box_within_outline(None, outline, 640, 480) is None
+    sliver = box_within_outline(np.array([396.0, 150.0, 470.0, 262.0]), outline, 640, 480)  # 276 px
+    assert np.array_equal(sliver, [396.0, 212.0, 402.0, 258.0])
