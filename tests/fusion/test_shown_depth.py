@@ -91,9 +91,11 @@ def test_a_box_mostly_outside_the_twins_outline_is_drawn_within_it():
     assert np.array_equal(box_within_outline(truck_high, outline, 640, 480), [326.0, 212.0, 402.0, 250.0])
     own = np.array([308.0, 205.0, 418.0, 256.0])  # 75 % of it within the outline
     assert box_within_outline(own, outline, 640, 480) is own
-    # the rule's share: a box with exactly MIN_BOX_INSIDE_OUTLINE of it inside is kept whole
-    edge = np.array([294.0, 212.0 - 46.0 * (1 / MIN_BOX_INSIDE_OUTLINE - 1), 402.0, 258.0])
-    assert box_within_outline(edge, outline, 640, 480) is edge
+    # the rule's share: just over MIN_BOX_INSIDE_OUTLINE of it inside is kept whole, just under is cut
+    over = np.array([294.0, 258.0 - 46.0 / (MIN_BOX_INSIDE_OUTLINE + 0.01), 402.0, 258.0])
+    under = np.array([294.0, 258.0 - 46.0 / (MIN_BOX_INSIDE_OUTLINE - 0.01), 402.0, 258.0])
+    assert box_within_outline(over, outline, 640, 480) is over
+    assert np.array_equal(box_within_outline(under, outline, 640, 480), outline)
     # a car alongside: its outline 3 px wide at the image's right side, its box wider
     alongside = np.array([637.0, 124.0, 639.5, 479.5])
     box = np.array([612.0, 260.0, 640.0, 328.0])
