@@ -106,3 +106,22 @@ def test_a_box_mostly_outside_the_twins_outline_is_drawn_within_it():
     assert box_within_outline(None, outline, 640, 480) is None
     sliver = box_within_outline(np.array([396.0, 150.0, 470.0, 262.0]), outline, 640, 480)  # 276 px
     assert np.array_equal(sliver, [396.0, 212.0, 402.0, 258.0])
+
+
+def test_a_mostly_hidden_twin_is_judged_by_its_box_where_the_boxs_surface_lies_at_it():
+    """accident_heavy.yaml seed 96 (development), changer4 at 33 m: nearer outlines leave 6 % of its
+    outline (42 px, under MIN_DRAWN_VISIBLE_PX), but its box, 108 px within the outline, is drawn by
+    a surface 0.01 sigma from the twin: it shows the twin. The samples' depth alone (no surface) or
+    a surface more than a sigma off leave it "small"."""
+    from vcfusion.fusion.fuse import MIN_DRAWN_VISIBLE_PX
+
+    outline = (307.0, 214.0, 340.0, 235.0)
+    box = (334.0, 214.0, 340.0, 232.0)
+    assert (outline[2] - outline[0]) * (outline[3] - outline[1]) * (1 - 0.94) < MIN_DRAWN_VISIBLE_PX
+    assert undrawn_reason(box, outline, 0.94) == "small"
+    assert undrawn_reason(box, outline, 0.94, depth_sigmas=0.01, depth_on_surface=True) == ""
+    assert undrawn_reason(box, outline, 0.94, depth_sigmas=0.01) == "small"
+    assert undrawn_reason(box, outline, 0.94, depth_sigmas=1.5, depth_on_surface=True) == "small"
+    assert undrawn_reason(box, outline, 0.94, depth_sigmas=1.5, shown_depth_sigmas=0.2, depth_on_surface=True) == ""
+    # a box whose part within the outline is itself under MIN_DRAWN_VISIBLE_PX stays small
+    assert undrawn_reason((338.0, 214.0, 344.0, 232.0), outline, 0.94, depth_sigmas=0.01, depth_on_surface=True) == "small"
