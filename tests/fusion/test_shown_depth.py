@@ -42,9 +42,10 @@ def _match(cam, twins, boxes, van_depth):
     samples = np.stack([np.full(20, 6.0), np.full(20, van_depth)])
     params = JointMatcherParams(smoothing_alpha=None, latency_compensation=False)
     matcher = JointMatcher(params)
-    details = matcher.match_details(twins, boxes, samples, cam)
+    surface = np.array([6.0, van_depth])[:len(boxes)]  # the depth step's surfaces drawing the boxes
+    details = matcher.match_details(twins, boxes, samples, cam, surface)
     # the matcher's choice is what match returns, and it does not depend on the new figure
-    assert np.array_equal(JointMatcher(params).match(twins, boxes, samples, cam), details.choice)
+    assert np.array_equal(JointMatcher(params).match(twins, boxes, samples, cam, surface), details.choice)
     return details
 
 
@@ -59,8 +60,12 @@ def test_a_hidden_van_seen_at_an_angle_is_drawn_where_its_box_has_the_depth_of_i
     assert m.depth_sigmas[1] > HIDDEN_DEPTH_CONFIRM_SIGMAS
     assert m.shown_depth_sigmas[1] == pytest.approx(0.3 / sigma, abs=1e-6)
     args = (boxes[1], proj.expected_box[1], m.hidden_share[1])
-    assert undrawn_reason(*args, depth_sigmas=m.depth_sigmas[1]) == "hidden"
-    assert undrawn_reason(*args, depth_sigmas=m.depth_sigmas[1], shown_depth_sigmas=m.shown_depth_sigmas[1]) == ""
+    assert m.depth_on_surface[1]
+    assert undrawn_reason(*args, depth_sigmas=m.depth_sigmas[1], depth_on_surface=True) == "hidden"
+    assert undrawn_reason(*args, depth_sigmas=m.depth_sigmas[1], shown_depth_sigmas=m.shown_depth_sigmas[1],
+                          depth_on_surface=True) == ""
+    # the lower-quarter samples alone (no surface drawing the box) do not confirm a twin hidden whole
+    assert undrawn_reason(*args, depth_sigmas=m.depth_sigmas[1], shown_depth_sigmas=m.shown_depth_sigmas[1]) == "hidden"
 
 
 def test_a_box_deeper_than_the_shown_part_of_a_hidden_twin_stays_undrawn():
@@ -72,7 +77,7 @@ def test_a_box_deeper_than_the_shown_part_of_a_hidden_twin_stays_undrawn():
     assert m.choice[1] == 1
     assert m.shown_depth_sigmas[1] > HIDDEN_DEPTH_CONFIRM_SIGMAS and m.depth_sigmas[1] > HIDDEN_DEPTH_CONFIRM_SIGMAS
     assert undrawn_reason(boxes[1], proj.expected_box[1], m.hidden_share[1], depth_sigmas=m.depth_sigmas[1],
-                          shown_depth_sigmas=m.shown_depth_sigmas[1]) == "hidden"
+                          shown_depth_sigmas=m.shown_depth_sigmas[1], depth_on_surface=True) == "hidden"
     # a twin without a box has no figure
     alone = JointMatcher(JointMatcherParams(smoothing_alpha=None, latency_compensation=False)).match_details(
         twins, boxes[:1], np.full((1, 20), 6.0), cam)
