@@ -93,6 +93,7 @@ def test_a_box_shifted_onto_the_neighbour_makes_the_driver_respond_to_the_neighb
     # the overlay's plausibility gates off: the box drawn for the cutter shows the neighbour
     monkeypatch.setattr(fuse, "MAX_BOX_TO_OUTLINE_AREA", float("inf"))
     monkeypatch.setattr(fuse, "MAX_HIDDEN_SHARE_DRAWN", 2.0)
+    monkeypatch.setattr(fuse, "MIN_BOX_INSIDE_OUTLINE", 0.0)
     driver, fusion, guidance, accs = _closed_loop(ShiftedOntoNeighbour())
     warned = guidance[guidance["level"].isin(["medium", "high"])]
     # the cloud meant the cutter; the box drawn for it holds the neighbour
@@ -130,3 +131,30 @@ def test_right_boxes_count_as_right():
     assert set(driver.warnings) == {"cutter"}
     assert highlight_counts(guidance, fusion, 0.1) == {"highlights_right": 1, "highlights_wrong": 0,
                                                        "missed_warnings": 0, "unseen_warnings": 0}
+
+
+class TallBoxes:
+    """The boxes of the truth with the cutter's grown upward to 2.7 times its height (a car and the
+    truck behind it joined into one surface by the depth step): a box of the cutter, mostly not it."""
+
+    frame = None
+
+    def detect(self, image):
+        boxes = np.array(self.frame.gt_boxes, float)
+        k = self.frame.gt_ids.index("cutter")
+        boxes[k, 1] = boxes[k, 3] - 2.7 * (boxes[k, 3] - boxes[k, 1])
+        return Detections.of(boxes, np.full(len(boxes), 0.9), np.full(len(boxes), 3))
+
+
+def test_a_box_mostly_above_the_twins_outline_is_drawn_within_it(monkeypatch):
+    import vcfusion.fusion.fuse as fuse
+
+    driver, fusion, guidance, _ = _closed_loop(TallBoxes())
+    cutter = fusion[(fusion["vehicle_id"] == "cutter") & fusion["matched"]]
+    assert len(cutter) and (cutter["outcome"] == "right").all()
+    assert highlight_counts(guidance, fusion, 0.1) == {"highlights_right": 1, "highlights_wrong": 0,
+                                                       "missed_warnings": 0, "unseen_warnings": 0}
+    # without the rule the tall box is drawn whole and shows the cutter by IoU 0.37: wrong
+    monkeypatch.setattr(fuse, "MIN_BOX_INSIDE_OUTLINE", 0.0)
+    _, fusion, guidance, _ = _closed_loop(TallBoxes())
+    assert highlight_counts(guidance, fusion, 0.1)["highlights_wrong"] == 1

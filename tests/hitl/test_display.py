@@ -137,10 +137,12 @@ def _true_box(render, t, vid):
 
 def test_a_box_shifted_onto_the_neighbour_is_drawn_there_and_counts_as_wrong(monkeypatch):
     # the neighbour is nearer and several times the cutter's outline, which the overlay's size rule
-    # (fuse.drawable_box) would refuse to draw; this test is about the display showing what is drawn
+    # (fuse.drawable_box) would refuse to draw and the outline rule (fuse.box_within_outline) would cut
+    # to the cutter's outline; this test is about the display showing what is drawn
     import vcfusion.fusion.fuse as fuse
 
     monkeypatch.setattr(fuse, "MAX_BOX_TO_OUTLINE_AREA", float("inf"))
+    monkeypatch.setattr(fuse, "MIN_BOX_INSIDE_OUTLINE", 0.0)
     _, shown, render = _drive(ShiftedOntoNeighbour())
     assert len(shown) == 13  # every frame drew the cutter's warning
     assert set(shown["vehicle_id"]) == {"cutter"} and set(shown["box_vehicle_id"]) == {"neighbour"}

@@ -127,8 +127,8 @@ def test_a_twin_hidden_whole_is_drawn_where_depth_puts_its_box_at_the_twin():
     """Nearer twins' outlines hide the whole outline (their reports are a few decimetres off, their
     cuboids coarser than the vehicles), but the matched box's depth lies within one of the matcher's
     sigmas of the twin's face: the box shows the twin and is drawn (curved seed 100 cars14: 470 px
-    visible, was missed). Depth further off, or samples that fit a nearer twin too (unless the
-    depth is the surface drawing the box's outline), keep it undrawn ("hidden"); a confirmed box
+    visible, was missed). Depth further off, or the lower-quarter samples alone (not the surface
+    drawing the box's outline), keep it undrawn ("hidden"); a confirmed box
     whose part within the outline is under MIN_DRAWN_VISIBLE_PX is "small"."""
     from vcfusion.fusion.fuse import HIDDEN_DEPTH_CONFIRM_SIGMAS, MIN_DRAWN_VISIBLE_PX, drawable_box, undrawn_reason
 
@@ -136,15 +136,16 @@ def test_a_twin_hidden_whole_is_drawn_where_depth_puts_its_box_at_the_twin():
     box = (406.0, 213.0, 430.0, 240.0)  # its left half, beside the car in front
     assert HIDDEN_DEPTH_CONFIRM_SIGMAS == 1.0
     assert undrawn_reason(box, outline, 1.0) == "hidden"  # no depth known
-    assert undrawn_reason(box, outline, 1.0, depth_sigmas=0.4) == ""
-    assert drawable_box(box, outline, 1.0, depth_sigmas=0.4) == box
-    assert undrawn_reason(box, outline, 1.0, depth_sigmas=1.3) == "hidden"
-    assert undrawn_reason(box, outline, 1.0, depth_sigmas=0.4, depth_of_nearer=True) == "hidden"
-    # samples that fit a nearer twin too do not confirm it; the surface drawing the box's outline does
-    assert undrawn_reason(box, outline, 1.0, depth_sigmas=0.4, depth_of_nearer=True, depth_on_surface=True) == ""
+    assert undrawn_reason(box, outline, 1.0, depth_sigmas=0.4, depth_on_surface=True) == ""
+    assert drawable_box(box, outline, 1.0, depth_sigmas=0.4, depth_on_surface=True) == box
     assert undrawn_reason(box, outline, 1.0, depth_sigmas=1.3, depth_on_surface=True) == "hidden"
+    # the lower-quarter samples alone do not confirm it (they read the vehicle in front of it at about
+    # its depth), whether or not they fit a nearer twin too; the surface drawing the box's outline does
+    assert undrawn_reason(box, outline, 1.0, depth_sigmas=0.4) == "hidden"
+    assert undrawn_reason(box, outline, 1.0, depth_sigmas=0.4, depth_of_nearer=True) == "hidden"
+    assert undrawn_reason(box, outline, 1.0, depth_sigmas=0.4, depth_of_nearer=True, depth_on_surface=True) == ""
     sliver = (404.0, 214.0, 410.0, 222.0)  # 48 px
     assert (sliver[2] - sliver[0]) * (sliver[3] - sliver[1]) < MIN_DRAWN_VISIBLE_PX
-    assert undrawn_reason(sliver, outline, 1.0, depth_sigmas=0.4) == "small"
+    assert undrawn_reason(sliver, outline, 1.0, depth_sigmas=0.4, depth_on_surface=True) == "small"
     # a partly hidden twin is judged by its outline as before, whatever the depth
     assert undrawn_reason(box, outline, 0.5, depth_sigmas=3.0) == ""

@@ -324,6 +324,36 @@ def _nearest_in_view_z(ground, heading, length, width, height, camera: CameraVie
     return np.where(seen.any(axis=1), np.where(seen, cz, np.inf).min(axis=1), default)
 
 
+def outline_depth_in_columns(twins: TwinStates, camera: CameraView, boxes, samples: int = 16) -> np.ndarray:
+    """Per twin i and box boxes[i] (x1, y1, x2, y2 px; nan where none), the camera-Z of the nearest
+    point of the twin's footprint outline, a quarter of its height up (where Algorithm 1 samples),
+    that projects into the box's columns: the depth the part of the vehicle the box shows should
+    have. A car seen at an angle whose rear is hidden shows its side or front, metres deeper than
+    its rear face (the matcher's ``face_z``). (N,) m; nan where no outline point falls in the box's
+    columns or no box is given."""
+    n = len(twins)
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    if len(b) != n:
+        raise ValueError(f"boxes: expected one box (or nan) per twin ({n}), got {len(b)}")
+    out = np.full(n, np.nan)
+    if n == 0:
+        return out
+    height = np.asarray(twins.height, dtype=np.float64)
+    ground = np.stack([twins.x, twins.y, np.asarray(twins.z, dtype=np.float64) - GNSS_HEIGHT_FRACTION * height],
+                      axis=1).astype(np.float64)
+    t = (np.arange(samples + 1) / samples) - 0.5  # corners included
+    along = np.r_[t, t, np.full(samples + 1, -0.5), np.full(samples + 1, 0.5)]
+    across = np.r_[np.full(samples + 1, -0.5), np.full(samples + 1, 0.5), t, t]
+    pts = body_points(*ground.T, np.asarray(twins.heading, dtype=np.float64), np.asarray(twins.length, dtype=np.float64),
+                      np.asarray(twins.width, dtype=np.float64), height, along, across, np.full(len(along), 0.25))
+    uv, cz = camera.project(pts.reshape(-1, 3))
+    u, cz = np.asarray(uv, float).reshape(n, -1, 2)[..., 0], np.asarray(cz, float).reshape(n, -1)
+    with np.errstate(invalid="ignore"):
+        inside = (u >= b[:, None, 0]) & (u <= b[:, None, 2]) & (cz > 0)
+    z = np.where(inside, cz, np.inf).min(axis=1)
+    return np.where(np.isfinite(z), z, np.nan)
+
+
 def project_twins(twins: TwinStates, camera: CameraView, min_z: float = 0.5) -> TwinProjection:
     """Anchors, GNSS distances, expected boxes and expected face depths of the twins."""
     n = len(twins)
@@ -541,6 +571,12 @@ class JointMatch:
     # (N,) depth_sigmas is the depth of the surface drawing the chosen box's outline
     # (box_refine.box_surface_depths), not the samples' best quantile
     depth_on_surface: np.ndarray
+    # (N,) the same measured depth's disagreement, in the same sigmas, with the part of the twin the
+    # chosen box's columns show: the nearest point of its footprint outline a quarter of its height up
+    # that projects into them (outline_depth_in_columns); inf: no box, no depth or no such point. A car
+    # seen at an angle, its rear hidden by the car in front, shows its side or front, metres deeper
+    # than the face the matcher compares
+    shown_depth_sigmas: np.ndarray | None = None
 
 
 class JointMatcher:
@@ -560,8 +596,9 @@ class JointMatcher:
         assignment's second round; computed here with the rest of :func:`visible_boxes`), and over
         (twins, boxes) the depth disagreement the cost compares, in sigmas (uncapped; inf where the
         box has no depth), whether the box's depth is a clearly nearer twin's
-        (:meth:`_depth_of_nearer_twin`), and (D,) whether that disagreement is the surface drawing the
-        box's outline (else the best quantile of its lower-quarter samples)."""
+        (:meth:`_depth_of_nearer_twin`), (D,) whether that disagreement is the surface drawing the
+        box's outline (else the best quantile of its lower-quarter samples), and (D, q) the depths it
+        was measured on (that surface's depth where known, else the samples' quantiles)."""
         p = self.params
         b = as_boxes(boxes)
         depths = np.asarray(box_depths, dtype=np.float64)
@@ -625,6 +662,7 @@ class JointMatcher:
             cost_err = np.where(np.isfinite(surface_err), surface_err, depth_err)
             measured_err = np.where(np.isfinite(surface_err), surface_err, measured_err)
             on_surface = np.isfinite(surface)
+            depths = np.where(on_surface[:, None], surface[:, None], depths)
         # the more of a twin nearer twins hide, the less likely it has a box of its own: a box wanted
         # by a mostly hidden twin and a visible one goes to the visible one
         cost = (p.w_overlap * (1.0 - iou) + p.w_anchor * np.minimum(anchor_dist, 1.0)
@@ -640,7 +678,7 @@ class JointMatcher:
             allowed[whole] |= ((depth_err[whole] <= p.depth_gate)
                                & (box_inside_share(b, proj.expected_box[whole]).T >= p.hidden_within))
         allowed &= proj.in_view[:, None]
-        return cost, allowed, hidden_whole, measured_err, of_nearer, on_surface
+        return cost, allowed, hidden_whole, measured_err, of_nearer, on_surface, depths
 
     def _depth_of_nearer_twin(self, proj: TwinProjection, boxes: np.ndarray, depth_err: np.ndarray,
                               sigma: np.ndarray) -> np.ndarray:
@@ -677,13 +715,26 @@ class JointMatcher:
         if self.params.latency_compensation:
             twins = extrapolate_twins(twins, camera.time, self.params.use_accel)
         proj = project_twins(twins, camera)
-        choice, (_, _, _, depth_err, of_nearer, on_surface) = self._assign(proj, boxes, box_depths, surface_depths)
+        choice, (_, _, _, depth_err, of_nearer, on_surface, depths) = self._assign(proj, boxes, box_depths,
+                                                                                  surface_depths)
         n = len(choice)
         rows, cols = np.flatnonzero(choice != NO_MATCH), choice[choice != NO_MATCH]
         sigmas, nearer, surface = np.full(n, np.inf), np.zeros(n, bool), np.zeros(n, bool)
+        shown = np.full(n, np.inf)
         if len(rows):
             sigmas[rows], nearer[rows], surface[rows] = depth_err[rows, cols], of_nearer[rows, cols], on_surface[cols]
-        return JointMatch(choice, proj, visible_boxes(proj)[2], sigmas, nearer, surface)
+            # the same measured depths against the part of the twin the box's columns show
+            chosen = np.full((n, 4), np.nan)
+            chosen[rows] = as_boxes(boxes)[cols]
+            column_z = outline_depth_in_columns(twins, camera, chosen)[rows]
+            p = self.params
+            expected = proj.face_z if p.face_offset else proj.anchor_z
+            sigma = p.depth_sigma_rel * expected[rows] + p.depth_sigma_abs_m
+            with np.errstate(invalid="ignore"):
+                err = np.abs(depths[cols] - column_z[:, None]) / sigma[:, None]
+            err = np.where(np.isfinite(err), err, np.inf).min(axis=1) if depths.shape[1] else np.full(len(rows), np.inf)
+            shown[rows] = err
+        return JointMatch(choice, proj, visible_boxes(proj)[2], sigmas, nearer, surface, shown)
 
     def assign(self, proj: TwinProjection, boxes, box_depths, surface_depths=None) -> np.ndarray:
         """Box index per twin (NO_MATCH where unassigned), in two rounds: first the twins with a
