@@ -59,7 +59,8 @@ WORKER_CNN_THREADS = 1
 # vision ticks are dropped (counted), not display frames. Measured on the shared 2-core VM under
 # overload (load 9-10.6, the P6 drive, three rounds alternated with the worker at nice 0): dropped
 # display frames 189 / 64 / 180 of 531 against 210 / 199 / 257, AR age median 770-1070 ms against
-# 300-340 ms; not measured on a quiet machine, where the two share a core only for moments.
+# 300-340 ms. On a quiet machine (load 0.8-1.5) nice 10, 5 and 0 all gave 0 dropped frames and AR age
+# median 70 ms (two drives each, docs/performance.md).
 WORKER_NICE = 10
 
 
