@@ -624,5 +624,5 @@ def test_the_fusion_result_judges_outlines_where_the_matcher_put_the_twins():
     moved = project_twins(extrapolate_twins(twins, 10.3), cam)
     np.testing.assert_allclose(result.expected_boxes, moved.expected_box)
     box = result.box_of("joint", 1)
-    assert undrawn_reason(box, result.expected_boxes[1], result.hidden_share[1], depth_sigmas=result.depth_sigmas[1],
-                          depth_of_nearer=result.depth_of_nearer[1]) == ""
+    assert undrawn_reason(box, result.expected_boxes[1], result.hidden_share[1],
+                          depth_sigmas=result.depth_sigmas[1]) == ""

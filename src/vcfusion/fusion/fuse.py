@@ -220,11 +220,10 @@ class FusionResult:
     # (GNSS-smoothed, moved on by their latency) when it ran, else as received
     expected_boxes: np.ndarray | None = None
     hidden_share: np.ndarray | None = None
-    # (N,) the joint matcher's chosen box's depth disagreement with the twin, in sigmas, whether its
-    # depth samples fit a clearly nearer twin too, and whether the disagreement is the box outline's
-    # surface (matching.JointMatch); None when the joint matcher did not run
+    # (N,) the joint matcher's chosen box's depth disagreement with the twin, in sigmas, and whether
+    # the disagreement is the box outline's surface (matching.JointMatch); None when the joint matcher
+    # did not run
     depth_sigmas: np.ndarray | None = None
-    depth_of_nearer: np.ndarray | None = None
     depth_on_surface: np.ndarray | None = None
     # (N,) the same depth's disagreement with the part of the twin the box's columns show
     # (JointMatch.shown_depth_sigmas); None when the joint matcher did not run
@@ -378,8 +377,8 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
         # hide a visible car the matcher had found
         return FusionResult(frame.time, twins.ids, detections, depths, choice, in_view, timings, n_anchor_boxes,
                             depth_counts, joint_match.projection.expected_box, joint_match.hidden_share,
-                            joint_match.depth_sigmas, joint_match.depth_of_nearer, joint_match.depth_on_surface,
-                            joint_match.shown_depth_sigmas)
+                            depth_sigmas=joint_match.depth_sigmas, depth_on_surface=joint_match.depth_on_surface,
+                            shown_depth_sigmas=joint_match.shown_depth_sigmas)
     return FusionResult(frame.time, twins.ids, detections, depths, choice, in_view, timings, n_anchor_boxes,
                         depth_counts, proj.expected_box, visible_boxes(proj)[2])
 
@@ -437,12 +436,18 @@ HIDDEN_DEPTH_CONFIRM_SIGMAS = 1.0
 
 
 def drawable_box(box, expected_box, hidden_share: float = 0.0, max_ratio: float | None = None,
-                 max_hidden: float | None = None, depth_sigmas: float = np.inf, depth_of_nearer: bool = False,
-                 depth_on_surface: bool = False, shown_depth_sigmas: float = np.inf):
+                 max_hidden: float | None = None, depth_sigmas: float = np.inf, depth_on_surface: bool = False,
+                 shown_depth_sigmas: float = np.inf):
     """`box` unless :func:`undrawn_reason` gives a reason not to draw it (then None: nothing is
     drawn for the twin). Boxes (x1, y1, x2, y2) px."""
     return box if undrawn_reason(box, expected_box, hidden_share, max_ratio, max_hidden, depth_sigmas,
-                                 depth_of_nearer, depth_on_surface, shown_depth_sigmas) == "" else None
+                                 depth_on_surface, shown_depth_sigmas) == "" else None
+
+
+def _area_within(box, outline) -> float:
+    """Pixels of `box` within `outline` (both (x1, y1, x2, y2) px)."""
+    b, e = box, outline
+    return max(min(b[2], e[2]) - max(b[0], e[0]), 0.0) * max(min(b[3], e[3]) - max(b[1], e[1]), 0.0)
 
 
 # A matched box of which less than this share lies within the twin's own projected outline (twin
@@ -474,7 +479,7 @@ def box_within_outline(box, expected_box, width: int, height: int):
         return box
     cut = np.array([max(b[0], e[0]), max(b[1], e[1]), min(b[2], e[2]), min(b[3], e[3])])
     area = float((b[2] - b[0]) * (b[3] - b[1]))
-    inside = max(cut[2] - cut[0], 0.0) * max(cut[3] - cut[1], 0.0)
+    inside = _area_within(b, e)
     outline = float((e[2] - e[0]) * (e[3] - e[1]))
     if area <= 0 or inside >= MIN_BOX_INSIDE_OUTLINE * area or area > MAX_BOX_TO_OUTLINE_AREA * outline:
         return box  # mostly within the outline, or no box of the twin at all ("too_large")
@@ -486,15 +491,14 @@ UNDRAWN_REASONS = ("", "no_match", "hidden", "small", "too_large")
 
 def undrawn_reason(box, expected_box, hidden_share: float = 0.0, max_ratio: float | None = None,
                    max_hidden: float | None = None, depth_sigmas: float = np.inf,
-                   depth_of_nearer: bool = False, depth_on_surface: bool = False,
-                   shown_depth_sigmas: float = np.inf) -> str:
+                   depth_on_surface: bool = False, shown_depth_sigmas: float = np.inf) -> str:
     """Why nothing is drawn for a twin matched to `box`: "" (drawn), "no_match" (no box matched),
     "hidden" (nearer twins hide at least `max_hidden`, default MAX_HIDDEN_SHARE_DRAWN, of its
     outline `expected_box`, and the box's depth does not confirm the twin: its disagreement
     `depth_sigmas`, and its disagreement with the part of the twin the box's columns show,
     `shown_depth_sigmas` (JointMatch.shown_depth_sigmas), are both over
     HIDDEN_DEPTH_CONFIRM_SIGMAS, or it is not the depth of the surface drawing the box's outline,
-    `depth_on_surface`; `depth_of_nearer` is kept for the callers and no longer decides), "small" (the
+    `depth_on_surface`: the lower-quarter samples alone do not confirm), "small" (the
     part of its outline nearer twins leave visible is under MIN_DRAWN_VISIBLE_PX, and so is, for a
     depth-confirmed twin hidden whole or a twin whose box's outline surface lies at it
     (`depth_on_surface`, within HIDDEN_DEPTH_CONFIRM_SIGMAS), the part of the box within its
@@ -509,8 +513,7 @@ def undrawn_reason(box, expected_box, hidden_share: float = 0.0, max_ratio: floa
     e = np.asarray(expected_box, dtype=float)
     outline = max(float((e[2] - e[0]) * (e[3] - e[1])), 1.0)
     confirmed = min(depth_sigmas, shown_depth_sigmas) <= HIDDEN_DEPTH_CONFIRM_SIGMAS
-    b = np.asarray(box, dtype=float)
-    within = (max(min(b[2], e[2]) - max(b[0], e[0]), 0.0) * max(min(b[3], e[3]) - max(b[1], e[1]), 0.0))
+    within = _area_within(np.asarray(box, dtype=float), e)
     if hidden_share >= max_hidden:
         if not confirmed or not depth_on_surface:
             return "hidden"
@@ -602,19 +605,18 @@ class VisionFusionHook:
         lc = np.asarray(twins.outputs.get("lc_prob", np.full(len(twins), np.nan)), dtype=float)
         view = np.flatnonzero(result.in_view)
         sigmas = result.depth_sigmas if result.depth_sigmas is not None else np.full(len(twins), np.inf)
-        nearer = result.depth_of_nearer if result.depth_of_nearer is not None else np.zeros(len(twins), bool)
         surface = result.depth_on_surface if result.depth_on_surface is not None else np.zeros(len(twins), bool)
         shown = (result.shown_depth_sigmas if result.shown_depth_sigmas is not None
                  else np.full(len(twins), np.inf))
         cam = frame.camera
-        matched = [box_within_outline(result.box_of(self.method, i), result.expected_boxes[i], cam.width, cam.height)
-                   for i in view]
+        given = [result.box_of(self.method, i) for i in view]
+        matched = [box_within_outline(g, result.expected_boxes[i], cam.width, cam.height) for g, i in zip(given, view)]
         # a matched box of which too little lies within the outline leaves nothing to draw: "small"
-        reasons = ["small" if b is None and result.box_of(self.method, i) is not None else
+        reasons = ["small" if b is None and g is not None else
                    undrawn_reason(b, result.expected_boxes[i], result.hidden_share[i],
-                                  depth_sigmas=float(sigmas[i]), depth_of_nearer=bool(nearer[i]),
-                                  depth_on_surface=bool(surface[i]), shown_depth_sigmas=float(shown[i]))
-                   for b, i in zip(matched, view)]
+                                  depth_sigmas=float(sigmas[i]), depth_on_surface=bool(surface[i]),
+                                  shown_depth_sigmas=float(shown[i]))
+                   for b, g, i in zip(matched, given, view)]
         boxes = [b if r == "" else None for b, r in zip(matched, reasons)]
         chosen = [int(result.choice[self.method][i]) for i in view]
         decision = twins.outputs.get("lc_decision")
