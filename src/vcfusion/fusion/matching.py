@@ -309,17 +309,24 @@ def _clipped_cuboid_pixels(corners: np.ndarray, camera: CameraView, near: float)
     return points, valid
 
 
+def _outline_pixels(ground, heading, length, width, height, camera: CameraView,
+                    t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (N, P, 2) and camera-Z (N, P) of points of each vehicle's footprint outline a quarter
+    of its height up (where Algorithm 1 samples): both sides at the fractions `t` of the length
+    (-0.5 rear .. 0.5 front), rear and front at the same fractions of the width."""
+    k = len(t)
+    along = np.r_[t, t, np.full(k, -0.5), np.full(k, 0.5)]
+    across = np.r_[np.full(k, -0.5), np.full(k, 0.5), t, t]
+    pts = body_points(*ground.T, heading, length, width, height, along, across, np.full(4 * k, 0.25))
+    uv, cz = camera.project(pts.reshape(-1, 3))
+    return np.asarray(uv, float).reshape(len(ground), -1, 2), np.asarray(cz, float).reshape(len(ground), -1)
+
+
 def _nearest_in_view_z(ground, heading, length, width, height, camera: CameraView, default: np.ndarray,
                        samples: int = 16) -> np.ndarray:
     """Camera-Z of the nearest point in the image of each vehicle's outline a quarter of its height
     up (where Algorithm 1 samples), or ``default`` where none of it is in view."""
-    t = (np.arange(samples) + 0.5) / samples - 0.5
-    # the footprint's outline: both sides along the length, rear and front across the width
-    along = np.r_[t, t, np.full(samples, -0.5), np.full(samples, 0.5)]
-    across = np.r_[np.full(samples, -0.5), np.full(samples, 0.5), t, t]
-    pts = body_points(*ground.T, heading, length, width, height, along, across, np.full(4 * samples, 0.25))
-    uv, cz = camera.project(pts.reshape(-1, 3))
-    uv, cz = np.asarray(uv).reshape(len(ground), -1, 2), np.asarray(cz).reshape(len(ground), -1)
+    uv, cz = _outline_pixels(ground, heading, length, width, height, camera, (np.arange(samples) + 0.5) / samples - 0.5)
     seen = _in_image(uv, camera) & (cz > 0)
     return np.where(seen.any(axis=1), np.where(seen, cz, np.inf).min(axis=1), default)
 
@@ -341,13 +348,10 @@ def outline_depth_in_columns(twins: TwinStates, camera: CameraView, boxes, sampl
     height = np.asarray(twins.height, dtype=np.float64)
     ground = np.stack([twins.x, twins.y, np.asarray(twins.z, dtype=np.float64) - GNSS_HEIGHT_FRACTION * height],
                       axis=1).astype(np.float64)
-    t = (np.arange(samples + 1) / samples) - 0.5  # corners included
-    along = np.r_[t, t, np.full(samples + 1, -0.5), np.full(samples + 1, 0.5)]
-    across = np.r_[np.full(samples + 1, -0.5), np.full(samples + 1, 0.5), t, t]
-    pts = body_points(*ground.T, np.asarray(twins.heading, dtype=np.float64), np.asarray(twins.length, dtype=np.float64),
-                      np.asarray(twins.width, dtype=np.float64), height, along, across, np.full(len(along), 0.25))
-    uv, cz = camera.project(pts.reshape(-1, 3))
-    u, cz = np.asarray(uv, float).reshape(n, -1, 2)[..., 0], np.asarray(cz, float).reshape(n, -1)
+    uv, cz = _outline_pixels(ground, np.asarray(twins.heading, dtype=np.float64),
+                             np.asarray(twins.length, dtype=np.float64), np.asarray(twins.width, dtype=np.float64),
+                             height, camera, np.arange(samples + 1) / samples - 0.5)  # corners included
+    u = uv[..., 0]
     with np.errstate(invalid="ignore"):
         inside = (u >= b[:, None, 0]) & (u <= b[:, None, 2]) & (cz > 0)
     z = np.where(inside, cz, np.inf).min(axis=1)
@@ -631,8 +635,8 @@ class JointMatcher:
             # box of the car beside it, which the stand-in lay in, and pushed that car off its box
             if not anchor_hidden[i]:
                 inside[i] = point_in_boxes(anchors[i], b)
-        expected = proj.face_z if p.face_offset else proj.anchor_z
-        sigma = p.depth_sigma_rel * expected[:, None] + p.depth_sigma_abs_m
+        expected, sigma = self._expected_depth(proj)
+        sigma = sigma[:, None]
         with np.errstate(invalid="ignore"):
             err_q = np.abs(depths[None, :, :] - expected[:, None, None]) / sigma[:, :, None]  # (N, D, q)
         err_q = np.where(np.isfinite(err_q), err_q, np.inf)
@@ -680,6 +684,13 @@ class JointMatcher:
         allowed &= proj.in_view[:, None]
         return cost, allowed, hidden_whole, measured_err, of_nearer, on_surface, depths
 
+    def _expected_depth(self, proj: TwinProjection) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) the depth each twin's box should measure (its face, or its anchor without
+        face_offset) and (N,) the depth sigma there (depth_sigma_rel * depth + depth_sigma_abs_m), m."""
+        p = self.params
+        expected = proj.face_z if p.face_offset else proj.anchor_z
+        return expected, p.depth_sigma_rel * expected + p.depth_sigma_abs_m
+
     def _depth_of_nearer_twin(self, proj: TwinProjection, boxes: np.ndarray, depth_err: np.ndarray,
                               sigma: np.ndarray) -> np.ndarray:
         """(N, D) mask: box j's depth agrees with a twin k that is nearer than twin i by more than
@@ -692,7 +703,7 @@ class JointMatcher:
         # (K, D): twin k covers box j's sampled area and box j's depth is twin k's
         explains = ((box_inside_share(lower, proj.expected_box).T >= 0.8) & (depth_err <= gate)
                     & proj.in_view[:, None] & (box_iou(proj.expected_box, boxes) < 0.5))
-        expected = proj.face_z if self.params.face_offset else proj.anchor_z
+        expected = self._expected_depth(proj)[0]
         nearer = expected[None, :] < (expected[:, None] - gate * sigma)  # (I, K): k clearly nearer than i
         return (nearer.astype(np.int64) @ explains.astype(np.int64)) > 0
 
@@ -727,9 +738,7 @@ class JointMatcher:
             chosen = np.full((n, 4), np.nan)
             chosen[rows] = as_boxes(boxes)[cols]
             column_z = outline_depth_in_columns(twins, camera, chosen)[rows]
-            p = self.params
-            expected = proj.face_z if p.face_offset else proj.anchor_z
-            sigma = p.depth_sigma_rel * expected[rows] + p.depth_sigma_abs_m
+            sigma = self._expected_depth(proj)[1][rows]
             with np.errstate(invalid="ignore"):
                 err = np.abs(depths[cols] - column_z[:, None]) / sigma[:, None]
             err = np.where(np.isfinite(err), err, np.inf).min(axis=1) if depths.shape[1] else np.full(len(rows), np.inf)
