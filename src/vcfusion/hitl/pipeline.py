@@ -108,7 +108,6 @@ def _block_bytes(width: int, height: int) -> int:
 def _worker_main(conn, scenario: Scenario, seed: int, shm_name: str, size: tuple[int, int], nice: int) -> None:
     """The worker process: build the scenario's fusion stage, answer vision ticks until told to stop
     (at `nice` more than the loop's niceness)."""
-    import gc
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the loop's process, which stops us
@@ -119,6 +118,7 @@ def _worker_main(conn, scenario: Scenario, seed: int, shm_name: str, size: tuple
         from vcfusion.cosim import Tick
         from vcfusion.fusion.stage import build_fusion_hook
         from vcfusion.guidance import GuidancePolicy
+        from vcfusion.hitl.gcpause import frozen_heap
         from vcfusion.render.renderer import Frame
         from vcfusion.threads import one_blas_thread
         from vcfusion.traffic.network import read_road
@@ -131,12 +131,10 @@ def _worker_main(conn, scenario: Scenario, seed: int, shm_name: str, size: tuple
             hook.detector.threads = WORKER_CNN_THREADS
         if hasattr(hook.detector, "dense"):  # the CNN's first forward pass allocates: not on the first tick
             hook.detector.detect(np.zeros((size[1], size[0], 3), np.uint8))
-        # the set-up's heap (torch, the detector) out of the collections of the ticks (vcfusion.hitl.gcpause)
-        gc.collect()
-        gc.freeze()
-        conn.send(("ready", os.getpid()))
         last = None  # the overlay handed back last: the stage hands it again between its AR updates
-        with one_blas_thread():
+        # the set-up's heap (torch, the detector) out of the collections of the ticks (vcfusion.hitl.gcpause)
+        with frozen_heap(), one_blas_thread():
+            conn.send(("ready", os.getpid()))
             while True:
                 try:
                     msg = conn.recv()
