@@ -288,6 +288,7 @@ def p2_vision(seeds: int, depth_sensor: str | None = None, pose_noise_deg: float
     import numpy as np
     import torch
 
+    from vcfusion.commands.study import with_sensors  # the sensors as `vcfusion study identification` sets them
     from vcfusion.run import build_cosimulation
     from vcfusion.scenario import load_scenario
     from vcfusion.fusion.fuse import VisionFusionHook
@@ -298,14 +299,7 @@ def p2_vision(seeds: int, depth_sensor: str | None = None, pose_noise_deg: float
     sc = load_scenario(ACCIDENT)
     sc = sc.model_copy(update={"vision": sc.vision.model_copy(update={"enabled": True}),
                                "fusion": sc.fusion.model_copy(update={"enabled": True})})
-    camera_update: dict = {}
-    if depth_sensor is not None:
-        camera_update["depth"] = depth_sensor
-    if pose_noise_deg is not None:
-        camera_update["pose_noise"] = sc.camera.pose_noise.model_copy(
-            update={"mount_std_deg": pose_noise_deg, "body_motion": pose_noise_deg > 0})
-    if camera_update:
-        sc = sc.model_copy(update={"camera": sc.camera.model_copy(update=camera_update)})
+    sc = with_sensors(sc, depth_sensor, pose_noise_deg)
     rows, simulated, wall = [], 0.0, 0.0
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(seeds):

@@ -347,10 +347,5 @@ def set_decision(model_path: Path, out: Path, smoothing: str, threshold: float, 
                                                  "reason": reason, "replaced": before}}
     (save_sequence_model if model.kind == "gru" else save_model)(model, out)
     return (f"{out}: {smoothing}, threshold {threshold:g}, tau {int(tau_ticks)} ticks "
-            f"(was {before['smoothing']}, threshold {model_threshold(before):g}); weights and calibration of "
-            f"{model_path}")
-
-
-def model_threshold(settings: dict) -> float:
-    """The default smoothing's threshold of a settings record of :func:`set_decision`."""
-    return float(settings["thresholds"].get(settings["smoothing"], settings["threshold"]))
+            f"(was {before['smoothing']}, threshold {before['thresholds'].get(before['smoothing'], before['threshold']):g}); "
+            f"weights and calibration of {model_path}")
