@@ -196,8 +196,8 @@ def train_sequence_model(datasets: list[Path], out: Path, cfg: SequenceConfig, p
     columns = ["seed", "vehicle_id", "time", "window_label", "time_to_lc", "stream_label", *stored_columns(names)]
     tr, _ = combined_stream(infos, "train", columns)
     va, va_events = combined_stream(infos, "validation", columns)
-    with_derived_columns(tr, names)
-    with_derived_columns(va, names)
+    with_derived_columns(tr, names, period)
+    with_derived_columns(va, names, period)
     require_both_labels((tr["window_label"] == 1).to_numpy(), "train")
     require_both_labels((va["window_label"] == 1).to_numpy(), "validation")
     x_tr = tr[names].to_numpy(np.float32)
@@ -284,7 +284,7 @@ def retune_decisions(model_path: Path, datasets: list[Path], out: Path, false_al
     names = list(model.feature_names)
     columns = ["seed", "vehicle_id", "time", "stream_label", *stored_columns(names)]
     va, va_events = combined_stream(infos, "validation", columns)
-    with_derived_columns(va, names)
+    with_derived_columns(va, names, model.period_s)
     if model.kind == "gru":
         logits = model.sequence_logits(va[names].to_numpy(np.float32),
                                        segment_bounds(va, model.period_s, model.reset_gap_ticks))
