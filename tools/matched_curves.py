@@ -7,9 +7,9 @@ vehicle's own sway").
         [--rates all:1.7,all:5,judged:3.4] [--out FILE.md]
 
 At each share: for each curve the threshold predicting at least that share of the pooled changes
-with the fewest pooled false alarms, once for the headline rate and once for the judged rate. At
-each rate:budget: the threshold predicting most pooled changes within that pooled rate. Prints a
-Markdown table (and writes it to --out).
+(--recording: of one recording's) with the fewest false alarms, once for the headline rate and
+once for the judged rate. At each rate:budget: the threshold predicting most changes within that
+rate. Prints a Markdown table (and writes it to --out).
 """
 
 from __future__ import annotations
@@ -52,6 +52,8 @@ def main() -> int:
     p.add_argument("--shares", default="63/94,70/94",
                    help="pooled shares of lane changes predicted to match (0.67 or 63/94)")
     p.add_argument("--rates", default="all:1.7,judged:3.4", help="RATE:BUDGET pairs (rate all or judged) to match")
+    p.add_argument("--recording", default="all",
+                   help="match on this recording's share and rates (a curve.csv prefix: ngsim, cr), default pooled")
     p.add_argument("--out", type=Path)
     a = p.parse_args()
     curves = {}
@@ -64,13 +66,13 @@ def main() -> int:
     for share in (_fraction(x) for x in a.shares.split(",") if x):
         for rate in ("all", "judged"):
             for name, curve in curves.items():
-                rows.append({"matched": f"share >= {100 * share:.1f} %, fewest {RATE_NAME[rate]} false alarms",
-                             "model": name, **_cells(at_share(curve, share, rate))})
+                rows.append({"matched": f"{a.recording} share >= {100 * share:.1f} %, fewest {RATE_NAME[rate]} false alarms",
+                             "model": name, **_cells(at_share(curve, share, rate, a.recording))})
     for item in (x for x in a.rates.split(",") if x):
         rate, _, budget = item.partition(":")
         for name, curve in curves.items():
-            rows.append({"matched": f"{RATE_NAME[rate]} false alarms <= {float(budget):g} / veh-h, most changes",
-                         "model": name, **_cells(at_pooled_rate(curve, float(budget), rate))})
+            rows.append({"matched": f"{a.recording} {RATE_NAME[rate]} false alarms <= {float(budget):g} / veh-h, most changes",
+                         "model": name, **_cells(at_pooled_rate(curve, float(budget), rate, a.recording))})
     table = pd.DataFrame(rows).fillna("")
     lines = ["| " + " | ".join(table.columns) + " |", "|" + "---|" * len(table.columns)]
     text = "\n".join(lines + ["| " + " | ".join(map(str, r)) + " |" for r in table.itertuples(index=False)])

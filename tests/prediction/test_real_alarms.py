@@ -253,3 +253,7 @@ def test_two_curves_compared_at_matched_share_and_matched_rate():
     assert at_pooled_rate(curve, 0.9) is None
     with pytest.raises(ValueError, match="false-alarm rate"):
         at_share(curve, 0.5, "censored")
+    # one recording's columns instead of the pooled ones
+    rec = curve.rename(columns=lambda c: c.replace("all_", "ngsim_")).assign(all_predicted=0.0)
+    assert at_share(rec, 0.75, recording="ngsim")["threshold"] == 0.5 and at_share(rec, 0.75) is None
+    assert at_pooled_rate(rec, 2.5, "judged", recording="ngsim")["threshold"] == 0.3

@@ -73,25 +73,26 @@ def _rate_column(rate: str) -> str:
     return RATE_COLUMN[rate]
 
 
-def at_share(curve: pd.DataFrame, share: float, rate: str = "all") -> pd.Series | None:
-    """The curve's row predicting at least `share` of the pooled lane changes with the lowest pooled
-    false-alarm rate `rate` (ties: larger mean advance): two models compared at matched recall.
-    None if no row reaches the share."""
-    col = f"all_{_rate_column(rate)}"
-    ok = curve[curve["all_predicted"] >= share - 1e-12]
+def at_share(curve: pd.DataFrame, share: float, rate: str = "all", recording: str = "all") -> pd.Series | None:
+    """The curve's row predicting at least `share` of the lane changes of `recording` ("all": pooled)
+    with its lowest false-alarm rate `rate` (ties: larger mean advance): two models compared at
+    matched recall. None if no row reaches the share."""
+    col = f"{recording}_{_rate_column(rate)}"
+    ok = curve[curve[f"{recording}_predicted"] >= share - 1e-12]
     if not len(ok):
         return None
-    return ok.sort_values([col, "all_advance_s"], ascending=[True, False]).iloc[0]
+    return ok.sort_values([col, f"{recording}_advance_s"], ascending=[True, False]).iloc[0]
 
 
-def at_pooled_rate(curve: pd.DataFrame, budget: float, rate: str = "all") -> pd.Series | None:
-    """The curve's row predicting most pooled lane changes with a pooled false-alarm rate `rate` <=
-    budget (ties: larger mean advance): two models compared at matched false alarms. None if none."""
-    col = f"all_{_rate_column(rate)}"
+def at_pooled_rate(curve: pd.DataFrame, budget: float, rate: str = "all", recording: str = "all") -> pd.Series | None:
+    """The curve's row predicting most lane changes of `recording` ("all": pooled) with its false-alarm
+    rate `rate` <= budget (ties: larger mean advance): two models compared at matched false alarms.
+    None if none."""
+    col = f"{recording}_{_rate_column(rate)}"
     ok = curve[curve[col] <= budget + 1e-12]
     if not len(ok):
         return None
-    return ok.sort_values(["all_predicted", "all_advance_s"], ascending=[False, False]).iloc[0]
+    return ok.sort_values([f"{recording}_predicted", f"{recording}_advance_s"], ascending=[False, False]).iloc[0]
 
 
 def weak_judged_bounds(row: pd.Series, budget: float, recordings) -> list[str]:
