@@ -177,3 +177,25 @@ def test_a_sway_model_in_the_cloud_gives_the_offline_probabilities():
     offline = model.stream_proba(feats.reset_index(drop=True), list(names))
     for (vid, t), p in zip(zip(feats["vehicle_id"], feats["time"]), offline):
         assert online[(vid, t)] == pytest.approx(p, abs=1e-5)
+
+
+def test_a_lateral_gru_extended_with_the_sway_inputs_keeps_its_probabilities():
+    from vcfusion.prediction.sequence import SequenceModel
+    from vcfusion.prediction.train_sequence import extend_inputs
+
+    lateral, sway = SEQUENCE_INPUT_SETS["lateral"], SEQUENCE_INPUT_SETS["sway"]
+    rng = np.random.default_rng(3)
+    f, h = len(lateral), 4
+    model = SequenceModel(tuple(lateral), rng.normal(0, 1, f), np.full(f, 2.0), rng.normal(0, 0.5, (3 * h, f)),
+                          rng.normal(0, 0.5, (3 * h, h)), np.zeros(3 * h), np.zeros(3 * h), rng.normal(0, 1.0, (1, h)),
+                          np.array([0.0]), tau=5.0, tau_g=2.0, period_s=PERIOD)
+    wide = extend_inputs(model, sway, [0.5, 0.0, 0.0], [0.5, 1.0, 1.0])
+    assert wide.feature_names == sway and wide.w_ih.shape == (3 * h, len(sway))
+    x = rng.normal(0, 1, (30, len(sway))).astype(np.float32)
+    np.testing.assert_allclose(wide.sequence_logits(x, [(0, 30)]), model.sequence_logits(x[:, :f], [(0, 30)]),
+                               rtol=0, atol=1e-5)  # float32 sums in another order
+    assert model.w_ih.shape == (3 * h, f)  # the original is not changed
+    with pytest.raises(ValueError, match="model's"):
+        extend_inputs(model, sway[1:], [0.0] * 3, [1.0] * 3)
+    with pytest.raises(ValueError, match="std > 0"):
+        extend_inputs(model, sway, [0.0] * 3, [1.0, 0.0, 1.0])

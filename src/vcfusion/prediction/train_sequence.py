@@ -21,6 +21,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import time as wallclock
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -349,3 +350,21 @@ def set_decision(model_path: Path, out: Path, smoothing: str, threshold: float, 
     return (f"{out}: {smoothing}, threshold {threshold:g}, tau {int(tau_ticks)} ticks "
             f"(was {before['smoothing']}, threshold {before['thresholds'].get(before['smoothing'], before['threshold']):g}); "
             f"weights and calibration of {model_path}")
+
+
+def extend_inputs(model: SequenceModel, names, mean, std) -> SequenceModel:
+    """A copy of the GRU `model` whose inputs are `names` (its own inputs first, in order, then new
+    ones), the new inputs standardised with `mean` / `std` (one per new input) and given zero input
+    weights: its probabilities are the model's until it is fine-tuned (`vcfusion train --init`)."""
+    names = tuple(names)
+    own = tuple(model.feature_names)
+    if names[:len(own)] != own or len(names) == len(own):
+        raise ValueError(f"inputs {list(names[len(own):]) or 'none'}: expected the model's {len(own)} inputs "
+                         "first, in order, then at least one new one")
+    mean, std = np.asarray(mean, dtype=float), np.asarray(std, dtype=float)
+    extra = len(names) - len(own)
+    if mean.shape != (extra,) or std.shape != (extra,) or not (std > 0).all():
+        raise ValueError(f"mean / std: expected {extra} values each, std > 0")
+    return dataclasses.replace(copy.deepcopy(model), feature_names=names, mean=np.r_[model.mean, mean],
+                               std=np.r_[model.std, std],
+                               w_ih=np.hstack([model.w_ih, np.zeros((model.w_ih.shape[0], extra), np.float32)]))
