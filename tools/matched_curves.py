@@ -61,6 +61,8 @@ def main() -> int:
         name, sep, path = item.partition("=")
         if not sep:
             p.error(f"{item!r}: expected NAME=curve.csv")
+        if name in curves:
+            p.error(f"{name!r}: given twice (each curve needs its own name)")
         curves[name] = pd.read_csv(path)
     rows = []
     for share in (_fraction(x) for x in a.shares.split(",") if x):
