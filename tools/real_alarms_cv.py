@@ -75,7 +75,7 @@ def out_of_fold(work: Path, extra_columns: tuple[str, ...] = ()) -> tuple[pd.Dat
             info = load_dataset(work / f"{name}-cv{k}")
             wanted = ["seed", "vehicle_id", "time", *stored_columns(names)]
             s, e = stream_with_events(info, "test", columns=wanted + [c for c in extra_columns if c not in wanted])
-            with_derived_columns(s, names)
+            with_derived_columns(s, names, model.period_s)
             s["prob"] = model.stream_proba(s, names)
             held_out = set(json.loads(Path(SPLITS[name]).read_text())["parts"]["held_out"])
             if name == "cr":

@@ -2,12 +2,13 @@
 # The sim-to-real table of the lane-change predictors (docs/components/real-data.md, "The
 # sim-to-real table"), from nothing but the two US-101 development files: imports, the frozen
 # splits (splits/), simulated datasets, the trained models, the re-tuned decisions and the table.
-# Seeded throughout (training: --seed 0 --threads 1); about 110 min on 2 CPU cores, most of it
+# Seeded throughout (training: --seed 0 --threads 1); about 130 min on 2 CPU cores, most of it
 # simulation and training. Steps already done (their output exists) are skipped.
 #   tools/sim_to_real.sh NGSIM_FILE COMMONROAD_ARCHIVE [WORK_DIR]   (default runs/sim-to-real)
 # NGSIM_FILE: ngsim_us101_0750-0805_first65535rows.csv.gz; COMMONROAD_ARCHIVE:
 # commonroad_ngsim_us101.tar.xz (their README says where they come from). The table lands in
-# WORK_DIR/table/sim_to_real.{md,csv,json}, the longer-trained GRUs' in WORK_DIR/table-long/.
+# WORK_DIR/table/sim_to_real.{md,csv,json}, the longer-trained GRUs' in WORK_DIR/table-long/, the sway
+# inputs' comparison in WORK_DIR/matched_sway.md.
 set -eu
 NGSIM="$1"; CR="$2"; W="${3:-runs/sim-to-real}"
 V="${PYTHON:-python} -m vcfusion"
@@ -55,6 +56,19 @@ done
 # development and validation parts (docs/components/real-data.md, "False alarms on real data")
 step "$M/ft_mix_lat_cv.npz" ${PYTHON:-python} tools/real_alarms_cv.py "$D/ngsim" "$D/cr" "$M/mix_lat.npz" "$W/cv-mix" \
     --apply "$M/ft_mix_lat.npz" --out "$M/ft_mix_lat_cv.npz"
+# the lateral motion over the vehicle's own sway as GRU inputs (docs/components/real-data.md, "Lateral
+# speed over the vehicle's own sway"): the mixed-sim recipe with the "sway" inputs, and the mixed-sim
+# GRU lateral with them appended at zero weight (learnt from the recordings only), each fine-tuned in
+# the four folds; their curves against the candidate's at matched recall and false alarms
+step "$M/mix_sway.npz" $V train $LC $CAL $T --inputs sway --epochs 3 --out "$M/mix_sway.npz"
+step "$M/mix_lat_plus_sway.npz" ${PYTHON:-python} tools/extend_gru_inputs.py "$M/mix_lat.npz" "$D/ngsim-split" \
+    "$D/cr-split" --inputs sway --out "$M/mix_lat_plus_sway.npz"
+for m in mix_sway mix_lat_plus_sway; do
+  step "$W/cv-$m/curve.csv" ${PYTHON:-python} tools/real_alarms_cv.py "$D/ngsim" "$D/cr" "$M/$m.npz" "$W/cv-$m"
+done
+${PYTHON:-python} tools/matched_curves.py "mixed-sim GRU lateral (candidate)=$W/cv-mix/curve.csv" \
+    "mixed-sim GRU sway=$W/cv-mix_sway/curve.csv" "mixed-sim GRU lateral + sway (real only)=$W/cv-mix_lat_plus_sway/curve.csv" \
+    --rates all:1.7,all:4,judged:3.4 --out "$W/matched_sway.md"
 # the lateral GRUs trained longer (docs/components/real-data.md, "Longer training"): the 3-epoch
 # files continued (--init: same inputs and standardisation) for at most 6 / 5 more epochs, stopped
 # on the same validation seeds (patience 2), decision tuned there (<= 1.5 false alarms / veh-h)

@@ -72,7 +72,7 @@ def main() -> None:
     names = list(model.feature_names)
     stream, events = combined_stream(infos, "validation",
                                      ["seed", "vehicle_id", "time", *stored_columns(names)])
-    with_derived_columns(stream, names)
+    with_derived_columns(stream, names, model.period_s)
     logits = model.sequence_logits(stream[names].to_numpy(np.float32),
                                    segment_bounds(stream, model.period_s, model.reset_gap_ticks))
     prob = model.calibrated(logits)

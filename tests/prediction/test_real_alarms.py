@@ -232,3 +232,28 @@ def test_censored_alarm_outcomes_cut_long_tracks_as_short_ones_are_cut():
     assert got["short_censored_false_alarms"] == 1 and got["short_span_median_s"] == pytest.approx(3.0)
     assert got["long_runs"] == 4
     assert (got["pairs"], got["pairs_false"], got["runs"], got["runs_false"]) == (2, 1, 2, 1)
+
+
+def test_two_curves_compared_at_matched_share_and_matched_rate():
+    from vcfusion.prediction.decision_curve import at_pooled_rate, at_share
+
+    curve = pd.DataFrame({"threshold": [0.3, 0.4, 0.5, 0.6],
+                          "all_predicted": [0.80, 0.75, 0.75, 0.60],
+                          "all_advance_s": [3.5, 3.0, 3.2, 2.5],
+                          "all_fa_per_veh_h": [9.0, 4.0, 4.0, 1.0],
+                          "all_fa_judged_per_veh_h": [2.0, 3.0, 1.0, 0.5]})
+    # at least 75 %: the fewest headline alarms (a tie: the longer advance), the fewest judged ones
+    assert at_share(curve, 0.75)["threshold"] == 0.5
+    assert at_share(curve, 0.75, "judged")["threshold"] == 0.5
+    assert at_share(curve, 0.79, "judged")["threshold"] == 0.3
+    assert at_share(curve, 0.9) is None
+    # within 4 alarms / veh-h: most changes (a tie: the longer advance); within 0.9 none
+    assert at_pooled_rate(curve, 4.0)["threshold"] == 0.5
+    assert at_pooled_rate(curve, 2.5, "judged")["threshold"] == 0.3
+    assert at_pooled_rate(curve, 0.9) is None
+    with pytest.raises(ValueError, match="false-alarm rate"):
+        at_share(curve, 0.5, "censored")
+    # one recording's columns instead of the pooled ones
+    rec = curve.rename(columns=lambda c: c.replace("all_", "ngsim_")).assign(all_predicted=0.0)
+    assert at_share(rec, 0.75, recording="ngsim")["threshold"] == 0.5 and at_share(rec, 0.75) is None
+    assert at_pooled_rate(rec, 2.5, "judged", recording="ngsim")["threshold"] == 0.3

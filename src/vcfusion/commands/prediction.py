@@ -239,10 +239,11 @@ def add_parsers(sub) -> None:
     p.add_argument("--privileged", action="store_true",
                    help="the privileged ceiling: also feed SUMO's lane-change state (a dataset built with "
                         "--privileged); such a model cannot run in the cloud")
-    p.add_argument("--inputs", choices=["base", "availability", "lateral"], default="base",
+    p.add_argument("--inputs", choices=["base", "availability", "lateral", "sway"], default="base",
                    help="GRU inputs (features.SEQUENCE_INPUT_SETS): base (the shipped GRU's), availability (also "
                         "the flags: a neighbour observed or not), lateral (also the lateral motion: drift and "
-                        "lateral speed, with a known-flag); the model file records its inputs")
+                        "lateral speed, with a known-flag), sway (also both over the vehicle's own recent "
+                        "lane-keeping sway, with a known-flag); the model file records its inputs")
     p.add_argument("--init", metavar="MODEL",
                    help="GRU: fine-tune: start from this GRU file's weights, inputs and standardisation "
                         "(e.g. a model trained on simulation, fine-tuned on a real recording's development part)")

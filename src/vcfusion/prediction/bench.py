@@ -40,7 +40,8 @@ def bench_model(path, n_twins: int = 100, repeats: int = 2000) -> list[str]:
     predictor = LaneChangePredictor(model, road, 0.1)
     predictor(twins)  # warm-up, fills the per-twin memory
     gru = model.kind == "gru"
-    flags = {"extras": gru, "availability": predictor.availability, "lateral": predictor.lateral}  # the model's inputs
+    flags = {"extras": gru, "availability": predictor.availability, "lateral": predictor.lateral,
+             "sway": predictor.sway}  # the model's inputs
     features = predictor.extractor.from_twins(twins, **flags)
     if gru:
         ticks = iter(range(1, 10**9))  # each call one tick later: the per-twin states are carried, never reset

@@ -47,7 +47,8 @@ class LaneChangePredictor:
         self.sequence = SequenceState(model) if model.kind == "gru" else None
         # a sequence model trained with the availability flags (and the lateral motion) also reads them
         names = tuple(model.feature_names)
-        self.lateral = model.kind == "gru" and names == SEQUENCE_INPUT_SETS["lateral"]
+        self.sway = model.kind == "gru" and names == SEQUENCE_INPUT_SETS["sway"]
+        self.lateral = model.kind == "gru" and (self.sway or names == SEQUENCE_INPUT_SETS["lateral"])
         self.availability = model.kind == "gru" and (self.lateral or names == SEQUENCE_INPUT_SETS["availability"])
         smoothing = smoothing or model.smoothing
         self.threshold = model.threshold_for(smoothing) if threshold is None else threshold
@@ -65,7 +66,7 @@ class LaneChangePredictor:
             return {"lc_prob": np.zeros(0), "lc_decision": np.zeros(0, np.int8)}
         if self.sequence is not None:  # the GRU: one step per twin, its state carried to the next tick
             features = self.extractor.from_twins(twins, extras=True, availability=self.availability,
-                                                 lateral=self.lateral)
+                                                 lateral=self.lateral, sway=self.sway)
             prob = self.sequence(twins.ids, twins.time, features)
         else:
             features = self.extractor.from_twins(twins)

@@ -67,6 +67,34 @@ def choose_threshold(curve: pd.DataFrame, budget: float, recordings, rate: str =
     return ok.sort_values(["all_predicted", "all_advance_s", f"all_{col}"], ascending=[False, False, True]).iloc[0]
 
 
+def _rate_column(rate: str) -> str:
+    if rate not in RATE_COLUMN:
+        raise ValueError(f"false-alarm rate: expected one of {sorted(RATE_COLUMN)}, got {rate!r}")
+    return RATE_COLUMN[rate]
+
+
+def at_share(curve: pd.DataFrame, share: float, rate: str = "all", recording: str = "all") -> pd.Series | None:
+    """The curve's row predicting at least `share` of the lane changes of `recording` ("all": pooled)
+    with its lowest false-alarm rate `rate` (ties: larger mean advance): two models compared at
+    matched recall. None if no row reaches the share."""
+    col = f"{recording}_{_rate_column(rate)}"
+    ok = curve[curve[f"{recording}_predicted"] >= share - 1e-12]
+    if not len(ok):
+        return None
+    return ok.sort_values([col, f"{recording}_advance_s"], ascending=[True, False]).iloc[0]
+
+
+def at_pooled_rate(curve: pd.DataFrame, budget: float, rate: str = "all", recording: str = "all") -> pd.Series | None:
+    """The curve's row predicting most lane changes of `recording` ("all": pooled) with its false-alarm
+    rate `rate` <= budget (ties: larger mean advance): two models compared at matched false alarms.
+    None if none."""
+    col = f"{recording}_{_rate_column(rate)}"
+    ok = curve[curve[col] <= budget + 1e-12]
+    if not len(ok):
+        return None
+    return ok.sort_values([f"{recording}_predicted", f"{recording}_advance_s"], ascending=[False, False]).iloc[0]
+
+
 def weak_judged_bounds(row: pd.Series, budget: float, recordings) -> list[str]:
     """Notes on the recordings whose judged exposure is under 1 / budget hours: there a single judged
     false alarm exceeds the budget, so the bound only says that none was judged false (short tracks:

@@ -173,7 +173,7 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
     stream, events = stream_with_events(info, split, columns=["seed", "vehicle_id", "time", "window_label",
                                                                "stream_label", *dict.fromkeys(stored_columns(
                                                                    [*names, *privileged, *model_names]))])
-    with_derived_columns(stream, model_names)
+    with_derived_columns(stream, model_names, info.period_s)
     bounds, stretches = track_bounds(stream), smoothing_bounds(stream)
     in_window = stream["window_label"].to_numpy() >= 0
     y_window = stream["window_label"].to_numpy()[in_window] == 1

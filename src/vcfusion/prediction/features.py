@@ -111,11 +111,37 @@ AVAILABILITY_NAMES: tuple[str, ...] = tuple(f"{kind}_found_{side}" for side in (
 # when it is known again.
 LATERAL_REFERENCE_S = 10.0
 LATERAL_NAMES: tuple[str, ...] = ("lateral_known", "lateral_speed_mps", "lateral_drift_m")
+# Lateral motion over the vehicle's own lane-keeping sway (issue 46), inputs of a sequence model of
+# the "sway" input set only: recorded lane keeping sways 0.1-0.3 m/s for about a second, more for
+# some drivers than for others, which hides an early drift in `lateral_speed_mps`
+# (docs/components/real-data.md, "The positions are not noisy; lane-keeping sway is"). Per twin,
+# from its own LATERAL_NAMES of the ticks BEFORE the current one (causal: the current and later
+# ticks never enter the scale):
+# `lateral_speed_over_sway` = lateral_speed_mps / max(RMS of lateral_speed_mps, SWAY_SPEED_FLOOR_MPS),
+# `lateral_drift_over_sway` = lateral_drift_m / max(RMS of lateral_drift_m, SWAY_DRIFT_FLOOR_M),
+# each RMS an exponentially weighted mean of the squares (time constant SWAY_WINDOW_S, normalised by
+# its weight so that a short history is an ordinary mean), each square capped (one lane change
+# barely moves the scale); `sway_known` = 1 once the twin's lateral position has been known for
+# SWAY_WARMUP_S + SWAY_MIN_HISTORY_S without a break (the two quantities are 0 before). The history
+# restarts where the lateral position is unknown, where the twin is new or was missing from a
+# snapshot, and after a gap of more than 1.5 V2C periods. They are functions of LATERAL_NAMES
+# (computed when read, like AVAILABILITY_NAMES: datasets need no rebuild), by one compiled step
+# (:func:`_sway_step`) in the cloud (:meth:`FeatureExtractor.sway`) and on a dataset's samples
+# (:func:`with_derived_columns`), both from the float32 values the samples store.
+SWAY_WINDOW_S = 30.0  # time constant of the RMS: the 30 s of the lead (real-data.md, the sway as an alarm alone)
+SWAY_WARMUP_S = HISTORY_SLOW_S  # lateral_speed_mps settles this long after d is first known: not in the RMS
+SWAY_MIN_HISTORY_S = 2.0  # s of RMS history before the quantities are given (sway_known = 1)
+SWAY_SPEED_FLOOR_MPS = 0.1  # a steady vehicle's scale: the lead's floor; recorded sway is 0.1-0.3 m/s
+SWAY_SPEED_CAP_MPS = 0.5  # squares capped at 0.25 m^2/s^2 (the lead's): a change is 0.5-1 m/s for ~3 s
+SWAY_DRIFT_FLOOR_M = 0.1  # a steady vehicle's scale of lateral_drift_m
+SWAY_DRIFT_CAP_M = 1.0  # squares capped at 1 m^2: a change drifts ~3.5 m
+SWAY_NAMES: tuple[str, ...] = ("sway_known", "lateral_speed_over_sway", "lateral_drift_over_sway")
 # the model input lists this version computes for a sequence model: a model file records its own
 SEQUENCE_INPUT_SETS: dict[str, tuple[str, ...]] = {
     "base": (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES),
     "availability": (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES, *AVAILABILITY_NAMES),
     "lateral": (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES, *AVAILABILITY_NAMES, *LATERAL_NAMES),
+    "sway": (*FEATURE_NAMES, *SEQUENCE_EXTRA_NAMES, *AVAILABILITY_NAMES, *LATERAL_NAMES, *SWAY_NAMES),
 }
 
 _LANE_KEY = 1.0e6  # lane * _LANE_KEY + s orders twins by lane, then along the road
@@ -257,6 +283,74 @@ def _history(out: np.ndarray, lanes_q: np.ndarray, speed: np.ndarray, lane: np.n
     return state
 
 
+# sway memory row: [known ticks without a break, RMS weight, mean square of lateral_speed_mps,
+# mean square of lateral_drift_m, time of the twin's last tick]
+_SWAY_WIDTH = 5
+
+
+@numba.njit(cache=True)
+def _sway_step(state: np.ndarray, fresh: bool, known: float, v: float, drift: float, t: float,
+               params: np.ndarray, out: np.ndarray) -> None:
+    """One tick of one twin: writes SWAY_NAMES into `out` from the state of the ticks before, then
+    updates `state` (in place) with this tick. params: alpha, warmup ticks, min ticks, max gap s,
+    speed floor, speed cap^2, drift floor, drift cap^2."""
+    alpha, warmup, min_ticks, max_gap = params[0], params[1], params[2], params[3]
+    if fresh or known < 0.5 or t - state[4] > max_gap:
+        state[0] = state[1] = state[2] = state[3] = 0.0
+    out[0] = out[1] = out[2] = 0.0
+    state[4] = t
+    if known < 0.5:
+        return
+    if state[0] >= warmup + min_ticks:
+        out[0] = 1.0
+        out[1] = v / max(np.sqrt(state[2] / state[1]), params[4])
+        out[2] = drift / max(np.sqrt(state[3] / state[1]), params[6])
+    if state[0] >= warmup:  # the lateral speed has settled: this tick enters the RMS of the next ones
+        state[1] += alpha * (1.0 - state[1])
+        state[2] += alpha * (min(v * v, params[5]) - state[2])
+        state[3] += alpha * (min(drift * drift, params[7]) - state[3])
+    state[0] += 1.0
+
+
+@numba.njit(cache=True)
+def _sway_tick(memory: np.ndarray, previous: np.ndarray, lateral: np.ndarray, t: float,
+               params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """SWAY_NAMES of the N twins of one snapshot and their new memory rows (`previous[i]`: twin i's
+    row in `memory`, -1 for a new twin); `lateral`: (N, 3) LATERAL_NAMES."""
+    n = lateral.shape[0]
+    state = np.zeros((n, _SWAY_WIDTH))
+    out = np.zeros((n, 3))
+    for i in range(n):
+        if previous[i] >= 0:
+            state[i] = memory[previous[i]]
+        _sway_step(state[i], previous[i] < 0, lateral[i, 0], lateral[i, 1], lateral[i, 2], t, params, out[i])
+    return out, state
+
+
+@numba.njit(cache=True)
+def _sway_tracks(new_track: np.ndarray, known: np.ndarray, v: np.ndarray, drift: np.ndarray, t: np.ndarray,
+                 params: np.ndarray) -> np.ndarray:
+    """SWAY_NAMES of rows sorted by track and time (`new_track`: the first row of a twin's track)."""
+    out = np.zeros((len(t), 3))
+    state = np.zeros(_SWAY_WIDTH)
+    for i in range(len(t)):
+        _sway_step(state, new_track[i], known[i], v[i], drift[i], t[i], params, out[i])
+    return out
+
+
+def sway_params(period_s: float) -> np.ndarray:
+    """The constants of :func:`_sway_step` for a V2C period."""
+    ticks = lambda seconds: float(round(seconds / period_s))  # noqa: E731
+    return np.array([1.0 - np.exp(-period_s / SWAY_WINDOW_S), ticks(SWAY_WARMUP_S), ticks(SWAY_MIN_HISTORY_S),
+                     1.5 * period_s, SWAY_SPEED_FLOOR_MPS, SWAY_SPEED_CAP_MPS ** 2, SWAY_DRIFT_FLOOR_M,
+                     SWAY_DRIFT_CAP_M ** 2])
+
+
+def _as_stored(values: np.ndarray) -> np.ndarray:
+    """float64 copies of the float32 values a dataset's samples store (both paths read these)."""
+    return np.ascontiguousarray(np.asarray(values, dtype=np.float32), dtype=np.float64)
+
+
 def _lanes_present(road, s: np.ndarray) -> np.ndarray:
     """(N, num_lanes) uint8: the lanes present at each s (all of them on a lane count)."""
     if isinstance(road, (int, np.integer)):
@@ -333,6 +427,8 @@ class FeatureExtractor:
         self._lateral = TwinMemory(3)
         self._alpha_lateral = np.array([self._alpha_fast, self._alpha_slow,
                                         1.0 - np.exp(-period_s / LATERAL_REFERENCE_S)])
+        self._sway = TwinMemory(_SWAY_WIDTH)  # SWAY_NAMES: the twin's own sway scale
+        self._sway_params = sway_params(period_s)
         self._col_speed_minus_ema = FEATURE_NAMES.index("speed_minus_ema")
         self._col_below_max = FEATURE_NAMES.index("speed_below_recent_max")
         split = [name.rsplit("_", 1) for name in HISTORY_MEAN_SOURCES]  # e.g. ("gap_lead", "left")
@@ -372,20 +468,34 @@ class FeatureExtractor:
         out[known, 2] = d[known] - state[known, 2]
         return out
 
+    def sway(self, ids, time: float, lateral: np.ndarray) -> np.ndarray:
+        """(N, len(SWAY_NAMES)) lateral motion over each twin's own sway, from the (N, 3)
+        LATERAL_NAMES of the same snapshot (:meth:`lateral`), in time order; `time` the snapshot's."""
+        lateral = np.asarray(lateral, dtype=float)
+        known = np.ascontiguousarray(lateral[:, 0], dtype=np.float64)
+        stored = np.column_stack([known, _as_stored(lateral[:, 1]), _as_stored(lateral[:, 2])])
+        out, state = _sway_tick(self._sway.state, self._sway.previous_rows(ids), stored, float(time),
+                                self._sway_params)
+        self._sway.keep(ids, state)
+        return out
+
     def from_twins(self, twins, extras: bool = False, availability: bool = False,
-                   lateral: bool = False) -> np.ndarray:
+                   lateral: bool = False, sway: bool = False) -> np.ndarray:
         """Features of a TwinStates snapshot (the run-time path); extras: with the
         SEQUENCE_EXTRA_NAMES columns appended (the sequence model's inputs); availability: then
-        also AVAILABILITY_NAMES; lateral: then also LATERAL_NAMES (SEQUENCE_INPUT_SETS)."""
+        also AVAILABILITY_NAMES; lateral: then also LATERAL_NAMES; sway: then also SWAY_NAMES
+        (SEQUENCE_INPUT_SETS)."""
         s, d = twins.road_frame(self.road)
         out = self(twins.ids, s, twins.lane, twins.speed, twins.accel, twins.length)
         if not extras:
             return out
         columns = [out, lane_end_ahead_m(self.road, s, twins.lane)[:, None]]
-        if availability or lateral:
+        if availability or lateral or sway:
             columns.append(availability_flags(out))
-        if lateral:
+        if lateral or sway:
             columns.append(self.lateral(twins.ids, d))
+        if sway:
+            columns.append(self.sway(twins.ids, twins.time, columns[-1]))
         return np.hstack(columns)
 
 
@@ -446,10 +556,13 @@ def availability_flags(features: np.ndarray) -> np.ndarray:
 
 
 def stored_columns(names) -> list[str]:
-    """The sample columns a list of model inputs is computed from (AVAILABILITY_NAMES are derived)."""
-    needed = [n for n in names if n not in AVAILABILITY_NAMES]
+    """The sample columns a list of model inputs is computed from (AVAILABILITY_NAMES and SWAY_NAMES
+    are derived; SWAY_NAMES also need the id columns seed, vehicle_id and time, which every stream has)."""
+    needed = [n for n in names if n not in AVAILABILITY_NAMES and n not in SWAY_NAMES]
     if any(n in AVAILABILITY_NAMES for n in names):
         needed += [n for n in _AVAILABILITY_SOURCES if n not in needed]
+    if any(n in SWAY_NAMES for n in names):
+        needed += [n for n in LATERAL_NAMES if n not in needed]
     return needed
 
 
@@ -457,11 +570,41 @@ _AVAILABILITY_SOURCES = ("lane", "left_lane_exists", "right_lane_exists",
                          *[f"gap_{kind}_{side}" for side in ("own", "left", "right") for kind in ("lead", "foll")])
 
 
-def with_derived_columns(frame: pd.DataFrame, names) -> pd.DataFrame:
-    """`frame` (samples) with the AVAILABILITY_NAMES among `names` added (in place; returned)."""
+def sway_columns(frame: pd.DataFrame, period_s: float) -> np.ndarray:
+    """(len(frame), len(SWAY_NAMES)) of a samples frame (any row order) with seed, vehicle_id, time
+    and LATERAL_NAMES: each (seed, vehicle) replayed in time order by the cloud's step."""
+    missing = [c for c in ("seed", "vehicle_id", "time", *LATERAL_NAMES) if c not in frame.columns]
+    if missing:
+        raise ValueError(f"samples: columns {missing} are needed for {list(SWAY_NAMES)}")
+    vid = pd.factorize(frame["vehicle_id"].astype(str))[0]
+    t = frame["time"].to_numpy(dtype=np.float64)
+    seed = frame["seed"].to_numpy(dtype=np.int64)
+    order = np.lexsort((t, vid, seed))
+    new = np.ones(len(order), dtype=np.bool_)
+    if len(order) > 1:
+        new[1:] = (seed[order][1:] != seed[order][:-1]) | (vid[order][1:] != vid[order][:-1])
+    values = _sway_tracks(new, _as_stored(frame["lateral_known"].to_numpy()[order]),
+                          _as_stored(frame["lateral_speed_mps"].to_numpy()[order]),
+                          _as_stored(frame["lateral_drift_m"].to_numpy()[order]), np.ascontiguousarray(t[order]),
+                          sway_params(period_s))
+    out = np.empty_like(values)
+    out[order] = values
+    return out
+
+
+def with_derived_columns(frame: pd.DataFrame, names, period_s: float | None = None) -> pd.DataFrame:
+    """`frame` (samples) with the AVAILABILITY_NAMES and SWAY_NAMES among `names` added (in place;
+    returned); SWAY_NAMES need the V2C period `period_s`."""
     wanted = [n for n in names if n in AVAILABILITY_NAMES]
     if wanted:
         flags = _availability_columns(lambda name: frame[name].to_numpy(dtype=float))
         for name in wanted:
             frame[name] = flags[:, AVAILABILITY_NAMES.index(name)]
+    wanted = [n for n in names if n in SWAY_NAMES]
+    if wanted:
+        if period_s is None:
+            raise ValueError(f"{wanted}: the V2C period is needed to compute them (period_s)")
+        values = sway_columns(frame, period_s)
+        for name in wanted:
+            frame[name] = values[:, SWAY_NAMES.index(name)].astype(np.float32)
     return frame

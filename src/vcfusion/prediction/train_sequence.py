@@ -21,6 +21,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import time as wallclock
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -196,8 +197,8 @@ def train_sequence_model(datasets: list[Path], out: Path, cfg: SequenceConfig, p
     columns = ["seed", "vehicle_id", "time", "window_label", "time_to_lc", "stream_label", *stored_columns(names)]
     tr, _ = combined_stream(infos, "train", columns)
     va, va_events = combined_stream(infos, "validation", columns)
-    with_derived_columns(tr, names)
-    with_derived_columns(va, names)
+    with_derived_columns(tr, names, period)
+    with_derived_columns(va, names, period)
     require_both_labels((tr["window_label"] == 1).to_numpy(), "train")
     require_both_labels((va["window_label"] == 1).to_numpy(), "validation")
     x_tr = tr[names].to_numpy(np.float32)
@@ -284,7 +285,7 @@ def retune_decisions(model_path: Path, datasets: list[Path], out: Path, false_al
     names = list(model.feature_names)
     columns = ["seed", "vehicle_id", "time", "stream_label", *stored_columns(names)]
     va, va_events = combined_stream(infos, "validation", columns)
-    with_derived_columns(va, names)
+    with_derived_columns(va, names, model.period_s)
     if model.kind == "gru":
         logits = model.sequence_logits(va[names].to_numpy(np.float32),
                                        segment_bounds(va, model.period_s, model.reset_gap_ticks))
@@ -349,3 +350,21 @@ def set_decision(model_path: Path, out: Path, smoothing: str, threshold: float, 
     return (f"{out}: {smoothing}, threshold {threshold:g}, tau {int(tau_ticks)} ticks "
             f"(was {before['smoothing']}, threshold {before['thresholds'].get(before['smoothing'], before['threshold']):g}); "
             f"weights and calibration of {model_path}")
+
+
+def extend_inputs(model: SequenceModel, names, mean, std) -> SequenceModel:
+    """A copy of the GRU `model` whose inputs are `names` (its own inputs first, in order, then new
+    ones), the new inputs standardised with `mean` / `std` (one per new input) and given zero input
+    weights: its probabilities are the model's until it is fine-tuned (`vcfusion train --init`)."""
+    names = tuple(names)
+    own = tuple(model.feature_names)
+    if names[:len(own)] != own or len(names) == len(own):
+        raise ValueError(f"inputs {list(names[len(own):]) or 'none'}: expected the model's {len(own)} inputs "
+                         "first, in order, then at least one new one")
+    mean, std = np.asarray(mean, dtype=float), np.asarray(std, dtype=float)
+    extra = len(names) - len(own)
+    if mean.shape != (extra,) or std.shape != (extra,) or not (std > 0).all():
+        raise ValueError(f"mean / std: expected {extra} values each, std > 0")
+    return dataclasses.replace(copy.deepcopy(model), feature_names=names, mean=np.r_[model.mean, mean],
+                               std=np.r_[model.std, std],
+                               w_ih=np.hstack([model.w_ih, np.zeros((model.w_ih.shape[0], extra), np.float32)]))

@@ -49,7 +49,7 @@ def vehicle_table(model_path: Path, dataset: Path, split: str = "test", horizon_
 
         check_sequence_columns([info], names)
     stream, events = stream_with_events(info, split, columns=["seed", "vehicle_id", "time", *stored_columns(names)])
-    with_derived_columns(stream, names)
+    with_derived_columns(stream, names, info.period_s)
     prob = model.stream_proba(stream, names)
     method = model.smoothing
     threshold = model.threshold_for(method)
