@@ -152,7 +152,8 @@ def test_the_compiled_frame_conversion_gives_the_numpy_expressions_doubles():
     rng = np.random.default_rng(4)
     for scale in (1e-3, 1.0, 1e3, 1e6):
         block = rng.uniform(-1.0, 1.0, (40, 7)) * scale
-        for x, y in ((block[:, 1].copy(), block[:, 2].copy()), (block[:, 1], block[:, 2]), (block[:0, 1], block[:0, 2])):
+        pairs = ((block[:, 1].copy(), block[:, 2].copy()), (block[:, 1], block[:, 2]), (block[:0, 1], block[:0, 2]))
+        for x, y in pairs:  # contiguous, strided views (a twin snapshot's columns), empty
             s, d = road.to_frame(x, y)
             rel_x, rel_y = np.array(x.tolist()) - x0, np.array(y.tolist()) - y0
             assert s.dtype == d.dtype == np.float64 and s.shape == x.shape
