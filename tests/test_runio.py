@@ -300,21 +300,14 @@ def test_json_null_for_nan_leaves_numbers_and_nulls_non_finite_floats():
     assert json_null_for_nan(data) == {"a": None, "b": [1.5, None, {"c": None, "d": "NaN"}], "e": [2, None], "f": 0}
 
 
-def test_table_sink_writes_a_narrower_type_in_place_and_equals_concatenating(tmp_path):
-    """A chunk whose type the buffer already holds (a shorter string after a longer one, ints into a
-    float column) is written without a new buffer; the table is np.concatenate's all the same."""
-    resized = []
-
-    class Counting(TableSink):
-        def _resized(self, *args):
-            resized.append(args[1])
-            return super()._resized(*args)
-
+def test_table_sink_with_narrower_types_later_equals_concatenating(tmp_path):
+    """A chunk of a type the earlier ones hold (a shorter string after a longer one, ints into a
+    float column) and a wider one after it: the table is np.concatenate's."""
     chunks = [{"id": np.array(["abcdef", "b"]), "x": np.array([0.5, 1.5])},
               {"id": np.array(["c"]), "x": np.array([3], dtype=np.int64)},
               {"id": np.array(["dd", "eee"]), "x": np.array([7, 8], dtype=np.int16)},
               {"id": np.array(["abcdefghij"]), "x": np.array([2.25])}]
-    sink = Counting(tmp_path / "t.parquet")
+    sink = TableSink(tmp_path / "t.parquet")
     for c in chunks:
         sink.append(c)
     got = sink.close().to_pandas()
@@ -322,5 +315,14 @@ def test_table_sink_writes_a_narrower_type_in_place_and_equals_concatenating(tmp
         want = np.concatenate([c[name] for c in chunks])
         np.testing.assert_array_equal(got[name].to_numpy(), want.astype(str) if want.dtype.kind == "U" else want)
     assert got["x"].dtype == np.float64
-    # the first chunk's two buffers, then the longer string; never for the narrower chunks between
-    assert [str(d) for d in resized] == ["<U6", "float64", "<U10"]
+
+
+def test_table_sink_refuses_a_chunk_with_other_columns_and_keeps_the_earlier_rows(tmp_path):
+    sink = TableSink(tmp_path / "t.parquet")
+    sink.append({"a": np.arange(2), "b": np.arange(2.0)})
+    for other in ({"a": np.arange(1)}, {"a": np.arange(1), "b": np.arange(1.0), "c": np.arange(1)},
+                  {"a": np.arange(1), "c": np.arange(1.0)}):
+        with pytest.raises(KeyError, match="expected those of the earlier rows"):
+            sink.append(other)
+    got = sink.close().to_pandas()
+    assert got["a"].tolist() == [0, 1] and got["b"].tolist() == [0.0, 1.0]

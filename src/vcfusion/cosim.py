@@ -177,7 +177,8 @@ def _twin_rows(twins: TwinStates) -> dict[str, np.ndarray]:
         "x": twins.x, "y": twins.y, "z": twins.z, "heading": twins.heading,
         "speed": twins.speed, "accel": twins.accel, "lane": twins.lane,
     }
-    rows.update({k: np.asarray(v) for k, v in twins.outputs.items()})
+    # copies: the table sink keeps what it is given, and a process model may reuse its output arrays
+    rows.update({k: np.array(v) for k, v in twins.outputs.items()})
     return rows
 
 

@@ -137,3 +137,26 @@ def test_two_process_models_writing_one_output_are_refused():
     store.ingest(V2CChannel(V2CConfig(), np.random.default_rng(0)).measure(states(0.0, n=3)))
     with pytest.raises(ValueError, match="process models 'predictor' and 'stand_in' both write 'lc_prob'"):
         store.snapshot(0.0)
+
+
+def test_twins_forgotten_and_back_in_the_same_batch_of_ids_start_new_histories():
+    """Batches of the same vehicles reuse their slots until a twin goes stale: the same vehicles
+    reporting again are new twins (their old reports gone), wherever their slots now are."""
+    cfg = V2CConfig(twin_timeout_s=1.0)
+    store = TwinStore(cfg, ROAD)
+    ch = V2CChannel(cfg, np.random.default_rng(0))
+    for k in range(5):
+        store.ingest(ch.measure(states(k * 0.1, n=2)))
+    assert len(store.history("v0")) == len(store.history("v1")) == 5
+    store.forget_stale(1.5)
+    assert "v0" not in store and "v1" not in store
+    store.ingest(ch.measure(states(1.6, n=3)))  # a third vehicle takes a freed slot
+    store.ingest(ch.measure(states(1.7, n=3)))
+    for vid in ("v0", "v1", "v2"):
+        np.testing.assert_allclose(store.history(vid)[:, 0], [1.6, 1.7])
+    np.testing.assert_allclose(store.snapshot(1.7).x, states(1.7, n=3).x)
+    store.forget_stale(3.0)
+    store.ingest(ch.measure(states(3.1, n=3)))  # the same ids as the last batch, all stale since
+    assert store.snapshot(3.1).ids == ("v0", "v1", "v2")
+    for vid in ("v0", "v1", "v2"):
+        np.testing.assert_allclose(store.history(vid)[:, 0], [3.1])

@@ -141,3 +141,25 @@ def test_an_edge_whose_length_is_set_apart_from_its_geometry_follows_sumos_posit
         libsumo.close()
     s, d = road.to_frame(250.0, -5.25)
     assert road.length_m == 600.0 and float(s) == pos == 300.0 and int(road.lane_of(s, d)) == lane == 1
+
+
+def test_the_compiled_frame_conversion_gives_the_numpy_expressions_doubles():
+    """Float64 vectors (every tick's vehicles and twins, strided views included) go through one
+    compiled call: bit for bit the arithmetic of the expression on any other input (lists,
+    scalars), which the straight-road runs were recorded with."""
+    road = read_road(REPO / "sumo_net" / "highway.net.xml")
+    x0, y0, dx, dy, nx, ny, width = road._frame
+    rng = np.random.default_rng(4)
+    for scale in (1e-3, 1.0, 1e3, 1e6):
+        block = rng.uniform(-1.0, 1.0, (40, 7)) * scale
+        pairs = ((block[:, 1].copy(), block[:, 2].copy()), (block[:, 1], block[:, 2]), (block[:0, 1], block[:0, 2]))
+        for x, y in pairs:  # contiguous, strided views (a twin snapshot's columns), empty
+            s, d = road.to_frame(x, y)
+            rel_x, rel_y = np.array(x.tolist()) - x0, np.array(y.tolist()) - y0
+            assert s.dtype == d.dtype == np.float64 and s.shape == x.shape
+            assert np.array_equal(s, rel_x * dx + rel_y * dy)
+            assert np.array_equal(d, (rel_x * nx + rel_y * ny) + width)
+            s_list, d_list = road.to_frame(x.tolist(), y.tolist())
+            assert np.array_equal(s, s_list) and np.array_equal(d, d_list)
+    s, d = road.to_frame(np.float32([250.0]), np.float32([-5.25]))  # other types keep NumPy's rules
+    assert s.dtype == np.float32

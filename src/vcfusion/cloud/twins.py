@@ -75,6 +75,8 @@ class TwinStore:
         self.process_models: list[tuple[str, Callable]] = []
         self.received = 0
         self._order: tuple[tuple[str, ...], np.ndarray] | None = None  # sorted ids and their slots, until a twin comes or goes
+        # the last ingested batch's ids and their slots, until a twin goes (a new one makes a new batch's ids)
+        self._slots_of: tuple[tuple[str, ...], np.ndarray] | None = None
 
     def add_process_model(self, name: str, model: ProcessModel) -> None:
         self.process_models.append((name, model))
@@ -99,6 +101,11 @@ class TwinStore:
         if not len(reports):
             return
         fields = np.array([getattr(reports, f) for f in HISTORY_FIELDS], dtype=float)  # (fields, reports)
+        if self._slots_of is not None and reports.ids == self._slots_of[0]:
+            # the vehicles of the last batch, in its order (the common tick): the same slots
+            self.received += _store_reports(self._data, self._head, self._count, self._newest, self._slots_of[1],
+                                            fields)
+            return
         slots = np.empty(len(reports), dtype=np.int64)
         for i, vid in enumerate(reports.ids):
             slot = self._slot.get(vid)
@@ -110,12 +117,13 @@ class TwinStore:
                 self._id_of[slot] = vid
                 self._static[slot] = (reports.length[i], reports.width[i], reports.height[i])
             slots[i] = slot
+        self._slots_of = reports.ids, slots
         self.received += _store_reports(self._data, self._head, self._count, self._newest, slots, fields)
 
     def forget_stale(self, now: float) -> None:
         for slot in (self._newest < now - self.config.twin_timeout_s).nonzero()[0]:
             del self._slot[self._id_of[slot]]
-            self._order = None
+            self._order = self._slots_of = None
             self._id_of[slot] = None
             self._newest[slot] = np.inf
             self._free.append(int(slot))

@@ -36,8 +36,14 @@ DEFAULT_RESET_GAP_TICKS = 10  # a twin unseen for more than 1 s (at 0.1 s) start
 _EPS = 1e-6
 
 
-def _sigmoid(z: np.ndarray) -> np.ndarray:
-    return 0.5 * (1.0 + np.tanh(0.5 * z))  # no overflow warning for large |z|
+def _sigmoid_of_half(half_z: np.ndarray) -> np.ndarray:
+    """sigmoid(z) from half_z = 0.5 z, in place of half_z (a new array of the caller's): the
+    operations of 0.5 (1 + tanh(0.5 z)) in their order, without a new array for each (no
+    overflow warning for large |z|)."""
+    np.tanh(half_z, out=half_z)
+    half_z += 1.0
+    half_z *= 0.5
+    return half_z
 
 
 @dataclass
@@ -78,17 +84,27 @@ class SequenceModel(DecisionSettings):
     def step(self, h: np.ndarray, x: np.ndarray) -> np.ndarray:
         """New hidden states (N, H) from states h (N, H) and raw (unstandardised) features x (N, F)."""
         H = self.hidden
-        xs = np.asarray(x, dtype=np.float32) - self.mean
+        # the operations of the GRUCell in their order, each into an array of its own step (one
+        # new array fewer per operation than the expressions, the same float32 results)
+        xs = np.array(x, dtype=np.float32)
+        xs -= self.mean
         xs /= self.std
         with one_blas_thread():
             gi = xs @ self._wi_t
             gh = h @ self._wh_t
         gi += self.b_ih
         gh += self.b_hh
-        rz = _sigmoid(gi[:, :2 * H] + gh[:, :2 * H])
+        rz = gi[:, :2 * H] + gh[:, :2 * H]
+        rz *= 0.5
+        rz = _sigmoid_of_half(rz)
         r, z = rz[:, :H], rz[:, H:]
-        n = np.tanh(gi[:, 2 * H:] + r * gh[:, 2 * H:])
-        return (n + z * (h - n)).astype(np.float32, copy=False)  # (1 - z) n + z h
+        n = r * gh[:, 2 * H:]
+        n += gi[:, 2 * H:]  # gi + r gh: the sum's operands swapped, the same IEEE sum
+        np.tanh(n, out=n)
+        out = h - n
+        out *= z
+        out += n  # n + z (h - n) = (1 - z) n + z h
+        return out.astype(np.float32, copy=False)
 
     def output_logits(self, h: np.ndarray) -> np.ndarray:
         return h @ self._wo + self.b_out[0]
@@ -96,7 +112,10 @@ class SequenceModel(DecisionSettings):
     def calibrated(self, z: np.ndarray) -> np.ndarray:
         a, b = self.calibration
         # float32 in, float32 out (NumPy's Python-scalar rule): the cast copies only other inputs
-        return _sigmoid(np.float32(a) * z + np.float32(b)).astype(np.float32, copy=False)
+        t = np.float32(a) * z
+        t += np.float32(b)
+        t *= 0.5
+        return _sigmoid_of_half(t).astype(np.float32, copy=False)
 
     def sequence_logits(self, x: np.ndarray, bounds: list[tuple[int, int]]) -> np.ndarray:
         """Logits of every row of x (rows of each segment (start, stop) in time order), each

@@ -17,10 +17,27 @@ from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from vcfusion.errors import InputError
 from vcfusion.traffic.roadframe import RoadFrame, RouteError, _Lane, _Piece
+
+
+@numba.njit(cache=True)
+def _straight_to_frame(x, y, x0, y0, dx, dy, nx, ny, width):
+    """Road.to_frame's arithmetic, element by element in its order (no fused multiply-add: the
+    same doubles as the NumPy expression), in one call instead of nine array operations: it runs
+    on every tick's vehicles and twins. x, y: 1-D float64 of one length."""
+    s = np.empty_like(x)
+    d = np.empty_like(x)
+    for i in range(x.shape[0]):
+        rel_x = x[i] - x0
+        rel_y = y[i] - y0
+        s[i] = rel_x * dx + rel_y * dy
+        d[i] = (rel_x * nx + rel_y * ny) + width
+    return s, d
+
 
 @dataclass(init=False, eq=False, repr=False)
 class Road(RoadFrame):
@@ -100,6 +117,9 @@ class Road(RoadFrame):
     def to_frame(self, x, y) -> tuple[np.ndarray, np.ndarray]:
         """World (x, y) to (s, d): s along the road from its start, d left of the right road edge."""
         x0, y0, dx, dy, nx, ny, width = self._frame
+        if (type(x) is np.ndarray and type(y) is np.ndarray and x.ndim == 1 and x.shape == y.shape
+                and x.dtype == np.float64 and y.dtype == np.float64):  # the per-tick case: one compiled call
+            return _straight_to_frame(x, y, x0, y0, dx, dy, nx, ny, width)
         rel_x = np.asarray(x) - x0
         rel_y = np.asarray(y) - y0
         s = rel_x * dx + rel_y * dy
