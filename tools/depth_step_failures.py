@@ -34,10 +34,13 @@ def main() -> None:
     ap.add_argument("--depth-sensor", default="exact", choices=("exact", "stereo", "tof", "lidar"))
     ap.add_argument("--pose-noise-deg", type=float, default=0.0)
     ap.add_argument("--min-area", type=float, default=100.0)
+    ap.add_argument("--box-head", default="shipped",
+                    help="far-box head for gated boxes: shipped, a weights file or none (as eval-detector)")
     args = ap.parse_args()
     ds = load_coco_many(args.data)
     detector = TorchDetector(default_weights_path())  # at its operating threshold: eval-detector's working boxes
-    refine = BoxRefineParams(road=road_model("auto", args.depth_sensor, args.pose_noise_deg > 0))
+    refine = BoxRefineParams(road=road_model("auto", args.depth_sensor, args.pose_noise_deg > 0),
+                             box_head=None if args.box_head == "none" else args.box_head)
     rows = []
     for k, path in enumerate(ds.images):
         exact = _camera_frame(ds, k, read_rgb(path))
