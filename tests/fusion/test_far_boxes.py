@@ -61,15 +61,16 @@ def test_a_bad_weights_file_names_itself(tmp_path):
 
 @pytest.mark.slow
 def test_a_box_shifted_off_a_rendered_car_is_pulled_back(tmp_path):
-    """A training-sampler scene the head never saw (its training seeds are 0-399): boxes of its
-    vehicles moved off them by 15-25 % of their size come back to within 1.5 px a side (median) and
-    gain IoU; the ground truth's own box stays put."""
+    """Training-sampler scenes the head never saw (its training seeds are 0-399): far boxes (8-40 px
+    high) moved off their vehicles by 15-20 % of their size (about 3 px a side) come back to within
+    1.5 px a side (median; 0.76 px with the shipped weights) and gain more than 0.05 IoU (0.71 ->
+    0.82); a ground-truth box stays within 1 px (0.25)."""
     from scenario_files import SCENARIOS
     from vcfusion.detection.detector_train import load_coco, read_rgb
     from vcfusion.detection.scenes import render_scenes
     from vcfusion.scenario import load_scenario
 
-    render_scenes(load_scenario(SCENARIOS / "overlap.yaml"), "train", [7001, 7002], tmp_path / "s", progress=False)
+    render_scenes(load_scenario(SCENARIOS / "overlap.yaml"), "train", list(range(7001, 7009)), tmp_path / "s", progress=False)
     ds = load_coco(tmp_path / "s")
     head = BoxHead.load(default_box_head_path())
     errors_before, errors_after, ious_before, ious_after, still = [], [], [], [], []
@@ -77,7 +78,7 @@ def test_a_box_shifted_off_a_rendered_car_is_pulled_back(tmp_path):
         image = read_rgb(path)
         gt = ds.boxes[k]
         h = gt[:, 3] - gt[:, 1]
-        gt = gt[(h >= 8) & (h <= head.max_height_px) & (gt[:, 2] - gt[:, 0] >= 8)]
+        gt = gt[(h >= 8) & (h <= 40) & (gt[:, 2] - gt[:, 0] >= 8)]  # far boxes, what the head is for
         size = np.c_[gt[:, 2] - gt[:, 0], gt[:, 3] - gt[:, 1]]
         size = np.c_[size, size]
         for shift in ([0.2, 0.0, 0.2, 0.0], [0.0, -0.15, 0.0, -0.15], [-0.2, 0.0, 0.0, 0.15]):
@@ -89,7 +90,8 @@ def test_a_box_shifted_off_a_rendered_car_is_pulled_back(tmp_path):
             ious_after.append(np.diag(box_iou(back, gt)))
         still.append(np.abs(head.refine(image, gt) - gt).ravel())
     before, after = np.concatenate(errors_before), np.concatenate(errors_after)
-    assert len(np.concatenate(ious_before)) >= 6
-    assert np.median(after) < 1.5 < np.median(before[before > 0])
-    assert np.mean(np.concatenate(ious_after)) > np.mean(np.concatenate(ious_before)) + 0.1
-    assert np.median(np.concatenate(still)) < 1.5
+    assert len(np.concatenate(ious_before)) >= 15  # 5 or more far boxes, 3 shifts each
+    moved = np.median(before[before > 0])  # about 3 px
+    assert np.median(after) < min(1.5, moved / 2)
+    assert np.mean(np.concatenate(ious_after)) > np.mean(np.concatenate(ious_before)) + 0.05
+    assert np.median(np.concatenate(still)) < 1.0
