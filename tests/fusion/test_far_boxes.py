@@ -70,7 +70,8 @@ def test_a_box_shifted_off_a_rendered_car_is_pulled_back(tmp_path):
     from vcfusion.detection.scenes import render_scenes
     from vcfusion.scenario import load_scenario
 
-    render_scenes(load_scenario(SCENARIOS / "overlap.yaml"), "train", list(range(7001, 7009)), tmp_path / "s", progress=False)
+    seeds = list(range(7001, 7009))
+    render_scenes(load_scenario(SCENARIOS / "overlap.yaml"), "train", seeds, tmp_path / "s", progress=False)
     ds = load_coco(tmp_path / "s")
     head = BoxHead.load(default_box_head_path())
     errors_before, errors_after, ious_before, ious_after, still = [], [], [], [], []
