@@ -34,10 +34,14 @@ def main() -> None:
     ap.add_argument("--depth-sensor", default="exact", choices=("exact", "stereo", "tof", "lidar"))
     ap.add_argument("--pose-noise-deg", type=float, default=0.0)
     ap.add_argument("--min-area", type=float, default=100.0)
+    ap.add_argument("--csv", help="also write the per-target table to this CSV file")
+    ap.add_argument("--box-head", default="shipped",
+                    help="far-box head for gated boxes: shipped, a weights file or none (as eval-detector)")
     args = ap.parse_args()
     ds = load_coco_many(args.data)
     detector = TorchDetector(default_weights_path())  # at its operating threshold: eval-detector's working boxes
-    refine = BoxRefineParams(road=road_model("auto", args.depth_sensor, args.pose_noise_deg > 0))
+    refine = BoxRefineParams(road=road_model("auto", args.depth_sensor, args.pose_noise_deg > 0),
+                             box_head=None if args.box_head == "none" else args.box_head)
     rows = []
     for k, path in enumerate(ds.images):
         exact = _camera_frame(ds, k, read_rgb(path))
@@ -72,6 +76,8 @@ def main() -> None:
                          "kind": kind, "detector_box": state, "detector_iou": float(iou[j]) if j >= 0 else 0.0,
                          **{name: bool(outcome[name][v] >= IDENTIFICATION_IOU - 1e-12) for name in outcome}})
     df = pd.DataFrame(rows)
+    if args.csv:
+        df.to_csv(args.csv, index=False)
     print(f"{len(df)} targets: depth step {df.step.mean():.1%}, raw boxes {df.raw.mean():.1%}, "
           f"oracle {df.oracle.mean():.1%}")
     df["range"] = pd.cut(df.range_m, RANGES_M, right=False)

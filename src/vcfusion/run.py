@@ -98,6 +98,10 @@ def input_files(scenario: Scenario) -> dict[str, Path]:
         from vcfusion.detection.detector_net import default_weights_path
 
         files["detector_weights"] = scenario.fusion.weights or default_weights_path()
+    if scenario.fusion.enabled and scenario.fusion.refine_boxes:
+        from vcfusion.fusion.far_boxes import default_box_head_path
+
+        files["box_head_weights"] = default_box_head_path()  # the depth step's far-box head
     return files
 
 

@@ -115,6 +115,31 @@ def _check_distinct_folders(folders) -> None:
         seen[key] = folder
 
 
+def cmd_train_box_head(args: argparse.Namespace) -> int:
+    """The far-box head (vcfusion.fusion.far_boxes) on COCO folders of rendered training scenes: crops
+    around each ground-truth box, jittered copies of it and the shipped detector's boxes matched to it."""
+    from vcfusion.detection.detector_net import TorchDetector, default_weights_path
+    from vcfusion.detection.detector_train import load_coco_many, read_rgb
+    from vcfusion.fusion.far_boxes import CropSpec, save_box_head, train_box_head, training_samples
+
+    if args.epochs < 1 or args.jitters < 0:
+        raise UsageError(f"--epochs >= 1 and --jitters >= 0 expected, got {args.epochs}, {args.jitters}")
+    ds = load_coco_many(args.data)
+    detector = TorchDetector(args.detector or default_weights_path())
+    images = [read_rgb(path) for path in ds.images]
+    dets = [detector.detect(image).boxes for image in images]
+    spec = CropSpec()
+    samples = training_samples(images, ds.boxes, dets, spec, np.random.default_rng(args.seed), jitters=args.jitters)
+    print(f"{len(images)} images, {len(samples.offsets)} crops")
+    meta = {"train_data": [Path(d).name for d in args.data], "images": len(images), "seed": args.seed,
+            "jitters": args.jitters}
+    head, info = train_box_head(samples, spec, epochs=args.epochs, seed=args.seed, threads=args.threads, meta=meta)
+    save_box_head(head, args.out)
+    print(f"wrote {args.out}: {info['samples']} crops, {info['steps']} steps, loss {info['final_loss']:.4f}, "
+          f"{info['train_s']:.0f} s")
+    return 0
+
+
 def cmd_eval_detector(args: argparse.Namespace) -> int:
     from vcfusion.detection.detector_train import load_coco_many
     from vcfusion.detection.family_eval import (evaluate_families, format_depth_counts, format_failure_table,
@@ -130,13 +155,18 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
     from vcfusion.fusion.box_refine import BoxRefineParams
     from vcfusion.fusion.stage import road_model
 
+    box_head = None if args.box_head == "none" else args.box_head
+    if box_head not in (None, "shipped"):
+        from vcfusion.fusion.far_boxes import BoxHead
+
+        BoxHead.load(box_head)  # a missing or unreadable file fails here, before any frame
     # eval-detector's pose noise is a mount error with body motion (family_eval), so any > 0 is a pose error
     road = road_model(args.road, args.depth_sensor, args.pose_noise_deg > 0)
     # the detector's column in the identification tables (an ONNX model's was labelled "cnn")
     detector_name = "onnx" if args.onnx else "cnn"
     results, _ = evaluate_families(detector, ds, min_area=args.min_area, identification=not args.no_identification,
                                    detector_name=detector_name, progress=sys.stderr.isatty(),
-                                   refine=None if args.no_refine else BoxRefineParams(road=road),
+                                   refine=None if args.no_refine else BoxRefineParams(road=road, box_head=box_head),
                                    gnss_noise_m=args.gnss_noise,
                                    depth_sensor=args.depth_sensor, pose_noise_deg=args.pose_noise_deg)
     if not results:
@@ -171,6 +201,7 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
         write_json(Path(args.report), json_null_for_nan({"data": [str(d) for d in args.data],
                                                          "min_area": args.min_area,
                                                          "refined_by_depth": not args.no_refine,
+                                                         "box_head": None if args.no_refine else box_head,
                                                          "gnss_noise_m": args.gnss_noise,
                                                          "depth_sensor": args.depth_sensor,
                                                          "road": road,
@@ -268,6 +299,16 @@ def add_parsers(sub) -> None:
                                                         "far are kept: --init one to fine-tune from it; "
                                                         "the learning-rate schedule starts anew)")
 
+    p = sub.add_parser("train-box-head", help="train the far-box head (box sides from the image where depth is gated)")
+    p.add_argument("data", nargs="+", help="COCO folder(s) of rendered training scenes (render-scenes --family train)")
+    p.add_argument("--out", required=True, help="weights file to write (e.g. src/vcfusion/assets/far_box_head.pt)")
+    p.add_argument("--detector", help="detector weights whose boxes are among the training boxes (default: shipped)")
+    p.add_argument("--epochs", type=int, default=12)
+    p.add_argument("--jitters", type=int, default=6, help="jittered copies of each ground-truth box")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.set_defaults(func=cmd_train_box_head, interrupted="the weights file was not written")
+
     for name, func, helptext in (("eval-detector", cmd_eval_detector, "COCO mAP of a detector on a dataset folder"),):
         p = sub.add_parser(name, help=helptext)
         p.add_argument("data", nargs="+", help="COCO folder(s)")
@@ -297,6 +338,9 @@ def add_parsers(sub) -> None:
         p.add_argument("--road", choices=("auto", "from_depth", "flat"), default="auto",
                        help="the depth step's road: fitted to each depth image, the pose's flat road, or auto "
                             "(flat with exact depth and no pose noise, else fitted)")
+        p.add_argument("--box-head", default="shipped", metavar="WEIGHTS",
+                       help="the far-box head that places the sides of boxes the depth step keeps as detected "
+                            "(gated) from the image: shipped (default), a weights file, or none")
         p.add_argument("--report", help="also write the per-family figures to this JSON file")
         p.add_argument("--no-refine", action="store_true",
                        help="score the detector's boxes as detected (default: refined by the depth image, as the "

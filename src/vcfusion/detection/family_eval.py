@@ -434,15 +434,17 @@ def format_depth_counts(results: list[FamilyResult]) -> str:
 
 def depth_counts_table(counts: dict[str, dict]) -> str:
     """What the depth step could not decide, per name (a family, a detector): boxes kept as
-    detected (gated), road fits that failed, images without depth proposals; and the road fit's
-    mean time. Names without counts are left out; "" when none has any."""
+    detected (gated; of them, those behind the noise gate placed from the image: from image), road
+    fits that failed, images without depth proposals; and the road fit's mean time. Names without
+    counts are left out; "" when none has any."""
     rows = {name: c for name, c in counts.items() if c and c.get("frames")}
     if not rows:
         return ""
-    lines = [f"{'depth step':<16} {'boxes refined':>13} {'gated':>6} {'road fit failed':>15} "
+    lines = [f"{'depth step':<16} {'boxes refined':>13} {'gated':>6} {'from image':>10} {'road fit failed':>15} "
              f"{'no proposals':>12} {'road fit ms':>11}"]
     for name, c in rows.items():
         lines.append(f"{name:<16} {c.get('boxes_refined', 0):>13} {c.get('boxes_gated', 0):>6} "
+                     f"{c.get('boxes_from_image', 0):>10} "
                      f"{c.get('frames_road_fit_failed', 0):>15} {c.get('frames_without_proposals', 0):>12} "
                      f"{c.get('road_fit_ms', 0.0) / c['frames']:>11.2f}")
     return "\n".join(lines)

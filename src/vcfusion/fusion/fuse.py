@@ -265,7 +265,8 @@ def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefinePara
     """The detector's boxes snapped to the frame's depth image, relabelled by how high they stand,
     and the vehicles it missed proposed from depth (vcfusion.fusion.box_refine). `segments`: the
     frame's :func:`frame_segments` with these settings, when already computed. `stats` (a dict)
-    counts what depth could not decide: boxes_gated (kept as detected), boxes_refined, frames,
+    counts what depth could not decide: boxes_gated (kept as detected, or placed from the image:
+    boxes_from_image, of those behind the noise gate when `refine.box_head`), boxes_refined, frames,
     frames_road_fit_failed, frames_without_proposals (too little measured depth), road_fit_ms."""
     cam = frame.camera
     if cam.K is None or cam.T_world_to_camera is None:
@@ -283,6 +284,8 @@ def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefinePara
     else:
         refined = refine_boxes(detections.boxes, view.depth, cam.K, view.T, refine, view.noise, view.returns)
     count_depth_step(stats, "boxes_gated", int(refined.gated.sum()))
+    if refine.box_head is not None and refined.noisy is not None:
+        _place_gated_from_image(frame.image, refined, refine.box_head, stats)
     count_depth_step(stats, "boxes_refined", int(refined.refined.sum()))
     boxes, scores, snapped = refined.boxes, detections.scores, refined.refined
     # depth measures how high a vehicle stands, which a 10 px box at 100 m does not show: a car box
@@ -313,6 +316,24 @@ def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefinePara
         classes = np.r_[classes, np.where(is_truck, category_id("truck"), category_id("passenger"))]
         boxes = join_fragments(boxes, scores >= refine.proposals.score, segments, cam.K, refine, view.noise)
     return Detections.of(boxes, scores, classes)
+
+
+def _place_gated_from_image(image: np.ndarray, refined: RefinedBoxes, weights: str, stats: dict | None) -> None:
+    """The sides of the boxes the noise gate kept from the image (vcfusion.fusion.far_boxes.BoxHead),
+    in place; counted as boxes_from_image. Boxes taller than the head's training range keep the
+    detector's sides."""
+    from vcfusion.fusion.far_boxes import BoxHead, default_box_head_path
+
+    head = BoxHead.load(default_box_head_path() if weights == "shipped" else weights)
+    b = refined.boxes
+    pick = np.flatnonzero(refined.noisy & (b[:, 3] - b[:, 1] <= head.max_height_px))
+    count_depth_step(stats, "boxes_from_image", len(pick))
+    if len(pick):
+        h, w = image.shape[:2]
+        moved = head.refine(image, b[pick])
+        moved[:, [0, 2]] = moved[:, [0, 2]].clip(-0.5, w - 0.5)
+        moved[:, [1, 3]] = moved[:, [1, 3]].clip(-0.5, h - 0.5)
+        b[pick] = moved
 
 
 def _proposal_scores(proposals: np.ndarray, weak_boxes: np.ndarray, weak_scores: np.ndarray,
