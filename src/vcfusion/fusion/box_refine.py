@@ -590,15 +590,18 @@ def _surface_sides(best: np.ndarray, detected: np.ndarray, best_r: tuple[slice, 
     and gained none. `best_r`, `best_sel`: the
     snapped segment's rows and columns in the window and its mask there; `whole`'s pixel (0, 0) is
     image pixel (x0, y0)."""
+    left, right = best[0] - detected[0] >= 1.0, detected[2] - best[2] >= 1.0  # moved inward
+    if not (left or right):
+        return best
     labels = whole[best_r][best_sel]
     labels = labels[labels > 0]
     if not labels.size:
         return best
     surface = _segment_box(whole == np.bincount(labels).argmax(), support, x0, y0)
     out = best.copy()
-    if best[0] - detected[0] >= 1.0 and best[0] - surface[0] >= 1.0:  # the left side moved right
+    if left and best[0] - surface[0] >= 1.0:  # the left side moved right, over its own surface
         out[0] = max(detected[0], surface[0])
-    if detected[2] - best[2] >= 1.0 and surface[2] - best[2] >= 1.0:  # the right side moved left
+    if right and surface[2] - best[2] >= 1.0:  # the right side moved left, over its own surface
         out[2] = min(detected[2], surface[2])
     return out
 
