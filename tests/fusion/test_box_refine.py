@@ -1118,3 +1118,30 @@ def test_a_small_box_grows_over_a_piece_of_its_vehicle_a_metre_fraction_away():
     unchanged = join_fragments(boxes, np.array([True, True]), seg, K,
                                BoxRefineParams(proposals=ProposalParams(fragment_gap_m=0.0)))
     np.testing.assert_allclose(unchanged, boxes)
+
+
+def test_a_side_the_band_cuts_off_a_vehicle_s_own_surface_is_the_detector_s():
+    """A truck's rear 10 m ahead with its side running 20 m deep beside it: the rear's one-vehicle
+    depth band holds the side's nearest 4-5 m only, and that segment overlaps a detector's box over
+    the rear and most of the side better than the whole truck does, so the snap moved the box's
+    left side 14 px inward over the truck's own side, where no depth jump ends it (exact depth, seeds
+    9200-9209: a car's flank seen over a nearer car's roof, cut off its rear face, lost a fifth of the
+    box's width and the target). The side the depth does not end is the detector's."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    rear = _plate(road, K, T, 10.0, -4.0, -2.2, 3.8)
+    scene = _side(rear, K, T, -2.2, 10.0, 30.0, 3.8)
+    truth, rear_box = _mask_box(scene < road), _mask_box(rear < road)
+    assert truth[0] < rear_box[0] - 40  # the side shows left of the rear
+    detected = np.array([rear_box[0] - 0.7 * (rear_box[0] - truth[0]), truth[1] + 2, rear_box[2] - 1, truth[3] - 2])
+    cut = refine_boxes(detected[None], scene, K, T, BoxRefineParams(proposals=None, surface_sides=False))
+    kept = refine_boxes(detected[None], scene, K, T, BoxRefineParams(proposals=None))
+    assert cut.refined[0] and kept.refined[0]
+    assert cut.boxes[0, 0] > detected[0] + 10  # the band's segment: the box cut off inside the detector's
+    assert kept.boxes[0, 0] == pytest.approx(detected[0])  # the side the truck's surface goes on past
+    np.testing.assert_allclose(kept.boxes[0, 1:], cut.boxes[0, 1:])  # the other sides as snapped
+    assert box_iou(cut.boxes, truth[None])[0, 0] < 0.78 < 0.84 < box_iou(kept.boxes, truth[None])[0, 0]
+    # a side the detector drew beyond a depth jump (over the truck beside a car) is still snapped:
+    # test_a_near_car_touching_a_farther_truck_in_its_band_snaps_to_the_car_alone

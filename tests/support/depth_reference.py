@@ -10,7 +10,8 @@ from scipy.ndimage import find_objects
 
 from vcfusion.fusion.box_refine import (ObjectSegments, RefinedBoxes, _box_iou, _components, _core, _farther,
                                        _Heights, _join_across_outlines, _jump_free, _lateral_extent, _restore_outlines,
-                                       _same_surface, _segment_box, _spans_jump, _unmeasured_sides, gate_by_noise)
+                                       _same_surface, _segment_box, _spans_jump, _surface_sides, _unmeasured_sides,
+                                       gate_by_noise)
 
 
 def fill_scan_gaps_reference(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: float, axis: int = 0,
@@ -257,6 +258,9 @@ def refine_boxes_reference(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, 
                         best, best_sel = candidate, sel
                         break
         if best is not None:
+            if p.surface_sides:
+                whole_window = (slice(None), slice(None))
+                best = _surface_sides(best, b, whole_window, best_sel, segmentations[-1][0], x0, y0, p.support)
             if returns is not None:
                 best = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share)
             out[i] = best
