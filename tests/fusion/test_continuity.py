@@ -72,6 +72,18 @@ def test_an_outline_cut_by_the_image_side_moves_no_box():
     assert np.allclose(moved_box(TRUCK, cut, OUTLINE, W, H), TRUCK)
 
 
+def test_a_car_entering_the_frame_at_its_side_is_drawn_as_given():
+    """A car alongside enters at the image's right side: its outline is cut by the side, and its
+    box grows from a 14 px strip to 60 px in one update (curved.yaml seed 116, 53.6-53.7 s): drawn
+    as given, not as a mean with the box before."""
+    c = BoxContinuity()
+    outline = np.array([560.0, 120.0, 639.5, 479.5])
+    strip, entered = np.array([625.5, 260.5, 639.5, 318.5]), np.array([580.0, 260.0, 639.5, 344.0])
+    c.update(["car"], [strip], [outline], W, H)
+    out, held = c.update(["car"], [entered], [outline], W, H)
+    assert held == [False] and np.allclose(out[0], entered)
+
+
 def test_a_twin_with_nothing_drawn_or_an_update_without_a_frame_forgets_its_box():
     half = TRUCK.copy()
     half[2] = half[0] + 14.0

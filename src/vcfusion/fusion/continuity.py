@@ -43,6 +43,11 @@ def _cut(outline: np.ndarray, width: int, height: int) -> bool:
     return bool(e[0] <= 0.5 or e[1] <= 0.5 or e[2] >= width - 1.5 or e[3] >= height - 1.5)
 
 
+def _unpredictable(outline, width: int, height: int) -> bool:
+    """Whether an outline cannot say how its vehicle's box moves: missing, empty or cut by the image's side."""
+    return outline is None or outline[2] <= outline[0] or outline[3] <= outline[1] or _cut(outline, width, height)
+
+
 def moved_box(box, outline_before, outline_now, width: int, height: int) -> np.ndarray:
     """`box` (x1, y1, x2, y2 px) moved and scaled per axis as the twin's outline moved from
     `outline_before` to `outline_now`; kept where it is when either outline is missing, empty or
@@ -64,7 +69,9 @@ class BoxContinuity:
 
     A twin drawn at the previous update whose new box has an IoU under `min_iou` with the previous
     drawn box moved as its outline moved (:func:`moved_box`) gets the mean of the two boxes
-    instead, for at most `max_held` consecutive updates; any other box is drawn as given. A twin with nothing to
+    instead, for at most `max_held` consecutive updates; any other box is drawn as given, and so is
+    the box of a twin whose outline, then or now, the image's side cuts (a vehicle entering the
+    frame: its visible box grows as fast as it enters, which its outline cannot tell). A twin with nothing to
     draw forgets its box (the driver's warning hold bridges a gap), as every twin does at an update
     without a frame (:meth:`forget`)."""
 
@@ -97,7 +104,10 @@ class BoxContinuity:
             b = np.asarray(box, dtype=float)
             prev = self._drawn.get(str(vid))
             n = 0
-            if prev is not None and prev.held < self.max_held:
+            # an outline the image's side cuts (a vehicle entering or leaving the frame, a car alongside)
+            # says nothing of how its box should move: its box is drawn as given
+            if (prev is not None and prev.held < self.max_held and not _unpredictable(prev.outline, width, height)
+                    and not _unpredictable(e, width, height)):
                 moved = moved_box(prev.box, prev.outline, e, width, height)
                 if box_iou(b[None], moved[None])[0, 0] < self.min_iou:
                     b, n = (b + moved) / 2, prev.held + 1
