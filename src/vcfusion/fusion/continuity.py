@@ -23,8 +23,8 @@ from vcfusion.fusion.matching import box_iou
 # The IoU, with the previous update's drawn box moved as the twin's outline moved, below which a
 # twin's new box is a jump the twin's motion does not explain: the mean of the two is drawn for
 # that one update instead. Chosen on development seeds (curved.yaml 114-117, fusion arm, the
-# recorded AR updates re-drawn; docs/components/guidance-loop.md, "Box continuity"): at 0.4 / 0.5 /
-# 0.6 / 0.7 / 0.8 the rule changes 15 / 24 / 45 / 101 / 413 of 6,231 drawn updates; from 0.7 it
+# recorded AR updates re-drawn; docs/components/guidance-loop.md, rule 5): at 0.4 / 0.5 / 0.6 /
+# 0.7 / 0.8 the rule draws 13 / 19 / 33 / 75 / 312 of 6,231 drawn boxes as a mean; from 0.7 it
 # makes both warned one-update IoU misses right (0.4-0.6: one of them), and at every value it
 # makes no warned box wrong (one unwarned); 0.7: the fewest changed boxes that do.
 MIN_CONTINUITY_IOU = 0.7
