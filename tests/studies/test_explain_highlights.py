@@ -66,12 +66,3 @@ def test_explain_a_short_curved_run_with_frames(tmp_path, capsys):
     assert "warning episodes" in capsys.readouterr().out
     # the command writes a new folder or nothing
     assert main(["explain-highlights", str(tmp_path / "run"), "--out", str(tmp_path / "explained")]) == 2
-
-
-def test_an_episode_with_a_smoothed_update_says_so():
-    rows = _fusion_rows()
-    rows["smoothed"] = (rows["vehicle_id"] == "cutter") & (rows["time"].round(6) == 1.1)
-    ep = explain_episodes(rows, 0.1)
-    right = ep[ep["outcome"] == "right"].iloc[0]
-    assert "1 update(s) drawn as the mean" in right["why"]
-    assert "drawn as the mean" not in ep[ep["outcome"] == "wrong"].iloc[0]["why"]

@@ -17,7 +17,6 @@ import numpy as np
 
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import GuidanceSet, TwinStates
-from vcfusion.fusion.continuity import BoxContinuity
 from vcfusion.fusion.box_refine import (BoxRefineParams, ObjectSegments, RefinedBoxes, box_surface_depths,
                                        depth_proposals, fill_scan_gaps, join_fragments, object_segments,
                                        on_road_mask, refine_boxes)
@@ -561,14 +560,14 @@ class VisionFusionHook:
 
     table = "fusion"
     columns = ("time", "vehicle_id", "method", "lc_prob", "level", "matched", "box_vehicle_id", "x1", "y1", "x2", "y2",
-               "outcome", "gt_iou", "visible_px", "frame", "undrawn", "hidden_share", "smoothed")
+               "outcome", "gt_iou", "visible_px", "frame", "undrawn", "hidden_share")
     provides = ("detections", "guidance")
 
     def __init__(self, frame_source: FrameSource | None, detector: Detector, seed: int, policy: GuidancePolicy,
                  method: str = "joint", depth_params: DepthEvalParams = DepthEvalParams(),
                  joint: JointMatcher | None = None, recorder: OverlayRecorder | None = None,
                  period_s: float | None = None, only_when_warning: bool = False,
-                 refine: BoxRefineParams | None = None, continuity: bool = True):
+                 refine: BoxRefineParams | None = None):
         if method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
         if frame_source is None:
@@ -597,9 +596,6 @@ class VisionFusionHook:
         self._shown: GuidanceSet | None = None  # the overlay on the screen
         # fuse only where a neighbour carries a warning (the camera stage renders only there too)
         self.only_when_warning = only_when_warning
-        # each twin's box drawn at the previous AR update, against which a new box's jump is judged
-        # (vcfusion.fusion.continuity); None: every box drawn as matched
-        self.continuity = BoxContinuity() if continuity else None
 
     def __call__(self, tick) -> list[dict] | None:
         if tick.neighbours is None:
@@ -613,7 +609,6 @@ class VisionFusionHook:
         if self.only_when_warning and not self.policy.any_warning(tick.neighbours):
             # nothing to warn about: the overlay draws no warning (no frame was rendered for it)
             tick.guidance = self._shown = GuidanceSet((), "fusion")
-            self._forget_drawn()
             return None
         t0 = wallclock.perf_counter()
         frame = self.frame_source(tick)
@@ -621,7 +616,6 @@ class VisionFusionHook:
             # no camera frame at an update: nothing is drawn, and nothing stands in for it (the
             # guidance log counts the tick as "no_frame")
             self._shown = None
-            self._forget_drawn()
             return None
         t_render = wallclock.perf_counter() - t0
         twins = tick.neighbours
@@ -645,10 +639,6 @@ class VisionFusionHook:
                                   shown_depth_sigmas=float(shown[i]))
                    for b, g, i in zip(matched, given, view)]
         boxes = [b if r == "" else None for b, r in zip(matched, reasons)]
-        held = [False] * len(boxes)
-        if self.continuity is not None:  # a jump the twin's motion does not explain: the previous box, moved
-            boxes, held = self.continuity.update([twins.ids[i] for i in view], boxes,
-                                                 [result.expected_boxes[i] for i in view], cam.width, cam.height)
         chosen = [int(result.choice[self.method][i]) for i in view]
         decision = twins.outputs.get("lc_decision")
         in_view = make_guidance(tick.time, [twins.ids[i] for i in view], lc[view], boxes, self.policy,
@@ -675,18 +665,13 @@ class VisionFusionHook:
         # every twin in view, matched or not, with its judgement: an unmatched warning on a
         # visible vehicle is missed, on a vehicle the frame does not show unseen
         rows = []
-        for g, j, why, i, h in zip(in_view, judged, reasons, view, held):
+        for g, j, why, i in zip(in_view, judged, reasons, view):
             b = g.box if g.box is not None else (np.nan,) * 4
             rows.append({"time": round(tick.time, 6), "vehicle_id": g.vehicle_id, "method": self.method,
                          "lc_prob": g.lc_prob, "level": g.level, "matched": g.box is not None,
                          "box_vehicle_id": g.box_vehicle_id or "",
                          "x1": b[0], "y1": b[1], "x2": b[2], "y2": b[3],
                          "outcome": j.outcome, "gt_iou": j.iou, "visible_px": j.visible_px, "frame": frame_index,
-                         "undrawn": why, "hidden_share": float(result.hidden_share[i]), "smoothed": bool(h)})
+                         "undrawn": why, "hidden_share": float(result.hidden_share[i])})
         return rows
-
-    def _forget_drawn(self) -> None:
-        """An AR update without a fused frame: nothing drawn, no box to continue from."""
-        if self.continuity is not None:
-            self.continuity.forget()
 

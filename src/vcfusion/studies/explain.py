@@ -74,7 +74,6 @@ def explain_episodes(fusion: pd.DataFrame, period_s: float) -> pd.DataFrame:
         ep = warned.iloc[list(episode.rows)]
         mid = ep.iloc[len(ep) // 2]
         frame = int(mid["frame"]) if "frame" in ep and not pd.isna(mid["frame"]) else -1
-        smoothed = int(ep["smoothed"].astype(bool).sum()) if "smoothed" in ep else 0
         rows.append({"twin": str(twin), "outcome": str(outcome), "start_s": float(ep["time"].iloc[0]),
                      "end_s": float(ep["time"].iloc[-1]), "updates": len(ep), "bridged": episode.bridged,
                      "level": "high" if (ep["level"] == "high").any() else "medium",
@@ -86,9 +85,7 @@ def explain_episodes(fusion: pd.DataFrame, period_s: float) -> pd.DataFrame:
                      "why": why(str(outcome), str(twin), str(shown), float(mid["gt_iou"]), float(mid["visible_px"]),
                                 str(mid["undrawn"]) if "undrawn" in ep and mid["undrawn"] else "no_match")
                       + (f"; {episode.bridged} update(s) without a box inside it, spanned by the driver's "
-                         "warning hold (a flicker, no missed warning)" if episode.bridged else "")
-                      + (f"; {smoothed} update(s) drawn as the mean of the new box and the previous one moved with "
-                         "the twin (a jump its motion does not explain, fusion.continuity)" if smoothed else "")})
+                         "warning hold (a flicker, no missed warning)" if episode.bridged else "")})
     out = pd.DataFrame(rows, columns=[c for c in COLUMNS if c != "episode"])
     out = out.sort_values(["start_s", "twin"]).reset_index(drop=True)
     out.insert(0, "episode", np.arange(len(out)))
