@@ -695,6 +695,9 @@ class JointMatcher:
         expected = proj.face_z if p.face_offset else proj.anchor_z
         sigma = p.depth_sigma_rel * expected + p.depth_sigma_abs_m
         if depth_noise is not None and not depth_noise.exact:
+            # what the sensor reads there (a stereo pair's far depth reads nearer, DepthNoise.reading),
+            # with its error at that depth
+            expected = depth_noise.reading(expected)
             with np.errstate(invalid="ignore"):
                 sensor = np.asarray(depth_noise.sigma(np.maximum(expected, 0.0)), np.float64)
             sigma = np.where(np.isfinite(sensor), np.hypot(sigma, sensor), sigma)
@@ -750,6 +753,8 @@ class JointMatcher:
             chosen = np.full((n, 4), np.nan)
             chosen[rows] = as_boxes(boxes)[cols]
             column_z = outline_depth_in_columns(twins, camera, chosen)[rows]
+            if depth_noise is not None and not depth_noise.exact:
+                column_z = depth_noise.reading(column_z)
             sigma = self._expected_depth(proj, depth_noise)[1][rows]
             with np.errstate(invalid="ignore"):
                 err = np.abs(depths[cols] - column_z[:, None]) / sigma[:, None]
