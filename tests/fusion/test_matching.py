@@ -183,7 +183,7 @@ class _GivenCosts(JointMatcher):
         self.costs = costs
         self.hidden = np.zeros(len(costs), bool) if hidden_whole is None else np.asarray(hidden_whole, bool)
 
-    def _cost_terms(self, proj, boxes, box_depths, surface_depths=None):
+    def _cost_terms(self, proj, boxes, box_depths, surface_depths=None, depth_noise=None):
         c = np.array([[np.inf if v is None else v for v in row] for row in self.costs])
         return np.where(np.isfinite(c), c, 10.0), np.isfinite(c), self.hidden
 
