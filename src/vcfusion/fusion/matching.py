@@ -38,7 +38,8 @@ Four matchers, from the paper's baseline to its future work:
       visible part's centre), and
   (c) the disagreement between the box's depth and the expected depth of the vehicle face the
       camera sees (GNSS point = body centre, records.gnss_antenna_points; the depth samples lie on the rear (or front) face,
-      half a vehicle length nearer),
+      half a vehicle length nearer; with a noisy depth sensor, what the sensor reads there, in a
+      sigma widened by the sensor's own error, :meth:`JointMatcher._expected_depth`),
   with gates on overlap and depth. Before that, each twin's cloud state is extrapolated from the
   time it was measured to the camera's timestamp (latency compensation, constant velocity along
   the heading).
@@ -567,7 +568,8 @@ class JointMatch:
     hidden_share: np.ndarray  # (N,) share of each twin's outline nearer twins' outlines hide (visible_boxes)
     # (N,) disagreement of the chosen box's measured depth (its outline's surface where known, else
     # the best quantile of its lower-quarter samples) with the twin's expected face depth, in the
-    # matcher's sigmas (depth_sigma_rel * depth + depth_sigma_abs_m); inf: no box or no depth
+    # matcher's sigmas (depth_sigma_rel * depth + depth_sigma_abs_m, combined with the depth sensor's
+    # error there when it has one: JointMatcher._expected_depth); inf: no box or no depth
     depth_sigmas: np.ndarray
     # (N,) the chosen box's lower-quarter depth samples fit a clearly nearer twin too (the box would
     # be allowed without depth support, JointMatcher._depth_of_nearer_twin)
