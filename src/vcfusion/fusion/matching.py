@@ -651,7 +651,8 @@ class JointMatcher:
         # at its depth) measured that twin, not the vehicles behind it: for those its depth cannot
         # confirm a match but does not exclude one either (e.g. a far car whose lower part a nearer
         # one hides): allowed at the largest depth penalty, so any twin whose depth does agree wins.
-        of_nearer = self._depth_of_nearer_twin(proj, b, depth_err, sigma, depth_noise) if n > 1 and m else np.zeros((n, m), bool)
+        of_nearer = (self._depth_of_nearer_twin(proj, b, depth_err, sigma, depth_noise) if n > 1 and m
+                     else np.zeros((n, m), bool))
         measured_err = np.where(depth_known, depth_err, np.inf)
         depth_err = np.where(of_nearer, np.minimum(depth_err, p.depth_gate), depth_err)
         # where the depth image tells which surface draws a box's outline, the cost compares that
