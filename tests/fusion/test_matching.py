@@ -183,7 +183,7 @@ class _GivenCosts(JointMatcher):
         self.costs = costs
         self.hidden = np.zeros(len(costs), bool) if hidden_whole is None else np.asarray(hidden_whole, bool)
 
-    def _cost_terms(self, proj, boxes, box_depths, surface_depths=None):
+    def _cost_terms(self, proj, boxes, box_depths, surface_depths=None, depth_noise=None):
         c = np.array([[np.inf if v is None else v for v in row] for row in self.costs])
         return np.where(np.isfinite(c), c, 10.0), np.isfinite(c), self.hidden
 
@@ -626,3 +626,24 @@ def test_the_fusion_result_judges_outlines_where_the_matcher_put_the_twins():
     box = result.box_of("joint", 1)
     assert undrawn_reason(box, result.expected_boxes[1], result.hidden_share[1],
                           depth_sigmas=result.depth_sigmas[1]) == ""
+
+
+def test_a_far_twins_noisy_depth_counts_for_less_under_the_sensors_own_noise():
+    """A far car (rear 97.75 m) whose box reads 30 m too deep, as a stereo pair's far depth does
+    (sigma_z = z^2 sigma_d / (f B): 40 m at 98 m with B = 0.12 m, 0.25 px), and a box of an
+    unconnected car 20 m nearer in the next lane that holds the twin's anchor. With the matcher's
+    sigma alone (5.9 m) the right box is 5.1 sigma off and gated, and the wrong one is taken; with
+    the sensor's sigma combined the right box wins on its overlap. Exact depth changes nothing."""
+    from vcfusion.fusion.road import DepthNoise
+
+    cam = pinhole_camera()
+    twins = make_twins(["far"], [100.0], [0.0], z_ground=-0.75)
+    boxes = np.stack([vehicle_box(cam, 100.0, 0.0), vehicle_box(cam, 80.0, 0.8)])
+    depths = np.array([100.0 - 2.25 + 30.0, 80.0 - 2.25])
+    stereo = DepthNoise(c=0.25 / (FX * 0.12))
+    assert list(JointMatcher().match(twins, boxes, depths, cam)) == [1]
+    assert list(JointMatcher().match(twins, boxes, depths, cam, depth_noise=stereo)) == [0]
+    proj = project_twins(twins, cam)
+    plain = JointMatcher().cost_matrix(proj, boxes, depths)
+    exact = JointMatcher().cost_matrix(proj, boxes, depths, depth_noise=DepthNoise())
+    assert all(np.array_equal(a, b) for a, b in zip(plain, exact))

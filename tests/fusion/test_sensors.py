@@ -118,3 +118,23 @@ def test_the_sensors_change_what_the_fusion_sees_never_the_ground_truth():
     assert not np.allclose(sensed.camera.T_world_to_camera, exact.camera.T_world_to_camera)
     assert np.array_equal(frame.depth, depth)  # the render itself is left as it was
     assert sensed.depth_noise.c > 0 and exact.depth_noise.exact
+
+
+def test_a_stereo_pairs_median_reading_near_its_smallest_disparity_is_the_models_own():
+    """DepthNoise.reading: the median of what the stereo model measures on a flat wall, its holes
+    left out, against the closed form; nearer than the wall near the disparity floor, the wall
+    itself well inside the range, and the exact depth (no stereo model) is read as it is."""
+    model = SensorModel("stereo", FLAT, rng=np.random.default_rng(2))
+    noise = model.noise(K)
+    fb = F * FLAT.baseline_m
+    for z in (20.0, 200.0, 230.0):  # disparities 6, 0.6 and 0.52 px; the floor is 0.5 px
+        out = model.depth(np.full((200, 300), z, np.float32), K, T)
+        measured = float(np.median(out[np.isfinite(out)]))
+        assert float(noise.reading(z)) == pytest.approx(measured, rel=0.02)
+        assert float(noise.scaled(0.3).reading(z)) == float(noise.reading(z))  # a filter keeps what is matched
+    assert float(noise.reading(20.0)) == pytest.approx(20.0, rel=1e-3)
+    assert float(noise.reading(200.0)) < 0.85 * 200.0
+    # beyond the range (0.48 px) the model gives no depth and nothing is read
+    assert np.isnan(model.depth(np.full((50, 50), 250.0, np.float32), K, T)).all() and np.isnan(noise.reading(250.0))
+    assert fb / 250.0 < FLAT.min_disparity_px
+    assert SensorModel("lidar", FLAT).noise(K).reading(200.0) == 200.0

@@ -364,7 +364,8 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
     detections = detect_frame(frame, detector, refine, segments, depth_counts)
     t1 = wallclock.perf_counter()
     # the matchers read the depth as the depth step does (median-filtered when the sensor is noisy)
-    depth = depth_view(frame, refine or BoxRefineParams()).depth if not frame.depth_noise.exact else frame.depth
+    view = depth_view(frame, refine or BoxRefineParams()) if not frame.depth_noise.exact else None
+    depth = view.depth if view is not None else frame.depth
     samples = sample_box_depths(depth, detections.boxes, rng, depth_params)
     depths = reduce_depth_samples(samples, depth_params.reducer)  # Algorithm 1
     t2 = wallclock.perf_counter()
@@ -382,8 +383,9 @@ def fuse_frame(frame: CameraFrame, twins: TwinStates, detector: Detector, rng: n
     if "joint" in methods:
         joint_samples = joint_depth_samples(depth, detections.boxes, samples, depth_params.th)
         surface = box_surface_depths(detections.boxes, segments, refine or BoxRefineParams())
+        # the depth term's sigma widened by the error of the depth the samples were read from
         joint_match = (joint or JointMatcher()).match_details(twins, detections.boxes, joint_samples, frame.camera,
-                                                              surface)
+                                                              surface, view.noise if view is not None else None)
         choice["joint"] = joint_match.choice
     timings["match"] = wallclock.perf_counter() - t2
     n_anchor_boxes = np.zeros(len(twins), np.int64)

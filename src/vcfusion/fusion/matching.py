@@ -38,7 +38,8 @@ Four matchers, from the paper's baseline to its future work:
       visible part's centre), and
   (c) the disagreement between the box's depth and the expected depth of the vehicle face the
       camera sees (GNSS point = body centre, records.gnss_antenna_points; the depth samples lie on the rear (or front) face,
-      half a vehicle length nearer),
+      half a vehicle length nearer; with a noisy depth sensor, what the sensor reads there, in a
+      sigma widened by the sensor's own error, :meth:`JointMatcher._expected_depth`),
   with gates on overlap and depth. Before that, each twin's cloud state is extrapolated from the
   time it was measured to the camera's timestamp (latency compensation, constant velocity along
   the heading).
@@ -567,7 +568,8 @@ class JointMatch:
     hidden_share: np.ndarray  # (N,) share of each twin's outline nearer twins' outlines hide (visible_boxes)
     # (N,) disagreement of the chosen box's measured depth (its outline's surface where known, else
     # the best quantile of its lower-quarter samples) with the twin's expected face depth, in the
-    # matcher's sigmas (depth_sigma_rel * depth + depth_sigma_abs_m); inf: no box or no depth
+    # matcher's sigmas (depth_sigma_rel * depth + depth_sigma_abs_m, combined with the depth sensor's
+    # error there when it has one: JointMatcher._expected_depth); inf: no box or no depth
     depth_sigmas: np.ndarray
     # (N,) the chosen box's lower-quarter depth samples fit a clearly nearer twin too (the box would
     # be allowed without depth support, JointMatcher._depth_of_nearer_twin)
@@ -590,12 +592,13 @@ class JointMatcher:
         self.params = params
         self.filter = TwinPositionFilter(params.smoothing_alpha) if params.smoothing_alpha is not None else None
 
-    def cost_matrix(self, proj: TwinProjection, boxes, box_depths, surface_depths=None) -> tuple[np.ndarray, np.ndarray]:
+    def cost_matrix(self, proj: TwinProjection, boxes, box_depths, surface_depths=None,
+                    depth_noise=None) -> tuple[np.ndarray, np.ndarray]:
         """(cost, allowed) over (twins, boxes)."""
-        return self._cost_terms(proj, boxes, box_depths, surface_depths)[:2]
+        return self._cost_terms(proj, boxes, box_depths, surface_depths, depth_noise)[:2]
 
     def _cost_terms(self, proj: TwinProjection, boxes, box_depths,
-                    surface_depths=None) -> tuple[np.ndarray, ...]:
+                    surface_depths=None, depth_noise=None) -> tuple[np.ndarray, ...]:
         """(cost, allowed) over (twins, boxes), (N,) whether each twin is hidden whole (the
         assignment's second round; computed here with the rest of :func:`visible_boxes`), and over
         (twins, boxes) the depth disagreement the cost compares, in sigmas (uncapped; inf where the
@@ -635,7 +638,7 @@ class JointMatcher:
             # box of the car beside it, which the stand-in lay in, and pushed that car off its box
             if not anchor_hidden[i]:
                 inside[i] = point_in_boxes(anchors[i], b)
-        expected, sigma = self._expected_depth(proj)
+        expected, sigma = self._expected_depth(proj, depth_noise)
         sigma = sigma[:, None]
         with np.errstate(invalid="ignore"):
             err_q = np.abs(depths[None, :, :] - expected[:, None, None]) / sigma[:, :, None]  # (N, D, q)
@@ -648,7 +651,8 @@ class JointMatcher:
         # at its depth) measured that twin, not the vehicles behind it: for those its depth cannot
         # confirm a match but does not exclude one either (e.g. a far car whose lower part a nearer
         # one hides): allowed at the largest depth penalty, so any twin whose depth does agree wins.
-        of_nearer = self._depth_of_nearer_twin(proj, b, depth_err, sigma) if n > 1 and m else np.zeros((n, m), bool)
+        of_nearer = (self._depth_of_nearer_twin(proj, b, depth_err, sigma, depth_noise) if n > 1 and m
+                     else np.zeros((n, m), bool))
         measured_err = np.where(depth_known, depth_err, np.inf)
         depth_err = np.where(of_nearer, np.minimum(depth_err, p.depth_gate), depth_err)
         # where the depth image tells which surface draws a box's outline, the cost compares that
@@ -684,15 +688,26 @@ class JointMatcher:
         allowed &= proj.in_view[:, None]
         return cost, allowed, hidden_whole, measured_err, of_nearer, on_surface, depths
 
-    def _expected_depth(self, proj: TwinProjection) -> tuple[np.ndarray, np.ndarray]:
+    def _expected_depth(self, proj: TwinProjection, depth_noise=None) -> tuple[np.ndarray, np.ndarray]:
         """(N,) the depth each twin's box should measure (its face, or its anchor without
-        face_offset) and (N,) the depth sigma there (depth_sigma_rel * depth + depth_sigma_abs_m), m."""
+        face_offset) and (N,) the depth sigma there, m: the matcher's own (depth_sigma_rel * depth +
+        depth_sigma_abs_m: the twin's GNSS, latency and shape error) combined in quadrature with the
+        depth sensor's error at that depth (`depth_noise`, vcfusion.fusion.road.DepthNoise, of the depth
+        the samples were read from; None or exact: no sensor term, the matcher's sigma as it is)."""
         p = self.params
         expected = proj.face_z if p.face_offset else proj.anchor_z
-        return expected, p.depth_sigma_rel * expected + p.depth_sigma_abs_m
+        sigma = p.depth_sigma_rel * expected + p.depth_sigma_abs_m
+        if depth_noise is not None and not depth_noise.exact:
+            # what the sensor reads there (a stereo pair's far depth reads nearer, DepthNoise.reading),
+            # with its error at that depth
+            expected = depth_noise.reading(expected)
+            with np.errstate(invalid="ignore"):
+                sensor = np.asarray(depth_noise.sigma(np.maximum(expected, 0.0)), np.float64)
+            sigma = np.where(np.isfinite(sensor), np.hypot(sigma, sensor), sigma)
+        return expected, sigma
 
     def _depth_of_nearer_twin(self, proj: TwinProjection, boxes: np.ndarray, depth_err: np.ndarray,
-                              sigma: np.ndarray) -> np.ndarray:
+                              sigma: np.ndarray, depth_noise=None) -> np.ndarray:
         """(N, D) mask: box j's depth agrees with a twin k that is nearer than twin i by more than
         i's depth gate and whose expected box holds >= 80 % of box j's lower quarter, while box j is
         not k's own box (IoU with k's expected box < 0.5: else a far twin would take the box of a
@@ -703,21 +718,24 @@ class JointMatcher:
         # (K, D): twin k covers box j's sampled area and box j's depth is twin k's
         explains = ((box_inside_share(lower, proj.expected_box).T >= 0.8) & (depth_err <= gate)
                     & proj.in_view[:, None] & (box_iou(proj.expected_box, boxes) < 0.5))
-        expected = self._expected_depth(proj)[0]
+        expected = self._expected_depth(proj, depth_noise)[0]
         nearer = expected[None, :] < (expected[:, None] - gate * sigma)  # (I, K): k clearly nearer than i
         return (nearer.astype(np.int64) @ explains.astype(np.int64)) > 0
 
-    def match(self, twins: TwinStates, boxes, box_depths, camera: CameraView, surface_depths=None) -> np.ndarray:
+    def match(self, twins: TwinStates, boxes, box_depths, camera: CameraView, surface_depths=None,
+              depth_noise=None) -> np.ndarray:
         """Box index per twin (NO_MATCH where unassigned), aligned with ``twins.ids``.
 
         ``box_depths``: Algorithm 1's distance per box (D,), or better its raw samples (D, n)
         (:func:`vcfusion.fusion.depth_eval.sample_box_depths`). ``surface_depths``: (D,) the depth of
         the surface drawing each box's outline, nan where unknown
-        (:func:`vcfusion.fusion.box_refine.box_surface_depths`); None: none known."""
-        return self.match_details(twins, boxes, box_depths, camera, surface_depths).choice
+        (:func:`vcfusion.fusion.box_refine.box_surface_depths`); None: none known. ``depth_noise``: the
+        error of the depth the samples were read from (vcfusion.fusion.road.DepthNoise; the depth step's
+        DepthView.noise), which widens the depth sigma (:meth:`_expected_depth`); None: exact depth."""
+        return self.match_details(twins, boxes, box_depths, camera, surface_depths, depth_noise).choice
 
     def match_details(self, twins: TwinStates, boxes, box_depths, camera: CameraView,
-                      surface_depths=None) -> "JointMatch":
+                      surface_depths=None, depth_noise=None) -> "JointMatch":
         """:meth:`match`'s choice with what it was decided on (:class:`JointMatch`): the twins as
         the matcher projects them (GNSS-smoothed, moved on by their latency) and each chosen box's
         depth agreement."""
@@ -727,7 +745,7 @@ class JointMatcher:
             twins = extrapolate_twins(twins, camera.time, self.params.use_accel)
         proj = project_twins(twins, camera)
         choice, (_, _, _, depth_err, of_nearer, on_surface, depths) = self._assign(proj, boxes, box_depths,
-                                                                                  surface_depths)
+                                                                                  surface_depths, depth_noise)
         n = len(choice)
         rows, cols = np.flatnonzero(choice != NO_MATCH), choice[choice != NO_MATCH]
         sigmas, nearer, surface = np.full(n, np.inf), np.zeros(n, bool), np.zeros(n, bool)
@@ -738,14 +756,16 @@ class JointMatcher:
             chosen = np.full((n, 4), np.nan)
             chosen[rows] = as_boxes(boxes)[cols]
             column_z = outline_depth_in_columns(twins, camera, chosen)[rows]
-            sigma = self._expected_depth(proj)[1][rows]
+            if depth_noise is not None and not depth_noise.exact:
+                column_z = depth_noise.reading(column_z)
+            sigma = self._expected_depth(proj, depth_noise)[1][rows]
             with np.errstate(invalid="ignore"):
                 err = np.abs(depths[cols] - column_z[:, None]) / sigma[:, None]
             err = np.where(np.isfinite(err), err, np.inf).min(axis=1) if depths.shape[1] else np.full(len(rows), np.inf)
             shown[rows] = err
         return JointMatch(choice, proj, visible_boxes(proj)[2], sigmas, nearer, surface, shown)
 
-    def assign(self, proj: TwinProjection, boxes, box_depths, surface_depths=None) -> np.ndarray:
+    def assign(self, proj: TwinProjection, boxes, box_depths, surface_depths=None, depth_noise=None) -> np.ndarray:
         """Box index per twin (NO_MATCH where unassigned), in two rounds: first the twins with a
         visible part, then, from the boxes they left, the twins that nearer twins' expected boxes hide
         whole. Why: such a twin rarely has a box (a roof line above the car in front at most), yet in
@@ -757,11 +777,11 @@ class JointMatcher:
         the second round with the hidden twins: a far car in a chain, visible by a corner, otherwise kept
         the box of the car in front of it at 5.97 (just under ``miss_cost``), which that car, hidden but
         for its roof, fitted at 2.03."""
-        return self._assign(proj, boxes, box_depths, surface_depths)[0]
+        return self._assign(proj, boxes, box_depths, surface_depths, depth_noise)[0]
 
-    def _assign(self, proj: TwinProjection, boxes, box_depths, surface_depths=None):
+    def _assign(self, proj: TwinProjection, boxes, box_depths, surface_depths=None, depth_noise=None):
         """:meth:`assign`'s choice and the cost terms it was made on (:meth:`_cost_terms`)."""
-        terms = self._cost_terms(proj, boxes, box_depths, surface_depths)
+        terms = self._cost_terms(proj, boxes, box_depths, surface_depths, depth_noise)
         cost, allowed, hidden_whole = terms[:3]
         out = np.full(len(proj.anchor), NO_MATCH)
         if cost.size == 0:

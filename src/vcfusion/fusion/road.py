@@ -26,7 +26,7 @@ point at depth z errs by about sigma_z(z) h / z (h: the camera's height above th
 from __future__ import annotations
 
 import time as wallclock
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -39,6 +39,11 @@ class DepthNoise:
     b: float = 0.0
     c: float = 0.0
     mixed_edges: bool = False  # pixels straddling a depth edge read a mix of both surfaces (ToF)
+    # a stereo pair's disparity model, for :meth:`reading` (0: not a stereo pair): f B (px m), the
+    # per-pixel disparity noise (px) and the smallest disparity it matches (px; below it a hole)
+    focal_baseline_px_m: float = 0.0
+    disparity_noise_px: float = 0.0
+    min_disparity_px: float = 0.0
 
     @property
     def exact(self) -> bool:
@@ -48,8 +53,29 @@ class DepthNoise:
         z = np.asarray(z, np.float32)
         return np.float32(self.a) + np.float32(self.b) * z + np.float32(self.c) * z * z
 
+    def reading(self, z) -> np.ndarray:
+        """The median depth the sensor reads from a surface at depth `z` (m), float64: `z` itself
+        but for a stereo pair near its smallest disparity, whose draws below it are holes (filled
+        from the neighbours that were matched): the median of the disparities that remain,
+        mu + s Phi^-1((1 + Phi(a)) / 2) with mu = f B / z, s the disparity noise and
+        a = (min_disparity - mu) / s, read as depth f B / d. Nearer than the truth: at 0.62 px
+        (88 m with f B = 55 px m), 0.25 px noise and a 0.5 px floor, 76 m. Beyond the pair's range
+        (mu below the floor: sensors.stereo_depth gives no depth there) nothing is read: nan."""
+        z = np.asarray(z, np.float64)
+        if self.focal_baseline_px_m <= 0 or self.disparity_noise_px <= 0 or self.min_disparity_px <= 0:
+            return z
+        from scipy.special import ndtr, ndtri
+
+        fb, s = self.focal_baseline_px_m, self.disparity_noise_px
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mu = fb / z
+            d = mu + s * ndtri((1.0 + ndtr((self.min_disparity_px - mu) / s)) / 2.0)
+            return np.where(np.isfinite(z) & (z > 0), np.where(mu >= self.min_disparity_px, fb / d, np.nan), z)
+
     def scaled(self, k: float) -> "DepthNoise":
-        return DepthNoise(self.a * k, self.b * k, self.c * k, self.mixed_edges)
+        """The error of a filtered image: the sigma scaled by `k`; the per-pixel disparity model
+        (what is matched at all) stays."""
+        return replace(self, a=self.a * k, b=self.b * k, c=self.c * k)
 
 
 @dataclass(frozen=True)

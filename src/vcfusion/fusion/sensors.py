@@ -257,7 +257,9 @@ class SensorModel:
 
         p = self.params
         if self.depth_model == "stereo":
-            return DepthNoise(c=p.disparity_noise_px / (float(np.asarray(K)[0, 0]) * p.baseline_m))
+            fb = float(np.asarray(K)[0, 0]) * p.baseline_m
+            return DepthNoise(c=p.disparity_noise_px / fb, focal_baseline_px_m=fb,
+                              disparity_noise_px=p.disparity_noise_px, min_disparity_px=p.min_disparity_px)
         if self.depth_model == "tof":
             return DepthNoise(a=p.tof_sigma0_m, b=p.tof_sigma_rel, mixed_edges=True)
         if self.depth_model == "lidar":
