@@ -19,8 +19,7 @@ from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import GuidanceSet, TwinStates
 from vcfusion.fusion.box_refine import (BoxRefineParams, ObjectSegments, RefinedBoxes, box_surface_depths,
                                        depth_proposals, fill_scan_gaps, join_fragments, merge_same_segment,
-                                       object_segments,
-                                       on_road_mask, refine_boxes)
+                                       object_segments, on_road_mask, refine_boxes)
 from vcfusion.fusion.road import DepthNoise, RoadFit, fit_road_plane
 from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector, nms
