@@ -1145,3 +1145,34 @@ def test_a_side_the_band_cuts_off_a_vehicle_s_own_surface_is_the_detector_s():
     assert box_iou(cut.boxes, truth[None])[0, 0] < 0.78 < 0.84 < box_iou(kept.boxes, truth[None])[0, 0]
     # a side the detector drew beyond a depth jump (over the truck beside a car) is still snapped:
     # test_a_near_car_touching_a_farther_truck_in_its_band_snaps_to_the_car_alone
+
+
+def test_a_proposal_of_the_segment_a_snapped_box_outlines_is_that_box_s_vehicle():
+    """After the depth step two boxes can describe one car: the detector's box snapped to the car's
+    segment but reaching rows below it, and the proposal of that segment (overlapping the box by
+    0.52-0.58, under the proposals' 0.6; development seeds 9105, 9108, 9201 of the jam family, 24-29 m,
+    where the matcher took the taller box). The box takes the proposal's sides and the proposal goes;
+    a proposal of the other class (a truck's L above the car in front) stays its own box."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import merge_same_segment, object_segments
+
+    K, T = default_camera()
+    depth = _plate(road_depth(K, T, 640, 480), K, T, 25.0, -0.9, 0.9, 1.5)
+    segments = object_segments(depth, K, T)
+    car = _mask_box(_image_labels(segments, depth.shape) > 0)
+    tall = car + [-2.0, 0.0, 0.0, 0.6 * (car[3] - car[1])]  # reaching far below the car's surface
+    assert 0.5 < box_iou(tall[None], car[None])[0, 0] < BoxRefineParams().proposals.max_overlap
+    boxes, kept = merge_same_segment(tall[None], np.array([False]), np.array([True]), car[None],
+                                     np.array([False]), segments)
+    assert not kept[0] and box_iou(boxes, car[None])[0, 0] == pytest.approx(1.0)
+    for box_truck, snapped in ((True, True), (False, False)):  # another class, or a box not snapped
+        boxes, kept = merge_same_segment(tall[None], np.array([box_truck]), np.array([snapped]), car[None],
+                                         np.array([False]), segments)
+        assert kept[0] and np.array_equal(boxes[0], tall)
+    # a box ending where the proposal ends, reaching above it: the proposal may be a part of another car
+    # (a LiDAR scan's lower half of a car, development seed 9407)
+    above = car + [-2.0, -0.6 * (car[3] - car[1]), 0.0, 0.0]
+    assert 0.5 < box_iou(above[None], car[None])[0, 0]
+    boxes, kept = merge_same_segment(above[None], np.array([False]), np.array([True]), car[None],
+                                     np.array([False]), segments)
+    assert kept[0] and np.array_equal(boxes[0], above)

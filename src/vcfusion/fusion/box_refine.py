@@ -123,6 +123,12 @@ class ProposalParams:
     # kept them apart; on the development folders 0.5 m joined 3 more targets' pieces, 0.75 m 6, 1 m 4),
     fragment_hidden: float = 0.5  # with at least this share of the pixels between them nearer (the cut),
     max_width_m: float = 2.7  # and the two together no wider than a vehicle seen from behind
+    merge_same_segment: bool = True  # on noiseless depth, a proposal whose segment draws a snapped
+    # box's outline, of the box's class, while the box reaches below the segment's lowest row on its
+    # surface, is that box's vehicle: the box takes the proposal's sides (merge_same_segment; under
+    # stereo noise the segment can end short of its car or join the next: 2 development targets lost)
+    merge_below_px: float = 2.0  # px; reaching below by more than this (development cases: 7-11 px;
+    # a LiDAR proposal of a car's lower half, ending where the box ends, is another car's: 0 px)
 
 
 @dataclass(frozen=True)
@@ -940,6 +946,40 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         out.append(box)
         trucks.append(is_truck)
     return np.array(out, float).reshape(-1, 4), np.array(trucks, bool)
+
+
+def merge_same_segment(boxes: np.ndarray, box_trucks: np.ndarray, snapped: np.ndarray, proposals: np.ndarray,
+                       proposal_trucks: np.ndarray, segments: ObjectSegments,
+                       below_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes that describe one vehicle twice after the depth step, made one: a proposal (the box of a
+    segment no box explains, down to the lowest row on the segment's surface) whose segment also draws
+    the outline of a snapped box of the same class (truck or not), while the box reaches more than
+    ``below_px`` below the proposal, is that box's vehicle, and the proposal fits its surface (the box
+    reached rows of something else); the box takes the proposal's sides and the proposal is dropped.
+    A proposal of the other class (a truck's L above the car in front of it), or one ending where the
+    box ends (a part of another car), stays its own box. Returns the boxes (a copy) and, per proposal,
+    whether it is kept. One proposal per box: the one overlapping it most."""
+    from vcfusion.fusion.matching import box_iou
+
+    boxes = np.asarray(boxes, float).reshape(-1, 4).copy()
+    proposals = np.asarray(proposals, float).reshape(-1, 4)
+    keep = np.ones(len(proposals), bool)
+    if not len(boxes) or not len(proposals):
+        return boxes, keep
+    box_label = np.where(np.asarray(snapped, bool), outline_segments(boxes, segments), 0)
+    prop_label = outline_segments(proposals, segments)
+    iou = box_iou(boxes, proposals)
+    same = ((box_label[:, None] == prop_label[None, :]) & (prop_label[None, :] > 0)
+            & (np.asarray(box_trucks, bool)[:, None] == np.asarray(proposal_trucks, bool)[None, :])
+            & (boxes[:, 3, None] > proposals[None, :, 3] + below_px))
+    iou = np.where(same, iou, 0.0)
+    for j in np.argsort(-iou.max(axis=1)):
+        cand = np.flatnonzero((iou[j] > 0) & keep)
+        if len(cand):
+            p = cand[iou[j, cand].argmax()]
+            boxes[j] = proposals[p]
+            keep[p] = False
+    return boxes, keep
 
 
 def _box_between(a: np.ndarray, b: np.ndarray, y_lo: int, shape: tuple[int, int]) -> tuple[slice, slice, np.ndarray]:

@@ -18,8 +18,8 @@ import numpy as np
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import GuidanceSet, TwinStates
 from vcfusion.fusion.box_refine import (BoxRefineParams, ObjectSegments, RefinedBoxes, box_surface_depths,
-                                       depth_proposals, fill_scan_gaps, join_fragments, object_segments,
-                                       on_road_mask, refine_boxes)
+                                       depth_proposals, fill_scan_gaps, join_fragments, merge_same_segment,
+                                       object_segments, on_road_mask, refine_boxes)
 from vcfusion.fusion.road import DepthNoise, RoadFit, fit_road_plane
 from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
 from vcfusion.detection.detectors import Detections, Detector, OracleDetector, nms
@@ -311,6 +311,16 @@ def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefinePara
         confident = scores >= refine.proposals.score
         new, is_truck = depth_proposals(view.depth, cam.K, view.T, boxes[confident], refine,
                                         segments, snapped[confident], view.noise)
+        # only on noiseless depth: a noisy sensor's segment can end short of its own car or join the
+        # next one, and is no better than the detector's sides (stereo, development: 2 targets lost)
+        if refine.proposals.merge_same_segment and view.noise.exact and segments is not None:
+            merged, kept = merge_same_segment(boxes[confident], classes[confident] == category_id("truck"),
+                                              snapped[confident], new, is_truck, segments,
+                                              refine.proposals.merge_below_px)
+            count_depth_step(stats, "boxes_merged", int((~kept).sum()))
+            boxes = boxes.copy()
+            boxes[confident] = merged
+            new, is_truck = new[kept], is_truck[kept]
         new_scores = _proposal_scores(new, boxes[~confident], scores[~confident], refine.proposals.score)
         boxes, scores = np.vstack([boxes, new]), np.r_[scores, new_scores]
         classes = np.r_[classes, np.where(is_truck, category_id("truck"), category_id("passenger"))]
