@@ -510,13 +510,14 @@ def box_within_outline(box, expected_box, width: int, height: int):
     b, e = np.asarray(box, dtype=float), np.asarray(expected_box, dtype=float)
     if e[0] <= 0.5 or e[1] <= 0.5 or e[2] >= width - 1.5 or e[3] >= height - 1.5:
         return box
-    cut = np.array([max(b[0], e[0]), max(b[1], e[1]), min(b[2], e[2]), min(b[3], e[3])])
     area = float((b[2] - b[0]) * (b[3] - b[1]))
     inside = _area_within(b, e)
     outline = float((e[2] - e[0]) * (e[3] - e[1]))
     if area <= 0 or inside >= MIN_BOX_INSIDE_OUTLINE * area or area > MAX_BOX_TO_OUTLINE_AREA * outline:
         return box  # mostly within the outline, or no box of the twin at all ("too_large")
-    return cut if inside >= MIN_DRAWN_VISIBLE_PX else None
+    if inside < MIN_DRAWN_VISIBLE_PX:
+        return None
+    return np.array([max(b[0], e[0]), max(b[1], e[1]), min(b[2], e[2]), min(b[3], e[3])])  # the part within
 
 
 UNDRAWN_REASONS = ("", "no_match", "hidden", "small", "too_large")

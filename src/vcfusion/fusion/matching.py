@@ -604,8 +604,9 @@ class JointMatcher:
         (twins, boxes) the depth disagreement the cost compares, in sigmas (uncapped; inf where the
         box has no depth), whether the box's depth is a clearly nearer twin's
         (:meth:`_depth_of_nearer_twin`), (D,) whether that disagreement is the surface drawing the
-        box's outline (else the best quantile of its lower-quarter samples), and (D, q) the depths it
-        was measured on (that surface's depth where known, else the samples' quantiles)."""
+        box's outline (else the best quantile of its lower-quarter samples), (D, q) the depths it
+        was measured on (that surface's depth where known, else the samples' quantiles), and (N,)
+        each twin's depth sigma (:meth:`_expected_depth`)."""
         p = self.params
         b = as_boxes(boxes)
         depths = np.asarray(box_depths, dtype=np.float64)
@@ -651,7 +652,7 @@ class JointMatcher:
         # at its depth) measured that twin, not the vehicles behind it: for those its depth cannot
         # confirm a match but does not exclude one either (e.g. a far car whose lower part a nearer
         # one hides): allowed at the largest depth penalty, so any twin whose depth does agree wins.
-        of_nearer = (self._depth_of_nearer_twin(proj, b, depth_err, sigma, depth_noise) if n > 1 and m
+        of_nearer = (self._depth_of_nearer_twin(proj, b, depth_err, expected, sigma) if n > 1 and m
                      else np.zeros((n, m), bool))
         measured_err = np.where(depth_known, depth_err, np.inf)
         depth_err = np.where(of_nearer, np.minimum(depth_err, p.depth_gate), depth_err)
@@ -686,7 +687,7 @@ class JointMatcher:
             allowed[whole] |= ((depth_err[whole] <= p.depth_gate)
                                & (box_inside_share(b, proj.expected_box[whole]).T >= p.hidden_within))
         allowed &= proj.in_view[:, None]
-        return cost, allowed, hidden_whole, measured_err, of_nearer, on_surface, depths
+        return cost, allowed, hidden_whole, measured_err, of_nearer, on_surface, depths, sigma[:, 0]
 
     def _expected_depth(self, proj: TwinProjection, depth_noise=None) -> tuple[np.ndarray, np.ndarray]:
         """(N,) the depth each twin's box should measure (its face, or its anchor without
@@ -707,18 +708,18 @@ class JointMatcher:
         return expected, sigma
 
     def _depth_of_nearer_twin(self, proj: TwinProjection, boxes: np.ndarray, depth_err: np.ndarray,
-                              sigma: np.ndarray, depth_noise=None) -> np.ndarray:
+                              expected: np.ndarray, sigma: np.ndarray) -> np.ndarray:
         """(N, D) mask: box j's depth agrees with a twin k that is nearer than twin i by more than
         i's depth gate and whose expected box holds >= 80 % of box j's lower quarter, while box j is
         not k's own box (IoU with k's expected box < 0.5: else a far twin would take the box of a
-        near one)."""
+        near one). `expected` (N,), `sigma` (N, 1): each twin's expected depth and its sigma, m
+        (:meth:`_expected_depth`)."""
         gate = self.params.depth_gate
         lower = boxes.copy()
         lower[:, 1] = boxes[:, 3] - 0.25 * (boxes[:, 3] - boxes[:, 1])
         # (K, D): twin k covers box j's sampled area and box j's depth is twin k's
         explains = ((box_inside_share(lower, proj.expected_box).T >= 0.8) & (depth_err <= gate)
                     & proj.in_view[:, None] & (box_iou(proj.expected_box, boxes) < 0.5))
-        expected = self._expected_depth(proj, depth_noise)[0]
         nearer = expected[None, :] < (expected[:, None] - gate * sigma)  # (I, K): k clearly nearer than i
         return (nearer.astype(np.int64) @ explains.astype(np.int64)) > 0
 
@@ -744,8 +745,8 @@ class JointMatcher:
         if self.params.latency_compensation:
             twins = extrapolate_twins(twins, camera.time, self.params.use_accel)
         proj = project_twins(twins, camera)
-        choice, (_, _, _, depth_err, of_nearer, on_surface, depths) = self._assign(proj, boxes, box_depths,
-                                                                                  surface_depths, depth_noise)
+        choice, (_, _, _, depth_err, of_nearer, on_surface, depths, depth_sigma) = self._assign(
+            proj, boxes, box_depths, surface_depths, depth_noise)
         n = len(choice)
         rows, cols = np.flatnonzero(choice != NO_MATCH), choice[choice != NO_MATCH]
         sigmas, nearer, surface = np.full(n, np.inf), np.zeros(n, bool), np.zeros(n, bool)
@@ -758,7 +759,7 @@ class JointMatcher:
             column_z = outline_depth_in_columns(twins, camera, chosen)[rows]
             if depth_noise is not None and not depth_noise.exact:
                 column_z = depth_noise.reading(column_z)
-            sigma = self._expected_depth(proj, depth_noise)[1][rows]
+            sigma = depth_sigma[rows]
             with np.errstate(invalid="ignore"):
                 err = np.abs(depths[cols] - column_z[:, None]) / sigma[:, None]
             err = np.where(np.isfinite(err), err, np.inf).min(axis=1) if depths.shape[1] else np.full(len(rows), np.inf)
