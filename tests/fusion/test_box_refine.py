@@ -1176,3 +1176,31 @@ def test_a_proposal_of_the_segment_a_snapped_box_outlines_is_that_box_s_vehicle(
     boxes, kept = merge_same_segment(above[None], np.array([False]), np.array([True]), car[None],
                                      np.array([False]), segments)
     assert kept[0] and np.array_equal(boxes[0], above)
+
+
+def test_a_box_on_a_car_s_rear_grows_over_its_flank_seen_at_an_angle_measured_across_the_view():
+    """A car 12 m ahead, 4 m to the side, shows its rear face and the flank facing the camera's axis
+    as one surface: 2.9 m of image width at the rear's depth, wider than a vehicle (2.7 m), but only
+    1.8 m across the view (the flank runs away from the camera). A box on the rear face grows over
+    the whole car; two cars side by side at the rear's depth (3.6 m across the view) stay apart."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import _lateral_width, join_fragments, object_segments
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+
+    def joined(depth, box):
+        segments = object_segments(depth, K, T, BoxRefineParams())
+        return join_fragments(box[None], np.array([True]), segments, K, BoxRefineParams())[0]
+
+    for side in (1.0, -1.0):
+        rear = _plate(road, K, T, 12.0, *sorted((side * 4.0, side * 5.8)), 1.5)
+        car = _side(rear, K, T, side * 4.0, 12.0, 16.5, 1.5)
+        whole, face = _mask_box(car < road), _mask_box(rear < road)
+        assert (whole[2] - whole[0]) * 12.0 / K[0, 0] > BoxRefineParams().proposals.max_width_m
+        np.testing.assert_allclose(joined(car, face), whole)
+        # one depth at both sides: the image width times depth over the focal length
+        assert np.isclose(_lateral_width(face[0], 12.0, face[2], 12.0, K), (face[2] - face[0]) * 12.0 / K[0, 0])
+        # a second car beside the first at the same depth, touching it: together wider than a vehicle
+        pair = _plate(rear, K, T, 12.0, *sorted((side * 5.8, side * 7.6)), 1.5)
+        np.testing.assert_allclose(joined(pair, face), face)

@@ -122,7 +122,9 @@ class ProposalParams:
     # beside a nearer truck, 14 px wide at 13 m, and its lower corner 17 px below: the share alone
     # kept them apart; on the development folders 0.5 m joined 3 more targets' pieces, 0.75 m 6, 1 m 4),
     fragment_hidden: float = 0.5  # with at least this share of the pixels between them nearer (the cut),
-    max_width_m: float = 2.7  # and the two together no wider than a vehicle seen from behind
+    max_width_m: float = 2.7  # and the two together no wider than a vehicle seen from behind, across
+    # the camera's view (each side at its own depth: a car's flank seen at an angle adds only what it
+    # adds across the view; development seeds 9000-9609, exact depth: 2 targets more, none lost)
     merge_same_segment: bool = True  # on noiseless depth, a proposal whose segment draws a snapped
     # box's outline, of the box's class, while the box reaches below the segment's lowest row on its
     # surface, is that box's vehicle: the box takes the proposal's sides (merge_same_segment; under
@@ -995,10 +997,36 @@ def _box_between(a: np.ndarray, b: np.ndarray, y_lo: int, shape: tuple[int, int]
     return slice(r0, r1), slice(c0, c1), between
 
 
-def _union_if_within(box: np.ndarray, other: np.ndarray, max_width_px: float) -> np.ndarray:
-    """The box around both, when it is no wider than ``max_width_px``; else ``box`` unchanged."""
+def _union_if_within(box: np.ndarray, ends: tuple[float, float], other: np.ndarray, other_ends: tuple[float, float],
+                     max_width_m: float, K: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
+    """The box around both and the depths of its left and right sides, when it is no wider than
+    ``max_width_m`` across the camera's view; else ``box`` and ``ends`` unchanged. ``ends`` and
+    ``other_ends``: camera-Z (m) at the left and right side of each (:func:`_lateral_width`)."""
     u = np.r_[np.minimum(box[:2], other[:2]), np.maximum(box[2:], other[2:])]
-    return u if u[2] - u[0] <= max_width_px else box
+    left = other_ends[0] if other[0] < box[0] else ends[0]
+    right = other_ends[1] if other[2] > box[2] else ends[1]
+    if _lateral_width(u[0], left, u[2], right, K) <= max_width_m:
+        return u, (left, right)
+    return box, ends
+
+
+def _lateral_width(u_left: float, z_left: float, u_right: float, z_right: float, K: np.ndarray) -> float:
+    """How wide a box is across the camera's view, m: camera X of its right side at depth z_right
+    minus that of its left side at z_left (image columns u, pixel-centre convention). At one depth
+    this is the image width times depth over the focal length; a side that a segment running away
+    from the camera draws (a car's flank seen at an angle, beside or above a nearer car) sits at its
+    own depth, so the flank adds to the width only what it adds across the view."""
+    fx, cx = float(K[0, 0]), float(K[0, 2])
+    return ((u_right - cx) * z_right - (u_left - cx) * z_left) / fx
+
+
+def _end_depths(segments: "ObjectSegments", label: int) -> tuple[float, float]:
+    """Median camera-Z (m) of a segment's pixels in its leftmost and rightmost columns."""
+    r = segments.regions[label - 1]
+    sel = segments.labels[r] == label
+    z = segments.z[r]
+    cols = np.flatnonzero(sel.any(axis=0))
+    return (float(np.median(z[:, cols[0]][sel[:, cols[0]]])), float(np.median(z[:, cols[-1]][sel[:, cols[-1]]])))
 
 
 def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegments | None, K: np.ndarray,
@@ -1020,7 +1048,9 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
     segment of one of the ``owners`` boxes (IoU > 0.5; an (N,) mask: the boxes the fusion uses),
     what lies between the two is mostly nearer (the piece of the nearer vehicle that cuts them apart)
     and all together are no wider than a vehicle (a car beside it at the same depth in the next lane
-    is a lane width away). With ``noise`` (the depth's DepthNoise), a box whose surface lies where the
+    is a lane width away). Wide across the camera's view (:func:`_lateral_width`): each side of the
+    union at its own depth, a segment's side at the median depth of its outermost column, the box's
+    at its surface depth. With ``noise`` (the depth's DepthNoise), a box whose surface lies where the
     depth is too noisy to tell one surface from the next (:func:`gate_by_noise`) does not grow: the
     gate that kept it as detected holds here too."""
     from vcfusion.fusion.matching import box_inside_share, box_iou
@@ -1055,6 +1085,14 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
             medians[k] = float(np.median(z[r][segments.labels[r] == labels[k]]))
         return medians[k]
 
+    ends_of: dict[int, tuple[float, float]] = {}
+
+    def end_depths(k):  # of segment k's left and right columns (computed once)
+        if k not in ends_of:
+            ends_of[k] = _end_depths(segments, int(labels[k]))
+        return ends_of[k]
+
+    K = np.asarray(K, float)
     out = boxes.copy()
     surfaces, outline_label = _box_surfaces(boxes, segments, refine)
     for i, b in enumerate(boxes):
@@ -1062,7 +1100,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
         if not np.isfinite(surface) or gate_by_noise(surface, noise, refine):
             continue
         tolerance = params.fragment_depth_m + 0.03 * surface
-        max_width_px = params.max_width_m * fx / surface
+        ends = (surface, surface)  # the depths of the grown box's left and right sides
         others = owned[:, owner_index != i].any(axis=1)
         grown = b.copy()
         # first the box's own segment whole: the refinement chose within a window around the detected
@@ -1077,7 +1115,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
             own.add(int(index_of[outline_label[i]]))
         for k in own:
             if not others[k] and abs(median_depth(k) - surface) <= tolerance:
-                grown = _union_if_within(grown, seg_box[k], max_width_px)
+                grown, ends = _union_if_within(grown, ends, seg_box[k], end_depths(k), params.max_width_m, K)
         side = max(b[2] - b[0], b[3] - b[1])
         gap = np.maximum.reduce([seg_box[:, 0] - b[2], b[0] - seg_box[:, 2],
                                  seg_box[:, 1] - b[3], b[1] - seg_box[:, 3]])
@@ -1093,7 +1131,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
             nearer = _nearer_object(*np.nonzero(between), z[rows, cols], obj[rows, cols], surface,
                                     refine.jump_m, refine.jump_rel)
             if nearer.mean() >= params.fragment_hidden:
-                grown = _union_if_within(grown, seg_box[k], max_width_px)
+                grown, ends = _union_if_within(grown, ends, seg_box[k], end_depths(k), params.max_width_m, K)
         out[i] = grown
     return out
 
