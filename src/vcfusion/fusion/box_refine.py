@@ -877,9 +877,10 @@ def _walk_down(z, cols, start, per_u, per_v, const, offset, min_height, row0, ju
 
 def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
                     refine: BoxRefineParams = BoxRefineParams(), segments: ObjectSegments | None = None,
-                    snapped: np.ndarray | None = None, noise=None):
+                    snapped: np.ndarray | None = None, noise=None, with_labels: bool = False):
     """Boxes of depth segments standing on the road that no detected box explains: (M, 4) boxes and
-    (M,) bool is_truck (``refine.proposals``; segments trimmed with ``refine.support``). ``segments``:
+    (M,) bool is_truck (``refine.proposals``; segments trimmed with ``refine.support``), and with
+    ``with_labels`` (M,) the label in ``segments`` of the segment each was proposed from. ``segments``:
     the image's :func:`object_segments`, when already computed. ``snapped``: per box, whether the
     refinement snapped it to a depth segment (:attr:`RefinedBoxes.refined`; None: all were). A box
     that found no segment to snap to (one over two trucks and the car in front of them) is not
@@ -890,12 +891,12 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     if segments is None:
         segments = object_segments(depth, K, T_world_to_camera, refine, noise)
     if segments is None:
-        return np.zeros((0, 4)), np.zeros(0, bool)
+        return (np.zeros((0, 4)), np.zeros(0, bool)) + ((np.zeros(0, int),) if with_labels else ())
     z, valid, obj, height, labels, areas, y_lo = (segments.z, segments.valid, segments.obj, segments.height,
                                                   segments.labels, segments.areas, segments.y_lo)
     fx = float(np.asarray(K, float)[0, 0])
     heights = _Heights(K, T_world_to_camera)
-    out, trucks = [], []
+    out, trucks, from_label = [], [], []
     existing = np.asarray(boxes, float).reshape(-1, 4)
     snapped = np.ones(len(existing), bool) if snapped is None else np.asarray(snapped, bool)
     if snapped.shape != (len(existing),):
@@ -947,7 +948,9 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
                                                         refine.jump_m, refine.jump_rel) + 0.5)
         out.append(box)
         trucks.append(is_truck)
-    return np.array(out, float).reshape(-1, 4), np.array(trucks, bool)
+        from_label.append(label)
+    return (np.array(out, float).reshape(-1, 4), np.array(trucks, bool)) + (
+        (np.array(from_label, int),) if with_labels else ())
 
 
 def merge_same_segment(boxes: np.ndarray, box_trucks: np.ndarray, snapped: np.ndarray, proposals: np.ndarray,
@@ -1030,7 +1033,8 @@ def _end_depths(segments: "ObjectSegments", label: int) -> tuple[float, float]:
 
 
 def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegments | None, K: np.ndarray,
-                   refine: BoxRefineParams = BoxRefineParams(), noise=None) -> np.ndarray:
+                   refine: BoxRefineParams = BoxRefineParams(), noise=None,
+                   outline: np.ndarray | None = None) -> np.ndarray:
     """Each box grown over its own segment whole and over the other fragments of its vehicle: (N, 4)
     boxes.
 
@@ -1050,9 +1054,16 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
     and all together are no wider than a vehicle (a car beside it at the same depth in the next lane
     is a lane width away). Wide across the camera's view (:func:`_lateral_width`): each side of the
     union at its own depth, a segment's side at the median depth of its outermost column, the box's
-    at its surface depth. With ``noise`` (the depth's DepthNoise), a box whose surface lies where the
+    at its surface depth (with a noisy sensor's depth, ``noise``, every side at the box's surface
+    depth: one column of it is too noisy to place a side; stereo + 0.3 deg, seeds 9000-9009: 1
+    target lost measuring each side at its own depth). With ``noise`` (the depth's DepthNoise), a box whose surface lies where the
     depth is too noisy to tell one surface from the next (:func:`gate_by_noise`) does not grow: the
-    gate that kept it as detected holds here too."""
+    gate that kept it as detected holds here too. ``outline``: (N,) per box, the label of the segment
+    known to draw it (a depth proposal's own segment, :func:`depth_proposals` ``with_labels``), 0
+    where it is found by overlap: a proposal's box reaches down over its surface below the segment
+    (its bumper and tyres) and can overlap its own segment by less than IoU 0.5, and the median of
+    its core then reads the nearer vehicle that hides the rest of it (a car's roof line seen above
+    the car in front got the front car's depth, and its other fragments were looked for there)."""
     from vcfusion.fusion.matching import box_inside_share, box_iou
 
     params = refine.proposals
@@ -1085,16 +1096,28 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
             medians[k] = float(np.median(z[r][segments.labels[r] == labels[k]]))
         return medians[k]
 
+    faces: dict[int, float] = {}
+
+    def face_depth(k):  # of segment k: its nearest part, as a box's surface is (box_surface_depths)
+        if k not in faces:
+            r = segments.regions[labels[k] - 1]
+            faces[k] = float(np.percentile(z[r][segments.labels[r] == labels[k]], 10.0))
+        return faces[k]
+
     ends_of: dict[int, tuple[float, float]] = {}
 
-    def end_depths(k):  # of segment k's left and right columns (computed once)
+    exact = noise is None or noise.exact
+
+    def end_depths(k, surface):  # of segment k's left and right columns (computed once)
+        if not exact:  # one column of a noisy sensor's depth: the box's surface depth for both
+            return surface, surface
         if k not in ends_of:
             ends_of[k] = _end_depths(segments, int(labels[k]))
         return ends_of[k]
 
     K = np.asarray(K, float)
     out = boxes.copy()
-    surfaces, outline_label = _box_surfaces(boxes, segments, refine)
+    surfaces, outline_label = _box_surfaces(boxes, segments, refine, outline)
     for i, b in enumerate(boxes):
         surface = surfaces[i]
         if not np.isfinite(surface) or gate_by_noise(surface, noise, refine):
@@ -1115,7 +1138,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
             own.add(int(index_of[outline_label[i]]))
         for k in own:
             if not others[k] and abs(median_depth(k) - surface) <= tolerance:
-                grown, ends = _union_if_within(grown, ends, seg_box[k], end_depths(k), params.max_width_m, K)
+                grown, ends = _union_if_within(grown, ends, seg_box[k], end_depths(k, surface), params.max_width_m, K)
         side = max(b[2] - b[0], b[3] - b[1])
         gap = np.maximum.reduce([seg_box[:, 0] - b[2], b[0] - seg_box[:, 2],
                                  seg_box[:, 1] - b[3], b[1] - seg_box[:, 3]])
@@ -1123,7 +1146,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
         reach = max(params.fragment_gap * side, params.fragment_gap_m * fx / surface)
         near = (gap <= reach) & ~inside & ~others
         for k in np.flatnonzero(near & (np.abs(seg_mean - surface) <= 2 * tolerance + 1.0)):
-            if abs(median_depth(k) - surface) > tolerance:
+            if abs(face_depth(k) - surface) > tolerance:
                 continue
             rows, cols, between = _box_between(b, seg_box[k], y_lo, z.shape)
             if not between.any():
@@ -1131,7 +1154,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
             nearer = _nearer_object(*np.nonzero(between), z[rows, cols], obj[rows, cols], surface,
                                     refine.jump_m, refine.jump_rel)
             if nearer.mean() >= params.fragment_hidden:
-                grown, ends = _union_if_within(grown, ends, seg_box[k], end_depths(k), params.max_width_m, K)
+                grown, ends = _union_if_within(grown, ends, seg_box[k], end_depths(k, surface), params.max_width_m, K)
         out[i] = grown
     return out
 
@@ -1188,13 +1211,19 @@ def _face_depths(outline: np.ndarray, segments: ObjectSegments, refine: BoxRefin
     return out
 
 
-def _box_surfaces(boxes: np.ndarray, segments: ObjectSegments,
-                  refine: BoxRefineParams) -> tuple[np.ndarray, np.ndarray]:
+def _box_surfaces(boxes: np.ndarray, segments: ObjectSegments, refine: BoxRefineParams,
+                  known: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per box, its surface depth and the label of the segment drawing its outline (0: none), as the
     proposals and the fragments take them: that segment's face depth (as the matcher does), else the
     median of the box's core (inf where it holds no object pixel), which a nearer car in front of part
-    of the box, or beside a sliver, can hold."""
+    of the box, or beside a sliver, can hold. ``known``: (N,) labels of segments known to draw boxes
+    (0: found by overlap, :func:`outline_segments`)."""
     outline = outline_segments(boxes, segments)
+    if known is not None:
+        known = np.asarray(known, int)
+        if known.shape != outline.shape:
+            raise ValueError(f"outline: expected one label per box ({len(outline)}), got shape {known.shape}")
+        outline = np.where(known > 0, known, outline)
     surface = _face_depths(outline, segments, refine)
     for j in np.flatnonzero(~np.isfinite(surface)):
         surface[j] = _surface_depth(segments.z, segments.obj, boxes[j], segments.y_lo)
