@@ -1056,14 +1056,17 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
     union at its own depth, a segment's side at the median depth of its outermost column, the box's
     at its surface depth (with a noisy sensor's depth, ``noise``, every side at the box's surface
     depth: one column of it is too noisy to place a side; stereo + 0.3 deg, seeds 9000-9009: 1
-    target lost measuring each side at its own depth). With ``noise`` (the depth's DepthNoise), a box whose surface lies where the
+    target lost measuring each side at its own depth). A fragment stands at the box's surface depth
+    when its nearest part (10th percentile of its depths) does, as the box's surface is measured:
+    the piece of a car beyond a nearer object can show its flank running away, whose median lies
+    metres behind. With ``noise`` (the depth's DepthNoise), a box whose surface lies where the
     depth is too noisy to tell one surface from the next (:func:`gate_by_noise`) does not grow: the
     gate that kept it as detected holds here too. ``outline``: (N,) per box, the label of the segment
     known to draw it (a depth proposal's own segment, :func:`depth_proposals` ``with_labels``), 0
     where it is found by overlap: a proposal's box reaches down over its surface below the segment
     (its bumper and tyres) and can overlap its own segment by less than IoU 0.5, and the median of
     its core then reads the nearer vehicle that hides the rest of it (a car's roof line seen above
-    the car in front got the front car's depth, and its other fragments were looked for there)."""
+    the car in front would take the front car's depth, and its other fragments be looked for there)."""
     from vcfusion.fusion.matching import box_inside_share, box_iou
 
     params = refine.proposals
