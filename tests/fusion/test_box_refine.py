@@ -1176,3 +1176,96 @@ def test_a_proposal_of_the_segment_a_snapped_box_outlines_is_that_box_s_vehicle(
     boxes, kept = merge_same_segment(above[None], np.array([False]), np.array([True]), car[None],
                                      np.array([False]), segments)
     assert kept[0] and np.array_equal(boxes[0], above)
+
+
+def test_a_box_on_a_car_s_rear_grows_over_its_flank_seen_at_an_angle_measured_across_the_view():
+    """A car 12 m ahead, 4 m to the side, shows its rear face and the flank facing the camera's axis
+    as one surface: 2.9 m of image width at the rear's depth, wider than a vehicle (2.7 m), but only
+    1.8 m across the view (the flank runs away from the camera). A box on the rear face grows over
+    the whole car; two cars side by side at the rear's depth (3.6 m across the view) stay apart."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import _lateral_width, join_fragments, object_segments
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+
+    def joined(depth, box):
+        segments = object_segments(depth, K, T, BoxRefineParams())
+        return join_fragments(box[None], np.array([True]), segments, K, BoxRefineParams())[0]
+
+    for side in (1.0, -1.0):
+        rear = _plate(road, K, T, 12.0, *sorted((side * 4.0, side * 5.8)), 1.5)
+        car = _side(rear, K, T, side * 4.0, 12.0, 16.5, 1.5)
+        whole, face = _mask_box(car < road), _mask_box(rear < road)
+        assert (whole[2] - whole[0]) * 12.0 / K[0, 0] > BoxRefineParams().proposals.max_width_m
+        np.testing.assert_allclose(joined(car, face), whole)
+        # one depth at both sides: the image width times depth over the focal length
+        assert np.isclose(_lateral_width(face[0], 12.0, face[2], 12.0, K), (face[2] - face[0]) * 12.0 / K[0, 0])
+        # a second car beside the first at the same depth, touching it: together wider than a vehicle
+        pair = _plate(rear, K, T, 12.0, *sorted((side * 5.8, side * 7.6)), 1.5)
+        np.testing.assert_allclose(joined(pair, face), face)
+
+
+def _roof_line_cut_by_a_post():
+    """A car 20 m ahead seen only as its roof line above a car 12 m ahead, cut in two by a post 8 m
+    ahead: (K, T, depth, segments, the left and right pieces' labels)."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import object_segments
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    far = _plate(road, K, T, 20.0, -1.0, 1.0, 1.6)
+    depth = _plate(_plate(far, K, T, 12.0, -1.1, 1.1, 1.25), K, T, 8.0, 0.05, 0.15, 2.5)
+    seg = object_segments(depth, K, T)
+    pieces = [k for k, b in zip(seg.present, seg.present_boxes)
+              if np.isclose(np.median(seg.z[seg.labels == k]), 19.37, atol=0.1)]
+    assert len(pieces) == 2
+    return K, T, depth, seg, sorted(pieces, key=lambda k: seg.boxes([k])[0, 0])
+
+
+def test_a_proposal_s_surface_is_its_own_segment_s_though_its_box_reaches_over_a_nearer_car():
+    """A proposal's box reaches down over its surface below its segment (bumper and tyres; on a
+    staircase outline one pixel column of it goes farther down), so it can overlap its own segment by
+    less than IoU 0.5, and its core then shows the nearer car that hides the rest of it. Its surface,
+    where the fragments of its vehicle are looked for, is the segment it was proposed from: the roof
+    line's box grows over the piece of the roof line beyond the post; by overlap, it does not."""
+    from vcfusion.fusion.box_refine import _box_surfaces, depth_proposals, join_fragments
+
+    K, T, depth, seg, (left, right) = _roof_line_cut_by_a_post()
+    boxes, _, labels = depth_proposals(depth, K, T, np.zeros((0, 4)), segments=seg, with_labels=True)
+    assert {left, right} <= set(labels.tolist())
+    for box, label in zip(boxes, labels):
+        np.testing.assert_allclose(box[[0, 2]], seg.boxes([label])[0, [0, 2]])
+    piece = seg.boxes([left])[0] + [0, 0, 0, 12]  # reaching 12 rows down over the nearer car
+    whole = np.r_[piece[:2], seg.boxes([right])[0, 2], piece[3]]
+    assert box_iou(piece[None], seg.boxes([left]))[0, 0] < 0.5
+    assert _box_surfaces(piece[None], seg, BoxRefineParams())[0][0] < 12.0  # the nearer car's depth
+    np.testing.assert_allclose(_box_surfaces(piece[None], seg, BoxRefineParams(), np.array([left]))[0], [19.37],
+                               atol=0.05)
+    np.testing.assert_allclose(join_fragments(piece[None], np.array([True]), seg, K, outline=np.array([left]))[0],
+                               whole)
+    # found by overlap, its surface is the nearer car's: it does not reach the piece beyond the post
+    assert join_fragments(piece[None], np.array([True]), seg, K)[0, 2] == piece[2]
+    with pytest.raises(ValueError, match="outline"):
+        join_fragments(piece[None], np.array([True]), seg, K, outline=np.array([left, right]))
+
+
+def test_a_fragment_showing_a_car_s_flank_is_measured_at_its_nearest_part_as_the_box_is():
+    """A car 20 m ahead and 2.5 m to the side, a post 10 m ahead in front of its rear near the corner:
+    the piece beyond the post is the corner and the flank running to 24.5 m (its median 1.2 m behind
+    the rear). Its nearest part lies at the rear's depth, as the box's surface is measured (the face
+    of its segment), and the box on the rear grows over it."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import join_fragments, object_segments
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    car = _side(_plate(road, K, T, 20.0, 2.5, 4.3, 1.5), K, T, 2.5, 20.0, 24.5, 1.5)
+    depth = _plate(car, K, T, 10.0, 1.30, 1.45, 2.0)
+    seg = object_segments(depth, K, T)
+    far = [k for k in seg.present if np.median(seg.z[seg.labels == k]) > 15.0]
+    rear, flank = sorted(far, key=lambda k: seg.boxes([k])[0, 0])
+    assert np.median(seg.z[seg.labels == flank]) - np.median(seg.z[seg.labels == rear]) > 1.1
+    box = seg.boxes([rear])[0]
+    out = join_fragments(box[None], np.array([True]), seg, K)[0]
+    np.testing.assert_allclose(out, np.r_[box[:2], seg.boxes([flank])[0, 2], box[3]])

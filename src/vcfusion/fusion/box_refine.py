@@ -122,7 +122,9 @@ class ProposalParams:
     # beside a nearer truck, 14 px wide at 13 m, and its lower corner 17 px below: the share alone
     # kept them apart; on the development folders 0.5 m joined 3 more targets' pieces, 0.75 m 6, 1 m 4),
     fragment_hidden: float = 0.5  # with at least this share of the pixels between them nearer (the cut),
-    max_width_m: float = 2.7  # and the two together no wider than a vehicle seen from behind
+    max_width_m: float = 2.7  # and the two together no wider than a vehicle seen from behind, across
+    # the camera's view (each side at its own depth: a car's flank seen at an angle adds only what it
+    # adds across the view; development seeds 9000-9609, exact depth: 2 targets more, none lost)
     merge_same_segment: bool = True  # on noiseless depth, a proposal whose segment draws a snapped
     # box's outline, of the box's class, while the box reaches below the segment's lowest row on its
     # surface, is that box's vehicle: the box takes the proposal's sides (merge_same_segment; under
@@ -875,9 +877,10 @@ def _walk_down(z, cols, start, per_u, per_v, const, offset, min_height, row0, ju
 
 def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, boxes: np.ndarray,
                     refine: BoxRefineParams = BoxRefineParams(), segments: ObjectSegments | None = None,
-                    snapped: np.ndarray | None = None, noise=None):
+                    snapped: np.ndarray | None = None, noise=None, with_labels: bool = False):
     """Boxes of depth segments standing on the road that no detected box explains: (M, 4) boxes and
-    (M,) bool is_truck (``refine.proposals``; segments trimmed with ``refine.support``). ``segments``:
+    (M,) bool is_truck (``refine.proposals``; segments trimmed with ``refine.support``), and with
+    ``with_labels`` (M,) the label in ``segments`` of the segment each was proposed from. ``segments``:
     the image's :func:`object_segments`, when already computed. ``snapped``: per box, whether the
     refinement snapped it to a depth segment (:attr:`RefinedBoxes.refined`; None: all were). A box
     that found no segment to snap to (one over two trucks and the car in front of them) is not
@@ -888,12 +891,12 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     if segments is None:
         segments = object_segments(depth, K, T_world_to_camera, refine, noise)
     if segments is None:
-        return np.zeros((0, 4)), np.zeros(0, bool)
+        return (np.zeros((0, 4)), np.zeros(0, bool)) + ((np.zeros(0, int),) if with_labels else ())
     z, valid, obj, height, labels, areas, y_lo = (segments.z, segments.valid, segments.obj, segments.height,
                                                   segments.labels, segments.areas, segments.y_lo)
     fx = float(np.asarray(K, float)[0, 0])
     heights = _Heights(K, T_world_to_camera)
-    out, trucks = [], []
+    out, trucks, from_label = [], [], []
     existing = np.asarray(boxes, float).reshape(-1, 4)
     snapped = np.ones(len(existing), bool) if snapped is None else np.asarray(snapped, bool)
     if snapped.shape != (len(existing),):
@@ -945,7 +948,9 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
                                                         refine.jump_m, refine.jump_rel) + 0.5)
         out.append(box)
         trucks.append(is_truck)
-    return np.array(out, float).reshape(-1, 4), np.array(trucks, bool)
+        from_label.append(label)
+    return (np.array(out, float).reshape(-1, 4), np.array(trucks, bool)) + (
+        (np.array(from_label, int),) if with_labels else ())
 
 
 def merge_same_segment(boxes: np.ndarray, box_trucks: np.ndarray, snapped: np.ndarray, proposals: np.ndarray,
@@ -995,14 +1000,41 @@ def _box_between(a: np.ndarray, b: np.ndarray, y_lo: int, shape: tuple[int, int]
     return slice(r0, r1), slice(c0, c1), between
 
 
-def _union_if_within(box: np.ndarray, other: np.ndarray, max_width_px: float) -> np.ndarray:
-    """The box around both, when it is no wider than ``max_width_px``; else ``box`` unchanged."""
+def _union_if_within(box: np.ndarray, ends: tuple[float, float], other: np.ndarray, other_ends: tuple[float, float],
+                     max_width_m: float, K: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
+    """The box around both and the depths of its left and right sides, when it is no wider than
+    ``max_width_m`` across the camera's view; else ``box`` and ``ends`` unchanged. ``ends`` and
+    ``other_ends``: camera-Z (m) at the left and right side of each (:func:`_lateral_width`)."""
     u = np.r_[np.minimum(box[:2], other[:2]), np.maximum(box[2:], other[2:])]
-    return u if u[2] - u[0] <= max_width_px else box
+    left = other_ends[0] if other[0] < box[0] else ends[0]
+    right = other_ends[1] if other[2] > box[2] else ends[1]
+    if _lateral_width(u[0], left, u[2], right, K) <= max_width_m:
+        return u, (left, right)
+    return box, ends
+
+
+def _lateral_width(u_left: float, z_left: float, u_right: float, z_right: float, K: np.ndarray) -> float:
+    """How wide a box is across the camera's view, m: camera X of its right side at depth z_right
+    minus that of its left side at z_left (image columns u, pixel-centre convention). At one depth
+    this is the image width times depth over the focal length; a side that a segment running away
+    from the camera draws (a car's flank seen at an angle, beside or above a nearer car) sits at its
+    own depth, so the flank adds to the width only what it adds across the view."""
+    fx, cx = float(K[0, 0]), float(K[0, 2])
+    return ((u_right - cx) * z_right - (u_left - cx) * z_left) / fx
+
+
+def _end_depths(segments: "ObjectSegments", label: int) -> tuple[float, float]:
+    """Median camera-Z (m) of a segment's pixels in its leftmost and rightmost columns."""
+    r = segments.regions[label - 1]
+    sel = segments.labels[r] == label
+    z = segments.z[r]
+    cols = np.flatnonzero(sel.any(axis=0))
+    return (float(np.median(z[:, cols[0]][sel[:, cols[0]]])), float(np.median(z[:, cols[-1]][sel[:, cols[-1]]])))
 
 
 def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegments | None, K: np.ndarray,
-                   refine: BoxRefineParams = BoxRefineParams(), noise=None) -> np.ndarray:
+                   refine: BoxRefineParams = BoxRefineParams(), noise=None,
+                   outline: np.ndarray | None = None) -> np.ndarray:
     """Each box grown over its own segment whole and over the other fragments of its vehicle: (N, 4)
     boxes.
 
@@ -1020,9 +1052,21 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
     segment of one of the ``owners`` boxes (IoU > 0.5; an (N,) mask: the boxes the fusion uses),
     what lies between the two is mostly nearer (the piece of the nearer vehicle that cuts them apart)
     and all together are no wider than a vehicle (a car beside it at the same depth in the next lane
-    is a lane width away). With ``noise`` (the depth's DepthNoise), a box whose surface lies where the
+    is a lane width away). Wide across the camera's view (:func:`_lateral_width`): each side of the
+    union at its own depth, a segment's side at the median depth of its outermost column, the box's
+    at its surface depth (with a noisy sensor's depth, ``noise``, every side at the box's surface
+    depth: one column of it is too noisy to place a side; stereo + 0.3 deg, seeds 9000-9009: 1
+    target lost measuring each side at its own depth). A fragment stands at the box's surface depth
+    when its nearest part (10th percentile of its depths) does, as the box's surface is measured:
+    the piece of a car beyond a nearer object can show its flank running away, whose median lies
+    metres behind. With ``noise`` (the depth's DepthNoise), a box whose surface lies where the
     depth is too noisy to tell one surface from the next (:func:`gate_by_noise`) does not grow: the
-    gate that kept it as detected holds here too."""
+    gate that kept it as detected holds here too. ``outline``: (N,) per box, the label of the segment
+    known to draw it (a depth proposal's own segment, :func:`depth_proposals` ``with_labels``), 0
+    where it is found by overlap: a proposal's box reaches down over its surface below the segment
+    (its bumper and tyres) and can overlap its own segment by less than IoU 0.5, and the median of
+    its core then reads the nearer vehicle that hides the rest of it (a car's roof line seen above
+    the car in front would take the front car's depth, and its other fragments be looked for there)."""
     from vcfusion.fusion.matching import box_inside_share, box_iou
 
     params = refine.proposals
@@ -1055,14 +1099,34 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
             medians[k] = float(np.median(z[r][segments.labels[r] == labels[k]]))
         return medians[k]
 
+    faces: dict[int, float] = {}
+
+    def face_depth(k):  # of segment k: its nearest part, as a box's surface is (box_surface_depths)
+        if k not in faces:
+            r = segments.regions[labels[k] - 1]
+            faces[k] = float(np.percentile(z[r][segments.labels[r] == labels[k]], 10.0))
+        return faces[k]
+
+    ends_of: dict[int, tuple[float, float]] = {}
+
+    exact = noise is None or noise.exact
+
+    def end_depths(k, surface):  # of segment k's left and right columns (computed once)
+        if not exact:  # one column of a noisy sensor's depth: the box's surface depth for both
+            return surface, surface
+        if k not in ends_of:
+            ends_of[k] = _end_depths(segments, int(labels[k]))
+        return ends_of[k]
+
+    K = np.asarray(K, float)
     out = boxes.copy()
-    surfaces, outline_label = _box_surfaces(boxes, segments, refine)
+    surfaces, outline_label = _box_surfaces(boxes, segments, refine, outline)
     for i, b in enumerate(boxes):
         surface = surfaces[i]
         if not np.isfinite(surface) or gate_by_noise(surface, noise, refine):
             continue
         tolerance = params.fragment_depth_m + 0.03 * surface
-        max_width_px = params.max_width_m * fx / surface
+        ends = (surface, surface)  # the depths of the grown box's left and right sides
         others = owned[:, owner_index != i].any(axis=1)
         grown = b.copy()
         # first the box's own segment whole: the refinement chose within a window around the detected
@@ -1077,7 +1141,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
             own.add(int(index_of[outline_label[i]]))
         for k in own:
             if not others[k] and abs(median_depth(k) - surface) <= tolerance:
-                grown = _union_if_within(grown, seg_box[k], max_width_px)
+                grown, ends = _union_if_within(grown, ends, seg_box[k], end_depths(k, surface), params.max_width_m, K)
         side = max(b[2] - b[0], b[3] - b[1])
         gap = np.maximum.reduce([seg_box[:, 0] - b[2], b[0] - seg_box[:, 2],
                                  seg_box[:, 1] - b[3], b[1] - seg_box[:, 3]])
@@ -1085,7 +1149,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
         reach = max(params.fragment_gap * side, params.fragment_gap_m * fx / surface)
         near = (gap <= reach) & ~inside & ~others
         for k in np.flatnonzero(near & (np.abs(seg_mean - surface) <= 2 * tolerance + 1.0)):
-            if abs(median_depth(k) - surface) > tolerance:
+            if abs(face_depth(k) - surface) > tolerance:
                 continue
             rows, cols, between = _box_between(b, seg_box[k], y_lo, z.shape)
             if not between.any():
@@ -1093,7 +1157,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
             nearer = _nearer_object(*np.nonzero(between), z[rows, cols], obj[rows, cols], surface,
                                     refine.jump_m, refine.jump_rel)
             if nearer.mean() >= params.fragment_hidden:
-                grown = _union_if_within(grown, seg_box[k], max_width_px)
+                grown, ends = _union_if_within(grown, ends, seg_box[k], end_depths(k, surface), params.max_width_m, K)
         out[i] = grown
     return out
 
@@ -1150,13 +1214,19 @@ def _face_depths(outline: np.ndarray, segments: ObjectSegments, refine: BoxRefin
     return out
 
 
-def _box_surfaces(boxes: np.ndarray, segments: ObjectSegments,
-                  refine: BoxRefineParams) -> tuple[np.ndarray, np.ndarray]:
+def _box_surfaces(boxes: np.ndarray, segments: ObjectSegments, refine: BoxRefineParams,
+                  known: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per box, its surface depth and the label of the segment drawing its outline (0: none), as the
     proposals and the fragments take them: that segment's face depth (as the matcher does), else the
     median of the box's core (inf where it holds no object pixel), which a nearer car in front of part
-    of the box, or beside a sliver, can hold."""
+    of the box, or beside a sliver, can hold. ``known``: (N,) labels of segments known to draw boxes
+    (0: found by overlap, :func:`outline_segments`)."""
     outline = outline_segments(boxes, segments)
+    if known is not None:
+        known = np.asarray(known, int)
+        if known.shape != outline.shape:
+            raise ValueError(f"outline: expected one label per box ({len(outline)}), got shape {known.shape}")
+        outline = np.where(known > 0, known, outline)
     surface = _face_depths(outline, segments, refine)
     for j in np.flatnonzero(~np.isfinite(surface)):
         surface[j] = _surface_depth(segments.z, segments.obj, boxes[j], segments.y_lo)

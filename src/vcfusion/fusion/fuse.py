@@ -309,8 +309,8 @@ def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefinePara
         if segments is None:
             segments = object_segments(view.depth, cam.K, view.T, refine, view.noise)
         confident = scores >= refine.proposals.score
-        new, is_truck = depth_proposals(view.depth, cam.K, view.T, boxes[confident], refine,
-                                        segments, snapped[confident], view.noise)
+        new, is_truck, new_labels = depth_proposals(view.depth, cam.K, view.T, boxes[confident], refine,
+                                                    segments, snapped[confident], view.noise, with_labels=True)
         # only on noiseless depth: a noisy sensor's segment can end short of its own car or join the
         # next one, and is no better than the detector's sides (stereo, development: 2 targets lost)
         if refine.proposals.merge_same_segment and view.noise.exact and segments is not None:
@@ -320,11 +320,13 @@ def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefinePara
             count_depth_step(stats, "boxes_merged", int((~kept).sum()))
             boxes = boxes.copy()
             boxes[confident] = merged
-            new, is_truck = new[kept], is_truck[kept]
+            new, is_truck, new_labels = new[kept], is_truck[kept], new_labels[kept]
         new_scores = _proposal_scores(new, boxes[~confident], scores[~confident], refine.proposals.score)
         boxes, scores = np.vstack([boxes, new]), np.r_[scores, new_scores]
         classes = np.r_[classes, np.where(is_truck, category_id("truck"), category_id("passenger"))]
-        boxes = join_fragments(boxes, scores >= refine.proposals.score, segments, cam.K, refine, view.noise)
+        # a proposal's surface is that of the segment it was proposed from
+        outline = np.r_[np.zeros(len(boxes) - len(new), int), new_labels]
+        boxes = join_fragments(boxes, scores >= refine.proposals.score, segments, cam.K, refine, view.noise, outline)
     return Detections.of(boxes, scores, classes)
 
 
