@@ -51,3 +51,19 @@ def test_a_side_grown_over_the_vehicle_s_own_surface_is_kept():
     # the car's columns all read 15 m: the side goes on over them, and over the ramp's columns within
     # the threshold of 15 m (14.7-14.1 m; 1.13 m at 14.1 m), and stops before 13.8 m
     assert out.refined[0] and 126.5 <= out.boxes[0, 0] <= 129.5
+
+
+def test_a_side_stops_at_the_detectors_box_of_a_vehicle_beside_it_at_the_same_depth():
+    T = road_camera_pose(3.0, 1.4)
+    # two trucks abreast 20 m ahead (columns 100-159 and 160-219): one surface to depth
+    depth = flat_road_depth(T, K, W, H, 400.0, [(100, 80, 160, 135, 20.0), (160, 80, 220, 135, 20.0)])
+    detected = np.array([[98.0, 78.0, 158.0, 137.0], [165.0, 78.0, 221.0, 137.0]])
+    without = refine_boxes(detected, depth, K, T, replace(BoxRefineParams(), grown_sides=False), STEREO)
+    assert without.refined[1] and without.boxes[1, 0] < 150  # the right truck's box grows over the left one
+    out = refine_boxes(detected, depth, K, T, BoxRefineParams(), STEREO)
+    assert out.refined[1] and out.boxes[1, 0] == 158.0  # it stops at the left truck's box
+    # a box of something nearer beside it (another depth) does not stop it
+    nearer = flat_road_depth(T, K, W, H, 400.0, [(100, 80, 160, 135, 12.0), (160, 80, 220, 135, 20.0)])
+    alone = refine_boxes(detected[1:], nearer, K, T, BoxRefineParams(), STEREO)
+    beside = refine_boxes(detected, nearer, K, T, BoxRefineParams(), STEREO)
+    assert np.array_equal(beside.boxes[1], alone.boxes[0])

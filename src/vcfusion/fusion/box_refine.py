@@ -494,6 +494,13 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
     gated = np.zeros(len(boxes), bool)
     noisy = np.zeros(len(boxes), bool)
     p = params
+    box_z = np.full(len(boxes), np.nan)  # each box's median depth in its core (_grown_sides' neighbours)
+    if p.grown_sides and noise is not None and not noise.exact and returns is None:
+        for k, b in enumerate(boxes):
+            if b[2] > b[0] and b[3] > b[1]:
+                zc = depth[_core(b, 0, 0)]
+                zc = zc[np.isfinite(zc) & (zc > 0)]
+                box_z[k] = float(np.median(zc)) if zc.size else np.nan
     for i, b in enumerate(boxes):
         w, h = b[2] - b[0], b[3] - b[1]
         if not (w > 0 and h > 0):
@@ -588,7 +595,8 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
             if p.surface_sides:
                 best = _surface_sides(best, b, best_r, best_sel, segmentations[-1][0], x0, y0, p.support)
             if p.grown_sides and noise is not None and not noise.exact and returns is None:
-                best = _grown_sides(best, b, best_r, best_sel, z, x0, y0, p.jump_m, p.jump_rel)
+                best = _grown_sides(best, b, best_r, best_sel, z, x0, y0, p.jump_m, p.jump_rel,
+                                    np.delete(boxes, i, axis=0), np.delete(box_z, i))
             if returns is not None:
                 best = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share)
             out[i] = best
@@ -628,17 +636,21 @@ def _surface_sides(best: np.ndarray, detected: np.ndarray, best_r: tuple[slice, 
 
 
 def _grown_sides(best: np.ndarray, detected: np.ndarray, best_r: tuple[slice, slice], best_sel: np.ndarray,
-                 z: np.ndarray, x0: int, y0: int, jump_m: float, jump_rel: float) -> np.ndarray:
-    """The snapped box with a left or right side that the snap moved outward of the detector's box
-    drawn back to where the snapped segment's depth leaves that at the detector's side: each column
-    is the segment's median depth down it, the reference is the last column inside the detector's
-    side, and going outward the first column whose median lies more than the depth-jump threshold
-    (jump_m + jump_rel z) from the reference ends the side before it; never inside the detector's
-    side. On noisy depth the 5 x 5 median and the hole fill bridge a jump between two surfaces with
-    intermediate depths, each step below the threshold from its neighbour, and the pixel-level
-    segment runs on over the next vehicle or a barrier; a column's median has the noise averaged
-    out, and a fixed reference does not drift along a ramp. `best_r`, `best_sel`: the segment's rows
-    and columns in the search window `z` (whose pixel (0, 0) is image pixel (x0, y0)) and its mask
+                 z: np.ndarray, x0: int, y0: int, jump_m: float, jump_rel: float,
+                 others: np.ndarray | None = None, others_z: np.ndarray | None = None) -> np.ndarray:
+    """The snapped box with a left or right side that the snap moved outward of the detector's box drawn
+    back to where the snapped segment's depth leaves that at the detector's side: each column is the
+    segment's median depth down it, the reference is the last column inside the detector's side, and
+    going outward the first column whose median lies more than the depth-jump threshold (jump_m +
+    jump_rel z) from the reference ends the side before it; never inside the detector's side. Nor does
+    it go past the near side of another of the detector's boxes beside it (`others`, the other boxes;
+    `others_z`, their cores' median depths) that stands at the reference's depth within the same
+    threshold: two vehicles side by side at one depth (two trucks stopped abreast) are one surface to
+    depth, two to the detector. On noisy depth the 5 x 5 median and the hole fill bridge a jump between
+    two surfaces with intermediate depths, each step below the threshold from its neighbour, and the
+    pixel-level segment runs on over the next vehicle or a barrier; a column's median has the noise
+    averaged out, and a fixed reference does not drift along a ramp. `best_r`, `best_sel`: the segment's
+    rows and columns in the search window `z` (whose pixel (0, 0) is image pixel (x0, y0)) and its mask
     there."""
     out = best.copy()
     zs = np.where(best_sel, z[best_r], np.nan)
@@ -662,6 +674,19 @@ def _grown_sides(best: np.ndarray, detected: np.ndarray, best_r: tuple[slice, sl
                 last = j
             j += step
         edge = origin + last + 0.5 * step
+        if others is not None and len(others):
+            # another of the detector's boxes beside this one, on the side grown (its centre beyond the
+            # detector's side, rows shared over half the smaller height): the side ends at its near side
+            centre = 0.5 * (others[:, 0] + others[:, 2])
+            shared = np.minimum(others[:, 3], detected[3]) - np.maximum(others[:, 1], detected[1])
+            beside = shared >= 0.5 * np.minimum(others[:, 3] - others[:, 1], detected[3] - detected[1])
+            beside &= np.abs(others_z - ref) <= jump_m + jump_rel * np.minimum(others_z, ref)
+            if step < 0:
+                near = others[beside & (centre < detected[0]), 2]
+                edge = max(edge, near.max()) if near.size else edge
+            else:
+                near = others[beside & (centre > detected[2]), 0]
+                edge = min(edge, near.min()) if near.size else edge
         out[side] = min(max(edge, best[0]), detected[0]) if step < 0 else max(min(edge, best[2]), detected[2])
     return out
 
