@@ -67,3 +67,20 @@ def test_a_side_stops_at_the_detectors_box_of_a_vehicle_beside_it_at_the_same_de
     alone = refine_boxes(detected[1:], nearer, K, T, BoxRefineParams(), STEREO)
     beside = refine_boxes(detected, nearer, K, T, BoxRefineParams(), STEREO)
     assert np.array_equal(beside.boxes[1], alone.boxes[0])
+
+
+def test_a_side_cut_far_inward_where_the_depth_beyond_is_holes_is_the_detectors():
+    T = road_camera_pose(3.0, 1.4)
+    # a truck 7 m ahead (columns 100-219, rows 40-169) whose upper half is textureless: a hole
+    depth = flat_road_depth(T, K, W, H, 400.0, [(100, 40, 220, 170, 7.0)])
+    depth[40:100, 100:220] = np.nan
+    detected = np.array([[98.0, 38.0, 222.0, 172.0]])
+    without = refine_boxes(detected, depth, K, T, replace(BoxRefineParams(), hole_side_share=0.0), STEREO)
+    assert without.refined[0] and without.boxes[0, 1] > 95  # the top moved down to the hole's edge
+    out = refine_boxes(detected, depth, K, T, BoxRefineParams(), STEREO)
+    assert out.refined[0] and out.boxes[0, 1] == detected[0, 1]  # beyond it the depth is holes
+    assert np.array_equal(out.boxes[0, [0, 2, 3]], without.boxes[0, [0, 2, 3]])
+    # a side moved inward by less than a fifth of the box keeps the snap's side, holes or not (the
+    # unmatched sky above a car's roof)
+    short = np.array([[98.0, 90.0, 222.0, 172.0]])
+    assert refine_boxes(short, depth, K, T, BoxRefineParams(), STEREO).boxes[0, 1] > 95

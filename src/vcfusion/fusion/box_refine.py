@@ -207,6 +207,14 @@ class BoxRefineParams:
     # more than the jump threshold (_grown_sides; development seeds 9000-9609, stereo + 0.3 deg: 5 snapped
     # boxes more at IoU 0.7 with their target, none fewer; the SUMO identification study's 2 targets)
     grown_sides: bool = True
+    # on noisy dense depth, a side the snap moved inward by at least this share of the detector's box
+    # (width for left / right, height for top / bottom) is the detector's where more than
+    # unmeasured_share of the two rows / columns beyond it are holes (_unmeasured_sides, as on a scan):
+    # a truck's textureless panel 5-9 m ahead is a hole wider than hole_fill_px, and its box lost a
+    # third of its height or width to it (development seeds 9000-9609, stereo + 0.3 deg: 4 snapped boxes
+    # more at IoU 0.7, none fewer; at 0.1 the same; every side moved, whatever the share: 5 more, 4
+    # fewer, the top of a far car against the unmatched sky). 0: off
+    hole_side_share: float = 0.2
     hole_fill_px: int = 16  # px; stereo depth (DepthNoise.c > 0): holes up to this wide filled along rows
     # (fill_scan_gaps, occlusion bands with the farther depth; development folders, stereo + 0.3 deg:
     # 81.4 % without, 82.9 % at 16 px, 82.2 % at 48 px)
@@ -599,6 +607,12 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
                                     np.delete(boxes, i, axis=0), np.delete(box_z, i))
             if returns is not None:
                 best = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share)
+            elif p.hole_side_share > 0 and noise is not None and not noise.exact:
+                # noisy dense depth: a side moved inward by hole_side_share of the box or more, where
+                # the depth beyond it is holes (a textureless panel the pair could not match)
+                beyond_holes = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share)
+                inward = (best - b) * np.array([1, 1, -1, -1]) >= p.hole_side_share * np.array([w, h, w, h])
+                best = np.where(inward, beyond_holes, best)
             out[i] = best
             refined[i] = True
             top_m[i] = float(np.percentile(height[best_r][best_sel], 95))
