@@ -503,7 +503,10 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
     noisy = np.zeros(len(boxes), bool)
     p = params
     box_z = np.full(len(boxes), np.nan)  # each box's median depth in its core (_grown_sides' neighbours)
-    if p.grown_sides and noise is not None and not noise.exact and returns is None:
+    # a dense image whose error grows with range (stereo, ToF): the median-filtered, hole-filled depth
+    # the two side rules below are for; exact depth and a LiDAR scan (range noise alone) never reach them
+    dense_noisy = noise is not None and (noise.b > 0 or noise.c > 0) and returns is None
+    if p.grown_sides and dense_noisy:
         for k, b in enumerate(boxes):
             if b[2] > b[0] and b[3] > b[1]:
                 zc = depth[_core(b, 0, 0)]
@@ -602,12 +605,12 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
         if best is not None:
             if p.surface_sides:
                 best = _surface_sides(best, b, best_r, best_sel, segmentations[-1][0], x0, y0, p.support)
-            if p.grown_sides and noise is not None and not noise.exact and returns is None:
+            if p.grown_sides and dense_noisy:
                 best = _grown_sides(best, b, best_r, best_sel, z, x0, y0, p.jump_m, p.jump_rel,
                                     np.delete(boxes, i, axis=0), np.delete(box_z, i))
             if returns is not None:
                 best = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share)
-            elif p.hole_side_share > 0 and noise is not None and not noise.exact:
+            elif p.hole_side_share > 0 and dense_noisy:
                 # noisy dense depth: a side moved inward by hole_side_share of the box or more, where
                 # the depth beyond it is holes (a textureless panel the pair could not match)
                 beyond_holes = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share)
