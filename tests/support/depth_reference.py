@@ -9,9 +9,9 @@ import numpy as np
 from scipy.ndimage import find_objects
 
 from vcfusion.fusion.box_refine import (ObjectSegments, RefinedBoxes, _box_iou, _components, _core, _farther,
-                                       _Heights, _join_across_outlines, _jump_free, _lateral_extent, _restore_outlines,
-                                       _same_surface, _segment_box, _spans_jump, _surface_sides, _unmeasured_sides,
-                                       gate_by_noise)
+                                       _grown_sides, _Heights, _join_across_outlines, _jump_free, _lateral_extent,
+                                       _restore_outlines, _same_surface, _segment_box, _spans_jump, _surface_sides,
+                                       _unmeasured_sides, gate_by_noise)
 
 
 def fill_scan_gaps_reference(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: float, axis: int = 0,
@@ -179,6 +179,13 @@ def refine_boxes_reference(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, 
     top_m = np.full(len(boxes), np.nan)
     gated = np.zeros(len(boxes), bool)
     p = params
+    dense_noisy = noise is not None and (noise.b > 0 or noise.c > 0) and returns is None
+    box_z = np.full(len(boxes), np.nan)
+    for k, b in enumerate(boxes):
+        if dense_noisy and b[2] > b[0] and b[3] > b[1]:
+            zc = depth[_core(b, 0, 0)]
+            zc = zc[np.isfinite(zc) & (zc > 0)]
+            box_z[k] = float(np.median(zc)) if zc.size else np.nan
     for i, b in enumerate(boxes):
         w, h = b[2] - b[0], b[3] - b[1]
         if not (w > 0 and h > 0):
@@ -261,8 +268,15 @@ def refine_boxes_reference(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, 
             if p.surface_sides:
                 whole_window = (slice(None), slice(None))
                 best = _surface_sides(best, b, whole_window, best_sel, segmentations[-1][0], x0, y0, p.support)
+            if p.grown_sides and dense_noisy:
+                best = _grown_sides(best, b, (slice(None), slice(None)), best_sel, z, x0, y0, p.jump_m, p.jump_rel,
+                                    np.delete(boxes, i, axis=0), np.delete(box_z, i))
             if returns is not None:
                 best = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share)
+            elif p.hole_side_share > 0 and dense_noisy:
+                beyond_holes = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share)
+                inward = (best - b) * np.array([1, 1, -1, -1]) >= p.hole_side_share * np.array([w, h, w, h])
+                best = np.where(inward, beyond_holes, best)
             out[i] = best
             refined[i] = True
             top_m[i] = float(np.percentile(height[best_sel], 95))
