@@ -229,3 +229,21 @@ def test_the_compiled_jump_cut_and_join_are_the_numpy_ones(seed):
             assert joined.dtype == reference.dtype
             np.testing.assert_array_equal(joined, reference)
             assert len(np.unique(joined)) < len(np.unique(labels))  # segments were joined
+
+
+def test_the_compiled_segment_box_is_the_numpy_one():
+    from support.depth_reference import segment_box_reference
+    from vcfusion.fusion.box_refine import _segment_box
+
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        h, w = rng.integers(1, 30, 2)
+        sel = rng.random((h, w)) < rng.uniform(0.0, 1.0)
+        if rng.random() < 0.3:
+            sel[:, : w // 2] = False  # a part empty: its columns fall below the support
+        x0, y0 = int(rng.integers(0, 600)), int(rng.integers(0, 400))
+        for support in (0.0, 0.15, 0.3, 1.0 / 3.0, 1.0):
+            fast, reference = _segment_box(sel, support, x0, y0), segment_box_reference(sel, support, x0, y0)
+            assert fast.dtype == reference.dtype and fast.tobytes() == reference.tobytes()
+    with pytest.raises(ValueError, match="non-empty 2-D mask"):
+        _segment_box(np.zeros((0, 3), bool), 0.3, 0, 0)

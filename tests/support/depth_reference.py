@@ -329,3 +329,11 @@ def lowest_row_on_its_surface_reference(sel: np.ndarray, x: int, y: int, depth: 
         going &= (nxt > at) & (h[nxt, k] > min_height_m) & _same_surface(z[nxt, k], z[at, k], jump_m, jump_rel)
         at = np.where(going, nxt, at)
     return int(row0 + at.max())
+
+
+def segment_box_reference(sel: np.ndarray, support: float, x0: int, y0: int) -> np.ndarray:
+    """box_refine._segment_box as array expressions."""
+    cols, rows = sel.sum(axis=0), sel.sum(axis=1)
+    xs = np.flatnonzero(cols >= support * cols.max())
+    ys = np.flatnonzero(rows >= support * rows.max())
+    return np.array([x0 + xs[0] - 0.5, y0 + ys[0] - 0.5, x0 + xs[-1] + 0.5, y0 + ys[-1] + 0.5])

@@ -498,10 +498,39 @@ def _components(mask: np.ndarray) -> np.ndarray:
 
 
 def _segment_box(sel: np.ndarray, support: float, x0: int, y0: int) -> np.ndarray:
-    cols, rows = sel.sum(axis=0), sel.sum(axis=1)
-    xs = np.flatnonzero(cols >= support * cols.max())
-    ys = np.flatnonzero(rows >= support * rows.max())
-    return np.array([x0 + xs[0] - 0.5, y0 + ys[0] - 0.5, x0 + xs[-1] + 0.5, y0 + ys[-1] + 0.5])
+    """The box (pixel-centre convention) from the first to the last column, and row, of mask `sel`
+    holding at least `support` of the fullest one's pixels; `sel`'s pixel (0, 0) is image pixel
+    (x0, y0). One compiled pass (:func:`_segment_box_kernel`)."""
+    sel = np.ascontiguousarray(sel, np.bool_)
+    if sel.ndim != 2 or not sel.size:
+        raise ValueError(f"segment mask: expected a non-empty 2-D mask, got shape {sel.shape}")
+    return _segment_box_kernel(sel, float(support), int(x0), int(y0))
+
+
+@numba.njit(cache=True)
+def _segment_box_kernel(sel, support, x0, y0):
+    """_segment_box: column and row pixel counts, each compared with support x its maximum (float64,
+    as the array expressions cols >= support * cols.max() compare them)."""
+    H, W = sel.shape
+    cols = np.zeros(W, np.int64)
+    rows = np.zeros(H, np.int64)
+    for y in range(H):
+        for x in range(W):
+            if sel[y, x]:
+                cols[x] += 1
+                rows[y] += 1
+    out = np.empty(4, np.float64)
+    for counts, lo, hi, origin in ((cols, 0, 2, x0), (rows, 1, 3, y0)):
+        thr = support * np.float64(counts.max())
+        first, last = -1, -1
+        for i in range(len(counts)):
+            if np.float64(counts[i]) >= thr:
+                if first < 0:
+                    first = i
+                last = i
+        out[lo] = np.float64(origin + first) - 0.5
+        out[hi] = np.float64(origin + last) + 0.5
+    return out
 
 
 def _lateral_extent(sel: np.ndarray, z: np.ndarray, x0: int, K: np.ndarray, support: float) -> float:
