@@ -62,3 +62,21 @@ def test_the_stereo_model_names_a_depth_image_that_is_not_2d():
     model = SensorModel("stereo", rng=np.random.default_rng(0))
     with pytest.raises(ValueError, match="2-D depth image"):
         model.depth(np.zeros((4, 4, 1), np.float32), np.eye(3), np.eye(4))
+
+
+def test_the_noise_sigma_of_one_depth_is_the_arrays():
+    rng = np.random.default_rng(2)
+    depths = np.r_[rng.uniform(0.0, 150.0, 300), 0.0, 1.0, 35, np.inf]
+    with np.errstate(invalid="ignore"):  # inf x 0 (a term the model lacks at infinite depth): nan both ways
+        _compare_sigmas(depths)
+
+
+def _compare_sigmas(depths):
+    from vcfusion.fusion.road import DepthNoise
+
+    for noise in (DepthNoise(c=0.25 / 55.0), DepthNoise(a=0.01, b=0.01), DepthNoise(a=0.02), DepthNoise(0.013, 0.07, 3e-3)):
+        array = noise.sigma(depths)
+        for z, want in zip(depths, array):
+            for scalar in (float(z), np.float64(z), np.float32(z)):
+                got = noise.sigma(scalar)
+                assert type(got) is np.float32 and got.tobytes() == want.tobytes()
