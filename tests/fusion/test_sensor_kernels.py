@@ -58,10 +58,12 @@ def test_the_stereo_model_leaves_the_generator_where_the_definition_does():
     assert a.random() == b.random()
 
 
-def test_the_stereo_model_names_a_depth_image_that_is_not_2d():
+def test_the_stereo_model_names_a_depth_image_that_is_not_2d_and_an_image_of_another_size():
     model = SensorModel("stereo", rng=np.random.default_rng(0))
     with pytest.raises(ValueError, match="2-D depth image"):
         model.depth(np.zeros((4, 4, 1), np.float32), np.eye(3), np.eye(4))
+    with pytest.raises(ValueError, match="depth image's size"):
+        model.depth(np.zeros((4, 4), np.float32), np.eye(3), np.eye(4), np.zeros((4, 5, 3), np.uint8))
 
 
 def test_the_noise_sigma_of_one_depth_is_the_arrays():

@@ -446,7 +446,10 @@ def _join_across_outlines(labels: np.ndarray, z: np.ndarray, jump_m: float, jump
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    pairs = _touching_pairs(labels, np.asarray(z, np.float32), np.float32(jump_m), np.float32(1 + jump_rel))
+    z = np.asarray(z, np.float32)
+    if labels.shape != z.shape or labels.ndim != 2:
+        raise ValueError(f"labels, z: expected one 2-D shape, got {labels.shape} and {z.shape}")
+    pairs = _touching_pairs(labels, z, np.float32(jump_m), np.float32(1 + jump_rel))
     if not pairs.shape[1]:
         return labels
     n = int(labels.max()) + 1

@@ -158,6 +158,8 @@ def stereo_depth(depth: np.ndarray, focal_px: float, p: DepthSensorParams, rng: 
     noise = rng.normal(0.0, p.disparity_noise_px, size=z.shape).astype(np.float32)
     textured = image is not None and p.texture_min > 0
     mean, sq = _grey_blurs(image) if textured else (noise, noise)
+    if mean.shape != z.shape:
+        raise ValueError(f"image: expected the depth image's size {z.shape}, got shape {np.shape(image)}")
     out = np.empty(z.shape, np.float32)
     _stereo_kernel(z, fb, noise, np.float32(p.min_disparity_px), mean, sq,
                    np.float32(p.texture_min if textured else 0.0), out)
