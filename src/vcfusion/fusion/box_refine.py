@@ -1062,11 +1062,11 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         # (a vehicle peeking over or beside a nearer one lies inside the nearer one's box), unless
         # it stands clearly in front of the box's surface (nearer by a depth jump): then the box
         # measured a farther vehicle and this segment is the one in front (Fig. 3 at range)
-        iou = box_iou(box[None], existing)[0]
         seg_z = z[y:y + h, x:x + w][sel]
         depth_m = float(np.median(seg_z))
         if gate_by_noise(depth_m, noise, refine):
             continue  # depth this noisy cannot tell a vehicle's surface: no proposal
+        iou = box_iou(box[None], existing)[0]
         not_in_front = ~_farther(surface, np.float32(depth_m), refine.jump_m, refine.jump_rel)
         if np.any((iou > params.max_overlap) & not_in_front):
             continue
