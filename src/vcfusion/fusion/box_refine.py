@@ -1438,7 +1438,11 @@ def warm_kernels() -> None:
     _restore_outlines(labels, ~road, np.zeros(z.shape, np.float32), 0.5, 0.045)
     _label_boxes(labels, 1)
     _label_boxes(labels.astype(np.int64), 1)
+    _join_across_outlines(labels, np.zeros(z.shape, np.float32), 0.5, 0.045)
+    _jump_free(z, road, 0.5, 0.045)
+    _segment_box(road, 0.3, 0, 0)
     eye = np.eye(4)
     on_road_mask(z, np.eye(3), eye, None)
+    _object_pixels(z, _Heights(np.eye(3), eye), 3.0, None, 0.3, 4.5)
     _lowest_row_on_its_surface(road[:1], 0, 0, z, _Heights(np.eye(3), eye), 0.05, 0.5, 0.045)
 
