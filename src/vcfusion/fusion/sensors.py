@@ -132,7 +132,7 @@ def _stereo_kernel(z, fb, noise, min_disparity, mean, sq, texture_min, out):
             hole = right_of > e + half  # occluded: hidden from the right camera
             if e > right_of:
                 right_of = e
-            measured = d + noise[y, x]
+            measured = d + np.float32(noise[y, x])  # the draw rounded to float32, as astype does
             hole = hole or measured < min_disparity or d < min_disparity
             if textured and not hole:
                 m = mean[y, x]
@@ -155,9 +155,9 @@ def stereo_depth(depth: np.ndarray, focal_px: float, p: DepthSensorParams, rng: 
     # + 0.5; the measured disparity d + N(0, disparity_noise_px) (one draw a pixel, row-major, the
     # run's Generator); holes where the measured or the true disparity is below min_disparity_px or
     # the grey level's 5 x 5 std is below texture_min; elsewhere f B / measured
-    noise = rng.normal(0.0, p.disparity_noise_px, size=z.shape).astype(np.float32)
+    noise = rng.normal(0.0, p.disparity_noise_px, size=z.shape)  # float64, rounded to float32 in the pass
     textured = image is not None and p.texture_min > 0
-    mean, sq = _grey_blurs(image) if textured else (noise, noise)
+    mean, sq = _grey_blurs(image) if textured else (z, z)  # (not read without texture)
     if mean.shape != z.shape:
         raise ValueError(f"image: expected the depth image's size {z.shape}, got shape {np.shape(image)}")
     out = np.empty(z.shape, np.float32)
