@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from support.road_depth import flat_road_depth, road_camera_pose
-from support.depth_reference import (fill_scan_gaps_reference, lowest_row_on_its_surface_reference, median_reference,
-                                     object_segments_reference, on_road_mask_reference, refine_boxes_reference,
-                                     restore_outlines_reference)
-from vcfusion.fusion.box_refine import (BoxRefineParams, _components, _Heights, _jump_free, _label_boxes,
+from support.depth_reference import (fill_scan_gaps_reference, join_across_outlines_reference, jump_free_reference,
+                                     lowest_row_on_its_surface_reference, median_reference, object_segments_reference,
+                                     on_road_mask_reference, refine_boxes_reference, restore_outlines_reference)
+from vcfusion.fusion.box_refine import (BoxRefineParams, _components, _Heights, _join_across_outlines, _jump_free,
+                                       _label_boxes,
                                        _lowest_row_on_its_surface, _restore_outlines, fill_scan_gaps, object_segments,
                                        on_road_mask, refine_boxes)
 from vcfusion.fusion.fuse import _median
@@ -106,7 +107,7 @@ def test_the_compiled_outline_restore_is_the_numpy_restore(seed):
     np.testing.assert_array_equal(_restore_outlines(labels, removed, z, 0.5, 0.045)[1], [1, 1, 1, 1, 0, 0])
 
 
-@pytest.mark.parametrize("sensor", ["exact", "stereo", "lidar"])
+@pytest.mark.parametrize("sensor", ["exact", "stereo", "lidar", "tof"])
 def test_the_row_cropped_road_mask_segments_and_median_are_the_full_image_ones(sensor):
     rng = np.random.default_rng(1)
     refine = BoxRefineParams()
@@ -207,3 +208,42 @@ def test_the_compiled_walk_down_a_surface_is_the_numpy_walk(sensor):
                 assert fast == reference
                 walked += int(fast > y + sel.shape[0] - 1)
     assert walked > 0  # some segments were followed below their lowest pixel
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_compiled_jump_cut_and_join_are_the_numpy_ones(seed):
+    rng = np.random.default_rng(seed)
+    for hole_share in (0.0, 0.3):
+        z = _synthetic_depth(rng, hole_share=hole_share)
+        z[rng.random(z.shape) < 0.02] = np.inf
+        valid = np.isfinite(z) & (z > 0)
+        for jump_m, jump_rel in ((0.5, 0.045), (0.3, 0.1)):
+            keep = _jump_free(z, valid, jump_m, jump_rel)
+            np.testing.assert_array_equal(keep, jump_free_reference(z, valid, jump_m, jump_rel))
+            assert keep.any() and not keep.all()
+            zw = np.where(valid, z, np.float32(0))
+            labels = _components(valid & keep & (rng.random(z.shape) < 0.95))
+            labels = np.where(valid & ~keep, 1 + labels.max() + _components(valid & ~keep), labels).astype(np.int32)
+            joined = _join_across_outlines(labels, zw, jump_m, jump_rel)
+            reference = join_across_outlines_reference(labels, zw, jump_m, jump_rel)
+            assert joined.dtype == reference.dtype
+            np.testing.assert_array_equal(joined, reference)
+            assert len(np.unique(joined)) < len(np.unique(labels))  # segments were joined
+
+
+def test_the_compiled_segment_box_is_the_numpy_one():
+    from support.depth_reference import segment_box_reference
+    from vcfusion.fusion.box_refine import _segment_box
+
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        h, w = rng.integers(1, 30, 2)
+        sel = rng.random((h, w)) < rng.uniform(0.0, 1.0)
+        if rng.random() < 0.3:
+            sel[:, : w // 2] = False  # a part empty: its columns fall below the support
+        x0, y0 = int(rng.integers(0, 600)), int(rng.integers(0, 400))
+        for support in (0.0, 0.15, 0.3, 1.0 / 3.0, 1.0):
+            fast, reference = _segment_box(sel, support, x0, y0), segment_box_reference(sel, support, x0, y0)
+            assert fast.dtype == reference.dtype and fast.tobytes() == reference.tobytes()
+    with pytest.raises(ValueError, match="non-empty 2-D mask"):
+        _segment_box(np.zeros((0, 3), bool), 0.3, 0, 0)

@@ -9,9 +9,9 @@ import numpy as np
 from scipy.ndimage import find_objects
 
 from vcfusion.fusion.box_refine import (ObjectSegments, RefinedBoxes, _box_iou, _components, _core, _farther,
-                                       _grown_sides, _Heights, _join_across_outlines, _jump_free, _lateral_extent,
-                                       _restore_outlines, _same_surface, _segment_box, _spans_jump, _surface_sides,
-                                       _unmeasured_sides, gate_by_noise)
+                                       _grown_sides, _Heights, _lateral_extent, _restore_outlines,
+                                       _same_surface, _segment_box, _spans_jump, _surface_sides, _unmeasured_sides,
+                                       gate_by_noise)
 
 
 def fill_scan_gaps_reference(depth: np.ndarray, max_gap_px: int, jump_m: float, jump_rel: float, axis: int = 0,
@@ -106,6 +106,41 @@ def restore_outlines_reference(labels: np.ndarray, removed: np.ndarray, z: np.nd
     return flat[:-1].reshape(H, W)
 
 
+def jump_free_reference(z: np.ndarray, valid: np.ndarray, jump_m: float, jump_rel: float) -> np.ndarray:
+    """box_refine._jump_free as shifted whole-image comparisons: False at the farther pixel of each
+    4-neighbour pair whose depths jump (no depth reads inf)."""
+    zj = np.where(valid, z, np.float32(np.inf))
+    keep = np.ones(z.shape, bool)
+    for a, b, a_view, b_view in ((zj[:-1], zj[1:], keep[:-1], keep[1:]),
+                                 (zj[:, :-1], zj[:, 1:], keep[:, :-1], keep[:, 1:])):
+        a_view &= ~_farther(a, b, jump_m, jump_rel)
+        b_view &= ~_farther(b, a, jump_m, jump_rel)
+    return keep
+
+
+def join_across_outlines_reference(labels: np.ndarray, z: np.ndarray, jump_m: float, jump_rel: float) -> np.ndarray:
+    """box_refine._join_across_outlines with its touching pairs from shifted whole-image comparisons."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    pairs = []
+    for a, b, za, zb in ((labels[:-1], labels[1:], z[:-1], z[1:]), (labels[:, :-1], labels[:, 1:], z[:, :-1], z[:, 1:])):
+        touch = (a > 0) & (b > 0) & (a != b)
+        if touch.any():
+            la, lb = a[touch], b[touch]
+            same = _same_surface(za[touch], zb[touch], jump_m, jump_rel)
+            pairs.append(np.stack([la[same], lb[same]]))
+    pairs = np.concatenate(pairs, axis=1) if pairs else np.zeros((2, 0), int)
+    if not pairs.shape[1]:
+        return labels
+    n = int(labels.max()) + 1
+    graph = coo_matrix((np.ones(pairs.shape[1]), (pairs[0], pairs[1])), shape=(n, n))
+    _, component = connected_components(graph, directed=False)
+    lowest = np.full(n, n)
+    np.minimum.at(lowest, component, np.arange(n))
+    return lowest[component][labels]
+
+
 def on_road_mask_reference(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, noise,
                  refine) -> np.ndarray:
     """(H, W) bool: the measured pixels within ``refine.scan_road_m`` (+ ``noise_k`` sigma of their
@@ -139,7 +174,7 @@ def object_segments_reference(depth: np.ndarray, K: np.ndarray, T_world_to_camer
     y_lo = max(y_lo - 1, 0)  # and the row above them: what stands above a segment's top
     obj, height, z, valid = obj[y_lo:y_hi], height[y_lo:y_hi], z[y_lo:y_hi], valid[y_lo:y_hi]
     # cut at depth jumps: the farther pixel of each jumping neighbour pair leaves the mask
-    keep = obj & _jump_free(z, valid, refine.jump_m, refine.jump_rel)
+    keep = obj & jump_free_reference(z, valid, refine.jump_m, refine.jump_rel)
     labels = _restore_outlines(_components(keep), obj & ~keep, z, refine.jump_m, refine.jump_rel)
     # what no neighbour on its surface took back is a segment of its own, not left out: a vehicle seen
     # 1 px wide between nearer things (every pixel the farther one of a jumping pair), e.g. the piece
@@ -147,7 +182,7 @@ def object_segments_reference(depth: np.ndarray, K: np.ndarray, T_world_to_camer
     islands = obj & (labels == 0)
     if islands.any():
         labels = np.where(islands, _components(islands) + labels.max(), labels)
-    labels = _join_across_outlines(labels, z, refine.jump_m, refine.jump_rel)
+    labels = join_across_outlines_reference(labels, z, refine.jump_m, refine.jump_rel)
     return ObjectSegments(z, valid, obj, height, labels, np.bincount(labels.ravel()),
                           find_objects(labels), y_lo)
 
@@ -217,7 +252,7 @@ def refine_boxes_reference(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, 
         core_z = z[core][obj[core]]
         if core_z.size < 3:
             continue
-        jump_free = _jump_free(z, valid, p.jump_m, p.jump_rel)
+        jump_free = jump_free_reference(z, valid, p.jump_m, p.jump_rel)
         log_z = np.log(core_z)
         edges = np.arange(log_z.min(), log_z.max() + 0.05, 0.04)
         hist, edges = np.histogram(log_z, bins=edges)
@@ -308,3 +343,11 @@ def lowest_row_on_its_surface_reference(sel: np.ndarray, x: int, y: int, depth: 
         going &= (nxt > at) & (h[nxt, k] > min_height_m) & _same_surface(z[nxt, k], z[at, k], jump_m, jump_rel)
         at = np.where(going, nxt, at)
     return int(row0 + at.max())
+
+
+def segment_box_reference(sel: np.ndarray, support: float, x0: int, y0: int) -> np.ndarray:
+    """box_refine._segment_box as array expressions."""
+    cols, rows = sel.sum(axis=0), sel.sum(axis=1)
+    xs = np.flatnonzero(cols >= support * cols.max())
+    ys = np.flatnonzero(rows >= support * rows.max())
+    return np.array([x0 + xs[0] - 0.5, y0 + ys[0] - 0.5, x0 + xs[-1] + 0.5, y0 + ys[-1] + 0.5])

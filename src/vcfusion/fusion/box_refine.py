@@ -305,14 +305,44 @@ def _same_surface(a, b, jump_m: float, jump_rel: float):
 
 def _jump_free(z: np.ndarray, valid: np.ndarray, jump_m: float, jump_rel: float) -> np.ndarray:
     """False at the farther pixel of each 4-neighbour pair whose depths jump (:func:`_farther`; no
-    depth counts as infinitely far, so a vehicle keeps its outline against the sky)."""
-    zj = np.where(valid, z, np.float32(np.inf))
-    keep = np.ones(z.shape, bool)
-    for a, b, a_view, b_view in ((zj[:-1], zj[1:], keep[:-1], keep[1:]),
-                                 (zj[:, :-1], zj[:, 1:], keep[:, :-1], keep[:, 1:])):
-        a_view &= ~_farther(a, b, jump_m, jump_rel)
-        b_view &= ~_farther(b, a, jump_m, jump_rel)
+    depth counts as infinitely far, so a vehicle keeps its outline against the sky). One compiled
+    pass (:func:`_jump_free_kernel`)."""
+    z = np.asarray(z, np.float32)
+    valid = np.asarray(valid, np.bool_)
+    if z.shape != valid.shape or z.ndim != 2:
+        raise ValueError(f"z, valid: expected one 2-D shape, got {z.shape} and {valid.shape}")
+    keep = np.empty(z.shape, np.bool_)
+    _jump_free_kernel(z, valid, np.float32(jump_m), np.float32(1 + jump_rel), keep)
     return keep
+
+
+@numba.njit(cache=True)
+def _jump_free_kernel(z, valid, jump_m, one_plus_rel, keep):
+    """_jump_free per pixel: not farther (a > b (1 + jump_rel) + jump_m, in float32) than any of its
+    4-neighbours, a pixel without depth reading inf."""
+    H, W = z.shape
+    inf = np.float32(np.inf)
+    for y in range(H):
+        for x in range(W):
+            a = z[y, x] if valid[y, x] else inf
+            k = True
+            for d in range(4):
+                ny, nx = y, x
+                if d == 0:
+                    ny = y - 1
+                elif d == 1:
+                    ny = y + 1
+                elif d == 2:
+                    nx = x - 1
+                else:
+                    nx = x + 1
+                if ny < 0 or ny >= H or nx < 0 or nx >= W:
+                    continue
+                b = z[ny, nx] if valid[ny, nx] else inf
+                if a > b * one_plus_rel + jump_m:
+                    k = False
+                    break
+            keep[y, x] = k
 
 
 @numba.njit(cache=True)
@@ -431,14 +461,10 @@ def _join_across_outlines(labels: np.ndarray, z: np.ndarray, jump_m: float, jump
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    pairs = []
-    for a, b, za, zb in ((labels[:-1], labels[1:], z[:-1], z[1:]), (labels[:, :-1], labels[:, 1:], z[:, :-1], z[:, 1:])):
-        touch = (a > 0) & (b > 0) & (a != b)
-        if touch.any():
-            la, lb = a[touch], b[touch]
-            same = _same_surface(za[touch], zb[touch], jump_m, jump_rel)
-            pairs.append(np.stack([la[same], lb[same]]))
-    pairs = np.concatenate(pairs, axis=1) if pairs else np.zeros((2, 0), int)
+    z = np.asarray(z, np.float32)
+    if labels.shape != z.shape or labels.ndim != 2:
+        raise ValueError(f"labels, z: expected one 2-D shape, got {labels.shape} and {z.shape}")
+    pairs = _touching_pairs(labels, z, np.float32(jump_m), np.float32(1 + jump_rel))
     if not pairs.shape[1]:
         return labels
     n = int(labels.max()) + 1
@@ -450,16 +476,79 @@ def _join_across_outlines(labels: np.ndarray, z: np.ndarray, jump_m: float, jump
     return lowest[component][labels]
 
 
+@numba.njit(cache=True)
+def _touching_pairs(labels, z, jump_m, one_plus_rel):
+    """(2, N) the label pairs of 4-neighbour pixels in two different segments on one surface (no
+    jump either way, :func:`_same_surface`), each pair of labels once (the smaller first)."""
+    H, W = labels.shape
+    seen = set()
+    out = []
+    for y in range(H):
+        for x in range(W):
+            a = labels[y, x]
+            if a <= 0:
+                continue
+            za = z[y, x]
+            for d in range(2):
+                ny, nx = (y + 1, x) if d == 0 else (y, x + 1)
+                if ny >= H or nx >= W:
+                    continue
+                b = labels[ny, nx]
+                if b <= 0 or b == a:
+                    continue
+                zb = z[ny, nx]
+                if za > zb * one_plus_rel + jump_m or zb > za * one_plus_rel + jump_m:
+                    continue
+                lo, hi = (a, b) if a < b else (b, a)
+                key = np.int64(lo) * np.int64(2 ** 31) + np.int64(hi)
+                if key not in seen:
+                    seen.add(key)
+                    out.append((np.int64(lo), np.int64(hi)))
+    pairs = np.empty((2, len(out)), np.int64)
+    for i in range(len(out)):
+        pairs[0, i], pairs[1, i] = out[i]
+    return pairs
+
+
 def _components(mask: np.ndarray) -> np.ndarray:
     """4-connected segment labels of a mask (0: not in it)."""
     return cv2.connectedComponents(mask.astype(np.uint8), connectivity=4)[1]
 
 
 def _segment_box(sel: np.ndarray, support: float, x0: int, y0: int) -> np.ndarray:
-    cols, rows = sel.sum(axis=0), sel.sum(axis=1)
-    xs = np.flatnonzero(cols >= support * cols.max())
-    ys = np.flatnonzero(rows >= support * rows.max())
-    return np.array([x0 + xs[0] - 0.5, y0 + ys[0] - 0.5, x0 + xs[-1] + 0.5, y0 + ys[-1] + 0.5])
+    """The box (pixel-centre convention) from the first to the last column, and row, of mask `sel`
+    holding at least `support` of the fullest one's pixels; `sel`'s pixel (0, 0) is image pixel
+    (x0, y0). One compiled pass (:func:`_segment_box_kernel`)."""
+    sel = np.ascontiguousarray(sel, np.bool_)
+    if sel.ndim != 2 or not sel.size:
+        raise ValueError(f"segment mask: expected a non-empty 2-D mask, got shape {sel.shape}")
+    return _segment_box_kernel(sel, float(support), int(x0), int(y0))
+
+
+@numba.njit(cache=True)
+def _segment_box_kernel(sel, support, x0, y0):
+    """_segment_box: column and row pixel counts, each compared with support x its maximum (float64,
+    as the array expressions cols >= support * cols.max() compare them)."""
+    H, W = sel.shape
+    cols = np.zeros(W, np.int64)
+    rows = np.zeros(H, np.int64)
+    for y in range(H):
+        for x in range(W):
+            if sel[y, x]:
+                cols[x] += 1
+                rows[y] += 1
+    out = np.empty(4, np.float64)
+    for counts, lo, hi, origin in ((cols, 0, 2, x0), (rows, 1, 3, y0)):
+        thr = support * np.float64(counts.max())
+        first, last = -1, -1
+        for i in range(len(counts)):
+            if np.float64(counts[i]) >= thr:
+                if first < 0:
+                    first = i
+                last = i
+        out[lo] = np.float64(origin + first) - 0.5
+        out[hi] = np.float64(origin + last) + 0.5
+    return out
 
 
 def _lateral_extent(sel: np.ndarray, z: np.ndarray, x0: int, K: np.ndarray, support: float) -> float:
@@ -862,17 +951,15 @@ def object_segments(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     if params is None:
         raise ValueError("depth segments: the proposals are switched off (BoxRefineParams.proposals is None)")
     z = np.asarray(depth, np.float32)
-    valid = np.isfinite(z) & (z > 0)
-    # the heights on the rows holding depth only (and the row above them: what stands above a top)
-    depth_rows = np.flatnonzero(valid.any(axis=1))
-    if not len(depth_rows):
-        return None
-    lo, hi = max(int(depth_rows[0]) - 1, 0), int(depth_rows[-1]) + 1
-    z, valid = np.where(valid[lo:hi], z[lo:hi], np.float32(0)), valid[lo:hi]
+    if z.ndim != 2:
+        raise ValueError(f"depth: expected a 2-D depth image (H, W), got shape {z.shape}")
     heights = _Heights(K, T_world_to_camera)
-    height = heights.window(z, 0, lo)
-    obj = valid & (height > params.min_height_m + heights.noise_margin(z, noise, refine.noise_k)) \
-        & (height < refine.max_height_m)
+    # the rows holding depth only (and the row above them: what stands above a top): one compiled
+    # pass gives each pixel's depth (0 where none), validity, height and whether it is an object pixel
+    lo, hi, z, valid, height, obj = _object_pixels(z, heights, refine.noise_k, noise, params.min_height_m,
+                                                   refine.max_height_m)
+    if hi <= lo:
+        return None
     rows = np.flatnonzero(obj.any(axis=1))
     if not len(rows):
         return None
@@ -894,6 +981,71 @@ def object_segments(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
     regions = [None if b[0] < 0 else (slice(int(b[0]), int(b[1])), slice(int(b[2]), int(b[3])))
                for b in _label_boxes(labels, int(labels.max()))]  # as scipy.ndimage.find_objects gives them
     return ObjectSegments(z, valid, obj, height, labels, np.bincount(labels.ravel()), regions, y_lo)
+
+
+def _object_pixels(z: np.ndarray, heights: _Heights, noise_k: float, noise, min_height_m: float,
+                   max_height_m: float):
+    """(lo, hi, z, valid, height, obj) on image rows lo..hi (from the row above the first holding a
+    depth to the last holding one; hi <= lo: none): the depth with 0 where none, whether measured
+    (finite, > 0), the height above the road (_Heights.window) and whether an object pixel (measured,
+    higher than min_height_m + noise_k sigma of the height's noise (_Heights.noise_margin), lower
+    than max_height_m), in their float32 arithmetic."""
+    H, W = z.shape
+    lo, hi = _depth_rows(z)
+    if hi <= lo:
+        return lo, hi, None, None, None, None
+    noisy = noise is not None and not noise.exact
+    a, b, c = (noise.a, noise.b, noise.c) if noisy else (0.0, 0.0, 0.0)
+    f32 = np.float32
+    zw = np.empty((hi - lo, W), np.float32)
+    valid = np.empty((hi - lo, W), np.bool_)
+    height = np.empty((hi - lo, W), np.float32)
+    obj = np.empty((hi - lo, W), np.bool_)
+    _object_kernel(z, lo, f32(heights.per_u), f32(heights.per_v), f32(heights.const), f32(heights.offset), noisy,
+                   f32(noise_k), f32(a), f32(b), f32(c), f32(max(-heights.offset, 0.5)), f32(min_height_m),
+                   f32(max_height_m), zw, valid, height, obj)
+    return lo, hi, zw, valid, height, obj
+
+
+@numba.njit(cache=True)
+def _depth_rows(z):
+    """(lo, hi): from the row above the first row holding a measured pixel (finite, > 0) to the last
+    such row + 1; (0, 0) when there is none."""
+    H, W = z.shape
+    first, last = -1, -1
+    for y in range(H):
+        for x in range(W):
+            d = z[y, x]
+            if np.isfinite(d) and d > 0:
+                if first < 0:
+                    first = y
+                last = y
+                break
+    if first < 0:
+        return 0, 0
+    return max(first - 1, 0), last + 1
+
+
+@numba.njit(cache=True)
+def _object_kernel(z, lo, per_u, per_v, const, offset, noisy, k, a, b, c, cam_h, min_h, max_h, zw, valid, height, obj):
+    """object_segments' per-pixel work on rows lo.. (see _object_pixels), as _Heights.window and
+    noise_margin compute it: height = z (v per_v + const + u per_u) - offset; the threshold
+    min_h + k sigma_z(z) cam_h / max(z, 1), sigma_z = (a + b z) + (c z) z, when noisy."""
+    one, zero = np.float32(1.0), np.float32(0.0)
+    for r in range(zw.shape[0]):
+        y = lo + r
+        v = np.float32(y) * per_v + const
+        for x in range(zw.shape[1]):
+            d = z[y, x]
+            ok = np.isfinite(d) and d > 0
+            if not ok:
+                d = zero
+            h = d * (v + np.float32(x) * per_u) - offset
+            thr = min_h
+            if noisy:
+                thr = min_h + k * ((a + b * d) + (c * d) * d) * cam_h / max(d, one)
+            zw[r, x], valid[r, x], height[r, x] = d, ok, h
+            obj[r, x] = ok and h > thr and h < max_h
 
 
 def _min_top(params: ProposalParams, refine: BoxRefineParams, truncated: bool, width_m: float,
@@ -1001,11 +1153,11 @@ def depth_proposals(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndar
         # (a vehicle peeking over or beside a nearer one lies inside the nearer one's box), unless
         # it stands clearly in front of the box's surface (nearer by a depth jump): then the box
         # measured a farther vehicle and this segment is the one in front (Fig. 3 at range)
-        iou = box_iou(box[None], existing)[0]
         seg_z = z[y:y + h, x:x + w][sel]
         depth_m = float(np.median(seg_z))
         if gate_by_noise(depth_m, noise, refine):
             continue  # depth this noisy cannot tell a vehicle's surface: no proposal
+        iou = box_iou(box[None], existing)[0]
         not_in_front = ~_farther(surface, np.float32(depth_m), refine.jump_m, refine.jump_rel)
         if np.any((iou > params.max_overlap) & not_in_front):
             continue
@@ -1444,7 +1596,11 @@ def warm_kernels() -> None:
     _restore_outlines(labels, ~road, np.zeros(z.shape, np.float32), 0.5, 0.045)
     _label_boxes(labels, 1)
     _label_boxes(labels.astype(np.int64), 1)
+    _join_across_outlines(labels, np.zeros(z.shape, np.float32), 0.5, 0.045)
+    _jump_free(z, road, 0.5, 0.045)
+    _segment_box(road, 0.3, 0, 0)
     eye = np.eye(4)
     on_road_mask(z, np.eye(3), eye, None)
+    _object_pixels(z, _Heights(np.eye(3), eye), 3.0, None, 0.3, 4.5)
     _lowest_row_on_its_surface(road[:1], 0, 0, z, _Heights(np.eye(3), eye), 0.05, 0.5, 0.045)
 

@@ -7,6 +7,7 @@ here works on those plain arrays, so it is tested with hand-made frames.
 
 from __future__ import annotations
 
+import functools
 import time as wallclock
 from dataclasses import dataclass, field, replace
 from typing import Protocol
@@ -172,11 +173,13 @@ def warm_depth_kernels() -> None:
     """Load the depth step's compiled kernels (numba's cache) with tiny inputs, so that a forked
     worker's first frame does not (vcfusion.worker_preload)."""
     from vcfusion.fusion.box_refine import warm_kernels
+    from vcfusion.fusion.sensors import DepthSensorParams, stereo_depth
 
     warm_kernels()
     z = np.full((6, 6), np.nan, np.float32)
     z[:, :3] = 10.0
     _median(z, 5)
+    stereo_depth(z, 100.0, DepthSensorParams(), np.random.default_rng(0), np.zeros((6, 6, 3), np.uint8))
 
 
 def _without_flying_pixels(depth: np.ndarray, refine: BoxRefineParams) -> np.ndarray:
@@ -334,9 +337,9 @@ def _place_gated_from_image(image: np.ndarray, refined: RefinedBoxes, weights: s
     """The sides of the boxes the noise gate kept from the image (vcfusion.fusion.far_boxes.BoxHead),
     in place; counted as boxes_from_image. Boxes taller than the head's training range keep the
     detector's sides."""
-    from vcfusion.fusion.far_boxes import BoxHead, default_box_head_path
+    from vcfusion.fusion.far_boxes import BoxHead
 
-    head = BoxHead.load(default_box_head_path() if weights == "shipped" else weights)
+    head = _shipped_box_head() if weights == "shipped" else BoxHead.load(weights)
     b = refined.boxes
     pick = np.flatnonzero(refined.noisy & (b[:, 3] - b[:, 1] <= head.max_height_px))
     count_depth_step(stats, "boxes_from_image", len(pick))
@@ -346,6 +349,14 @@ def _place_gated_from_image(image: np.ndarray, refined: RefinedBoxes, weights: s
         moved[:, [0, 2]] = moved[:, [0, 2]].clip(-0.5, w - 0.5)
         moved[:, [1, 3]] = moved[:, [1, 3]].clip(-0.5, h - 0.5)
         b[pick] = moved
+
+
+@functools.lru_cache(maxsize=1)
+def _shipped_box_head():
+    """The shipped far-box head, found (package data) and loaded once a process."""
+    from vcfusion.fusion.far_boxes import BoxHead, default_box_head_path
+
+    return BoxHead.load(default_box_head_path())
 
 
 def _proposal_scores(proposals: np.ndarray, weak_boxes: np.ndarray, weak_scores: np.ndarray,

@@ -44,6 +44,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 
+import numba
 import numpy as np
 
 DEPTH_MODELS = ("exact", "stereo", "tof", "lidar")
@@ -99,35 +100,70 @@ def stereo_sigma_z(z: np.ndarray, focal_px: float, baseline_m: float, disparity_
     return np.asarray(z, float) ** 2 * disparity_noise_px / (focal_px * baseline_m)
 
 
-def _grey_std(image: np.ndarray) -> np.ndarray:
+def _grey_blurs(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The 5 x 5 box means of the grey level and of its square (float32, OpenCV's box filter)."""
     import cv2
 
     grey = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY).astype(np.float32)
-    mean = cv2.blur(grey, (5, 5))
-    sq = cv2.blur(grey * grey, (5, 5))
+    return cv2.blur(grey, (5, 5)), cv2.blur(grey * grey, (5, 5))
+
+
+def _grey_std(image: np.ndarray) -> np.ndarray:
+    """Grey-level standard deviation in a 5 x 5 window (float32)."""
+    mean, sq = _grey_blurs(image)
     return np.sqrt(np.maximum(sq - mean * mean, 0.0))
+
+
+# error_model numpy: a float division by zero gives inf / nan as the array expressions do
+@numba.njit(cache=True, error_model="numpy")
+def _stereo_kernel(z, fb, noise, min_disparity, mean, sq, texture_min, out):
+    """stereo_depth's per-pixel work in one pass a row, from its right end (the occlusion band's
+    suffix maximum), in float32 throughout: the same operations in the same order as the array
+    expressions they stand for (tests/fusion/test_sensor_kernels.py pins them against those)."""
+    H, W = z.shape
+    zero, half, nan, ninf = np.float32(0.0), np.float32(0.5), np.float32(np.nan), np.float32(-np.inf)
+    textured = texture_min > 0
+    for y in range(H):
+        right_of = ninf  # the largest d(u') - u' over u' > u
+        for x in range(W - 1, -1, -1):
+            zz = z[y, x]
+            d = fb / zz if np.isfinite(zz) and zz > 0 else zero
+            e = d - np.float32(x)
+            hole = right_of > e + half  # occluded: hidden from the right camera
+            if e > right_of:
+                right_of = e
+            measured = d + np.float32(noise[y, x])  # the draw rounded to float32, as astype does
+            hole = hole or measured < min_disparity or d < min_disparity
+            if textured and not hole:
+                m = mean[y, x]
+                v = sq[y, x] - m * m
+                if v < zero:
+                    v = zero
+                hole = np.sqrt(v) < texture_min
+            out[y, x] = nan if hole else fb / measured
 
 
 def stereo_depth(depth: np.ndarray, focal_px: float, p: DepthSensorParams, rng: np.random.Generator,
                  image: np.ndarray | None = None) -> np.ndarray:
     """The stereo model of the module doc (left camera = the rendered one)."""
-    z = np.asarray(depth, np.float32)
+    z = np.ascontiguousarray(depth, np.float32)
+    if z.ndim != 2:
+        raise ValueError(f"depth: expected a 2-D depth image (H, W), got shape {z.shape}")
     fb = np.float32(focal_px * p.baseline_m)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d = np.where(np.isfinite(z) & (z > 0), fb / z, np.float32(0.0)).astype(np.float32)
-    # occlusion band: pixel u of the left image is hidden from the right camera when a pixel u' > u
-    # lands on or left of it there: d(u') - u' > d(u) - u (suffix maximum along the row)
-    e = d - np.arange(z.shape[1], dtype=np.float32)[None, :]
-    suffix = np.maximum.accumulate(e[:, ::-1], axis=1)[:, ::-1]
-    right_of = np.concatenate([suffix[:, 1:], np.full((z.shape[0], 1), -np.inf, np.float32)], axis=1)
-    occluded = right_of > e + 0.5
-    measured = d + rng.normal(0.0, p.disparity_noise_px, size=d.shape).astype(np.float32)
-    hole = occluded | (measured < p.min_disparity_px) | (d < p.min_disparity_px)
-    if image is not None and p.texture_min > 0:
-        hole |= _grey_std(image) < p.texture_min
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = fb / measured
-    return np.where(hole, np.float32(np.nan), out).astype(np.float32)
+    # disparity d = f B / z (0 where no depth); pixel u of the left image is hidden from the right
+    # camera (the occlusion band) when a pixel u' > u lands on or left of it there: d(u') - u' > d(u) - u
+    # + 0.5; the measured disparity d + N(0, disparity_noise_px) (one draw a pixel, row-major, the
+    # run's Generator); holes where the measured or the true disparity is below min_disparity_px or
+    # the grey level's 5 x 5 std is below texture_min; elsewhere f B / measured
+    noise = rng.normal(0.0, p.disparity_noise_px, size=z.shape)  # float64, rounded to float32 in the pass
+    textured = image is not None and p.texture_min > 0
+    mean, sq = _grey_blurs(image) if textured else (z, z)  # (not read without texture)
+    if mean.shape != z.shape:
+        raise ValueError(f"image: expected the depth image's size {z.shape}, got shape {np.shape(image)}")
+    out = np.empty(z.shape, np.float32)
+    _stereo_kernel(z, fb, noise, np.float32(p.min_disparity_px), mean, sq,
+                   np.float32(p.texture_min if textured else 0.0), out)
+    return out
 
 
 def tof_depth(depth: np.ndarray, p: DepthSensorParams, rng: np.random.Generator) -> np.ndarray:
