@@ -9,7 +9,7 @@ import numpy as np
 from scipy.ndimage import find_objects
 
 from vcfusion.fusion.box_refine import (ObjectSegments, RefinedBoxes, _box_iou, _components, _core, _farther,
-                                       _grown_sides, _Heights, _lateral_extent, _restore_outlines,
+                                       _grown_sides, _Heights, _join_pairs, _lateral_extent, _restore_outlines,
                                        _same_surface, _segment_box, _spans_jump, _surface_sides, _unmeasured_sides,
                                        gate_by_noise)
 
@@ -119,10 +119,8 @@ def jump_free_reference(z: np.ndarray, valid: np.ndarray, jump_m: float, jump_re
 
 
 def join_across_outlines_reference(labels: np.ndarray, z: np.ndarray, jump_m: float, jump_rel: float) -> np.ndarray:
-    """box_refine._join_across_outlines with its touching pairs from shifted whole-image comparisons."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
+    """box_refine._join_across_outlines with its touching pairs from shifted whole-image comparisons
+    (the joining of the pairs is box_refine's own)."""
     pairs = []
     for a, b, za, zb in ((labels[:-1], labels[1:], z[:-1], z[1:]), (labels[:, :-1], labels[:, 1:], z[:, :-1], z[:, 1:])):
         touch = (a > 0) & (b > 0) & (a != b)
@@ -130,15 +128,7 @@ def join_across_outlines_reference(labels: np.ndarray, z: np.ndarray, jump_m: fl
             la, lb = a[touch], b[touch]
             same = _same_surface(za[touch], zb[touch], jump_m, jump_rel)
             pairs.append(np.stack([la[same], lb[same]]))
-    pairs = np.concatenate(pairs, axis=1) if pairs else np.zeros((2, 0), int)
-    if not pairs.shape[1]:
-        return labels
-    n = int(labels.max()) + 1
-    graph = coo_matrix((np.ones(pairs.shape[1]), (pairs[0], pairs[1])), shape=(n, n))
-    _, component = connected_components(graph, directed=False)
-    lowest = np.full(n, n)
-    np.minimum.at(lowest, component, np.arange(n))
-    return lowest[component][labels]
+    return _join_pairs(labels, np.concatenate(pairs, axis=1) if pairs else np.zeros((2, 0), int))
 
 
 def on_road_mask_reference(depth: np.ndarray, K: np.ndarray, T_world_to_camera: np.ndarray, noise,

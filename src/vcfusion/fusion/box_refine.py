@@ -458,19 +458,23 @@ def _join_across_outlines(labels: np.ndarray, z: np.ndarray, jump_m: float, jump
     vehicle shows 1-2 px wide beside a nearer one every pixel of that strip goes, and its parts above
     and below become two segments; :func:`_restore_outlines` gives each pixel back to one neighbour's
     segment but does not join the two (a car's sliver beside a nearer car lost its lower third)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     z = np.asarray(z, np.float32)
     if labels.shape != z.shape or labels.ndim != 2:
         raise ValueError(f"labels, z: expected one 2-D shape, got {labels.shape} and {z.shape}")
-    pairs = _touching_pairs(labels, z, np.float32(jump_m), np.float32(1 + jump_rel))
+    return _join_pairs(labels, _touching_pairs(labels, z, np.float32(jump_m), np.float32(1 + jump_rel)))
+
+
+def _join_pairs(labels: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """Labels with every pair of labels (a 2 x n array) joined into one: each group of labels
+    linked by pairs takes its lowest label, so labels in no pair keep their number."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     if not pairs.shape[1]:
         return labels
     n = int(labels.max()) + 1
     graph = coo_matrix((np.ones(pairs.shape[1]), (pairs[0], pairs[1])), shape=(n, n))
     _, component = connected_components(graph, directed=False)
-    # each component's lowest label, so labels untouched keep their number
     lowest = np.full(n, n)
     np.minimum.at(lowest, component, np.arange(n))
     return lowest[component][labels]
