@@ -597,16 +597,19 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
     gated = np.zeros(len(boxes), bool)
     noisy = np.zeros(len(boxes), bool)
     p = params
-    box_z = np.full(len(boxes), np.nan)  # each box's median depth in its core (_grown_sides' neighbours)
+    # with a noisy sensor, each box's median measured depth in its core (nan: none): what the noise
+    # gate tests, and the depth of the boxes beside a grown side (_grown_sides)
+    box_z = np.full(len(boxes), np.nan)
+    if noise is not None and not noise.exact:
+        depth32 = np.asarray(depth, np.float32)
+        for k, b in enumerate(boxes):
+            if b[2] > b[0] and b[3] > b[1]:
+                zc = depth32[_core(b, 0, 0)]
+                zc = zc[np.isfinite(zc) & (zc > 0)]
+                box_z[k] = float(np.median(zc)) if zc.size else np.nan
     # a dense image whose error grows with range (stereo, ToF): the median-filtered, hole-filled depth
     # the two side rules below are for; exact depth and a LiDAR scan (range noise alone) never reach them
     dense_noisy = noise is not None and (noise.b > 0 or noise.c > 0) and returns is None
-    if p.grown_sides and dense_noisy:
-        for k, b in enumerate(boxes):
-            if b[2] > b[0] and b[3] > b[1]:
-                zc = depth[_core(b, 0, 0)]
-                zc = zc[np.isfinite(zc) & (zc > 0)]
-                box_z[k] = float(np.median(zc)) if zc.size else np.nan
     for i, b in enumerate(boxes):
         w, h = b[2] - b[0], b[3] - b[1]
         if not (w > 0 and h > 0):
@@ -628,8 +631,7 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
                 gated[i] = True
                 continue
         valid = np.isfinite(z) & (z > 0)
-        if noise is not None and not noise.exact and valid[core].any() \
-                and gate_by_noise(float(np.median(z[core][valid[core]])), noise, p):
+        if np.isfinite(box_z[i]) and gate_by_noise(float(box_z[i]), noise, p):
             gated[i] = noisy[i] = True  # too noisy at this depth to tell one surface from the next
             continue
         z = np.where(valid, z, np.float32(0))
@@ -926,8 +928,8 @@ class ObjectSegments:
     areas: np.ndarray  # pixels per label
     regions: list  # per label from 1, its (rows, columns) slices (scipy.ndimage.find_objects)
     y_lo: int  # image row of row 0
-    # box_surface_depths' face depth per (label, percentile, band): the fragments and the matcher
-    # both ask, for mostly the same segments, each vision tick
+    # per (label, percentile), a segment's face and far-end depths (_near_far): the fragments and the
+    # matcher both ask, for mostly the same segments, each vision tick
     faces: dict = field(default_factory=dict, repr=False, compare=False)
 
     @cached_property
@@ -1343,14 +1345,6 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
             medians[k] = float(np.median(z[r][segments.labels[r] == labels[k]]))
         return medians[k]
 
-    faces: dict[int, float] = {}
-
-    def face_depth(k):  # of segment k: its nearest part, as a box's surface is (box_surface_depths)
-        if k not in faces:
-            r = segments.regions[labels[k] - 1]
-            faces[k] = float(np.percentile(z[r][segments.labels[r] == labels[k]], 10.0))
-        return faces[k]
-
     ends_of: dict[int, tuple[float, float]] = {}
 
     exact = noise is None or noise.exact
@@ -1393,7 +1387,7 @@ def join_fragments(boxes: np.ndarray, owners: np.ndarray, segments: ObjectSegmen
         reach = max(params.fragment_gap * side, params.fragment_gap_m * fx / surface)
         near = (gap <= reach) & ~inside & ~others
         for k in np.flatnonzero(near & (np.abs(seg_mean - surface) <= 2 * tolerance + 1.0)):
-            if abs(face_depth(k) - surface) > tolerance:
+            if abs(_near_far(segments, int(labels[k]))[0] - surface) > tolerance:  # its face
                 continue
             rows, cols, between = _box_between(b, seg_box[k], y_lo, z.shape)
             if not between.any():
@@ -1446,16 +1440,22 @@ def _face_depths(outline: np.ndarray, segments: ObjectSegments, refine: BoxRefin
     """Per label of ``outline`` (:func:`outline_segments`; 0: none), its segment's face depth as
     :func:`box_surface_depths` defines it; nan for 0."""
     out = np.full(len(outline), np.nan)
-    labels = segments.labels
     for j in np.flatnonzero(outline):
-        label = int(outline[j])
-        key = (label, face_percentile, refine.band_m)
-        if key not in segments.faces:  # boxes share segments, and calls share the segmentation
-            r = segments.regions[label - 1]
-            near, far = np.percentile(segments.z[r][labels[r] == label], [face_percentile, 100 - face_percentile])
-            segments.faces[key] = float(near) if far - near <= refine.band_m else np.nan
-        out[j] = segments.faces[key]
+        near, far = _near_far(segments, int(outline[j]), face_percentile)
+        out[j] = near if far - near <= refine.band_m else np.nan
     return out
+
+
+def _near_far(segments: ObjectSegments, label: int, face_percentile: float = 10.0) -> tuple[float, float]:
+    """The ``face_percentile`` and 100 - ``face_percentile`` percentiles of a segment's depths, m: its
+    face (the nearest part, as a box's surface is measured) and its far end; computed once per
+    segmentation (boxes share segments, and calls share the segmentation)."""
+    key = (label, face_percentile)
+    if key not in segments.faces:
+        r = segments.regions[label - 1]
+        near, far = np.percentile(segments.z[r][segments.labels[r] == label], [face_percentile, 100 - face_percentile])
+        segments.faces[key] = (float(near), float(far))
+    return segments.faces[key]
 
 
 def _box_surfaces(boxes: np.ndarray, segments: ObjectSegments, refine: BoxRefineParams,
