@@ -50,12 +50,9 @@ class DepthNoise:
         return self.a == 0 and self.b == 0 and self.c == 0
 
     def sigma(self, z):
-        if isinstance(z, (float, int, np.floating, np.integer)):
-            # one depth (the gate's per-box test): numpy float32 scalars, the same single-precision
-            # operations as the array path at a fraction of its overhead
-            z = np.float32(z)
-            return np.float32(self.a) + np.float32(self.b) * z + np.float32(self.c) * z * z
-        z = np.asarray(z, np.float32)
+        # one depth (the gate's per-box test) as a float32 scalar: the same single-precision
+        # operations as an array's at a fraction of its overhead
+        z = np.float32(z) if isinstance(z, (float, int, np.floating, np.integer)) else np.asarray(z, np.float32)
         return np.float32(self.a) + np.float32(self.b) * z + np.float32(self.c) * z * z
 
     def reading(self, z) -> np.ndarray:
