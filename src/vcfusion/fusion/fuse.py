@@ -337,9 +337,7 @@ def _place_gated_from_image(image: np.ndarray, refined: RefinedBoxes, weights: s
     """The sides of the boxes the noise gate kept from the image (vcfusion.fusion.far_boxes.BoxHead),
     in place; counted as boxes_from_image. Boxes taller than the head's training range keep the
     detector's sides."""
-    from vcfusion.fusion.far_boxes import BoxHead
-
-    head = _shipped_box_head() if weights == "shipped" else BoxHead.load(weights)
+    head = _box_head(weights)
     b = refined.boxes
     pick = np.flatnonzero(refined.noisy & (b[:, 3] - b[:, 1] <= head.max_height_px))
     count_depth_step(stats, "boxes_from_image", len(pick))
@@ -351,12 +349,13 @@ def _place_gated_from_image(image: np.ndarray, refined: RefinedBoxes, weights: s
         b[pick] = moved
 
 
-@functools.lru_cache(maxsize=1)
-def _shipped_box_head():
-    """The shipped far-box head, found (package data) and loaded once a process."""
+@functools.lru_cache(maxsize=4)
+def _box_head(weights: str):
+    """The far-box head `weights` names ("shipped": the package's, else a weights file), found and
+    loaded once a process, not once a frame."""
     from vcfusion.fusion.far_boxes import BoxHead, default_box_head_path
 
-    return BoxHead.load(default_box_head_path())
+    return BoxHead.load(default_box_head_path() if weights == "shipped" else weights)
 
 
 def _proposal_scores(proposals: np.ndarray, weak_boxes: np.ndarray, weak_scores: np.ndarray,
