@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vcfusion.fusion.sensors import DepthSensorParams, _grey_std
+from vcfusion.fusion.sensors import DepthSensorParams, _grey_blurs
 
 
 def stereo_depth_reference(depth: np.ndarray, focal_px: float, p: DepthSensorParams, rng: np.random.Generator,
@@ -24,7 +24,8 @@ def stereo_depth_reference(depth: np.ndarray, focal_px: float, p: DepthSensorPar
     measured = d + rng.normal(0.0, p.disparity_noise_px, size=d.shape).astype(np.float32)
     hole = occluded | (measured < p.min_disparity_px) | (d < p.min_disparity_px)
     if image is not None and p.texture_min > 0:
-        hole |= _grey_std(image) < p.texture_min
+        mean, sq = _grey_blurs(image)  # the grey level's 5 x 5 standard deviation
+        hole |= np.sqrt(np.maximum(sq - mean * mean, 0.0)) < p.texture_min
     with np.errstate(divide="ignore", invalid="ignore"):
         out = fb / measured
     return np.where(hole, np.float32(np.nan), out).astype(np.float32)

@@ -193,7 +193,6 @@ def jittered(gt: np.ndarray, rng: np.random.Generator, n: int, sigma: float) -> 
 class BoxSamples:
     crops: np.ndarray  # (N, 3, s, s) uint8
     offsets: np.ndarray  # (N, 4) float32: ground truth's sides minus the box's, in box widths / heights
-    weights: np.ndarray  # (N,) float32
 
 
 def training_samples(images, gt_boxes, detector_boxes, spec: CropSpec, rng: np.random.Generator,
@@ -228,7 +227,7 @@ def training_samples(images, gt_boxes, detector_boxes, spec: CropSpec, rng: np.r
             crops.append(box_crops(image, boxes, spec, raw=True))
             offsets.append(side_offsets(boxes, targets))
     c, o = np.concatenate(crops), np.concatenate(offsets).astype(np.float32)
-    return BoxSamples(c, o, np.ones(len(o), np.float32))
+    return BoxSamples(c, o)
 
 
 def train_box_head(samples: BoxSamples, spec: CropSpec, epochs: int = 12, batch_size: int = 128,

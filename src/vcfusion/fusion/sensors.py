@@ -108,12 +108,6 @@ def _grey_blurs(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return cv2.blur(grey, (5, 5)), cv2.blur(grey * grey, (5, 5))
 
 
-def _grey_std(image: np.ndarray) -> np.ndarray:
-    """Grey-level standard deviation in a 5 x 5 window (float32)."""
-    mean, sq = _grey_blurs(image)
-    return np.sqrt(np.maximum(sq - mean * mean, 0.0))
-
-
 # error_model numpy: a float division by zero gives inf / nan as the array expressions do
 @numba.njit(cache=True, error_model="numpy")
 def _stereo_kernel(z, fb, noise, min_disparity, mean, sq, texture_min, out):
