@@ -261,7 +261,7 @@ def train_box_head(samples: BoxSamples, spec: CropSpec, epochs: int = 12, batch_
             opt.step()
             sched.step()
             step += 1
-            losses.append(float(loss))
+            losses.append(float(loss.detach()))
         if progress:
             print(f"epoch {epoch + 1}/{epochs}: loss {np.mean(losses[-max(1, n // batch_size):]):.4f} "
                   f"({wallclock.perf_counter() - t0:.0f} s)", flush=True)
