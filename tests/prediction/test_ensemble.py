@@ -22,11 +22,14 @@ NAMES = SEQUENCE_INPUT_SETS["lateral"]
 ROAD = Road("hw", (0.0, 0.0), (2000.0, 0.0), 3, 3.5, 25.0)
 
 
-def _gru(seed, names=NAMES, hidden=6, tau=5.0, threshold=0.4) -> SequenceModel:
+def _gru(seed, names=NAMES, hidden=6, tau=5.0, threshold=0.4, scaling_seed=None) -> SequenceModel:
+    """A random GRU; `scaling_seed` draws its standardisation apart (members fine-tuned from one file share it)."""
     rng = np.random.default_rng(seed)
     f = len(names)
+    scaling = np.random.default_rng(seed if scaling_seed is None else scaling_seed)
+    mean, std = scaling.normal(0, 1, f), scaling.uniform(0.5, 3, f)
     return SequenceModel(
-        tuple(names), mean=rng.normal(0, 1, f), std=rng.uniform(0.5, 3, f),
+        tuple(names), mean=mean, std=std,
         w_ih=rng.normal(0, 0.4, (3 * hidden, f)), w_hh=rng.normal(0, 0.4, (3 * hidden, hidden)),
         b_ih=rng.normal(0, 0.3, 3 * hidden), b_hh=rng.normal(0, 0.3, 3 * hidden),
         w_out=rng.normal(0, 1.0, (1, hidden)), b_out=rng.normal(0, 0.5, 1), tau=tau, tau_g=2.0, period_s=0.1,
@@ -69,12 +72,15 @@ def test_an_ensemble_of_one_equals_its_member(tmp_path):
                                    theirs(tick["vehicle_id"].tolist(), time, x), rtol=0, atol=1e-6)
 
 
-def test_an_ensemble_of_two_is_the_mean_of_the_two(tmp_path):
-    m0, m1 = _gru(2), _gru(3, hidden=5)
+@pytest.mark.parametrize("alike", [False, True])
+def test_an_ensemble_of_two_is_the_mean_of_the_two(tmp_path, alike):
+    # alike: one hidden size and standardisation, the members stepped as one batch (else one by one)
+    m0, m1 = (_gru(2, scaling_seed=9), _gru(3, scaling_seed=9)) if alike else (_gru(2), _gru(3, hidden=5))
     files = _files(tmp_path, m0, m1)
     out = tmp_path / "e2.npz"
     assert main(["ensemble-models", *files, "--out", str(out)]) == 0
     ens = load_model(out)
+    assert ens._stacked == alike
     stream = _stream(1)
     p0, p1 = m0.stream_proba(stream, list(NAMES)), m1.stream_proba(stream, list(NAMES))
     assert np.abs(p0 - p1).max() > 0.1  # members that differ: the mean is not either one

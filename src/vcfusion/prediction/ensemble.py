@@ -30,7 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from vcfusion.prediction.decision import DECISION_META_KEYS, DecisionSettings, decision_settings_from_meta
-from vcfusion.prediction.sequence import _ARRAYS, SequenceModel, segment_bounds, sequence_model_from_file
+from vcfusion.prediction.sequence import (_ARRAYS, SequenceModel, _sigmoid_of_half, segment_bounds,
+                                         sequence_model_from_file)
+from vcfusion.threads import one_blas_thread
 
 ENSEMBLE_FORMAT = "vcfusion-lane-change-gru-ensemble/1"
 # member properties that must agree: (attribute, what it is)
@@ -60,19 +62,69 @@ class EnsembleModel(DecisionSettings):
         self.hidden = sum(m.hidden for m in self.members)  # the members' states side by side
         cuts = np.cumsum([0] + [m.hidden for m in self.members]).tolist()
         self._blocks = [(m, a, b) for m, a, b in zip(self.members, cuts[:-1], cuts[1:])]
+        # Members of one hidden size and one standardisation (fine-tunings of one file) run as one
+        # batched step: the same operations in the same order as each member's, on (K, N, .) arrays.
+        self._stacked = len(self.members) > 1 and all(
+            m.hidden == first.hidden and np.array_equal(m.mean, first.mean) and np.array_equal(m.std, first.std)
+            for m in self.members)
+        if self._stacked:
+            self._wi_cat = np.ascontiguousarray(np.concatenate([m._wi_t for m in self.members], axis=1))
+            self._wh = np.stack([m._wh_t for m in self.members])  # (K, H, 3H)
+            self._b_ih = np.stack([m.b_ih for m in self.members])[:, None, :]  # (K, 1, 3H)
+            self._b_hh = np.stack([m.b_hh for m in self.members])[:, None, :]
+            self._wo = np.stack([m._wo for m in self.members])[:, :, None]  # (K, H, 1)
+            self._b_out = np.stack([m.b_out for m in self.members])[:, None, :]  # (K, 1, 1)
+            self._cal_a = np.array([m.calibration[0] for m in self.members], np.float32)[:, None, None]
+            self._cal_b = np.array([m.calibration[1] for m in self.members], np.float32)[:, None, None]
 
     def check_features(self, names, source: str = "model") -> None:
         self.members[0].check_features(names, source)
 
     def step(self, h: np.ndarray, x: np.ndarray) -> np.ndarray:
         """New states (N, sum of hidden) from states h and raw features x (N, F): each member's step on its block."""
+        if self._stacked:
+            return self._stacked_step(h, x)
         out = np.empty((len(h), self.hidden), dtype=np.float32)
         for m, a, b in self._blocks:
             out[:, a:b] = m.step(h[:, a:b], x)
         return out
 
+    def _stacked_step(self, h: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """SequenceModel.step of every member at once (members of one hidden size and standardisation)."""
+        first, k, n_rows = self.members[0], len(self.members), len(h)
+        H = first.hidden
+        xs = np.array(x, dtype=np.float32)
+        xs -= first.mean
+        xs /= first.std
+        hk = np.ascontiguousarray(np.asarray(h, dtype=np.float32).reshape(n_rows, k, H).transpose(1, 0, 2))
+        with one_blas_thread():
+            gi = (xs @ self._wi_cat).reshape(n_rows, k, 3 * H).transpose(1, 0, 2)  # (K, N, 3H)
+            gh = np.matmul(hk, self._wh)
+        gi = gi + self._b_ih
+        gh += self._b_hh
+        rz = gi[..., :2 * H] + gh[..., :2 * H]
+        rz *= 0.5
+        rz = _sigmoid_of_half(rz)
+        r, z = rz[..., :H], rz[..., H:]
+        n = r * gh[..., 2 * H:]
+        n += gi[..., 2 * H:]
+        np.tanh(n, out=n)
+        out = hk - n
+        out *= z
+        out += n
+        return np.ascontiguousarray(out.transpose(1, 0, 2)).reshape(n_rows, k * H)
+
     def mean_proba(self, h: np.ndarray) -> np.ndarray:
         """The mean of the members' calibrated probabilities from the states h."""
+        if self._stacked:
+            k, n_rows = len(self.members), len(h)
+            hk = np.asarray(h, dtype=np.float32).reshape(n_rows, k, -1).transpose(1, 0, 2)
+            t = np.matmul(hk, self._wo) + self._b_out  # (K, N, 1): each member's logit
+            t = self._cal_a * t
+            t += self._cal_b
+            t *= 0.5
+            p = _sigmoid_of_half(t)[:, :, 0]
+            return (p.sum(axis=0, dtype=np.float32) / np.float32(k)).astype(np.float32, copy=False)
         total = None
         for m, a, b in self._blocks:
             p = m.calibrated(m.output_logits(h[:, a:b]))
