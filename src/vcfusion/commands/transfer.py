@@ -1,5 +1,6 @@
-"""Handlers of `vcfusion real-split` (frozen splits of imported recordings) and `vcfusion sim-to-real`
-(the sim-to-real table of lane-change predictors)."""
+"""Handlers of `vcfusion real-split` (frozen splits of imported recordings), `vcfusion retune`,
+`set-decision` and `ensemble-models` (lane-change model files) and `vcfusion sim-to-real` (the
+sim-to-real table of lane-change predictors)."""
 
 from __future__ import annotations
 

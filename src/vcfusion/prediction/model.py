@@ -212,8 +212,9 @@ def load_model(path: str | Path | None = None, expected_features=None) -> "LaneC
     """Read a model file (None = the shipped default); checks it against the current feature list
     (expected_features; None = what this version computes for the file's kind: FEATURE_NAMES for
     the MLP, one of features.SEQUENCE_INPUT_SETS for the sequence model). The file says its kind
-    (`meta.format`): the MLP (:class:`LaneChangeModel`) or the GRU
-    (:class:`vcfusion.prediction.sequence.SequenceModel`).
+    (`meta.format`): the MLP (:class:`LaneChangeModel`), the GRU
+    (:class:`vcfusion.prediction.sequence.SequenceModel`) or an ensemble of GRUs
+    (:class:`vcfusion.prediction.ensemble.EnsembleModel`, read as a GRU everywhere).
 
     Files are cached by path and modification time: a batch process builds one co-simulation
     per seed, and reading the file each time cost ~1 ms of a ~200 ms trip. The model is never
