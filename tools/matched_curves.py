@@ -57,8 +57,10 @@ def agreement(curves: dict[str, pd.DataFrame]) -> pd.DataFrame:
             dp = (m["all_predicted_a"] - m["all_predicted_b"]).abs()
             dfa = (m["all_fa_per_veh_h_a"] - m["all_fa_per_veh_h_b"]).abs()
             rows.append({"pair": f"{a} / {b}", "thresholds": len(m),
-                         "predicted: mean abs. difference (points)": 100 * dp.mean(), "predicted: largest (points)": 100 * dp.max(),
-                         "false alarms / veh-h: mean abs. difference": dfa.mean(), "false alarms / veh-h: largest": dfa.max()})
+                         "predicted: mean abs. difference (points)": 100 * dp.mean(),
+                         "predicted: largest (points)": 100 * dp.max(),
+                         "false alarms / veh-h: mean abs. difference": dfa.mean(),
+                         "false alarms / veh-h: largest": dfa.max()})
     table = pd.DataFrame(rows)
     if len(table) > 1:
         table = pd.concat([table, table.drop(columns=["pair"]).mean().to_frame().T.assign(
