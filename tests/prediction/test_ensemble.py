@@ -170,3 +170,19 @@ def test_a_damaged_ensemble_file_names_the_member_and_field(tmp_path):
 
     with pytest.raises(ModelFileError, match="--init: an ensemble of 2 GRUs"):
         _init_model(good)
+
+
+def test_saturated_members_give_finite_logits_and_exact_probabilities(tmp_path):
+    import dataclasses
+
+    from vcfusion.prediction.sequence import segment_bounds
+
+    sure = dataclasses.replace(_gru(10), w_out=np.zeros((1, 6)), b_out=np.array([80.0]))  # P = 1 in float32
+    never = dataclasses.replace(_gru(11), w_out=np.zeros((1, 6)), b_out=np.array([-200.0]))  # P = 0
+    stream = _stream(2)
+    x, names = stream[list(NAMES)].to_numpy(np.float32), list(NAMES)
+    for members, expected in (((sure,), 1.0), ((never,), 0.0), ((sure, never), 0.5)):
+        ens = build_ensemble(_files(tmp_path, *members))
+        logits = ens.sequence_logits(x, segment_bounds(stream, 0.1, ens.reset_gap_ticks))
+        assert np.isfinite(logits).all()  # a Platt fit (vcfusion retune) can use them
+        np.testing.assert_array_equal(ens.stream_proba(stream, names), np.float32(expected))

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from vcfusion.prediction.decision import DECISION_META_KEYS, DecisionSettings, decision_settings_from_meta
-from vcfusion.prediction.sequence import (_ARRAYS, SequenceModel, _sigmoid_of_half, segment_bounds,
+from vcfusion.prediction.sequence import (_ARRAYS, SEQUENCE_FORMAT, SequenceModel, _sigmoid_of_half, segment_bounds,
                                          sequence_model_from_file)
 from vcfusion.threads import one_blas_thread
 
@@ -40,11 +40,14 @@ _MUST_AGREE = (("feature_names", "inputs"), ("tau", "label window tau, s"), ("ta
                ("period_s", "V2C period, s"), ("reset_gap_ticks", "state-reset gap, ticks"))
 
 
+_LOGIT_LIMIT = 40.0  # |logit| cap: finite for a Platt fit (`vcfusion retune`), and sigmoid(+-40) is 1 / 0 in float64
+
+
 def _logit(p: np.ndarray) -> np.ndarray:
-    """log(p / (1 - p)) in float64 (+-inf at 0 and 1, which the sigmoid maps back exactly)."""
+    """log(p / (1 - p)) in float64, within +-_LOGIT_LIMIT (p of exactly 0 or 1 maps back to 0 or 1)."""
     p = np.asarray(p, dtype=np.float64)
     with np.errstate(divide="ignore"):
-        return np.log(p) - np.log1p(-p)
+        return np.clip(np.log(p) - np.log1p(-p), -_LOGIT_LIMIT, _LOGIT_LIMIT)
 
 
 @dataclass
@@ -209,7 +212,7 @@ def save_ensemble(model: EnsembleModel, path) -> Path:
     path = Path(path)
     members_meta, arrays = [], {}
     for k, m in enumerate(model.members):
-        members_meta.append({"format": "vcfusion-lane-change-gru/1", "kind": "gru",
+        members_meta.append({"format": SEQUENCE_FORMAT, "kind": "gru",
                              "feature_names": list(m.feature_names), "hidden": m.hidden,
                              "reset_gap_ticks": m.reset_gap_ticks, **m.decision_meta()})
         arrays |= {f"m{k}_{name}": getattr(m, name) for name in _ARRAYS}
