@@ -2,7 +2,7 @@
 # The sim-to-real table of the lane-change predictors (docs/components/real-data.md, "The
 # sim-to-real table"), from nothing but the two US-101 development files: imports, the frozen
 # splits (splits/), simulated datasets, the trained models, the re-tuned decisions and the table.
-# Seeded throughout (training: --seed 0 --threads 1); about 155 min on 2 CPU cores, most of it
+# Seeded throughout (training: --seed 0 --threads 1); about 175 min on 2 CPU cores, most of it
 # simulation and training. Steps already done (their output exists) are skipped.
 #   tools/sim_to_real.sh NGSIM_FILE COMMONROAD_ARCHIVE [WORK_DIR]   (default runs/sim-to-real)
 # NGSIM_FILE: ngsim_us101_0750-0805_first65535rows.csv.gz; COMMONROAD_ARCHIVE:
@@ -72,7 +72,8 @@ ${PYTHON:-python} tools/matched_curves.py "mixed-sim GRU lateral (candidate)=$W/
     --rates all:1.7,all:4,judged:3.4 --out "$W/matched_sway.md"
 # ensembles of fine-tuning seeds (docs/components/real-data.md, "Ensembles of fine-tuning seeds"): the
 # candidate's fold models fine-tuned again with seeds 1-9 (seed 0: cv-mix), each seed's curve, and the
-# ensembles of the same fold models {0-4}, {5-9}, {0,1,2}, {3,4,5}, {6,7,8}; about 25 min
+# ensembles of the same fold models {0-4}, {5-9}, {0,1,2}, {3,4,5}, {6,7,8}; about 25 min (the sway
+# models' ensembles below: about 20 min more)
 ln -sfn cv-mix "$W/cv-seed0"
 for s in 1 2 3 4 5 6 7 8 9; do
   mkdir -p "$W/cv-seed$s"
@@ -101,6 +102,14 @@ ${PYTHON:-python} tools/matched_curves.py "{0,1,2}=$W/ens-0-1-2/curve.csv" "{3,4
     "{6,7,8}=$W/ens-6-7-8/curve.csv" --agreement --out "$W/agreement_ens3.md"
 ${PYTHON:-python} tools/matched_curves.py "{0-4}=$W/ens-0-1-2-3-4/curve.csv" "{5-9}=$W/ens-5-6-7-8-9/curve.csv" \
     --agreement --out "$W/agreement_ens5.md"
+# the sway GRU and the real-only lateral + sway GRU, each as an ensemble of five fine-tuning seeds
+for m in mix_sway mix_lat_plus_sway; do
+  step "$W/ens-$m/curve.csv" ${PYTHON:-python} tools/real_alarms_cv.py "$D/ngsim" "$D/cr" "$M/$m.npz" "$W/ens-$m" \
+      --seeds 0,1,2,3,4
+done
+${PYTHON:-python} tools/matched_curves.py "candidate {0-4}=$W/ens-0-1-2-3-4/curve.csv" \
+    "sway {0-4}=$W/ens-mix_sway/curve.csv" "real only {0-4}=$W/ens-mix_lat_plus_sway/curve.csv" \
+    --rates all:1.7,all:4,judged:3.4 --out "$W/matched_ensembles_sway.md"
 # the lateral GRUs trained longer (docs/components/real-data.md, "Longer training"): the 3-epoch
 # files continued (--init: same inputs and standardisation) for at most 6 / 5 more epochs, stopped
 # on the same validation seeds (patience 2), decision tuned there (<= 1.5 false alarms / veh-h)
