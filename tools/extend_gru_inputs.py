@@ -35,8 +35,9 @@ def main() -> int:
         p.error(f"{a.out}: exists")
     try:
         model = load_model(a.model)
-        if model.kind != "gru":
-            raise ValueError(f"{a.model}: a GRU file is expected (kind {model.kind!r})")
+        if model.kind != "gru" or hasattr(model, "members"):
+            got = "an ensemble; extend each member" if model.kind == "gru" else "an MLP"
+            raise ValueError(f"{a.model}: a GRU file is expected (got {got})")
         names = SEQUENCE_INPUT_SETS[a.inputs]
         new = list(names[len(model.feature_names):])
         infos = load_datasets([Path(d) for d in a.datasets])

@@ -4,12 +4,17 @@ matched recall and at matched false alarms (docs/components/real-data.md, "Later
 vehicle's own sway").
 
     python tools/matched_curves.py "NAME=WORK_DIR/curve.csv" ... [--shares 63/94,70/94] \
-        [--rates all:1.7,all:5,judged:3.4] [--out FILE.md]
+        [--rates all:1.7,all:5,judged:3.4] [--out FILE.md] [--agreement]
 
 At each share: for each curve the threshold predicting at least that share of the pooled changes
 (--recording: of one recording's) with the fewest false alarms, once for the headline rate and
 once for the judged rate. At each rate:budget: the threshold predicting most changes within that
 rate. Prints a Markdown table (and writes it to --out).
+
+--agreement: instead, how far the curves lie apart (e.g. one model fine-tuned with several seeds):
+for each pair, over the thresholds both hold, the mean and largest absolute difference of the
+pooled lane changes predicted (count) and of the headline false alarms / veh-h, then the mean
+over the pairs.
 """
 
 from __future__ import annotations
@@ -40,6 +45,29 @@ def _cells(row: pd.Series | None) -> dict:
                           "censored)"}
 
 
+def agreement(curves: dict[str, pd.DataFrame]) -> pd.DataFrame:
+    """Per pair of curves, over the thresholds both hold: mean and largest |difference| of the share of
+    pooled lane changes predicted (percentage points) and of the headline false alarms / veh-h; with
+    more than one pair, a last row of the means over the pairs."""
+    rows = []
+    names = list(curves)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            m = curves[a].merge(curves[b], on="threshold", suffixes=("_a", "_b"))
+            dp = (m["all_predicted_a"] - m["all_predicted_b"]).abs()
+            dfa = (m["all_fa_per_veh_h_a"] - m["all_fa_per_veh_h_b"]).abs()
+            rows.append({"pair": f"{a} / {b}", "thresholds": len(m),
+                         "predicted: mean abs. difference (points)": 100 * dp.mean(),
+                         "predicted: largest (points)": 100 * dp.max(),
+                         "false alarms / veh-h: mean abs. difference": dfa.mean(),
+                         "false alarms / veh-h: largest": dfa.max()})
+    table = pd.DataFrame(rows)
+    if len(table) > 1:
+        table = pd.concat([table, table.drop(columns=["pair"]).mean().to_frame().T.assign(
+            pair=f"mean over {len(rows)} pairs")], ignore_index=True)
+    return table
+
+
 def _fraction(text: str) -> float:
     """0.67 or 63/94."""
     num, sep, den = text.partition("/")
@@ -55,6 +83,8 @@ def main() -> int:
     p.add_argument("--recording", default="all",
                    help="match on this recording's share and rates (a curve.csv prefix: ngsim, cr), default pooled")
     p.add_argument("--out", type=Path)
+    p.add_argument("--agreement", action="store_true",
+                   help="how far the curves lie apart, pair by pair (mean and largest differences over the thresholds)")
     a = p.parse_args()
     curves = {}
     for item in a.curves:
@@ -64,6 +94,17 @@ def main() -> int:
         if name in curves:
             p.error(f"{name!r}: given twice (each curve needs its own name)")
         curves[name] = pd.read_csv(path)
+    if a.agreement:
+        if len(curves) < 2:
+            p.error("--agreement: expected at least two curves")
+        table = agreement(curves)
+        text = "\n".join(["| " + " | ".join(table.columns) + " |", "|" + "---|" * len(table.columns)]
+                         + ["| " + " | ".join(f"{v:.2f}" if k > 1 else f"{v:.0f}" if k == 1 else str(v)
+                                              for k, v in enumerate(r)) + " |" for r in table.itertuples(index=False)])
+        print(text)
+        if a.out:
+            a.out.write_text(text + "\n")
+        return 0
     rows = []
     for share in (_fraction(x) for x in a.shares.split(",") if x):
         for rate in ("all", "judged"):

@@ -15,7 +15,12 @@ track over the vehicle-hours where it fits, `vcfusion.prediction.events`); curve
 
     python tools/real_alarms_cv.py NGSIM_DS CR_DS INIT_MODEL WORK_DIR \
         [--lr 3e-4] [--tau-ticks 50] [--budget 4] [--false-alarm-rate all|judged] [--apply MODEL --out FILE] \
-        [other `vcfusion train` options]
+        [--seeds 0,1,2] [other `vcfusion train` options, e.g. --seed 1]
+
+--seeds S1,S2,...: per fold one fine-tuning per seed (WORK_DIR/ft_cv{k}_seed{S}.npz) and their
+ensemble (`vcfusion ensemble-models`: the members' calibrated probabilities averaged) scored as
+WORK_DIR/ft_cv{k}.npz; without it one fine-tuning per fold (seed 0, or `--seed S`). A WORK_DIR
+holds one or the other: its scored files are never silently replaced by the other kind.
 
 NGSIM_DS / CR_DS: the imports (`vcfusion dataset --from-...`); run from the repository root (it
 reads splits/). Writes WORK_DIR/curve.csv and prints the choice; with --apply, writes it into
@@ -64,6 +69,31 @@ def run(*args: str) -> None:
     subprocess.run([sys.executable, "-m", "vcfusion", *args], check=True)
 
 
+def fine_tune(work: Path, k: int, init: str, lr: str, train_extra: list[str], out: Path, seed: int = 0) -> None:
+    run("train", str(work / f"ngsim-cv{k}"), str(work / f"cr-cv{k}"), "--kind", "gru", "--seed", str(seed),
+        "--threads", "1", "--init", init, "--epochs", "10", "--patience", "4", "--learning-rate", lr,
+        "--false-alarm-budget", "5", *[x for x in train_extra if x != "--"], "--out", str(out))
+
+
+def scored_models(work: Path, k: int, init: str, lr: str, train_extra: list[str], seeds: list[int] | None) -> None:
+    """WORK/ft_cv{k}.npz, the model scored on fold k: one fine-tuning, or the ensemble of one per seed."""
+    from vcfusion.prediction.ensemble import EnsembleModel
+
+    scored = work / f"ft_cv{k}.npz"
+    if scored.exists() and isinstance(load_model(scored), EnsembleModel) != bool(seeds):
+        raise SystemExit(f"error: {scored}: {'a single fine-tuning' if seeds else 'an ensemble (--seeds)'} of an "
+                         f"earlier run; use another WORK_DIR")
+    if not seeds:
+        if not scored.exists():
+            fine_tune(work, k, init, lr, train_extra, scored)
+        return
+    members = [work / f"ft_cv{k}_seed{s}.npz" for s in seeds]
+    for s, member in zip(seeds, members):
+        if not member.exists():
+            fine_tune(work, k, init, lr, train_extra, member, seed=s)
+    run("ensemble-models", *map(str, members), "--out", str(scored), "--force")
+
+
 def out_of_fold(work: Path, extra_columns: tuple[str, ...] = ()) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The pooled out-of-fold streams (seed, vehicle_id, time, prob, source, original_seed and
     `extra_columns` of the samples) and their lane changes; seeds offset per fold and source."""
@@ -103,7 +133,7 @@ def curve(stream: pd.DataFrame, events: pd.DataFrame, tau_ticks: int) -> pd.Data
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)  # --seed is `vcfusion train`'s
     for name in ("ngsim", "cr", "init", "work"):
         p.add_argument(name)
     p.add_argument("--lr", default="3e-4")
@@ -113,9 +143,21 @@ def main() -> int:
                    help="the rate bounded by --budget in each recording: all (headline) or judged (censoring-aware)")
     p.add_argument("--apply", help="model file to write the chosen decision into (with --out)")
     p.add_argument("--out", help="the model file --apply writes")
+    p.add_argument("--seeds", help="comma-separated fine-tuning seeds, e.g. 0,1,2: per fold the ensemble of one "
+                                   "fine-tuning per seed is scored (vcfusion ensemble-models)")
     a, train_extra = p.parse_known_args()  # the rest: options of `vcfusion train`
     if bool(a.apply) != bool(a.out):
         p.error("--apply and --out go together")
+    seeds = None
+    if a.seeds is not None:
+        try:
+            seeds = [int(x) for x in a.seeds.split(",")]
+        except ValueError:
+            p.error(f"--seeds: expected comma-separated whole numbers, e.g. 0,1,2, got {a.seeds!r}")
+        if len(set(seeds)) != len(seeds):
+            p.error(f"--seeds: expected different seeds, got {a.seeds}")
+        if any(x == "--seed" or x.startswith("--seed=") for x in train_extra):
+            p.error("--seeds and --seed: give one of them")
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
     fold_files(work)
@@ -123,11 +165,7 @@ def main() -> int:
         for name, ds in (("ngsim", a.ngsim), ("cr", a.cr)):
             if not (work / f"{name}-cv{k}").exists():
                 run("real-split", "apply", ds, str(work / f"{name}_cv{k}.json"), "--out", str(work / f"{name}-cv{k}"))
-        if not (work / f"ft_cv{k}.npz").exists():
-            run("train", str(work / f"ngsim-cv{k}"), str(work / f"cr-cv{k}"), "--kind", "gru", "--seed", "0",
-                "--threads", "1", "--init", a.init, "--epochs", "10", "--patience", "4", "--learning-rate", a.lr,
-                "--false-alarm-budget", "5", *[x for x in train_extra if x != "--"], "--out",
-                str(work / f"ft_cv{k}.npz"))
+        scored_models(work, k, a.init, a.lr, train_extra, seeds)
     stream, events = out_of_fold(work)
     table = curve(stream, events, a.tau_ticks)
     table.to_csv(work / "curve.csv", index=False)
@@ -151,6 +189,7 @@ def main() -> int:
             f"tools/real_alarms_cv.py: cross-fitted validation streams of the development and validation parts "
             f"({FOLDS} folds, {len(events)} lane changes, {len(stream) * 0.1 / 3600:.2f} veh-h), most lane changes "
             f"with <= {a.budget:g} false alarms / veh-h in each recording"
+            + (f"; fold models: ensembles of the fine-tuning seeds {a.seeds}" if seeds else "")
             + (" (judged: uncensored false alarms over the exposure where the confirming window fits)"
                if a.rate == "judged" else ""))
     return 0

@@ -2,13 +2,14 @@
 # The sim-to-real table of the lane-change predictors (docs/components/real-data.md, "The
 # sim-to-real table"), from nothing but the two US-101 development files: imports, the frozen
 # splits (splits/), simulated datasets, the trained models, the re-tuned decisions and the table.
-# Seeded throughout (training: --seed 0 --threads 1); about 130 min on 2 CPU cores, most of it
+# Seeded throughout (training: --seed 0 --threads 1); about 175 min on 2 CPU cores, most of it
 # simulation and training. Steps already done (their output exists) are skipped.
 #   tools/sim_to_real.sh NGSIM_FILE COMMONROAD_ARCHIVE [WORK_DIR]   (default runs/sim-to-real)
 # NGSIM_FILE: ngsim_us101_0750-0805_first65535rows.csv.gz; COMMONROAD_ARCHIVE:
 # commonroad_ngsim_us101.tar.xz (their README says where they come from). The table lands in
 # WORK_DIR/table/sim_to_real.{md,csv,json}, the longer-trained GRUs' in WORK_DIR/table-long/, the sway
-# inputs' comparison in WORK_DIR/matched_sway.md.
+# inputs' comparison in WORK_DIR/matched_sway.md, the seed ensembles' in WORK_DIR/matched_ensembles.md
+# and WORK_DIR/agreement_*.md.
 set -eu
 NGSIM="$1"; CR="$2"; W="${3:-runs/sim-to-real}"
 V="${PYTHON:-python} -m vcfusion"
@@ -69,6 +70,46 @@ done
 ${PYTHON:-python} tools/matched_curves.py "mixed-sim GRU lateral (candidate)=$W/cv-mix/curve.csv" \
     "mixed-sim GRU sway=$W/cv-mix_sway/curve.csv" "mixed-sim GRU lateral + sway (real only)=$W/cv-mix_lat_plus_sway/curve.csv" \
     --rates all:1.7,all:4,judged:3.4 --out "$W/matched_sway.md"
+# ensembles of fine-tuning seeds (docs/components/real-data.md, "Ensembles of fine-tuning seeds"): the
+# candidate's fold models fine-tuned again with seeds 1-9 (seed 0: cv-mix), each seed's curve, and the
+# ensembles of the same fold models {0-4}, {5-9}, {0,1,2}, {3,4,5}, {6,7,8}; about 25 min (the sway
+# models' ensembles below: about 20 min more)
+ln -sfn cv-mix "$W/cv-seed0"
+for s in 1 2 3 4 5 6 7 8 9; do
+  mkdir -p "$W/cv-seed$s"
+  for k in 0 1 2 3; do for n in ngsim cr; do ln -sfn "../cv-mix/$n-cv$k" "$W/cv-seed$s/$n-cv$k"; done; done
+  step "$W/cv-seed$s/curve.csv" ${PYTHON:-python} tools/real_alarms_cv.py "$D/ngsim" "$D/cr" "$M/mix_lat.npz" \
+      "$W/cv-seed$s" --seed "$s"
+done
+for e in 0,1,2,3,4 5,6,7,8,9 0,1,2 3,4,5 6,7,8; do
+  E="$W/ens-$(echo "$e" | tr , -)"
+  mkdir -p "$E"
+  for k in 0 1 2 3; do
+    for n in ngsim cr; do ln -sfn "../cv-mix/$n-cv$k" "$E/$n-cv$k"; done
+    for s in $(echo "$e" | tr , ' '); do ln -sfn "../cv-seed$s/ft_cv$k.npz" "$E/ft_cv${k}_seed$s.npz"; done
+  done
+  step "$E/curve.csv" ${PYTHON:-python} tools/real_alarms_cv.py "$D/ngsim" "$D/cr" "$M/mix_lat.npz" "$E" --seeds "$e"
+done
+SEEDS=""
+for s in 0 1 2 3 4 5 6 7 8 9; do SEEDS="$SEEDS seed$s=$W/cv-seed$s/curve.csv"; done
+# shellcheck disable=SC2086
+${PYTHON:-python} tools/matched_curves.py $SEEDS "{0,1,2}=$W/ens-0-1-2/curve.csv" "{3,4,5}=$W/ens-3-4-5/curve.csv" \
+    "{6,7,8}=$W/ens-6-7-8/curve.csv" "{0-4}=$W/ens-0-1-2-3-4/curve.csv" "{5-9}=$W/ens-5-6-7-8-9/curve.csv" \
+    --shares 63/94,70/94 --rates all:4 --out "$W/matched_ensembles.md"
+# shellcheck disable=SC2086
+${PYTHON:-python} tools/matched_curves.py $SEEDS --agreement --out "$W/agreement_seeds.md"
+${PYTHON:-python} tools/matched_curves.py "{0,1,2}=$W/ens-0-1-2/curve.csv" "{3,4,5}=$W/ens-3-4-5/curve.csv" \
+    "{6,7,8}=$W/ens-6-7-8/curve.csv" --agreement --out "$W/agreement_ens3.md"
+${PYTHON:-python} tools/matched_curves.py "{0-4}=$W/ens-0-1-2-3-4/curve.csv" "{5-9}=$W/ens-5-6-7-8-9/curve.csv" \
+    --agreement --out "$W/agreement_ens5.md"
+# the sway GRU and the real-only lateral + sway GRU, each as an ensemble of five fine-tuning seeds
+for m in mix_sway mix_lat_plus_sway; do
+  step "$W/ens-$m/curve.csv" ${PYTHON:-python} tools/real_alarms_cv.py "$D/ngsim" "$D/cr" "$M/$m.npz" "$W/ens-$m" \
+      --seeds 0,1,2,3,4
+done
+${PYTHON:-python} tools/matched_curves.py "candidate {0-4}=$W/ens-0-1-2-3-4/curve.csv" \
+    "sway {0-4}=$W/ens-mix_sway/curve.csv" "real only {0-4}=$W/ens-mix_lat_plus_sway/curve.csv" \
+    --rates all:1.7,all:4,judged:3.4 --out "$W/matched_ensembles_sway.md"
 # the lateral GRUs trained longer (docs/components/real-data.md, "Longer training"): the 3-epoch
 # files continued (--init: same inputs and standardisation) for at most 6 / 5 more epochs, stopped
 # on the same validation seeds (patience 2), decision tuned there (<= 1.5 false alarms / veh-h)

@@ -240,3 +240,33 @@ def test_frozen_split_by_vehicle_and_the_sim_to_real_table(tiny_recording, tmp_p
     info = load_model(rt).info["retuned"]
     assert info["false_alarm_rate"] == "judged"
     assert info["tuning"]["aggressive"]["validation"]["judged_vehicle_hours"] > 0
+
+
+def test_an_ensemble_file_scores_in_evaluate_and_sim_to_real(tiny_recording, tmp_path):
+    """`vcfusion ensemble-models` output is read as a model file by the scoring commands, and the
+    figures are the ensemble's (not a member's)."""
+    _, data = tiny_recording
+    members = [save_sequence_model(_tiny_gru(SEQUENCE_INPUT_SETS["lateral"], seed=s, threshold=0.3),
+                                   tmp_path / f"g{s}.npz") for s in (0, 1)]
+    ens = tmp_path / "ens.npz"
+    assert main(["ensemble-models", *map(str, members), "--out", str(ens)]) == 0
+    out = tmp_path / "table"
+    assert main(["sim-to-real", "--model", f"ensemble={ens}", "--eval", f"every vehicle={data}:all", "--out", str(out),
+                 "--bootstrap", "20"]) == 0
+    row = pd.read_csv(out / "sim_to_real.csv").iloc[0]
+    ev = tmp_path / "ev"
+    assert main(["evaluate", str(ens), str(data), "--split", "all", "--no-baselines", "--out", str(ev)]) == 0
+    report = json.loads((ev / "evaluation.json").read_text())
+    assert row["false_alarms_per_veh_h"] == pytest.approx(report["default"]["false_alarms_per_veh_h"])
+    assert "GRU ensemble of 2" in json.dumps(report)
+    from vcfusion.prediction.dataset import load_dataset
+    from vcfusion.prediction.features import stored_columns, with_derived_columns
+    from vcfusion.prediction.train import stream_with_events
+
+    names = list(SEQUENCE_INPUT_SETS["lateral"])
+    stream, _ = stream_with_events(load_dataset(data), "all", columns=["seed", "vehicle_id", "time",
+                                                                        *stored_columns(names)])
+    with_derived_columns(stream, names, 0.1)
+    p0, p1 = (load_model(m).stream_proba(stream, names) for m in members)
+    assert np.abs(p0 - p1).max() > 0.05
+    np.testing.assert_allclose(load_model(ens).stream_proba(stream, names), (p0 + p1) / 2, atol=1e-6)

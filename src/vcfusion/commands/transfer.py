@@ -1,5 +1,6 @@
-"""Handlers of `vcfusion real-split` (frozen splits of imported recordings) and `vcfusion sim-to-real`
-(the sim-to-real table of lane-change predictors)."""
+"""Handlers of `vcfusion real-split` (frozen splits of imported recordings), `vcfusion retune`,
+`set-decision` and `ensemble-models` (lane-change model files) and `vcfusion sim-to-real` (the
+sim-to-real table of lane-change predictors)."""
 
 from __future__ import annotations
 
@@ -70,6 +71,26 @@ def cmd_set_decision(args: argparse.Namespace) -> int:
         print(set_decision(Path(args.model), out, args.smoothing, args.threshold, args.tau_ticks, args.reason))
     except (ValueError, ModelFileError) as exc:
         raise UsageError(str(exc)) from None
+    return 0
+
+
+def cmd_ensemble_models(args: argparse.Namespace) -> int:
+    from vcfusion.prediction.ensemble import build_ensemble, save_ensemble
+
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise UsageError(f"--out: {out} already exists (use --force to replace it)")
+    if out.resolve() in {Path(m).resolve() for m in args.model}:
+        raise UsageError(f"--out: {out} is one of the members; write the ensemble to another file")
+    check_folder_path(out.parent)
+    model = build_ensemble(args.model)  # ModelFileError (an InputError) naming the file
+    save_ensemble(model, out)
+    hidden = "/".join(str(m.hidden) for m in model.members)
+    print(f"{out}: ensemble of {len(model.members)} GRUs (hidden {hidden}, {len(model.feature_names)} inputs); "
+          "the members' calibrated probabilities are averaged each tick")
+    print(f"  decision settings copied from {Path(args.model[0]).name} ({model.smoothing}, threshold "
+          f"{model.threshold_for(model.smoothing):g}), tuned on that member's probabilities: choose the "
+          "ensemble's own with `vcfusion retune` or `vcfusion set-decision`")
     return 0
 
 
@@ -160,6 +181,15 @@ def add_parsers(sub) -> None:
                         "streams and the false-alarm budget)")
     p.add_argument("--force", action="store_true", help="replace an existing --out")
     p.set_defaults(func=cmd_set_decision, interrupted="the model file was not written; run the same command again")
+
+    p = sub.add_parser("ensemble-models", help="one model file holding several GRUs of the same inputs (e.g. "
+                                               "fine-tuned with different --seed); their calibrated probabilities "
+                                               "are averaged each tick")
+    p.add_argument("model", nargs="+", help="GRU model files (`vcfusion train --kind gru`), the same inputs, label "
+                                            "windows and V2C period; the first one's decision settings are copied")
+    p.add_argument("--out", required=True, help="model file to write")
+    p.add_argument("--force", action="store_true", help="replace an existing --out")
+    p.set_defaults(func=cmd_ensemble_models, interrupted="the model file was not written; run the same command again")
 
     p = sub.add_parser("sim-to-real", help="the sim-to-real table: lane-change models x evaluation sets, with "
                                            "bootstrap intervals over vehicles (CSV + markdown)")

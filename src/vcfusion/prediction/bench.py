@@ -40,6 +40,7 @@ def bench_model(path, n_twins: int = 100, repeats: int = 2000) -> list[str]:
     predictor = LaneChangePredictor(model, road, 0.1)
     predictor(twins)  # warm-up, fills the per-twin memory
     gru = model.kind == "gru"
+    members = None
     flags = {"extras": gru, "availability": predictor.availability, "lateral": predictor.lateral,
              "sway": predictor.sway}  # the model's inputs
     features = predictor.extractor.from_twins(twins, **flags)
@@ -47,7 +48,9 @@ def bench_model(path, n_twins: int = 100, repeats: int = 2000) -> list[str]:
         ticks = iter(range(1, 10**9))  # each call one tick later: the per-twin states are carried, never reset
         prob = predictor.sequence(twins.ids, twins.time, features)
         step = lambda: predictor.sequence(twins.ids, 0.1 * next(ticks), features)  # noqa: E731
-        size = f"GRU, hidden {model.hidden}"
+        members = getattr(model, "members", None)  # an ensemble of GRUs (vcfusion.prediction.ensemble)
+        size = (f"GRU ensemble of {len(members)}, hidden {'/'.join(str(m.hidden) for m in members)}" if members
+                else f"GRU, hidden {model.hidden}")
     else:
         prob = model.predict_proba(features)
         step = lambda: model.predict_proba(features)  # noqa: E731
@@ -63,9 +66,12 @@ def bench_model(path, n_twins: int = 100, repeats: int = 2000) -> list[str]:
              f"(model {Path(path).name}: {size}, {len(model.feature_names)} inputs):",
              f"  features (compiled)     {t_features:8.1f} us",
              f"  {'GRU step, NumPy f32' if gru else 'MLP, NumPy float32':22s}  {t_model:8.1f} us"
-             + ("  (one step per twin, states carried)" if gru else ""),
+             + ("  (one step per twin, states carried" + (", each member's, probabilities averaged)"
+                                                            if members else ")") if gru else ""),
              f"  smoothing ({predictor.smoother.method:12s}) {t_smooth:5.1f} us",
              f"  whole process model     {t_total:8.1f} us per tick"]
+    if members:  # an ensemble has no single torch module to compare with
+        return lines
     try:
         import torch
 

@@ -134,6 +134,8 @@ def evaluate(model_path: Path, dataset: Path, out: Path | None = None, split: st
         model_names = names + privileged if ceiling else names
     model = load_model(model_path, expected_features=model_names)
     model_label = {"gru": "GRU"}.get(model.kind, "MLP + SUMO state (privileged)" if ceiling else "MLP")
+    if getattr(model, "members", None):  # vcfusion.prediction.ensemble
+        model_label = f"GRU ensemble of {len(model.members)}"
     if not info.seeds(split):
         raise DatasetError(f"{dataset}: split {split!r} is empty")
     out = Path(out) if out else Path(dataset) / f"eval-{Path(model_path).stem}"

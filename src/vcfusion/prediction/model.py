@@ -212,8 +212,9 @@ def load_model(path: str | Path | None = None, expected_features=None) -> "LaneC
     """Read a model file (None = the shipped default); checks it against the current feature list
     (expected_features; None = what this version computes for the file's kind: FEATURE_NAMES for
     the MLP, one of features.SEQUENCE_INPUT_SETS for the sequence model). The file says its kind
-    (`meta.format`): the MLP (:class:`LaneChangeModel`) or the GRU
-    (:class:`vcfusion.prediction.sequence.SequenceModel`).
+    (`meta.format`): the MLP (:class:`LaneChangeModel`), the GRU
+    (:class:`vcfusion.prediction.sequence.SequenceModel`) or an ensemble of GRUs
+    (:class:`vcfusion.prediction.ensemble.EnsembleModel`, read as a GRU everywhere).
 
     Files are cached by path and modification time: a batch process builds one co-simulation
     per seed, and reading the file each time cost ~1 ms of a ~200 ms trip. The model is never
@@ -228,6 +229,7 @@ def load_model(path: str | Path | None = None, expected_features=None) -> "LaneC
 
 def model_kind(path: str | Path) -> str:
     """'mlp' or 'gru': the kind of model a file holds (read without checking the rest)."""
+    from vcfusion.prediction.ensemble import ENSEMBLE_FORMAT
     from vcfusion.prediction.sequence import SEQUENCE_FORMAT
 
     path = Path(path)
@@ -238,7 +240,17 @@ def model_kind(path: str | Path) -> str:
             fmt = json.loads(str(data["meta"])).get("format")
     except Exception as exc:
         raise ModelFileError(f"{path}: not a vcfusion lane-change model file ({type(exc).__name__}: {exc})") from None
-    return "gru" if fmt == SEQUENCE_FORMAT else "mlp"
+    return "gru" if fmt in (SEQUENCE_FORMAT, ENSEMBLE_FORMAT) else "mlp"  # an ensemble of GRUs reads as one
+
+
+def save_model_file(model, path: str | Path) -> Path:
+    """Write any lane-change model (MLP, GRU or an ensemble of GRUs) in its own file format."""
+    from vcfusion.prediction.ensemble import EnsembleModel, save_ensemble
+    from vcfusion.prediction.sequence import save_sequence_model
+
+    if isinstance(model, EnsembleModel):
+        return save_ensemble(model, path)
+    return (save_sequence_model if model.kind == "gru" else save_model)(model, path)
 
 
 # metadata keys a model file must hold, with the type each must have
@@ -247,6 +259,7 @@ META_KEYS = {"feature_names": list, **DECISION_META_KEYS, "layers": int}
 
 @functools.lru_cache(maxsize=8)
 def _load_model_file(name: str, _mtime_ns: int, expected_features: tuple[str, ...] | None):
+    from vcfusion.prediction.ensemble import ENSEMBLE_FORMAT, ensemble_from_file
     from vcfusion.prediction.features import FEATURE_NAMES, SEQUENCE_EXTRA_NAMES
     from vcfusion.prediction.sequence import SEQUENCE_FORMAT, sequence_model_from_file
 
@@ -256,9 +269,10 @@ def _load_model_file(name: str, _mtime_ns: int, expected_features: tuple[str, ..
             if "meta" not in data:
                 raise ModelFileError(f"{path}: meta: missing; expected a model file written by `vcfusion train`")
             meta = json.loads(str(data["meta"]))
-            if not isinstance(meta, dict) or meta.get("format") not in (MODEL_FORMAT, SEQUENCE_FORMAT):
+            if not isinstance(meta, dict) or meta.get("format") not in (MODEL_FORMAT, SEQUENCE_FORMAT, ENSEMBLE_FORMAT):
                 got = meta.get("format") if isinstance(meta, dict) else meta
-                raise ModelFileError(f"{path}: format: expected {MODEL_FORMAT!r} or {SEQUENCE_FORMAT!r}, got {got!r}")
+                raise ModelFileError(f"{path}: format: expected {MODEL_FORMAT!r}, {SEQUENCE_FORMAT!r} or "
+                                     f"{ENSEMBLE_FORMAT!r}, got {got!r}")
             if meta["format"] == MODEL_FORMAT:
                 _check_meta(path, meta)
             arrays = {k: data[k] for k in data.files if k != "meta"}
@@ -267,8 +281,8 @@ def _load_model_file(name: str, _mtime_ns: int, expected_features: tuple[str, ..
     except Exception as exc:
         raise ModelFileError(f"{path}: not a vcfusion lane-change model file ({type(exc).__name__}); "
                              "expected a .npz written by `vcfusion train`") from None
-    if meta["format"] == SEQUENCE_FORMAT:
-        seq = sequence_model_from_file(path, meta, arrays)
+    if meta["format"] in (SEQUENCE_FORMAT, ENSEMBLE_FORMAT):
+        seq = (sequence_model_from_file if meta["format"] == SEQUENCE_FORMAT else ensemble_from_file)(path, meta, arrays)
         if expected_features is None:  # any input list this version computes (the file records its own)
             from vcfusion.prediction.features import SEQUENCE_INPUT_SETS
 

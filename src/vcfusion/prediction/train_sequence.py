@@ -264,9 +264,14 @@ def _init_model(path) -> SequenceModel:
     """The GRU a fine-tuning starts from (a ModelFileError for anything else)."""
     from vcfusion.prediction.model import ModelFileError, load_model
 
+    from vcfusion.prediction.ensemble import EnsembleModel
+
     model = load_model(path)
     if model.kind != "gru":
         raise ModelFileError(f"{path}: --init: expected a GRU file (`vcfusion train --kind gru`), got an MLP")
+    if isinstance(model, EnsembleModel):
+        raise ModelFileError(f"{path}: --init: an ensemble of {len(model.members)} GRUs; fine-tune from one GRU "
+                             "file and ensemble the results (`vcfusion ensemble-models`)")
     return model
 
 
@@ -277,7 +282,7 @@ def retune_decisions(model_path: Path, datasets: list[Path], out: Path, false_al
     weights unchanged; writes the new file, returns a report. `false_alarm_rate`: the rate the
     budget bounds, "all" or "judged" (censoring-aware; :func:`vcfusion.prediction.train.tune_decisions`)."""
     from vcfusion.prediction.features import stored_columns, with_derived_columns
-    from vcfusion.prediction.model import fit_platt, load_model, save_model
+    from vcfusion.prediction.model import fit_platt, load_model, save_model_file
     from vcfusion.prediction.train import choose_default, combined_stream, load_datasets, tune_decisions, tuning_report
 
     model = copy.deepcopy(load_model(model_path))
@@ -308,7 +313,7 @@ def retune_decisions(model_path: Path, datasets: list[Path], out: Path, false_al
                                             "false_alarm_budget": false_alarm_budget,
                                             "false_alarm_rate": false_alarm_rate, "tuning": tuned,
                                             "calibration": list(model.calibration)}}
-    (save_sequence_model if model.kind == "gru" else save_model)(model, out)
+    save_model_file(model, out)
     head = (f"re-tuned {model_path} on the validation seeds of {len(infos)} datasets ({len(va_events)} lane changes, "
             f"{len(va) * model.period_s / 3600:.2f} vehicle-hours), false-alarm budget {false_alarm_budget:g} / veh-h "
             f"({false_alarm_rate})")
@@ -322,7 +327,7 @@ def set_decision(model_path: Path, out: Path, smoothing: str, threshold: float, 
     decision chosen outside the model's own validation tuning, e.g. on the cross-fitted validation
     streams of a small recording (docs: components/real-data.md, "False alarms on real data");
     `reason` is recorded in the file's info (`decision_set`) with the settings it replaced."""
-    from vcfusion.prediction.model import load_model, save_model
+    from vcfusion.prediction.model import load_model, save_model_file
     from vcfusion.prediction.smoothing import _METHODS
 
     if smoothing not in _METHODS:
@@ -346,7 +351,7 @@ def set_decision(model_path: Path, out: Path, smoothing: str, threshold: float, 
     model.info = {**model.info, "decision_set": {"from": Path(model_path).name, "smoothing": smoothing,
                                                  "threshold": float(threshold), "tau_ticks": int(tau_ticks),
                                                  "reason": reason, "replaced": before}}
-    (save_sequence_model if model.kind == "gru" else save_model)(model, out)
+    save_model_file(model, out)
     return (f"{out}: {smoothing}, threshold {threshold:g}, tau {int(tau_ticks)} ticks "
             f"(was {before['smoothing']}, threshold {before['thresholds'].get(before['smoothing'], before['threshold']):g}); "
             f"weights and calibration of {model_path}")
