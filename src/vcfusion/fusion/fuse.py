@@ -487,7 +487,7 @@ HIDDEN_DEPTH_CONFIRM_SIGMAS = 1.0
 # there can be the nearer or farther vehicle beside the strip (curved.yaml seed 125: trucks1, 0.83
 # of its outline hidden, took trucks2's box 15 m nearer, depth read by the lower-quarter samples
 # only). Share of the outline's 16 x 16 raster cells (matching.visible_boxes). Chosen on the
-# development records (fusion arm, curved.yaml 118, 119, 121, 124, 125 and accident_heavy.yaml
+# development records (fusion arm, curved.yaml 118, 119, 121, 123-125 and accident_heavy.yaml
 # 122-125; every AR update re-judged; docs/components/guidance-loop.md): at 0.8 the rule makes 1
 # warned and 4 unwarned wrong boxes missed or unseen and no right box undrawn; 0.75 / 0.7 undraw 8 /
 # 13 right boxes (unwarned) as well, 0.85 / 0.9 leave the warned wrong box (0.83 hidden) drawn. In
