@@ -130,3 +130,25 @@ def test_a_mostly_hidden_twin_is_judged_by_its_box_where_the_boxs_surface_lies_a
     assert undrawn_reason(box, outline, 0.94, depth_sigmas=1.5, shown_depth_sigmas=0.2, depth_on_surface=True) == ""
     # a box whose part within the outline is itself under MIN_DRAWN_VISIBLE_PX stays small
     assert undrawn_reason((338.0, 214.0, 344.0, 232.0), outline, 0.94, depth_sigmas=0.01, depth_on_surface=True) == "small"
+
+
+def test_a_mostly_hidden_twin_is_drawn_only_where_depth_puts_its_box_at_it():
+    """curved.yaml seed 125 (development), trucks1 at 103 m: nearer outlines hide 0.83 of its
+    outline, and the matcher gave it the box of trucks2, 15 m nearer, on the lower-quarter samples'
+    depth (no surface drew the box's outline; 1.0 sigma). Mostly hidden (MOSTLY_HIDDEN_SHARE) the
+    twin needs what a twin hidden whole needs: the surface drawing its box at the twin. Under the
+    share the outlines decide as before."""
+    from vcfusion.fusion.fuse import MOSTLY_HIDDEN_SHARE
+
+    outline = (363.0, 206.0, 394.0, 222.0)  # 31 x 16 px: 84 px left at 0.83 hidden, over MIN_DRAWN_VISIBLE_PX
+    box = (356.0, 204.0, 378.0, 218.0)  # trucks2's box
+    assert MOSTLY_HIDDEN_SHARE <= 0.83 < 1.0
+    assert undrawn_reason(box, outline, 0.83, depth_sigmas=1.0) == "hidden"
+    assert undrawn_reason(box, outline, 0.83, depth_sigmas=0.9, shown_depth_sigmas=1.5) == "hidden"  # samples only
+    assert undrawn_reason(box, outline, 0.83, depth_sigmas=1.3, depth_on_surface=True) == "hidden"  # surface off
+    # the surface drawing the box lies at the twin (its face or the part the box's columns show): drawn
+    assert undrawn_reason(box, outline, 0.83, depth_sigmas=0.2, depth_on_surface=True) == ""
+    assert undrawn_reason(box, outline, 0.83, depth_sigmas=1.3, shown_depth_sigmas=0.4, depth_on_surface=True) == ""
+    # less hidden than the share: drawn on the outlines' estimate whatever the depth
+    below = MOSTLY_HIDDEN_SHARE - 1.0 / 256  # one cell of visible_boxes' 16 x 16 raster
+    assert undrawn_reason(box, outline, below, depth_sigmas=3.0) == ""

@@ -76,7 +76,8 @@ def test_the_overlay_draws_no_box_for_a_twin_it_expects_too_small_to_see():
     assert drawable_box(box, far) is None and undrawn_reason(box, far) == "small"
     outline = (100.0, 100.0, 120.0, 120.0)  # 400 px, 15/16 of it behind the car in front: 25 px left
     assert undrawn_reason((100.0, 100.0, 120.0, 120.0), outline, 0.9375) == "small"
-    assert undrawn_reason((100.0, 100.0, 120.0, 120.0), outline, 0.8) == ""  # 80 px left: drawn
+    # 80 px left: drawn (mostly hidden, MOSTLY_HIDDEN_SHARE: where the box's surface lies at the twin)
+    assert undrawn_reason((100.0, 100.0, 120.0, 120.0), outline, 0.8, depth_sigmas=0.4, depth_on_surface=True) == ""
     from vcfusion.fusion.fuse import MIN_DRAWN_VISIBLE_PX
 
     assert 6 * 4 < MIN_DRAWN_VISIBLE_PX <= 80 and MIN_DRAWN_VISIBLE_PX <= MIN_VISIBLE_PX

@@ -29,8 +29,9 @@ COLUMNS = ["episode", "twin", "outcome", "start_s", "end_s", "updates", "bridged
 
 
 UNDRAWN_WHY = {"no_match": "no box was matched to its twin",
-               "hidden": "a box was matched but not drawn: the twins in front of it hide its whole outline and "
-                         "the box's depth does not put it at the twin (fusion.fuse.HIDDEN_DEPTH_CONFIRM_SIGMAS)",
+               "hidden": "a box was matched but not drawn: the twins in front of it hide its whole outline, or most "
+                         "of it (fusion.fuse.MOSTLY_HIDDEN_SHARE), and the box's depth does not put it at the twin "
+                         "(fusion.fuse.HIDDEN_DEPTH_CONFIRM_SIGMAS)",
                "small": "a box was matched but not drawn: the part of the twin's outline the twins in front "
                         "leave visible is under 50 px (fusion.fuse.MIN_DRAWN_VISIBLE_PX)",
                "too_large": "a box was matched but not drawn: it is too large for the twin's outline"}
