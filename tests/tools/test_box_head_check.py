@@ -1,23 +1,17 @@
 """tools/box_head_check.py: the summary groups box pairs by the ground truth's height and counts the
 shares at IoU >= 0.7 before and after the head; the pooled row holds the far boxes only."""
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 
-TOOLS = Path(__file__).resolve().parents[2] / "tools"
+from support.tool_modules import load_tool
 
 
-def _tool():
-    spec = importlib.util.spec_from_file_location("box_head_check", TOOLS / "box_head_check.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+
 
 
 def test_summary_groups_by_height_and_pools_the_far_boxes():
-    tool = _tool()
+    tool = load_tool("box_head_check")
     # (ground-truth height px, IoU as detected, IoU after the head)
     pairs = np.array([[10.0, 0.6, 0.8], [12.0, 0.8, 0.75], [40.0, 0.5, 0.9], [90.0, 0.9, 0.6]])
     lines = tool.summary_lines(pairs)

@@ -1,19 +1,13 @@
 """tools/matched_curves.py --agreement: how far decision curves lie apart, on a known case."""
 
-import importlib.util
-from pathlib import Path
 
 import pandas as pd
 import pytest
 
-TOOL = Path(__file__).resolve().parents[2] / "tools" / "matched_curves.py"
+from support.tool_modules import load_tool
 
 
-def _tool():
-    spec = importlib.util.spec_from_file_location("matched_curves", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+
 
 
 def _curve(thresholds, predicted, fa):
@@ -24,7 +18,7 @@ def test_agreement_over_the_common_thresholds_and_the_mean_over_pairs():
     curves = {"a": _curve([0.3, 0.4, 0.5], [0.80, 0.70, 0.60], [9.0, 5.0, 2.0]),
               "b": _curve([0.3, 0.4, 0.5, 0.6], [0.80, 0.60, 0.60, 0.5], [8.0, 5.0, 4.0, 1.0]),
               "c": _curve([0.3, 0.4, 0.5], [0.80, 0.70, 0.60], [9.0, 5.0, 2.0])}
-    table = _tool().agreement(curves).set_index("pair")
+    table = load_tool("matched_curves").agreement(curves).set_index("pair")
     ab = table.loc["a / b"]
     assert ab["thresholds"] == 3  # 0.6 is in b only
     assert ab["predicted: mean abs. difference (points)"] == pytest.approx(10 / 3)

@@ -1,9 +1,7 @@
 """tools/real_alarms_cv.py --seeds: per fold one fine-tuning per seed and their ensemble scored;
 a work folder of single fine-tunings is never replaced by ensembles (or the reverse)."""
 
-import importlib.util
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,14 +12,10 @@ from vcfusion.prediction.features import SEQUENCE_INPUT_SETS
 from vcfusion.prediction.model import load_model
 from vcfusion.prediction.sequence import SequenceModel, save_sequence_model
 
-TOOL = Path(__file__).resolve().parents[2] / "tools" / "real_alarms_cv.py"
+from support.tool_modules import load_tool
 
 
-def _tool():
-    spec = importlib.util.spec_from_file_location("real_alarms_cv", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+
 
 
 def _fake_run(calls):
@@ -42,7 +36,7 @@ def _fake_run(calls):
 
 
 def test_seeds_fine_tune_once_per_seed_and_score_their_ensemble(tmp_path, monkeypatch):
-    tool = _tool()
+    tool = load_tool("real_alarms_cv")
     calls = []
     monkeypatch.setattr(tool, "run", _fake_run(calls))
     tool.scored_models(tmp_path, 2, "init.npz", "3e-4", ["--", "--inputs", "lateral"], [0, 4])
@@ -68,7 +62,7 @@ def test_seeds_fine_tune_once_per_seed_and_score_their_ensemble(tmp_path, monkey
 
 
 def test_seed_is_not_read_as_an_abbreviation_of_seeds(tmp_path, monkeypatch, capsys):
-    tool = _tool()
+    tool = load_tool("real_alarms_cv")
     monkeypatch.setattr(sys, "argv", ["real_alarms_cv.py", "ng", "cr", "init.npz", str(tmp_path / "w"),
                                       "--seeds", "0,1", "--seed", "3"])
     with pytest.raises(SystemExit):

@@ -1,26 +1,15 @@
 """tools/sway_strata.py: a vehicle's lane-keeping sway leaves out the ticks around its lane change
 and those without a lateral position, and caps the squares."""
 
-import importlib.util
-import sys
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
-TOOLS = Path(__file__).resolve().parents[2] / "tools"
+from support.tool_modules import load_tool
 
 
-def _tool():
-    sys.path.insert(0, str(TOOLS))  # the tool imports its sibling real_alarms_cv
-    try:
-        spec = importlib.util.spec_from_file_location("sway_strata", TOOLS / "sway_strata.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(TOOLS))
-    return module
+
 
 
 def test_vehicle_sway_is_the_lane_keeping_rms():
@@ -34,6 +23,6 @@ def test_vehicle_sway_is_the_lane_keeping_rms():
                            "lateral_speed_mps": np.r_[va, np.where(t < 30.0, 3.0, 0.0)],
                            "lateral_known": np.r_[np.ones(n), (t < 30.0).astype(float)]})
     events = pd.DataFrame({"seed": [0], "event_id": [0], "vehicle_id": ["a"], "end": [40.0], "mid": [38.0]})
-    sway = _tool().vehicle_sway(stream, events)
+    sway = load_tool("sway_strata").vehicle_sway(stream, events)
     assert sway[(0, "a")] == pytest.approx(0.2)
     assert sway[(0, "b")] == pytest.approx(0.5)

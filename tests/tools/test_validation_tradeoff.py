@@ -1,22 +1,16 @@
 """tools/validation_tradeoff.py: each false alarm is found by the same rule as the event scores and
 given the right kinds (censored, late, after a change); a run confirmed by a change is none."""
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from vcfusion.prediction.events import event_scores
 
-TOOL = Path(__file__).resolve().parents[2] / "tools" / "validation_tradeoff.py"
+from support.tool_modules import load_tool
 
 
-def _tool():
-    spec = importlib.util.spec_from_file_location("validation_tradeoff", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+
 
 
 def test_false_alarm_kinds_one_vehicle():
@@ -30,7 +24,7 @@ def test_false_alarm_kinds_one_vehicle():
     d = np.zeros(len(t), dtype=np.int8)
     for a, b in runs:
         d[(t >= a) & (t <= b)] = 1
-    fa = _tool().false_alarm_kinds(stream, d, events)
+    fa = load_tool("validation_tradeoff").false_alarm_kinds(stream, d, events)
     summary = event_scores(stream, d, events, 0.1, 10.0)[0]
     assert len(fa) == summary["false_alarms"] == 3
     assert fa["censored"].tolist() == [False, False, True]

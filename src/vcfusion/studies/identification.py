@@ -128,7 +128,8 @@ def write_study_outputs(rows: pd.DataFrame, out_dir, threshold: float = 0.7) -> 
     ax.set_title(f"Target identification (latency 0, noise 0; {n_targets} target-frames)"
                  + (f"\n{scen}" if scen else ""), fontsize=9)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    if ax.get_legend_handles_labels()[0]:  # a study without curves draws empty axes, not an empty legend
+        ax.legend(fontsize=7)
     fig.tight_layout()
     paths["accuracy_iou_plot"] = out_dir / "identification_accuracy_iou.png"
     atomic_write(paths["accuracy_iou_plot"], lambda p: fig.savefig(p, dpi=120, format="png"))
@@ -147,7 +148,8 @@ def write_study_outputs(rows: pd.DataFrame, out_dir, threshold: float = 0.7) -> 
         ax.set_xlabel(xlabel)
         ax.grid(alpha=0.3)
     axes[0].set_ylabel(f"accuracy at IoU {threshold} (%)")
-    axes[1].legend(fontsize=7)
+    if axes[1].get_legend_handles_labels()[0]:
+        axes[1].legend(fontsize=7)
     fig.tight_layout()
     paths["latency_noise_plot"] = out_dir / "identification_latency_noise.png"
     atomic_write(paths["latency_noise_plot"], lambda p: fig.savefig(p, dpi=120, format="png"))
