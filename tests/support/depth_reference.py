@@ -299,9 +299,8 @@ def refine_boxes_reference(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, 
             if returns is not None:
                 best = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share)
             elif p.hole_side_share > 0 and dense_noisy:
-                beyond_holes = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share)
-                inward = (best - b) * np.array([1, 1, -1, -1]) >= p.hole_side_share * np.array([w, h, w, h])
-                best = np.where(inward, beyond_holes, best)
+                best = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share,
+                                         p.hole_side_share)
             out[i] = best
             refined[i] = True
             top_m[i] = float(np.percentile(height[best_sel], 95))

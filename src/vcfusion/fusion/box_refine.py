@@ -710,9 +710,8 @@ def refine_boxes(boxes: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_to
             elif p.hole_side_share > 0 and dense_noisy:
                 # noisy dense depth: a side moved inward by hole_side_share of the box or more, where
                 # the depth beyond it is holes (a textureless panel the pair could not match)
-                beyond_holes = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share)
-                inward = (best - b) * np.array([1, 1, -1, -1]) >= p.hole_side_share * np.array([w, h, w, h])
-                best = np.where(inward, beyond_holes, best)
+                best = _unmeasured_sides(best, b, np.isnan(depth[y0:y1, x0:x1]), x0, y0, p.unmeasured_share,
+                                         p.hole_side_share)
             out[i] = best
             refined[i] = True
             top_m[i] = float(np.percentile(height[best_r][best_sel], 95))
@@ -806,13 +805,20 @@ def _grown_sides(best: np.ndarray, detected: np.ndarray, best_r: tuple[slice, sl
 
 
 def _unmeasured_sides(best: np.ndarray, detected: np.ndarray, hole: np.ndarray, x0: int, y0: int,
-                      share: float) -> np.ndarray:
+                      share: float, min_inward: float | None = None) -> np.ndarray:
     """The snapped box with each side where depth ends in a hole taken from the detector's box: when
     more than ``share`` of the two pixel rows (columns) just outside a side, across the box, measured
     nothing (nan: beyond a LiDAR's highest beam, a stereo hole), the surface may go on there unseen
     (a near truck's upper half above a 64-beam scan's +2 deg). `hole`: the search window's nan mask,
-    whose pixel (0, 0) is image pixel (x0, y0)."""
+    whose pixel (0, 0) is image pixel (x0, y0). ``min_inward``: only sides the snap moved inward of
+    the detector's by at least this share of the detector's box (its width for left / right, its
+    height for top / bottom); None: every side."""
     out = best.copy()
+    if min_inward is None:
+        inward = np.ones(4, bool)
+    else:
+        w, h = detected[2] - detected[0], detected[3] - detected[1]
+        inward = (best - detected) * np.array([1, 1, -1, -1]) >= min_inward * np.array([w, h, w, h])
     Hh, Ww = hole.shape
     c0, c1 = max(int(best[0] + 0.5) - x0, 0), min(int(best[2] + 0.5) - x0, Ww)
     r0, r1 = max(int(best[1] + 0.5) - y0, 0), min(int(best[3] + 0.5) - y0, Hh)
@@ -821,7 +827,7 @@ def _unmeasured_sides(best: np.ndarray, detected: np.ndarray, hole: np.ndarray, 
     strips = ((1, hole[max(r0 - 2, 0):r0, c0:c1]), (3, hole[r1:r1 + 2, c0:c1]),
               (0, hole[r0:r1, max(c0 - 2, 0):c0]), (2, hole[r0:r1, c1:c1 + 2]))
     for side, strip in strips:
-        if strip.size and strip.mean() > share:
+        if inward[side] and strip.size and strip.mean() > share:
             out[side] = detected[side]
     return out
 
