@@ -49,3 +49,38 @@ def decision_settings_from_meta(meta: dict) -> dict:
                 conservative_threshold=float(meta["conservative_threshold"]), info=meta.get("info", {}),
                 thresholds={k: float(v) for k, v in meta.get("thresholds", {}).items()},
                 calibration=tuple(float(c) for c in meta.get("calibration", (1.0, 0.0))))
+
+
+def check_model_meta(path, meta: dict, keys: dict, written_by: str) -> None:
+    """A model file's metadata checked where every kind agrees: each of ``keys`` (name -> type) present
+    with its type, the smoothing one of the methods, the calibration [a, b] (optional: (1, 0));
+    ModelFileError naming the file and the field. ``written_by``: the command that writes such files."""
+    from vcfusion.prediction.model import ModelFileError
+
+    for key, kind in keys.items():
+        if key not in meta:
+            raise ModelFileError(f"{path}: meta.{key}: missing; expected a model file written by {written_by}")
+        if not isinstance(meta[key], kind) or isinstance(meta[key], bool):
+            raise ModelFileError(f"{path}: meta.{key}: expected a {getattr(kind, '__name__', 'number')}, "
+                                 f"got {meta[key]!r}")
+    if meta["smoothing"] not in ("none", "aggressive", "conservative"):
+        raise ModelFileError(f"{path}: meta.smoothing: expected none, aggressive or conservative, "
+                             f"got {meta['smoothing']!r}")
+    calibration = meta.get("calibration", [1.0, 0.0])
+    if not (isinstance(calibration, list) and len(calibration) == 2):
+        raise ModelFileError(f"{path}: meta.calibration: expected [a, b], got {calibration!r}")
+
+
+def write_model_file(path, meta: dict, arrays: dict):
+    """One model file: ``arrays`` and the JSON ``meta`` in an .npz (no pickle), written atomically."""
+    import json
+    from pathlib import Path
+
+    import numpy as np
+
+    from vcfusion.runio import atomic_write
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, lambda tmp: np.savez(tmp, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays))
+    return path

@@ -23,14 +23,14 @@ metadata (as their files hold it), member k's arrays under `m{k}_<name>`.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from vcfusion.prediction.decision import DECISION_META_KEYS, DecisionSettings, decision_settings_from_meta
-from vcfusion.prediction.sequence import (_ARRAYS, SEQUENCE_FORMAT, SequenceModel, _sigmoid_of_half, segment_bounds,
+from vcfusion.prediction.decision import (DECISION_META_KEYS, DecisionSettings, check_model_meta,
+                                          decision_settings_from_meta, write_model_file)
+from vcfusion.prediction.sequence import (_ARRAYS, SequenceModel, _sigmoid_of_half, segment_bounds, sequence_meta,
                                          sequence_model_from_file)
 from vcfusion.threads import one_blas_thread
 
@@ -207,20 +207,10 @@ def build_ensemble(paths) -> EnsembleModel:
 
 
 def save_ensemble(model: EnsembleModel, path) -> Path:
-    from vcfusion.runio import atomic_write
-
-    path = Path(path)
-    members_meta, arrays = [], {}
-    for k, m in enumerate(model.members):
-        members_meta.append({"format": SEQUENCE_FORMAT, "kind": "gru",
-                             "feature_names": list(m.feature_names), "hidden": m.hidden,
-                             "reset_gap_ticks": m.reset_gap_ticks, **m.decision_meta()})
-        arrays |= {f"m{k}_{name}": getattr(m, name) for name in _ARRAYS}
+    arrays = {f"m{k}_{name}": getattr(m, name) for k, m in enumerate(model.members) for name in _ARRAYS}
     meta = {"format": ENSEMBLE_FORMAT, "kind": "gru-ensemble", "feature_names": list(model.feature_names),
-            "members": members_meta, **model.decision_meta()}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, lambda tmp: np.savez(tmp, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays))
-    return path
+            "members": [sequence_meta(m) for m in model.members], **model.decision_meta()}
+    return write_model_file(path, meta, arrays)
 
 
 def ensemble_from_file(path, meta: dict, arrays: dict) -> EnsembleModel:
@@ -228,20 +218,10 @@ def ensemble_from_file(path, meta: dict, arrays: dict) -> EnsembleModel:
     file and the field)."""
     from vcfusion.prediction.model import ModelFileError
 
-    for key, kind in {**DECISION_META_KEYS, "feature_names": list, "members": list, "calibration": list,
-                      "thresholds": dict}.items():
-        if key not in meta:
-            raise ModelFileError(f"{path}: meta.{key}: missing; expected a file written by `vcfusion ensemble-models`")
-        if not isinstance(meta[key], kind) or isinstance(meta[key], bool):
-            raise ModelFileError(f"{path}: meta.{key}: expected a {getattr(kind, '__name__', 'number')}, "
-                                 f"got {meta[key]!r}")
+    check_model_meta(path, meta, {**DECISION_META_KEYS, "feature_names": list, "members": list, "calibration": list,
+                                  "thresholds": dict}, "`vcfusion ensemble-models`")
     if not meta["members"] or not all(isinstance(m, dict) for m in meta["members"]):
         raise ModelFileError(f"{path}: meta.members: expected a non-empty list of member metadata")
-    if meta["smoothing"] not in ("none", "aggressive", "conservative"):
-        raise ModelFileError(f"{path}: meta.smoothing: expected none, aggressive or conservative, "
-                             f"got {meta['smoothing']!r}")
-    if len(meta["calibration"]) != 2:
-        raise ModelFileError(f"{path}: meta.calibration: expected [a, b], got {meta['calibration']!r}")
     members, sources = [], []
     for k, member_meta in enumerate(meta["members"]):
         source = f"{path}: members[{k}]"

@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from vcfusion.errors import InputError
-from vcfusion.prediction.decision import DECISION_META_KEYS, DecisionSettings, decision_settings_from_meta
+from vcfusion.prediction.decision import (DECISION_META_KEYS, DecisionSettings, check_model_meta,
+                                          decision_settings_from_meta, write_model_file)
 from vcfusion.threads import one_blas_thread
 
 MODEL_FORMAT = "vcfusion-lane-change-mlp/1"
@@ -185,15 +186,11 @@ def save_model(model: LaneChangeModel, path: str | Path) -> Path:
     path = Path(path)
     meta = {"format": MODEL_FORMAT, "feature_names": list(model.feature_names), "layers": len(model.weights),
             **model.decision_meta()}
-    arrays = {"mean": model.mean, "std": model.std, "meta": np.array(json.dumps(meta, sort_keys=True))}
+    arrays = {"mean": model.mean, "std": model.std}
     for k, (w, b) in enumerate(model.weights):
         arrays[f"w{k}"] = w
         arrays[f"b{k}"] = b
-    path.parent.mkdir(parents=True, exist_ok=True)
-    from vcfusion.runio import atomic_write
-
-    atomic_write(path, lambda tmp: np.savez(tmp, **arrays))
-    return path
+    return write_model_file(path, meta, arrays)
 
 
 def model_feature_names(path: str | Path) -> tuple[str, ...]:
@@ -298,20 +295,9 @@ def _load_model_file(name: str, _mtime_ns: int, expected_features: tuple[str, ..
 
 
 def _check_meta(path: Path, meta: dict) -> None:
-    for key, kind in META_KEYS.items():
-        if key not in meta:
-            raise ModelFileError(f"{path}: meta.{key}: missing; expected a model file written by `vcfusion train`")
-        if not isinstance(meta[key], kind) or isinstance(meta[key], bool):
-            raise ModelFileError(f"{path}: meta.{key}: expected a {getattr(kind, '__name__', 'number')}, "
-                                 f"got {meta[key]!r}")
+    check_model_meta(path, meta, META_KEYS, "`vcfusion train`")
     if meta["layers"] < 1:
         raise ModelFileError(f"{path}: meta.layers: expected at least 1 layer, got {meta['layers']}")
-    if meta["smoothing"] not in ("none", "aggressive", "conservative"):
-        raise ModelFileError(f"{path}: meta.smoothing: expected none, aggressive or conservative, "
-                             f"got {meta['smoothing']!r}")
-    calibration = meta.get("calibration", [1.0, 0.0])
-    if not (isinstance(calibration, list) and len(calibration) == 2):
-        raise ModelFileError(f"{path}: meta.calibration: expected [a, b], got {calibration!r}")
 
 
 def _checked_arrays(path: Path, meta: dict, arrays: dict) -> tuple[list, np.ndarray, np.ndarray]:

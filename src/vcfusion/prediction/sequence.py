@@ -25,10 +25,12 @@ offline probabilities are the run-time ones (tested).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from vcfusion.prediction.decision import DECISION_META_KEYS, DecisionSettings, decision_settings_from_meta
+from vcfusion.prediction.decision import (DECISION_META_KEYS, DecisionSettings, check_model_meta,
+                                          decision_settings_from_meta, write_model_file)
 from vcfusion.threads import one_blas_thread
 
 SEQUENCE_FORMAT = "vcfusion-lane-change-gru/1"
@@ -224,19 +226,14 @@ SEQUENCE_META_KEYS = {"feature_names": list, **DECISION_META_KEYS, "hidden": int
 _ARRAYS = ("mean", "std", "w_ih", "w_hh", "b_ih", "b_hh", "w_out", "b_out")
 
 
-def save_sequence_model(model: SequenceModel, path) -> "Path":
-    import json
-    from pathlib import Path
-
-    path = Path(path)
-    meta = {"format": SEQUENCE_FORMAT, "kind": "gru", "feature_names": list(model.feature_names),
+def sequence_meta(model: SequenceModel) -> dict:
+    """What a GRU's model file records besides its arrays (``_ARRAYS``); an ensemble's file records it per member."""
+    return {"format": SEQUENCE_FORMAT, "kind": "gru", "feature_names": list(model.feature_names),
             "hidden": model.hidden, "reset_gap_ticks": model.reset_gap_ticks, **model.decision_meta()}
-    arrays = {name: getattr(model, name) for name in _ARRAYS}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    from vcfusion.runio import atomic_write
 
-    atomic_write(path, lambda tmp: np.savez(tmp, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays))
-    return path
+
+def save_sequence_model(model: SequenceModel, path) -> Path:
+    return write_model_file(path, sequence_meta(model), {name: getattr(model, name) for name in _ARRAYS})
 
 
 def sequence_model_from_file(path, meta: dict, arrays: dict) -> SequenceModel:
@@ -244,21 +241,10 @@ def sequence_model_from_file(path, meta: dict, arrays: dict) -> SequenceModel:
     the file and the field)."""
     from vcfusion.prediction.model import ModelFileError
 
-    for key, kind in SEQUENCE_META_KEYS.items():
-        if key not in meta:
-            raise ModelFileError(f"{path}: meta.{key}: missing; expected a model file written by "
-                                 "`vcfusion train --kind gru`")
-        if not isinstance(meta[key], kind) or isinstance(meta[key], bool):
-            raise ModelFileError(f"{path}: meta.{key}: expected a {getattr(kind, '__name__', 'number')}, "
-                                 f"got {meta[key]!r}")
-    if meta["smoothing"] not in ("none", "aggressive", "conservative"):
-        raise ModelFileError(f"{path}: meta.smoothing: expected none, aggressive or conservative, "
-                             f"got {meta['smoothing']!r}")
+    check_model_meta(path, meta, SEQUENCE_META_KEYS, "`vcfusion train --kind gru`")
     if meta["hidden"] < 1 or meta["reset_gap_ticks"] < 0:
         raise ModelFileError(f"{path}: meta.hidden / meta.reset_gap_ticks: expected >= 1 / >= 0, got "
                              f"{meta['hidden']} / {meta['reset_gap_ticks']}")
-    if len(meta["calibration"]) != 2:
-        raise ModelFileError(f"{path}: meta.calibration: expected [a, b], got {meta['calibration']!r}")
     f, h = len(meta["feature_names"]), meta["hidden"]
     shapes = {"mean": (f,), "std": (f,), "w_ih": (3 * h, f), "w_hh": (3 * h, h), "b_ih": (3 * h,),
               "b_hh": (3 * h,), "w_out": (1, h), "b_out": (1,)}
