@@ -34,12 +34,13 @@ def box_pairs(folders, head: BoxHead) -> np.ndarray:
         if not len(boxes) or not len(truth):
             continue
         iou = box_iou(boxes, truth)
-        matched = iou.max(axis=1) >= MATCH_IOU
+        best = iou.max(axis=1)  # each detector box's IoU with the ground-truth box it overlaps most
+        matched = best >= MATCH_IOU
         if not matched.any():
             continue
         boxes, truth = boxes[matched], truth[iou.argmax(axis=1)[matched]]
         placed = head.refine(image, boxes)
-        rows += zip(truth[:, 3] - truth[:, 1], np.diag(box_iou(boxes, truth)), np.diag(box_iou(placed, truth)))
+        rows += zip(truth[:, 3] - truth[:, 1], best[matched], np.diag(box_iou(placed, truth)))
     return np.array(rows, dtype=float).reshape(-1, 3)
 
 

@@ -68,6 +68,15 @@ def agreement(curves: dict[str, pd.DataFrame]) -> pd.DataFrame:
     return table
 
 
+def _markdown(table: pd.DataFrame, formats: dict[str, str] | None = None) -> str:
+    """A Markdown table; float cells as ``formats[column]`` (default two decimals)."""
+    formats = formats or {}
+    cell = lambda column, v: format(v, formats.get(column, ".2f")) if isinstance(v, float) else str(v)  # noqa: E731
+    lines = ["| " + " | ".join(table.columns) + " |", "|" + "---|" * len(table.columns)]
+    return "\n".join(lines + ["| " + " | ".join(cell(c, v) for c, v in zip(table.columns, r)) + " |"
+                                for r in table.itertuples(index=False)])
+
+
 def _fraction(text: str) -> float:
     """0.67 or 63/94."""
     num, sep, den = text.partition("/")
@@ -97,10 +106,7 @@ def main() -> int:
     if a.agreement:
         if len(curves) < 2:
             p.error("--agreement: expected at least two curves")
-        table = agreement(curves)
-        text = "\n".join(["| " + " | ".join(table.columns) + " |", "|" + "---|" * len(table.columns)]
-                         + ["| " + " | ".join(f"{v:.2f}" if k > 1 else f"{v:.0f}" if k == 1 else str(v)
-                                              for k, v in enumerate(r)) + " |" for r in table.itertuples(index=False)])
+        text = _markdown(agreement(curves), {"thresholds": ".0f"})
         print(text)
         if a.out:
             a.out.write_text(text + "\n")
@@ -116,9 +122,7 @@ def main() -> int:
         for name, curve in curves.items():
             rows.append({"matched": f"{a.recording} {RATE_NAME[rate]} false alarms <= {float(budget):g} / veh-h, most changes",
                          "model": name, **_cells(at_pooled_rate(curve, float(budget), rate, a.recording))})
-    table = pd.DataFrame(rows).fillna("")
-    lines = ["| " + " | ".join(table.columns) + " |", "|" + "---|" * len(table.columns)]
-    text = "\n".join(lines + ["| " + " | ".join(map(str, r)) + " |" for r in table.itertuples(index=False)])
+    text = _markdown(pd.DataFrame(rows).fillna(""))
     print(text)
     if a.out:
         a.out.write_text(text + "\n")
