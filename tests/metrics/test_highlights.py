@@ -148,3 +148,32 @@ def test_a_twin_hidden_whole_is_drawn_where_depth_puts_its_box_at_the_twin():
     assert undrawn_reason(sliver, outline, 1.0, depth_sigmas=0.4, depth_on_surface=True) == "small"
     # a partly hidden twin is judged by its outline as before, whatever the depth
     assert undrawn_reason(box, outline, 0.5, depth_sigmas=3.0) == ""
+
+
+def test_a_sliver_under_the_visible_share_is_unseen_above_it_missed():
+    from vcfusion.metrics.highlights import MIN_VISIBLE_SHARE
+
+    # "a" shows a 1200 px box: visible by its size, and by its share of its outline only above the floor
+    shares = np.array([MIN_VISIBLE_SHARE - 0.01, 1.0, 1.0])
+    assert judge_highlight("a", None, GT, IDS, shares).outcome == "unseen"
+    assert judge_highlight("a", None, GT, IDS, shares).visible_share == pytest.approx(MIN_VISIBLE_SHARE - 0.01)
+    assert judge_highlight("a", None, GT, IDS, np.array([MIN_VISIBLE_SHARE, 1.0, 1.0])).outcome == "missed"
+    assert judge_highlight("a", None, GT, IDS).outcome == "missed"  # no outlines: judged by size alone
+    # a drawn box is judged by its IoU whatever the share: on the sliver right, elsewhere wrong
+    assert judge_highlight("a", (100, 100, 140, 130), GT, IDS, shares).outcome == "right"
+    assert judge_highlight("a", (130, 105, 200, 150), GT, IDS, shares).outcome == "wrong"
+
+
+def test_the_visible_share_is_the_box_over_its_clipped_outline_at_most_one():
+    from vcfusion.render.gt_boxes import outline_boxes, visible_shares
+
+    hulls = [np.array([[10.0, 20.0], [50.0, 20.0], [50.0, 60.0], [10.0, 60.0]]),  # 40 x 40
+             np.array([[600.0, 100.0], [700.0, 100.0], [700.0, 150.0]]),  # cut by the right side of a 640 px image
+             None]
+    outline = outline_boxes(hulls, 640, 480)
+    np.testing.assert_allclose(outline[:2], [[10, 20, 50, 60], [600, 100, 639.5, 150]])
+    assert np.isnan(outline[2]).all()
+    visible = np.array([[10.0, 20.0, 30.0, 28.0],  # 20 x 8 of 40 x 40
+                        [590.0, 100.0, 639.5, 150.0],  # a pixel past the outline: 1, not more
+                        [0.0, 0.0, 10.0, 10.0]])
+    np.testing.assert_allclose(visible_shares(visible, outline), [160 / 1600, 1.0, 1.0])

@@ -116,6 +116,32 @@ def test_ground_truth_boxes(renderer):
     assert abs(boxes.median_depth[lead] - (25.0 - 2.3 - 0.6)) < 0.5  # its rear, 25 m ahead less half lengths and the mount
 
 
+def test_the_visible_share_agrees_with_the_vehicle_drawn_alone(renderer):
+    """The outline (projected 3D box) holds the vehicle's silhouette drawn alone (the renderer's own
+    second pass, an independent reference); an unoccluded car's visible box covers most of it, a
+    car straight behind another showing a sliver less than MIN_VISIBLE_SHARE, as the silhouette's
+    box says too."""
+    from vcfusion.metrics.highlights import MIN_VISIBLE_SHARE
+
+    scene = [SCENE[0], SCENE[1], ("sliver", "passenger", 140.0, LANE2 - 0.6, 0.0, 4.6, 1.8, 1.5)]
+    truth = states(scene)
+    frame = renderer.render(truth)
+    boxes = ground_truth_boxes(frame, truth, renderer)
+    area = lambda b: (b[2] - b[0]) * (b[3] - b[1])  # noqa: E731
+    for vid in ("lead", "sliver"):
+        j = boxes.vehicle_ids.index(vid)
+        rows, cols = np.nonzero(renderer.silhouette(vid))
+        alone = np.array([cols.min() - 0.5, rows.min() - 0.5, cols.max() + 0.5, rows.max() + 0.5])
+        out = boxes.outline[j]
+        assert out[0] <= alone[0] + 1 and out[1] <= alone[1] + 1 and out[2] >= alone[2] - 1 and out[3] >= alone[3] - 1
+        assert boxes.visible_share[j] == pytest.approx(area(boxes.box[j]) / area(out))
+        if vid == "lead":
+            assert boxes.visible_fraction[j] == 1.0 and boxes.visible_share[j] > 0.75
+        else:
+            assert boxes.visible_fraction[j] < 0.2
+            assert boxes.visible_share[j] < MIN_VISIBLE_SHARE and area(boxes.box[j]) / area(alone) < MIN_VISIBLE_SHARE
+
+
 def test_truncation_at_image_border(renderer):
     near_side = [SCENE[0], ("side", "passenger", 106.0, LANE1, 0.0, 4.6, 1.8, 1.5)]
     truth = states(near_side)

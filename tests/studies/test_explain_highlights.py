@@ -38,6 +38,8 @@ def test_episodes_are_runs_of_one_outcome_and_say_why():
     assert wrong["box_vehicle_id"] == "neighbour" and wrong["frame"] == 4 and "shows neighbour" in wrong["why"]
     assert "not a miss" in ep[ep["outcome"] == "unseen"].iloc[0]["why"]
     assert "no box was matched" in why("missed", "a", "", 0.0, 500.0)
+    sliver = why("unseen", "a", "", 0.0, 360.0, visible_share=0.12)
+    assert "0.12 of its outline" in sliver and "not a miss" in sliver
 
 
 def test_a_run_without_judged_highlights_is_refused_by_name(tmp_path):
@@ -60,6 +62,11 @@ def test_explain_a_short_curved_run_with_frames(tmp_path, capsys):
     warned = fusion[fusion["level"].isin(["medium", "high"])]
     assert len(warned) and table["updates"].sum() == len(warned)  # every warned update in one episode
     assert set(table["outcome"]) <= {"right", "wrong", "missed", "unseen"}
+    # every undrawn twin is missed exactly when its vehicle's box is large enough and covers enough of its outline
+    undrawn = fusion[~fusion["matched"]]
+    visible = (undrawn["visible_px"] >= 100) & (undrawn["visible_share"] >= 0.2)
+    assert len(undrawn) and ((undrawn["outcome"] == "missed") == visible).all()
+    assert fusion["visible_share"].between(0, 1).all()
     drawn = table[table["frame"] >= 0]
     pngs = sorted((tmp_path / "explained" / "frames").glob("*.png"))
     assert len(pngs) == len(drawn) > 0

@@ -45,6 +45,9 @@ class CameraFrame:
     camera: CameraView
     gt_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (M, 4) visible vehicles' boxes
     gt_ids: tuple[str, ...] = ()  # vehicle id of each ground-truth box
+    # (M,) share of each vehicle's outline (projected 3D box) its box covers (gt_boxes.visible_shares),
+    # for judging highlights; None where the source has no outlines (scene folders)
+    gt_visible_share: np.ndarray | None = None
     gt_classes: np.ndarray | None = None  # (M,) category ids, for the oracle detector
     # (H, W) index into `instance_ids` of the vehicle seen at each pixel, -1 where none (the
     # renderer's instance map); None when the source has none
@@ -604,7 +607,7 @@ class VisionFusionHook:
 
     table = "fusion"
     columns = ("time", "vehicle_id", "method", "lc_prob", "level", "matched", "box_vehicle_id", "x1", "y1", "x2", "y2",
-               "outcome", "gt_iou", "visible_px", "frame", "undrawn", "hidden_share")
+               "outcome", "gt_iou", "visible_px", "visible_share", "frame", "undrawn", "hidden_share")
     provides = ("detections", "guidance")
 
     def __init__(self, frame_source: FrameSource | None, detector: Detector, seed: int, policy: GuidancePolicy,
@@ -693,7 +696,8 @@ class VisionFusionHook:
         # one whose visible box it overlaps most: whom a person looking at the overlay would see
         # highlighted); ground truth serves that model of the driver's eye and the scoring only.
         # Each drawn item carries its box's depth as the fusion measured it.
-        judged = [judge_highlight(g.vehicle_id, g.box, frame.gt_boxes, frame.gt_ids) for g in in_view]
+        judged = [judge_highlight(g.vehicle_id, g.box, frame.gt_boxes, frame.gt_ids, frame.gt_visible_share)
+                  for g in in_view]
         in_view = [replace(g, box_vehicle_id=jd.box_vehicle_id or None, box_depth_m=_finite_or_none(result.box_depths[j]))
                    if g.box is not None else g for g, jd, j in zip(in_view, judged, chosen)]
         guidance = [g for g in in_view if g.box is not None]
@@ -715,7 +719,8 @@ class VisionFusionHook:
                          "lc_prob": g.lc_prob, "level": g.level, "matched": g.box is not None,
                          "box_vehicle_id": g.box_vehicle_id or "",
                          "x1": b[0], "y1": b[1], "x2": b[2], "y2": b[3],
-                         "outcome": j.outcome, "gt_iou": j.iou, "visible_px": j.visible_px, "frame": frame_index,
+                         "outcome": j.outcome, "gt_iou": j.iou, "visible_px": j.visible_px,
+                         "visible_share": j.visible_share, "frame": frame_index,
                          "undrawn": why, "hidden_share": float(result.hidden_share[i])})
         return rows
 

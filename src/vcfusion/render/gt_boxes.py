@@ -13,7 +13,12 @@ For every vehicle with at least one visible pixel:
   that shows more pixels in it than in the frame is partly hidden by the road's objects;
 - ``truncation``: fraction of the projected 3D bounding box (length x width x height, clipped
   at the near plane) that lies outside the image (KITTI's notion; 0 = fully inside);
-- ``median_depth``: median camera Z of its visible pixels (what a depth camera measures).
+- ``median_depth``: median camera Z of its visible pixels (what a depth camera measures);
+- ``outline``: the box around the projection of its 3D bounding box (clipped at the near plane),
+  clipped to the image: where the whole vehicle would be with nothing in front of it;
+- ``visible_share``: the visible box's area over the outline's (the CityPersons benchmark's
+  visibility, visible box over full box; 1 where it comes out larger): how much of the vehicle's
+  extent in the image nearer objects leave, without a second render.
 """
 
 from __future__ import annotations
@@ -42,6 +47,8 @@ class GroundTruthBoxes:
     visible_fraction: np.ndarray  # (N,)
     truncation: np.ndarray  # (N,)
     median_depth: np.ndarray  # (N,) metres
+    outline: np.ndarray  # (N, 4) x1, y1, x2, y2 of the projected 3D box, clipped to the image
+    visible_share: np.ndarray  # (N,) area of `box` / area of `outline`, at most 1
 
     def __len__(self) -> int:
         return len(self.vehicle_ids)
@@ -128,6 +135,7 @@ def ground_truth_boxes(frame, truth: VehicleStates, renderer=None, near: float =
     visible_fraction = np.full(n, np.nan)
     truncation = np.zeros(n)
     median_depth = np.zeros(n)
+    outline = outline_boxes(hulls, frame.width, frame.height)
     for j, k in enumerate(present):
         r, c = rows[starts[j]:ends[j]], cols[starts[j]:ends[j]]
         box[j] = (c.min() - 0.5, r.min() - 0.5, c.max() + 0.5, r.max() + 0.5)
@@ -146,10 +154,37 @@ def ground_truth_boxes(frame, truth: VehicleStates, renderer=None, near: float =
             full[j] = counts[k]
             visible_fraction[j] = 1.0
     vids = tuple(frame.vehicle_ids[k] for k in present)
+    visible_share = visible_shares(box, outline)
     return GroundTruthBoxes(
         vehicle_ids=vids, vclass=tuple(truth.vclass[index[v]] for v in vids), instance=present.astype(np.int32),
         box=box, pixels=counts[present], full_pixels=full, visible_fraction=visible_fraction,
-        truncation=truncation, median_depth=median_depth)
+        truncation=truncation, median_depth=median_depth, outline=outline, visible_share=visible_share)
+
+
+def outline_boxes(hulls, width: int, height: int) -> np.ndarray:
+    """(N, 4) the bounding box of each projected 3D box hull (projected_box_polygon), clipped to the
+    `width` x `height` image (spanning [-0.5, width - 0.5] x [-0.5, height - 0.5]); NaN where a
+    hull is None (the 3D box wholly behind the near plane)."""
+    out = np.full((len(hulls), 4), np.nan)
+    for j, h in enumerate(hulls):
+        if h is None:
+            continue
+        lo, hi = h.min(axis=0), h.max(axis=0)
+        out[j] = (max(lo[0], -0.5), max(lo[1], -0.5), min(hi[0], width - 0.5), min(hi[1], height - 0.5))
+    return out
+
+
+def visible_shares(visible_box: np.ndarray, outline: np.ndarray) -> np.ndarray:
+    """(N,) area of each visible box over the area of its outline, at most 1 (a visible box can
+    reach a pixel past the projected 3D box: mirrors and wheels outside the length x width x
+    height box, the pixel grid); 1 where the outline is NaN or empty (no extent to compare with)."""
+    v = np.asarray(visible_box, dtype=float).reshape(-1, 4)
+    o = np.asarray(outline, dtype=float).reshape(-1, 4)
+    area_v = (v[:, 2] - v[:, 0]) * (v[:, 3] - v[:, 1])
+    area_o = np.clip(o[:, 2] - o[:, 0], 0, None) * np.clip(o[:, 3] - o[:, 1], 0, None)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.where(area_o > 0, area_v / area_o, 1.0)
+    return np.minimum(np.nan_to_num(share, nan=1.0), 1.0)
 
 
 def _may_be_occluded(j: int, rects, near_depth, far_depth) -> bool:

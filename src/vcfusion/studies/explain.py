@@ -21,11 +21,11 @@ import numpy as np
 import pandas as pd
 
 from vcfusion.errors import InputError
-from vcfusion.metrics.highlights import MIN_VISIBLE_PX, RIGHT_IOU, warning_episodes
+from vcfusion.metrics.highlights import MIN_VISIBLE_PX, MIN_VISIBLE_SHARE, RIGHT_IOU, is_visible, warning_episodes
 
 COLUMNS = ["episode", "twin", "outcome", "start_s", "end_s", "updates", "bridged", "level", "lc_prob_max",
            "box_vehicle_id",
-           "gt_iou", "visible_px", "x1", "y1", "x2", "y2", "frame", "undrawn", "why"]
+           "gt_iou", "visible_px", "visible_share", "x1", "y1", "x2", "y2", "frame", "undrawn", "why"]
 
 
 UNDRAWN_WHY = {"no_match": "no box was matched to its twin",
@@ -37,17 +37,28 @@ UNDRAWN_WHY = {"no_match": "no box was matched to its twin",
                "too_large": "a box was matched but not drawn: it is too large for the twin's outline"}
 
 
-def why(outcome: str, twin: str, shown: str, iou: float, visible_px: float, undrawn: str = "no_match") -> str:
+def _unseen_words(visible_px: float, visible_share: float) -> str:
+    """Why a vehicle is not visible, in words (vcfusion.metrics.highlights.is_visible)."""
+    if visible_px == 0:
+        return "not in the frame"
+    if visible_px < MIN_VISIBLE_PX:
+        return f"{visible_px:.0f} px of it in the frame, < {MIN_VISIBLE_PX:g} px"
+    return (f"its {visible_px:.0f} px visible box is {visible_share:.2f} of its outline, < {MIN_VISIBLE_SHARE:g}: "
+            "a sliver beside what hides it")
+
+
+def why(outcome: str, twin: str, shown: str, iou: float, visible_px: float, undrawn: str = "no_match",
+        visible_share: float = 1.0) -> str:
     """The judgement of one AR update in words (the rules of vcfusion.metrics.highlights;
-    `undrawn`: why nothing was drawn, vcfusion.fusion.fuse.undrawn_reason)."""
+    `undrawn`: why nothing was drawn, vcfusion.fusion.fuse.undrawn_reason; `visible_share`: 1 for
+    tables written before it was recorded, whose judgements did not use it)."""
     if outcome == "right":
         return (f"the box drawn for {twin} lies on {twin}: IoU {iou:.2f} with its visible box "
                 f"(>= {RIGHT_IOU:g})")
     if outcome == "wrong":
-        if visible_px < MIN_VISIBLE_PX:
-            seen = "not in the frame" if visible_px == 0 else f"{visible_px:.0f} px of it in the frame"
-            return (f"a box is drawn for {twin}, whose vehicle the driver cannot see ({seen}, < {MIN_VISIBLE_PX:g} px); "
-                    f"the box shows {shown or 'no vehicle'}")
+        if not is_visible(visible_px, visible_share):
+            return (f"a box is drawn for {twin}, whose vehicle the driver cannot see "
+                    f"({_unseen_words(visible_px, visible_share)}); the box shows {shown or 'no vehicle'}")
         if shown == twin:
             return (f"the box drawn for {twin} covers only part of it or much around it: IoU {iou:.2f} with its "
                     f"visible box (< {RIGHT_IOU:g})")
@@ -56,7 +67,7 @@ def why(outcome: str, twin: str, shown: str, iou: float, visible_px: float, undr
     if outcome == "missed":
         return (f"{twin} is visible ({visible_px:.0f} px) and warned, but "
                 f"{UNDRAWN_WHY.get(undrawn, UNDRAWN_WHY['no_match'])}: nothing drawn")
-    return (f"{twin} is warned but not visible ({visible_px:.0f} px < {MIN_VISIBLE_PX:g}: hidden or too small); "
+    return (f"{twin} is warned but not visible ({_unseen_words(visible_px, visible_share)}: hidden or too small); "
             "nothing drawn, not a miss")
 
 
@@ -75,16 +86,17 @@ def explain_episodes(fusion: pd.DataFrame, period_s: float) -> pd.DataFrame:
         ep = warned.iloc[list(episode.rows)]
         mid = ep.iloc[len(ep) // 2]
         frame = int(mid["frame"]) if "frame" in ep and not pd.isna(mid["frame"]) else -1
+        share = float(mid["visible_share"]) if "visible_share" in ep else 1.0
         rows.append({"twin": str(twin), "outcome": str(outcome), "start_s": float(ep["time"].iloc[0]),
                      "end_s": float(ep["time"].iloc[-1]), "updates": len(ep), "bridged": episode.bridged,
                      "level": "high" if (ep["level"] == "high").any() else "medium",
                      "lc_prob_max": float(ep["lc_prob"].max()), "box_vehicle_id": str(shown),
-                     "gt_iou": float(mid["gt_iou"]), "visible_px": float(mid["visible_px"]),
+                     "gt_iou": float(mid["gt_iou"]), "visible_px": float(mid["visible_px"]), "visible_share": share,
                      "x1": float(mid["x1"]), "y1": float(mid["y1"]), "x2": float(mid["x2"]), "y2": float(mid["y2"]),
                      "frame": frame,
                      "undrawn": str(mid["undrawn"]) if "undrawn" in ep else "",
                      "why": why(str(outcome), str(twin), str(shown), float(mid["gt_iou"]), float(mid["visible_px"]),
-                                str(mid["undrawn"]) if "undrawn" in ep and mid["undrawn"] else "no_match")
+                                str(mid["undrawn"]) if "undrawn" in ep and mid["undrawn"] else "no_match", share)
                       + (f"; {episode.bridged} update(s) without a box inside it, spanned by the driver's "
                          "warning hold (a flicker, no missed warning)" if episode.bridged else "")})
     out = pd.DataFrame(rows, columns=[c for c in COLUMNS if c != "episode"])
@@ -149,12 +161,13 @@ def explain_run(folder: Path, out: Path) -> dict:
         head = (f"# Highlights of {folder.name} (scenario {sc.name}, seed {trip.seed}, {trip.driver_kind} driver, "
                 f"arm {trip.arm})\n\n"
                 f"Warning episodes: " + ", ".join(f"{counts.get(k, 0)} {k}" for k in ("right", "wrong", "missed", "unseen"))
-                + f" (rules: vcfusion.metrics.highlights, IoU >= {RIGHT_IOU:g}, visible >= {MIN_VISIBLE_PX:g} px).\n"
+                + f" (rules: vcfusion.metrics.highlights, IoU >= {RIGHT_IOU:g}, visible >= {MIN_VISIBLE_PX:g} px and >= "
+                f"{MIN_VISIBLE_SHARE:g} of the outline).\n"
                 + ("" if has_frames else "\nThe run recorded no AR frames (scenario ar.video false): no images.\n")
-                + "\n| # | twin | outcome | time [s] | updates | box shows | IoU | visible px | why |\n"
-                "|---|---|---|---|---|---|---|---|---|\n")
+                + "\n| # | twin | outcome | time [s] | updates | box shows | IoU | visible px | share | why |\n"
+                "|---|---|---|---|---|---|---|---|---|---|\n")
         body = "".join(f"| {r.episode} | {r.twin} | {r.outcome} | {r.start_s:.1f}-{r.end_s:.1f} | {r.updates} | "
-                       f"{r.box_vehicle_id or '-'} | {r.gt_iou:.2f} | {r.visible_px:.0f} | {r.why} |\n"
+                       f"{r.box_vehicle_id or '-'} | {r.gt_iou:.2f} | {r.visible_px:.0f} | {r.visible_share:.2f} | {r.why} |\n"
                        for r in episodes.itertuples(index=False))
         (tmp / "highlights.md").write_text(head + body)
     return {"episodes": episodes, "counts": counts, "frames": has_frames}
