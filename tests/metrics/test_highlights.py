@@ -170,7 +170,8 @@ def test_the_visible_share_is_the_box_over_its_clipped_outline_at_most_one():
     hulls = [np.array([[10.0, 20.0], [50.0, 20.0], [50.0, 60.0], [10.0, 60.0]]),  # 40 x 40
              np.array([[600.0, 100.0], [700.0, 100.0], [700.0, 150.0]]),  # cut by the right side of a 640 px image
              None]
-    outline = outline_boxes(hulls, 640, 480)
+    rects = [None if h is None else (h.min(axis=0), h.max(axis=0)) for h in hulls]  # as ground_truth_boxes has them
+    outline = outline_boxes(rects, 640, 480)
     np.testing.assert_allclose(outline[:2], [[10, 20, 50, 60], [600, 100, 639.5, 150]])
     assert np.isnan(outline[2]).all()
     visible = np.array([[10.0, 20.0, 30.0, 28.0],  # 20 x 8 of 40 x 40

@@ -135,7 +135,7 @@ def ground_truth_boxes(frame, truth: VehicleStates, renderer=None, near: float =
     visible_fraction = np.full(n, np.nan)
     truncation = np.zeros(n)
     median_depth = np.zeros(n)
-    outline = outline_boxes(hulls, frame.width, frame.height)
+    outline = outline_boxes(rects, frame.width, frame.height)
     for j, k in enumerate(present):
         r, c = rows[starts[j]:ends[j]], cols[starts[j]:ends[j]]
         box[j] = (c.min() - 0.5, r.min() - 0.5, c.max() + 0.5, r.max() + 0.5)
@@ -161,16 +161,15 @@ def ground_truth_boxes(frame, truth: VehicleStates, renderer=None, near: float =
         truncation=truncation, median_depth=median_depth, outline=outline, visible_share=visible_share)
 
 
-def outline_boxes(hulls, width: int, height: int) -> np.ndarray:
-    """(N, 4) the bounding box of each projected 3D box hull (projected_box_polygon), clipped to the
-    `width` x `height` image (spanning [-0.5, width - 0.5] x [-0.5, height - 0.5]); NaN where a
-    hull is None (the 3D box wholly behind the near plane)."""
-    out = np.full((len(hulls), 4), np.nan)
-    for j, h in enumerate(hulls):
-        if h is None:
-            continue
-        lo, hi = h.min(axis=0), h.max(axis=0)
-        out[j] = (max(lo[0], -0.5), max(lo[1], -0.5), min(hi[0], width - 0.5), min(hi[1], height - 0.5))
+def outline_boxes(rects, width: int, height: int) -> np.ndarray:
+    """(N, 4) each projected 3D box's bounding rectangle (``(lo, hi)`` corners of its hull,
+    projected_box_polygon) clipped to the `width` x `height` image (spanning [-0.5, width - 0.5] x
+    [-0.5, height - 0.5]); NaN where a rectangle is None (the 3D box wholly behind the near plane)."""
+    out = np.full((len(rects), 4), np.nan)
+    for j, rect in enumerate(rects):
+        if rect is not None:
+            (x1, y1), (x2, y2) = rect
+            out[j] = (max(x1, -0.5), max(y1, -0.5), min(x2, width - 0.5), min(y2, height - 0.5))
     return out
 
 
@@ -182,9 +181,8 @@ def visible_shares(visible_box: np.ndarray, outline: np.ndarray) -> np.ndarray:
     o = np.asarray(outline, dtype=float).reshape(-1, 4)
     area_v = (v[:, 2] - v[:, 0]) * (v[:, 3] - v[:, 1])
     area_o = np.clip(o[:, 2] - o[:, 0], 0, None) * np.clip(o[:, 3] - o[:, 1], 0, None)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        share = np.where(area_o > 0, area_v / area_o, 1.0)
-    return np.minimum(np.nan_to_num(share, nan=1.0), 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):  # the empty and NaN outlines' quotients are not used
+        return np.minimum(np.where(area_o > 0, area_v / area_o, 1.0), 1.0)
 
 
 def _may_be_occluded(j: int, rects, near_depth, far_depth) -> bool:
