@@ -55,6 +55,7 @@ class Judgement:
     visible_px: float  # area of the meant vehicle's ground-truth box, 0 when it has none
     visible_share: float  # that area over its outline's (gt_boxes.visible_shares), 0 when it has none
     box_vehicle_id: str  # the vehicle whose ground-truth box the drawn box overlaps most ("" : none / no box)
+    visible: bool  # the meant vehicle is visible (is_visible of its box and share): a target, nothing drawn a miss
 
 
 def is_visible(area_px: float, share: float, min_visible_px: float = MIN_VISIBLE_PX) -> bool:
@@ -75,14 +76,15 @@ def judge_highlight(vehicle_id: str, box, gt_boxes, gt_ids, gt_visible_share=Non
     own = None if k is None else gt[k]
     area = 0.0 if own is None else float((own[2] - own[0]) * (own[3] - own[1]))
     share = 0.0 if own is None else 1.0 if gt_visible_share is None else float(gt_visible_share[k])
+    visible = is_visible(area, share, min_visible_px)
     if box is None:
-        return Judgement("missed" if is_visible(area, share, min_visible_px) else "unseen", 0.0, area, share, "")
+        return Judgement("missed" if visible else "unseen", 0.0, area, share, "", visible)
     b = np.asarray(box, dtype=float).reshape(1, 4)
     ious = box_iou(b, gt)[0] if len(gt) else np.zeros(0)
     best = str(gt_ids[int(np.argmax(ious))]) if len(ious) and ious.max() > 0 else ""
     iou = float(box_iou(b, own[None])[0, 0]) if own is not None else 0.0
     right = iou >= right_iou - 1e-12  # on the meant vehicle, however small it is
-    return Judgement("right" if right else "wrong", iou, area, share, vehicle_id if right else best)
+    return Judgement("right" if right else "wrong", iou, area, share, vehicle_id if right else best, visible)
 
 
 def instance_boxes(instances, vehicle_ids) -> tuple[np.ndarray, tuple[str, ...]]:

@@ -34,7 +34,7 @@ from tqdm import tqdm
 from vcfusion.fusion.depth_eval import DepthEvalParams
 from vcfusion.fusion.fuse import METHODS, CameraFrame, FusionResult, fuse_frame
 from vcfusion.fusion.matching import JointMatcher, JointMatcherParams
-from vcfusion.metrics.highlights import MIN_VISIBLE_PX, is_visible, judge_highlight
+from vcfusion.metrics.highlights import MIN_VISIBLE_PX, judge_highlight
 from vcfusion.runio import atomic_write
 
 IOU_THRESHOLDS = np.round(np.arange(0.5, 0.951, 0.05), 2)
@@ -55,14 +55,13 @@ def identification_rows(frame: CameraFrame, result: FusionResult, min_gt_area_px
         if k is None:
             continue
         g = gt[k]
-        share = 1.0 if frame.gt_visible_share is None else float(frame.gt_visible_share[k])
-        if not is_visible((g[2] - g[0]) * (g[3] - g[1]), share, min_gt_area_px):
-            continue
         for method, chosen in result.choice.items():
             j = int(chosen[i])
             box = (np.nan,) * 4 if j < 0 else tuple(float(v) for v in result.detections.boxes[j])
             judged = judge_highlight(vid, None if j < 0 else box, gt, frame.gt_ids, frame.gt_visible_share,
                                      min_visible_px=min_gt_area_px)
+            if not judged.visible:  # not a target: the target's visibility, the same for every method
+                break
             n_cand = -1 if result.n_anchor_boxes is None else int(result.n_anchor_boxes[i])
             rows.append({**context, "time": round(float(frame.time), 6), "vehicle_id": vid, "method": method,
                          "n_anchor_boxes": n_cand, "matched": j >= 0, "iou": judged.iou, "outcome": judged.outcome,
