@@ -183,7 +183,6 @@ def build_torch_mlp(n_features: int, hidden: int):
 
 
 def save_model(model: LaneChangeModel, path: str | Path) -> Path:
-    path = Path(path)
     meta = {"format": MODEL_FORMAT, "feature_names": list(model.feature_names), "layers": len(model.weights),
             **model.decision_meta()}
     arrays = {"mean": model.mean, "std": model.std}
