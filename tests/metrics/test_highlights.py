@@ -164,17 +164,84 @@ def test_a_sliver_under_the_visible_share_is_unseen_above_it_missed():
     assert judge_highlight("a", (130, 105, 200, 150), GT, IDS, shares).outcome == "wrong"
 
 
-def test_the_visible_share_is_the_box_over_its_clipped_outline_at_most_one():
-    from vcfusion.render.gt_boxes import outline_boxes, visible_shares
+def test_the_outline_is_the_box_around_the_projections_part_inside_the_image():
+    from vcfusion.render.gt_boxes import outline_in_image, visible_shares
 
-    hulls = [np.array([[10.0, 20.0], [50.0, 20.0], [50.0, 60.0], [10.0, 60.0]]),  # 40 x 40
-             np.array([[600.0, 100.0], [700.0, 100.0], [700.0, 150.0]]),  # cut by the right side of a 640 px image
-             None]
-    rects = [None if h is None else (h.min(axis=0), h.max(axis=0)) for h in hulls]  # as ground_truth_boxes has them
-    outline = outline_boxes(rects, 640, 480)
-    np.testing.assert_allclose(outline[:2], [[10, 20, 50, 60], [600, 100, 639.5, 150]])
-    assert np.isnan(outline[2]).all()
+    square = np.array([[10.0, 20.0], [50.0, 20.0], [50.0, 60.0], [10.0, 60.0]])  # 40 x 40, inside
+    cut = np.array([[600.0, 100.0], [700.0, 100.0], [700.0, 150.0]])  # cut by the right side of a 640 px image
+    # a car beside the camera: its near end projects far above, below and beside the image
+    beside = np.array([[620.0, 200.0], [2000.0, -3000.0], [2000.0, 4000.0], [620.0, 260.0]])
+    trunc, outline = zip(*(outline_in_image(h, 640, 480) for h in (square, cut, beside, None)))
+    np.testing.assert_allclose(outline[0], [10, 20, 50, 60])
+    # the triangle's part left of x = 639.5 ends at y = 100 + 50 * 39.5 / 100, not at its corner's 150
+    np.testing.assert_allclose(outline[1], [600, 100, 639.5, 119.75], atol=1e-3)
+    # at x = 639.5 the upper and lower edges are at 200 - 19.5 * 3200 / 1380 and 260 + 19.5 * 3740 / 1380,
+    # where the box around the whole projection, clipped, spans the image's height (-0.5 .. 479.5)
+    np.testing.assert_allclose(outline[2], [620, 200 - 19.5 * 3200 / 1380, 639.5, 260 + 19.5 * 3740 / 1380],
+                               atol=1e-3)
+    assert np.isnan(outline[3]).all()
+    assert trunc[0] == 0.0 and trunc[3] == 1.0
+    assert trunc[1] == pytest.approx(1 - (39.5 * 19.75 / 2) / (100 * 50 / 2), abs=1e-5)
     visible = np.array([[10.0, 20.0, 30.0, 28.0],  # 20 x 8 of 40 x 40
-                        [590.0, 100.0, 639.5, 150.0],  # a pixel past the outline: 1, not more
+                        [590.0, 100.0, 639.5, 150.0],  # past the outline: 1, not more
                         [0.0, 0.0, 10.0, 10.0]])
-    np.testing.assert_allclose(visible_shares(visible, outline), [160 / 1600, 1.0, 1.0])
+    np.testing.assert_allclose(visible_shares(visible, np.array([outline[0], outline[1], outline[3]])),
+                               [160 / 1600, 1.0, 1.0])
+
+
+def test_the_visible_box_is_the_largest_patch_of_pixels_as_scipy_labels_them():
+    from scipy import ndimage
+
+    from vcfusion.render.gt_boxes import largest_patch_box
+
+    # a car as the curve showed one: a 3 px wide strip beside a nearer truck, and stray pixels seen
+    # between the truck's wheels 10 px away; the box around all of them is 4x the strip's
+    mask = np.zeros((9, 15), bool)
+    mask[0:8, 11:14] = True
+    mask[8, [0, 1, 4, 5, 12]] = True  # the strays, and a pixel touching the strip diagonally
+    rows, cols = np.nonzero(mask)
+    labels, n = ndimage.label(mask, structure=np.ones((3, 3)))
+    biggest = np.argmax(np.bincount(labels.ravel())[1:]) + 1
+    r, c = np.nonzero(labels == biggest)
+    reference = (c.min() - 0.5, r.min() - 0.5, c.max() + 0.5, r.max() + 0.5)
+    assert n == 3 and largest_patch_box(rows + 200, cols + 300) == pytest.approx(
+        (reference[0] + 300, reference[1] + 200, reference[2] + 300, reference[3] + 200))
+    assert largest_patch_box(rows, cols) == pytest.approx((10.5, -0.5, 13.5, 8.5))
+    # one patch (a filled rectangle, or pixels joined at corners) is the box around all of it
+    rr, cc = np.mgrid[3:7, 5:9]
+    assert largest_patch_box(rr.ravel(), cc.ravel()) == (4.5, 2.5, 8.5, 6.5)
+    assert largest_patch_box(np.array([0, 1, 2]), np.array([0, 1, 2])) == (-0.5, -0.5, 2.5, 2.5)
+    # equal patches: the first in scan order
+    assert largest_patch_box(np.array([0, 0, 5, 5]), np.array([4, 5, 0, 1])) == (3.5, -0.5, 5.5, 0.5)
+
+
+def test_the_frame_judges_highlights_against_its_visible_boxes_not_the_boxes_around_all_pixels():
+    from vcfusion.fusion.fuse import CameraFrame
+
+    # "a": its pixels spread over a 40 x 30 px box, its largest patch a 7 x 10 px strip at the box's right
+    patches = GT.copy()
+    patches[0] = (133, 100, 140, 110)
+    frame = CameraFrame(time=0.0, image=np.zeros((4, 4, 3), np.uint8), depth=np.zeros((4, 4), np.float32),
+                        camera=None, gt_boxes=GT, gt_ids=IDS, gt_patches=patches)
+    assert judge_highlight("a", None, frame.visible_boxes, IDS).outcome == "unseen"  # 70 px
+    assert judge_highlight("a", None, frame.gt_boxes, IDS).outcome == "missed"  # 1200 px
+    # a box on the strip is right against it (IoU 0.7), wrong against the box around all pixels
+    on_strip = (133, 100, 140, 107)
+    assert judge_highlight("a", on_strip, frame.visible_boxes, IDS).outcome == "right"
+    assert judge_highlight("a", on_strip, frame.gt_boxes, IDS).outcome == "wrong"
+    # without patches (a scene folder) the ground-truth boxes are the visible boxes
+    no_patches = CameraFrame(time=0.0, image=frame.image, depth=frame.depth, camera=None, gt_boxes=GT, gt_ids=IDS)
+    assert no_patches.visible_boxes is GT
+
+
+def test_a_persons_display_is_judged_against_the_largest_patch_in_its_instance_map():
+    from vcfusion.metrics.highlights import instance_boxes
+
+    inst = np.full((20, 30), -1)
+    inst[2:12, 20:23] = 0  # "a": a 3 x 10 px strip ...
+    inst[15, [5, 6, 10]] = 0  # ... and stray pixels far from it
+    inst[5:9, 2:8] = 1  # "b": one patch
+    boxes, ids = instance_boxes(inst, ("a", "b"))
+    assert ids == ("a", "b")
+    np.testing.assert_array_equal(boxes, [[20, 2, 23, 12], [2, 5, 8, 9]])
+    assert judge_highlight("a", (20, 2, 23, 11), boxes, ids).outcome == "right"

@@ -134,12 +134,41 @@ def test_the_visible_share_agrees_with_the_vehicle_drawn_alone(renderer):
         alone = np.array([cols.min() - 0.5, rows.min() - 0.5, cols.max() + 0.5, rows.max() + 0.5])
         out = boxes.outline[j]
         assert out[0] <= alone[0] + 1 and out[1] <= alone[1] + 1 and out[2] >= alone[2] - 1 and out[3] >= alone[3] - 1
-        assert boxes.visible_share[j] == pytest.approx(area(boxes.box[j]) / area(out))
+        assert boxes.visible_share[j] == pytest.approx(area(boxes.patch[j]) / area(out))
+        np.testing.assert_array_equal(boxes.patch[j], boxes.box[j])  # each shows as one patch
         if vid == "lead":
             assert boxes.visible_fraction[j] == 1.0 and boxes.visible_share[j] > 0.75
         else:
             assert boxes.visible_fraction[j] < 0.2
             assert boxes.visible_share[j] < MIN_VISIBLE_SHARE and area(boxes.box[j]) / area(alone) < MIN_VISIBLE_SHARE
+
+
+def test_a_car_beside_the_camera_leaving_the_frame_shows_most_of_its_outline(renderer):
+    """The outline is the box around the projected 3D box's part inside the image: for an
+    unoccluded car leaving the frame beside the camera it holds the car drawn alone (the renderer's
+    second pass) and the car covers most of it; the box around the whole projection, clipped to
+    the image, would span the image's height and put the share near the sliver floor."""
+    from vcfusion.metrics.highlights import MIN_VISIBLE_SHARE
+    from vcfusion.render.gt_boxes import box_corners, projected_box_polygon
+
+    area = lambda b: (b[2] - b[0]) * (b[3] - b[1])  # noqa: E731
+    for x in (106.0, 105.0, 104.0):
+        truth = states([SCENE[0], ("side", "passenger", x, LANE1, 0.0, 4.6, 1.8, 1.5)])
+        frame = renderer.render(truth)
+        boxes = ground_truth_boxes(frame, truth, renderer)
+        j = boxes.vehicle_ids.index("side")
+        rows, cols = np.nonzero(renderer.silhouette("side"))
+        alone = np.array([cols.min() - 0.5, rows.min() - 0.5, cols.max() + 0.5, rows.max() + 0.5])
+        out = boxes.outline[j]
+        assert out[0] <= alone[0] + 1 and out[1] <= alone[1] + 1 and out[2] >= alone[2] - 1 and out[3] >= alone[3] - 1
+        assert boxes.truncation[j] > 0.5 and boxes.visible_fraction[j] == 1.0
+        assert boxes.visible_share[j] > 0.7
+        hull = projected_box_polygon(box_corners(x, LANE1, 0.0, 0.0, 4.6, 1.8, 1.5), frame.K, frame.T_world_to_camera,
+                                     0.3)
+        lo, hi = hull.min(axis=0), hull.max(axis=0)
+        whole = (max(lo[0], -0.5), max(lo[1], -0.5), min(hi[0], frame.width - 0.5), min(hi[1], frame.height - 0.5))
+        assert area(whole) > 1.15 * area(out)
+    assert area(boxes.box[j]) / area(whole) < 2.5 * MIN_VISIBLE_SHARE  # x = 104: 0.44 by the whole projection
 
 
 def test_truncation_at_image_border(renderer):

@@ -45,8 +45,10 @@ class CameraFrame:
     camera: CameraView
     gt_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (M, 4) visible vehicles' boxes
     gt_ids: tuple[str, ...] = ()  # vehicle id of each ground-truth box
-    # (M,) share of each vehicle's outline (projected 3D box) its box covers (gt_boxes.visible_shares),
-    # for judging highlights; None where the source has no outlines (scene folders)
+    # (M, 4) each vehicle's visible box (around its largest patch of pixels, gt_boxes.GroundTruthBoxes.patch)
+    # and (M,) the share of its outline (projected 3D box) it covers: what highlights are judged against
+    # (vcfusion.metrics.highlights); None where the source has none (scene folders: gt_boxes, every share 1)
+    gt_patches: np.ndarray | None = None
     gt_visible_share: np.ndarray | None = None
     gt_classes: np.ndarray | None = None  # (M,) category ids, for the oracle detector
     # (H, W) index into `instance_ids` of the vehicle seen at each pixel, -1 where none (the
@@ -54,6 +56,12 @@ class CameraFrame:
     instances: np.ndarray | None = None
     instance_ids: tuple[str, ...] = ()
     depth_noise: DepthNoise = DepthNoise()  # the depth sensor's error (its spec), for the depth step
+
+    @property
+    def visible_boxes(self) -> np.ndarray:
+        """The boxes highlights are judged against: the visible boxes, or the ground-truth boxes
+        where the source has none."""
+        return self.gt_boxes if self.gt_patches is None else self.gt_patches
 
 
 @dataclass(frozen=True)
@@ -696,7 +704,7 @@ class VisionFusionHook:
         # one whose visible box it overlaps most: whom a person looking at the overlay would see
         # highlighted); ground truth serves that model of the driver's eye and the scoring only.
         # Each drawn item carries its box's depth as the fusion measured it.
-        judged = [judge_highlight(g.vehicle_id, g.box, frame.gt_boxes, frame.gt_ids, frame.gt_visible_share)
+        judged = [judge_highlight(g.vehicle_id, g.box, frame.visible_boxes, frame.gt_ids, frame.gt_visible_share)
                   for g in in_view]
         in_view = [replace(g, box_vehicle_id=jd.box_vehicle_id or None, box_depth_m=_finite_or_none(result.box_depths[j]))
                    if g.box is not None else g for g, jd, j in zip(in_view, judged, chosen)]

@@ -70,6 +70,7 @@ def frame_from_render(frame, truth, sensors=None) -> CameraFrame:
     return CameraFrame(time=float(frame.time), image=frame.rgb, depth=depth,
                        camera=camera_view(frame.K, T, frame.width, frame.height, frame.time),
                        gt_boxes=np.asarray(gt.box, dtype=float).reshape(-1, 4), gt_ids=tuple(gt.vehicle_ids),
+                       gt_patches=np.asarray(gt.patch, dtype=float).reshape(-1, 4),
                        gt_visible_share=gt.visible_share,
                        gt_classes=np.array([category_id(c) for c in gt.vclass], dtype=np.int64),
                        instances=frame.instances, instance_ids=tuple(frame.vehicle_ids), depth_noise=noise)

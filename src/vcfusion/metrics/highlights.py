@@ -5,12 +5,13 @@ A highlight is judged in one camera frame, for one twin the cloud means (a warni
 study, a target in the identification study), against the frame's ground truth (scoring only:
 nothing here is shown to a driver or given to a detector):
 
-- the twin's vehicle is **visible** when the frame has a ground-truth box for it (its pixels in the
-  instance map, `vcfusion.render.gt_boxes`) of at least `MIN_VISIBLE_PX` pixels, covering at
-  least `MIN_VISIBLE_SHARE` of its outline (the box around its 3D box's projection, clipped to the
-  image: a sliver of a vehicle behind another is not a vehicle to see);
-- **right**: a box is drawn for the twin and its IoU with that vehicle's ground-truth box is at
-  least `RIGHT_IOU`;
+- the twin's vehicle is **visible** when the box around its largest connected patch of pixels in
+  the instance map (`vcfusion.render.gt_boxes`: the part of it a person sees; pixels scattered
+  between a nearer truck's wheels are not a view of it) is at least `MIN_VISIBLE_PX` pixels and
+  covers at least `MIN_VISIBLE_SHARE` of its outline (the box around the part of its 3D box's
+  projection inside the image: a sliver of a vehicle behind another is not a vehicle to see);
+- **right**: a box is drawn for the twin and its IoU with that vehicle's visible box (the box
+  around its largest patch, as above) is at least `RIGHT_IOU`;
 - **wrong**: a box is drawn for the twin and it is not right (on another vehicle, on part of it,
   on none, or drawn for a twin whose vehicle the frame does not show);
 - **missed**: the twin's vehicle is visible and no box is drawn for it;
@@ -33,12 +34,12 @@ import numpy as np
 # that vehicle: 0.5, the PASCAL VOC / COCO AP50 rule for "this box is that object"; the
 # identification study reports its accuracy at 0.5 to 0.95 and names 0.7 in its headline.
 RIGHT_IOU = 0.5
-# fewest pixels of a vehicle's visible box for it to be judged (a target of the identification
+# fewest pixels of a vehicle's visible box (the box around its largest connected patch) for it to be judged (a target of the identification
 # study, a vehicle the driver can be expected to see): 100 px, about 10 x 10 px, a car at ~140 m
 # with the shipped 90-degree 640 px camera.
 MIN_VISIBLE_PX = 100.0
-# least share of a vehicle's outline (its projected 3D box, clipped to the image) that its visible
-# box covers for it to be judged: 0.2, the visibility floor of the CityPersons benchmark's "All"
+# least share of a vehicle's outline (the box around its projected 3D box's part inside the image)
+# that its visible box covers for it to be judged: 0.2, the visibility floor of the CityPersons benchmark's "All"
 # and "Heavy occlusion" settings (visible box area / full box area; Zhang, Benenson and Schiele,
 # CVPR 2017), below which an object is neither a target nor a miss. Registered before it was
 # written (docs/components/guidance-loop.md), from the development seeds curved 307/309/310, where
@@ -52,7 +53,7 @@ OUTCOMES = ("right", "wrong", "missed", "unseen")
 class Judgement:
     outcome: str  # one of OUTCOMES
     iou: float  # IoU of the drawn box with the meant vehicle's ground-truth box (0: none drawn or not visible)
-    visible_px: float  # area of the meant vehicle's ground-truth box, 0 when it has none
+    visible_px: float  # area of the meant vehicle's visible box, 0 when it has none
     visible_share: float  # that area over its outline's (gt_boxes.visible_shares), 0 when it has none
     box_vehicle_id: str  # the vehicle whose ground-truth box the drawn box overlaps most ("" : none / no box)
     visible: bool  # the meant vehicle is visible (is_visible of its box and share): a target, nothing drawn a miss
@@ -66,7 +67,8 @@ def is_visible(area_px: float, share: float, min_visible_px: float = MIN_VISIBLE
 def judge_highlight(vehicle_id: str, box, gt_boxes, gt_ids, gt_visible_share=None, right_iou: float = RIGHT_IOU,
                     min_visible_px: float = MIN_VISIBLE_PX) -> Judgement:
     """The outcome of drawing `box` (x1, y1, x2, y2, or None for nothing drawn) for the twin
-    `vehicle_id` in a frame whose ground-truth boxes are `gt_boxes` of vehicles `gt_ids`, covering
+    `vehicle_id` in a frame whose vehicles `gt_ids` show the visible boxes `gt_boxes` (the boxes
+    around their largest patches of pixels, CameraFrame.visible_boxes), covering
     `gt_visible_share` of their outlines (None: frames without outlines, such as a person's display
     judged from its instance map, where only the drawn box's owner is asked for; every share 1)."""
     from vcfusion.fusion.matching import box_iou
@@ -89,8 +91,10 @@ def judge_highlight(vehicle_id: str, box, gt_boxes, gt_ids, gt_visible_share=Non
 
 def instance_boxes(instances, vehicle_ids) -> tuple[np.ndarray, tuple[str, ...]]:
     """Each vehicle's visible box in an instance map (-1: no vehicle; k: vehicle_ids[k]): the
-    bounding box (x1, y1, x2, y2) px of its visible pixels, x2 and y2 one past the last pixel, for
-    judging a box drawn on a frame that carries no ground-truth boxes (a person's display)."""
+    bounding box (x1, y1, x2, y2) px of its largest 8-connected patch of pixels, x2 and y2 one past
+    the last pixel, for judging a box drawn on a frame that carries no ground-truth boxes (a
+    person's display)."""
+    from vcfusion.render.gt_boxes import largest_patch_box
     if instances is None:
         return np.zeros((0, 4)), ()
     inst = np.asarray(instances)
@@ -100,8 +104,7 @@ def instance_boxes(instances, vehicle_ids) -> tuple[np.ndarray, tuple[str, ...]]
     labels = inst[rows, cols]
     boxes, ids = [], []
     for k in np.unique(labels):
-        r, c = rows[labels == k], cols[labels == k]
-        boxes.append((c.min(), r.min(), c.max() + 1, r.max() + 1))
+        boxes.append(np.add(largest_patch_box(rows[labels == k], cols[labels == k]), 0.5))
         ids.append(str(vehicle_ids[int(k)]))
     return np.asarray(boxes, dtype=float), tuple(ids)
 

@@ -14,11 +14,16 @@ For every vehicle with at least one visible pixel:
 - ``truncation``: fraction of the projected 3D bounding box (length x width x height, clipped
   at the near plane) that lies outside the image (KITTI's notion; 0 = fully inside);
 - ``median_depth``: median camera Z of its visible pixels (what a depth camera measures);
-- ``outline``: the box around the projection of its 3D bounding box (clipped at the near plane),
-  clipped to the image: where the whole vehicle would be with nothing in front of it;
-- ``visible_share``: the visible box's area over the outline's (the CityPersons benchmark's
-  visibility, visible box over full box; 1 where it comes out larger): how much of the vehicle's
-  extent in the image nearer objects leave, without a second render.
+- ``outline``: the box around the part of its projected 3D bounding box (clipped at the near
+  plane) that lies inside the image: where the whole vehicle would be with nothing in front of it
+  (for a car beside the camera, the box around all of the projection, clipped, would span the
+  image's height);
+- ``patch``: the box around its largest 8-connected patch of visible pixels: the part of it a
+  person sees (pixels scattered between the wheels of a nearer truck are not a view of the car);
+  ``box`` where it shows as one patch;
+- ``visible_share``: the patch's area over the outline's (the CityPersons benchmark's visibility,
+  visible box over full box; 1 where it comes out larger): how much of the vehicle's extent in the
+  image nearer objects leave, without a second render.
 """
 
 from __future__ import annotations
@@ -47,8 +52,9 @@ class GroundTruthBoxes:
     visible_fraction: np.ndarray  # (N,)
     truncation: np.ndarray  # (N,)
     median_depth: np.ndarray  # (N,) metres
-    outline: np.ndarray  # (N, 4) x1, y1, x2, y2 of the projected 3D box, clipped to the image
-    visible_share: np.ndarray  # (N,) area of `box` / area of `outline`, at most 1
+    outline: np.ndarray  # (N, 4) x1, y1, x2, y2 around the projected 3D box's part inside the image
+    patch: np.ndarray  # (N, 4) x1, y1, x2, y2 around the largest 8-connected patch of visible pixels
+    visible_share: np.ndarray  # (N,) area of `patch` / area of `outline`, at most 1
 
     def __len__(self) -> int:
         return len(self.vehicle_ids)
@@ -79,17 +85,38 @@ def projected_box_polygon(corners_world: np.ndarray, K: np.ndarray, T: np.ndarra
     return cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
 
 
-def _truncation(hull: np.ndarray | None, width: int, height: int) -> float:
+def outline_in_image(hull: np.ndarray | None, width: int, height: int) -> tuple[float, np.ndarray]:
+    """The truncation of a projected 3D box's hull (share of its area outside the image; 1 for
+    None) and the box (x1, y1, x2, y2) around its part inside the image (NaN where none is)."""
+    none = np.full(4, np.nan)
     if hull is None:
-        return 1.0
-    area = cv2.contourArea(hull)
-    if area <= 0:
-        return 0.0
+        return 1.0, none
     image = np.array([[-0.5, -0.5], [width - 0.5, -0.5], [width - 0.5, height - 0.5], [-0.5, height - 0.5]],
                      dtype=np.float32)
-    inside, _ = cv2.intersectConvexConvex(hull.astype(np.float32), image)
+    hull = np.asarray(hull, dtype=np.float32)
+    inside, polygon = cv2.intersectConvexConvex(hull, image)
+    outline = none if polygon is None or inside <= 0 else np.r_[polygon.reshape(-1, 2).min(axis=0),
+                                                                polygon.reshape(-1, 2).max(axis=0)]
+    area = cv2.contourArea(hull)
+    if area <= 0:
+        return 0.0, outline
     # Rounded: the float32 polygon clipping leaves ~1e-8 of noise on boxes fully inside.
-    return round(float(np.clip(1.0 - inside / area, 0.0, 1.0)), 6)
+    return round(float(np.clip(1.0 - inside / area, 0.0, 1.0)), 6), outline
+
+
+def largest_patch_box(rows: np.ndarray, cols: np.ndarray) -> tuple[float, float, float, float]:
+    """The box (pixel-centre convention) around the largest 8-connected patch of the pixels at
+    (`rows`, `cols`); the first in scan order of equal ones."""
+    r0, c0 = rows.min(), cols.min()
+    h, w = rows.max() - r0 + 1, cols.max() - c0 + 1
+    if len(rows) < h * w:  # a filled rectangle is one patch
+        mask = np.zeros((h, w), np.uint8)
+        mask[rows - r0, cols - c0] = 1
+        n, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        if n > 2:
+            x, y, bw, bh = stats[1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA])), :4]
+            return c0 + x - 0.5, r0 + y - 0.5, c0 + x + bw - 0.5, r0 + y + bh - 0.5
+    return c0 - 0.5, r0 - 0.5, c0 + w - 0.5, r0 + h - 0.5
 
 
 def ground_truth_boxes(frame, truth: VehicleStates, renderer=None, near: float = 0.3) -> GroundTruthBoxes:
@@ -135,12 +162,14 @@ def ground_truth_boxes(frame, truth: VehicleStates, renderer=None, near: float =
     visible_fraction = np.full(n, np.nan)
     truncation = np.zeros(n)
     median_depth = np.zeros(n)
-    outline = outline_boxes(rects, frame.width, frame.height)
+    outline = np.full((n, 4), np.nan)
+    patch = np.zeros((n, 4))
     for j, k in enumerate(present):
         r, c = rows[starts[j]:ends[j]], cols[starts[j]:ends[j]]
         box[j] = (c.min() - 0.5, r.min() - 0.5, c.max() + 0.5, r.max() + 0.5)
+        patch[j] = largest_patch_box(r, c)
         median_depth[j] = float(np.median(depths[starts[j]:ends[j]]))
-        truncation[j] = _truncation(hulls[j], frame.width, frame.height)
+        truncation[j], outline[j] = outline_in_image(hulls[j], frame.width, frame.height)
         if _may_be_occluded(j, rects, near_depth, far_depth):
             if renderer is not None:
                 full[j] = int(renderer.silhouette(frame.vehicle_ids[k]).sum())
@@ -154,23 +183,11 @@ def ground_truth_boxes(frame, truth: VehicleStates, renderer=None, near: float =
             full[j] = counts[k]
             visible_fraction[j] = 1.0
     vids = tuple(frame.vehicle_ids[k] for k in present)
-    visible_share = visible_shares(box, outline)
     return GroundTruthBoxes(
         vehicle_ids=vids, vclass=tuple(truth.vclass[index[v]] for v in vids), instance=present.astype(np.int32),
         box=box, pixels=counts[present], full_pixels=full, visible_fraction=visible_fraction,
-        truncation=truncation, median_depth=median_depth, outline=outline, visible_share=visible_share)
-
-
-def outline_boxes(rects, width: int, height: int) -> np.ndarray:
-    """(N, 4) each projected 3D box's bounding rectangle (``(lo, hi)`` corners of its hull,
-    projected_box_polygon) clipped to the `width` x `height` image (spanning [-0.5, width - 0.5] x
-    [-0.5, height - 0.5]); NaN where a rectangle is None (the 3D box wholly behind the near plane)."""
-    out = np.full((len(rects), 4), np.nan)
-    for j, rect in enumerate(rects):
-        if rect is not None:
-            (x1, y1), (x2, y2) = rect
-            out[j] = (max(x1, -0.5), max(y1, -0.5), min(x2, width - 0.5), min(y2, height - 0.5))
-    return out
+        truncation=truncation, median_depth=median_depth, outline=outline, patch=patch,
+        visible_share=visible_shares(patch, outline))
 
 
 def visible_shares(visible_box: np.ndarray, outline: np.ndarray) -> np.ndarray:

@@ -42,7 +42,7 @@ def _unseen_words(visible_px: float, visible_share: float) -> str:
     if visible_px == 0:
         return "not in the frame"
     if visible_px < MIN_VISIBLE_PX:
-        return f"{visible_px:.0f} px of it in the frame, < {MIN_VISIBLE_PX:g} px"
+        return f"the box around its largest patch in the frame is {visible_px:.0f} px, < {MIN_VISIBLE_PX:g} px"
     return (f"its {visible_px:.0f} px visible box is {visible_share:.2f} of its outline, < {MIN_VISIBLE_SHARE:g}: "
             "a sliver beside what hides it")
 

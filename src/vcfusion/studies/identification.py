@@ -47,7 +47,7 @@ def identification_rows(frame: CameraFrame, result: FusionResult, min_gt_area_px
     """Rows for the visible targets of one frame (context: scenario, seed, latency_s, gnss_noise_m,
     detector), each method's box judged by the one definition of a right highlight
     (vcfusion.metrics.highlights: ``outcome`` at its IoU rule, ``iou`` for any other threshold)."""
-    gt = np.asarray(frame.gt_boxes, dtype=float).reshape(-1, 4)
+    gt = np.asarray(frame.visible_boxes, dtype=float).reshape(-1, 4)  # what the judgement compares with
     gt_index = {vid: k for k, vid in enumerate(frame.gt_ids)}
     rows = []
     for i, vid in enumerate(result.twin_ids):
