@@ -704,8 +704,8 @@ class VisionFusionHook:
         # one whose visible box it overlaps most: whom a person looking at the overlay would see
         # highlighted); ground truth serves that model of the driver's eye and the scoring only.
         # Each drawn item carries its box's depth as the fusion measured it.
-        judged = [judge_highlight(g.vehicle_id, g.box, frame.visible_boxes, frame.gt_ids, frame.gt_visible_share)
-                  for g in in_view]
+        judged = [judge_highlight(g.vehicle_id, g.box, frame.visible_boxes, frame.gt_ids,
+                                  frame.gt_visible_share) for g in in_view]
         in_view = [replace(g, box_vehicle_id=jd.box_vehicle_id or None, box_depth_m=_finite_or_none(result.box_depths[j]))
                    if g.box is not None else g for g, jd, j in zip(in_view, judged, chosen)]
         guidance = [g for g in in_view if g.box is not None]

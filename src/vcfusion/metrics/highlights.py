@@ -34,17 +34,20 @@ import numpy as np
 # that vehicle: 0.5, the PASCAL VOC / COCO AP50 rule for "this box is that object"; the
 # identification study reports its accuracy at 0.5 to 0.95 and names 0.7 in its headline.
 RIGHT_IOU = 0.5
-# fewest pixels of a vehicle's visible box (the box around its largest connected patch) for it to be judged (a target of the identification
-# study, a vehicle the driver can be expected to see): 100 px, about 10 x 10 px, a car at ~140 m
-# with the shipped 90-degree 640 px camera.
+# fewest pixels of a vehicle's visible box (the box around its largest connected patch) for it to
+# be judged (a target of the identification study, a vehicle the driver can be expected to see):
+# 100 px, about 10 x 10 px, a car at ~140 m with the shipped 90-degree 640 px camera.
 MIN_VISIBLE_PX = 100.0
 # least share of a vehicle's outline (the box around its projected 3D box's part inside the image)
-# that its visible box covers for it to be judged: 0.2, the visibility floor of the CityPersons benchmark's "All"
-# and "Heavy occlusion" settings (visible box area / full box area; Zhang, Benenson and Schiele,
-# CVPR 2017), below which an object is neither a target nor a miss. Registered before it was
-# written (docs/components/guidance-loop.md), from the development seeds curved 307/309/310, where
-# most missed updates were slivers of 112-360 px beside a nearer vehicle (15 of the fusion arm's 28
-# are under 0.2; the other 13 are small far cars showing 0.9 of their outlines).
+# that its visible box covers for it to be judged: 0.2, the visibility floor of the CityPersons
+# benchmark's "All" and "Heavy occlusion" settings (visible box area / full box area; Zhang,
+# Benenson and Schiele, CVPR 2017), below which an object is neither a target nor a miss.
+# Registered before it was written (docs/components/guidance-loop.md), from the development seeds
+# curved 307/309/310, where most missed updates were slivers of 112-360 px beside a nearer vehicle
+# (15 of the fusion arm's 28 are under 0.2; the other 13 are small far cars showing 0.9 of their
+# outlines). The largest patch and the in-image outline were registered the same way, from the
+# curved development seeds 300-315 (7 of 10 missed episodes: a strip beside a nearer truck plus
+# pixels seen between its wheels).
 MIN_VISIBLE_SHARE = 0.2
 OUTCOMES = ("right", "wrong", "missed", "unseen")
 
@@ -52,10 +55,10 @@ OUTCOMES = ("right", "wrong", "missed", "unseen")
 @dataclass(frozen=True)
 class Judgement:
     outcome: str  # one of OUTCOMES
-    iou: float  # IoU of the drawn box with the meant vehicle's ground-truth box (0: none drawn or not visible)
+    iou: float  # IoU of the drawn box with the meant vehicle's visible box (0: none drawn or not in the frame)
     visible_px: float  # area of the meant vehicle's visible box, 0 when it has none
     visible_share: float  # that area over its outline's (gt_boxes.visible_shares), 0 when it has none
-    box_vehicle_id: str  # the vehicle whose ground-truth box the drawn box overlaps most ("" : none / no box)
+    box_vehicle_id: str  # the vehicle whose visible box the drawn box overlaps most ("" : none / no box)
     visible: bool  # the meant vehicle is visible (is_visible of its box and share): a target, nothing drawn a miss
 
 
@@ -95,6 +98,7 @@ def instance_boxes(instances, vehicle_ids) -> tuple[np.ndarray, tuple[str, ...]]
     the last pixel, for judging a box drawn on a frame that carries no ground-truth boxes (a
     person's display)."""
     from vcfusion.render.gt_boxes import largest_patch_box
+
     if instances is None:
         return np.zeros((0, 4)), ()
     inst = np.asarray(instances)
