@@ -2,13 +2,13 @@
 
 For every (frame, visible target twin) and every method (the paper's RGB-only baseline, our
 nearest-centre RGB-only heuristic ``baseline_centre``, paper fusion = Algorithm 2, joint matcher;
-see matching.py), the box the method chose and its IoU with the target's ground-truth
-box (0 when the method chose none). Accuracy at an IoU threshold is the fraction of target-frames
-whose chosen box has at least that IoU. A target is a neighbour twin whose vehicle is visible in
-the frame: a ground-truth box of at least ``min_gt_area_px`` (default: the one definition's
-``MIN_VISIBLE_PX``) covering at least ``MIN_VISIBLE_SHARE`` of its outline
-(vcfusion.metrics.highlights, which also gives each row's ``outcome`` at its IoU rule, as the
-guidance study counts highlights). Each row also records how
+see matching.py), the box the method chose and its IoU with the target's visible box (the box
+around its largest patch of pixels, ``gt_x1`` .. ``gt_y2``; 0 when the method chose none). Accuracy
+at an IoU threshold is the fraction of target-frames whose chosen box has at least that IoU. A
+target is a neighbour twin whose vehicle is visible in the frame: a visible box of at least
+``min_gt_area_px`` (default: the one definition's ``MIN_VISIBLE_PX``) covering at least
+``MIN_VISIBLE_SHARE`` of its outline (vcfusion.metrics.highlights, which also gives each row's
+``outcome`` at its IoU rule, as the guidance study counts highlights). Each row also records how
 many detected boxes contain the target's anchor (``n_anchor_boxes``: 0 = none, 1 = the easy case,
 >= 2 = the ambiguous case of Fig. 3 that depth is meant to resolve) and the scenario's name, so a
 study over several scenarios can be read per scenario and per case.
