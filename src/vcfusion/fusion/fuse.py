@@ -46,8 +46,9 @@ class CameraFrame:
     gt_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (M, 4) visible vehicles' boxes
     gt_ids: tuple[str, ...] = ()  # vehicle id of each ground-truth box
     # (M, 4) each vehicle's visible box (around its largest patch of pixels, gt_boxes.GroundTruthBoxes.patch)
-    # and (M,) the share of its outline (projected 3D box) it covers: what highlights are judged against
-    # (vcfusion.metrics.highlights); None where the source has none (scene folders: gt_boxes, every share 1)
+    # and (M,) the share of its outline (its projected 3D box's part inside the image) it covers: what
+    # highlights are judged against (vcfusion.metrics.highlights); None where the source has none (scene
+    # folders: gt_boxes, every share 1)
     gt_patches: np.ndarray | None = None
     gt_visible_share: np.ndarray | None = None
     gt_classes: np.ndarray | None = None  # (M,) category ids, for the oracle detector

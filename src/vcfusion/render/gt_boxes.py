@@ -95,8 +95,11 @@ def outline_in_image(hull: np.ndarray | None, width: int, height: int) -> tuple[
                      dtype=np.float32)
     hull = np.asarray(hull, dtype=np.float32)
     inside, polygon = cv2.intersectConvexConvex(hull, image)
-    outline = none if polygon is None or inside <= 0 else np.r_[polygon.reshape(-1, 2).min(axis=0),
-                                                                polygon.reshape(-1, 2).max(axis=0)]
+    if polygon is None or inside <= 0:
+        outline = none
+    else:
+        corners = polygon.reshape(-1, 2)
+        outline = np.r_[corners.min(axis=0), corners.max(axis=0)]
     area = cv2.contourArea(hull)
     if area <= 0:
         return 0.0, outline
