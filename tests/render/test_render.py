@@ -116,6 +116,16 @@ def test_ground_truth_boxes(renderer):
     assert abs(boxes.median_depth[lead] - (25.0 - 2.3 - 0.6)) < 0.5  # its rear, 25 m ahead less half lengths and the mount
 
 
+def area(b):
+    return (b[2] - b[0]) * (b[3] - b[1])
+
+
+def silhouette_box(renderer, vehicle_id):
+    """The box (pixel-centre convention) around the vehicle drawn alone: the renderer's own second pass."""
+    rows, cols = np.nonzero(renderer.silhouette(vehicle_id))
+    return np.array([cols.min() - 0.5, rows.min() - 0.5, cols.max() + 0.5, rows.max() + 0.5])
+
+
 def test_the_visible_share_agrees_with_the_vehicle_drawn_alone(renderer):
     """The outline (projected 3D box) holds the vehicle's silhouette drawn alone (the renderer's own
     second pass, an independent reference); an unoccluded car's visible box covers most of it, a
@@ -127,11 +137,9 @@ def test_the_visible_share_agrees_with_the_vehicle_drawn_alone(renderer):
     truth = states(scene)
     frame = renderer.render(truth)
     boxes = ground_truth_boxes(frame, truth, renderer)
-    area = lambda b: (b[2] - b[0]) * (b[3] - b[1])  # noqa: E731
     for vid in ("lead", "sliver"):
         j = boxes.vehicle_ids.index(vid)
-        rows, cols = np.nonzero(renderer.silhouette(vid))
-        alone = np.array([cols.min() - 0.5, rows.min() - 0.5, cols.max() + 0.5, rows.max() + 0.5])
+        alone = silhouette_box(renderer, vid)
         out = boxes.outline[j]
         assert out[0] <= alone[0] + 1 and out[1] <= alone[1] + 1 and out[2] >= alone[2] - 1 and out[3] >= alone[3] - 1
         assert boxes.visible_share[j] == pytest.approx(area(boxes.patch[j]) / area(out))
@@ -151,14 +159,12 @@ def test_a_car_beside_the_camera_leaving_the_frame_shows_most_of_its_outline(ren
     from vcfusion.metrics.highlights import MIN_VISIBLE_SHARE
     from vcfusion.render.gt_boxes import box_corners, projected_box_polygon
 
-    area = lambda b: (b[2] - b[0]) * (b[3] - b[1])  # noqa: E731
     for x in (106.0, 105.0, 104.0):
         truth = states([SCENE[0], ("side", "passenger", x, LANE1, 0.0, 4.6, 1.8, 1.5)])
         frame = renderer.render(truth)
         boxes = ground_truth_boxes(frame, truth, renderer)
         j = boxes.vehicle_ids.index("side")
-        rows, cols = np.nonzero(renderer.silhouette("side"))
-        alone = np.array([cols.min() - 0.5, rows.min() - 0.5, cols.max() + 0.5, rows.max() + 0.5])
+        alone = silhouette_box(renderer, "side")
         out = boxes.outline[j]
         assert out[0] <= alone[0] + 1 and out[1] <= alone[1] + 1 and out[2] >= alone[2] - 1 and out[3] >= alone[3] - 1
         assert boxes.truncation[j] > 0.5 and boxes.visible_fraction[j] == 1.0
