@@ -37,6 +37,21 @@ def package_versions() -> dict[str, str]:
     return out
 
 
+def package_code_sha256() -> str:
+    """sha256 over the package's own Python source (each file's path inside the package, then its
+    bytes, in path order): two installs give the same digest exactly when their code is the same,
+    a source tree with uncommitted edits included (package data such as weights is hashed where a
+    record names it: `run.input_files`)."""
+    import hashlib
+
+    root = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0")
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
 def write_json(path: Path, data: dict) -> None:
     path.write_text(json.dumps(data, indent=2, sort_keys=True, default=str) + "\n")
 

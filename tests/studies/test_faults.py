@@ -177,3 +177,10 @@ def test_guidance_study_loses_only_the_trip_whose_worker_died(tmp_path):
     trips = pd.read_parquet(tmp_path / "study" / "trips.parquet")
     assert sorted(set(trips["seed"])) == sorted({0, 1, 2} - {dead})
     assert res["info"]["trips_failed"] == 1
+    # the dead trip is not in the trip log: the same study again runs it alone (the model dies only once)
+    again = run_guidance_study(scenario, trips=3, workers=2, out=tmp_path / "study", renders=tmp_path / "renders",
+                               process_model_specs=("support.dying_workers:dies_once",), progress=False,
+                               arms=("none", "cloud"))
+    assert again["failed"] == [] and again["info"]["trips_from_log"] == 2
+    assert sorted(set(again["trips"]["seed"])) == [0, 1, 2]
+    assert not (tmp_path / "study" / "failures.json").exists()

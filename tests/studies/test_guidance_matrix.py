@@ -32,6 +32,12 @@ def test_matrix_of_two_short_scenarios(tmp_path, capsys):
     assert "accident [tuned-on]" in text and "curved [held-out]" in text and "ego collisions in seeds" in text
     for name in ("accident", "curved"):  # each scenario's own study folder
         assert (tmp_path / "m" / name / "trips.parquet").is_file()
+    # the same command again (as after an interruption) takes every trip from the scenarios' trip logs
+    assert main(["guidance-matrix", *paths, "--trips", "2", "--workers", "1", "--arms", "none,cloud",
+                 "--out", str(tmp_path / "m")]) == 0
+    text = capsys.readouterr().out
+    assert text.count("2 of 2 trips taken from") == 2
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "m" / "matrix_summary.csv"), summary)
 
 
 def test_matrix_needs_two_trips(capsys):

@@ -61,5 +61,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--tuned-on", default="accident",
                    help="comma-separated scenario names the chain was tuned on (labelled tuned-on; the others "
                         "held-out)")
-    p.add_argument("--out", required=True, help="matrix folder (one study folder per scenario inside)")
-    p.set_defaults(func=cmd_guidance_matrix)
+    p.add_argument("--out", required=True, help="matrix folder (one study folder per scenario inside; resumable "
+                                                "as study guidance's)")
+    p.set_defaults(func=cmd_guidance_matrix, interrupted="each scenario's finished trips are kept "
+                   "(OUT/<scenario>/trips.jsonl); run the same command again to go on")

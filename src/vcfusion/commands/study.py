@@ -224,7 +224,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--trips", type=int, help="number of paired trips (seeds FIRST..FIRST+N-1; default 200)")
     p.add_argument("--workers", type=int, help="worker processes (one simulation each; default 2)")
     p.add_argument("--first-seed", type=int, help="default 0")
-    p.add_argument("--out", help="study folder (default: runs/guidance-study-SCENARIO, "
+    p.add_argument("--out", help="study folder; resumable: the trips it logged (trips.jsonl) for the same scenario, "
+                                 "arms and code are taken, not run again (default: runs/guidance-study-SCENARIO, "
                                  "runs/guidance-study-from-runs with --from-runs)")
     p.add_argument("--renders", default="renders", help="folder for the figures (default: renders)")
     p.add_argument("--process-model", action="append", default=[], metavar="MODULE:FACTORY",
@@ -232,7 +233,7 @@ def add_parsers(sub) -> None:
                         "{'lc_prob': ...}; repeatable; one writer per output (a stand-in predictor needs "
                         "prediction.enabled: false in the scenario)")
     p.set_defaults(func=cmd_study_guidance,
-                   interrupted="the study wrote nothing; run the same command again (its trips start over)")
+                   interrupted="finished trips are kept (OUT/trips.jsonl); run the same command again to go on")
 
     p = study.add_parser("hitl", help="a participant drives: practice, counterbalanced trips with / without "
                                       "guidance, optional SSQ (vcfusion drive for each trip)")

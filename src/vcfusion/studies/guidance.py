@@ -45,7 +45,7 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-from vcfusion.runio import write_json, write_table
+from vcfusion.runio import differing_keys, package_code_sha256, package_versions, write_json, write_table
 from vcfusion.workers import JobFailed, run_jobs
 
 # none: no AR (a "legacy vehicle"); cloud: highlights from the cloud alone, no camera; fusion:
@@ -188,6 +188,93 @@ def simulate_arm(scenario, seed: int, arm: str, process_model_specs: tuple[str, 
     return {"arm": arm, "scenario": sc, "tables": tables, "summary": result.summary,
             "process_models": ",".join(name for name, _ in cosim.process_models) or "(none)",
             "driver": cosim.controller.p.to_dict()}
+
+
+# The study's trip log, OUT/trips.jsonl: a header line naming what the trips depend on besides their
+# seeds (`study_identity`), then one line per finished trip (its rows). A study stopped part way
+# (Ctrl-C, a machine taken back) continues from it when run again into the same folder; the 200
+# paired trips of a matrix scenario take hours on two cores (docs/components/guidance-loop.md).
+TRIP_LOG = "trips.jsonl"
+# what each part of the identity is, for the error that names what differs
+_IDENTITY_PARTS = {"arm_order": "the arms", "arms": "an arm's resolved scenario or the files it reads",
+                   "process_models": "--process-model", "versions": "the package versions",
+                   "code_sha256": "the package's code"}
+
+
+def study_identity(scenario, arms: tuple[str, ...], process_model_specs: tuple[str, ...]) -> dict:
+    """What a study's trips depend on besides their seeds: each arm's resolved scenario and the
+    files it reads by content (`run.manifest_for`), the arms in their order (the seed's vehicle is
+    the first arm's cut-in where the reference has none), the process models, the package
+    versions and the package's code. As JSON reads it back, to compare with a log's header."""
+    from vcfusion.run import manifest_for
+
+    per_arm = {}
+    for arm in arms:
+        manifest = manifest_for(arm_scenario(scenario, arm), 0)
+        per_arm[arm] = {"scenario": manifest["scenario"], "files_sha256": manifest["files_sha256"]}
+    identity = {"arm_order": list(arms), "arms": per_arm, "process_models": list(process_model_specs),
+                "versions": package_versions(), "code_sha256": package_code_sha256()}
+    return json.loads(json.dumps(identity, sort_keys=True, default=str))
+
+
+def _json_plain(value):
+    """json's fallback for the numpy scalars in a trip's rows: their Python value."""
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"a trip row holds a {type(value).__name__}, which the trip log cannot write")
+
+
+def trip_line(seed: int, rows: list[dict]) -> str:
+    """One trip's record of the log (NaN and infinities as JSON's extensions: read back the same)."""
+    return json.dumps({"seed": seed, "rows": rows}, default=_json_plain) + "\n"
+
+
+def read_trip_log(path: Path, identity: dict) -> dict[int, list[dict]]:
+    """The finished trips of the log at `path` by seed ({} where there is none). UsageError when the
+    log is another study's, or when a line before the last is no trip record; a last line cut short
+    (the study stopped while writing it) is left out, and `open_trip_log` writes the log without it."""
+    from vcfusion.errors import UsageError
+
+    if not path.exists():
+        return {}
+    lines = path.read_text().split("\n")
+    try:
+        header = json.loads(lines[0])
+    except ValueError:
+        header = None
+    if not isinstance(header, dict) or not isinstance(header.get("study"), dict):
+        raise UsageError(f"{path}: line 1: expected a guidance study's trip log (a JSON object with 'study'); "
+                         f"choose another --out, or remove {path}")
+    differs = differing_keys(identity, header["study"])
+    if differs:
+        what = ", ".join(_IDENTITY_PARTS.get(k, k) for k in differs)
+        raise UsageError(f"{path}: holds the trips of another study (it differs in: {what}); a study continues "
+                         f"only its own trips: choose another --out, or remove {path} to start over")
+    trips = {}
+    last = len(lines)  # the piece after the final newline: empty unless a record was cut short
+    for number, line in enumerate(lines[1:], start=2):
+        if not line and number == last:
+            break
+        try:
+            record = json.loads(line)
+            trips[int(record["seed"])] = list(record["rows"])
+        except (ValueError, KeyError, TypeError):
+            if number == last:
+                break
+            raise UsageError(f"{path}: line {number}: expected a trip record {{\"seed\": ..., \"rows\": [...]}}; "
+                             f"remove {path} to start the study over") from None
+    return trips
+
+
+def open_trip_log(path: Path, identity: dict, trips: dict[int, list[dict]]):
+    """The log at `path` rewritten (the header and `trips`) and opened for appending."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as f:
+        f.write(json.dumps({"study": identity}, sort_keys=True) + "\n")
+        for seed in sorted(trips):
+            f.write(trip_line(seed, trips[seed]))
+    tmp.replace(path)
+    return open(path, "a")
 
 
 def highlight_episodes(rows: pd.DataFrame, period_s: float, by=("vehicle_id", "box_vehicle_id")) -> list[tuple]:
@@ -416,7 +503,8 @@ def format_summary(summary: pd.DataFrame, info: dict) -> str:
     else:
         head = (f"guidance study {info['scenario']}: {info['trips_ok']} paired trips "
                 f"({info['trips_failed']} failed), arms {', '.join(info['arms'])}, in {info['wall_s']:.0f} s wall "
-                f"with {info['workers']} workers")
+                f"with {info['workers']} workers"
+                + (f" ({info['trips_from_log']} trips taken from the trip log)" if info.get("trips_from_log") else ""))
     lines = [head,
              f"  process models: {info['process_models']}",
              f"  trips with a cut-in ahead of the ego (TTC/gap vehicle chosen once per seed): "
@@ -519,7 +607,9 @@ def parse_arms(text: str) -> tuple[str, ...]:
 def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path, renders: Path,
                        first_seed: int = 0, process_model_specs: tuple[str, ...] = (),
                        progress: bool = True, arms: tuple[str, ...] = DEFAULT_ARMS) -> dict:
-    """Run the paired trips, write OUT/trips.parquet|csv, summary.csv|json|txt and the figures."""
+    """Run the paired trips, write OUT/trips.parquet|csv, summary.csv|json|txt and the figures.
+    Each finished trip is logged to OUT/trips.jsonl as it ends; trips of this study already there
+    (the same scenario, arms and code: `study_identity`) are taken from it, not run again."""
     from vcfusion.scenario import ScenarioError, load_scenario, require_camera_world
 
     arms = parse_arms(",".join(arms))
@@ -539,25 +629,37 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
         require_matching_range(arm_scenario(scenario, "fusion"))
     started = wallclock.perf_counter()
     seeds = list(range(first_seed, first_seed + trips))
-    rows: list[dict] = []
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    identity = study_identity(scenario, arms, tuple(process_model_specs))
+    log_path = out / TRIP_LOG
+    logged = read_trip_log(log_path, identity)
+    from_log = [s for s in seeds if s in logged]
+    todo = [s for s in seeds if s not in logged]
+    rows: list[dict] = [row for s in from_log for row in logged[s]]
     failed: list[tuple[int, str]] = []
-    bar = tqdm(total=len(seeds), unit="trip", desc=f"guidance study {scenario.name}", disable=not progress)
-    jobs = [(str(scenario_path), s, tuple(process_model_specs), tuple(arms)) for s in seeds]
+    bar = tqdm(total=len(seeds), initial=len(from_log), unit="trip", desc=f"guidance study {scenario.name}",
+               disable=not progress)
+    if from_log and progress:
+        bar.write(f"{len(from_log)} of {len(seeds)} trips taken from {log_path} (this study's own: the same "
+                  "scenario, arms and code)")
+    jobs = [(str(scenario_path), s, tuple(process_model_specs), tuple(arms)) for s in todo]
     try:
-        for index, outcome in run_jobs(run_trip, jobs, workers):
-            # a JobFailed: the trip's worker process died (its other trips go on in a new one)
-            seed, result, error = (seeds[index], None, outcome.cause) if isinstance(outcome, JobFailed) else outcome
-            if error:
-                failed.append((seed, error))
-                bar.write(f"trip {seed} failed: {error.splitlines()[0]}")
-            else:
-                rows.extend(result)
-            bar.update(1)
+        with open_trip_log(log_path, identity, logged) as log:
+            for index, outcome in run_jobs(run_trip, jobs, workers):
+                # a JobFailed: the trip's worker process died (its other trips go on in a new one)
+                seed, result, error = (todo[index], None, outcome.cause) if isinstance(outcome, JobFailed) else outcome
+                if error:  # not logged: the same command tries it again
+                    failed.append((seed, error))
+                    bar.write(f"trip {seed} failed: {error.splitlines()[0]}")
+                else:
+                    rows.extend(result)
+                    log.write(trip_line(seed, result))
+                    log.flush()
+                bar.update(1)
     finally:
         bar.close()
     failed.sort()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     # as a batch's: the failed trips and their causes (the command then exits with 1)
     if failed:
         write_json(out / "failures.json", {str(s): e for s, e in failed})
@@ -568,7 +670,8 @@ def run_guidance_study(scenario_path: Path, trips: int, workers: int, out: Path,
     table = pd.DataFrame(rows)
     info = {
         "scenario": scenario.name, "scenario_file": str(scenario_path), "seeds": [seeds[0], seeds[-1]],
-        "trips_failed": len(failed), "workers": workers, "wall_s": wallclock.perf_counter() - started,
+        "trips_failed": len(failed), "trips_from_log": len(from_log), "workers": workers,
+        "wall_s": wallclock.perf_counter() - started,  # this sitting's: trips taken from the log cost none
     }
     result = write_study(table, arms, info, out, renders, ("seed",), failed)
     return result | {"failed": failed}
