@@ -18,7 +18,6 @@ these snapshots) gives the very same features as run time, whatever the channel 
 from __future__ import annotations
 
 import numpy as np
-import pandas as pd
 
 from vcfusion.runio import vehicle_tracks
 

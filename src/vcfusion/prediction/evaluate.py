@@ -34,7 +34,7 @@ import numpy as np
 import pandas as pd
 from scipy.stats import rankdata
 
-from vcfusion.prediction.dataset import DatasetError, load_dataset, load_samples
+from vcfusion.prediction.dataset import DatasetError, load_dataset
 from vcfusion.prediction.events import event_scores, smooth_stream, smoothing_bounds, track_bounds
 from vcfusion.prediction.features import (SEQUENCE_EXTRA_NAMES, SEQUENCE_INPUT_SETS, stored_columns,
                                           with_derived_columns)
