@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from support.synthetic_coco import make_synthetic_coco
 from vcfusion.detection.detector_net import (DetectorFileError, DetectorModel, OnnxDetector, PostParams,
@@ -354,3 +355,12 @@ def test_a_folder_and_its_resized_copy_train_on_the_same_boxes(tmp_path):
                   val_fraction=0.0, threads=1, progress=False, min_train_area=threshold)
     kept = [train_detector(folder, None, **common)[0].meta["n_train_boxes"] for folder in (data, tmp_path / "small")]
     assert kept[0] == kept[1] == int(np.sum(areas >= threshold - 1e-6)) and 0 < kept[0] < len(areas)
+
+
+def test_decoding_builds_its_grid_on_the_networks_device():
+    """The output of the network on another device (CUDA in use; `meta` here, which any CPU tensor
+    added to it fails like a CUDA one does) decodes there: the grid follows the heatmap's device."""
+    h, w, c = 6, 8, 2
+    hm, size, offset = (torch.zeros(1, k, h, w, device="meta") for k in (c, 2, 2))
+    dense = decode_dense(hm, size, offset)
+    assert dense.device.type == "meta" and tuple(dense.shape) == (1, h * w, 4 + c)

@@ -90,8 +90,9 @@ def decode_dense(hm_logits, log_size, offset) -> torch.Tensor:
     heat = torch.sigmoid(hm_logits)
     peaks = (F.max_pool2d(heat, 3, 1, 1) == heat).to(heat.dtype)
     scores = heat * peaks
-    ys = torch.arange(h, dtype=heat.dtype).view(1, h, 1).expand(1, h, w)
-    xs = torch.arange(w, dtype=heat.dtype).view(1, 1, w).expand(1, h, w)
+    # the grid on the network's device (CUDA: a CPU grid fails the addition below)
+    ys = torch.arange(h, dtype=heat.dtype, device=heat.device).view(1, h, 1).expand(1, h, w)
+    xs = torch.arange(w, dtype=heat.dtype, device=heat.device).view(1, 1, w).expand(1, h, w)
     cx = (xs + offset[:, 0]) * STRIDE
     cy = (ys + offset[:, 1]) * STRIDE
     bw = torch.exp(log_size[:, 0]) * STRIDE

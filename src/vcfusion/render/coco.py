@@ -19,7 +19,6 @@ Conventions of the JSON (also written to its ``info``):
 from __future__ import annotations
 
 import numpy as np
-from pycocotools import mask as mask_utils
 
 from vcfusion.records import CATEGORY_OF_VCLASS, VEHICLE_CATEGORIES, gnss_antenna_points
 from vcfusion.render.camera import project_points
@@ -101,6 +100,9 @@ class CocoBuilder:
         self.info = {"description": description, "conventions": CONVENTIONS, "depth_scale_m": DEPTH_SCALE_M}
 
     def add(self, frame, boxes, anchors: list[dict], files: dict[str, str], extra: dict | None = None) -> int:
+        # here, not at the top: the fusion stage imports this module (category_id) in every run
+        from pycocotools import mask as mask_utils
+
         image_id = len(self.images) + 1
         self.images.append({
             "id": image_id,
