@@ -471,11 +471,15 @@ def p8_gym(episodes: int, repeats: int = 3) -> dict:
             "target": "kinematics >= 500 steps/s"}
 
 
-def gpu_section(frames: int) -> dict:
-    """The GPU path against the CPU path (vcfusion.gpu_check); "no GPU: skipped" where there is none."""
-    from vcfusion.gpu_check import gpu_check
+def gpu_section(frames: int, reference: str | None = None, write_reference: str | None = None) -> dict:
+    """The GPU path against the CPU path (vcfusion.gpu_check); "no GPU: skipped" where there is none.
+    ``reference``: the CPU half from that file; ``write_reference``: only the CPU half, written
+    there (for a GPU machine without OSMesa)."""
+    from vcfusion.gpu_check import gpu_check, write_reference as write
 
-    return gpu_check(frames)
+    if write_reference is not None:
+        return write(frames, Path(write_reference))
+    return gpu_check(frames, reference=None if reference is None else Path(reference))
 
 
 SECTIONS = {"P1": p1_traffic, "P2": p2_vision, "P3": p3_dataset, "P4": p4_scaling, "P5": p5_memory, "P6": p6_drive,

@@ -25,7 +25,23 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if p2 and "P2" not in sections:
         raise UsageError("--depth-sensor / --pose-noise-deg: they set P2's camera; expected P2 among --sections, got "
                          f"{','.join(sections)}")
-    results = run_suite(sections, "quick" if args.quick else "full", Path(args.out), {"P2": p2})
+    gpu: dict = {}
+    if args.gpu_reference is not None and args.write_gpu_reference is not None:
+        raise UsageError("--gpu-reference / --write-gpu-reference: expected one of them, got both")
+    for flag, key in (("gpu_reference", "reference"), ("write_gpu_reference", "write_reference")):
+        value = getattr(args, flag)
+        if value is None:
+            continue
+        if "GPU" not in sections:
+            raise UsageError(f"--{flag.replace('_', '-')}: it sets the GPU check; expected GPU among --sections, "
+                             f"got {','.join(sections)}")
+        if not value.endswith(".npz"):
+            raise UsageError(f"--{flag.replace('_', '-')} {value}: expected a .npz file")
+        if key == "reference" and not Path(value).is_file():
+            raise UsageError(f"--gpu-reference {value}: no such file (write it with --write-gpu-reference on a "
+                             "machine with OSMesa)")
+        gpu[key] = str(Path(value).resolve())
+    results = run_suite(sections, "quick" if args.quick else "full", Path(args.out), {"P2": p2, "GPU": gpu})
     print(to_markdown(results))
     print(f"written: {Path(args.out) / 'bench.json'}, {Path(args.out) / 'bench.md'}")
     failed = 0
@@ -61,6 +77,11 @@ def add_parsers(sub) -> None:
     p.add_argument("--pose-noise-deg", type=float, metavar="DEG",
                    help="P2: camera mount calibration error std (pitch, yaw, roll), deg, with body motion when > 0 "
                         "(default: the scenario's)")
+    p.add_argument("--gpu-reference", metavar="FILE.npz",
+                   help="GPU: the CPU half from FILE (written by --write-gpu-reference where OSMesa is installed) "
+                        "instead of rendering it here: for a GPU machine without OSMesa")
+    p.add_argument("--write-gpu-reference", metavar="FILE.npz",
+                   help="GPU: only the CPU half (OSMesa renders, CPU boxes, the vehicle states), written to FILE")
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("bench-render", help="time RGB + depth + instance rendering (median ms per frame)")
