@@ -10,8 +10,9 @@ setup: $(STAMP)
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || python3 -m venv $(VENV)
-	@# OSMesa: the offscreen renderer; Xvfb: the human-in-the-loop window test runs in a real X11 server
-	@{ ldconfig -p | grep -q libOSMesa && command -v Xvfb >/dev/null; } || { (apt-get update -qq && apt-get install -y -qq libosmesa6 xvfb >/dev/null) || { echo "could not install libosmesa6 and xvfb (need root and apt)"; exit 1; }; }
+	@# OSMesa: the offscreen renderer; Xvfb: the human-in-the-loop window test runs in a real X11 server;
+	@# EGL with Mesa's software device: the GPU path's renderer (pyrender's framebuffer) tested on the CPU
+	@{ ldconfig -p | grep -q libOSMesa && ldconfig -p | grep -q libEGL_mesa && command -v Xvfb >/dev/null; } || { (apt-get update -qq && apt-get install -y -qq libosmesa6 libegl1 libegl-mesa0 xvfb >/dev/null) || { echo "could not install libosmesa6, libegl-mesa0 and xvfb (need root and apt)"; exit 1; }; }
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[dev,commonroad]'
 	@# CommonRoad (reader, export, the CriMe cross-check): commonroad-io pins protobuf 3.20.2, which onnx (dev)

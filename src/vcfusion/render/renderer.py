@@ -11,9 +11,10 @@ Outputs of :meth:`EgoCameraRenderer.render` (a :class:`Frame`):
 How (profiled under OSMesa/llvmpipe, where fragment shading dominates): one pass per frame.
 The scene is drawn with our shader (``shaders/lambert.*``, in place of pyrender's PBR shader:
 Lambert plus, per material, highlights, sky reflections and procedural ground) that writes each object's instance code into the alpha channel, so a single
-RGBA + depth read-back gives all three images, pixel-consistent. Where pyrender renders into
-a multisampled framebuffer (EGL on a GPU) alpha codes would be blended at edges, so there a
-second, flat segmentation pass gives the instance map instead.
+RGBA + depth read-back gives all three images, pixel-consistent. The same pass on every OpenGL
+platform: where pyrender draws into its own framebuffer (EGL) that framebuffer is made
+single-sampled (:func:`_single_sampled`), so depth and instance codes are sampled at pixel centres
+there as under OSMesa, and the RGB image is the same image (the GPU check's figures).
 
 The RGB image is then finished (:mod:`vcfusion.render.presets`, the camera's ``render_preset``):
 the sky pixels (depth +inf) get the sky gradient (:mod:`vcfusion.render.sky`), the quality preset
@@ -111,8 +112,29 @@ def camera_road(scenario) -> RoadFrame:
     return read_road(scenario.network, route)
 
 
-def _seg_colour(code: int) -> np.ndarray:
-    return np.array([code, 0.0, 0.0])
+def _single_sampled(gl_renderer) -> None:
+    """Make pyrender's offscreen framebuffer (EGL) single-sampled; pyrender asks for 4 samples.
+
+    A multisampled depth buffer reaches the read-back as one of its samples, off the pixel centre:
+    on an NVIDIA H200 (EGL) depth came 0.2 px off, which on the road beyond 20 m is 1-10 % of the
+    distance (10 % of all pixels outside max(0.05 m, 1 %) of OSMesa's, `vcfusion bench --sections
+    GPU`); and resolved colour blends the instance codes written to alpha at edges. pyrender has
+    no setting for it: its call is given 0 samples (a single-sampled buffer, the GL rule) while it
+    builds the framebuffer."""
+    import pyrender.renderer as gl_module
+
+    configure = gl_renderer._configure_main_framebuffer
+
+    def configure_single_sampled():
+        multisample = gl_module.glRenderbufferStorageMultisample
+        gl_module.glRenderbufferStorageMultisample = (
+            lambda target, _samples, fmt, width, height: multisample(target, 0, fmt, width, height))
+        try:
+            configure()
+        finally:
+            gl_module.glRenderbufferStorageMultisample = multisample
+
+    gl_renderer._configure_main_framebuffer = configure_single_sampled
 
 
 class EgoCameraRenderer:
@@ -137,8 +159,10 @@ class EgoCameraRenderer:
         self._gl = self._offscreen._renderer
         self._platform = self._offscreen._platform
         self._gl._program_cache = _CameraShaders()
-        self._single_pass = not self._platform.supports_framebuffers()
-        self.traffic.separate_shadows = not self._single_pass  # see TrafficScene.separate_shadows
+        # pyrender's own framebuffer (EGL) or the context's (OSMesa): where the pass is read back
+        self._framebuffer = self._platform.supports_framebuffers()
+        if self._framebuffer:
+            _single_sampled(self._gl)
         self._sky_cache: tuple[bytes, np.ndarray] | None = None
         self.last_timings_ms: dict[str, float] = {}
         # Half-extents of the view frustum per unit depth, for culling vehicles out of view.
@@ -201,7 +225,7 @@ class EgoCameraRenderer:
 
     def _finish(self, rgb: np.ndarray, depth: np.ndarray, T: np.ndarray, time_s: float) -> np.ndarray:
         """Supersampled colour (quality), sky gradient, camera model: RGB only."""
-        if self.preset.supersample > 1 and self._single_pass:  # EGL's framebuffer is multisampled already
+        if self.preset.supersample > 1:
             rgb = self._draw_supersampled()
         sky = np.isinf(depth).view(np.uint8)
         cv2.copyTo(self._sky(T), sky, rgb)  # in place; 50x faster than np.copyto with a mask
@@ -225,34 +249,34 @@ class EgoCameraRenderer:
                 for dx in steps:
                     # Moving the principal point by -d samples the image at pixel + d.
                     cam.cx, cam.cy = k.cx + 0.5 - dx, k.cy + 0.5 - dy
-                    self._gl.render(self.traffic.scene, RenderFlags.NONE)
-                    GL.glFinish()
-                    GL.glReadBuffer(GL.GL_FRONT)
-                    rgba = np.frombuffer(GL.glReadPixels(0, 0, w, h, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE), dtype=np.uint8)
-                    total += rgba.reshape(h, w, 4)[::-1, :, :3]
+                    total += self._draw_rgba()[..., :3]
         finally:
             cam.cx, cam.cy = k.cx + 0.5, k.cy + 0.5
         return np.round(total / (ss * ss)).astype(np.uint8)
 
-    def _draw(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(rgb uint8, instance codes uint8, depth float32 camera Z with +inf sky) of the current scene."""
-        scene = self.traffic.scene
-        if not self._single_pass:
-            rgb, _ = self._offscreen.render(scene, RenderFlags.NONE)
-            seg_map = {node: _seg_colour(self.traffic.codes[vid]) for vid, node in self.traffic.nodes.items()
-                       if node.mesh.is_visible}
-            seg_map.update({node: _seg_colour(0) for node in self.traffic.static_nodes if node.mesh.is_visible})
-            seg, depth = self._offscreen.render(scene, RenderFlags.SEG, seg_node_map=seg_map)
-            depth = np.where(depth > 0.0, depth, np.float32(np.inf)).astype(np.float32, copy=False)
-            return np.ascontiguousarray(rgb), np.ascontiguousarray(seg[..., 0]), depth
+    def _draw_rgba(self) -> np.ndarray:
+        """Draw the current scene; (H, W, 4) uint8, rows top-down. The framebuffer drawn into is
+        left bound for reading (the depth read-back of :meth:`_draw`)."""
         w, h = self.intrinsics.width, self.intrinsics.height
+        if self._framebuffer:
+            # pyrender draws into its framebuffer and reads it back (and its own depth, unused: ours
+            # below linearises the same way on every platform)
+            rgba, _ = self._offscreen.render(self.traffic.scene, RenderFlags.RGBA)
+            self._platform.make_current()
+            GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._gl._main_fb)
+            return rgba
         self._platform.make_current()
         self._gl.viewport_width, self._gl.viewport_height = w, h
-        self._gl.render(scene, RenderFlags.NONE)
+        self._gl.render(self.traffic.scene, RenderFlags.NONE)
         GL.glFinish()
         GL.glReadBuffer(GL.GL_FRONT)
         rgba = np.frombuffer(GL.glReadPixels(0, 0, w, h, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE), dtype=np.uint8)
-        rgba = rgba.reshape(h, w, 4)[::-1]  # GL rows run bottom-up
+        return rgba.reshape(h, w, 4)[::-1]  # GL rows run bottom-up
+
+    def _draw(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rgb uint8, instance codes uint8, depth float32 camera Z with +inf sky) of the current scene."""
+        w, h = self.intrinsics.width, self.intrinsics.height
+        rgba = self._draw_rgba()
         window_z = np.frombuffer(GL.glReadPixels(0, 0, w, h, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT),
                                  dtype=np.float32).reshape(h, w)[::-1]
         return np.ascontiguousarray(rgba[..., :3]), np.ascontiguousarray(rgba[..., 3]), self._linear_depth(window_z)

@@ -19,7 +19,6 @@ from vcfusion.records import VehicleStates  # noqa: E402
 from vcfusion.traffic.roadframe import RoadFrame  # noqa: E402
 from vcfusion.records import EGO_ID  # noqa: E402
 from vcfusion.render.meshes import SKY, ground_mesh, road_layouts, road_pieces  # noqa: E402
-from vcfusion.render.materials import SHADOW, face_materials  # noqa: E402
 from vcfusion.render.vehicles import vehicle_mesh, vehicle_style  # noqa: E402
 
 # The sun: from the south-west, 50 degrees above the horizon.
@@ -103,29 +102,15 @@ class TrafficScene:
         self.nodes: dict[str, pyrender.Node] = {}
         self.codes: dict[str, int] = {}
         self._free_codes = list(range(MAX_INSTANCE_CODES, 0, -1))
-        self._models: dict[tuple, tuple[trimesh.Trimesh, trimesh.Trimesh | None]] = {}  # style -> body, shadow
-        # Each vehicle's contact shadow a node of its own, under the vehicle's: for a renderer whose
-        # instance map and depth come from pyrender's segmentation pass (EGL), which draws only the
-        # nodes it is given codes for and would draw the shadow as the box it is (our vertex shader,
-        # which flattens it, does not run there). Set before any vehicle is added.
-        self.separate_shadows = False
+        self._models: dict[tuple, trimesh.Trimesh] = {}  # style -> model (its contact shadow inside)
 
-    def _meshes_for(self, vid: str, vclass: str, length: float, width: float, height: float,
-                    code: int) -> tuple[pyrender.Mesh, pyrender.Mesh | None]:
-        """The vehicle's mesh and, with separate_shadows, its contact shadow's (else inside the first)."""
+    def _mesh_for(self, vid: str, vclass: str, length: float, width: float, height: float, code: int) -> pyrender.Mesh:
+        """The vehicle's mesh (its contact shadow inside, drawn with code 0 by the shader)."""
         style = vehicle_style(vid, vclass, length, width, height)
-        parts = self._models.get(style)
-        if parts is None:  # built (and split) once per style: many vehicles share one
-            model = vehicle_mesh(style)
-            if self.separate_shadows:
-                shadow = face_materials(model) == SHADOW
-                parts = tuple(model.submesh([np.flatnonzero(m)], append=True) for m in (~shadow, shadow))
-            else:
-                parts = (model, None)
-            self._models[style] = parts
-        body, cast = parts
-        return (pyrender.Mesh([flat_primitive(body, alpha=code / 255.0, glossy=True)]),
-                None if cast is None else pyrender.Mesh([flat_primitive(cast, alpha=0.0, glossy=True)]))
+        model = self._models.get(style)
+        if model is None:  # built once per style: many vehicles share one
+            model = self._models[style] = vehicle_mesh(style)
+        return pyrender.Mesh([flat_primitive(model, alpha=code / 255.0, glossy=True)])
 
     def update(self, truth: VehicleStates, in_view: np.ndarray) -> list[str]:
         """Add, move, hide and remove vehicle nodes; returns the drawn vehicle ids in record order.
@@ -148,11 +133,9 @@ class TrafficScene:
                 if not self._free_codes:
                     raise RuntimeError(f"more than {MAX_INSTANCE_CODES} vehicles in front of the camera")
                 code = self._free_codes.pop()
-                mesh, shadow = self._meshes_for(vid, truth.vclass[i], float(truth.length[i]), float(truth.width[i]),
-                                                float(truth.height[i]), code)
+                mesh = self._mesh_for(vid, truth.vclass[i], float(truth.length[i]), float(truth.width[i]),
+                                      float(truth.height[i]), code)
                 self.nodes[vid] = self.scene.add(mesh, name=vid, pose=pose)
-                if shadow is not None:  # moves and goes with its vehicle (a child node)
-                    self.scene.add(shadow, name=f"{vid} shadow", parent_node=self.nodes[vid])
                 self.codes[vid] = code
             else:
                 self.scene.set_pose(node, pose)

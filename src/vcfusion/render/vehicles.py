@@ -16,8 +16,7 @@ merged, tested).
 Each model also carries a *contact shadow*: a footprint box that the vertex shader flattens onto
 the ground along the sun direction (a planar projected shadow), drawn just above the road paint
 with instance code 0. So a shadow follows any heading at no extra pass, and never counts as
-vehicle pixels (on the two-pass path of a multisampled framebuffer, EGL, it is a node of its own
-that the segmentation pass leaves out: :attr:`vcfusion.render.scene.TrafficScene.separate_shadows`).
+vehicle pixels.
 
 Materials travel in the face colour's alpha byte (see :mod:`vcfusion.render.materials`).
 """
