@@ -321,3 +321,28 @@ def test_a_vehicle_cut_by_the_image_border_is_listed_as_a_twin(renderer):
     assert "truck" in frame.vehicle_ids and set(listed) == {"truck", "lead"}  # 'behind' is behind the camera
     assert listed["truck"]["in_image"] is False and listed["truck"]["anchor_uv"][0] > 319.5
     assert listed["truck"]["visible"] and listed["lead"]["in_image"] is True
+
+
+@pytest.mark.parametrize("preset", ["fast", "quality"])
+def test_the_frame_uniforms_set_once_draw_pyrenders_frames_bit_for_bit(preset):
+    # The renderer sets the camera and light uniforms once per program and frame; pyrender's own
+    # pass sets them before every primitive. Same draws, same values: the same images.
+    sc = load_scenario(SCENARIO)
+    truth = states([*SCENE, ("c", "passenger", 110.0, LANE1, 0.0, 4.0, 1.7, 1.4),
+                    ("b", "truck", 125.0, LANE1, 0.0, 12.0, 2.5, 3.6)])
+    frames, drawn = [], []
+    for lean in (True, False):
+        r = EgoCameraRenderer(read_road(sc.network), CameraConfig(width_px=320, height_px=240, render_preset=preset))
+        try:
+            if not lean:
+                del r._gl._forward_pass  # pyrender's method again
+            frames.append(r.render(truth))
+            drawn.append(r._gl._forward_pass.__qualname__)
+        finally:
+            r.close()
+    lean_frame, pyrender_frame = frames
+    assert drawn == ["_frame_uniforms_once.<locals>.forward_pass", "Renderer._forward_pass"]
+    assert lean_frame.vehicle_ids == pyrender_frame.vehicle_ids and len(lean_frame.vehicle_ids) >= 3
+    assert np.array_equal(lean_frame.rgb, pyrender_frame.rgb)
+    assert np.array_equal(lean_frame.depth, pyrender_frame.depth)
+    assert np.array_equal(lean_frame.instances, pyrender_frame.instances)
