@@ -40,6 +40,12 @@ def assets_dir() -> Path:
     return _package_path("assets").resolve()
 
 
+# The shipped CNN detector's and the depth step's far-box head's weights in assets_dir() (trained
+# by the commands in docs/model-cards.md); named here so that finding them imports no torch.
+DETECTOR_WEIGHTS = "detector.pt"
+BOX_HEAD_WEIGHTS = "far_box_head.pt"
+
+
 def networks_dir_is_checkout() -> bool:
     """Whether the shipped networks are a checkout's sumo_net/ folder (linked into the package), which
     `vcfusion build-net` may rebuild in place; an installed package's copies are not rewritten."""

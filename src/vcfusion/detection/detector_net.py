@@ -473,6 +473,6 @@ def check_yolo_model(path, input_wh: tuple[int, int], keep) -> None:
 
 def default_weights_path() -> Path:
     """The shipped detector (package data), trained by the commands in docs/model-cards.md."""
-    from vcfusion.resources import assets_dir
+    from vcfusion.resources import DETECTOR_WEIGHTS, assets_dir
 
-    return assets_dir() / "detector.pt"
+    return assets_dir() / DETECTOR_WEIGHTS

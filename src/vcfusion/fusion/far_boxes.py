@@ -167,9 +167,9 @@ def _load(path: str) -> BoxHead:
 
 def default_box_head_path() -> Path:
     """The shipped box head (package data), trained by the commands in docs/model-cards.md."""
-    from vcfusion.resources import assets_dir
+    from vcfusion.resources import BOX_HEAD_WEIGHTS, assets_dir
 
-    return assets_dir() / "far_box_head.pt"
+    return assets_dir() / BOX_HEAD_WEIGHTS
 
 
 # ---------------------------------------------------------------------------------------------
