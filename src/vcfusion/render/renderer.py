@@ -141,9 +141,9 @@ def _frame_uniforms_once(gl_renderer) -> None:
     """pyrender's forward pass with the uniforms that are the same for every draw of a frame (the
     camera's V, P and position, the lights) set once per program and frame instead of before every
     primitive. Draws, their order, the GL state and every uniform's value are pyrender's (the frames
-    are the same, bit for bit: tests/render); pyrender set them ~10 times a primitive, ~570 calls
-    a frame through PyOpenGL (an H200 machine's profile of `vcfusion drive`: set_uniform 14 ms of
-    a 34 ms render, the GPU idle)."""
+    are the same, bit for bit: tests/render). pyrender set them ~10 times a primitive (332 calls a
+    frame on the GPU check's frames, 131 now); a frame's render on the 2-core VM under OSMesa went
+    from 24.1 to 20.2 ms median, old and new alternated (docs/performance.md, "On an NVIDIA H200")."""
 
     pyrenders = gl_renderer._forward_pass
 
