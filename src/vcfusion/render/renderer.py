@@ -138,23 +138,22 @@ def _single_sampled(gl_renderer) -> None:
 
 
 def _frame_uniforms_once(gl_renderer) -> None:
-    """pyrender's forward pass with the uniforms that are the same for every draw of a frame (the
-    camera's V, P and position, the lights) set once per program and frame instead of before every
-    primitive. Draws, their order, the GL state and every uniform's value are pyrender's (the frames
-    are the same, bit for bit: tests/render). pyrender set them ~10 times a primitive (332 calls a
-    frame on the GPU check's frames, 131 now); a frame's render on the 2-core VM under OSMesa went
-    from 24.1 to 20.2 ms median, old and new alternated (docs/performance.md, "On an NVIDIA H200")."""
-
-    pyrenders = gl_renderer._forward_pass
+    """pyrender's forward pass of our shader with the uniforms that are the same for every draw of
+    a frame (the camera's V, P and position, the lights) set once per program and frame instead of
+    before every primitive. Draws, their order and every uniform's value are pyrender's (the frames
+    are the same, bit for bit: tests/render). pyrender set them ~10 times a
+    primitive (332 calls a frame on the GPU check's frames, 131 now); a frame's render on the 2-core
+    VM under OSMesa went from 24.1 to 20.2 ms median, old and new alternated (docs/performance.md,
+    "On an NVIDIA H200"). Into pyrender's framebuffer (OFFSCREEN) it reads nothing back: the
+    renderer reads colour and depth once, itself (:meth:`EgoCameraRenderer._draw_rgba`)."""
 
     def forward_pass(scene, flags, seg_node_map=None):
-        if flags & (RenderFlags.SEG | RenderFlags.DEPTH_ONLY | RenderFlags.FLAT):
-            return pyrenders(scene, flags, seg_node_map)  # passes of other programs: pyrender's own
+        if flags & ~RenderFlags.OFFSCREEN:
+            raise ValueError(f"the camera's pass draws colour only; got render flags {flags}")
         gl = gl_renderer
         gl._configure_forward_pass_viewport(flags)
         GL.glClearColor(*scene.bg_color)
         GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
-        GL.glEnable(GL.GL_MULTISAMPLE)
         V, P = gl._get_camera_matrices(scene)
         cam_pos = scene.get_pose(scene.main_camera_node)[:3, 3]
         ready, bound, program = set(), None, None
@@ -178,9 +177,6 @@ def _frame_uniforms_once(gl_renderer) -> None:
         if program is not None:
             program._unbind()
         GL.glFlush()
-        if flags & RenderFlags.OFFSCREEN:
-            return gl._read_main_framebuffer(scene, flags)
-        return None
 
     gl_renderer._forward_pass = forward_pass
 
@@ -292,8 +288,6 @@ class EgoCameraRenderer:
         steps = (np.arange(ss) + 0.5) / ss - 0.5
         total = np.zeros((h, w, 3), np.float32)
         try:
-            self._platform.make_current()
-            self._gl.viewport_width, self._gl.viewport_height = w, h
             for dy in steps:
                 for dx in steps:
                     # Moving the principal point by -d samples the image at pixel + d.
@@ -304,21 +298,19 @@ class EgoCameraRenderer:
         return np.round(total / (ss * ss)).astype(np.uint8)
 
     def _draw_rgba(self) -> np.ndarray:
-        """Draw the current scene; (H, W, 4) uint8, rows top-down. The framebuffer drawn into is
-        left bound for reading (the depth read-back of :meth:`_draw`)."""
+        """Draw the current scene; (H, W, 4) uint8, rows top-down. The buffer drawn into is left
+        bound for reading (the depth read-back of :meth:`_draw`)."""
         w, h = self.intrinsics.width, self.intrinsics.height
-        if self._framebuffer:
-            # pyrender draws into its framebuffer and reads it back (and its own depth, unused: ours
-            # below linearises the same way on every platform)
-            rgba, _ = self._offscreen.render(self.traffic.scene, RenderFlags.RGBA)
-            self._platform.make_current()
-            GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._gl._main_fb)
-            return rgba
         self._platform.make_current()
         self._gl.viewport_width, self._gl.viewport_height = w, h
-        self._gl.render(self.traffic.scene, RenderFlags.NONE)
+        # EGL: into pyrender's framebuffer, single-sampled (_single_sampled), so read where it was
+        # drawn; OSMesa: into the context's buffer
+        self._gl.render(self.traffic.scene, RenderFlags.OFFSCREEN if self._framebuffer else RenderFlags.NONE)
         GL.glFinish()
-        GL.glReadBuffer(GL.GL_FRONT)
+        if self._framebuffer:
+            GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._gl._main_fb_ms)
+        else:
+            GL.glReadBuffer(GL.GL_FRONT)
         rgba = np.frombuffer(GL.glReadPixels(0, 0, w, h, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE), dtype=np.uint8)
         return rgba.reshape(h, w, 4)[::-1]  # GL rows run bottom-up
 
