@@ -38,7 +38,6 @@ from __future__ import annotations
 import json
 import os
 import pickle
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -241,21 +240,25 @@ def write_reference(frames: int, out: Path) -> dict:
     out.parent.mkdir(parents=True, exist_ok=True)
     cpu = _run_side("osmesa", "cpu", frames, out)
     return {"name": f"GPU check reference ({frames} frames of {SCENARIO} seed {SEED})", "written": str(out),
-            "cpu_render_ms": round(float(np.median(cpu["render_ms"])), 1),
+            **_cpu_figures(cpu)}
+
+
+def _cpu_figures(cpu: dict) -> dict:
+    return {"cpu_render_ms": round(float(np.median(cpu["render_ms"])), 1),
             "cpu_detect_ms": round(float(np.median(cpu["detect_ms"])), 1),
             "cpu_boxes": sum(len(b) for b, _ in cpu["boxes"])}
 
 
-def _gpu_side(platform: str, device: str, frames: int, tmp: Path) -> tuple[dict | None, str]:
+def _gpu_side(platform: str, device: str, frames: int, tmp: Path, cpu_file: Path) -> tuple[dict | None, str]:
     """The GPU half's capture, and what went wrong (empty when nothing did). Where EGL fails with
     CUDA present, CUDA is captured again on OSMesa renders: its checks still run, EGL's fail."""
     try:
-        return _run_side(platform, device, frames, tmp / "gpu.npz", rgb_from=tmp / "cpu.npz"), ""
+        return _run_side(platform, device, frames, tmp / "gpu.npz", rgb_from=cpu_file), ""
     except RuntimeError as exc:
         problem = f"the {platform}/{device} side failed: {_last_line(exc)}"
     if platform == "egl" and device == "cuda":
         try:
-            return _run_side("osmesa", "cuda", frames, tmp / "gpu.npz", rgb_from=tmp / "cpu.npz"), problem
+            return _run_side("osmesa", "cuda", frames, tmp / "gpu.npz", rgb_from=cpu_file), problem
         except RuntimeError as exc:
             problem += f"; osmesa/cuda too: {_last_line(exc)}"
     return None, problem
@@ -276,25 +279,21 @@ def gpu_check(frames: int, gpu: bool | None = None, cuda: bool | None = None, dr
     platform, device = side or (("egl" if gpu else "osmesa"), ("cuda" if cuda else "cpu"))
     with tempfile.TemporaryDirectory(prefix="vcfusion-gpu-check-") as tmp:
         if reference is None:
-            cpu = _run_side("osmesa", "cpu", frames, Path(tmp) / "cpu.npz")
+            cpu_file = Path(tmp) / "cpu.npz"
+            cpu = _run_side("osmesa", "cpu", frames, cpu_file)
         else:
-            if not Path(reference).is_file():
-                raise FileNotFoundError(f"{reference}: the GPU check's reference: no such file (write it with "
-                                        "--write-gpu-reference where OSMesa is installed)")
-            shutil.copyfile(reference, Path(tmp) / "cpu.npz")
-            cpu = load_capture(Path(tmp) / "cpu.npz")
+            cpu_file = Path(reference)
+            cpu = load_capture(cpu_file)  # a missing file: numpy's FileNotFoundError names it
             frames = cpu["info"]["frames"]
         out: dict = {"name": f"GPU check ({frames} frames of {SCENARIO} seed {SEED})"}
         if reference is not None:
             out["cpu_half"] = f"from {Path(reference).name} (rendered on {cpu['info']['platform']}/{cpu['info']['device']})"
-        out.update({"cpu_render_ms": round(float(np.median(cpu["render_ms"])), 1),
-                    "cpu_detect_ms": round(float(np.median(cpu["detect_ms"])), 1),
-                    "cpu_boxes": sum(len(b) for b, _ in cpu["boxes"])})
+        out.update(_cpu_figures(cpu))
         if not gpu and not cuda:
             return out | {"status": "no GPU: skipped", "skipped": len(GPU_CHECKS), "skipped_checks": list(GPU_CHECKS),
                           "failed": 0}
         results, skipped = {}, []
-        other, problem = _gpu_side(platform, device, frames, Path(tmp))
+        other, problem = _gpu_side(platform, device, frames, Path(tmp), cpu_file)
         if other is not None:
             platform = other["info"]["platform"]  # OSMesa where EGL failed (the CUDA checks still run)
             out.update({"gpu_platform": platform, "gpu_device": other["info"]["device"],
