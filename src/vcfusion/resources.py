@@ -40,10 +40,15 @@ def assets_dir() -> Path:
     return _package_path("assets").resolve()
 
 
-# The shipped CNN detector's and the depth step's far-box head's weights in assets_dir() (trained
-# by the commands in docs/model-cards.md); named here so that finding them imports no torch.
-DETECTOR_WEIGHTS = "detector.pt"
-BOX_HEAD_WEIGHTS = "far_box_head.pt"
+# Found here, not beside the networks, so that finding them imports no torch (vcfusion.run).
+def default_weights_path() -> Path:
+    """The shipped CNN detector (package data), trained by the commands in docs/model-cards.md."""
+    return assets_dir() / "detector.pt"
+
+
+def default_box_head_path() -> Path:
+    """The depth step's shipped far-box head (package data), trained by the commands in docs/model-cards.md."""
+    return assets_dir() / "far_box_head.pt"
 
 
 def networks_dir_is_checkout() -> bool:

@@ -9,7 +9,7 @@ from pathlib import Path
 from vcfusion.cloud.twins import ProcessModel
 from vcfusion.cosim import CoSimulation, RunResult
 from vcfusion.guidance import GuidancePolicy
-from vcfusion.resources import BOX_HEAD_WEIGHTS, DETECTOR_WEIGHTS, assets_dir
+from vcfusion.resources import default_box_head_path, default_weights_path
 from vcfusion.runio import package_versions, video_staging_prefix, write_run_folder
 from vcfusion.scenario import Scenario
 
@@ -95,11 +95,10 @@ def input_files(scenario: Scenario) -> dict[str, Path]:
         from vcfusion.prediction.model import default_model_path
 
         files["prediction_model"] = scenario.prediction.model or default_model_path()
-    # the shipped weights by name (vcfusion.resources): finding them imports no torch
     if scenario.fusion.enabled and scenario.fusion.detector != "oracle":
-        files["detector_weights"] = scenario.fusion.weights or assets_dir() / DETECTOR_WEIGHTS
+        files["detector_weights"] = scenario.fusion.weights or default_weights_path()
     if scenario.fusion.enabled and scenario.fusion.refine_boxes:
-        files["box_head_weights"] = assets_dir() / BOX_HEAD_WEIGHTS  # the depth step's far-box head
+        files["box_head_weights"] = default_box_head_path()  # the depth step's far-box head
     return files
 
 

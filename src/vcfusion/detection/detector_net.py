@@ -36,6 +36,7 @@ from torch import nn
 from vcfusion.detection.detectors import (COCO80_NAMES, YOLO_DEFAULT_CLASSES, Detections, batched_nms,  # noqa: F401
                                           coco_column_categories)
 from vcfusion.errors import InputError
+from vcfusion.resources import default_weights_path  # noqa: F401  (the shipped weights; callers import it here)
 
 WEIGHTS_FORMAT = "vcfusion-centernet-v1"
 STRIDE = 4
@@ -471,8 +472,3 @@ def check_yolo_model(path, input_wh: tuple[int, int], keep) -> None:
     _check_yolo_file(str(path), path.stat().st_mtime_ns, tuple(input_wh), tuple(keep))
 
 
-def default_weights_path() -> Path:
-    """The shipped detector (package data), trained by the commands in docs/model-cards.md."""
-    from vcfusion.resources import DETECTOR_WEIGHTS, assets_dir
-
-    return assets_dir() / DETECTOR_WEIGHTS

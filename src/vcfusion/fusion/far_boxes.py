@@ -28,6 +28,7 @@ import torch
 from torch import nn
 
 from vcfusion.errors import InputError
+from vcfusion.resources import default_box_head_path  # noqa: F401  (the shipped head; callers import it here)
 
 
 class BoxHeadFileError(InputError):
@@ -165,11 +166,6 @@ def _load(path: str) -> BoxHead:
     return BoxHead(net, spec, float(blob["max_shift"]), float(blob["max_height_px"]), blob.get("meta"))
 
 
-def default_box_head_path() -> Path:
-    """The shipped box head (package data), trained by the commands in docs/model-cards.md."""
-    from vcfusion.resources import BOX_HEAD_WEIGHTS, assets_dir
-
-    return assets_dir() / BOX_HEAD_WEIGHTS
 
 
 # ---------------------------------------------------------------------------------------------
