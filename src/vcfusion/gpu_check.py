@@ -35,9 +35,9 @@ detects a few frames; then one seed of the vision tick and 10 simulated seconds 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
-import pickle
 import subprocess
 import sys
 import tempfile
@@ -48,6 +48,7 @@ import numpy as np
 
 from vcfusion.accel import DEVICE_ENV, GL_ENV, nvidia_gpu_present
 from vcfusion.fusion.matching import box_iou
+from vcfusion.records import VehicleStates
 
 SCENARIO = "accident_ar"
 SEED = 0
@@ -183,14 +184,26 @@ def capture(frames: int, device: str, out: Path, rgb_from: Path | None = None) -
             arrays[f"{name}_{k}"], arrays[f"{name}_scores_{k}"] = np.asarray(b), np.asarray(s)
     info = {"platform": os.environ.get(GL_ENV), "device": device, "frames": len(picks),
             "on_ref": len(on_ref)}
-    states = np.frombuffer(pickle.dumps(picks), dtype=np.uint8)
-    np.savez_compressed(out, info=np.array(json.dumps(info)), states=states, **arrays)
+    for k, truth in enumerate(picks):  # plain arrays (a reference file may come from elsewhere: no pickle)
+        arrays |= {f"state_{k}_{f.name}": np.asarray(getattr(truth, f.name)) for f in _STATE_FIELDS}
+    np.savez_compressed(out, info=np.array(json.dumps(info)), **arrays)
+
+
+_STATE_FIELDS = [f for f in dataclasses.fields(VehicleStates) if f.init]
 
 
 def _load_states(path: Path) -> list:
-    # the capture's own file (written by capture() above), never a file from elsewhere
+    """The vehicle states a capture rendered (written by capture() above)."""
     with np.load(path) as z:
-        return pickle.loads(z["states"].tobytes())
+        frames = json.loads(str(z["info"]))["frames"]
+        return [VehicleStates(**{f.name: _state_field(f, z[f"state_{k}_{f.name}"]) for f in _STATE_FIELDS})
+                for k in range(frames)]
+
+
+def _state_field(field: dataclasses.Field, a: np.ndarray):
+    if field.type == "float":
+        return float(a)  # the time
+    return tuple(a.tolist()) if str(field.type).startswith("tuple") else a  # ids, types, classes: str
 
 
 def load_capture(path: Path) -> dict:
