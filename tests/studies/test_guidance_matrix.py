@@ -38,8 +38,66 @@ def test_matrix_of_two_short_scenarios(tmp_path, capsys):
     text = capsys.readouterr().out
     assert text.count("2 of 2 trips taken from") == 2
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "m" / "matrix_summary.csv"), summary)
+    # the same studies tabled from their folders (as when each scenario ran on its own): the same tables
+    assert main(["guidance-matrix", "--from-studies", str(tmp_path / "m" / "accident"),
+                 str(tmp_path / "m" / "curved"), "--out", str(tmp_path / "read")]) == 0
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "read" / "matrix_summary.csv"), summary)
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "read" / "matrix_highlights.csv"), hl)
 
 
 def test_matrix_needs_two_trips(capsys):
     assert main(["guidance-matrix", str(REPO / "scenarios" / "accident.yaml"), "--trips", "1", "--out", "x"]) == 2
     assert "--trips" in capsys.readouterr().err
+
+
+def _study_folder(folder: Path, scenario: str, arms: tuple[str, ...]) -> Path:
+    """A finished study's folder as `vcfusion study guidance` writes it, reduced to what the matrix
+    reads: summary.json and a trip table of three seeds (highlight counts; every paired metric 1.0 but
+    fuel, which falls by the seed in each guided arm)."""
+    import json
+
+    from vcfusion.studies.guidance import EMISSION_METRICS, SAFETY_METRICS
+
+    folder.mkdir(parents=True)
+    (folder / "summary.json").write_text(json.dumps({"scenario": scenario, "wall_s": 12.5, "failed": {"7": "boom"}}))
+    rows = []
+    for seed in (1, 2, 3):
+        for i, arm in enumerate(arms):
+            guided = arm != "none"
+            rows.append({**{m[0]: 1.0 for m in SAFETY_METRICS + EMISSION_METRICS},
+                         "seed": seed, "arm": arm, "collisions": 0, "fuel_g_per_km": 40.0 - i * seed,
+                         "highlights_right": 3 * guided, "highlights_wrong": int(guided and seed == 2),
+                         "missed_warnings": 0, "unseen_warnings": 2 * guided})
+    pd.DataFrame(rows).to_parquet(folder / "trips.parquet")
+    return folder
+
+
+def test_studies_run_one_by_one_are_tabled_per_scenario_and_pooled(tmp_path, capsys):
+    a = _study_folder(tmp_path / "a", "exit_camera", ("none", "fusion"))
+    b = _study_folder(tmp_path / "b", "onramp_camera", ("none", "fusion"))
+    assert main(["guidance-matrix", "--from-studies", str(a), str(b), "--tuned-on", "onramp_camera",
+                 "--out", str(tmp_path / "m")]) == 0
+    hl = pd.read_csv(tmp_path / "m" / "matrix_highlights.csv").set_index("group")
+    assert dict(hl["split"]) == {"exit_camera": "held-out", "onramp_camera": "tuned-on", "pooled": "held-out+tuned-on"}
+    assert list(hl["highlights_right"]) == [9, 9, 18] and list(hl["highlights_wrong"]) == [1, 1, 2]
+    assert hl.loc["pooled", "wrong_pct_of_drawn"] == pytest.approx(100 * 2 / 20)
+    fuel = pd.read_csv(tmp_path / "m" / "matrix_summary.csv").query("metric == 'fuel_g_per_km'").set_index("group")
+    assert list(fuel["n_pairs"]) == [3, 3, 6]  # pooled: paired within each scenario and seed
+    assert fuel.loc["pooled", "mean_diff"] == pytest.approx(-2.0)  # fusion - none = -seed, seeds 1-3 twice
+    text = capsys.readouterr().out
+    assert "exit_camera [held-out]: 12 s, failed trips [7]" in text and "seeds 1-3" in text
+
+
+def test_studies_of_other_arms_or_no_study_are_refused(tmp_path, capsys):
+    a = _study_folder(tmp_path / "a", "exit_camera", ("none", "fusion"))
+    b = _study_folder(tmp_path / "b", "onramp_camera", ("none", "cloud"))
+    assert main(["guidance-matrix", "--from-studies", str(a), str(b), "--out", str(tmp_path / "m")]) == 2
+    assert "the same arms" in capsys.readouterr().err
+    assert main(["guidance-matrix", "--from-studies", str(a), str(tmp_path), "--out", str(tmp_path / "m")]) == 2
+    assert f"{tmp_path / 'summary.json'}: expected the file" in capsys.readouterr().err
+    assert main(["guidance-matrix", "--from-studies", str(a), str(a), "--out", str(tmp_path / "m")]) == 2
+    assert "the same scenario" in capsys.readouterr().err
+    assert main(["guidance-matrix", str(REPO / "scenarios" / "accident.yaml"), "--from-studies", str(a),
+                 "--out", str(tmp_path / "m")]) == 2
+    assert "not both" in capsys.readouterr().err
+    assert not (tmp_path / "m").exists()  # nothing written by a refused command

@@ -1,5 +1,6 @@
 """`vcfusion explain-highlights RUN_FOLDER --out DIR` (vcfusion.studies.explain) and
-`vcfusion guidance-matrix SCENARIO... --trips N --out DIR` (vcfusion.studies.matrix)."""
+`vcfusion guidance-matrix SCENARIO... --trips N --out DIR` or `--from-studies FOLDER...`
+(vcfusion.studies.matrix)."""
 
 from __future__ import annotations
 
@@ -23,8 +24,17 @@ def cmd_explain_highlights(args: argparse.Namespace) -> int:
 def cmd_guidance_matrix(args: argparse.Namespace) -> int:
     from vcfusion.errors import UsageError
     from vcfusion.studies.guidance import parse_arms
-    from vcfusion.studies.matrix import run_matrix
+    from vcfusion.studies.matrix import matrix_from_studies, run_matrix
 
+    tuned = {n.strip() for n in args.tuned_on.split(",") if n.strip()}
+    if bool(args.scenarios) == bool(args.from_studies):
+        raise UsageError("expected scenario files to run, or --from-studies FOLDER... (studies already run), "
+                         "not both and not neither")
+    if args.from_studies:
+        res = matrix_from_studies([Path(p) for p in args.from_studies], Path(args.out), tuned)
+        print(res["text"])
+        print(f"tables: {Path(args.out) / 'matrix_summary.csv'}, {Path(args.out) / 'matrix_highlights.csv'}")
+        return 0
     if args.trips < 2:
         raise UsageError(f"--trips: expected at least 2 paired trips per scenario for a confidence interval, "
                          f"got {args.trips}")
@@ -34,7 +44,6 @@ def cmd_guidance_matrix(args: argparse.Namespace) -> int:
         arms = parse_arms(args.arms)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    tuned = {n.strip() for n in args.tuned_on.split(",") if n.strip()}
     res = run_matrix([Path(p) for p in args.scenarios], args.trips, args.workers, Path(args.out), tuned, arms,
                      args.first_seed)
     print(res["text"])
@@ -53,7 +62,10 @@ def add_parsers(sub) -> None:
     p = sub.add_parser("guidance-matrix",
                        help="the guidance study over several scenarios: per-scenario and pooled paired tables "
                             "with 95%% CIs, highlight episodes, collision seeds, tuned-on / held-out labels")
-    p.add_argument("scenarios", nargs="+", metavar="SCENARIO", help="scenario YAML files with an ego")
+    p.add_argument("scenarios", nargs="*", metavar="SCENARIO", help="scenario YAML files with an ego")
+    p.add_argument("--from-studies", nargs="+", metavar="FOLDER",
+                   help="instead of running: the folders of `vcfusion study guidance` runs of several scenarios "
+                        "(the same arms), tabled per scenario and pooled")
     p.add_argument("--trips", type=int, default=20, help="paired trips per scenario (seeds FIRST..FIRST+N-1)")
     p.add_argument("--first-seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=2)

@@ -1,7 +1,8 @@
 """The guidance study over several scenarios in one command (`vcfusion guidance-matrix`).
 
 Each scenario runs the paired guidance study (`run_guidance_study`: seeds first_seed .. +trips,
-the same arms) into OUT/<scenario name>/; then one table per scenario and a pooled one (every trip
+the same arms) into OUT/<scenario name>/ (or, `--from-studies`, the folders of studies already run one
+by one are read); then one table per scenario and a pooled one (every trip
 of every scenario, paired within its scenario and seed): per metric and arm the paired difference
 to ``none`` with its 95 % CI (`paired_summary`), the highlight episodes (right, wrong, missed,
 unseen; wrong and missed as shares of those drawn) and the trips with an ego collision by seed.
@@ -13,13 +14,21 @@ Writes OUT/matrix_summary.csv (metrics), OUT/matrix_highlights.csv, OUT/matrix.t
 
 from __future__ import annotations
 
+import json
 import time as wallclock
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
 
-from vcfusion.studies.guidance import (DEFAULT_ARMS, HIGHLIGHT_COUNTS, HIGHLIGHT_UPDATES, REFERENCE_ARM,
-                                       paired_summary, run_guidance_study)
+from vcfusion.errors import InputError
+from vcfusion.studies.guidance import (DEFAULT_ARMS, EMISSION_METRICS, HIGHLIGHT_COUNTS, HIGHLIGHT_UPDATES,
+                                       REFERENCE_ARM, SAFETY_METRICS, paired_summary, run_guidance_study)
+
+
+class StudyFolderError(InputError):
+    """A folder given as a finished guidance study is not one (a missing or foreign file)."""
+
 
 KEY_METRICS = ("min_gap_to_target_m", "avg_ttc_clipped_s", "avg_abs_accel_mps2", "fuel_g_per_km", "collisions")
 
@@ -52,21 +61,79 @@ def run_matrix(scenarios: list[Path], trips: int, workers: int, out: Path, tuned
     """Run the guidance study on every scenario and write the matrix tables (see the module doc)."""
     out = Path(out)
     started = wallclock.perf_counter()
-    per, labels, walls, failed = [], {}, {}, {}
+    studies = []
     for path in scenarios:
         from vcfusion.scenario import load_scenario
 
         name = load_scenario(path).name
-        if name in labels:
+        if name in {s.name for s in studies}:
             raise ValueError(f"scenarios: two scenarios are named {name!r}; expected distinct names")
         t0 = wallclock.perf_counter()
         res = run_guidance_study(Path(path), trips, workers, out / name, out / name / "renders", first_seed,
                                  progress=progress, arms=tuple(arms))
-        walls[name] = wallclock.perf_counter() - t0
-        failed[name] = [s for s, _ in res["failed"]]
-        labels[name] = "tuned-on" if name in tuned_on else "held-out"
-        per.append(res["trips"].assign(scenario=name))
-    table = pd.concat(per, ignore_index=True)
+        studies.append(StudyPart(name, res["trips"], wallclock.perf_counter() - t0, [s for s, _ in res["failed"]]))
+    head = (f"guidance matrix: {len(studies)} scenarios x {trips} paired trips (seeds {first_seed}-"
+            f"{first_seed + trips - 1}), arms {', '.join(arms)}, {wallclock.perf_counter() - started:.0f} s wall "
+            f"with {workers} workers")
+    return write_matrix(studies, out, tuned_on, head)
+
+
+@dataclass(frozen=True)
+class StudyPart:
+    """One scenario's finished guidance study, as the matrix reads it."""
+    name: str  # the scenario's name (its label is looked up by it)
+    trips: pd.DataFrame  # the study's trip rows (`run_guidance_study`'s "trips"; OUT/trips.parquet)
+    wall_s: float  # wall time of the sitting that finished the study (trips taken from a log cost none)
+    failed_seeds: list[int]
+
+
+def read_study(folder: Path) -> StudyPart:
+    """A finished `vcfusion study guidance` folder (its summary.json and trips.parquet) as a part of a
+    matrix. StudyFolderError naming the folder and the file when one is missing or is no study's."""
+    folder = Path(folder)
+    summary, table = folder / "summary.json", folder / "trips.parquet"
+    for f in (summary, table):
+        if not f.is_file():
+            raise StudyFolderError(f"{f}: expected the file a finished `vcfusion study guidance` writes; not found")
+    try:
+        info = json.loads(summary.read_text())
+        name, wall, failed = str(info["scenario"]), float(info["wall_s"]), [int(s) for s in info["failed"]]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise StudyFolderError(f"{summary}: expected a guidance study's summary with scenario, wall_s and "
+                               f"failed; {type(exc).__name__}: {exc}") from None
+    trips = pd.read_parquet(table)
+    needed = {"seed", "arm", "collisions", *HIGHLIGHT_COUNTS, *(m[0] for m in SAFETY_METRICS + EMISSION_METRICS)}
+    missing = sorted(needed - set(trips.columns))
+    if missing:
+        raise StudyFolderError(f"{table}: expected a guidance study's trip table; columns {missing} missing")
+    return StudyPart(name, trips, wall, failed)
+
+
+def matrix_from_studies(folders: list[Path], out: Path, tuned_on: set[str]) -> dict:
+    """The matrix tables of guidance studies already run one by one (each scenario's folder of
+    `vcfusion study guidance`), written as `run_matrix` writes them. The studies must have the same
+    arms; their seeds may differ (each is paired within itself)."""
+    studies = [read_study(f) for f in folders]
+    names = [s.name for s in studies]
+    if len(set(names)) != len(names):
+        raise StudyFolderError(f"studies: two folders hold the study of the same scenario ({names}); expected "
+                               f"one folder per scenario")
+    arms = {s.name: list(dict.fromkeys(s.trips["arm"])) for s in studies}  # in the studies' own order
+    if len({frozenset(a) for a in arms.values()}) != 1:
+        raise StudyFolderError(f"studies: expected the same arms in every study, got {arms}")
+    parts = []
+    for s, folder in zip(studies, folders):
+        seeds = sorted(s.trips["seed"].unique())
+        parts.append(f"{s.name} {len(seeds)} trips (seeds {seeds[0]}-{seeds[-1]}) from {folder}")
+    head = (f"guidance matrix of {len(studies)} studies run one by one, arms {', '.join(arms[names[0]])}: "
+            + "; ".join(parts))
+    return write_matrix(studies, Path(out), tuned_on, head)
+
+
+def write_matrix(studies: list[StudyPart], out: Path, tuned_on: set[str], head: str) -> dict:
+    """Per-scenario and pooled tables of finished studies into OUT (see the module doc)."""
+    labels = {s.name: "tuned-on" if s.name in tuned_on else "held-out" for s in studies}
+    table = pd.concat([s.trips.assign(scenario=s.name) for s in studies], ignore_index=True)
     summaries, highlights = [], []
     for name, t in table.groupby("scenario", sort=False):
         s = paired_summary(t.drop(columns="scenario"))
@@ -80,12 +147,10 @@ def run_matrix(scenarios: list[Path], trips: int, workers: int, out: Path, tuned
     out.mkdir(parents=True, exist_ok=True)
     summary.to_csv(out / "matrix_summary.csv", index=False)
     hl.to_csv(out / "matrix_highlights.csv", index=False)
-    lines = [f"guidance matrix: {len(labels)} scenarios x {trips} paired trips (seeds {first_seed}-"
-             f"{first_seed + trips - 1}), arms {', '.join(arms)}, {wallclock.perf_counter() - started:.0f} s wall "
-             f"with {workers} workers"]
-    for name in labels:
-        lines.append(f"  {name} [{labels[name]}]: {walls[name]:.0f} s"
-                     + (f", failed trips {failed[name]}" if failed[name] else ""))
+    lines = [head]
+    for s in studies:
+        lines.append(f"  {s.name} [{labels[s.name]}]: {s.wall_s:.0f} s"
+                     + (f", failed trips {s.failed_seeds}" if s.failed_seeds else ""))
     for group in [*labels, "pooled"]:
         label = labels.get(group, mixed)
         lines += ["", f"{group} [{label}]"]
