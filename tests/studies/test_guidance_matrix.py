@@ -37,6 +37,7 @@ def test_matrix_of_two_short_scenarios(tmp_path, capsys):
                  "--out", str(tmp_path / "m")]) == 0
     text = capsys.readouterr().out
     assert text.count("2 of 2 trips taken from") == 2
+    assert text.count("(2 trips taken from an earlier sitting's log)") == 2  # the matrix's lines say so too
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "m" / "matrix_summary.csv"), summary)
     # the same studies tabled from their folders (as when each scenario ran on its own): the same tables
     assert main(["guidance-matrix", "--from-studies", str(tmp_path / "m" / "accident"),
@@ -59,7 +60,8 @@ def _study_folder(folder: Path, scenario: str, arms: tuple[str, ...]) -> Path:
     from vcfusion.studies.guidance import EMISSION_METRICS, SAFETY_METRICS
 
     folder.mkdir(parents=True)
-    (folder / "summary.json").write_text(json.dumps({"scenario": scenario, "wall_s": 12.5, "failed": {"7": "boom"}}))
+    (folder / "summary.json").write_text(json.dumps({"scenario": scenario, "wall_s": 12.5, "failed": {"7": "boom"},
+                                                     "trips_from_log": 2}))
     rows = []
     for seed in (1, 2, 3):
         for i, arm in enumerate(arms):
@@ -85,7 +87,8 @@ def test_studies_run_one_by_one_are_tabled_per_scenario_and_pooled(tmp_path, cap
     assert list(fuel["n_pairs"]) == [3, 3, 6]  # pooled: paired within each scenario and seed
     assert fuel.loc["pooled", "mean_diff"] == pytest.approx(-2.0)  # fusion - none = -seed, seeds 1-3 twice
     text = capsys.readouterr().out
-    assert "exit_camera [held-out]: 12 s, failed trips [7]" in text and "seeds 1-3" in text
+    assert ("exit_camera [held-out]: 12 s (2 trips taken from an earlier sitting's log), failed trips [7]" in text
+            and "seeds 1-3" in text)
 
 
 def test_studies_of_other_arms_or_no_study_are_refused(tmp_path, capsys):

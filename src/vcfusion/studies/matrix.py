@@ -71,7 +71,8 @@ def run_matrix(scenarios: list[Path], trips: int, workers: int, out: Path, tuned
         t0 = wallclock.perf_counter()
         res = run_guidance_study(Path(path), trips, workers, out / name, out / name / "renders", first_seed,
                                  progress=progress, arms=tuple(arms))
-        studies.append(StudyPart(name, res["trips"], wallclock.perf_counter() - t0, [s for s, _ in res["failed"]]))
+        studies.append(StudyPart(name, res["trips"], wallclock.perf_counter() - t0, [s for s, _ in res["failed"]],
+                                 int(res["info"]["trips_from_log"])))
     head = (f"guidance matrix: {len(studies)} scenarios x {trips} paired trips (seeds {first_seed}-"
             f"{first_seed + trips - 1}), arms {', '.join(arms)}, {wallclock.perf_counter() - started:.0f} s wall "
             f"with {workers} workers")
@@ -85,6 +86,7 @@ class StudyPart:
     trips: pd.DataFrame  # the study's trip rows (`run_guidance_study`'s "trips"; OUT/trips.parquet)
     wall_s: float  # wall time of the sitting that finished the study (trips taken from a log cost none)
     failed_seeds: list[int]
+    trips_from_log: int = 0  # trips that sitting took from an earlier sitting's trip log
 
 
 def read_study(folder: Path) -> StudyPart:
@@ -98,6 +100,7 @@ def read_study(folder: Path) -> StudyPart:
     try:
         info = json.loads(summary.read_text())
         name, wall, failed = str(info["scenario"]), float(info["wall_s"]), [int(s) for s in info["failed"]]
+        from_log = int(info.get("trips_from_log", 0))
     except (ValueError, KeyError, TypeError) as exc:
         raise StudyFolderError(f"{summary}: expected a guidance study's summary with scenario, wall_s and "
                                f"failed; {type(exc).__name__}: {exc}") from None
@@ -106,7 +109,7 @@ def read_study(folder: Path) -> StudyPart:
     missing = sorted(needed - set(trips.columns))
     if missing:
         raise StudyFolderError(f"{table}: expected a guidance study's trip table; columns {missing} missing")
-    return StudyPart(name, trips, wall, failed)
+    return StudyPart(name, trips, wall, failed, from_log)
 
 
 def matrix_from_studies(folders: list[Path], out: Path, tuned_on: set[str]) -> dict:
@@ -150,6 +153,7 @@ def write_matrix(studies: list[StudyPart], out: Path, tuned_on: set[str], head: 
     lines = [head]
     for s in studies:
         lines.append(f"  {s.name} [{labels[s.name]}]: {s.wall_s:.0f} s"
+                     + (f" ({s.trips_from_log} trips taken from an earlier sitting's log)" if s.trips_from_log else "")
                      + (f", failed trips {s.failed_seeds}" if s.failed_seeds else ""))
     for group in [*labels, "pooled"]:
         label = labels.get(group, mixed)
