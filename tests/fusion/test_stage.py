@@ -16,12 +16,11 @@ from vcfusion.cosim import CoSimulation
 from vcfusion.driver.idm import IdmController
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.traffic.network import read_road
-from vcfusion.scenario import Scenario, ScenarioError, load_scenario
+from vcfusion.scenario import ScenarioError, load_scenario
 from vcfusion.fusion.overlay import OverlayRecorder
 from vcfusion.fusion.stage import build_fusion_hook
 
 ROOT = Path(__file__).resolve().parents[2]
-HAS_CAMERA = "vision" in Scenario.model_fields
 
 
 def scenario_file(tmp_path, **changes) -> Path:
@@ -86,7 +85,6 @@ def test_fusion_hook_reads_the_camera_hooks_frame(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not HAS_CAMERA, reason="needs the rendering stage (scenario vision block, camera hook)")
 def test_run_with_rendered_camera_writes_fusion_table_and_video(tmp_path, monkeypatch):
     from vcfusion.commands import main
 

@@ -61,6 +61,8 @@ def test_not_a_model_file(tmp_path):
 def test_torch_builder_shape():
     m = build_torch_mlp(len(FEATURE_NAMES), 8)
     assert [type(x).__name__ for x in m] == ["Linear", "ReLU", "Linear", "ReLU", "Linear"]
+    widths = [(x.in_features, x.out_features) for x in m if type(x).__name__ == "Linear"]
+    assert widths == [(len(FEATURE_NAMES), 8), (8, 8), (8, 1)]  # features -> hidden -> hidden -> one logit
 
 
 def test_platt_calibration_recovers_a_known_mapping_and_is_saved(tmp_path):

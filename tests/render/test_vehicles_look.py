@@ -2,7 +2,10 @@
 sky shared with the shader, contact shadows that are ground (not vehicle), and render presets that
 change only the RGB image."""
 
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -53,7 +56,14 @@ def test_car_shapes_differ_and_the_style_is_stable():
     assert len({tuple(np.round(v, 2)) for v in roofs.values()}) == len(vehicles.CAR_SHAPES)
     assert roofs["van"][1] - roofs["van"][0] > roofs["saloon"][1] - roofs["saloon"][0] + 1.0  # the van's long roof
     a = vehicles.vehicle_style("veh7", "passenger", 4.6, 1.8, 1.5)
-    assert a == vehicles.vehicle_style("veh7", "passenger", 4.6, 1.8, 1.5) and a[0] in vehicles.CAR_SHAPES
+    assert a[0] in vehicles.CAR_SHAPES
+    # stable across processes: Python's string hash differs with PYTHONHASHSEED, the style must not
+    code = ("from vcfusion.render import vehicles; "
+            "print(vehicles.vehicle_style('veh7', 'passenger', 4.6, 1.8, 1.5))")
+    for hash_seed in ("1", "2"):
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                             env={**os.environ, "PYTHONHASHSEED": hash_seed}).stdout.strip()
+        assert out == repr(a)
     assert vehicles.vehicle_style("veh7", "truck", 12, 2.5, 3.6)[0] in vehicles.TRUCK_SHAPES
     shapes = {vehicles.vehicle_style(f"v{i}", "passenger", 4.6, 1.8, 1.5)[0] for i in range(40)}
     assert shapes == set(vehicles.CAR_SHAPES)

@@ -129,6 +129,7 @@ def test_ctrl_c_during_a_batch_stops_its_workers_and_keeps_complete_seeds(tmp_pa
             workers.append(int(pid_file.read_text()))
         except FileNotFoundError:  # that seed ended meanwhile
             pass
+    assert workers  # the check below that they are stopped must have workers to check
     os.kill(proc.pid, stop)  # the batch passes it on to its workers
     stdout, stderr = proc.communicate(timeout=120)
     assert proc.returncode == code

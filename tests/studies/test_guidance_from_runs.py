@@ -71,7 +71,9 @@ def test_from_runs_gives_the_model_study_rows_and_pairs_human_trips(tmp_path, ca
     assert info["unpaired_folders"] == 1 and info["run_folders"] == 9 and info["arms"] == ["none", "cloud"]
     assert len(trips) == 8 and set(trips["driver_kind"]) == {"human", "model"}
     assert set(trips.loc[trips["driver_kind"] == "human", "participant"]) == {"P07"}
-    for fig in renders.glob("guidance_fig*.png"):
+    figures = sorted(renders.glob("guidance_fig*.png"))
+    assert [f.name for f in figures] == ["guidance_fig8_safety_comfort.png", "guidance_fig9_fuel_emissions.png"]
+    for fig in figures:
         assert fig.stat().st_size > 10_000
 
     # the model trips: exactly the rows the driver-model study computes for these seeds and arms

@@ -30,6 +30,7 @@ def test_study_two_trips_end_to_end(tmp_path):
     assert trips.loc[trips["arm"] == "none", "highlights_right"].isna().all()
     assert (trips["fuel_g_per_km"] > 20).all() and (trips["fuel_g_per_km"] < 200).all()
     assert "paper" in res["text"] and "cloud vs none" in res["text"]
+    assert len(res["figures"]) == 2  # Fig. 8 (safety and comfort) and Fig. 9 (fuel and emissions)
     for fig in res["figures"]:
         assert fig.stat().st_size > 10_000
     assert (tmp_path / "study" / "summary.csv").is_file() and (tmp_path / "study" / "trips.csv").is_file()
@@ -38,9 +39,11 @@ def test_study_two_trips_end_to_end(tmp_path):
 @pytest.mark.slow
 def test_camera_arm_renders_and_detects_on_a_scenario_without_vision(tmp_path):
     """accident.yaml has no vision/fusion blocks: the oracle arm turns the camera and fusion on."""
-    run_guidance_study(REPO / "scenarios" / "accident.yaml", trips=2, workers=2, out=tmp_path / "study",
-                       renders=tmp_path / "renders", progress=False, arms=("none", "oracle"))
+    res = run_guidance_study(REPO / "scenarios" / "accident.yaml", trips=2, workers=2, out=tmp_path / "study",
+                             renders=tmp_path / "renders", progress=False, arms=("none", "oracle"))
+    assert res["failed"] == []
     trips = pd.read_parquet(tmp_path / "study" / "trips.parquet")
+    assert trips["arm"].tolist() == ["none", "oracle"] * 2
     oracle = trips[trips["arm"] == "oracle"]
     assert set(oracle["guidance_source"]) <= {"fusion", "fusion+no_frame"}
     assert (oracle["highlights_right"] > 0).all() and (oracle["ticks_without_frame"] == 0).all()
