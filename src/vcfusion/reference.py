@@ -321,8 +321,10 @@ def _synopsis(parser: argparse.ArgumentParser) -> str:
 
 
 def _help_text(action: argparse.Action) -> str:
+    """The help as `vcfusion --help` prints it: argparse %-formats every help string (so a
+    literal percent sign is written %%)."""
     text = action.help or ""
-    if "%(" in text:
+    if "%" in text:
         text = text % {**vars(action), "prog": "vcfusion"}
     return text
 
@@ -330,7 +332,7 @@ def _help_text(action: argparse.Action) -> str:
 def _subparsers(parser: argparse.ArgumentParser):
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
-            helps = {a.dest: a.help for a in action._choices_actions}
+            helps = {a.dest: _help_text(a) for a in action._choices_actions}
             for name, sub in action.choices.items():
                 yield name, sub, helps.get(name, "")
 
@@ -340,6 +342,14 @@ def _command_section(parser: argparse.ArgumentParser, summary: str, level: int) 
     if summary:
         lines += [_md(summary)[:1].upper() + _md(summary)[1:] + ".", ""]
     lines += ["```text", _synopsis(parser), "```", ""]
+    lines += _argument_table(parser)
+    for name, sub, help_text in _subparsers(parser):
+        lines += _command_section(sub, help_text, level + 1)
+    return lines
+
+
+def _argument_table(parser: argparse.ArgumentParser) -> list[str]:
+    """The parser's own arguments as a markdown table (none: no lines)."""
     rows = []
     for action in parser._actions:
         if isinstance(action, (argparse._HelpAction, argparse._SubParsersAction)) or action.help is argparse.SUPPRESS:
@@ -358,11 +368,9 @@ def _command_section(parser: argparse.ArgumentParser, summary: str, level: int) 
         if isinstance(action, argparse._AppendAction):
             notes.append("repeatable")
         rows.append(f"| {name} | {_md(_help_text(action))} | {_default_of(action)} | {'; '.join(notes)} |")
-    if rows:
-        lines += ["| argument | meaning | default | notes |", "|---|---|---|---|"] + rows + [""]
-    for name, sub, help_text in _subparsers(parser):
-        lines += _command_section(sub, help_text, level + 1)
-    return lines
+    if not rows:
+        return []
+    return ["| argument | meaning | default | notes |", "|---|---|---|---|"] + rows + [""]
 
 
 def cli_reference(parser: argparse.ArgumentParser) -> str:
@@ -381,7 +389,8 @@ def cli_reference(parser: argparse.ArgumentParser) -> str:
     ]
     for name, _, help_text in _subparsers(parser):
         lines.append(f"| [`{name}`](#{('vcfusion-' + name).replace(' ', '-')}) | {_md(help_text)} |")
-    lines.append("")
+    lines += ["", "Options of `vcfusion` itself, given before the command (`vcfusion --device cpu run ...`):", ""]
+    lines += _argument_table(parser)
     for name, sub, help_text in _subparsers(parser):
         lines += _command_section(sub, help_text, 2)
     return "\n".join(lines)

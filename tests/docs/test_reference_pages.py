@@ -62,3 +62,19 @@ def test_cli_page_lists_every_command_and_option():
                 if option not in ("-h", "--help"):
                     assert f"`{option}`" in page, (name, option)
     assert "/work/" not in page and "/home/" not in page  # no machine paths in shipped defaults
+
+
+def test_cli_page_shows_help_as_the_command_line_prints_it():
+    # argparse %-formats every help string: a help written "95%% CIs" prints "95% CIs"
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="vcfusion")
+    parser.add_argument("--device", help="where it runs (default: %(default)s)", default="auto")
+    sub = parser.add_subparsers(dest="command")
+    p = sub.add_parser("matrix", help="tables with 95%% CIs")
+    p.add_argument("--level", help="share in %%, above 50%% of drawn")
+    page = reference.cli_reference(parser)
+    assert "tables with 95% CIs" in page and "share in %, above 50% of drawn" in page and "%%" not in page
+    # the options of the command itself, given before a subcommand, have their own table
+    assert "| `--device` `DEVICE` | where it runs (default: auto) |" in page
+    assert "95% CIs" in reference.cli_reference(build_parser()) and "`--device`" in reference.cli_reference(build_parser())
