@@ -324,9 +324,15 @@ def test_a_vehicle_cut_by_the_image_border_is_listed_as_a_twin(renderer):
 
 
 @pytest.mark.parametrize("preset", ["fast", "quality"])
-def test_the_frame_uniforms_set_once_draw_pyrenders_frames_bit_for_bit(preset):
-    # The renderer sets the camera and light uniforms once per program and frame; pyrender's own
-    # pass sets them before every primitive. Same draws, same values: the same images.
+def test_the_frame_uniforms_set_once_draw_pyrenders_frames_bit_for_bit(preset, monkeypatch):
+    # The renderer sets the camera and light uniforms once per program and frame, with each
+    # uniform's location asked once and undeclared ones skipped, and its own draw order and poses
+    # computed once a frame; pyrender's own pass sets every uniform before every primitive. Same
+    # draws, same values: the same images.
+    from pyrender.shader_program import ShaderProgram
+
+    from vcfusion.render.renderer import _CameraProgram
+
     sc = load_scenario(SCENARIO)
     truth = states([*SCENE, ("c", "passenger", 110.0, LANE1, 0.0, 4.0, 1.7, 1.4),
                     ("b", "truck", 125.0, LANE1, 0.0, 12.0, 2.5, 3.6)])
@@ -336,13 +342,33 @@ def test_the_frame_uniforms_set_once_draw_pyrenders_frames_bit_for_bit(preset):
         try:
             if not lean:
                 del r._gl._forward_pass  # pyrender's method again
+                monkeypatch.setattr(_CameraProgram, "set_uniform", ShaderProgram.set_uniform)  # and its uniforms
             frames.append(r.render(truth))
-            drawn.append(r._gl._forward_pass.__qualname__)
+            drawn.append((r._gl._forward_pass.__qualname__, _CameraProgram.set_uniform.__qualname__))
         finally:
             r.close()
     lean_frame, pyrender_frame = frames
-    assert drawn == ["_frame_uniforms_once.<locals>.forward_pass", "Renderer._forward_pass"]
+    assert drawn == [("_frame_uniforms_once.<locals>.forward_pass", "_CameraProgram.set_uniform"),
+                     ("Renderer._forward_pass", "ShaderProgram.set_uniform")]
     assert lean_frame.vehicle_ids == pyrender_frame.vehicle_ids and len(lean_frame.vehicle_ids) >= 3
     assert np.array_equal(lean_frame.rgb, pyrender_frame.rgb)
     assert np.array_equal(lean_frame.depth, pyrender_frame.depth)
     assert np.array_equal(lean_frame.instances, pyrender_frame.instances)
+
+
+def test_a_uniform_the_shader_does_not_declare_is_skipped_and_a_bad_value_refused():
+    sc = load_scenario(SCENARIO)
+    r = EgoCameraRenderer(read_road(sc.network), CameraConfig(width_px=160, height_px=120))
+    try:
+        r.render(states(SCENE))
+        program = next(iter(r._gl._program_cache._program_cache.values()))  # one of the frame's programs
+        program._bind()
+        program.set_uniform("material.metallic_factor", 0.5)  # pyrender's PBR factor: not in our shader
+        assert program._locations["material.metallic_factor"] == -1
+        program.set_uniform("M", np.eye(4))
+        assert program._locations["M"] >= 0
+        with pytest.raises(TypeError, match="uniform M: expected an array, a float or an int, got list"):
+            program.set_uniform("M", [[1.0, 0.0], [0.0, 1.0]])
+        program._unbind()
+    finally:
+        r.close()
