@@ -188,7 +188,21 @@ def _frame_uniforms_once(gl_renderer) -> None:
     primitive (332 calls a frame on the GPU check's frames, 131 now); a frame's render on the 2-core
     VM under OSMesa went from 24.1 to 20.2 ms median, old and new alternated (docs/performance.md,
     "On an NVIDIA H200"). Into pyrender's framebuffer (OFFSCREEN) it reads nothing back: the
-    renderer reads colour and depth once, itself (:meth:`EgoCameraRenderer._draw_rgba`)."""
+    renderer reads colour and depth once, itself (:meth:`EgoCameraRenderer._draw_rgba`).
+
+    A primitive's program is pyrender's choice, which depends on the pass's flags, the primitive's
+    vertex buffers and its material's textures and kind only (and GL's texture-unit count): it is
+    looked up by those, pyrender's choice made once per kind (pyrender makes it for every draw,
+    asking GL for the texture units each time), and made again when the program left its context."""
+    programs: dict[tuple, object] = {}
+
+    def program_of(primitive, flags):
+        material = primitive.material
+        key = (int(flags), int(primitive.buf_flags), int(material.tex_flags), type(material))
+        program = programs.get(key)
+        if program is None or not program._in_context():
+            program = programs[key] = gl_renderer._get_primitive_program(primitive, flags, ProgramFlags.USE_MATERIAL)
+        return program
 
     def forward_pass(scene, flags, seg_node_map=None):
         if flags & ~RenderFlags.OFFSCREEN:
@@ -202,10 +216,8 @@ def _frame_uniforms_once(gl_renderer) -> None:
         ready, bound, program = set(), None, None
         nodes, poses = _far_to_near(scene, cam_pos)
         for node in nodes:
-            if not node.mesh.is_visible:
-                continue
             for primitive in node.mesh.primitives:
-                program = gl._get_primitive_program(primitive, flags, ProgramFlags.USE_MATERIAL)
+                program = program_of(primitive, flags)
                 if program is not bound:
                     program._bind()
                     bound = program
@@ -225,15 +237,20 @@ def _frame_uniforms_once(gl_renderer) -> None:
 
 
 def _far_to_near(scene, cam_pos: np.ndarray) -> tuple[list, dict]:
-    """The mesh nodes in pyrender's draw order (opaque ones, then transparent ones, each from the
-    farthest origin to the nearest; a stable sort, so ties keep the scene's order) and each node's
-    world pose, computed once a frame (pyrender computes it for the sort and again for the draw)."""
-    poses = {node: scene.get_pose(node) for node in scene.mesh_nodes}
-    distance = {node: np.linalg.norm(pose[:3, 3] - cam_pos) for node, pose in poses.items()}
-    solid = [node for node in scene.mesh_nodes if not node.mesh.is_transparent]
-    transparent = [node for node in scene.mesh_nodes if node.mesh.is_transparent]
-    solid.sort(key=lambda node: -distance[node])
-    transparent.sort(key=lambda node: -distance[node])
+    """The visible mesh nodes in pyrender's draw order (opaque ones, then transparent ones, each
+    from the farthest origin to the nearest; a stable sort, so ties keep the scene's order) and each
+    one's world pose, computed once a frame (pyrender computes it for the sort and again for the
+    draw, and sorts the hidden nodes too: the road pieces out of view)."""
+    solid, transparent, poses, distance = [], [], {}, {}
+    for node in scene.mesh_nodes:
+        mesh = node.mesh
+        if not mesh.is_visible:
+            continue
+        pose = poses[node] = scene.get_pose(node)
+        distance[node] = -np.linalg.norm(pose[:3, 3] - cam_pos)
+        (transparent if mesh.is_transparent else solid).append(node)
+    solid.sort(key=distance.__getitem__)
+    transparent.sort(key=distance.__getitem__)
     return solid + transparent, poses
 
 
