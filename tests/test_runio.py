@@ -246,8 +246,8 @@ def test_two_writers_of_one_folder_the_later_one_is_refused_and_the_first_stays(
 
 
 def test_a_rerun_clears_what_a_killed_writer_of_the_folder_left(tmp_path):
-    """The partial folder is named after its writer's pid, so a rerun (another pid) no longer wrote
-    over it: the killed command's folder stayed beside the new one for good."""
+    """The partial folder is named after its writer's pid, so a rerun (another pid) does not write
+    over it: the rerun removes what the killed command left, or it would stay beside the new one."""
     import subprocess
     import sys
 

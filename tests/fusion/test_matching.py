@@ -323,8 +323,8 @@ def test_joint_matcher_with_noisy_gnss_is_steadied_by_the_filter():
 def test_joint_matcher_matches_a_far_vehicle_whose_lower_part_a_nearer_one_hides():
     """A far truck (rear 74 m) seen above and beside a nearer car (rear 37.75 m): Algorithm 1's
     lower quarter of the truck's box lies on the car, so the box's depth is the car's. The nearer
-    twin explains that depth: the truck keeps its box (before: gated out by the 7.7-sigma depth
-    disagreement). Without the nearer twin nothing explains it and the gate holds."""
+    twin explains that depth: the truck keeps its box (rather than being gated out by the 7.7-sigma
+    depth disagreement). Without the nearer twin nothing explains it and the gate holds."""
     cam = pinhole_camera()
     # make_twins puts the GNSS point at z_ground + height; the body centre is half that up
     twins = make_twins(["near", "far"], [40.0, 80.0], [0.0, 0.3], length=[4.5, 12.0], width=[1.8, 2.5],

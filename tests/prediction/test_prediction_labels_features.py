@@ -202,7 +202,7 @@ def test_history_is_kept_per_absolute_lane_so_a_lane_flip_leaves_no_trace():
 def test_history_of_a_lane_starts_when_the_twin_has_it():
     """Off the road (a ramp) or before its lane begins, a twin has no gap to average: the averages
     of that lane start at the first value once it has the lane, not at the sentinel 0 averaged in
-    (before the fix a ramp vehicle's gap_lead_own_mean read 27 m against a gap of 150 m)."""
+    (averaging the sentinel, a ramp vehicle's gap_lead_own_mean reads 27 m against a gap of 150 m)."""
     ex = FeatureExtractor(ROAD, 0.1)
     for k in range(30):  # 'r' on the ramp (lane -1), 'm' on the main line 60 m ahead of it
         f = _col(ex.from_twins(_twins([-1, 0], [100 + 2.0 * k, 160 + 2.0 * k], [20, 20], ids=["r", "m"])))

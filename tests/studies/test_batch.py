@@ -47,8 +47,8 @@ def test_a_batch_resumes_only_its_own_runs(tmp_path):
 
 
 def test_a_batch_does_not_resume_into_runs_of_a_network_rebuilt_under_the_same_name(tmp_path):
-    # the same scenario file naming a network file whose content changed (other lane widths): the
-    # manifests named the network only, and the old runs were pooled with the new
+    # the same scenario file naming a network file whose content changed (other lane widths): a
+    # manifest that named the network only would pool the old runs with the new
     import shutil
 
     from scenario_files import REPO

@@ -1,5 +1,5 @@
-"""Reference (plain numpy) versions of the depth step's compiled or reorganised parts, as they were
-before: the fast code in vcfusion.fusion.box_refine must give the same results on synthetic depth
+"""Reference (plain numpy) versions of the depth step's compiled or reorganised parts: the fast
+code in vcfusion.fusion.box_refine must give the same results on synthetic depth
 (tests/fusion/test_depth_fast.py)."""
 
 from __future__ import annotations

@@ -33,8 +33,9 @@ cost; work above it is time the thread waited for a core or for the renderer's t
 summary gives `frame_work_ms_p50` / `_p95` / `_p99`, `frame_cpu_ms_p99`, `frames_over_budget`
 (work above one frame period) and the trip's collections (`gc_collections`, `gc_collections_full`,
 `gc_pause_ms_max`, `gc_pause_ms_total`). With guidance on and a display, every box drawn on a shown frame goes to `display`
-(time, the twin it warns of, level, source, the box, and `box_vehicle_id`: the vehicle owning most
-of the box's pixels in that frame's instance map, found after drawing, for scoring only): the
+(time, the twin it warns of, level, source, the box, and `box_vehicle_id`: the meant vehicle when
+the box covers its visible box at IoU >= 0.5, else the vehicle whose visible box it overlaps most,
+judged after drawing (`metrics.highlights.judge_highlight`), for scoring only): the
 guidance study counts a person's right and wrong highlights from it, i.e. from what was shown.
 """
 
