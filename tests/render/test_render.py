@@ -341,7 +341,7 @@ def test_the_frame_uniforms_set_once_draw_pyrenders_frames_bit_for_bit(preset, m
         r = EgoCameraRenderer(read_road(sc.network), CameraConfig(width_px=320, height_px=240, render_preset=preset))
         try:
             if not lean:
-                del r._gl._forward_pass  # pyrender's method again
+                del r._gl._forward_pass, r._gl._update_context  # pyrender's methods again
                 monkeypatch.setattr(_CameraProgram, "set_uniform", ShaderProgram.set_uniform)  # and its uniforms
             frames.append(r.render(truth))
             drawn.append((r._gl._forward_pass.__qualname__, _CameraProgram.set_uniform.__qualname__))
@@ -372,3 +372,27 @@ def test_a_uniform_the_shader_does_not_declare_is_skipped_and_a_bad_value_refuse
         program._unbind()
     finally:
         r.close()
+
+
+def test_vehicles_that_come_and_go_between_frames_are_drawn_as_by_a_fresh_renderer():
+    # the context is updated only when the scene's meshes change: a vehicle added after the first
+    # frame, and one removed, must show as a renderer that never saw the earlier frame draws them
+    sc = load_scenario(SCENARIO)
+    camera = CameraConfig(width_px=320, height_px=240)
+    late = ("c", "passenger", 110.0, LANE1, 0.0, 4.0, 1.7, 1.4)
+    sequence = [states(SCENE), states([*SCENE, late]), states([SCENE[0], late])]
+    kept = EgoCameraRenderer(read_road(sc.network), camera)
+    try:
+        frames = [kept.render(truth) for truth in sequence]
+    finally:
+        kept.close()
+    assert "c" not in frames[0].vehicle_ids and "c" in frames[1].vehicle_ids and "c" in frames[2].vehicle_ids
+    for truth, frame in zip(sequence[1:], frames[1:]):
+        fresh = EgoCameraRenderer(read_road(sc.network), camera)
+        try:
+            alone = fresh.render(truth)
+        finally:
+            fresh.close()
+        assert frame.vehicle_ids == alone.vehicle_ids
+        assert np.array_equal(frame.rgb, alone.rgb) and np.array_equal(frame.depth, alone.depth)
+        assert np.array_equal(frame.instances, alone.instances)

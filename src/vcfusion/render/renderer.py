@@ -53,15 +53,31 @@ SHADER_DIR = os.path.join(os.path.dirname(__file__), "shaders")
 _PYRENDER_SHADER_DIR = os.path.join(os.path.dirname(pyrender.__file__), "shaders")
 
 
+def _raw_uniform(kind: tuple) -> object:
+    """PyOpenGL's raw (unwrapped) glUniform* function for a value kind: (n, 'f' | 'i' | 'u') for a
+    vector of n, (rows, cols) for a matrix. The raw functions take a contiguous NumPy array of the
+    GL type as is (7 Python calls a set against the wrapped functions' 31, which convert and check
+    the array themselves)."""
+    from OpenGL.raw.GL.VERSION import GL_2_0, GL_2_1, GL_3_0
+
+    a, b = kind
+    if isinstance(b, str):
+        return getattr(GL_3_0 if b == "u" else GL_2_0, f"glUniform{a}{'ui' if b == 'u' else b}v")
+    return getattr(GL_2_0, f"glUniformMatrix{a}fv") if a == b else getattr(GL_2_1, f"glUniformMatrix{a}x{b}fv")
+
+
 class _CameraProgram(ShaderProgram):
-    """pyrender's shader program with each uniform's location asked of GL once per linked program.
+    """pyrender's shader program with each uniform's location asked of GL once per linked program
+    and the values sent through PyOpenGL's raw functions.
 
     pyrender asks GL for the location at every set (131 sets a frame on the GPU check's frames),
     and for a uniform the shader does not declare (half of them: our shader reads no PBR material
     factors and no light counts) raises a ValueError and swallows it. Here such a uniform is skipped
-    and any other failure raises. The values reach GL as pyrender sends them (the same float32
-    conversions and GL functions), so the images are the same bit for bit (tests/render).
-    """
+    and any other failure raises. The values reach GL as pyrender sends them (float32, int32 or
+    uint32 arrays, matrices row by row with transpose set), so the images are the same bit for bit
+    (tests/render)."""
+
+    _RAW: dict[tuple, object] = {}  # value kind -> raw GL function, filled on first use
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -79,15 +95,17 @@ class _CameraProgram(ShaderProgram):
             return  # not declared by this program (or optimised away): nothing to set
         if isinstance(value, np.ndarray):
             if value.ndim == 2:  # a matrix, rows as given (GL_TRUE: transposed into GL's column order)
-                self._FUNC_MAP[value.shape](loc, 1, GL.GL_TRUE, value)
-                return
-            if unsigned or np.issubdtype(value.dtype, np.unsignedinteger):
-                kind, dtype = "u", np.uint32
+                kind, args = value.shape, (GL.GL_TRUE, np.ascontiguousarray(value, dtype=np.float32))
+            elif unsigned or np.issubdtype(value.dtype, np.unsignedinteger):
+                kind, args = (value.shape[0], "u"), (np.ascontiguousarray(value, dtype=np.uint32),)
             elif np.issubdtype(value.dtype, np.integer):
-                kind, dtype = "i", np.int32
+                kind, args = (value.shape[0], "i"), (np.ascontiguousarray(value, dtype=np.int32),)
             else:
-                kind, dtype = "f", np.float32
-            self._FUNC_MAP[(value.shape[0], kind)](loc, 1, value.astype(dtype))
+                kind, args = (value.shape[0], "f"), (np.ascontiguousarray(value, dtype=np.float32),)
+            function = self._RAW.get(kind)
+            if function is None:
+                function = self._RAW[kind] = _raw_uniform(kind)
+            function(loc, 1, *args)
         elif isinstance(value, float):
             GL.glUniform1f(loc, value)
         elif isinstance(value, (bool, int)):
@@ -195,6 +213,17 @@ def _frame_uniforms_once(gl_renderer) -> None:
     looked up by those, pyrender's choice made once per kind (pyrender makes it for every draw,
     asking GL for the texture units each time), and made again when the program left its context."""
     programs: dict[tuple, object] = {}
+    update_context, context_flags = gl_renderer._update_context, [None]
+
+    def update_context_on_change(scene, flags):
+        # pyrender's context update gathers every primitive's material textures each frame; with
+        # the same meshes and flags as the last update (vehicles come and go only now and then, and
+        # the renderer never edits a material) there is nothing to add or delete
+        if flags != context_flags[0] or scene.meshes != gl_renderer._meshes:
+            context_flags[0] = flags
+            update_context(scene, flags)
+
+    gl_renderer._update_context = update_context_on_change
 
     def program_of(primitive, flags):
         material = primitive.material
