@@ -96,9 +96,9 @@ class _CameraProgram(ShaderProgram):
         if isinstance(value, np.ndarray):
             if value.ndim == 2:  # a matrix, rows as given (GL_TRUE: transposed into GL's column order)
                 kind, args = value.shape, (GL.GL_TRUE, np.ascontiguousarray(value, dtype=np.float32))
-            elif unsigned or np.issubdtype(value.dtype, np.unsignedinteger):
+            elif unsigned or value.dtype.kind == "u":
                 kind, args = (value.shape[0], "u"), (np.ascontiguousarray(value, dtype=np.uint32),)
-            elif np.issubdtype(value.dtype, np.integer):
+            elif value.dtype.kind == "i":  # NumPy's signed integers (booleans, as in pyrender, go as floats)
                 kind, args = (value.shape[0], "i"), (np.ascontiguousarray(value, dtype=np.int32),)
             else:
                 kind, args = (value.shape[0], "f"), (np.ascontiguousarray(value, dtype=np.float32),)
