@@ -4,8 +4,9 @@
 
 Simulates one seed of the scenario (traffic only), then renders its states at the scenario's
 camera settings (default 640x480) and prints the median, 10th and 90th percentile per frame,
-the median CPU time of all threads per frame (for A/B comparisons on a busy machine), and the
-median of its parts: the draw pass with read-back (RGB, instances, depth) and the RGB
+the median CPU time of all threads per frame (for A/B comparisons on a busy machine), the median
+CPU time of the calling thread (pyrender, PyOpenGL and the read-back: what a GPU does not take
+over; under OSMesa also llvmpipe's work on that thread), and the median of its parts: the draw pass with read-back (RGB, instances, depth) and the RGB
 finish (sky gradient, supersampling for the quality preset, camera model).
 """
 
@@ -38,12 +39,13 @@ def bench_render(scenario, frames: int, seed: int = 0, preset: str | None = None
     camera = scenario.camera if preset is None else scenario.camera.model_copy(update={"render_preset": preset})
     renderer = EgoCameraRenderer.for_scenario(scenario, camera)
     renderer.render(picks[0])  # warm-up: shader compilation, buffer uploads
-    times, cpu, seen, parts = [], [], [], []
+    times, cpu, own, seen, parts = [], [], [], [], []
     for truth in picks:
-        t0, c0 = time.perf_counter(), time.process_time()
+        t0, c0, h0 = time.perf_counter(), time.process_time(), time.thread_time()
         frame = renderer.render(truth)
         times.append(1000.0 * (time.perf_counter() - t0))
         cpu.append(1000.0 * (time.process_time() - c0))
+        own.append(1000.0 * (time.thread_time() - h0))
         seen.append(int((np.unique(frame.instances) >= 0).sum()))
         parts.append(renderer.last_timings_ms)
     renderer.close()
@@ -56,7 +58,8 @@ def bench_render(scenario, frames: int, seed: int = 0, preset: str | None = None
              f"(p10 {np.percentile(ms, 10):.1f}, p90 {np.percentile(ms, 90):.1f})"]
     # CPU time of all the process's threads (llvmpipe's too): steadier than wall time on a busy
     # machine, so A/B comparisons of two versions can use it there.
-    lines.append(f"  CPU time: median {np.median(cpu):.1f} ms/frame (all threads)")
+    lines.append(f"  CPU time: median {np.median(cpu):.1f} ms/frame (all threads), {np.median(own):.1f} ms/frame "
+                 f"(the calling thread)")
     lines.append("  parts (median ms): " + ", ".join(f"{k} {np.median([p[k] for p in parts]):.1f}" for k in parts[0]))
     return "\n".join(lines)
 
