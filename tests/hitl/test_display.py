@@ -272,8 +272,9 @@ def test_each_due_frame_records_the_loops_work_cpu_and_gc_pauses_of_its_period()
     # the render's CPU is in the period of the frame it drew (the first frame's period is its own step)
     assert (frames.cpu_ms[frames.shown] >= 8.0).all()
     # the work is the loop's time without the pacing sleep: at least its CPU; with the sleep the
-    # periods add up to the drive's wall time up to its last frame
-    assert (frames.work_ms >= frames.cpu_ms - 0.5).all() and driver._slept > 0.0
+    # periods add up to the drive's wall time up to its last frame (the paced drive sleeps unless
+    # the machine falls behind a 0.3-s drive; the sum holds either way)
+    assert (frames.work_ms >= frames.cpu_ms - 0.5).all()
     assert frames.work_ms.sum() + 1e3 * driver._slept == pytest.approx(1e3 * frames.wall_s.iloc[-1], abs=1.0)
     assert rt["frame_work_ms_p99"] == pytest.approx(np.percentile(frames.work_ms, 99))
     assert rt["frame_cpu_ms_p99"] == pytest.approx(np.percentile(frames.cpu_ms, 99))
