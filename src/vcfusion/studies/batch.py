@@ -118,8 +118,12 @@ def _dask_outcomes(executor: Executor, task, jobs: list[tuple], out: Path):
         client = Client(executor.dask_scheduler)
     else:
         # Dask runs a task again when the worker running it dies, up to allowed-failures times
-        # (its `retries=` only covers tasks that raise; ours catch their errors themselves).
-        with dask.config.set({"distributed.scheduler.allowed-failures": executor.lost_worker_retries}):
+        # (its `retries=` only covers tasks that raise; ours catch their errors themselves). A
+        # worker holds only the seed it runs (worker-saturation 1.0; Dask's 1.1 hands a one-thread
+        # worker a second, queued seed, and a lost worker then counts against both: under load a
+        # seed that lost its worker once was recorded as failed twice)
+        with dask.config.set({"distributed.scheduler.allowed-failures": executor.lost_worker_retries,
+                              "distributed.scheduler.worker-saturation": 1.0}):
             cluster = LocalCluster(n_workers=executor.dask_local, threads_per_worker=1, processes=True,
                                    host="127.0.0.1", dashboard_address=None)
         client = Client(cluster)
