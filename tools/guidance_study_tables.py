@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import pandas as pd
@@ -81,5 +82,11 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from vcfusion.errors import InputError
+
     pd.set_option("display.width", 160)
-    main()
+    try:
+        main()
+    except InputError as exc:  # one line naming the file, exit 2 (as the vcfusion command does)
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
