@@ -324,7 +324,7 @@ def test_a_vehicle_cut_by_the_image_border_is_listed_as_a_twin(renderer):
 
 
 @pytest.mark.parametrize("preset", ["fast", "quality"])
-def test_the_frame_uniforms_set_once_draw_pyrenders_frames_bit_for_bit(preset, monkeypatch):
+def test_the_lean_forward_pass_draws_pyrenders_frames_bit_for_bit(preset, monkeypatch):
     # The renderer sets the camera and light uniforms once per program and frame, with each
     # uniform's location asked once and undeclared ones skipped, and its own draw order and poses
     # computed once a frame; pyrender's own pass sets every uniform before every primitive. Same
@@ -348,7 +348,7 @@ def test_the_frame_uniforms_set_once_draw_pyrenders_frames_bit_for_bit(preset, m
         finally:
             r.close()
     lean_frame, pyrender_frame = frames
-    assert drawn == [("_frame_uniforms_once.<locals>.forward_pass", "_CameraProgram.set_uniform"),
+    assert drawn == [("_lean_forward_pass.<locals>.forward_pass", "_CameraProgram.set_uniform"),
                      ("Renderer._forward_pass", "ShaderProgram.set_uniform")]
     assert lean_frame.vehicle_ids == pyrender_frame.vehicle_ids and len(lean_frame.vehicle_ids) >= 3
     assert np.array_equal(lean_frame.rgb, pyrender_frame.rgb)

@@ -198,27 +198,31 @@ def _single_sampled(gl_renderer) -> None:
     gl_renderer._configure_main_framebuffer = configure_single_sampled
 
 
-def _frame_uniforms_once(gl_renderer) -> None:
-    """pyrender's forward pass of our shader with the uniforms that are the same for every draw of
-    a frame (the camera's V, P and position, the lights) set once per program and frame instead of
-    before every primitive. Draws, their order and every uniform's value are pyrender's (the frames
-    are the same, bit for bit: tests/render). pyrender set them ~10 times a
-    primitive (332 calls a frame on the GPU check's frames, 131 now); a frame's render on the 2-core
-    VM under OSMesa went from 24.1 to 20.2 ms median, old and new alternated (docs/performance.md,
-    "On an NVIDIA H200"). Into pyrender's framebuffer (OFFSCREEN) it reads nothing back: the
-    renderer reads colour and depth once, itself (:meth:`EgoCameraRenderer._draw_rgba`).
+def _lean_forward_pass(gl_renderer) -> None:
+    """pyrender's forward pass of our shader with its per-draw Python work cut, the draws, their
+    order and every uniform's value pyrender's (the frames are the same, bit for bit: tests/render):
 
-    A primitive's program is pyrender's choice, which depends on the pass's flags, the primitive's
-    vertex buffers and its material's textures and kind only (and GL's texture-unit count): it is
-    looked up by those, pyrender's choice made once per kind (pyrender makes it for every draw,
-    asking GL for the texture units each time), and made again when the program left its context."""
+    - the uniforms that are the same for every draw of a frame (the camera's V, P and position, the
+      sun) are set once per program and frame, not before every primitive (pyrender: 332 sets a
+      frame on the GPU check's frames, here 131);
+    - a primitive's program is pyrender's choice, which depends on the pass's flags, the primitive's
+      vertex buffers and its material's textures and kind only: it is looked up by those (pyrender
+      makes the choice at every draw, asking GL for its texture units each time), and made again
+      when the program left its context;
+    - the context update (pyrender gathers every material's textures each frame) runs when the
+      scene's meshes or the flags change;
+    - poses and the far-to-near order are computed once a frame, for the visible nodes
+      (:func:`_far_to_near`).
+
+    Into pyrender's framebuffer (OFFSCREEN) it reads nothing back: the renderer reads colour and
+    depth once, itself (:meth:`EgoCameraRenderer._draw_rgba`). Figures: docs/performance.md, "On an
+    NVIDIA H200"."""
     programs: dict[tuple, object] = {}
     update_context, context_flags = gl_renderer._update_context, [None]
 
     def update_context_on_change(scene, flags):
-        # pyrender's context update gathers every primitive's material textures each frame; with
-        # the same meshes and flags as the last update (vehicles come and go only now and then, and
-        # the renderer never edits a material) there is nothing to add or delete
+        # with the same meshes and flags as the last update (vehicles come and go only now and
+        # then, and the renderer never edits a material) there is nothing to add or delete
         if flags != context_flags[0] or scene.meshes != gl_renderer._meshes:
             context_flags[0] = flags
             update_context(scene, flags)
@@ -305,7 +309,7 @@ class EgoCameraRenderer:
         self._gl = self._offscreen._renderer
         self._platform = self._offscreen._platform
         self._gl._program_cache = _CameraShaders()
-        _frame_uniforms_once(self._gl)
+        _lean_forward_pass(self._gl)
         # pyrender's own framebuffer (EGL) or the context's (OSMesa): where the pass is read back
         self._framebuffer = self._platform.supports_framebuffers()
         if self._framebuffer:
