@@ -15,7 +15,6 @@ Prints, from the folder's trips.parquet and summary.json:
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -39,10 +38,9 @@ def main() -> None:
     args = ap.parse_args()
     study = read_study(args.folder)
     trips = study.trips
-    info = json.loads((args.folder / "summary.json").read_text())
     seeds = sorted(trips["seed"].unique())
-    print(f"{study.name}: {len(seeds)} paired trips, seeds {seeds[0]}-{seeds[-1]}, {info['wall_s']:.0f} s wall "
-          f"(last sitting; {info.get('trips_from_log', 0)} trips from the log), failed {study.failed_seeds or 'none'}")
+    print(f"{study.name}: {len(seeds)} paired trips, seeds {seeds[0]}-{seeds[-1]}, {study.wall_s:.0f} s wall "
+          f"(last sitting; {study.trips_from_log} trips from the log), failed {study.failed_seeds or 'none'}")
     ref = trips[trips["arm"] == REFERENCE_ARM].set_index("seed")
     print(f"\nunguided: mean minimum gap to the cut-in vehicle {ref['min_gap_to_target_m'].mean():.1f} m, "
           f"trips with a cut-in ahead {int(ref['min_gap_to_target_m'].notna().sum())}, ego collisions in seeds "

@@ -32,20 +32,18 @@ def cmd_guidance_matrix(args: argparse.Namespace) -> int:
                          "not both and not neither")
     if args.from_studies:
         res = matrix_from_studies([Path(p) for p in args.from_studies], Path(args.out), tuned)
-        print(res["text"])
-        print(f"tables: {Path(args.out) / 'matrix_summary.csv'}, {Path(args.out) / 'matrix_highlights.csv'}")
-        return 0
-    if args.trips < 2:
-        raise UsageError(f"--trips: expected at least 2 paired trips per scenario for a confidence interval, "
-                         f"got {args.trips}")
-    if args.workers < 1:
-        raise UsageError(f"--workers: expected at least 1, got {args.workers}")
-    try:
-        arms = parse_arms(args.arms)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
-    res = run_matrix([Path(p) for p in args.scenarios], args.trips, args.workers, Path(args.out), tuned, arms,
-                     args.first_seed)
+    else:
+        if args.trips < 2:
+            raise UsageError(f"--trips: expected at least 2 paired trips per scenario for a confidence interval, "
+                             f"got {args.trips}")
+        if args.workers < 1:
+            raise UsageError(f"--workers: expected at least 1, got {args.workers}")
+        try:
+            arms = parse_arms(args.arms)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+        res = run_matrix([Path(p) for p in args.scenarios], args.trips, args.workers, Path(args.out), tuned, arms,
+                         args.first_seed)
     print(res["text"])
     print(f"tables: {Path(args.out) / 'matrix_summary.csv'}, {Path(args.out) / 'matrix_highlights.csv'}")
     return 0

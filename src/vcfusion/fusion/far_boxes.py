@@ -166,8 +166,6 @@ def _load(path: str) -> BoxHead:
     return BoxHead(net, spec, float(blob["max_shift"]), float(blob["max_height_px"]), blob.get("meta"))
 
 
-
-
 # ---------------------------------------------------------------------------------------------
 # training
 

@@ -86,7 +86,7 @@ class StudyPart:
     trips: pd.DataFrame  # the study's trip rows (`run_guidance_study`'s "trips"; OUT/trips.parquet)
     wall_s: float  # wall time of the sitting that finished the study (trips taken from a log cost none)
     failed_seeds: list[int]
-    trips_from_log: int = 0  # trips that sitting took from an earlier sitting's trip log
+    trips_from_log: int  # trips that sitting took from an earlier sitting's trip log
 
 
 def read_study(folder: Path) -> StudyPart:
