@@ -185,7 +185,7 @@ def capture(frames: int, device: str, out: Path, rgb_from: Path | None = None) -
     info = {"platform": os.environ.get(GL_ENV), "device": device, "frames": len(picks),
             "on_ref": len(on_ref)}
     for k, truth in enumerate(picks):  # plain arrays (a reference file may come from elsewhere: no pickle)
-        arrays |= {f"state_{k}_{f.name}": np.asarray(getattr(truth, f.name)) for f in _STATE_FIELDS}
+        arrays |= {f"state_{k}_{f.name}": _field_array(getattr(truth, f.name)) for f in _STATE_FIELDS}
     np.savez_compressed(out, info=np.array(json.dumps(info)), **arrays)
 
 
@@ -196,14 +196,20 @@ def _load_states(path: Path) -> list:
     """The vehicle states a capture rendered (written by capture() above)."""
     with np.load(path) as z:
         frames = json.loads(str(z["info"]))["frames"]
-        return [VehicleStates(**{f.name: _state_field(f, z[f"state_{k}_{f.name}"]) for f in _STATE_FIELDS})
+        return [VehicleStates(**{f.name: _state_field(z[f"state_{k}_{f.name}"]) for f in _STATE_FIELDS})
                 for k in range(frames)]
 
 
-def _state_field(field: dataclasses.Field, a: np.ndarray):
-    if field.type == "float":
-        return float(a)  # the time
-    return tuple(a.tolist()) if str(field.type).startswith("tuple") else a  # ids, types, classes: str
+def _field_array(value) -> np.ndarray:
+    return np.asarray(value, dtype=str) if isinstance(value, tuple) else np.asarray(value)  # names: str, even none
+
+
+def _state_field(a: np.ndarray):
+    """A field as VehicleStates holds it: the time a float, the names (ids, types, classes) a tuple
+    of str, the rest arrays."""
+    if a.ndim == 0:
+        return float(a)
+    return tuple(a.tolist()) if a.dtype.kind == "U" else a
 
 
 def load_capture(path: Path) -> dict:

@@ -25,6 +25,7 @@ come from the one pass at the camera's resolution whatever the preset.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import time
@@ -53,6 +54,7 @@ SHADER_DIR = os.path.join(os.path.dirname(__file__), "shaders")
 _PYRENDER_SHADER_DIR = os.path.join(os.path.dirname(pyrender.__file__), "shaders")
 
 
+@functools.cache
 def _raw_uniform(kind: tuple) -> object:
     """PyOpenGL's raw (unwrapped) glUniform* function for a value kind: (n, 'f' | 'i' | 'u') for a
     vector of n, (rows, cols) for a matrix. The raw functions take a contiguous NumPy array of the
@@ -77,8 +79,6 @@ class _CameraProgram(ShaderProgram):
     uint32 arrays, matrices row by row with transpose set), so the images are the same bit for bit
     (tests/render)."""
 
-    _RAW: dict[tuple, object] = {}  # value kind -> raw GL function, filled on first use
-
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self._locations: dict[str, int] = {}  # of the linked program; emptied when it is deleted
@@ -102,10 +102,7 @@ class _CameraProgram(ShaderProgram):
                 kind, args = (value.shape[0], "i"), (np.ascontiguousarray(value, dtype=np.int32),)
             else:
                 kind, args = (value.shape[0], "f"), (np.ascontiguousarray(value, dtype=np.float32),)
-            function = self._RAW.get(kind)
-            if function is None:
-                function = self._RAW[kind] = _raw_uniform(kind)
-            function(loc, 1, *args)
+            _raw_uniform(kind)(loc, 1, *args)
         elif isinstance(value, float):
             GL.glUniform1f(loc, value)
         elif isinstance(value, (bool, int)):
@@ -218,13 +215,14 @@ def _lean_forward_pass(gl_renderer) -> None:
     depth once, itself (:meth:`EgoCameraRenderer._draw_rgba`). Figures: docs/performance.md, "On an
     NVIDIA H200"."""
     programs: dict[tuple, object] = {}
-    update_context, context_flags = gl_renderer._update_context, [None]
+    update_context, context_flags = gl_renderer._update_context, None
 
     def update_context_on_change(scene, flags):
         # with the same meshes and flags as the last update (vehicles come and go only now and
         # then, and the renderer never edits a material) there is nothing to add or delete
-        if flags != context_flags[0] or scene.meshes != gl_renderer._meshes:
-            context_flags[0] = flags
+        nonlocal context_flags
+        if flags != context_flags or scene.meshes != gl_renderer._meshes:
+            context_flags = flags
             update_context(scene, flags)
 
     gl_renderer._update_context = update_context_on_change
