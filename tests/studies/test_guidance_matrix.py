@@ -5,6 +5,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
+from support.study_folders import write_study_folder
 from vcfusion.commands import main
 
 REPO = Path(__file__).resolve().parents[2]
@@ -52,26 +53,11 @@ def test_matrix_needs_two_trips(capsys):
 
 
 def _study_folder(folder: Path, scenario: str, arms: tuple[str, ...]) -> Path:
-    """A finished study's folder as `vcfusion study guidance` writes it, reduced to what the matrix
-    reads: summary.json and a trip table of three seeds (highlight counts; every paired metric 1.0 but
-    fuel, which falls by the seed in each guided arm)."""
-    import json
-
-    from vcfusion.studies.guidance import EMISSION_METRICS, SAFETY_METRICS
-
-    folder.mkdir(parents=True)
-    (folder / "summary.json").write_text(json.dumps({"scenario": scenario, "wall_s": 12.5, "failed": {"7": "boom"},
-                                                     "trips_from_log": 2}))
-    rows = []
-    for seed in (1, 2, 3):
-        for i, arm in enumerate(arms):
-            guided = arm != "none"
-            rows.append({**{m[0]: 1.0 for m in SAFETY_METRICS + EMISSION_METRICS},
-                         "seed": seed, "arm": arm, "collisions": 0, "fuel_g_per_km": 40.0 - i * seed,
-                         "highlights_right": 3 * guided, "highlights_wrong": int(guided and seed == 2),
-                         "missed_warnings": 0, "unseen_warnings": 2 * guided})
-    pd.DataFrame(rows).to_parquet(folder / "trips.parquet")
-    return folder
+    """Three seeds; fuel falls by the seed in each guided arm, one wrong episode in seed 2."""
+    rows = [{"seed": seed, "arm": arm, "fuel_g_per_km": 40.0 - i * seed, "highlights_right": 3 * (arm != "none"),
+             "highlights_wrong": int(arm != "none" and seed == 2), "unseen_warnings": 2 * (arm != "none")}
+            for seed in (1, 2, 3) for i, arm in enumerate(arms)]
+    return write_study_folder(folder, scenario, rows, failed={"7": "boom"}, trips_from_log=2)
 
 
 def test_studies_run_one_by_one_are_tabled_per_scenario_and_pooled(tmp_path, capsys):

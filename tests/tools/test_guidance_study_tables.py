@@ -1,35 +1,27 @@
 """tools/guidance_study_tables.py: the figures the docs quote from a guidance study folder, on a
 hand-made folder whose answers are known."""
 
-import json
 import sys
 
-import pandas as pd
 import pytest
 
+from support.study_folders import write_study_folder
 from support.tool_modules import load_tool
-from vcfusion.studies.guidance import EMISSION_METRICS, SAFETY_METRICS
 
 
 def _study(folder):
     """Four seeds, arms none and fusion. Unguided minimum gaps 30, 40, 80, 120 m; fusion adds 1, 3,
     5, 7 m (so the close subgroup, < 50 m, gains 2 m on average and all four 4 m); fuel 40 g/km
     unguided, 2 g/km less guided; seed 2's fusion arm draws one wrong episode, seed 3 misses one."""
-    folder.mkdir()
-    (folder / "summary.json").write_text(json.dumps({"scenario": "curved", "wall_s": 100.0, "failed": {},
-                                                     "trips_from_log": 0}))
     rows = []
     for seed, gap in enumerate((30.0, 40.0, 80.0, 120.0)):
         for arm in ("none", "fusion"):
             guided = arm == "fusion"
-            rows.append({**{m[0]: 1.0 for m in SAFETY_METRICS + EMISSION_METRICS}, "seed": seed, "arm": arm,
-                         "collisions": 0, "min_gap_to_target_m": gap + (2 * seed + 1) * guided,
+            rows.append({"seed": seed, "arm": arm, "min_gap_to_target_m": gap + (2 * seed + 1) * guided,
                          "fuel_g_per_km": 40.0 - 2.0 * guided, "mean_speed_mps": 20.0, "trip_time_s": 15.0,
                          "end_reason": "trip_complete", "highlights_right": 2 * guided,
-                         "highlights_wrong": int(guided and seed == 2), "missed_warnings": int(guided and seed == 3),
-                         "unseen_warnings": 0})
-    pd.DataFrame(rows).to_parquet(folder / "trips.parquet")
-    return folder
+                         "highlights_wrong": int(guided and seed == 2), "missed_warnings": int(guided and seed == 3)})
+    return write_study_folder(folder, "curved", rows, wall_s=100.0)
 
 
 def test_the_tables_of_a_study_folder(tmp_path, monkeypatch, capsys):
