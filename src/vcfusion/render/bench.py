@@ -6,8 +6,9 @@ Simulates one seed of the scenario (traffic only), then renders its states at th
 camera settings (default 640x480) and prints the median, 10th and 90th percentile per frame,
 the median CPU time of all threads per frame (for A/B comparisons on a busy machine), the median
 CPU time of the calling thread (pyrender, PyOpenGL and the read-back: what a GPU does not take
-over; under OSMesa also llvmpipe's work on that thread), and the median of its parts: the draw pass with read-back (RGB, instances, depth) and the RGB
-finish (sky gradient, supersampling for the quality preset, camera model).
+over; under OSMesa also llvmpipe's work on that thread), and the median of its parts: the draw
+pass with read-back (RGB, instances, depth) and the RGB finish (sky gradient, supersampling for
+the quality preset, camera model).
 """
 
 from __future__ import annotations
