@@ -399,3 +399,93 @@ def test_a_prospective_leader_asks_beyond_the_comfortable_deceleration_only_when
 
     assert stopping_decel(20.0, 10.0) == pytest.approx(2.5)
     assert stopping_decel(20.0, -3.0) == 0.0 and stopping_decel(0.0, 1.0) == pytest.approx(5.0)
+
+
+def _queue_squeeze(driver, gap_m, ego_v=4.0, lateral_mps=0.6, until=10.0):
+    """A car standing in the adjacent lane (lane 1) `gap_m` ahead of the ego's front squeezes into
+    the ego lane at `lateral_mps` from t = 0, as cars queued before a closure do (curved.yaml seed
+    1038: a car standing 26 m before the accident, taken as a leader 3.2 m ahead at 3.8 m/s); the
+    ego from `ego_v` moves as the driver asks. The smallest gap (m) between the ego's front and the
+    car's rear once the car's body reaches into the ego lane, and the driver."""
+    d1, d2 = ROAD.lane_centre_d(1), ROAD.lane_centre_d(2)
+    ego_s, car_s = 100.0, 100.0 + 2.3 + gap_m + 2.3
+    worst = np.inf
+    for k in range(int(until / 0.1) + 1):
+        t = round(k * 0.1, 6)
+        d = min(d2, d1 + lateral_mps * t)
+        s, dd = np.array([ego_s, car_s]), np.array([d2, d])
+        x, y = ROAD.to_world(s, dd)
+        truth = VehicleStates(time=t, ids=("ego", "car"), vtype=("ego", "car"), vclass=("passenger",) * 2,
+                              x=x, y=y, z=np.zeros(2), heading=np.zeros(2), speed=np.array([ego_v, 0.0]),
+                              accel=np.zeros(2), lane=np.array([2, 1], dtype=np.int16), lateral_offset=np.zeros(2),
+                              length=np.full(2, 4.6), width=np.full(2, 1.8), height=np.full(2, 1.5))
+        a = driver.acceleration(Tick(t, truth, None, None, None, guidance=GuidanceSet((), "none")))
+        if d2 - d < 1.8:  # the bodies overlap sideways
+            worst = min(worst, (car_s - 2.3) - (ego_s + 2.3))
+        ego_s += ego_v * 0.1 + 0.5 * a * 0.01
+        ego_v = max(0.0, ego_v + a * 0.1)
+    return worst, driver
+
+
+def test_a_car_squeezing_in_from_a_queue_is_stopped_for_short_of_the_minimum_gap():
+    # the driver brakes for a prospective leader to stop s0 (2 m) short of it, not at its bumper:
+    # a stop planned at contact ends in contact with the pedal lag (10 m: -0.01 m, 12 m: 0.58 m)
+    kw = dict(lateral_notice_m=0.4, guidance_reaction_s=0.75, cutin_reaction_s=1.25, comfort_decel_mps2=2.0,
+              pedal_time_constant_s=0.3, follow_reaction_s=0.9, desired_speed_mps=4.0)
+    worst, drv = _queue_squeeze(_driver(False, **kw), 10.0)
+    assert 0.3 < worst < 1.5  # the emergency stop: the car moved over 2.5 s before the ego got there
+    assert min(r["applied_accel"] for r in drv.log_rows) < -8.0
+    for gap in (12.0, 16.0, 20.0, 24.0):
+        worst, _ = _queue_squeeze(_driver(False, **kw), gap)
+        assert worst > 1.9, gap  # s0, less the pedal's overshoot
+
+
+def _queue_scene(t, ego_s, ego_v, cars):
+    """The ego in lane 2 at `ego_s` (front bumper) and `cars`: (id, lane, rear s, speed, vtype)."""
+    ids = ("ego",) + tuple(c[0] for c in cars)
+    n = len(ids)
+    dims = {"car": (4.6, 1.8, 1.5), "truck": (12.0, 2.5, 3.6)}
+    size = [dims["car"]] + [dims[c[4]] for c in cars]
+    s = np.array([ego_s - 2.3] + [c[2] + dims[c[4]][0] / 2 for c in cars])
+    d = np.array([ROAD.lane_centre_d(2)] + [ROAD.lane_centre_d(c[1]) for c in cars])
+    x, y = ROAD.to_world(s, d)
+    return VehicleStates(time=t, ids=ids, vtype=("ego",) + tuple(c[4] for c in cars),
+                         vclass=("passenger",) + tuple("truck" if c[4] == "truck" else "passenger" for c in cars),
+                         x=x, y=y, z=np.zeros(n), heading=np.zeros(n),
+                         speed=np.array([ego_v] + [c[3] for c in cars], dtype=float), accel=np.zeros(n),
+                         lane=np.array([2] + [c[1] for c in cars], dtype=np.int16), lateral_offset=np.zeros(n),
+                         length=np.array([z[0] for z in size]), width=np.array([z[1] for z in size]),
+                         height=np.array([z[2] for z in size]))
+
+
+def test_an_expected_merger_close_ahead_makes_the_driver_cover_the_brake():
+    # a car creeping up to a truck stopped in the adjacent lane is expected to merge; while the ego,
+    # faster, is nearer to it than its desired gap s0 + v T, the driver releases the throttle and
+    # covers the brake, as for a warning; the same car with nothing stopped ahead of it is not
+    # expected to merge and changes nothing
+    for stopped_ahead in (True, False):
+        drv = _driver(False, time_headway_s=1.5, cover_decel_mps2=0.5, pedal_time_constant_s=0.2)
+        ego_s, ego_v, merger_rear = 100.0, 6.0, 130.0
+        rows = []
+        for k in range(70):
+            t = round(k * 0.1, 6)
+            cars = [("merger", 1, merger_rear, 1.0, "car")]
+            if stopped_ahead:
+                cars.append(("truck", 1, merger_rear + 4.6 + 3.0, 0.0, "truck"))
+            drv.acceleration(Tick(t, _queue_scene(t, ego_s, ego_v, cars), None, None, None,
+                                  guidance=GuidanceSet((), "none")))
+            rows.append((merger_rear - ego_s, drv.log_rows[-1]))
+            ego_s += ego_v * 0.1  # the ego holds 6 m/s: the test reads what the driver asks
+            merger_rear += 0.1
+        desired_gap = 2.0 + 6.0 * 1.5
+        far = [r for gap, r in rows if gap > desired_gap + 0.5]
+        near = [r for gap, r in rows if 0.5 < gap < desired_gap - 0.5]
+        assert far and near
+        assert all(r["desired_accel"] > 0 and r["leader_kind"] != "cover" for r in far)
+        cues = [e["cue"] for e in drv.events if e["vehicle_id"] == "merger"]
+        if stopped_ahead:
+            assert cues == ["anticipation"]
+            assert all(r["desired_accel"] == pytest.approx(-0.5) and r["leader_kind"] == "cover" for r in near)
+        else:
+            assert cues == []
+            assert all(r["desired_accel"] > 0 for r in near)

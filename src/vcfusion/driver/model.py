@@ -14,7 +14,9 @@ Every V2C tick (0.1 s) the driver:
      driver *anticipates* its merge;
    - *anticipation* (every arm: a fair human baseline): a seen neighbour ahead in an adjacent
      lane with a seen stopped vehicle ahead of it in its own lane (the accident): the driver
-     expects it to merge and attends to it;
+     expects it to merge and attends to it; while such a vehicle is still in the adjacent lane,
+     slower than the ego and nearer than the desired gap s0 + v T, the driver releases the
+     throttle and covers the brake as for a warning (step 3);
    - *guidance* (when enabled): a warning item (level medium/high) of ``tick.guidance``; the
      driver responds to the vehicle it sees highlighted (:attr:`Guidance.shown_vehicle_id`: the
      vehicle inside the box, whichever twin the cloud meant). The warning is *active* while
@@ -32,8 +34,8 @@ Every V2C tick (0.1 s) the driver:
 5. **computes the IDM acceleration** for each leader from the view ``follow_reaction_s`` ago,
    with the gap extrapolated over the delay at the then closing speed (the anticipation of the
    Human Driver Model; over the view's age in a trip's first ``follow_reaction_s``), and takes
-   the smallest. A prospective leader not yet in the lane only
-   asks for up to the comfortable deceleration ``b``;
+   the smallest. A prospective leader not yet in the lane asks for up to the comfortable
+   deceleration ``b``, or, once it moves into the path, for what stopping ``s0`` behind it needs;
 6. **moves the pedal**: the applied acceleration follows the desired one with a first-order
    lag (``pedal_time_constant_s``), bounded by the car's acceleration and jerk limits.
 
@@ -250,10 +252,16 @@ class DriverModel:
         leader, kind, leader_gap = "", "", math.nan
         # responding to a warning: throttle released, foot over the brake
         responding = [vid for vid, wr in self.warnings.items() if now + 1e-9 >= wr.noticed + self.p.guidance_reaction_s]
-        cover = bool(responding)
+        desired_gap = self.idm.min_gap_m + ego_speed * self.idm.time_headway_s
+        # a merge it expects close ahead (an anticipated neighbour still in the adjacent lane, nearer
+        # than the desired gap and slower than the ego) makes it cover the brake as a warning does
+        # (curved.yaml seed 1011: a queued car 10 m ahead started into the ego's lane while the ego
+        # sped up from 4 to 5.4 m/s past it, and the lateral cue came too late to stop)
+        cover = bool(responding) or any(
+            vid in self.anticipated and policy.in_adjacent_lane(dist) and seen.speed[vid] < ego_speed
+            and 0.0 < seen.rear[vid] - seen.ego_front < desired_gap for vid, dist in lateral.items())
         if cover and -self.p.cover_decel_mps2 < desired:
             desired, kind = -self.p.cover_decel_mps2, "cover"
-        desired_gap = self.idm.min_gap_m + ego_speed * self.idm.time_headway_s
         for vid, dist in lateral.items():
             if seen.rear[vid] <= seen.ego_front:
                 continue
@@ -277,9 +285,10 @@ class DriverModel:
                 gap, v_lead = gap_now, seen.speed[vid]
             acc = idm_acceleration(self.idm, ego_speed, max(gap, 0.1), v_lead)
             if prospective:
-                # b at most; for a vehicle moving into the path, what stopping behind it needs where
-                # that is more (a highlighted vehicle that only stands close by asks for b at most)
-                need = stopping_decel(gap, ego_speed - v_lead) if moved_over else 0.0
+                # b at most; for a vehicle moving into the path, what stopping s0 behind it needs
+                # where that is more (stopping at its bumper ends in contact with the pedal lag:
+                # curved.yaml seed 1038); a highlighted vehicle that only stands close by asks for b
+                need = stopping_decel(gap - self.idm.min_gap_m, ego_speed - v_lead) if moved_over else 0.0
                 acc = max(acc, -max(self.p.comfort_decel_mps2, need))
             if acc < desired:
                 desired, leader, kind, leader_gap = acc, vid, "lane" if in_lane else "prospective", gap
