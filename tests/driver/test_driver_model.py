@@ -351,6 +351,40 @@ def test_the_gap_is_not_extrapolated_past_the_age_of_the_first_views():
         lead_s += 1.4
 
 
+_SIZES = {"car": (4.6, 1.8, 1.5), "truck": (12.0, 2.5, 3.6)}
+
+
+def _scene(t, ego_front, ego_v, others):
+    """The ego's truth at time `t`: the ego in lane 2, its front bumper at s = `ego_front`, and
+    `others`: (id, lane, d, rear s, speed, vtype "car" or "truck") each."""
+    kinds = ("car",) + tuple(o[5] for o in others)
+    size = np.array([_SIZES[k] for k in kinds])
+    s = np.array([ego_front - size[0, 0] / 2] + [o[3] + _SIZES[o[5]][0] / 2 for o in others])
+    x, y = ROAD.to_world(s, np.array([ROAD.lane_centre_d(2)] + [o[2] for o in others]))
+    n = len(kinds)
+    return VehicleStates(time=t, ids=("ego",) + tuple(o[0] for o in others), vtype=("ego",) + kinds[1:],
+                         vclass=tuple("truck" if k == "truck" else "passenger" for k in kinds),
+                         x=x, y=y, z=np.zeros(n), heading=np.zeros(n),
+                         speed=np.array([ego_v] + [o[4] for o in others], dtype=float), accel=np.zeros(n),
+                         lane=np.array([2] + [o[1] for o in others], dtype=np.int16), lateral_offset=np.zeros(n),
+                         length=size[:, 0], width=size[:, 1], height=size[:, 2])
+
+
+def _drive_past(driver, others_at, ego_v, until):
+    """Tick the driver every 0.1 s to `until`, the ego from s = 100 m (front) and `ego_v` moving as
+    it asks; `others_at(t)` gives the other vehicles (as :func:`_scene`). The (t, ego front) of
+    every tick."""
+    ego_front, trace = 100.0, []
+    for k in range(int(until / 0.1) + 1):
+        t = round(k * 0.1, 6)
+        a = driver.acceleration(Tick(t, _scene(t, ego_front, ego_v, others_at(t)), None, None, None,
+                                     guidance=GuidanceSet((), "none")))
+        trace.append((t, ego_front))
+        ego_front += ego_v * 0.1 + 0.5 * a * 0.01
+        ego_v = max(0.0, ego_v + a * 0.1)
+    return trace
+
+
 def _truck_slide(driver, gap_m, ego_v=12.0, lateral_mps=0.6, until=14.0):
     """A stopped truck (12 x 2.5 m) `gap_m` ahead of the ego's front, sliding from lane 0's centre
     over lane 1 into the ego lane (lane 2) at `lateral_mps`, as a truck blocked before a closure
@@ -359,24 +393,11 @@ def _truck_slide(driver, gap_m, ego_v=12.0, lateral_mps=0.6, until=14.0):
     SUMO's lane-change bookkeeping allows (the truck's centre beyond lane 1's: SUMO counts it in
     the ego lane), and the driver."""
     d0, d2 = ROAD.lane_centre_d(0), ROAD.lane_centre_d(2)
-    ego_s, ego_v = 100.0, ego_v
-    truck_s = ego_s + 2.3 + gap_m + 6.0
-    worst = np.inf
-    for k in range(int(until / 0.1) + 1):
-        t = round(k * 0.1, 6)
-        d = min(d2, d0 + lateral_mps * t)
-        s, dd = np.array([ego_s, truck_s]), np.array([d2, d])
-        x, y = ROAD.to_world(s, dd)
-        truth = VehicleStates(time=t, ids=("ego", "truck"), vtype=("ego", "truck"), vclass=("passenger", "truck"),
-                              x=x, y=y, z=np.zeros(2), heading=np.zeros(2), speed=np.array([ego_v, 0.0]),
-                              accel=np.zeros(2), lane=np.array([2, 0], dtype=np.int16), lateral_offset=np.zeros(2),
-                              length=np.array([4.6, 12.0]), width=np.array([1.8, 2.5]), height=np.array([1.5, 3.6]))
-        a = driver.acceleration(Tick(t, truth, None, None, None, guidance=GuidanceSet((), "none")))
-        if d > ROAD.lane_centre_d(1):
-            worst = min(worst, (truck_s - 6.0) - (ego_s + 2.3))
-        ego_s += ego_v * 0.1 + 0.5 * a * 0.01
-        ego_v = max(0.0, ego_v + a * 0.1)
-    return worst, driver
+    rear = 100.0 + gap_m
+    slide = lambda t: min(d2, d0 + lateral_mps * t)  # noqa: E731
+    trace = _drive_past(driver, lambda t: [("truck", 0, slide(t), rear, 0.0, "truck")], ego_v, until)
+    gaps = [rear - front for t, front in trace if slide(t) > ROAD.lane_centre_d(1)]
+    return min(gaps, default=np.inf), driver
 
 
 def test_a_stopped_truck_sliding_over_from_two_lanes_across_is_noticed_and_stopped_for():
@@ -408,23 +429,11 @@ def _queue_squeeze(driver, gap_m, ego_v=4.0, lateral_mps=0.6, until=10.0):
     ego from `ego_v` moves as the driver asks. The smallest gap (m) between the ego's front and the
     car's rear once the car's body reaches into the ego lane, and the driver."""
     d1, d2 = ROAD.lane_centre_d(1), ROAD.lane_centre_d(2)
-    ego_s, car_s = 100.0, 100.0 + 2.3 + gap_m + 2.3
-    worst = np.inf
-    for k in range(int(until / 0.1) + 1):
-        t = round(k * 0.1, 6)
-        d = min(d2, d1 + lateral_mps * t)
-        s, dd = np.array([ego_s, car_s]), np.array([d2, d])
-        x, y = ROAD.to_world(s, dd)
-        truth = VehicleStates(time=t, ids=("ego", "car"), vtype=("ego", "car"), vclass=("passenger",) * 2,
-                              x=x, y=y, z=np.zeros(2), heading=np.zeros(2), speed=np.array([ego_v, 0.0]),
-                              accel=np.zeros(2), lane=np.array([2, 1], dtype=np.int16), lateral_offset=np.zeros(2),
-                              length=np.full(2, 4.6), width=np.full(2, 1.8), height=np.full(2, 1.5))
-        a = driver.acceleration(Tick(t, truth, None, None, None, guidance=GuidanceSet((), "none")))
-        if d2 - d < 1.8:  # the bodies overlap sideways
-            worst = min(worst, (car_s - 2.3) - (ego_s + 2.3))
-        ego_s += ego_v * 0.1 + 0.5 * a * 0.01
-        ego_v = max(0.0, ego_v + a * 0.1)
-    return worst, driver
+    rear = 100.0 + gap_m
+    squeeze = lambda t: min(d2, d1 + lateral_mps * t)  # noqa: E731
+    trace = _drive_past(driver, lambda t: [("car", 1, squeeze(t), rear, 0.0, "car")], ego_v, until)
+    gaps = [rear - front for t, front in trace if d2 - squeeze(t) < 1.8]  # the bodies overlap sideways
+    return min(gaps, default=np.inf), driver
 
 
 def test_a_car_squeezing_in_from_a_queue_is_stopped_for_short_of_the_minimum_gap():
@@ -440,24 +449,6 @@ def test_a_car_squeezing_in_from_a_queue_is_stopped_for_short_of_the_minimum_gap
         assert worst > 1.9, gap  # s0, less the pedal's overshoot
 
 
-def _queue_scene(t, ego_s, ego_v, cars):
-    """The ego in lane 2 at `ego_s` (front bumper) and `cars`: (id, lane, rear s, speed, vtype)."""
-    ids = ("ego",) + tuple(c[0] for c in cars)
-    n = len(ids)
-    dims = {"car": (4.6, 1.8, 1.5), "truck": (12.0, 2.5, 3.6)}
-    size = [dims["car"]] + [dims[c[4]] for c in cars]
-    s = np.array([ego_s - 2.3] + [c[2] + dims[c[4]][0] / 2 for c in cars])
-    d = np.array([ROAD.lane_centre_d(2)] + [ROAD.lane_centre_d(c[1]) for c in cars])
-    x, y = ROAD.to_world(s, d)
-    return VehicleStates(time=t, ids=ids, vtype=("ego",) + tuple(c[4] for c in cars),
-                         vclass=("passenger",) + tuple("truck" if c[4] == "truck" else "passenger" for c in cars),
-                         x=x, y=y, z=np.zeros(n), heading=np.zeros(n),
-                         speed=np.array([ego_v] + [c[3] for c in cars], dtype=float), accel=np.zeros(n),
-                         lane=np.array([2] + [c[1] for c in cars], dtype=np.int16), lateral_offset=np.zeros(n),
-                         length=np.array([z[0] for z in size]), width=np.array([z[1] for z in size]),
-                         height=np.array([z[2] for z in size]))
-
-
 def test_an_expected_merger_close_ahead_makes_the_driver_cover_the_brake():
     # a car creeping up to a truck stopped in the adjacent lane is expected to merge; while the ego,
     # faster, is nearer to it than its desired gap s0 + v T, the driver releases the throttle and
@@ -469,10 +460,11 @@ def test_an_expected_merger_close_ahead_makes_the_driver_cover_the_brake():
         rows = []
         for k in range(70):
             t = round(k * 0.1, 6)
-            cars = [("merger", 1, merger_rear, 1.0, "car")]
+            d1 = ROAD.lane_centre_d(1)
+            cars = [("merger", 1, d1, merger_rear, 1.0, "car")]
             if stopped_ahead:
-                cars.append(("truck", 1, merger_rear + 4.6 + 3.0, 0.0, "truck"))
-            drv.acceleration(Tick(t, _queue_scene(t, ego_s, ego_v, cars), None, None, None,
+                cars.append(("truck", 1, d1, merger_rear + 4.6 + 3.0, 0.0, "truck"))
+            drv.acceleration(Tick(t, _scene(t, ego_s, ego_v, cars), None, None, None,
                                   guidance=GuidanceSet((), "none")))
             rows.append((merger_rear - ego_s, drv.log_rows[-1]))
             ego_s += ego_v * 0.1  # the ego holds 6 m/s: the test reads what the driver asks
