@@ -2,6 +2,7 @@
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from vcfusion.metrics.collisions import describe, ego_collision_records
 
@@ -23,8 +24,10 @@ def _tables():
                                  "into_ego_lane": [True, False]})
     events = pd.DataFrame({"time": [7.4, 7.4], "vehicle_id": ["cutter", "lead"], "cue": ["lateral", "lateral"],
                            "twin_id": "", "level": "", "lc_prob": np.nan, "response_time": [8.2, 8.2]})
-    traj = pd.DataFrame({"time": [9.5, 9.5], "vehicle_id": ["ego", "cutter"], "d": [8.75, 5.3]})
-    vehicles = pd.DataFrame({"vehicle_id": ["ego", "cutter"], "width": [1.8, 2.5]})
+    # side by side on a road along +x (y = d)
+    traj = pd.DataFrame({"time": [9.5, 9.5], "vehicle_id": ["ego", "cutter"], "d": [8.75, 5.3], "x": [300.0, 300.0],
+                         "y": [8.75, 5.3], "heading": [0.0, 0.0]})
+    vehicles = pd.DataFrame({"vehicle_id": ["ego", "cutter"], "length": [4.6, 4.6], "width": [1.8, 2.5]})
     return {"trajectories": traj, "vehicles": vehicles, "driver": driver, "guidance": guidance, "collisions": collisions, "lane_changes": lane_changes,
             "driver_events": events}
 
@@ -43,14 +46,58 @@ def test_one_record_per_ego_pair_with_what_happened_before():
     text = describe(rec)
     assert "ego ran into cutter at 6.0 m/s closing" in text and "another vehicle highlighted" in text
     # 3.45 m between the centres, 2.15 m of half widths: SUMO's lane bookkeeping, not a body contact
-    assert rec["lateral_clearance_m"] == 1.3 and "no body contact: 1.30 m" in text
+    assert rec["body_clearance_m"] == 1.3 and "no body contact: 1.30 m" in text
 
 
 def test_overlapping_bodies_are_a_contact():
     tables = _tables()
-    tables["trajectories"].loc[1, "d"] = 7.5
+    tables["trajectories"].loc[1, ["d", "y"]] = 7.5
     (rec,) = ego_collision_records(tables)
-    assert rec["lateral_clearance_m"] == -0.9 and "no body contact" not in describe(rec)
+    assert rec["body_clearance_m"] == -0.9 and "no body contact" not in describe(rec)
+
+
+def test_a_vehicle_turned_toward_the_ego_touches_it_with_its_corner():
+    # 0.5 m between the sides as the lanes go, but the cutter is turned 0.4 rad toward the ego and
+    # a metre ahead: its front corner reaches across (a record made from lateral positions alone
+    # would say no contact)
+    tables = _tables()
+    tables["trajectories"].loc[1, ["d", "y", "x", "heading"]] = [6.6, 6.6, 301.0, 0.4]
+    (rec,) = ego_collision_records(tables)
+    assert rec["ego_d_m"] - rec["other_d_m"] - (1.8 + 2.5) / 2 > 0.0
+    assert rec["body_clearance_m"] < 0 and "no body contact" not in describe(rec)
+
+
+def test_footprint_clearance_agrees_with_opencv_and_with_sampled_outlines():
+    # overlap or not as OpenCV's rotated-rectangle intersection says; apart, the distance of the
+    # nearest points of the two outlines sampled every 3 cm at most
+    import cv2
+    from scipy.spatial import cKDTree
+
+    from vcfusion.metrics.collisions import footprint, footprint_clearance
+
+    rng = np.random.default_rng(7)
+
+    def outline(corners):
+        steps = np.linspace(0.0, 1.0, 400, endpoint=False)[:, None]
+        return np.concatenate([c + steps * (np.roll(corners, -1, axis=0)[k] - c) for k, c in enumerate(corners)])
+
+    apart = 0
+    for _ in range(200):
+        a = (rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-np.pi, np.pi), rng.uniform(4, 12), rng.uniform(1.7, 2.6))
+        b = (rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-np.pi, np.pi), rng.uniform(4, 12), rng.uniform(1.7, 2.6))
+        fa, fb = footprint(*a), footprint(*b)
+        gap = footprint_clearance(fa, fb)
+        assert gap == pytest.approx(footprint_clearance(fb, fa))
+        rect = lambda v: ((v[0], v[1]), (v[3], v[4]), np.degrees(v[2]))  # noqa: E731
+        kind, _ = cv2.rotatedRectangleIntersection(rect(a), rect(b))
+        if abs(gap) > 1e-3:
+            assert (kind == cv2.INTERSECT_NONE) == (gap > 0), (a, b, gap)
+        if gap > 1e-3:
+            apart += 1
+            pa, pb = outline(fa), outline(fb)
+            nearest = cKDTree(pb).query(pa)[0].min()
+            assert gap == pytest.approx(nearest, abs=0.02)
+    assert apart > 50
 
 
 def test_without_guidance_the_record_says_nothing_was_shown():

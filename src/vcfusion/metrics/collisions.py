@@ -7,8 +7,9 @@ One record per pair in contact with the ego (SUMO's first report of the contact)
   ``victim``: it ran into the ego), SUMO's ``kind``, ``lane`` and ``pos``;
 - ``ego_speed_mps`` / ``other_speed_mps`` at the contact and ``closing_speed_mps`` (the
   collider's speed minus the victim's); ``ego_d_m`` / ``other_d_m`` (road-frame lateral
-  positions) and ``lateral_clearance_m`` between their sides (> 0: no body contact; SUMO counts
-  a vehicle in its target lane from the start of a lane change);
+  positions) and ``body_clearance_m``: the distance between the two footprints (rectangles of
+  their length and width at their position and heading; > 0: no body contact, SUMO counts a
+  vehicle in its target lane from the start of a lane change; < 0: they overlap by that much);
 - ``other_lane_changes``: the other vehicle's lane changes in the window (start, mid, from lane,
   to lane, into the ego lane);
 - ``driver``: the driver model's state in the window (one sample per ``sample_s``: its leader and
@@ -48,13 +49,46 @@ def _window(table: pd.DataFrame | None, t0: float, t1: float) -> pd.DataFrame:
     return table[(table["time"] >= t0 - 1e-9) & (table["time"] <= t1 + 1e-9)]
 
 
-def _lateral_geometry(tables, t: float, other: str) -> dict:
+def footprint(x: float, y: float, heading: float, length: float, width: float) -> np.ndarray:
+    """The (4, 2) corners of a vehicle's footprint: a `length` x `width` rectangle centred on
+    (`x`, `y`), its long side along `heading` (rad, counter-clockwise from +x; records.py)."""
+    along = np.array([math.cos(heading), math.sin(heading)]) * length / 2
+    across = np.array([-math.sin(heading), math.cos(heading)]) * width / 2
+    return np.array([x, y]) + np.array([along + across, -along + across, -along - across, along - across])
+
+
+def _point_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    ab = b - a
+    k = min(max(float(np.dot(p - a, ab)) / max(float(np.dot(ab, ab)), 1e-12), 0.0), 1.0)
+    return float(np.hypot(*(a + k * ab - p)))
+
+
+def footprint_clearance(a: np.ndarray, b: np.ndarray) -> float:
+    """Distance (m) between two convex footprints given by their corners in order (:func:`footprint`):
+    the least corner-to-side distance where they are apart, minus the least overlap along the
+    footprints' side normals (separating axes) where they overlap."""
+    overlap = math.inf
+    for poly in (a, b):
+        for k in range(len(poly)):
+            side = poly[(k + 1) % len(poly)] - poly[k]
+            axis = np.array([-side[1], side[0]]) / max(float(np.hypot(*side)), 1e-12)
+            pa, pb = a @ axis, b @ axis
+            gap = max(pb.min() - pa.max(), pa.min() - pb.max())
+            if gap > 0:  # a separating axis: apart; the nearest points are a corner and a side
+                return min(_point_segment(p, q[m], q[(m + 1) % len(q)])
+                           for pts, q in ((a, b), (b, a)) for p in pts for m in range(len(q)))
+            overlap = min(overlap, -gap)
+    return -overlap
+
+
+def _body_geometry(tables, t: float, other: str) -> dict:
     """Lateral positions (road frame d) of the ego and the other vehicle at the trajectory sample
-    nearest `t`, and the clearance between their sides (m; < 0: the bodies overlap sideways).
-    SUMO reports a contact with a vehicle it has already moved into the ego's lane at the start
-    of its lane change while its body is still beside the lane: a positive clearance says so."""
+    nearest `t`, and the distance between their footprints there (:func:`footprint_clearance`; m,
+    < 0: the bodies overlap). SUMO reports a contact with a vehicle it has already moved into the
+    ego's lane at the start of its lane change while its body is still beside the lane: a positive
+    clearance says so."""
     traj, veh = tables.get("trajectories"), tables.get("vehicles")
-    none = {"ego_d_m": None, "other_d_m": None, "lateral_clearance_m": None}
+    none = {"ego_d_m": None, "other_d_m": None, "body_clearance_m": None}
     if traj is None or veh is None or not len(traj):
         return none
     near = traj[traj["vehicle_id"].isin([EGO_ID, other])]
@@ -62,12 +96,13 @@ def _lateral_geometry(tables, t: float, other: str) -> dict:
         return none
     at = near["time"].to_numpy()[np.abs(near["time"].to_numpy() - t).argmin()]
     row = near[near["time"] == at].set_index("vehicle_id")
-    width = dict(zip(veh["vehicle_id"], veh["width"]))
-    if EGO_ID not in row.index or other not in row.index or EGO_ID not in width or other not in width:
+    size = veh.set_index("vehicle_id")[["length", "width"]]
+    if EGO_ID not in row.index or other not in row.index or EGO_ID not in size.index or other not in size.index:
         return none
-    de, do = float(row.loc[EGO_ID, "d"]), float(row.loc[other, "d"])
-    return {"ego_d_m": _f(de), "other_d_m": _f(do),
-            "lateral_clearance_m": _f(abs(de - do) - (float(width[EGO_ID]) + float(width[other])) / 2)}
+    ego, them = (footprint(float(row.loc[v, "x"]), float(row.loc[v, "y"]), float(row.loc[v, "heading"]),
+                           float(size.loc[v, "length"]), float(size.loc[v, "width"])) for v in (EGO_ID, other))
+    return {"ego_d_m": _f(row.loc[EGO_ID, "d"]), "other_d_m": _f(row.loc[other, "d"]),
+            "body_clearance_m": _f(footprint_clearance(ego, them))}
 
 
 def ego_collision_records(tables, window_s: float = WINDOW_S, sample_s: float = SAMPLE_S) -> list[dict]:
@@ -89,7 +124,7 @@ def ego_collision_records(tables, window_s: float = WINDOW_S, sample_s: float = 
                "ego_speed_mps": _f(c.collider_speed if ego_collider else c.victim_speed),
                "other_speed_mps": _f(c.victim_speed if ego_collider else c.collider_speed),
                "closing_speed_mps": _f(float(c.collider_speed) - float(c.victim_speed))}
-        rec.update(_lateral_geometry(tables, t, other))
+        rec.update(_body_geometry(tables, t, other))
         lc = tables.get("lane_changes")
         if lc is not None and len(lc):
             theirs = lc[(lc["vehicle_id"] == other) & (lc["end_time"] >= t0) & (lc["start_time"] <= t)]
@@ -142,8 +177,8 @@ def describe(rec: dict) -> str:
         shown = "; guidance off" + (" (the cloud warned about it)" if rec["other_warned_twin"] else "")
     leader = (f"; the driver's leader from {rec['other_was_leader_s']:.1f} s" if rec.get("other_was_leader_s") is not None
               else "; never the driver's leader")
-    gap = rec.get("lateral_clearance_m")
-    side = (f"; no body contact: {gap:.2f} m between their sides (SUMO had moved it into the ego's lane at the "
+    gap = rec.get("body_clearance_m")
+    side = (f"; no body contact: {gap:.2f} m between their bodies (SUMO had moved it into the ego's lane at the "
             f"start of its lane change)" if gap is not None and gap > 0 else "")
     return (f"{rec['time']:.1f} s: {who} at {rec['closing_speed_mps']:.1f} m/s closing (ego {rec['ego_speed_mps']:.1f} m/s)"
             f"{side}{cut}{shown}{leader}")
