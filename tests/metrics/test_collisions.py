@@ -56,6 +56,23 @@ def test_overlapping_bodies_are_a_contact():
     assert rec["body_clearance_m"] == -0.9 and "no body contact" not in describe(rec)
 
 
+def test_bodies_that_meet_after_the_first_report_are_told_apart_from_the_report():
+    # SUMO reports the contact from 9.5 s to 9.7 s: apart at 9.5 s, overlapping at 9.6 s; a sample
+    # after the last report does not count
+    tables = _tables()
+    later = tables["trajectories"].assign(time=9.6)
+    later.loc[1, ["d", "y"]] = 7.5
+    after = tables["trajectories"].assign(time=9.8)
+    after.loc[1, ["d", "y"]] = 8.75
+    tables["trajectories"] = pd.concat([tables["trajectories"], later, after], ignore_index=True)
+    (rec,) = ego_collision_records(tables)
+    assert (rec["body_clearance_m"], rec["least_body_clearance_m"], rec["other_d_m"]) == (1.3, -0.9, 5.3)
+    assert "no body contact: 1.30 m" in describe(rec) and "met before SUMO's last report of it (0.90 m" in describe(rec)
+    tables["trajectories"] = tables["trajectories"][tables["trajectories"]["time"] != 9.6]
+    (rec,) = ego_collision_records(tables)
+    assert rec["least_body_clearance_m"] == 1.3 and "met" not in describe(rec)
+
+
 def test_a_vehicle_turned_toward_the_ego_touches_it_with_its_corner():
     # 0.5 m between the sides as the lanes go, but the cutter is turned 0.4 rad toward the ego and
     # a metre ahead: its front corner reaches across (a record made from lateral positions alone

@@ -7,9 +7,12 @@ One record per pair in contact with the ego (SUMO's first report of the contact)
   ``victim``: it ran into the ego), SUMO's ``kind``, ``lane`` and ``pos``;
 - ``ego_speed_mps`` / ``other_speed_mps`` at the contact and ``closing_speed_mps`` (the
   collider's speed minus the victim's); ``ego_d_m`` / ``other_d_m`` (road-frame lateral
-  positions) and ``body_clearance_m``: the distance between the two footprints (rectangles of
-  their length and width at their position and heading; > 0: no body contact, SUMO counts a
-  vehicle in its target lane from the start of a lane change; < 0: they overlap by that much);
+  positions) and ``body_clearance_m``, the distance between the two footprints (rectangles of
+  their length and width at their position and heading) at SUMO's first report of the contact
+  (> 0: the bodies did not touch: SUMO counts a vehicle in its target lane from the start of a lane
+  change and compares positions along the lane, whatever the bodies' headings; < 0: they overlap
+  by that much), and ``least_body_clearance_m``, the least of it until SUMO's last report of the
+  contact (the bodies can meet after SUMO has counted the contact);
 - ``other_lane_changes``: the other vehicle's lane changes in the window (start, mid, from lane,
   to lane, into the ego lane);
 - ``driver``: the driver model's state in the window (one sample per ``sample_s``: its leader and
@@ -81,28 +84,34 @@ def footprint_clearance(a: np.ndarray, b: np.ndarray) -> float:
     return -overlap
 
 
-def _body_geometry(tables, t: float, other: str) -> dict:
-    """Lateral positions (road frame d) of the ego and the other vehicle at the trajectory sample
-    nearest `t`, and the distance between their footprints there (:func:`footprint_clearance`; m,
-    < 0: the bodies overlap). SUMO reports a contact with a vehicle it has already moved into the
-    ego's lane at the start of its lane change while its body is still beside the lane: a positive
-    clearance says so."""
+def _body_geometry(tables, t: float, t_end: float, other: str) -> dict:
+    """Lateral positions (road frame d) of the ego and the other vehicle and the distance between
+    their footprints (:func:`footprint_clearance`; m, < 0: the bodies overlap) at the trajectory
+    sample nearest `t`, and the least such distance over the samples from there to `t_end` (SUMO's
+    last report of the contact)."""
     traj, veh = tables.get("trajectories"), tables.get("vehicles")
-    none = {"ego_d_m": None, "other_d_m": None, "body_clearance_m": None}
+    none = {"ego_d_m": None, "other_d_m": None, "body_clearance_m": None, "least_body_clearance_m": None}
     if traj is None or veh is None or not len(traj):
         return none
     near = traj[traj["vehicle_id"].isin([EGO_ID, other])]
-    if not len(near):
-        return none
-    at = near["time"].to_numpy()[np.abs(near["time"].to_numpy() - t).argmin()]
-    row = near[near["time"] == at].set_index("vehicle_id")
     size = veh.set_index("vehicle_id")[["length", "width"]]
-    if EGO_ID not in row.index or other not in row.index or EGO_ID not in size.index or other not in size.index:
+    if not len(near) or EGO_ID not in size.index or other not in size.index:
         return none
-    ego, them = (footprint(float(row.loc[v, "x"]), float(row.loc[v, "y"]), float(row.loc[v, "heading"]),
-                           float(size.loc[v, "length"]), float(size.loc[v, "width"])) for v in (EGO_ID, other))
+    times = np.unique(near["time"].to_numpy())
+    first = times[np.abs(times - t).argmin()]
+    span = near[(near["time"] >= first) & (near["time"] <= max(first, t_end) + 1e-9)]
+    clearances = []  # (time, clearance, rows) of the samples holding both vehicles
+    for at, row in span.groupby("time", sort=True):
+        row = row.set_index("vehicle_id")
+        if EGO_ID in row.index and other in row.index:
+            ego, them = (footprint(float(row.loc[v, "x"]), float(row.loc[v, "y"]), float(row.loc[v, "heading"]),
+                                   float(size.loc[v, "length"]), float(size.loc[v, "width"])) for v in (EGO_ID, other))
+            clearances.append((at, footprint_clearance(ego, them), row))
+    if not clearances or clearances[0][0] != first:
+        return none
+    _, at_report, row = clearances[0]
     return {"ego_d_m": _f(row.loc[EGO_ID, "d"]), "other_d_m": _f(row.loc[other, "d"]),
-            "body_clearance_m": _f(footprint_clearance(ego, them))}
+            "body_clearance_m": _f(at_report), "least_body_clearance_m": _f(min(c for _, c, _ in clearances))}
 
 
 def ego_collision_records(tables, window_s: float = WINDOW_S, sample_s: float = SAMPLE_S) -> list[dict]:
@@ -124,7 +133,8 @@ def ego_collision_records(tables, window_s: float = WINDOW_S, sample_s: float = 
                "ego_speed_mps": _f(c.collider_speed if ego_collider else c.victim_speed),
                "other_speed_mps": _f(c.victim_speed if ego_collider else c.collider_speed),
                "closing_speed_mps": _f(float(c.collider_speed) - float(c.victim_speed))}
-        rec.update(_body_geometry(tables, t, other))
+        end = float(c.end_time) if hasattr(c, "end_time") and np.isfinite(float(c.end_time)) else t
+        rec.update(_body_geometry(tables, t, end, other))
         lc = tables.get("lane_changes")
         if lc is not None and len(lc):
             theirs = lc[(lc["vehicle_id"] == other) & (lc["end_time"] >= t0) & (lc["start_time"] <= t)]
@@ -177,8 +187,10 @@ def describe(rec: dict) -> str:
         shown = "; guidance off" + (" (the cloud warned about it)" if rec["other_warned_twin"] else "")
     leader = (f"; the driver's leader from {rec['other_was_leader_s']:.1f} s" if rec.get("other_was_leader_s") is not None
               else "; never the driver's leader")
-    gap = rec.get("body_clearance_m")
-    side = (f"; no body contact: {gap:.2f} m between their bodies (SUMO had moved it into the ego's lane at the "
-            f"start of its lane change)" if gap is not None and gap > 0 else "")
+    gap, least = rec.get("body_clearance_m"), rec.get("least_body_clearance_m")
+    side = (f"; no body contact: {gap:.2f} m between their bodies (SUMO counts a lane change's target lane from "
+            f"its start and positions along the lane whatever the headings)" if gap is not None and gap > 0 else "")
+    if side and least is not None and least < 0:
+        side += f"; the bodies met before SUMO's last report of it ({-least:.2f} m overlap)"
     return (f"{rec['time']:.1f} s: {who} at {rec['closing_speed_mps']:.1f} m/s closing (ego {rec['ego_speed_mps']:.1f} m/s)"
             f"{side}{cut}{shown}{leader}")
