@@ -286,7 +286,7 @@ class DriverModel:
             acc = idm_acceleration(self.idm, ego_speed, max(gap, 0.1), v_lead)
             if prospective:
                 # b at most; for a vehicle moving into the path, what stopping s0 behind it needs
-                # where that is more (stopping at its bumper ends in contact with the pedal lag:
+                # where that is more (a stop planned at its rear ends past it with the pedal lag:
                 # curved.yaml seed 1038); a highlighted vehicle that only stands close by asks for b
                 need = stopping_decel(gap - self.idm.min_gap_m, ego_speed - v_lead) if moved_over else 0.0
                 acc = max(acc, -max(self.p.comfort_decel_mps2, need))
