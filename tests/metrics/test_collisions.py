@@ -90,7 +90,7 @@ def test_footprint_clearance_agrees_with_opencv_and_with_sampled_outlines():
     import cv2
     from scipy.spatial import cKDTree
 
-    from vcfusion.metrics.collisions import footprint, footprint_clearance
+    from vcfusion.metrics.collisions import footprint_clearance, footprints
 
     rng = np.random.default_rng(7)
 
@@ -102,7 +102,7 @@ def test_footprint_clearance_agrees_with_opencv_and_with_sampled_outlines():
     for _ in range(200):
         a = (rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-np.pi, np.pi), rng.uniform(4, 12), rng.uniform(1.7, 2.6))
         b = (rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-np.pi, np.pi), rng.uniform(4, 12), rng.uniform(1.7, 2.6))
-        fa, fb = footprint(*a), footprint(*b)
+        fa, fb = footprints(*a)[0], footprints(*b)[0]
         gap = footprint_clearance(fa, fb)
         assert gap == pytest.approx(footprint_clearance(fb, fa))
         rect = lambda v: ((v[0], v[1]), (v[3], v[4]), np.degrees(v[2]))  # noqa: E731

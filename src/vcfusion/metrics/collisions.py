@@ -52,12 +52,19 @@ def _window(table: pd.DataFrame | None, t0: float, t1: float) -> pd.DataFrame:
     return table[(table["time"] >= t0 - 1e-9) & (table["time"] <= t1 + 1e-9)]
 
 
-def footprint(x: float, y: float, heading: float, length: float, width: float) -> np.ndarray:
-    """The (4, 2) corners of a vehicle's footprint: a `length` x `width` rectangle centred on
-    (`x`, `y`), its long side along `heading` (rad, counter-clockwise from +x; records.py)."""
-    along = np.array([math.cos(heading), math.sin(heading)]) * length / 2
-    across = np.array([-math.sin(heading), math.cos(heading)]) * width / 2
-    return np.array([x, y]) + np.array([along + across, -along + across, -along - across, along - across])
+# corners of a footprint in order around it, as fractions of length and width (for body_points)
+_FOOTPRINT = (np.array([0.5, -0.5, -0.5, 0.5]), np.array([0.5, 0.5, -0.5, -0.5]), np.zeros(4))
+
+
+def footprints(x, y, heading, length, width) -> np.ndarray:
+    """(N, 4, 2) corners, in order around each, of N vehicles' footprints: `length` x `width`
+    rectangles centred on (`x`, `y`), the long side along `heading` (rad, counter-clockwise from +x;
+    records.py)."""
+    from vcfusion.fusion.matching import body_points
+
+    n = len(np.atleast_1d(x))
+    return body_points(np.atleast_1d(x), np.atleast_1d(y), np.zeros(n), np.atleast_1d(heading),
+                       np.atleast_1d(length), np.atleast_1d(width), np.zeros(n), *_FOOTPRINT)[..., :2]
 
 
 def _point_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
@@ -67,7 +74,7 @@ def _point_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
 
 
 def footprint_clearance(a: np.ndarray, b: np.ndarray) -> float:
-    """Distance (m) between two convex footprints given by their corners in order (:func:`footprint`):
+    """Distance (m) between two convex footprints given by their corners in order (:func:`footprints`):
     the least corner-to-side distance where they are apart, minus the least overlap along the
     footprints' side normals (separating axes) where they overlap."""
     overlap = math.inf
@@ -93,25 +100,22 @@ def _body_geometry(tables, t: float, t_end: float, other: str) -> dict:
     none = {"ego_d_m": None, "other_d_m": None, "body_clearance_m": None, "least_body_clearance_m": None}
     if traj is None or veh is None or not len(traj):
         return none
-    near = traj[traj["vehicle_id"].isin([EGO_ID, other])]
     size = veh.set_index("vehicle_id")[["length", "width"]]
-    if not len(near) or EGO_ID not in size.index or other not in size.index:
+    if EGO_ID not in size.index or other not in size.index:
         return none
-    times = np.unique(near["time"].to_numpy())
-    first = times[np.abs(times - t).argmin()]
-    span = near[(near["time"] >= first) & (near["time"] <= max(first, t_end) + 1e-9)]
-    clearances = []  # (time, clearance, rows) of the samples holding both vehicles
-    for at, row in span.groupby("time", sort=True):
-        row = row.set_index("vehicle_id")
-        if EGO_ID in row.index and other in row.index:
-            ego, them = (footprint(float(row.loc[v, "x"]), float(row.loc[v, "y"]), float(row.loc[v, "heading"]),
-                                   float(size.loc[v, "length"]), float(size.loc[v, "width"])) for v in (EGO_ID, other))
-            clearances.append((at, footprint_clearance(ego, them), row))
-    if not clearances or clearances[0][0] != first:
+    # the samples holding both vehicles, one row each: the ego's columns, then the other's
+    pair = [traj.loc[traj["vehicle_id"] == v, ["time", "x", "y", "heading", "d"]] for v in (EGO_ID, other)]
+    both = pair[0].merge(pair[1], on="time", suffixes=("_ego", "_other")).sort_values("time")
+    if not len(both):
         return none
-    _, at_report, row = clearances[0]
-    return {"ego_d_m": _f(row.loc[EGO_ID, "d"]), "other_d_m": _f(row.loc[other, "d"]),
-            "body_clearance_m": _f(at_report), "least_body_clearance_m": _f(min(c for _, c, _ in clearances))}
+    first = both["time"].to_numpy()[np.abs(both["time"].to_numpy() - t).argmin()]
+    span = both[(both["time"] >= first) & (both["time"] <= max(first, t_end) + 1e-9)]
+    ego, them = (footprints(span[f"x_{k}"].to_numpy(), span[f"y_{k}"].to_numpy(), span[f"heading_{k}"].to_numpy(),
+                            np.full(len(span), size.loc[v, "length"]), np.full(len(span), size.loc[v, "width"]))
+                 for k, v in (("ego", EGO_ID), ("other", other)))
+    clearances = [footprint_clearance(a, b) for a, b in zip(ego, them)]
+    return {"ego_d_m": _f(span["d_ego"].iloc[0]), "other_d_m": _f(span["d_other"].iloc[0]),
+            "body_clearance_m": _f(clearances[0]), "least_body_clearance_m": _f(min(clearances))}
 
 
 def ego_collision_records(tables, window_s: float = WINDOW_S, sample_s: float = SAMPLE_S) -> list[dict]:
@@ -133,8 +137,7 @@ def ego_collision_records(tables, window_s: float = WINDOW_S, sample_s: float = 
                "ego_speed_mps": _f(c.collider_speed if ego_collider else c.victim_speed),
                "other_speed_mps": _f(c.victim_speed if ego_collider else c.collider_speed),
                "closing_speed_mps": _f(float(c.collider_speed) - float(c.victim_speed))}
-        end = float(c.end_time) if hasattr(c, "end_time") and np.isfinite(float(c.end_time)) else t
-        rec.update(_body_geometry(tables, t, end, other))
+        rec.update(_body_geometry(tables, t, float(c.end_time), other))
         lc = tables.get("lane_changes")
         if lc is not None and len(lc):
             theirs = lc[(lc["vehicle_id"] == other) & (lc["end_time"] >= t0) & (lc["start_time"] <= t)]
