@@ -251,15 +251,16 @@ class DriverModel:
         desired = idm_acceleration(self.idm, ego_speed)  # free road
         leader, kind, leader_gap = "", "", math.nan
         # responding to a warning: throttle released, foot over the brake
-        responding = [vid for vid, wr in self.warnings.items() if now + 1e-9 >= wr.noticed + self.p.guidance_reaction_s]
+        responding = {vid for vid, wr in self.warnings.items() if now + 1e-9 >= wr.noticed + self.p.guidance_reaction_s}
+        # neighbours in an adjacent lane ahead, nearer than the desired gap and slower: the gap to them closes
         desired_gap = self.idm.min_gap_m + ego_speed * self.idm.time_headway_s
-        # a merge it expects close ahead (an anticipated neighbour still in the adjacent lane, nearer
-        # than the desired gap and slower than the ego) makes it cover the brake as a warning does
-        # (curved.yaml seed 1011: a queued car 10 m ahead started into the ego's lane while the ego
-        # sped up from 4 to 5.4 m/s past it, and the lateral cue came too late to stop)
-        cover = bool(responding) or any(
-            vid in self.anticipated and policy.in_adjacent_lane(dist) and seen.speed[vid] < ego_speed
-            and 0.0 < seen.rear[vid] - seen.ego_front < desired_gap for vid, dist in lateral.items())
+        closing = {vid for vid, dist in lateral.items() if policy.in_adjacent_lane(dist)
+                   and 0.0 < seen.rear[vid] - seen.ego_front < desired_gap and seen.speed[vid] < ego_speed}
+        # a merge it expects close ahead (an anticipated neighbour the gap to which closes) makes it
+        # cover the brake as a warning does (curved.yaml seed 1011: a queued car 10 m ahead started
+        # into the ego's lane while the ego sped up from 4 to 5.4 m/s past it, and the lateral cue
+        # came too late to stop)
+        cover = bool(responding) or not closing.isdisjoint(self.anticipated)
         if cover and -self.p.cover_decel_mps2 < desired:
             desired, kind = -self.p.cover_decel_mps2, "cover"
         for vid, dist in lateral.items():
@@ -271,8 +272,7 @@ class DriverModel:
             # still moving toward it), or highlighted, responded to, and the gap to it closes
             moved_over = (self.visual_response.get(vid, math.inf) <= now
                           and (dist < w - DISPLACED_M or (vid in self._toward and policy.in_adjacent_lane(dist))))
-            gap_closes = (vid in responding and policy.in_adjacent_lane(dist)
-                          and gap_now < desired_gap and seen.speed[vid] < ego_speed)
+            gap_closes = vid in responding and vid in closing
             prospective = not in_lane and (moved_over or gap_closes)
             if not (in_lane or prospective):
                 continue
