@@ -385,19 +385,25 @@ def _drive_past(driver, others_at, ego_v, until):
     return trace
 
 
-def _truck_slide(driver, gap_m, ego_v=12.0, lateral_mps=0.6, until=14.0):
-    """A stopped truck (12 x 2.5 m) `gap_m` ahead of the ego's front, sliding from lane 0's centre
-    over lane 1 into the ego lane (lane 2) at `lateral_mps`, as a truck blocked before a closure
-    does (curved.yaml seed 16); the ego from `ego_v` moves as the driver asks. The smallest gap (m)
-    between the ego's front and the truck's rear while the truck's body leaves the ego's less than
-    SUMO's lane-change bookkeeping allows (the truck's centre beyond lane 1's: SUMO counts it in
-    the ego lane), and the driver."""
-    d0, d2 = ROAD.lane_centre_d(0), ROAD.lane_centre_d(2)
+def _slide_in(driver, gap_m, kind, from_lane, counted, ego_v, lateral_mps=0.6, until=14.0):
+    """A stopped `kind` ("car" or "truck") `gap_m` ahead of the ego's front sliding from lane
+    `from_lane`'s centre into the ego lane (lane 2) at `lateral_mps`; the ego from `ego_v` moves as
+    the driver asks. The smallest gap (m) between the ego's front and its rear while `counted(d)`
+    holds of its centre's d, and the driver."""
+    start, d2 = ROAD.lane_centre_d(from_lane), ROAD.lane_centre_d(2)
     rear = 100.0 + gap_m
-    slide = lambda t: min(d2, d0 + lateral_mps * t)  # noqa: E731
-    trace = _drive_past(driver, lambda t: [("truck", 0, slide(t), rear, 0.0, "truck")], ego_v, until)
-    gaps = [rear - front for t, front in trace if slide(t) > ROAD.lane_centre_d(1)]
+    slide = lambda t: min(d2, start + lateral_mps * t)  # noqa: E731
+    trace = _drive_past(driver, lambda t: [(kind, from_lane, slide(t), rear, 0.0, kind)], ego_v, until)
+    gaps = [rear - front for t, front in trace if counted(slide(t))]
     return min(gaps, default=np.inf), driver
+
+
+def _truck_slide(driver, gap_m):
+    """A stopped truck (12 x 2.5 m) sliding from lane 0 over lane 1 into the ego lane, as a truck
+    blocked before a closure does (curved.yaml seed 16), the ego from 12 m/s (:func:`_slide_in`):
+    the gap counted while the truck's body leaves the ego's less than SUMO's lane-change
+    bookkeeping allows (its centre beyond lane 1's: SUMO counts it in the ego lane)."""
+    return _slide_in(driver, gap_m, "truck", 0, lambda d: d > ROAD.lane_centre_d(1), ego_v=12.0)
 
 
 def test_a_stopped_truck_sliding_over_from_two_lanes_across_is_noticed_and_stopped_for():
@@ -422,18 +428,13 @@ def test_a_prospective_leader_asks_beyond_the_comfortable_deceleration_only_when
     assert stopping_decel(20.0, -3.0) == 0.0 and stopping_decel(0.0, 1.0) == pytest.approx(5.0)
 
 
-def _queue_squeeze(driver, gap_m, ego_v=4.0, lateral_mps=0.6, until=10.0):
-    """A car standing in the adjacent lane (lane 1) `gap_m` ahead of the ego's front squeezes into
-    the ego lane at `lateral_mps` from t = 0, as cars queued before a closure do (curved.yaml seed
-    1038: a car standing 26 m before the accident, taken as a leader 3.2 m ahead at 3.8 m/s); the
-    ego from `ego_v` moves as the driver asks. The smallest gap (m) between the ego's front and the
-    car's rear once the car's body reaches into the ego lane, and the driver."""
-    d1, d2 = ROAD.lane_centre_d(1), ROAD.lane_centre_d(2)
-    rear = 100.0 + gap_m
-    squeeze = lambda t: min(d2, d1 + lateral_mps * t)  # noqa: E731
-    trace = _drive_past(driver, lambda t: [("car", 1, squeeze(t), rear, 0.0, "car")], ego_v, until)
-    gaps = [rear - front for t, front in trace if d2 - squeeze(t) < 1.8]  # the bodies overlap sideways
-    return min(gaps, default=np.inf), driver
+def _queue_squeeze(driver, gap_m):
+    """A car standing in the adjacent lane (lane 1) squeezing into the ego lane, as cars queued
+    before a closure do (curved.yaml seed 1038: a car standing 26 m before the accident, taken as a
+    leader 3.2 m ahead at 3.8 m/s), the ego from 4 m/s (:func:`_slide_in`): the gap counted once
+    the car's body reaches into the ego lane."""
+    d2 = ROAD.lane_centre_d(2)
+    return _slide_in(driver, gap_m, "car", 1, lambda d: d2 - d < 1.8, ego_v=4.0, until=10.0)
 
 
 def test_a_car_squeezing_in_from_a_queue_is_stopped_for_short_of_the_minimum_gap():
