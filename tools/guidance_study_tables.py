@@ -9,7 +9,9 @@ Prints, from the folder's trips.parquet and summary.json:
   gap to the cut-in vehicle, fuel (also in % of `none`'s mean), average |a|, maximum |jerk|, TTC;
 - the same minimum-gap difference on the trips whose cut-in comes within `--close-m` metres of the
   ego in the `none` arm (a subgroup chosen after a run: the docs say so where they quote it);
-- mean speed and trip time per arm, how the trips ended, the seeds with wrong or missed episodes.
+- mean speed and trip time per arm, how the trips ended, the seeds with wrong or missed episodes,
+  and the wrong episodes by the vehicle in the box (the meant one, another, none; studies that log
+  them).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from vcfusion.studies.guidance import REFERENCE_ARM, SAFETY_METRICS, paired_summary
+from vcfusion.studies.guidance import REFERENCE_ARM, SAFETY_METRICS, WRONG_KINDS, paired_summary
 from vcfusion.studies.matrix import highlight_table, read_study
 
 METRICS = ("min_gap_to_target_m", "fuel_g_per_km", "avg_abs_accel_mps2", "max_abs_jerk_mps3", "avg_ttc_clipped_s")
@@ -77,6 +79,9 @@ def main() -> None:
         wrong = {int(s): int(n) for s, n in t.loc[t["highlights_wrong"] > 0, ["seed", "highlights_wrong"]].values}
         missed = {int(s): int(n) for s, n in t.loc[t["missed_warnings"] > 0, ["seed", "missed_warnings"]].values}
         print(f"{arm}: episodes wrong by seed {wrong or 'none'}, missed by seed {missed or 'none'}")
+        if set(WRONG_KINDS) <= set(t) and t[list(WRONG_KINDS)].notna().any().any():  # camera arms of newer studies
+            kinds = ", ".join(f"{k.removeprefix('wrong_on_').replace('_', ' ')} {int(t[k].sum())}" for k in WRONG_KINDS)
+            print(f"{arm}: wrong episodes by the vehicle in the box: {kinds}")
 
 
 if __name__ == "__main__":

@@ -131,3 +131,19 @@ def test_highlight_updates_are_counted_per_warned_twin_and_update_without_episod
     assert highlight_counts(None, fusion, 0.1) == {"highlights_right": 1, "highlights_wrong": 1,
                                                    "missed_warnings": 0, "unseen_warnings": 1}
     assert all(math.isnan(v) for v in highlight_update_counts(None).values()) and len(HIGHLIGHT_UPDATES) == 4
+
+
+def test_wrong_episodes_are_split_by_the_vehicle_in_the_box():
+    from vcfusion.studies.guidance import WRONG_KINDS, highlight_counts, wrong_episode_kinds
+
+    # a's box on a itself at too low an IoU for one update, then right; b's box on c for two updates,
+    # then on nothing; the calm twin d (level none) is no warning
+    rows = [(1.0, "a", "high", "wrong", "a"), (1.1, "a", "high", "right", "a"),
+            (1.0, "b", "medium", "wrong", "c"), (1.1, "b", "medium", "wrong", "c"), (1.2, "b", "medium", "wrong", ""),
+            (1.0, "d", "none", "wrong", "e")]
+    fusion = pd.DataFrame([{"time": t, "vehicle_id": v, "level": lv, "outcome": o, "box_vehicle_id": s}
+                           for t, v, lv, o, s in rows])
+    kinds = wrong_episode_kinds(fusion, 0.1)
+    assert kinds == {"wrong_on_meant_vehicle": 1, "wrong_on_other_vehicle": 1, "wrong_on_no_vehicle": 1}
+    assert sum(kinds.values()) == highlight_counts(None, fusion, 0.1)["highlights_wrong"] == 3
+    assert all(math.isnan(wrong_episode_kinds(None, 0.1)[k]) for k in WRONG_KINDS)

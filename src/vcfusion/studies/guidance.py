@@ -295,6 +295,29 @@ HIGHLIGHT_COUNTS = ("highlights_right", "highlights_wrong", "missed_warnings", "
 HIGHLIGHT_UPDATES = ("updates_right", "updates_wrong", "updates_missed", "updates_unseen")
 
 
+# the wrong episodes of a camera arm by the vehicle in the box (`box_vehicle_id`: the one whose
+# visible box the drawn box overlaps most, what the driver model responds to): the meant vehicle,
+# at an IoU with its visible box below RIGHT_IOU (a box too large, too small or off: the driver
+# still responds to the right vehicle), another vehicle (the driver responds to that one), or none
+WRONG_KINDS = ("wrong_on_meant_vehicle", "wrong_on_other_vehicle", "wrong_on_no_vehicle")
+
+
+def wrong_episode_kinds(fusion: pd.DataFrame | None, period_s: float) -> dict:
+    """The wrong highlight episodes of a camera run's ``fusion`` table by WRONG_KINDS (their sum is
+    ``highlights_wrong``); NaN without one."""
+    from vcfusion.guidance import WARNING_LEVELS
+    from vcfusion.metrics.highlights import warning_episodes
+
+    if fusion is None or not len(fusion) or "outcome" not in fusion:
+        return dict.fromkeys(WRONG_KINDS, math.nan)
+    out = dict.fromkeys(WRONG_KINDS, 0)
+    for ep in warning_episodes(fusion[fusion["level"].isin(WARNING_LEVELS)], period_s):
+        if ep.outcome == "wrong":
+            kind = ("meant" if ep.box_vehicle_id == ep.twin else "other" if ep.box_vehicle_id else "no")
+            out[f"wrong_on_{kind}_vehicle"] += 1
+    return out
+
+
 def highlight_update_counts(fusion: pd.DataFrame | None) -> dict:
     """Warned twin-updates of a camera run's ``fusion`` table by outcome (HIGHLIGHT_UPDATES);
     NaN without one (no camera: nothing judged per frame)."""
@@ -389,6 +412,8 @@ def arm_metrics(run: dict, target_id: str | None) -> dict:
         row[key] = counts.get(key, nan)
     row.update(highlight_update_counts(tables.get("fusion")) if arm != REFERENCE_ARM
                else dict.fromkeys(HIGHLIGHT_UPDATES, nan))
+    row.update(wrong_episode_kinds(tables.get("fusion"), sc.v2c.period_s) if arm != REFERENCE_ARM
+               else dict.fromkeys(WRONG_KINDS, nan))
     # the driver's first response to the seed's vehicle (any cue)
     events = tables.get("driver_events")
     row["response_time_s"], row["response_cue"] = nan, ""
