@@ -47,3 +47,7 @@ def test_camera_arm_study_on_a_network_with_routes(tmp_path):
     oracle = trips[trips["arm"] == "oracle"]
     assert set(oracle["guidance_source"]) == {"fusion"} and (oracle["ticks_without_frame"] == 0).all()
     assert (oracle["process_models"] == "lane_change").all()
+    # the camera arm's wrong episodes split by the vehicle in the box, summing to them; none for the unguided arm
+    kinds = ["wrong_on_meant_vehicle", "wrong_on_other_vehicle", "wrong_on_no_vehicle"]
+    assert oracle[kinds].notna().all().all() and (oracle[kinds].sum(axis=1) == oracle["highlights_wrong"]).all()
+    assert trips.loc[trips["arm"] == "none", kinds].isna().all().all()
