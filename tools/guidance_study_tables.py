@@ -79,7 +79,7 @@ def main() -> None:
         wrong = {int(s): int(n) for s, n in t.loc[t["highlights_wrong"] > 0, ["seed", "highlights_wrong"]].values}
         missed = {int(s): int(n) for s, n in t.loc[t["missed_warnings"] > 0, ["seed", "missed_warnings"]].values}
         print(f"{arm}: episodes wrong by seed {wrong or 'none'}, missed by seed {missed or 'none'}")
-        if set(WRONG_KINDS) <= set(t) and t[list(WRONG_KINDS)].notna().any().any():  # camera arms of newer studies
+        if set(WRONG_KINDS) <= set(t) and t[list(WRONG_KINDS)].notna().any().any():  # studies that log them
             kinds = ", ".join(f"{k.removeprefix('wrong_on_').replace('_', ' ')} {int(t[k].sum())}" for k in WRONG_KINDS)
             print(f"{arm}: wrong episodes by the vehicle in the box: {kinds}")
 

@@ -153,6 +153,10 @@ def test_a_box_shifted_onto_the_neighbour_is_drawn_there_and_counts_as_wrong(mon
     assert np.allclose(at_tick[["x1", "y1", "x2", "y2"]].to_numpy(float), union)
     assert highlight_counts(shown, None, 0.1) == {"highlights_right": 0, "highlights_wrong": 1, "missed_warnings": 0,
                                                  "unseen_warnings": 0}
+    # the person's wrong episode is on another vehicle (the study's trip row takes it from the display)
+    from vcfusion.studies.guidance import highlight_tallies
+
+    assert highlight_tallies(shown, None, 0.1)["wrong_on_other_vehicle"] == 1
 
 
 def test_right_boxes_follow_their_vehicle_between_ticks_and_count_as_right():

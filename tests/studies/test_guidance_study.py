@@ -134,7 +134,10 @@ def test_highlight_updates_are_counted_per_warned_twin_and_update_without_episod
 
 
 def test_wrong_episodes_are_split_by_the_vehicle_in_the_box():
-    from vcfusion.studies.guidance import WRONG_KINDS, highlight_counts, wrong_episode_kinds
+    from vcfusion.studies.guidance import WRONG_KINDS, highlight_counts, highlight_tallies
+
+    def wrong_episode_kinds(fusion, period_s):
+        return {k: highlight_tallies(None, fusion, period_s)[k] for k in WRONG_KINDS}
 
     # a's box on a itself at too low an IoU for one update, then right; b's box on c for two updates,
     # then on nothing; the calm twin d (level none) is no warning

@@ -295,27 +295,16 @@ HIGHLIGHT_COUNTS = ("highlights_right", "highlights_wrong", "missed_warnings", "
 HIGHLIGHT_UPDATES = ("updates_right", "updates_wrong", "updates_missed", "updates_unseen")
 
 
-# the wrong episodes of a camera arm by the vehicle in the box (`box_vehicle_id`: the one whose
-# visible box the drawn box overlaps most, what the driver model responds to): the meant vehicle,
-# at an IoU with its visible box below RIGHT_IOU (a box too large, too small or off: the driver
-# still responds to the right vehicle), another vehicle (the driver responds to that one), or none
+# the wrong episodes by the vehicle in the box (`box_vehicle_id`: the one whose visible box the
+# drawn box overlaps most, what the driver model responds to): the meant vehicle, at an IoU with its
+# visible box below RIGHT_IOU (a box too large, too small or off: the driver still responds to the
+# right vehicle; only a camera's judged rows have it), another vehicle (the driver responds to that
+# one), or none
 WRONG_KINDS = ("wrong_on_meant_vehicle", "wrong_on_other_vehicle", "wrong_on_no_vehicle")
 
 
-def wrong_episode_kinds(fusion: pd.DataFrame | None, period_s: float) -> dict:
-    """The wrong highlight episodes of a camera run's ``fusion`` table by WRONG_KINDS (their sum is
-    ``highlights_wrong``); NaN without one."""
-    from vcfusion.guidance import WARNING_LEVELS
-    from vcfusion.metrics.highlights import warning_episodes
-
-    if fusion is None or not len(fusion) or "outcome" not in fusion:
-        return dict.fromkeys(WRONG_KINDS, math.nan)
-    out = dict.fromkeys(WRONG_KINDS, 0)
-    for ep in warning_episodes(fusion[fusion["level"].isin(WARNING_LEVELS)], period_s):
-        if ep.outcome == "wrong":
-            kind = ("meant" if ep.box_vehicle_id == ep.twin else "other" if ep.box_vehicle_id else "no")
-            out[f"wrong_on_{kind}_vehicle"] += 1
-    return out
+def _wrong_kind(twin: str, shown: str) -> str:
+    return f"wrong_on_{'meant' if shown == twin else 'other' if shown else 'no'}_vehicle"
 
 
 def highlight_update_counts(fusion: pd.DataFrame | None) -> dict:
@@ -330,6 +319,12 @@ def highlight_update_counts(fusion: pd.DataFrame | None) -> dict:
 
 
 def highlight_counts(guidance: pd.DataFrame | None, fusion: pd.DataFrame | None, period_s: float) -> dict:
+    """The HIGHLIGHT_COUNTS of :func:`highlight_tallies`."""
+    tallies = highlight_tallies(guidance, fusion, period_s)
+    return {k: tallies[k] for k in HIGHLIGHT_COUNTS}
+
+
+def highlight_tallies(guidance: pd.DataFrame | None, fusion: pd.DataFrame | None, period_s: float) -> dict:
     """Highlight episodes of one run, judged by the one definition (vcfusion.metrics.highlights):
     runs of frames in which a warned twin has the same outcome and the same vehicle in its box, a
     flicker of a right box bridged (vcfusion.metrics.highlights.warning_episodes).
@@ -338,11 +333,13 @@ def highlight_counts(guidance: pd.DataFrame | None, fusion: pd.DataFrame | None,
     ``highlights_right`` / ``highlights_wrong`` (a box drawn for the twin, on its vehicle or not),
     ``missed_warnings`` (the twin's vehicle visible, nothing drawn), ``unseen_warnings`` (its
     vehicle not visible, nothing drawn: behind another vehicle or too small; not a miss). Without
-    one (the cloud arm), from the ``guidance`` table: every item marks the twin it means (right
-    unless it names another vehicle); nothing is missed or unseen."""
+    one (the cloud arm, a person's display), from the ``guidance`` table: every item marks the twin
+    it means (right unless it names another vehicle); nothing is missed or unseen. Also the wrong
+    episodes by WRONG_KINDS, from the same episodes (their sum is ``highlights_wrong``; NaN where
+    neither table has a row)."""
     from vcfusion.guidance import WARNING_LEVELS
 
-    out = dict.fromkeys(HIGHLIGHT_COUNTS, 0)
+    out = dict.fromkeys(HIGHLIGHT_COUNTS, 0) | dict.fromkeys(WRONG_KINDS, 0)
     if fusion is not None and len(fusion):
         if "outcome" not in fusion:
             from vcfusion.errors import InputError
@@ -356,11 +353,16 @@ def highlight_counts(guidance: pd.DataFrame | None, fusion: pd.DataFrame | None,
             key = {"right": "highlights_right", "wrong": "highlights_wrong", "missed": "missed_warnings",
                    "unseen": "unseen_warnings"}[ep.outcome]
             out[key] += 1
+            if ep.outcome == "wrong":
+                out[_wrong_kind(ep.twin, ep.box_vehicle_id)] += 1
         return out
     if guidance is not None and len(guidance):
         for twin, shown, _ in highlight_episodes(guidance[guidance["level"].isin(WARNING_LEVELS)], period_s):
             out["highlights_right" if twin == shown else "highlights_wrong"] += 1
-    return out
+            if twin != shown:
+                out[_wrong_kind(twin, shown)] += 1
+        return out
+    return out | dict.fromkeys(WRONG_KINDS, math.nan)
 
 
 def arm_metrics(run: dict, target_id: str | None) -> dict:
@@ -401,19 +403,19 @@ def arm_metrics(run: dict, target_id: str | None) -> dict:
     row["guidance_source"] = "+".join(sources)
     row["ticks_without_frame"] = int((guidance["source"] == "no_frame").sum()) if guidance is not None else 0
     nan = math.nan
-    counts = highlight_counts(guidance, tables.get("fusion"), sc.v2c.period_s) if arm != REFERENCE_ARM else {}
+    counts = highlight_tallies(guidance, tables.get("fusion"), sc.v2c.period_s) if arm != REFERENCE_ARM else {}
     display = tables.get("display")
     if counts and display is not None and len(display):
-        # a person's trip: right and wrong are what its display drew (vcfusion.hitl.driver's display
-        # table, each box judged by the one definition when drawn); missed / unseen stay the fusion's
-        drawn = highlight_counts(display, None, sc.v2c.period_s)
-        counts["highlights_right"], counts["highlights_wrong"] = drawn["highlights_right"], drawn["highlights_wrong"]
+        # a person's trip: right and wrong (and the wrong ones' kinds) are what its display drew
+        # (vcfusion.hitl.driver's display table, each box judged by the one definition when drawn);
+        # missed / unseen stay the fusion's
+        drawn = highlight_tallies(display, None, sc.v2c.period_s)
+        counts.update({k: drawn[k] for k in ("highlights_right", "highlights_wrong", *WRONG_KINDS)})
     for key in HIGHLIGHT_COUNTS:
         row[key] = counts.get(key, nan)
     row.update(highlight_update_counts(tables.get("fusion")) if arm != REFERENCE_ARM
                else dict.fromkeys(HIGHLIGHT_UPDATES, nan))
-    row.update(wrong_episode_kinds(tables.get("fusion"), sc.v2c.period_s) if arm != REFERENCE_ARM
-               else dict.fromkeys(WRONG_KINDS, nan))
+    row.update({k: counts.get(k, nan) for k in WRONG_KINDS})
     # the driver's first response to the seed's vehicle (any cue)
     events = tables.get("driver_events")
     row["response_time_s"], row["response_cue"] = nan, ""
