@@ -647,3 +647,42 @@ def test_a_far_twins_noisy_depth_counts_for_less_under_the_sensors_own_noise():
     plain = JointMatcher().cost_matrix(proj, boxes, depths)
     exact = JointMatcher().cost_matrix(proj, boxes, depths, depth_noise=DepthNoise())
     assert all(np.array_equal(a, b) for a, b in zip(plain, exact))
+
+
+def test_a_box_whose_lower_quarter_a_nearer_car_hides_is_read_on_the_twins_own_samples():
+    """Curved seed 2045: a truck turned across its lane 30 m ahead, a car 8 m ahead hiding the lower
+    half of the truck's box. That box's lower quarter samples the car (7.2 m) and the truck's side
+    receding from its face (24-31 m): over all samples the best quantile reads 26.7 m, 1.2 sigma off
+    the face, and a box on the truck's upper part alone (24-27 m) took the twin. Samples nearer
+    than the twin's depth gate are the car in front of it: read on the rest, the whole box is the
+    truck's. A box whose lower quarter is mostly the car is read as it is."""
+    from vcfusion.fusion.matching import DEPTH_QUANTILES, MIN_UNOCCLUDED_SAMPLE_SHARE, _unoccluded_depth_err
+
+    cam = pinhole_camera()
+    twins = make_twins(["car", "truck"], [9.45, 30.0], [-1.0, -3.0], length=[4.5, 12.0], width=[1.8, 2.5],
+                       height=[1.5, 3.6], z_ground=[-0.75, -1.8])
+    face = np.array([9.45 - 2.25, 30.0 - 6.0])
+    car = vehicle_box(cam, 9.45, -1.0)
+    whole = vehicle_box(cam, 30.0, -3.0, length=12.0, width=2.5, height=3.6)
+    w, h = whole[2] - whole[0], whole[3] - whole[1]
+    upper = np.array([whole[0] + 0.45 * w, whole[1], whole[2], whole[1] + 0.6 * h])
+    truck_side = np.linspace(24.0, 31.0, 15)
+    samples = np.array([np.full(30, face[0]), np.r_[np.full(15, face[0]), truck_side], np.linspace(24.0, 27.0, 30)])
+    matcher = JointMatcher(JointMatcherParams(smoothing_alpha=None))
+    proj = project_twins(twins, cam)
+    assert [int(g) for g in matcher.assign(proj, np.stack([car, whole, upper]), samples)] == [0, 1]
+
+    sigma = 0.05 * face + 1.0
+    err = _unoccluded_depth_err(samples, face, sigma, JointMatcherParams().depth_gate)
+    # the truck against its whole box: the truck's samples alone (np.quantile as reference)
+    assert err[1, 1] == pytest.approx(np.min(np.abs(np.quantile(truck_side, DEPTH_QUANTILES) - face[1])) / sigma[1])
+    mixed = np.min(np.abs(np.quantile(samples[1], DEPTH_QUANTILES) - face[1])) / sigma[1]
+    assert mixed > 1.0 > 3 * err[1, 1]
+    # nothing dropped (the car's own box, the upper box, the car against any box): no second reading
+    assert np.isinf(err[1, [0, 2]]).all() and np.isinf(err[0]).all()
+    # a lower quarter mostly the car: under MIN_UNOCCLUDED_SAMPLE_SHARE left, read as it is
+    few = int(MIN_UNOCCLUDED_SAMPLE_SHARE * 30) - 1
+    mostly_car = np.r_[np.full(30 - few, face[0]), np.full(few, face[1])][None]
+    assert np.isinf(_unoccluded_depth_err(mostly_car, face, sigma, 4.0)).all()
+    enough = np.r_[np.full(30 - few - 2, face[0]), np.full(few + 2, face[1])][None]
+    assert _unoccluded_depth_err(enough, face, sigma, 4.0)[1, 0] == pytest.approx(0.0)
