@@ -601,23 +601,27 @@ MIN_UNOCCLUDED_SAMPLE_SHARE = 0.25
 def _unoccluded_depth_err(samples: np.ndarray, expected: np.ndarray, sigma: np.ndarray, gate: float) -> np.ndarray:
     """(N, D) depth disagreement, in sigmas, of each box with each twin, read on the box's
     lower-quarter samples that lie no nearer than `gate` sigmas in front of the twin's expected
-    depth (its best DEPTH_QUANTILES quantile over them); inf where fewer than
-    MIN_UNOCCLUDED_SAMPLE_SHARE of the box's valid samples are left, or where none was dropped
+    depth (its best DEPTH_QUANTILES quantile over them, numpy's linear quantile); inf where fewer
+    than MIN_UNOCCLUDED_SAMPLE_SHARE of the box's valid samples are left, or where none was dropped
     (the ordinary reading then stands). `samples` (D, n) m, nan where invalid; `expected`,
     `sigma` (N,) m."""
-    valid = np.isfinite(samples)  # (D, n)
-    with np.errstate(invalid="ignore"):
-        kept = valid[None] & (samples[None] >= (expected - gate * sigma)[:, None, None])  # (N, D, n)
-    n_kept, n_valid = kept.sum(axis=2), valid.sum(axis=1)[None, :]
-    usable = (n_kept >= MIN_UNOCCLUDED_SAMPLE_SHARE * n_valid) & (n_kept < n_valid) & (n_kept > 0)
+    ordered = np.sort(samples, axis=1)  # nan last
+    n_valid = np.isfinite(ordered).sum(axis=1)  # (D,)
+    cut = expected - gate * sigma  # (N,) nearer than this: the vehicle in front
+    # (N, D) index of each twin's first kept sample in each box's ordered valid samples
+    first = np.stack([np.searchsorted(ordered[j, :n_valid[j]], cut, side="left") for j in range(len(ordered))], axis=1)
+    n_kept = n_valid[None, :] - first
+    usable = (n_kept >= MIN_UNOCCLUDED_SAMPLE_SHARE * n_valid[None, :]) & (first > 0) & (n_kept > 0)
     out = np.full(usable.shape, np.inf)
     if not usable.any():
         return out
     i, j = np.nonzero(usable)
-    rows = np.where(kept[i, j], samples[j], np.nan)  # (K, n)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        q = np.nanquantile(rows, DEPTH_QUANTILES, axis=1).T  # (K, q)
+    pos = first[i, j, None] + np.asarray(DEPTH_QUANTILES)[None, :] * (n_kept[i, j, None] - 1)  # (K, q)
+    lo = np.floor(pos).astype(np.int64)
+    hi = np.minimum(lo + 1, n_valid[j, None] - 1)
+    rows = ordered[j]  # (K, n)
+    q = np.take_along_axis(rows, lo, axis=1)
+    q = q + (pos - lo) * (np.take_along_axis(rows, hi, axis=1) - q)
     out[i, j] = (np.abs(q - expected[i, None]) / sigma[i, None]).min(axis=1)
     return out
 
