@@ -39,7 +39,9 @@ Four matchers, from the paper's baseline to its future work:
   (c) the disagreement between the box's depth and the expected depth of the vehicle face the
       camera sees (GNSS point = body centre, records.gnss_antenna_points; the depth samples lie on the rear (or front) face,
       half a vehicle length nearer; with a noisy depth sensor, what the sensor reads there, in a
-      sigma widened by the sensor's own error, :meth:`JointMatcher._expected_depth`),
+      sigma widened by the sensor's own error, :meth:`JointMatcher._expected_depth`; samples
+      clearly nearer than the twin, a vehicle in front of it, left out where enough remain:
+      :func:`_unoccluded_depth_err`),
   with gates on overlap and depth. Before that, each twin's cloud state is extrapolated from the
   time it was measured to the camera's timestamp (latency compensation, constant velocity along
   the heading).
@@ -592,7 +594,8 @@ class JointMatch:
 # truck turned 20-28 degrees at 30-35 m behind a car 8 m ahead (curved.yaml seed 2045, ego standing):
 # its whole box's lower quarter was half the car (7.6 m) and half the truck (28-35 m), its best
 # quantile read 29.9 m against a face at 28.0 m (0.8 sigma), and a box on the truck's upper part
-# alone (0.0 sigma, IoU 0.35-0.46 with the truck's visible box) took the twin in 10 of 45 AR updates.
+# alone (0.0 sigma, IoU 0.34-0.49 with the truck's visible box) took the twin in 16 of its 46 AR
+# updates from 79.5 to 84.0 s; read on the truck's samples, 6 (the frames replayed offline).
 # A quarter: a box whose lower quarter is mostly a nearer vehicle stays read as it is (that vehicle's
 # box, or one that `_depth_of_nearer_twin` lets be neither confirmed nor excluded by depth).
 MIN_UNOCCLUDED_SAMPLE_SHARE = 0.25
