@@ -611,10 +611,11 @@ def _unoccluded_depth_err(samples: np.ndarray, expected: np.ndarray, sigma: np.n
     ordered = np.sort(samples, axis=1)  # nan last
     n_valid = np.isfinite(ordered).sum(axis=1)  # (D,)
     cut = expected - gate * sigma  # (N,) nearer than this: the vehicle in front
-    # (N, D) index of each twin's first kept sample in each box's ordered valid samples
-    first = np.stack([np.searchsorted(ordered[j, :n_valid[j]], cut, side="left") for j in range(len(ordered))], axis=1)
+    # (N, D) samples nearer than the cut: the index of each twin's first kept one in the ordered samples
+    with np.errstate(invalid="ignore"):
+        first = (ordered[None, :, :] < cut[:, None, None]).sum(axis=2)
     n_kept = n_valid[None, :] - first
-    usable = (n_kept >= MIN_UNOCCLUDED_SAMPLE_SHARE * n_valid[None, :]) & (first > 0) & (n_kept > 0)
+    usable = (first > 0) & (n_kept >= MIN_UNOCCLUDED_SAMPLE_SHARE * n_valid[None, :])  # some dropped, enough left
     out = np.full(usable.shape, np.inf)
     if not usable.any():
         return out

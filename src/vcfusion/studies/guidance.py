@@ -16,11 +16,12 @@ without a frame is counted (`ticks_without_frame`), never filled from another so
 Per trip and arm (`arm_metrics`, the one place the study's metrics are computed): TTC, gaps,
 acceleration and jerk (`vcfusion.metrics.safety`), MOVESTAR fuel and emissions per km
 (`vcfusion.metrics.movestar`), the highlight episodes judged by the one definition of
-`vcfusion.metrics.highlights` (`highlight_counts`: right, wrong, missed, unseen), and each ego
-collision described (`vcfusion.metrics.collisions`). TTC and gaps are measured in every arm against the
-same vehicle: the first cut-in ahead of the ego in the reference arm (``none``; the first arm
-with one where it has none), chosen once per seed; because SUMO's vehicles react to the ego, an
-arm's own first cut-in can be another vehicle (`first_cut_in_differs`).
+`vcfusion.metrics.highlights` (`highlight_tallies`: right, wrong, missed, unseen, and the wrong ones
+by the vehicle in the box), and each ego collision described (`vcfusion.metrics.collisions`). TTC
+and gaps are measured in every arm against the same vehicle: the first cut-in ahead of the ego in
+the reference arm (``none``; the first arm with one where it has none), chosen once per seed;
+because SUMO's vehicles react to the ego, an arm's own first cut-in can be another vehicle
+(`first_cut_in_differs`).
 
 The effect of an arm is its paired difference to ``none`` per trip, over the trips where every
 arm has the metric (so the table and the figures' bars and annotations are the same numbers):
