@@ -3,6 +3,8 @@ hand-made folder whose answers are known."""
 
 import sys
 
+import numpy as np
+import pandas as pd
 import pytest
 
 from support.study_folders import write_study_folder
@@ -39,6 +41,20 @@ def test_the_tables_of_a_study_folder(tmp_path, monkeypatch, capsys):
     close = out.split("cut-in within 50 m")[1].splitlines()[1]
     assert "min gap +2.00 [" in close and "(n = 2)" in close
     assert "fusion: episodes wrong by seed {2: 1}, missed by seed {3: 1}" in out
+    # resamples without seed 2 draw no wrong episode (0 %); those with it at most 4 of 4 seeds' 12 drawn
+    share = next(line for line in out.splitlines() if "wrong % of drawn" in line)
+    assert share.strip().startswith("fusion: wrong % of drawn 11.1 [0.0, ") and "oracle" not in share
+
+
+def test_the_wrong_share_against_the_oracle_is_paired_by_seed(tmp_path):
+    """Fusion draws one wrong episode in each seed the oracle does, plus one more in seed 0: the
+    difference is positive in every resample that holds seed 0 and zero in the others."""
+    rows = [{"seed": seed, "arm": arm, "highlights_right": 9, "highlights_wrong": int(seed % 2 == 0) + (arm == "fusion" and seed == 0)}
+            for seed in range(6) for arm in ("fusion", "oracle")]
+    line = load_tool("guidance_study_tables")._wrong_share_intervals(pd.DataFrame(rows), "fusion",
+                                                                      np.random.default_rng(0))
+    # fusion 4 wrong of 58 drawn, oracle 3 of 57: 6.9 % and 5.3 %
+    assert line.startswith("fusion: wrong % of drawn 6.9 [") and ", minus oracle +1.6 [+0.0, +" in line
 
 
 def test_a_folder_that_is_no_study_is_refused(tmp_path, monkeypatch):
