@@ -49,7 +49,8 @@ def test_the_tables_of_a_study_folder(tmp_path, monkeypatch, capsys):
 def test_the_wrong_share_against_the_oracle_is_paired_by_seed(tmp_path):
     """Fusion draws one wrong episode in each seed the oracle does, plus one more in seed 0: the
     difference is positive in every resample that holds seed 0 and zero in the others."""
-    rows = [{"seed": seed, "arm": arm, "highlights_right": 9, "highlights_wrong": int(seed % 2 == 0) + (arm == "fusion" and seed == 0)}
+    rows = [{"seed": seed, "arm": arm, "highlights_right": 9,
+             "highlights_wrong": int(seed % 2 == 0) + int(arm == "fusion" and seed == 0)}
             for seed in range(6) for arm in ("fusion", "oracle")]
     line = load_tool("guidance_study_tables")._wrong_share_intervals(pd.DataFrame(rows), "fusion",
                                                                       np.random.default_rng(0))
