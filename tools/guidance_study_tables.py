@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from vcfusion.studies.guidance import REFERENCE_ARM, SAFETY_METRICS, WRONG_KINDS, paired_summary
+from vcfusion.studies.guidance import CAMERA_ARMS, REFERENCE_ARM, SAFETY_METRICS, WRONG_KINDS, paired_summary
 from vcfusion.studies.matrix import highlight_table, read_study
 
 METRICS = ("min_gap_to_target_m", "fuel_g_per_km", "avg_abs_accel_mps2", "max_abs_jerk_mps3", "avg_ttc_clipped_s")
@@ -39,20 +39,21 @@ BOOTSTRAP_RESAMPLES = 4000
 def _wrong_share_intervals(trips: pd.DataFrame, arm: str, rng: np.random.Generator) -> str:
     """`arm`'s wrong episodes in % of its drawn ones (right + wrong) with a 95 % interval, and its
     difference to the oracle arm's on the same seeds, the seeds resampled with replacement."""
-    def counts(name):
-        t = trips[trips["arm"] == name].set_index("seed").sort_index()
-        return t["highlights_wrong"].to_numpy(float), (t["highlights_right"] + t["highlights_wrong"]).to_numpy(float)
-
-    wrong, drawn = counts(arm)
-    pick = rng.integers(0, len(wrong), (BOOTSTRAP_RESAMPLES, len(wrong)))
+    arms = [arm] + (["oracle"] if arm != "oracle" and "oracle" in set(trips["arm"]) else [])
+    t = trips[trips["arm"].isin(arms)].assign(drawn=trips["highlights_right"] + trips["highlights_wrong"])
+    # one row per seed that every arm ran, so the two arms' draws pick the same seeds
+    per_seed = t.pivot(index="seed", columns="arm", values=["highlights_wrong", "drawn"]).dropna()
+    pick = rng.integers(0, len(per_seed), (BOOTSTRAP_RESAMPLES, len(per_seed)))
+    shares = {}  # arm -> (point, per resample) in %
     with np.errstate(invalid="ignore", divide="ignore"):
-        share = 100 * wrong[pick].sum(axis=1) / drawn[pick].sum(axis=1)
-        line = (f"{arm}: wrong % of drawn {100 * wrong.sum() / drawn.sum():.1f} "
-                f"[{np.nanpercentile(share, 2.5):.1f}, {np.nanpercentile(share, 97.5):.1f}]")
-        if arm != "oracle" and "oracle" in set(trips["arm"]):
-            o_wrong, o_drawn = counts("oracle")
-            diff = share - 100 * o_wrong[pick].sum(axis=1) / o_drawn[pick].sum(axis=1)
-            line += (f", minus oracle {100 * (wrong.sum() / drawn.sum() - o_wrong.sum() / o_drawn.sum()):+.1f} "
+        for a in arms:
+            wrong, drawn = per_seed[("highlights_wrong", a)].to_numpy(), per_seed[("drawn", a)].to_numpy()
+            shares[a] = (100 * wrong.sum() / drawn.sum(), 100 * wrong[pick].sum(axis=1) / drawn[pick].sum(axis=1))
+        point, draws = shares[arm]
+        line = f"{arm}: wrong % of drawn {point:.1f} [{np.nanpercentile(draws, 2.5):.1f}, {np.nanpercentile(draws, 97.5):.1f}]"
+        if len(arms) == 2:
+            diff = draws - shares["oracle"][1]
+            line += (f", minus oracle {point - shares['oracle'][0]:+.1f} "
                      f"[{np.nanpercentile(diff, 2.5):+.1f}, {np.nanpercentile(diff, 97.5):+.1f}]")
     return line
 
@@ -87,7 +88,7 @@ def main() -> None:
               f"{r['collision_seeds'] or 'none'} |")
     rng = np.random.default_rng(0)
     print(f"\n95 % intervals from {BOOTSTRAP_RESAMPLES:,} resamples of the seeds:")
-    for arm in [a for a in trips["arm"].unique() if a not in (REFERENCE_ARM, "cloud")]:
+    for arm in [a for a in trips["arm"].unique() if a in CAMERA_ARMS]:
         print("  " + _wrong_share_intervals(trips, arm, rng))
     summary = paired_summary(trips)
     fuel_ref = ref["fuel_g_per_km"].mean()
