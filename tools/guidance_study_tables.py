@@ -22,9 +22,9 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
+from vcfusion.metrics.cluster_bootstrap import cluster_weights, percentile_interval, ratio_draws
 from vcfusion.studies.guidance import CAMERA_ARMS, REFERENCE_ARM, SAFETY_METRICS, WRONG_KINDS, paired_summary
 from vcfusion.studies.matrix import highlight_table, read_study
 
@@ -36,25 +36,24 @@ METRICS = ("min_gap_to_target_m", "fuel_g_per_km", "avg_abs_accel_mps2", "max_ab
 BOOTSTRAP_RESAMPLES = 4000
 
 
-def _wrong_share_intervals(trips: pd.DataFrame, arm: str, rng: np.random.Generator) -> str:
+def _wrong_share_intervals(trips: pd.DataFrame, arm: str) -> str:
     """`arm`'s wrong episodes in % of its drawn ones (right + wrong) with a 95 % interval, and its
     difference to the oracle arm's on the same seeds, the seeds resampled with replacement."""
     arms = [arm] + (["oracle"] if arm != "oracle" and "oracle" in set(trips["arm"]) else [])
     t = trips[trips["arm"].isin(arms)].assign(drawn=trips["highlights_right"] + trips["highlights_wrong"])
     # one row per seed that every arm ran, so the two arms' draws pick the same seeds
     per_seed = t.pivot(index="seed", columns="arm", values=["highlights_wrong", "drawn"]).dropna()
-    pick = rng.integers(0, len(per_seed), (BOOTSTRAP_RESAMPLES, len(per_seed)))
+    weights = cluster_weights(len(per_seed), BOOTSTRAP_RESAMPLES, seed=0)
     shares = {}  # arm -> (point, per resample) in %
-    with np.errstate(invalid="ignore", divide="ignore"):
-        for a in arms:
-            wrong, drawn = per_seed[("highlights_wrong", a)].to_numpy(), per_seed[("drawn", a)].to_numpy()
-            shares[a] = (100 * wrong.sum() / drawn.sum(), 100 * wrong[pick].sum(axis=1) / drawn[pick].sum(axis=1))
-        point, draws = shares[arm]
-        line = f"{arm}: wrong % of drawn {point:.1f} [{np.nanpercentile(draws, 2.5):.1f}, {np.nanpercentile(draws, 97.5):.1f}]"
-        if len(arms) == 2:
-            diff = draws - shares["oracle"][1]
-            line += (f", minus oracle {point - shares['oracle'][0]:+.1f} "
-                     f"[{np.nanpercentile(diff, 2.5):+.1f}, {np.nanpercentile(diff, 97.5):+.1f}]")
+    for a in arms:
+        wrong, drawn = per_seed[("highlights_wrong", a)].to_numpy(), per_seed[("drawn", a)].to_numpy()
+        shares[a] = (100 * wrong.sum() / drawn.sum(), 100 * ratio_draws(weights, wrong, drawn))
+    point, draws = shares[arm]
+    low, high = percentile_interval(draws)
+    line = f"{arm}: wrong % of drawn {point:.1f} [{low:.1f}, {high:.1f}]"
+    if len(arms) == 2:
+        low, high = percentile_interval(draws - shares["oracle"][1])
+        line += f", minus oracle {point - shares['oracle'][0]:+.1f} [{low:+.1f}, {high:+.1f}]"
     return line
 
 
@@ -86,10 +85,9 @@ def main() -> None:
         print(f"| {r['arm']} | {r['highlights_right']} | {r['highlights_wrong']} | {r['missed_warnings']} | "
               f"{r['unseen_warnings']} | {r['wrong_pct_of_drawn']:.1f} / {r['missed_pct_of_drawn']:.1f} | {ups} | "
               f"{r['collision_seeds'] or 'none'} |")
-    rng = np.random.default_rng(0)
     print(f"\n95 % intervals from {BOOTSTRAP_RESAMPLES:,} resamples of the seeds:")
     for arm in [a for a in trips["arm"].unique() if a in CAMERA_ARMS]:
-        print("  " + _wrong_share_intervals(trips, arm, rng))
+        print("  " + _wrong_share_intervals(trips, arm))
     summary = paired_summary(trips)
     fuel_ref = ref["fuel_g_per_km"].mean()
     print("\narm - none [95 % CI]:")

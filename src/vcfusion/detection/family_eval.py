@@ -33,6 +33,7 @@ from vcfusion.detection.detection_metrics import BoxMap, coco_map
 from vcfusion.detection.detector_net import DetectorFileError
 from vcfusion.detection.detector_train import CocoDataset, read_rgb
 from vcfusion.detection.detectors import Detections, OracleDetector
+from vcfusion.metrics.cluster_bootstrap import cluster_weights, percentile_interval, ratio_draws
 
 IDENTIFICATION_IOU = 0.7
 IOU_QUANTILES = (0.1, 0.25, 0.5)
@@ -40,7 +41,6 @@ IOU_QUANTILES = (0.1, 0.25, 0.5)
 # visible_fraction): the bins' lower edges and labels
 VISIBILITY_BINS = ((0.0, "<0.25"), (0.25, "0.25-0.5"), (0.5, ">=0.5"))
 BOOTSTRAP_RESAMPLES = 2000
-INTERVAL = (0.025, 0.975)  # a 95 % percentile interval
 
 
 @dataclass
@@ -341,22 +341,13 @@ def scene_bootstrap(right: dict[str, list[np.ndarray]], scenes: list | None = No
     n_scenes = len(cluster)
     targets = np.bincount(of, [len(r) for r in right[names[0]]], n_scenes)
     counts = {name: np.bincount(of, [np.count_nonzero(r) for r in right[name]], n_scenes) for name in names}
-    rng = np.random.default_rng(seed)
-    # how often each scene is drawn in each resample (resamples, scenes)
-    weights = rng.multinomial(n_scenes, np.full(n_scenes, 1.0 / n_scenes), size=resamples).astype(float)
-    total = weights @ targets
-    with np.errstate(invalid="ignore", divide="ignore"):
-        acc = {name: (weights @ c) / total for name, c in counts.items()}  # nan where a draw has no target
-    out = {name: _percentile_interval(a) for name, a in acc.items()}
+    weights = cluster_weights(n_scenes, resamples, seed)
+    acc = {name: ratio_draws(weights, c, targets) for name, c in counts.items()}  # nan where a draw has no target
+    out = {name: percentile_interval(a) for name, a in acc.items()}
     if "oracle" in acc:
-        out.update({f"gap_{name}": _percentile_interval(acc["oracle"] - a)
+        out.update({f"gap_{name}": percentile_interval(acc["oracle"] - a)
                     for name, a in acc.items() if name != "oracle"})
     return out
-
-
-def _percentile_interval(draws: np.ndarray) -> tuple[float, float]:
-    lo, hi = np.nanquantile(draws, INTERVAL)
-    return float(lo), float(hi)
 
 
 def format_interval_table(results: list[FamilyResult], detector_name: str = "cnn") -> str:

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from vcfusion.metrics.cluster_bootstrap import cluster_weights, percentile_interval, ratio_draws
 from vcfusion.prediction.dataset import load_dataset
 from vcfusion.prediction.events import event_scores, judged_ticks, smooth_stream, smoothing_bounds, track_bounds
 from vcfusion.prediction.features import stored_columns, with_derived_columns
@@ -82,15 +83,14 @@ def vehicle_table(model_path: Path, dataset: Path, split: str = "test", horizon_
 
 def _ratios(w: np.ndarray, t: pd.DataFrame) -> dict[str, np.ndarray]:
     """The statistics of weighted vehicle sets: w (B, V) counts of each vehicle in each resample."""
-    col = lambda name: w @ t[name].to_numpy(dtype=float)  # noqa: E731
-    lc, pred = col("lane_changes"), col("predicted")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return {"predicted": pred / lc, "before_mid": col("before_mid") / lc,
-                "advance_s": col("advance_sum_s") / pred,
-                "false_alarms_per_veh_h": col("false_alarms") / col("hours"),
-                "false_alarms_judged_per_veh_h": (col("false_alarms") - col("false_alarms_censored"))
-                / col("judged_hours"),
-                "censored_false_alarms_share": col("false_alarms_censored") / col("false_alarms")}
+    col = lambda name: t[name].to_numpy(dtype=float)  # noqa: E731
+    judged_false_alarms = col("false_alarms") - col("false_alarms_censored")
+    return {"predicted": ratio_draws(w, col("predicted"), col("lane_changes")),
+            "before_mid": ratio_draws(w, col("before_mid"), col("lane_changes")),
+            "advance_s": ratio_draws(w, col("advance_sum_s"), col("predicted")),
+            "false_alarms_per_veh_h": ratio_draws(w, col("false_alarms"), col("hours")),
+            "false_alarms_judged_per_veh_h": ratio_draws(w, judged_false_alarms, col("judged_hours")),
+            "censored_false_alarms_share": ratio_draws(w, col("false_alarms_censored"), col("false_alarms"))}
 
 
 def bootstrap(table: pd.DataFrame, n_boot: int = 1000, seed: int = 0, level: float = 0.95) -> dict[str, dict]:
@@ -99,15 +99,11 @@ def bootstrap(table: pd.DataFrame, n_boot: int = 1000, seed: int = 0, level: flo
     point = {k: float(x[0]) for k, x in _ratios(np.ones((1, v)), table).items()}
     if v == 0:
         return {k: {"value": float("nan"), "low": float("nan"), "high": float("nan")} for k in STATISTICS}
-    rng = np.random.default_rng(seed)
-    w = rng.multinomial(v, np.full(v, 1.0 / v), size=n_boot).astype(float)
-    boots = _ratios(w, table)
-    q = (100 * (1 - level) / 2, 100 * (1 + level) / 2)
+    boots = _ratios(cluster_weights(v, n_boot, seed), table)
     out = {}
     for k in STATISTICS:
-        finite = boots[k][np.isfinite(boots[k])]
-        low, high = (np.percentile(finite, q) if len(finite) else (np.nan, np.nan))
-        out[k] = {"value": point[k], "low": float(low), "high": float(high)}
+        low, high = percentile_interval(boots[k], level)
+        out[k] = {"value": point[k], "low": low, "high": high}
     return out
 
 
