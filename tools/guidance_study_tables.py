@@ -6,7 +6,8 @@ Prints, from the folder's trips.parquet and summary.json:
 - the highlight row per guided arm (episodes right / wrong / missed / unseen, wrong and missed as
   shares of those drawn, per update, collision seeds) in the format of the guidance-loop tables;
 - each camera arm's wrong share of drawn episodes with a 95 % interval, and its difference to the
-  `oracle` arm's (paired by seed), both from resampling the seeds (percentile bootstrap);
+  `oracle` arm's (paired by seed), both from resampling the seeds (`studies.matrix.highlight_table`,
+  as `vcfusion guidance-matrix` tables them);
 - each guided arm against `none` (paired difference and 95 % CI, `paired_summary`) for the minimum
   gap to the cut-in vehicle, fuel (also in % of `none`'s mean), average |a|, maximum |jerk|, TTC;
 - the same minimum-gap difference on the trips whose cut-in comes within `--close-m` metres of the
@@ -24,36 +25,20 @@ from pathlib import Path
 
 import pandas as pd
 
-from vcfusion.metrics.cluster_bootstrap import cluster_weights, percentile_interval, ratio_draws
-from vcfusion.studies.guidance import CAMERA_ARMS, REFERENCE_ARM, SAFETY_METRICS, WRONG_KINDS, paired_summary
-from vcfusion.studies.matrix import highlight_table, read_study
+from vcfusion.studies.guidance import REFERENCE_ARM, SAFETY_METRICS, WRONG_KINDS, paired_summary
+from vcfusion.studies.matrix import WRONG_SHARE_RESAMPLES, highlight_table, read_study
 
 METRICS = ("min_gap_to_target_m", "fuel_g_per_km", "avg_abs_accel_mps2", "max_abs_jerk_mps3", "avg_ttc_clipped_s")
 
 
-# percentile bootstrap of the wrong share over seeds: 4,000 resamples put the interval's ends within
-# about 0.1 point of their limit on 200-seed studies (curved 3000-3199: the same to 0.1 with 16,000)
-BOOTSTRAP_RESAMPLES = 4000
-
-
-def _wrong_share_intervals(trips: pd.DataFrame, arm: str) -> str:
-    """`arm`'s wrong episodes in % of its drawn ones (right + wrong) with a 95 % interval, and its
-    difference to the oracle arm's on the same seeds, the seeds resampled with replacement."""
-    arms = [arm] + (["oracle"] if arm != "oracle" and "oracle" in set(trips["arm"]) else [])
-    t = trips[trips["arm"].isin(arms)].assign(drawn=trips["highlights_right"] + trips["highlights_wrong"])
-    # one row per seed that every arm ran, so the two arms' draws pick the same seeds
-    per_seed = t.pivot(index="seed", columns="arm", values=["highlights_wrong", "drawn"]).dropna()
-    weights = cluster_weights(len(per_seed), BOOTSTRAP_RESAMPLES, seed=0)
-    shares = {}  # arm -> (point, per resample) in %
-    for a in arms:
-        wrong, drawn = per_seed[("highlights_wrong", a)].to_numpy(), per_seed[("drawn", a)].to_numpy()
-        shares[a] = (100 * wrong.sum() / drawn.sum(), 100 * ratio_draws(weights, wrong, drawn))
-    point, draws = shares[arm]
-    low, high = percentile_interval(draws)
-    line = f"{arm}: wrong % of drawn {point:.1f} [{low:.1f}, {high:.1f}]"
-    if len(arms) == 2:
-        low, high = percentile_interval(draws - shares["oracle"][1])
-        line += f", minus oracle {point - shares['oracle'][0]:+.1f} [{low:+.1f}, {high:+.1f}]"
+def _wrong_share_line(r: dict) -> str:
+    """A camera arm's wrong share of drawn episodes with its 95 % interval and its difference to the
+    oracle arm's (a row of `studies.matrix.highlight_table`)."""
+    line = (f"{r['arm']}: wrong % of drawn {r['wrong_pct_of_drawn']:.1f} "
+            f"[{r['wrong_pct_ci95_low']:.1f}, {r['wrong_pct_ci95_high']:.1f}]")
+    if r["wrong_minus_oracle_pct"] == r["wrong_minus_oracle_pct"]:
+        line += (f", minus oracle {r['wrong_minus_oracle_pct']:+.1f} [{r['wrong_minus_oracle_ci95_low']:+.1f}, "
+                 f"{r['wrong_minus_oracle_ci95_high']:+.1f}]")
     return line
 
 
@@ -78,16 +63,18 @@ def main() -> None:
           f"{ref.index[ref['collisions'].fillna(0) > 0].tolist() or 'none'}")
     print("\n| arm | right | wrong | missed | unseen | wrong / missed % of drawn | per update: wrong / missed % of drawn "
           "| ego collisions (seeds) |")
-    for r in highlight_table(trips, study.name):
+    highlights = highlight_table(trips, study.name)
+    for r in highlights:
         ups = ("-" if r["updates_right"] != r["updates_right"] else
                f"{r['updates_wrong_pct_of_drawn']:.1f} / {r['updates_missed_pct_of_drawn']:.1f} "
                f"(of {r['updates_right'] + r['updates_wrong']:,.0f})")
         print(f"| {r['arm']} | {r['highlights_right']} | {r['highlights_wrong']} | {r['missed_warnings']} | "
               f"{r['unseen_warnings']} | {r['wrong_pct_of_drawn']:.1f} / {r['missed_pct_of_drawn']:.1f} | {ups} | "
               f"{r['collision_seeds'] or 'none'} |")
-    print(f"\n95 % intervals from {BOOTSTRAP_RESAMPLES:,} resamples of the seeds:")
-    for arm in [a for a in trips["arm"].unique() if a in CAMERA_ARMS]:
-        print("  " + _wrong_share_intervals(trips, arm))
+    print(f"\n95 % intervals from {WRONG_SHARE_RESAMPLES:,} resamples of the seeds:")
+    for r in highlights:
+        if r["wrong_pct_ci95_low"] == r["wrong_pct_ci95_low"]:  # the camera arms
+            print("  " + _wrong_share_line(r))
     summary = paired_summary(trips)
     fuel_ref = ref["fuel_g_per_km"].mean()
     print("\narm - none [95 % CI]:")

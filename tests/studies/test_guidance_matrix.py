@@ -69,6 +69,9 @@ def test_studies_run_one_by_one_are_tabled_per_scenario_and_pooled(tmp_path, cap
     assert dict(hl["split"]) == {"exit_camera": "held-out", "onramp_camera": "tuned-on", "pooled": "held-out+tuned-on"}
     assert list(hl["highlights_right"]) == [9, 9, 18] and list(hl["highlights_wrong"]) == [1, 1, 2]
     assert hl.loc["pooled", "wrong_pct_of_drawn"] == pytest.approx(100 * 2 / 20)
+    # resampling the six scenario-seeds: draws without either seed 2 hold no wrong episode
+    assert hl.loc["pooled", "wrong_pct_ci95_low"] == 0.0 < 10.0 < hl.loc["pooled", "wrong_pct_ci95_high"]
+    assert hl["wrong_minus_oracle_pct"].isna().all()  # no oracle arm
     fuel = pd.read_csv(tmp_path / "m" / "matrix_summary.csv").query("metric == 'fuel_g_per_km'").set_index("group")
     assert list(fuel["n_pairs"]) == [3, 3, 6]  # pooled: paired within each scenario and seed
     assert fuel.loc["pooled", "mean_diff"] == pytest.approx(-2.0)  # fusion - none = -seed, seeds 1-3 twice

@@ -49,9 +49,13 @@ def test_the_wrong_share_against_the_oracle_is_paired_by_seed(tmp_path):
     """Fusion draws one wrong episode in each seed the oracle does, plus one more in seed 0: the
     difference is positive in every resample that holds seed 0 and zero in the others."""
     rows = [{"seed": seed, "arm": arm, "highlights_right": 9,
-             "highlights_wrong": int(seed % 2 == 0) + int(arm == "fusion" and seed == 0)}
+             "highlights_wrong": int(seed % 2 == 0) + int(arm == "fusion" and seed == 0),
+             "missed_warnings": 0, "unseen_warnings": 0, "collisions": 0}
             for seed in range(6) for arm in ("fusion", "oracle")]
-    line = load_tool("guidance_study_tables")._wrong_share_intervals(pd.DataFrame(rows), "fusion")
+    from vcfusion.studies.matrix import highlight_table
+
+    fusion = next(r for r in highlight_table(pd.DataFrame(rows), "curved") if r["arm"] == "fusion")
+    line = load_tool("guidance_study_tables")._wrong_share_line(fusion)
     # fusion 4 wrong of 58 drawn, oracle 3 of 57: 6.9 % and 5.3 %
     assert line.startswith("fusion: wrong % of drawn 6.9 [") and ", minus oracle +1.6 [+0.0, +" in line
 

@@ -5,7 +5,8 @@ the same arms) into OUT/<scenario name>/ (or, `--from-studies`, the folders of s
 by one are read); then one table per scenario and a pooled one (every trip
 of every scenario, paired within its scenario and seed): per metric and arm the paired difference
 to ``none`` with its 95 % CI (`paired_summary`), the highlight episodes (right, wrong, missed,
-unseen; wrong and missed as shares of those drawn) and the trips with an ego collision by seed.
+unseen; wrong and missed as shares of those drawn; the wrong share's 95 % interval and its
+difference to the oracle arm's, trips resampled) and the trips with an ego collision by seed.
 Each scenario carries a label: ``tuned-on`` for the scenarios the chain was tuned on (given by
 name), ``held-out`` for the others; the pooled table says which labels it mixes.
 
@@ -19,11 +20,14 @@ import time as wallclock
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from vcfusion.errors import InputError
-from vcfusion.studies.guidance import (DEFAULT_ARMS, EMISSION_METRICS, HIGHLIGHT_COUNTS, HIGHLIGHT_UPDATES,
-                                       REFERENCE_ARM, SAFETY_METRICS, paired_summary, run_guidance_study)
+from vcfusion.metrics.cluster_bootstrap import cluster_weights, percentile_interval, ratio_draws
+from vcfusion.studies.guidance import (CAMERA_ARMS, DEFAULT_ARMS, EMISSION_METRICS, HIGHLIGHT_COUNTS,
+                                       HIGHLIGHT_UPDATES, REFERENCE_ARM, SAFETY_METRICS, paired_summary,
+                                       run_guidance_study)
 
 
 class StudyFolderError(InputError):
@@ -33,8 +37,52 @@ class StudyFolderError(InputError):
 KEY_METRICS = ("min_gap_to_target_m", "avg_ttc_clipped_s", "avg_abs_accel_mps2", "fuel_g_per_km", "collisions")
 
 
+# percentile bootstrap of the wrong share over trips (seeds): 4,000 resamples put the interval's ends
+# within about 0.1 point of their limit on 200-seed studies (curved 3000-3199: the same to 0.1 with 16,000)
+WRONG_SHARE_RESAMPLES = 4000
+WRONG_SHARE_COLUMNS = ("wrong_pct_ci95_low", "wrong_pct_ci95_high", "wrong_minus_oracle_pct",
+                       "wrong_minus_oracle_ci95_low", "wrong_minus_oracle_ci95_high")
+
+
+def wrong_share_intervals(trips: pd.DataFrame, pair_on: tuple[str, ...] = ("seed",)) -> dict[str, dict]:
+    """Per camera arm, its wrong highlight episodes in % of those drawn (right + wrong) with a 95 %
+    percentile interval, and its difference to the ``oracle`` arm's (paired), both from resampling
+    the trips (the `pair_on` values: a seed, or a scenario and seed in a pool) with replacement
+    (vcfusion.metrics.cluster_bootstrap). Over the trips every camera arm ran, so all arms are
+    evaluated on the same resamples. Keys: WRONG_SHARE_COLUMNS (the differences nan where there is
+    no oracle arm)."""
+    arms = [a for a in trips["arm"].unique() if a in CAMERA_ARMS]
+    if not arms:
+        return {}
+    t = trips[trips["arm"].isin(arms)].assign(drawn=trips["highlights_right"] + trips["highlights_wrong"])
+    per_trip = t.pivot(index=list(pair_on), columns="arm", values=["highlights_wrong", "drawn"]).dropna()
+    if per_trip.empty:
+        return {}
+    weights = cluster_weights(len(per_trip), WRONG_SHARE_RESAMPLES, seed=0)
+    shares = {}  # arm -> (point, per resample), %
+    for a in arms:
+        wrong, drawn = per_trip[("highlights_wrong", a)].to_numpy(), per_trip[("drawn", a)].to_numpy()
+        shares[a] = (100 * ratio_draws(np.ones((1, len(wrong))), wrong, drawn)[0],
+                     100 * ratio_draws(weights, wrong, drawn))
+    out = {}
+    for a, (point, draws) in shares.items():
+        low, high = percentile_interval(draws)
+        row = {"wrong_pct_ci95_low": low, "wrong_pct_ci95_high": high, "wrong_minus_oracle_pct": np.nan, "wrong_minus_oracle_ci95_low": np.nan,
+               "wrong_minus_oracle_ci95_high": np.nan}
+        if a != "oracle" and "oracle" in shares:
+            low, high = percentile_interval(draws - shares["oracle"][1])
+            row |= {"wrong_minus_oracle_pct": point - shares["oracle"][0], "wrong_minus_oracle_ci95_low": low,
+                    "wrong_minus_oracle_ci95_high": high}
+        out[a] = row
+    return out
+
+
 def highlight_table(trips: pd.DataFrame, group: str) -> dict:
-    """Highlight episode sums of one scenario (or the pool) per guided arm, with the shares."""
+    """Highlight episode sums of one scenario (or the pool, trips paired within scenario and seed)
+    per guided arm, with the shares and, for the camera arms, the wrong share's 95 % intervals
+    (:func:`wrong_share_intervals`)."""
+    pair_on = ("scenario", "seed") if "scenario" in trips else ("seed",)
+    intervals = wrong_share_intervals(trips, pair_on)
     rows = []
     for arm, t in trips[trips["arm"] != REFERENCE_ARM].groupby("arm", sort=False):
         sums = {k: int(t[k].sum()) for k in HIGHLIGHT_COUNTS}
@@ -51,6 +99,7 @@ def highlight_table(trips: pd.DataFrame, group: str) -> dict:
                                                     else float("nan")),
                      "updates_missed_pct_of_drawn": (100 * ups["updates_missed"] / drawn_ups if drawn_ups
                                                      else float("nan")),
+                     **{k: intervals.get(arm, {}).get(k, np.nan) for k in WRONG_SHARE_COLUMNS},
                      "collision_seeds": " ".join(map(str, hit)),
                      "reference_collision_seeds": " ".join(map(str, ref["seed"].tolist()))})
     return rows
@@ -160,7 +209,13 @@ def write_matrix(studies: list[StudyPart], out: Path, tuned_on: set[str], head: 
         lines += ["", f"{group} [{label}]"]
         for r in hl[hl["group"] == group].itertuples(index=False):
             lines.append(f"  {r.arm}: highlight episodes right {r.highlights_right}, wrong {r.highlights_wrong} "
-                         f"({r.wrong_pct_of_drawn:.1f} % of drawn), missed {r.missed_warnings} "
+                         f"({r.wrong_pct_of_drawn:.1f} % of drawn"
+                         + ("" if r.wrong_pct_ci95_low != r.wrong_pct_ci95_low else
+                            f" [{r.wrong_pct_ci95_low:.1f}, {r.wrong_pct_ci95_high:.1f}]")
+                         + ("" if r.wrong_minus_oracle_pct != r.wrong_minus_oracle_pct else
+                            f", minus oracle {r.wrong_minus_oracle_pct:+.1f} [{r.wrong_minus_oracle_ci95_low:+.1f}, "
+                            f"{r.wrong_minus_oracle_ci95_high:+.1f}]")
+                         + f"), missed {r.missed_warnings} "
                          f"({r.missed_pct_of_drawn:.1f} %), unseen {r.unseen_warnings}"
                          + ("" if r.updates_right != r.updates_right else
                             f"; per update: wrong {r.updates_wrong_pct_of_drawn:.1f} %, missed "
