@@ -831,6 +831,35 @@ def test_a_box_s_surface_depth_is_the_face_of_the_segment_drawing_its_outline():
     assert short[short < road].min() - 0.01 <= face <= np.median(short[short < road])
 
 
+def test_a_segment_reaching_well_outside_a_box_is_not_its_surface():
+    """A car 7 m ahead and a car entering beside it 6.5 m away touch in the image within one depth
+    jump: one segment, overlapping the first car's box at IoU above 0.5, a third of it outside the
+    box, whose face is the entering car's. That box's surface is unknown (the matcher reads its
+    samples); the first car alone (the entering one drawn farther, a separate segment) has its
+    face as its surface."""
+    from vcfusion.fusion.bench import default_camera, road_depth
+    from vcfusion.fusion.box_refine import MIN_SURFACE_INSIDE_SHARE, box_surface_depths, object_segments
+    from vcfusion.fusion.matching import box_inside_share
+
+    K, T = default_camera()
+    road = road_depth(K, T, 640, 480)
+    alone = _plate(road, K, T, 7.0, -0.9, 0.9, 1.5)
+    car = alone < road
+    car_box = _mask_box(car)
+    joined = _plate(alone, K, T, 6.5, 0.7, 1.6, 1.5)
+    segments = object_segments(joined, K, T)
+    label = segments.labels[segments.labels > 0]
+    assert len(np.unique(label)) == 1  # the two cars are one surface
+    seg_box = segments.present_boxes[0]
+    assert box_iou(seg_box[None], car_box[None])[0, 0] >= 0.5  # ... which draws the car's outline
+    assert box_inside_share(seg_box[None], car_box[None])[0, 0] < MIN_SURFACE_INSIDE_SHARE
+    assert np.isnan(box_surface_depths(car_box[None], segments)).all()
+    # the entering car farther than one depth jump: its own segment, and the car's face is known again
+    apart = _plate(alone, K, T, 9.0, 0.7, 1.6, 1.5)
+    face = box_surface_depths(car_box[None], object_segments(apart, K, T))[0]
+    assert alone[car].min() - 0.01 <= face <= np.median(alone[car])
+
+
 def test_the_fusion_s_depth_step_on_given_segments_equals_its_own(frames):
     """fuse_frame cuts the depth image into segments once for the depth step and the matcher."""
     from vcfusion.fusion.fuse import depth_step, frame_segments
