@@ -62,13 +62,12 @@ def wrong_share_intervals(trips: pd.DataFrame, pair_on: tuple[str, ...] = ("seed
     shares = {}  # arm -> (point, per resample), %
     for a in arms:
         wrong, drawn = per_trip[("highlights_wrong", a)].to_numpy(), per_trip[("drawn", a)].to_numpy()
-        shares[a] = (100 * ratio_draws(np.ones((1, len(wrong))), wrong, drawn)[0],
+        shares[a] = (100 * wrong.sum() / drawn.sum() if drawn.sum() else np.nan,
                      100 * ratio_draws(weights, wrong, drawn))
     out = {}
     for a, (point, draws) in shares.items():
         low, high = percentile_interval(draws)
-        row = {"wrong_pct_ci95_low": low, "wrong_pct_ci95_high": high, "wrong_minus_oracle_pct": np.nan, "wrong_minus_oracle_ci95_low": np.nan,
-               "wrong_minus_oracle_ci95_high": np.nan}
+        row = dict.fromkeys(WRONG_SHARE_COLUMNS, np.nan) | {"wrong_pct_ci95_low": low, "wrong_pct_ci95_high": high}
         if a != "oracle" and "oracle" in shares:
             low, high = percentile_interval(draws - shares["oracle"][1])
             row |= {"wrong_minus_oracle_pct": point - shares["oracle"][0], "wrong_minus_oracle_ci95_low": low,
