@@ -357,7 +357,7 @@ def p6_drive(max_time_s: float) -> dict:
     sc = sc.model_copy(update={"simulation": sc.simulation.model_copy(update={"max_time_s": max_time_s}),
                                "ar": sc.ar.model_copy(update={"video": False})})
     out = {"name": "P6 real-time drive 640x480 + vision tick"}
-    keys = ("display_fps_median", "dropped_frames", "frames_due", "max_lag_s", "input_to_display_ms_median",
+    keys = ("display_fps_median", "frames_shown_per_s", "frame_interval_ms_p5", "frame_interval_ms_p95", "dropped_frames", "frames_due", "max_lag_s", "input_to_display_ms_median",
             "ar_age_ms_median", "ar_age_ms_max", "frame_work_ms_p99", "frame_cpu_ms_p99", "frames_over_budget",
             "gc_collections_full", "gc_pause_ms_max")
     for prefix, pipelined in (("", True), ("in_loop_", False)):

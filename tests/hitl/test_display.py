@@ -288,3 +288,44 @@ def test_each_due_frame_records_the_loops_work_cpu_and_gc_pauses_of_its_period()
     assert frames.gc_ms[at] == pytest.approx(1e3 * full[2], rel=1e-6) and frames.gc_ms.drop(at).sum() < frames.gc_ms[at]
     assert rt["gc_collections_full"] == 1 and rt["gc_pause_ms_max"] >= 1e3 * full[2] - 1e-9
     assert rt["gc_collections"] == len(pauses.pauses) and rt["gc_pause_ms_total"] == pytest.approx(frames.gc_ms.sum())
+
+
+def test_a_paced_display_flips_each_frame_at_its_due_time_not_at_the_step_that_drew_it():
+    # 60 frames/s over 10-ms SUMO steps: a frame is drawn at the last step before it is due and
+    # shown at its due time, so the shown frames are a frame period apart (flipped at the steps
+    # themselves they were 10 and 20 ms apart: median 20 ms, "50 frames/s")
+    from types import SimpleNamespace
+
+    from vcfusion.cosim import EgoStep
+    from vcfusion.hitl.driver import HumanDriver
+
+    control = SimpleNamespace(steer=0.0, throttle=0.0, brake=0.0, lane_change=0)
+    device = SimpleNamespace(sample=lambda t, dt: (control, {}), handle=lambda e: None)
+    state = SimpleNamespace(accel=0.0, d=1.0, yaw=0.0)
+    vehicle = SimpleNamespace(update=lambda c, dt, s: state, state=state)
+    renderer = BurningRenderer(1.0, -1.0)
+    driver = HumanDriver(device, vehicle, 0.01, 1000.0, guidance_on=False, speed=1.0, display_fps=60.0,
+                         renderer=renderer)
+    for k in range(61):
+        t = round(0.01 * k, 6)
+        driver.step(EgoStep(t, 10.0, 10.0, lambda t=t: SimpleNamespace(time=t)))
+    tables, summary = {}, {}
+    driver.finish(tables, summary)
+    frames = tables["frames"]
+    assert len(frames) == 37  # due at k / 60 s for k = 0..36 (the last before the step after 0.6 s)
+    shown = frames[frames.shown]
+    assert len(shown) >= 30
+    # each shown frame's state is the last step's at or before its due time (never a later one)
+    due = np.arange(len(frames)) / 60.0
+    drawn_from = frames.sim_time.to_numpy()[frames.shown.to_numpy()]
+    assert ((due[frames.shown.to_numpy()] - drawn_from) >= -1e-6).all()
+    assert ((due[frames.shown.to_numpy()] - drawn_from) < 0.01).all()
+    # flipped at the due time: never before it, and a frame period apart
+    assert (shown.wall_s.to_numpy() >= due[frames.shown.to_numpy()] - 1e-4).all()
+    intervals = np.diff(frames.wall_s.to_numpy())[frames.shown.to_numpy()[1:] & frames.shown.to_numpy()[:-1]]
+    assert np.median(intervals) == pytest.approx(1 / 60, abs=1.5e-3)
+    rt = summary["realtime"]
+    assert rt["display_fps_median"] == pytest.approx(60.0, abs=6.0)
+    walls = shown.wall_s.to_numpy()
+    assert rt["frames_shown_per_s"] == pytest.approx((len(walls) - 1) / (walls[-1] - walls[0]))
+    assert rt["frame_interval_ms_p5"] <= 1e3 * np.median(intervals) <= rt["frame_interval_ms_p95"]

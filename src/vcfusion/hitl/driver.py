@@ -8,9 +8,11 @@ Every SUMO step (`step`):
 2. input: SDL events go to the device, the device gives the step's ControlSample;
 3. vehicle model: the controls become the acceleration and the lateral position / yaw that the
    loop imposes on SUMO for the next step;
-4. display: when a display frame is due (every 1/display_fps of simulated time) it renders the ego
-   camera (at a tick, the camera stage's render of that tick is the same image: reused), draws
-   the overlay and HUD and shows it. Frames are dropped before the simulation is
+4. display: when a display frame is due (every 1/display_fps of simulated time) before the next
+   step, it renders this step's state of the ego camera (at a tick, the camera stage's render of
+   that tick is the same image: reused), draws the overlay and HUD and, paced, shows it when the
+   wall clock reaches the frame's due time (flipped at the step itself, a 60 frames/s display over
+   10-ms steps showed its frames 10 and 20 ms apart). Frames are dropped before the simulation is
    slowed: when the step is already later than one frame period, the frame is not drawn (unless
    no frame was shown for MAX_FRAME_GAP frame periods, or its image is the tick's render, made
    already: showing it costs the overlay and the flip, about 1 ms, and it is counted late, not
@@ -21,7 +23,8 @@ Every SUMO step (`step`):
    counted as dropped (the display cannot be faster than the simulation's step).
 Every step's wall time, simulated time, lag, raw readings and mapped controls go to the
 `inputs` table; every displayed or dropped frame to `frames`; `finish` adds both and the
-summary's `realtime` block (display_fps_median, late_frames, dropped_frames, max_lag_s,
+summary's `realtime` block (display_fps_median: 1 / the median interval between shown frames;
+frames_shown_per_s; frame_interval_ms_p5 / _p95; late_frames, dropped_frames, max_lag_s,
 input_to_display_ms_median, the frame work figures below) and `hitl` block.
 
 Frame work: every due frame's row also says what the loop did in the frame period that ended
@@ -172,16 +175,16 @@ class HumanDriver:
         r["accel"].append(state.accel)
         r["d"].append(state.d)
         r["yaw"].append(state.yaw)
-        if self.renderer is not None and st.time >= self._next_frame - 1e-9:
-            skipped = []
-            while self._next_frame <= st.time + 1e-9:
-                skipped.append(self._next_frame)
+        if self.renderer is not None and self._next_frame < st.time + self.dt - 1e-9:
+            due = []  # the frames due before the next step
+            while self._next_frame < st.time + self.dt - 1e-9:
+                due.append(self._next_frame)
                 self._next_frame += self.frame_period
-            # frames due between two SUMO steps (a step longer than a frame period) cannot be
-            # drawn: the display has nothing new to show; they count as dropped
-            for due in skipped[:-1]:
-                self._dropped(due, lag)
-            self._frame(st, lag)
+            # the first shows this step's state at its own due time; the others (a step longer than
+            # a frame period) have nothing new to show: they count as dropped
+            self._frame(st, lag, due[0])
+            for later in due[1:]:
+                self._dropped(later, lag)
         self._last_poll = now
         return EgoCommand(state.accel, state.d, state.yaw)
 
@@ -213,12 +216,14 @@ class HumanDriver:
         f["gc_ms"].append(1000.0 * (gc_total - gc0))
         self._mark = (now, cpu, self._slept, gc_total)
 
-    def _frame(self, st: EgoStep, lag: float) -> None:
+    def _frame(self, st: EgoStep, lag: float, due: float) -> None:
+        """Draw this step's state as the display frame due at simulated time `due` (at or after the
+        step's, before the next step's); a paced drive shows it at that time's wall clock."""
         starved = self._last_shown is None or wallclock.perf_counter() - self._last_shown > MAX_FRAME_GAP * self.frame_period
         tick_frame = self._tick_frame
         rendered = tick_frame is not None and abs(tick_frame.time - st.time) < 1e-9  # this step's image is made
         if self.speed is not None and lag > self.frame_period and not starved and not rendered:
-            self._dropped(st.time, lag)  # behind the clock: drop the frame rather than slow the simulation further
+            self._dropped(due, lag)  # behind the clock: drop the frame rather than slow the simulation further
             return
         f = self.frame_rows
         f["sim_time"].append(round(st.time, 6))
@@ -229,17 +234,26 @@ class HumanDriver:
         items = self._drawn(frame, st.time) if self.guidance_on else []
         hud = HudInfo(st.time, st.speed, self.trip_end_s - st.s_front, self.guidance_on, lag)
         image = compose(frame.rgb, items, hud)
+        drawn = wallclock.perf_counter()
+        if self.speed is not None:
+            # flip at the frame's due time, not at the step that drew it: at 60 frames/s and a 10-ms
+            # step, flipping at the step gave intervals of 10 and 20 ms (H200, docs/performance.md)
+            flip_at = self._wall0 + (due - self._sim0) / self.speed
+            now = wallclock.perf_counter()
+            if now < flip_at:
+                wallclock.sleep(flip_at - now)
+                self._slept += wallclock.perf_counter() - now
         if self.window is not None:
             self.window.show(image)
+        shown = self._last_shown = wallclock.perf_counter()  # the flip (the bookkeeping below comes after it)
         self._log_drawn(st.time, items, frame)
         if self.video is not None:
             self.video.add(image)
             self._last_image = image
-        shown = self._last_shown = wallclock.perf_counter()
         f["wall_s"].append(shown - self._wall0)
         f["shown"].append(True)
         f["lag_s"].append(lag)
-        f["render_ms"].append(1000.0 * (shown - started))
+        f["render_ms"].append(1000.0 * (drawn - started))
         # the state shown was moved by the previous step's command: from that poll to the flip
         f["input_to_display_ms"].append(1000.0 * (shown - (self._last_poll or started)))
         # how old the overlay's picture of the world is: from the frame it was made from to this one
@@ -344,6 +358,11 @@ def realtime_summary(frames: dict[str, list], step_lags: list[float], speed: flo
         "dropped_frames": int((~shown).sum()),
         "late_frames": int((~shown).sum() + (period_lag[shown] > late_limit).sum()) if speed is not None else 0,
         "display_fps_median": float(1.0 / np.median(intervals)) if len(intervals) and np.median(intervals) > 0 else None,
+        # the rate a frame counter shows, and the spread of the flips (the median interval alone
+        # hides a display that alternates 10- and 20-ms gaps: "50 frames/s" at 60 shown a second)
+        "frames_shown_per_s": float(len(intervals) / (wall[-1] - wall[0])) if len(intervals) and wall[-1] > wall[0] else None,
+        "frame_interval_ms_p5": pct(1000.0 * intervals, 5),
+        "frame_interval_ms_p95": pct(1000.0 * intervals, 95),
         "max_lag_s": float(max(step_lags)) if step_lags and speed is not None else None,
         "input_to_display_ms_median": float(np.median(to_display)) if len(to_display) else None,
         "ar_age_ms_median": float(np.median(age)) if len(age) else None,
