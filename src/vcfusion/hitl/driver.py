@@ -45,6 +45,7 @@ guidance study counts a person's right and wrong highlights from it, i.e. from w
 from __future__ import annotations
 
 import time as wallclock
+from collections import deque
 
 import numpy as np
 
@@ -58,6 +59,10 @@ from vcfusion.hitl.vehicle import VehicleModel
 # cannot keep real time even without frames would otherwise show a frozen picture; then the
 # display keeps about 1/4 of its rate and the lag grows (measured).
 MAX_FRAME_GAP = 4
+# A frame due after the next SUMO step by less than the longest of the last this-many draws is
+# drawn a step early (HumanDriver._draw_ahead): a few frames, so that one slow draw (a collection,
+# a busy core) sets the lead for a moment only.
+DRAW_TIMES_KEPT = 8
 
 
 DISPLAY_COLUMNS = ("time", "vehicle_id", "box_vehicle_id", "lc_prob", "level", "source", "x1", "y1", "x2", "y2")
@@ -106,6 +111,10 @@ class HumanDriver:
         self._last_poll = None
         self._last_shown: float | None = None
         self._tick_frame = None
+        # a paced display's draw times (render + overlay + compose, wall s), and a frame drawn a
+        # step ahead of its due time (the arguments of _show), shown from the next step's call
+        self._draw_times: deque[float] = deque(maxlen=DRAW_TIMES_KEPT)
+        self._ahead: tuple | None = None
         # frame work (module doc): the garbage collections' timer (vcfusion.hitl.gcpause.GcPauses,
         # entered by the caller), the pacing sleep so far (s) and (wall, thread CPU, sleep, GC) at the
         # end of the last due frame
@@ -175,6 +184,9 @@ class HumanDriver:
         r["accel"].append(state.accel)
         r["d"].append(state.d)
         r["yaw"].append(state.yaw)
+        if self._ahead is not None:  # drawn at an earlier step, due before the next one
+            self._show(*self._ahead)
+            self._ahead = None
         if self.renderer is not None and self._next_frame < st.time + self.dt - 1e-9:
             due = []  # the frames due before the next step
             while self._next_frame < st.time + self.dt - 1e-9:
@@ -185,6 +197,9 @@ class HumanDriver:
             self._frame(st, lag, due[0])
             for later in due[1:]:
                 self._dropped(later, lag)
+        if self.renderer is not None and self.speed is not None and self._draw_ahead(st):
+            self._frame(st, lag, self._next_frame, ahead=True)
+            self._next_frame += self.frame_period
         self._last_poll = now
         return EgoCommand(state.accel, state.d, state.yaw)
 
@@ -216,17 +231,32 @@ class HumanDriver:
         f["gc_ms"].append(1000.0 * (gc_total - gc0))
         self._mark = (now, cpu, self._slept, gc_total)
 
-    def _frame(self, st: EgoStep, lag: float, due: float) -> None:
-        """Draw this step's state as the display frame due at simulated time `due` (at or after the
-        step's, before the next step's); a paced drive shows it at that time's wall clock."""
+    def _draw_ahead(self, st: EgoStep) -> bool:
+        """Whether the next frame is drawn now, a step early: it falls due after the next step by
+        less than a draw takes (the most of the last DRAW_TIMES_KEPT draws), so drawn there it would
+        be shown late by the rest of the draw, and a draw still fits before the next step is due
+        (a late loop has no time to spare). A frame due exactly at a step is drawn at that step (at
+        a V2C tick its image is the tick's render, made already). One drawn ahead is never dropped;
+        one due after the trip's last step is not shown."""
+        if not self._draw_times:
+            return False
+        draw_s = max(self._draw_times)
+        after_next = self._next_frame - (st.time + self.dt)
+        on_step = abs(after_next / self.dt - round(after_next / self.dt)) < 1e-6
+        next_step_wall = self._wall0 + (st.time + self.dt - self._sim0) / self.speed
+        return (not on_step and after_next < draw_s * self.speed
+                and wallclock.perf_counter() + draw_s <= next_step_wall)
+
+    def _frame(self, st: EgoStep, lag: float, due: float, ahead: bool = False) -> None:
+        """Draw this step's state as the display frame due at simulated time `due` (before the next
+        step's, or after it when drawn `ahead`: then it is shown from the next step's call); a paced
+        drive shows it at that time's wall clock."""
         starved = self._last_shown is None or wallclock.perf_counter() - self._last_shown > MAX_FRAME_GAP * self.frame_period
         tick_frame = self._tick_frame
         rendered = tick_frame is not None and abs(tick_frame.time - st.time) < 1e-9  # this step's image is made
         if self.speed is not None and lag > self.frame_period and not starved and not rendered:
             self._dropped(due, lag)  # behind the clock: drop the frame rather than slow the simulation further
             return
-        f = self.frame_rows
-        f["sim_time"].append(round(st.time, 6))
         started = wallclock.perf_counter()
         frame = tick_frame if rendered else self.renderer.render(st.states())
         if self.vision is not None:
@@ -235,9 +265,21 @@ class HumanDriver:
         hud = HudInfo(st.time, st.speed, self.trip_end_s - st.s_front, self.guidance_on, lag)
         image = compose(frame.rgb, items, hud)
         drawn = wallclock.perf_counter()
+        self._draw_times.append(drawn - started)
+        # the state shown was moved by the previous step's command: input to display counts from that poll
+        shown_args = (st.time, lag, due, image, items, frame, started, drawn, self._last_poll or started,
+                      1000.0 * (st.time - self._update_time) if self._shown_set is not None else np.nan)
+        if ahead:
+            self._ahead = shown_args
+        else:
+            self._show(*shown_args)
+
+    def _show(self, time_s: float, lag: float, due: float, image, items, frame, started: float, drawn: float,
+              poll: float, ar_age_ms: float) -> None:
+        """Show a drawn frame and record it: a paced drive flips it when the wall clock reaches its
+        due time, not at the step that drew it (flipped at the step, a 60 frames/s display over
+        10-ms steps came 10 and 20 ms apart: H200, docs/performance.md)."""
         if self.speed is not None:
-            # flip at the frame's due time, not at the step that drew it: at 60 frames/s and a 10-ms
-            # step, flipping at the step gave intervals of 10 and 20 ms (H200, docs/performance.md)
             flip_at = self._wall0 + (due - self._sim0) / self.speed
             now = wallclock.perf_counter()
             if now < flip_at:
@@ -246,18 +288,19 @@ class HumanDriver:
         if self.window is not None:
             self.window.show(image)
         shown = self._last_shown = wallclock.perf_counter()  # the flip (the bookkeeping below comes after it)
-        self._log_drawn(st.time, items, frame)
+        self._log_drawn(time_s, items, frame)
         if self.video is not None:
             self.video.add(image)
             self._last_image = image
+        f = self.frame_rows
+        f["sim_time"].append(round(time_s, 6))
         f["wall_s"].append(shown - self._wall0)
         f["shown"].append(True)
         f["lag_s"].append(lag)
         f["render_ms"].append(1000.0 * (drawn - started))
-        # the state shown was moved by the previous step's command: from that poll to the flip
-        f["input_to_display_ms"].append(1000.0 * (shown - (self._last_poll or started)))
+        f["input_to_display_ms"].append(1000.0 * (shown - poll))
         # how old the overlay's picture of the world is: from the frame it was made from to this one
-        f["ar_age_ms"].append(1000.0 * (st.time - self._update_time) if self._shown_set is not None else np.nan)
+        f["ar_age_ms"].append(ar_age_ms)
         self._close_period()
 
     def _take_vision_result(self) -> None:
