@@ -12,7 +12,9 @@ Every SUMO step (`step`):
    step, it renders this step's state of the ego camera (at a tick, the camera stage's render of
    that tick is the same image: reused), draws the overlay and HUD and, paced, shows it when the
    wall clock reaches the frame's due time (flipped at the step itself, a 60 frames/s display over
-   10-ms steps showed its frames 10 and 20 ms apart). Frames are dropped before the simulation is
+   10-ms steps showed its frames 10 and 20 ms apart). A paced frame due so soon after the next
+   step that its draw would make it late there is drawn a step ahead, where the draw fits before
+   that step, and shown from the next step's call (`_draw_ahead`). Frames are dropped before the simulation is
    slowed: when the step is already later than one frame period, the frame is not drawn (unless
    no frame was shown for MAX_FRAME_GAP frame periods, or its image is the tick's render, made
    already: showing it costs the overlay and the flip, about 1 ms, and it is counted late, not
