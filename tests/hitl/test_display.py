@@ -246,30 +246,39 @@ class BurningRenderer:
         return SimpleNamespace(time=truth.time, rgb=np.zeros((48, 64, 3), np.uint8))
 
 
-def test_each_due_frame_records_the_loops_work_cpu_and_gc_pauses_of_its_period():
-    # a paced 0.3-s drive at 100 steps/s, a 30 frames/s display whose render costs 8 ms of CPU, and
-    # one full garbage collection inside the frame at 0.2 s (on a busy machine a frame after it
-    # may be dropped)
+def _paced_drive(renderer, display_fps: float, steps: int, gc_pauses=None):
+    """A paced drive of `steps` 10-ms SUMO steps with an idle device and a still car, the display
+    drawn by `renderer`; returns the driver, its tables and summary."""
+    import contextlib
     from types import SimpleNamespace
 
     from vcfusion.cosim import EgoStep
     from vcfusion.hitl.driver import HumanDriver
-    from vcfusion.hitl.gcpause import GcPauses
 
     control = SimpleNamespace(steer=0.0, throttle=0.0, brake=0.0, lane_change=0)
     device = SimpleNamespace(sample=lambda t, dt: (control, {}), handle=lambda e: None)
     state = SimpleNamespace(accel=0.0, d=1.0, yaw=0.0)
     vehicle = SimpleNamespace(update=lambda c, dt, s: state, state=state)
-    renderer = BurningRenderer(8.0, 0.2)
-    pauses = GcPauses()
-    driver = HumanDriver(device, vehicle, 0.01, 1000.0, guidance_on=False, speed=1.0, display_fps=30.0,
-                         renderer=renderer, gc_pauses=pauses)
-    with pauses:
-        for k in range(31):
+    driver = HumanDriver(device, vehicle, 0.01, 1000.0, guidance_on=False, speed=1.0, display_fps=display_fps,
+                         renderer=renderer, gc_pauses=gc_pauses)
+    tables, summary = {}, {}
+    with gc_pauses if gc_pauses is not None else contextlib.nullcontext():
+        for k in range(steps):
             t = round(0.01 * k, 6)
             driver.step(EgoStep(t, 10.0, 10.0, lambda t=t: SimpleNamespace(time=t)))
-        tables, summary = {}, {}
         driver.finish(tables, summary)
+    return driver, tables, summary
+
+
+def test_each_due_frame_records_the_loops_work_cpu_and_gc_pauses_of_its_period():
+    # a paced 0.3-s drive at 100 steps/s, a 30 frames/s display whose render costs 8 ms of CPU, and
+    # one full garbage collection inside the frame at 0.2 s (on a busy machine a frame after it
+    # may be dropped)
+    from vcfusion.hitl.gcpause import GcPauses
+
+    renderer = BurningRenderer(8.0, 0.2)
+    pauses = GcPauses()
+    driver, tables, summary = _paced_drive(renderer, 30.0, 31, pauses)
     frames = tables["frames"]
     rt = summary["realtime"]
     # every render is shown, but for one drawn ahead for a frame due after the last step
@@ -296,23 +305,7 @@ def test_a_paced_display_flips_each_frame_at_its_due_time_not_at_the_step_that_d
     # 60 frames/s over 10-ms SUMO steps: a frame is drawn at the last step before it is due and
     # shown at its due time, so the shown frames are a frame period apart (flipped at the steps
     # themselves they were 10 and 20 ms apart: median 20 ms, "50 frames/s")
-    from types import SimpleNamespace
-
-    from vcfusion.cosim import EgoStep
-    from vcfusion.hitl.driver import HumanDriver
-
-    control = SimpleNamespace(steer=0.0, throttle=0.0, brake=0.0, lane_change=0)
-    device = SimpleNamespace(sample=lambda t, dt: (control, {}), handle=lambda e: None)
-    state = SimpleNamespace(accel=0.0, d=1.0, yaw=0.0)
-    vehicle = SimpleNamespace(update=lambda c, dt, s: state, state=state)
-    renderer = BurningRenderer(1.0, -1.0)
-    driver = HumanDriver(device, vehicle, 0.01, 1000.0, guidance_on=False, speed=1.0, display_fps=60.0,
-                         renderer=renderer)
-    for k in range(61):
-        t = round(0.01 * k, 6)
-        driver.step(EgoStep(t, 10.0, 10.0, lambda t=t: SimpleNamespace(time=t)))
-    tables, summary = {}, {}
-    driver.finish(tables, summary)
+    _, tables, summary = _paced_drive(BurningRenderer(1.0, -1.0), 60.0, 61)
     frames = tables["frames"]
     assert len(frames) == 37  # due at k / 60 s for k = 0..36 (the last before the step after 0.6 s)
     shown = frames[frames.shown]
@@ -353,23 +346,7 @@ def test_a_frame_due_too_soon_after_a_step_for_its_draw_is_drawn_a_step_ahead():
     # 60 frames/s over 10-ms steps with a 7-ms draw: the frame due at 133.3 ms, drawn at the
     # 130-ms step, would be shown 3.7 ms late; drawn at the 120-ms step it is shown on time. A
     # frame due at a step itself (every third) is drawn at that step and shown a draw's time late.
-    from types import SimpleNamespace
-
-    from vcfusion.cosim import EgoStep
-    from vcfusion.hitl.driver import HumanDriver
-
-    control = SimpleNamespace(steer=0.0, throttle=0.0, brake=0.0, lane_change=0)
-    device = SimpleNamespace(sample=lambda t, dt: (control, {}), handle=lambda e: None)
-    state = SimpleNamespace(accel=0.0, d=1.0, yaw=0.0)
-    vehicle = SimpleNamespace(update=lambda c, dt, s: state, state=state)
-    renderer = SleepingRenderer(7.0)
-    driver = HumanDriver(device, vehicle, 0.01, 1000.0, guidance_on=False, speed=1.0, display_fps=60.0,
-                         renderer=renderer)
-    for k in range(61):
-        t = round(0.01 * k, 6)
-        driver.step(EgoStep(t, 10.0, 10.0, lambda t=t: SimpleNamespace(time=t)))
-    tables, summary = {}, {}
-    driver.finish(tables, summary)
+    _, tables, summary = _paced_drive(SleepingRenderer(7.0), 60.0, 61)
     frames = tables["frames"]
     # the first draw (imports, warm-up) may make the loop drop the frame after it
     assert len(frames) == 37 and frames.shown[3:].all()
