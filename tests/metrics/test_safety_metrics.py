@@ -58,6 +58,22 @@ def test_ttc_undefined_when_not_closing_and_interval_starts_at_mid_time():
     assert m["ttc_samples"] == 0
 
 
+def test_the_gap_is_measured_while_the_cut_in_vehicle_stays_in_the_ego_lane():
+    # it cuts in 50 m ahead and pulls away, leaves the lane at 3 s, and changes back in at 5 s
+    # 20 m behind the ego's front (curved seed 4174): the minimum gap is the cut-in's own, 50 m,
+    # not -20 m, and no TTC is read after it left
+    n = 701
+    t = np.arange(n) * DT
+    target_s = np.where(t < 4.0, 52.0 + 20.0 * t, 52.0 + 20.0 * 4.0 + 5.0 * (t - 4.0))
+    target_s = np.where(t >= 5.0, 20.0 * t - 20.0 + 2.0, target_s)
+    tables = _tables(np.full(n, 20.0), target_s, np.full(n, 20.0))
+    lane = np.where((tables["trajectories"].time >= 3.0) & (tables["trajectories"].time < 5.0), 1, 2)
+    tables["trajectories"]["lane"] = lane
+    m = trip_metrics(tables, ego_lane=2, dt=DT, cut_in_range_m=RANGE)
+    assert m["min_gap_to_target_m"] == pytest.approx(50.0, abs=1e-6)
+    assert m["ttc_samples"] == 0  # it never came closer while it stayed
+
+
 def test_a_trip_without_a_cut_in_has_no_exposure_to_measure():
     # TET / TIT are NaN like TTC (0 would pair the trip in the study's TET row only)
     n = 101

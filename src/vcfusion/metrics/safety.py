@@ -13,8 +13,8 @@ Definitions (the same for both arms of the guidance study):
 - **TTC to the lane-change vehicle** (the paper's "silver vehicle"): the first cut-in ahead of
   the ego (``lane_changes`` rows with ``into_ego_lane`` whose rear is ahead of the ego's front by at
   most ``cut_in_range_m`` at its mid time, the scenario's ``metrics.leader_range_m``: a change into
-  the ego's lane a kilometre ahead is nobody's cut-in; earliest ``mid_time``). From its mid time (the moment its centre enters the ego lane) until the trip
-  ends, at every ego sample while it is ahead of the ego and still in the ego lane:
+  the ego's lane a kilometre ahead is nobody's cut-in; earliest ``mid_time``). From its mid time (the moment its centre enters the ego lane) until it
+  first leaves the ego lane again (or the trip ends), at every ego sample:
   gap = its rear bumper - the ego's front bumper (along the road), closing speed =
   v_ego - v_target; TTC = gap / closing, defined only where closing > 0 (constant-velocity
   TTC, as SUMO's SSM device defines it for a following situation). The target's 0.1 s
@@ -114,11 +114,19 @@ def target_ttc(ego: pd.DataFrame, trajectories: pd.DataFrame, target_id: str, ta
     v_target = np.interp(t, tr["time"], tr["speed"])
     # The lane at the latest 0.1 s sample not after t (a lane is not interpolated).
     idx = np.clip(np.searchsorted(tr["time"].to_numpy(), t + 1e-9) - 1, 0, len(tr) - 1)
-    in_lane = tr["lane"].to_numpy()[idx] == ego_lane
+    in_lane = (tr["lane"].to_numpy()[idx] == ego_lane) & inside
+    # "still in the ego lane": the cut-in's own stay, up to the first sample it is out of the lane
+    # again (curved seed 4174: a target that left at 32 s and changed back in behind the ego at
+    # 63 s gave a minimum gap of -17.5 m)
+    still = np.zeros_like(in_lane)
+    if in_lane.any():
+        first = int(np.argmax(in_lane))
+        left = np.flatnonzero(~in_lane[first:])
+        still[first:first + (int(left[0]) if left.size else len(in_lane) - first)] = True
     gap = rear - e["s"].to_numpy()
     ego_speed = e["speed"].to_numpy()
     ttc = ttc_series(gap, ego_speed, v_target)
-    valid = inside & in_lane
+    valid = still
     ttc[~valid] = np.nan
     return pd.DataFrame({"time": t, "gap_m": np.where(valid, gap, np.nan),
                          "closing_mps": np.where(valid, ego_speed - v_target, np.nan), "ttc_s": ttc})
