@@ -5,9 +5,9 @@ were shown.
     python tools/hitl_pacing.py [--fps 60] [--seconds 10] [--in-loop]
 
 Prints the drive's `realtime` block (vcfusion.hitl.driver.realtime_summary) as JSON with the
-median interval between shown frames and the intervals rounded to whole ms with their counts
-(60 frames/s over 10-ms SUMO steps: the frames' flips against their due times,
-docs/performance.md "On an NVIDIA H200"). On a GPU machine set PYOPENGL_PLATFORM=egl.
+intervals between shown frames rounded to whole ms, with their counts (60 frames/s over 10-ms
+SUMO steps: the frames' flips against their due times, docs/performance.md "On an NVIDIA H200").
+On a GPU machine set PYOPENGL_PLATFORM=egl.
 """
 
 from __future__ import annotations
@@ -25,22 +25,13 @@ def main() -> None:
     parser.add_argument("--in-loop", action="store_true", help="the vision tick in the loop's process")
     args = parser.parse_args()
 
-    import torch
+    from vcfusion.bench import p6_drive_once
 
-    from vcfusion.bench import ACCIDENT_AR
-    from vcfusion.hitl.drive import drive
-    from vcfusion.scenario import load_scenario
-
-    torch.set_num_threads(2)  # as bench P6
-    sc = load_scenario(ACCIDENT_AR)
-    sc = sc.model_copy(update={"simulation": sc.simulation.model_copy(update={"max_time_s": args.seconds}),
-                               "ar": sc.ar.model_copy(update={"video": False})})
-    result = drive(sc, 0, input_spec="keyboard", guidance_on=True, speed=1.0, out_dir=None, headless=True,
-                   display_fps=args.fps, start_screen_s=0.0, vision_pipeline=not args.in_loop)
+    result = p6_drive_once(args.seconds, display_fps=args.fps, vision_pipeline=not args.in_loop)
     frames = result.tables["frames"]
     gaps_ms = 1e3 * np.diff(frames.wall_s[frames.shown].to_numpy())
     rounded, counts = np.unique(np.round(gaps_ms), return_counts=True)
-    print(json.dumps({"display_fps": args.fps, "frame_interval_ms_p50": round(float(np.median(gaps_ms)), 2),
+    print(json.dumps({"display_fps": args.fps,
                       "frame_intervals_ms_rounded": {f"{r:.0f}": int(c) for r, c in zip(rounded, counts)},
                       **result.summary["realtime"]}))
 

@@ -341,12 +341,10 @@ def p3_dataset(seeds: int) -> dict:
             "samples_per_s": round(samples / wall), "note": "one worker process"}
 
 
-def p6_drive(max_time_s: float) -> dict:
-    """A real-time drive of scenarios/accident_ar.yaml (camera every tick, shipped CNN, joint
-    matcher) at 640x480 with the display at 30 frames/s, headless; the keyboard is idle (the ego
-    coasts), so what is measured is the loop, the vision tick and the display. Twice, alternated:
-    the fusion stage in a worker process beside the loop (what `vcfusion drive` does at real
-    speed, vcfusion.hitl.pipeline), then in the loop's process."""
+def p6_drive_once(max_time_s: float, display_fps: float = 30.0, vision_pipeline: bool = True):
+    """One real-time drive of scenarios/accident_ar.yaml, seed 0 (camera every tick, shipped CNN,
+    joint matcher) at 640x480, headless; the keyboard is idle (the ego coasts), so what is measured
+    is the loop, the vision tick and the display. Returns the drive's RunResult."""
     import torch
 
     from vcfusion.hitl.drive import drive
@@ -356,13 +354,21 @@ def p6_drive(max_time_s: float) -> dict:
     sc = load_scenario(ACCIDENT_AR)
     sc = sc.model_copy(update={"simulation": sc.simulation.model_copy(update={"max_time_s": max_time_s}),
                                "ar": sc.ar.model_copy(update={"video": False})})
+    return drive(sc, 0, input_spec="keyboard", guidance_on=True, speed=1.0, out_dir=None, headless=True,
+                 display_fps=display_fps, start_screen_s=0.0, vision_pipeline=vision_pipeline)
+
+
+def p6_drive(max_time_s: float) -> dict:
+    """The drive of p6_drive_once with the display at 30 frames/s, twice, alternated: the fusion
+    stage in a worker process beside the loop (what `vcfusion drive` does at real speed,
+    vcfusion.hitl.pipeline), then in the loop's process."""
     out = {"name": "P6 real-time drive 640x480 + vision tick"}
-    keys = ("display_fps_median", "frames_shown_per_s", "frame_interval_ms_p5", "frame_interval_ms_p95", "dropped_frames", "frames_due", "max_lag_s", "input_to_display_ms_median",
+    keys = ("display_fps_median", "frames_shown_per_s", "frame_interval_ms_p5", "frame_interval_ms_p95",
+            "dropped_frames", "frames_due", "max_lag_s", "input_to_display_ms_median",
             "ar_age_ms_median", "ar_age_ms_max", "frame_work_ms_p99", "frame_cpu_ms_p99", "frames_over_budget",
             "gc_collections_full", "gc_pause_ms_max")
     for prefix, pipelined in (("", True), ("in_loop_", False)):
-        result = drive(sc, 0, input_spec="keyboard", guidance_on=True, speed=1.0, out_dir=None, headless=True,
-                       display_fps=30.0, start_screen_s=0.0, vision_pipeline=pipelined)
+        result = p6_drive_once(max_time_s, vision_pipeline=pipelined)
         rt = result.summary["realtime"]
         out["simulated_s"] = result.summary["simulated_s"]
         # the worker's drive: its whole realtime block; the drive with the stage in the loop beside it

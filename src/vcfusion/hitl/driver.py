@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import time as wallclock
 from collections import deque
+from typing import NamedTuple
 
 import numpy as np
 
@@ -68,6 +69,20 @@ DRAW_TIMES_KEPT = 8
 
 
 DISPLAY_COLUMNS = ("time", "vehicle_id", "box_vehicle_id", "lc_prob", "level", "source", "x1", "y1", "x2", "y2")
+
+
+class DrawnFrame(NamedTuple):
+    """A display frame drawn and not yet shown (HumanDriver._frame -> _show)."""
+    time_s: float  # the simulated time of the state drawn
+    lag: float  # the drawing step's lag behind the wall clock, s
+    due: float  # the simulated time the frame is due
+    image: np.ndarray
+    items: list  # the overlay's items drawn on it
+    frame: object  # the render (its instance map scores the drawn boxes)
+    started: float  # wall clock when the draw started and ended
+    drawn: float
+    poll: float  # wall clock of the input poll whose command moved the state drawn
+    ar_age_ms: float
 
 
 class DriveAborted(Exception):
@@ -114,9 +129,9 @@ class HumanDriver:
         self._last_shown: float | None = None
         self._tick_frame = None
         # a paced display's draw times (render + overlay + compose, wall s), and a frame drawn a
-        # step ahead of its due time (the arguments of _show), shown from the next step's call
+        # step ahead of its due time, shown from the next step's call
         self._draw_times: deque[float] = deque(maxlen=DRAW_TIMES_KEPT)
-        self._ahead: tuple | None = None
+        self._ahead: DrawnFrame | None = None
         # frame work (module doc): the garbage collections' timer (vcfusion.hitl.gcpause.GcPauses,
         # entered by the caller), the pacing sleep so far (s) and (wall, thread CPU, sleep, GC) at the
         # end of the last due frame
@@ -160,12 +175,8 @@ class HumanDriver:
                 self.on_start()
         lag = 0.0
         if self.speed is not None:
-            due = self._wall0 + (st.time - self._sim0) / self.speed
-            if now < due:
-                wallclock.sleep(due - now)
-                woke = wallclock.perf_counter()
-                self._slept += woke - now
-                now = woke
+            due = self._wall_at(st.time)
+            now = self._sleep_until(due, now)
             lag = max(0.0, now - due)
         if self.pg is not None:
             for event in self.pg.event.get():
@@ -187,7 +198,7 @@ class HumanDriver:
         r["d"].append(state.d)
         r["yaw"].append(state.yaw)
         if self._ahead is not None:  # drawn at an earlier step, due before the next one
-            self._show(*self._ahead)
+            self._show(self._ahead)
             self._ahead = None
         if self.renderer is not None and self._next_frame < st.time + self.dt - 1e-9:
             due = []  # the frames due before the next step
@@ -220,6 +231,19 @@ class HumanDriver:
         f["ar_age_ms"].append(np.nan)
         self._close_period()
 
+    def _wall_at(self, sim_time: float) -> float:
+        """The wall clock at which a paced drive reaches `sim_time`."""
+        return self._wall0 + (sim_time - self._sim0) / self.speed
+
+    def _sleep_until(self, wall: float, now: float) -> float:
+        """Sleep until the wall clock reaches `wall` (the pacing sleep, counted); the time after."""
+        if now >= wall:
+            return now
+        wallclock.sleep(wall - now)
+        woke = wallclock.perf_counter()
+        self._slept += woke - now
+        return woke
+
     def _gc_total(self) -> float:
         return self.gc_pauses.total_s if self.gc_pauses is not None else 0.0
 
@@ -245,9 +269,8 @@ class HumanDriver:
         draw_s = max(self._draw_times)
         after_next = self._next_frame - (st.time + self.dt)
         on_step = abs(after_next / self.dt - round(after_next / self.dt)) < 1e-6
-        next_step_wall = self._wall0 + (st.time + self.dt - self._sim0) / self.speed
         return (not on_step and after_next < draw_s * self.speed
-                and wallclock.perf_counter() + draw_s <= next_step_wall)
+                and wallclock.perf_counter() + draw_s <= self._wall_at(st.time + self.dt))
 
     def _frame(self, st: EgoStep, lag: float, due: float, ahead: bool = False) -> None:
         """Draw this step's state as the display frame due at simulated time `due` (before the next
@@ -268,41 +291,38 @@ class HumanDriver:
         image = compose(frame.rgb, items, hud)
         drawn = wallclock.perf_counter()
         self._draw_times.append(drawn - started)
-        # the state shown was moved by the previous step's command: input to display counts from that poll
-        shown_args = (st.time, lag, due, image, items, frame, started, drawn, self._last_poll or started,
-                      1000.0 * (st.time - self._update_time) if self._shown_set is not None else np.nan)
+        drawn_frame = DrawnFrame(
+            st.time, lag, due, image, items, frame, started, drawn,
+            # the state shown was moved by the previous step's command: input to display counts from that poll
+            self._last_poll or started,
+            # how old the overlay's picture of the world is: from the frame it was made from to this one
+            1000.0 * (st.time - self._update_time) if self._shown_set is not None else np.nan)
         if ahead:
-            self._ahead = shown_args
+            self._ahead = drawn_frame
         else:
-            self._show(*shown_args)
+            self._show(drawn_frame)
 
-    def _show(self, time_s: float, lag: float, due: float, image, items, frame, started: float, drawn: float,
-              poll: float, ar_age_ms: float) -> None:
+    def _show(self, d: DrawnFrame) -> None:
         """Show a drawn frame and record it: a paced drive flips it when the wall clock reaches its
         due time, not at the step that drew it (flipped at the step, a 60 frames/s display over
         10-ms steps came 10 and 20 ms apart: H200, docs/performance.md)."""
         if self.speed is not None:
-            flip_at = self._wall0 + (due - self._sim0) / self.speed
-            now = wallclock.perf_counter()
-            if now < flip_at:
-                wallclock.sleep(flip_at - now)
-                self._slept += wallclock.perf_counter() - now
+            self._sleep_until(self._wall_at(d.due), wallclock.perf_counter())
         if self.window is not None:
-            self.window.show(image)
+            self.window.show(d.image)
         shown = self._last_shown = wallclock.perf_counter()  # the flip (the bookkeeping below comes after it)
-        self._log_drawn(time_s, items, frame)
+        self._log_drawn(d.time_s, d.items, d.frame)
         if self.video is not None:
-            self.video.add(image)
-            self._last_image = image
+            self.video.add(d.image)
+            self._last_image = d.image
         f = self.frame_rows
-        f["sim_time"].append(round(time_s, 6))
+        f["sim_time"].append(round(d.time_s, 6))
         f["wall_s"].append(shown - self._wall0)
         f["shown"].append(True)
-        f["lag_s"].append(lag)
-        f["render_ms"].append(1000.0 * (drawn - started))
-        f["input_to_display_ms"].append(1000.0 * (shown - poll))
-        # how old the overlay's picture of the world is: from the frame it was made from to this one
-        f["ar_age_ms"].append(ar_age_ms)
+        f["lag_s"].append(d.lag)
+        f["render_ms"].append(1000.0 * (d.drawn - d.started))
+        f["input_to_display_ms"].append(1000.0 * (shown - d.poll))
+        f["ar_age_ms"].append(d.ar_age_ms)
         self._close_period()
 
     def _take_vision_result(self) -> None:

@@ -118,15 +118,14 @@ def target_ttc(ego: pd.DataFrame, trajectories: pd.DataFrame, target_id: str, ta
     # "still in the ego lane": the cut-in's own stay, up to the first sample it is out of the lane
     # again (curved seed 4174: a target that left at 32 s and changed back in behind the ego at
     # 63 s gave a minimum gap of -17.5 m)
-    still = np.zeros_like(in_lane)
+    valid = np.zeros_like(in_lane)
     if in_lane.any():
         first = int(np.argmax(in_lane))
         left = np.flatnonzero(~in_lane[first:])
-        still[first:first + (int(left[0]) if left.size else len(in_lane) - first)] = True
+        valid[first:first + (int(left[0]) if left.size else len(in_lane) - first)] = True
     gap = rear - e["s"].to_numpy()
     ego_speed = e["speed"].to_numpy()
     ttc = ttc_series(gap, ego_speed, v_target)
-    valid = still
     ttc[~valid] = np.nan
     return pd.DataFrame({"time": t, "gap_m": np.where(valid, gap, np.nan),
                          "closing_mps": np.where(valid, ego_speed - v_target, np.nan), "ttc_s": ttc})
