@@ -546,9 +546,12 @@ def test_the_surface_drawing_a_box_decides_between_the_vehicle_and_the_one_behin
     cost_s, allowed_s = matcher.cost_matrix(proj, boxes, samples, surface)
     sigma = 0.05 * np.array([face["car"], face["truck"]]) + 1.0
     disagree = abs(face["truck"] - face["car"]) / sigma
-    # each twin's own box: no depth disagreement either way; the other's box now pays it
+    # each twin's own box: no depth disagreement either way; the other's box now pays it, less the
+    # tolerance the matcher grants any measured depth, scaled to reach the gate's penalty at the gate
+    tol, gate = matcher.params.depth_tolerance_sigmas, matcher.params.depth_gate
     np.testing.assert_allclose(np.diag(cost_s), np.diag(cost))
-    np.testing.assert_allclose([cost_s[0, 1] - cost[0, 1], cost_s[1, 0] - cost[1, 0]], disagree)
+    np.testing.assert_allclose([cost_s[0, 1] - cost[0, 1], cost_s[1, 0] - cost[1, 0]],
+                               np.minimum((disagree - tol) * gate / (gate - tol), gate))
     np.testing.assert_array_equal(allowed_s, allowed)
     assert [int(g) for g in matcher.assign(proj, boxes, samples, surface)] == [0, 1]
     # unknown surfaces: the samples' cost, box by box
@@ -686,3 +689,38 @@ def test_a_box_whose_lower_quarter_a_nearer_car_hides_is_read_on_the_twins_own_s
     assert np.isinf(_unoccluded_depth_err(mostly_car, face, sigma, 4.0)).all()
     enough = np.r_[np.full(30 - few - 2, face[0]), np.full(few + 2, face[1])][None]
     assert _unoccluded_depth_err(enough, face, sigma, 4.0)[1, 0] == pytest.approx(0.0)
+
+
+def test_depths_within_the_tolerance_leave_the_choice_between_two_boxes_to_the_overlap():
+    """Curve seed 3104: a turned truck gets two boxes, its whole body and its upper part, both of
+    whose depths agree with its face within its own error. Without a tolerance the box whose depth
+    happens to read nearer the face wins on noise; within it the overlap decides. A box without
+    depth keeps the neutral one-sigma penalty, and a disagreement at the gate still costs the gate."""
+    cam = pinhole_camera()
+    twin = make_twins(["truck"], [20.0], [0.0], length=8.2, width=2.5, height=3.6, z_ground=-1.8)
+    proj = project_twins(twin, cam)
+    whole = vehicle_box(cam, 20.0, 0.0, length=8.2, width=2.5, height=3.6)
+    upper = whole.copy()
+    upper[3] = whole[1] + 0.8 * (whole[3] - whole[1])
+    boxes = np.stack([whole, upper])
+    face = proj.face_z[0]
+    sigma = 0.05 * face + 1.0
+    depths = np.array([face + 0.45 * sigma, face + 0.02 * sigma])  # both well within the twin's error
+
+    strict = JointMatcher(JointMatcherParams(smoothing_alpha=None, depth_tolerance_sigmas=0.0))
+    tolerant = JointMatcher(JointMatcherParams(smoothing_alpha=None, depth_tolerance_sigmas=0.5))
+    assert [int(g) for g in strict.assign(proj, boxes, depths)] == [1]  # the noise decides
+    assert [int(g) for g in tolerant.assign(proj, boxes, depths)] == [0]  # the overlap decides
+    cost_strict = strict.cost_matrix(proj, boxes, depths)[0]
+    cost_tolerant = tolerant.cost_matrix(proj, boxes, depths)[0]
+    np.testing.assert_allclose(cost_strict - cost_tolerant, [[0.45, 0.02]], atol=1e-9)
+    # no depth: the same neutral penalty with and without the tolerance
+    no_depth = np.array([np.nan, np.nan])
+    np.testing.assert_allclose(tolerant.cost_matrix(proj, boxes, no_depth)[0],
+                               strict.cost_matrix(proj, boxes, no_depth)[0])
+    # at the gate the penalty is the gate's either way
+    at_gate = np.array([face + 4.0 * sigma, face + 4.0 * sigma])
+    np.testing.assert_allclose(tolerant.cost_matrix(proj, boxes, at_gate)[0],
+                               strict.cost_matrix(proj, boxes, at_gate)[0])
+    with pytest.raises(ValueError, match="depth_tolerance_sigmas"):
+        JointMatcherParams(depth_tolerance_sigmas=4.0)
