@@ -42,7 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_parsers(sub)  # bench, bench-render
     prediction.add_parsers(sub)  # dataset, train, evaluate, bench-predict
     lane_changes.add_parsers(sub)  # compare-lane-changes, calibrate-lane-changes
-    transfer.add_parsers(sub)  # real-split, sim-to-real
+    transfer.add_parsers(sub)  # real-split, retune, set-decision, ensemble-models, sim-to-real
     detection.add_parsers(sub)  # train-detector, eval-detector, render-scenes, resize-dataset, coco-check, export-onnx
     metrics.add_parsers(sub)  # metrics, report
     control.add_parsers(sub)  # export-commonroad
