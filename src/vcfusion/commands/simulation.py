@@ -14,6 +14,10 @@ from vcfusion.scenario import find_scenario, load_scenario
 
 def cmd_run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
+    if args.arm is not None:
+        from vcfusion.studies.guidance import arm_run_scenario
+
+        scenario = arm_run_scenario(scenario, args.arm)
     check_seed(args.seed)
     out = check_new_folder(Path(args.out) if args.out else default_run_dir(scenario.name, args.seed))
     _run_and_report(scenario, args.seed, out)
@@ -146,6 +150,9 @@ def add_parsers(sub) -> None:
     p.add_argument("scenario", help="scenario YAML file, or the name of a shipped scenario (vcfusion scenarios)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", help="run folder to create (default: runs/NAME-seedN)")
+    p.add_argument("--arm", choices=("none", "cloud", "fusion", "oracle"),
+                   help="run the scenario as this arm of `vcfusion study guidance` runs the same seed (the "
+                        "camera arms with their AR frames, for `vcfusion explain-highlights`)")
     p.set_defaults(func=cmd_run, interrupted="no run folder was written; run the same command again to redo the run")
 
     p = sub.add_parser("scenarios", help="list the shipped scenarios (usable by name: vcfusion run accident)")

@@ -132,6 +132,16 @@ def arm_scenario(scenario, arm: str):
     })
 
 
+def arm_run_scenario(scenario, arm: str):
+    """The scenario of `arm_scenario` as one run folder holds it (`vcfusion run --arm`): guidance on
+    in every arm but `none` (the study passes it to build_cosimulation), and the camera arms record
+    their AR frames (`ar.video`), which `vcfusion explain-highlights` shows; recording changes no
+    result (curved seeds 5020, 5123, 5030: every highlight count the study's)."""
+    sc = arm_scenario(scenario, arm)
+    return sc.model_copy(update={"driver": sc.driver.model_copy(update={"guidance": arm != "none"}),
+                                 "ar": sc.ar.model_copy(update={"video": arm in CAMERA_ARMS})})
+
+
 # One per worker process (run_jobs workers are persistent): the renderer (its GL context and
 # scene) and the CNN detector are built once and reused by every trip the worker runs.
 _WORKER = {}
