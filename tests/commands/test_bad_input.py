@@ -7,6 +7,7 @@ fails for its own defect.
 """
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -573,3 +574,19 @@ def test_a_vehicle_sumo_refuses_is_one_line_and_exit_1(tmp_path, monkeypatch, ca
     assert err.count("\n") == 1 and err.startswith("error: SUMO refused the scenario's vehicles: Departure speed "
                                                    "for vehicle 'car0' is too high for the vehicle type 'car'")
     assert not (tmp_path / "out").exists()
+
+
+def test_output_into_a_closed_pipe_ends_quietly_with_sigpipes_status():
+    """`vcfusion scenarios | head -0`: the reader is gone before anything is written. The command
+    ends with 128 + SIGPIPE and no traceback, neither from its own print nor at interpreter exit."""
+    import signal
+
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # nobody will read
+    try:
+        proc = subprocess.run([sys.executable, "-m", "vcfusion", "scenarios"], stdout=write_end,
+                              stderr=subprocess.PIPE, text=True, timeout=120)
+    finally:
+        os.close(write_end)
+    assert proc.returncode == 128 + signal.SIGPIPE, proc.stderr
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr, proc.stderr

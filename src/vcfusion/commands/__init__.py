@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -49,15 +50,34 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _silence_stdout() -> None:
+    """Point standard output at /dev/null (the pipe it wrote to is closed)."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # not a file (a test's capture): replace the object
+        sys.stdout = open(os.devnull, "w")
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, fd)
+    os.close(devnull)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command_device:  # before anything imports OpenGL; worker processes inherit it (vcfusion.accel)
         os.environ["VCFUSION_DEVICE"] = args.command_device
     with interrupts.recorded():  # Ctrl-C stops the command even when numba swallowed its KeyboardInterrupt
         try:
-            return args.func(args)
+            code = args.func(args)
+            sys.stdout.flush()  # a closed pipe shows here, where it is handled, not at exit
+            return code
         except SystemExit:
             raise
+        except BrokenPipeError:
+            # the reader of our output went away (`vcfusion ... | head`): nothing more can be shown,
+            # and no traceback; what is left to flush goes nowhere instead of failing again at exit
+            _silence_stdout()
+            return 128 + signal.SIGPIPE
         except BaseException as exc:
             if interrupts.is_interrupt(exc):  # also when numba mangled it on its way up
                 # What Ctrl-C left and how to go on: the command's set_defaults(interrupted=...).
