@@ -118,11 +118,8 @@ def target_ttc(ego: pd.DataFrame, trajectories: pd.DataFrame, target_id: str, ta
     # "still in the ego lane": the cut-in's own stay, up to the first sample it is out of the lane
     # again (curved seed 4174: a target that left at 32 s and changed back in behind the ego at
     # 63 s gave a minimum gap of -17.5 m)
-    valid = np.zeros_like(in_lane)
-    if in_lane.any():
-        first = int(np.argmax(in_lane))
-        left = np.flatnonzero(~in_lane[first:])
-        valid[first:first + (int(left[0]) if left.size else len(in_lane) - first)] = True
+    has_left = np.maximum.accumulate(np.maximum.accumulate(in_lane) & ~in_lane)
+    valid = in_lane & ~has_left
     gap = rear - e["s"].to_numpy()
     ego_speed = e["speed"].to_numpy()
     ttc = ttc_series(gap, ego_speed, v_target)
