@@ -590,3 +590,16 @@ def test_output_into_a_closed_pipe_ends_quietly_with_sigpipes_status():
         os.close(write_end)
     assert proc.returncode == 128 + signal.SIGPIPE, proc.stderr
     assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr, proc.stderr
+
+
+def test_a_broken_pipe_other_than_standard_output_is_a_failure(monkeypatch):
+    """A worker's pipe breaking is not the reader of our output going away: it is raised, not
+    turned into a quiet exit."""
+    from vcfusion.commands import simulation
+
+    def worker_pipe_broke(args):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(simulation, "cmd_scenarios", worker_pipe_broke)
+    with pytest.raises(BrokenPipeError):
+        main(["scenarios"])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import select
 import signal
 import sys
 from pathlib import Path
@@ -50,15 +51,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _silence_stdout() -> None:
-    """Point standard output at /dev/null (the pipe it wrote to is closed)."""
+def _stdout_reader_gone() -> bool:
+    """Whether standard output is a pipe whose reader has closed it (`vcfusion ... | head`): its
+    write end then polls as an error. A broken pipe anywhere else (a worker's) is a failure."""
     try:
         fd = sys.stdout.fileno()
-    except (AttributeError, OSError, ValueError):  # not a file (a test's capture): replace the object
-        sys.stdout = open(os.devnull, "w")
-        return
+    except (AttributeError, OSError, ValueError):  # not a file (a test's capture)
+        return False
+    poller = select.poll()
+    poller.register(fd, select.POLLOUT)
+    return any(events & select.POLLERR for _, events in poller.poll(0))
+
+
+def _silence_stdout() -> None:
+    """Point standard output at /dev/null, so what is left to flush at exit goes nowhere."""
     devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, fd)
+    os.dup2(devnull, sys.stdout.fileno())
     os.close(devnull)
 
 
@@ -73,12 +81,11 @@ def main(argv: list[str] | None = None) -> int:
             return code
         except SystemExit:
             raise
-        except BrokenPipeError:
-            # the reader of our output went away (`vcfusion ... | head`): nothing more can be shown,
-            # and no traceback; what is left to flush goes nowhere instead of failing again at exit
-            _silence_stdout()
-            return 128 + signal.SIGPIPE
         except BaseException as exc:
+            if isinstance(exc, BrokenPipeError) and _stdout_reader_gone():
+                # the reader of our output went away: nothing more can be shown, and no traceback
+                _silence_stdout()
+                return 128 + signal.SIGPIPE
             if interrupts.is_interrupt(exc):  # also when numba mangled it on its way up
                 # What Ctrl-C left and how to go on: the command's set_defaults(interrupted=...).
                 # The workers were stopped and temporary folders removed on the way up.
