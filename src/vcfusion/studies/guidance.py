@@ -112,9 +112,9 @@ def load_process_model(spec: str, scenario):
 
 
 def arm_scenario(scenario, arm: str):
-    """The scenario as arm `arm` runs it: the camera and fusion stages on for the camera arms
-    (with the scenario's own fusion settings where it has them, the shipped CNN otherwise), off
-    for the others (they never render); no video."""
+    """The scenario as arm `arm` runs it: guidance on in every arm but `none`; the camera and
+    fusion stages on for the camera arms (with the scenario's own fusion settings where it has
+    them, the shipped CNN otherwise), off for the others (they never render); no video."""
     if arm not in ARMS:
         raise ValueError(f"--arms: expected arms among {', '.join(ARMS)}, got {arm!r}")
     camera = arm in CAMERA_ARMS
@@ -124,6 +124,7 @@ def arm_scenario(scenario, arm: str):
     elif arm == "fusion" and not scenario.fusion.enabled:
         fusion = fusion.model_copy(update={"detector": "cnn"})
     return scenario.model_copy(update={
+        "driver": scenario.driver.model_copy(update={"guidance": arm != "none"}),
         # every tick renders and fuses unless the scenario itself asks for vision.only_when_warning:
         # skipping ticks starves the joint matcher's position filter, so it is not the default path
         "vision": scenario.vision.model_copy(update={"enabled": camera}),
@@ -133,13 +134,11 @@ def arm_scenario(scenario, arm: str):
 
 
 def arm_run_scenario(scenario, arm: str):
-    """The scenario of `arm_scenario` as one run folder holds it (`vcfusion run --arm`): guidance on
-    in every arm but `none` (the study passes it to build_cosimulation), and the camera arms record
-    their AR frames (`ar.video`), which `vcfusion explain-highlights` shows; recording changes no
-    result (curved seeds 5020, 5123, 5030: every highlight count the study's)."""
+    """The scenario of `arm_scenario` as one run folder holds it (`vcfusion run --arm`): the camera
+    arms record their AR frames (`ar.video`), which `vcfusion explain-highlights` shows; recording
+    changes no result (curved seeds 5020, 5123, 5030: every highlight count the study's)."""
     sc = arm_scenario(scenario, arm)
-    return sc.model_copy(update={"driver": sc.driver.model_copy(update={"guidance": arm != "none"}),
-                                 "ar": sc.ar.model_copy(update={"video": arm in CAMERA_ARMS})})
+    return sc.model_copy(update={"ar": sc.ar.model_copy(update={"video": arm in CAMERA_ARMS})})
 
 
 # One per worker process (run_jobs workers are persistent): the renderer (its GL context and
@@ -192,7 +191,7 @@ def simulate_arm(scenario, seed: int, arm: str, process_model_specs: tuple[str, 
     renderer = detector = None
     if arm in CAMERA_ARMS:
         renderer, detector = _worker_resources(sc)
-    cosim = build_cosimulation(sc, seed, guidance_enabled=arm != "none", extra_process_models=extra,
+    cosim = build_cosimulation(sc, seed, extra_process_models=extra,
                                renderer=renderer, detector=detector)
     result = cosim.run()
     tables = {name: result.tables[name] for name in ARM_TABLES if name in result.tables}
