@@ -28,7 +28,7 @@ import pandas as pd
 from vcfusion.studies.guidance import REFERENCE_ARM, SAFETY_METRICS, WRONG_KINDS, paired_summary
 from vcfusion.studies.matrix import WRONG_SHARE_RESAMPLES, highlight_table, read_study
 
-METRICS = ("min_gap_to_target_m", "fuel_g_per_km", "avg_abs_accel_mps2", "max_abs_jerk_mps3", "avg_ttc_clipped_s")
+METRICS = ("min_gap_to_target_m", "min_gap_stay_m", "fuel_g_per_km", "avg_abs_accel_mps2", "max_abs_jerk_mps3", "avg_ttc_clipped_s")
 
 
 def _wrong_share_line(r: dict) -> str:

@@ -508,6 +508,13 @@ class MetricsConfig(_Strict):
                                                      "differentiated into jerk")
     ttc_clip_s: Positive = Field(20.0, description="the guidance study's mean TTC to the cut-in vehicle is also "
                                                    "given with TTC clipped here")
+    # 10 s: the ego's response to a cut-in (a reaction of 1-2 s, then settling behind the new leader)
+    # and not the queue at the curve's closure a minute later, where the same vehicle gave the
+    # least gap of two trips (curved seeds 5042, 5124: within 10 s the arms differ by 0 and +9 m,
+    # over the whole stay by -182 and -77 m; docs/components/guidance-loop.md)
+    cut_in_window_s: Positive = Field(10.0, description="the guidance study's minimum gap to the cut-in vehicle "
+                                                        "is read over this time from the cut-in's mid time "
+                                                        "(min_gap_stay_m: over its whole stay in the ego's lane)")
     leader_range_m: Positive = Field(250.0, description="a vehicle's leader is the nearest vehicle ahead in its "
                                                         "lane within this range (bumper to bumper)")
     movestar: dict[Name, Literal[1, 2]] = Field({"passenger": 1}, description="MOVESTAR source type (1 "

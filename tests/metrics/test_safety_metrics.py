@@ -74,6 +74,30 @@ def test_the_gap_is_measured_while_the_cut_in_vehicle_stays_in_the_ego_lane():
     assert m["ttc_samples"] == 0  # it never came closer while it stayed
 
 
+def test_the_minimum_gap_is_the_response_to_the_cut_in_within_its_window():
+    # it cuts in 50 m ahead a little faster than the ego, then at 15 s brakes into a queue and the ego closes
+    # to 2 m at 25 s (curved seeds 5042, 5124): the gap of the cut-in's window is 50 m, reached at
+    # its start; over the whole stay it is 2 m, at 25 s
+    n = 2501
+    t = np.arange(n) * DT
+    target_v = np.where(t < 15.0, 20.5, np.maximum(20.5 - 4.5 * (t - 15.0), 14.0))
+    target_s = 52.0 + np.concatenate([[0.0], np.cumsum(target_v[:-1] * DT)])
+    tables = _tables(np.full(n, 20.0), target_s, target_v, mid_time=0.0)
+    m = trip_metrics(tables, ego_lane=2, dt=DT, cut_in_range_m=RANGE, cut_in_window_s=10.0)
+    assert m["min_gap_to_target_m"] == pytest.approx(50.0, abs=1e-6)
+    assert m["min_gap_after_cut_in_s"] == pytest.approx(0.0, abs=1e-9)
+    gap_then = 50.0 + np.sum((target_v[:-1] - 20.0) * DT)  # the ego at 20 m/s to the end
+    assert m["min_gap_stay_m"] == pytest.approx(gap_then, abs=0.05) and m["min_gap_stay_m"] < 3.0
+    # a window as long as the trip reads the whole stay; one from a later cut-in shifts with it
+    m = trip_metrics(tables, ego_lane=2, dt=DT, cut_in_range_m=RANGE, cut_in_window_s=30.0)
+    assert m["min_gap_to_target_m"] == pytest.approx(m["min_gap_stay_m"])
+    assert m["min_gap_after_cut_in_s"] == pytest.approx(25.0, abs=0.01)
+    late = _tables(np.full(n, 20.0), target_s, target_v, mid_time=12.0)
+    m = trip_metrics(late, ego_lane=2, dt=DT, cut_in_range_m=RANGE, cut_in_window_s=10.0)
+    assert m["min_gap_after_cut_in_s"] == pytest.approx(10.0, abs=0.01)
+    assert 10.0 < m["min_gap_to_target_m"] < 50.0
+
+
 def test_a_trip_without_a_cut_in_has_no_exposure_to_measure():
     # TET / TIT are NaN like TTC (0 would pair the trip in the study's TET row only)
     n = 101

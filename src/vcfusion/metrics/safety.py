@@ -29,6 +29,12 @@ Definitions (the same for both arms of the guidance study):
   and the jerk window are the scenario's ``metrics:`` block (default 1.5 s, SSAM), shared with
   the per-vehicle run metrics (vcfusion.metrics.traffic). NaN, like TTC, for a trip without a
   cut-in ahead of the ego.
+- **Minimum gap to the cut-in vehicle**: ``min_gap_to_target_m`` = the least gap (as above,
+  while the vehicle stays in the ego's lane) over the ``cut_in_window_s`` (the scenario's
+  ``metrics.cut_in_window_s``, 10 s) from the cut-in's mid time: the ego's response to the cut-in,
+  not a queue it meets behind the same vehicle a minute later (curved seeds 5042 and 5124,
+  docs/components/guidance-loop.md). ``min_gap_after_cut_in_s`` is when it came (s after the mid
+  time). ``min_gap_stay_m`` is the least gap over the whole stay, the window left out.
 - **Collisions**: SUMO collisions involving the ego.
 """
 
@@ -147,7 +153,8 @@ def kinematics(time: np.ndarray, s: np.ndarray, speed: np.ndarray, dt: float, je
 
 
 def trip_metrics(tables: dict[str, pd.DataFrame], ego_lane: int, dt: float, cut_in_range_m: float,
-                 ttc_threshold_s: float = 1.5, jerk_window_s: float = 0.1, ttc_clip_s: float = 20.0) -> dict:
+                 ttc_threshold_s: float = 1.5, jerk_window_s: float = 0.1, ttc_clip_s: float = 20.0,
+                 cut_in_window_s: float = 10.0) -> dict:
     """Safety/comfort metrics of one run's tables (see the module doc for the definitions).
     The thresholds come from the scenario's `metrics:` block (MetricsConfig)."""
     ego = tables["ego"].sort_values("time")
@@ -158,7 +165,8 @@ def trip_metrics(tables: dict[str, pd.DataFrame], ego_lane: int, dt: float, cut_
                 "avg_ttc_s": math.nan, "avg_ttc_clipped_s": math.nan, "min_ttc_s": math.nan, "ttc_samples": 0,
                 # no cut-in ahead: no exposure to measure (0 would pair a trip without a cut-in with
                 # one that had it, where TTC and gap are left out)
-                "tet_s": math.nan, "tit_s2": math.nan, "min_gap_to_target_m": math.nan})
+                "tet_s": math.nan, "tit_s2": math.nan, "min_gap_to_target_m": math.nan,
+                "min_gap_after_cut_in_s": math.nan, "min_gap_stay_m": math.nan})
     if target is not None:
         vehicles = tables["vehicles"].set_index("vehicle_id")
         series = target_ttc(ego, tables["trajectories"], target["vehicle_id"],
@@ -175,6 +183,11 @@ def trip_metrics(tables: dict[str, pd.DataFrame], ego_lane: int, dt: float, cut_
             "min_ttc_s": float(ttc[defined].min()) if defined.any() else math.nan,
             "ttc_samples": int(defined.sum()),
             "tet_s": tet, "tit_s2": tit,
-            "min_gap_to_target_m": float(np.nanmin(series["gap_m"])) if series["gap_m"].notna().any() else math.nan,
+            "min_gap_stay_m": float(np.nanmin(series["gap_m"])) if series["gap_m"].notna().any() else math.nan,
         })
+        after = series["time"].to_numpy() - float(target["mid_time"])
+        gap = np.where(after <= cut_in_window_s + 1e-9, series["gap_m"].to_numpy(dtype=float), np.nan)
+        if np.isfinite(gap).any():
+            k = int(np.nanargmin(gap))
+            out.update({"min_gap_to_target_m": float(gap[k]), "min_gap_after_cut_in_s": float(after[k])})
     return out

@@ -70,7 +70,9 @@ SAFETY_METRICS = [
     ("avg_abs_accel_mps2", "average |acceleration|", "m/s^2", 2.57, 2.07, None),
     ("max_abs_jerk_mps3", "maximum |jerk|", "m/s^3", 40.14, 35.91, None),
     ("max_decel_mps2", "maximum deceleration", "m/s^2", None, None, None),
-    ("min_gap_to_target_m", "minimum gap to the lane-change vehicle", "m", None, None, None),
+    ("min_gap_to_target_m", "minimum gap to the lane-change vehicle, metrics.cut_in_window_s from its cut-in",
+     "m", None, None, None),
+    ("min_gap_stay_m", "minimum gap to the lane-change vehicle over its whole stay", "m", None, None, None),
     ("collisions", "collisions of the ego", "", None, None, None),
 ]
 EMISSION_METRICS = [
@@ -392,7 +394,7 @@ def arm_metrics(run: dict, target_id: str | None) -> dict:
            "cut_ins_ahead_of_ego": run["summary"].get("cut_ins_ahead_of_ego", 0)}
     m = sc.metrics  # the same thresholds and definitions as the runs' metrics tables
     row.update(trip_metrics(tables, sc.ego.lane, sc.simulation.step_s, m.leader_range_m, m.ttc_threshold_s,
-                            m.jerk_window_s, m.ttc_clip_s))
+                            m.jerk_window_s, m.ttc_clip_s, m.cut_in_window_s))
     row["ttc_threshold_s"] = m.ttc_threshold_s
     row["target_id"] = target_id
     # whether the seed's vehicle cut in ahead of the ego in this arm (else its TTC / gap are NaN)
