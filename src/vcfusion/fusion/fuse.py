@@ -19,7 +19,8 @@ import numpy as np
 from vcfusion.guidance import GuidancePolicy
 from vcfusion.records import GuidanceSet, TwinStates
 from vcfusion.fusion.box_refine import (BoxRefineParams, ObjectSegments, RefinedBoxes, box_surface_depths,
-                                       depth_proposals, fill_scan_gaps, join_fragments, merge_same_segment,
+                                       depth_proposals, fill_scan_gaps, join_fragments, join_truck_fragments,
+                                       merge_same_segment,
                                        object_segments, on_road_mask, refine_boxes)
 from vcfusion.fusion.road import DepthNoise, RoadFit, fit_road_plane
 from vcfusion.fusion.depth_eval import DepthEvalParams, joint_depth_samples, reduce_depth_samples, sample_box_depths
@@ -342,6 +343,12 @@ def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefinePara
         # a proposal's surface is that of the segment it was proposed from
         outline = np.r_[np.zeros(len(boxes) - len(new), int), new_labels]
         boxes = join_fragments(boxes, scores >= refine.proposals.score, segments, cam.K, refine, view.noise, outline)
+        # only on noiseless depth, as merge_same_segment: a noisy segment can join the next vehicle
+        if refine.proposals.join_truck_fragments and view.noise.exact and segments is not None and len(boxes) > 1:
+            boxes = boxes.copy()
+            kept = join_truck_fragments(boxes, scores, classes == category_id("truck"), segments)
+            count_depth_step(stats, "truck_fragments_joined", int((~kept).sum()))
+            boxes, scores, classes = boxes[kept], scores[kept], classes[kept]
     return Detections.of(boxes, scores, classes)
 
 
