@@ -27,33 +27,36 @@ def test_two_boxes_on_one_trucks_segment_become_their_union_on_the_best_scored()
     segments = _segments([TRUCK])
     assert core_segment(FRONT, segments) == 1 and core_segment(BACK, segments) == 1
     boxes = np.stack([BACK, FRONT])
-    keep = join_truck_fragments(boxes, np.array([0.4, 0.8]), np.array([True, True]), segments)
+    joined, keep = join_truck_fragments(boxes, np.array([0.4, 0.8]), np.array([True, True]), segments)
     assert keep.tolist() == [False, True]
-    np.testing.assert_allclose(boxes[1], [99.5, 49.5, 160.5, 80.5])
+    np.testing.assert_allclose(joined[1], [99.5, 49.5, 160.5, 80.5])
+    np.testing.assert_allclose(boxes, np.stack([BACK, FRONT]))  # the input is left as it was
 
 
 def test_boxes_of_other_segments_classes_or_columns_stay_apart():
     segments = _segments([TRUCK, (200, 50, 260, 80)])  # a second truck beside it, its own segment
     other = np.array([199.5, 49.5, 230.5, 80.5])
-    boxes = np.stack([FRONT, other])
-    assert join_truck_fragments(boxes, np.array([0.8, 0.7]), np.array([True, True]), segments).all()
-    np.testing.assert_allclose(boxes, np.stack([FRONT, other]))  # unchanged
+    joined, keep = join_truck_fragments(np.stack([FRONT, other]), np.array([0.8, 0.7]), np.array([True, True]),
+                                        segments)
+    assert keep.all()
+    np.testing.assert_allclose(joined, np.stack([FRONT, other]))  # unchanged
     # a car's box on the truck's segment is not a truck fragment
     boxes = np.stack([FRONT, BACK])
-    assert join_truck_fragments(boxes, np.array([0.8, 0.4]), np.array([True, False]), segments).all()
+    assert join_truck_fragments(boxes, np.array([0.8, 0.4]), np.array([True, False]), segments)[1].all()
     # two boxes with no column in common are two things on one segment, not two halves
     left, right = np.array([99.5, 49.5, 120.5, 80.5]), np.array([140.5, 49.5, 160.5, 80.5])
     boxes = np.stack([left, right])
-    assert join_truck_fragments(boxes, np.array([0.8, 0.4]), np.array([True, True]), segments).all()
+    assert join_truck_fragments(boxes, np.array([0.8, 0.4]), np.array([True, True]), segments)[1].all()
 
 
 def test_a_union_reaching_beyond_the_segment_is_not_joined():
     segments = _segments([TRUCK])
     wide = np.array([124.5, 49.5, 170.5, 80.5])  # its core is the truck's, its right side 10 px beyond
     assert core_segment(wide, segments) == 1
-    boxes = np.stack([FRONT, wide])
-    assert join_truck_fragments(boxes, np.array([0.8, 0.4]), np.array([True, True]), segments).all()
-    np.testing.assert_allclose(boxes[0], FRONT)
+    joined, keep = join_truck_fragments(np.stack([FRONT, wide]), np.array([0.8, 0.4]), np.array([True, True]),
+                                        segments)
+    assert keep.all()
+    np.testing.assert_allclose(joined[0], FRONT)
 
 
 def test_the_cores_segment_pixels_decide_and_a_core_without_any_has_none():

@@ -1639,18 +1639,11 @@ def warm_kernels() -> None:
     _lowest_row_on_its_surface(road[:1], 0, 0, z, _Heights(np.eye(3), eye), 0.05, 0.5, 0.045)
 
 
-def core_segment(box: np.ndarray, segments: ObjectSegments, core: float = 0.5) -> int:
+def core_segment(box: np.ndarray, segments: ObjectSegments) -> int:
     """The label of the segment holding at least half of the segment pixels in a box's core (its
-    central ``core`` share of width and height; pixels of no segment, the road or the sky, do not
-    count); 0 where none does or the core holds no segment."""
-    x1, y1, x2, y2 = (float(v) for v in box)
-    mx, my = (1.0 - core) / 2 * (x2 - x1), (1.0 - core) / 2 * (y2 - y1)
-    h, w = segments.labels.shape
-    c0, c1 = max(int(np.floor(x1 + mx + 0.5)), 0), min(int(np.ceil(x2 - mx + 0.5)), w)
-    r0, r1 = max(int(np.floor(y1 + my + 0.5)) - segments.y_lo, 0), min(int(np.ceil(y2 - my + 0.5)) - segments.y_lo, h)
-    if r1 <= r0 or c1 <= c0:
-        return 0
-    labels = segments.labels[r0:r1, c0:c1]
+    central half in each direction, :func:`_core`; pixels of no segment, the road or the sky, do
+    not count); 0 where none does or the core holds no segment."""
+    labels = segments.labels[_core(box, 0, segments.y_lo)]
     labels = labels[labels > 0]
     if not labels.size:
         return 0
@@ -1659,32 +1652,29 @@ def core_segment(box: np.ndarray, segments: ObjectSegments, core: float = 0.5) -
 
 
 def join_truck_fragments(boxes: np.ndarray, scores: np.ndarray, is_truck: np.ndarray,
-                         segments: ObjectSegments, slack_px: float = 2.0) -> np.ndarray:
-    """Truck boxes that box one truck in pieces, made one: (N,) whether each box is kept, and
-    ``boxes`` (changed in place) where the best-scored fragment takes the union.
+                         segments: ObjectSegments, slack_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """Truck boxes that box one truck in pieces, made one: the boxes (a copy), the best-scored
+    fragment of each truck holding the union, and (N,) whether each box is kept.
 
     A detector can box a truck seen at an angle twice, front and back half, at an IoU with each
     other below its suppression. Two truck boxes are one truck's fragments when at least half of
     each one's core shows the same depth segment (:func:`core_segment`), they share columns, and
-    their union lies within that segment's extent (``slack_px`` either side): a second truck at
+    their union lies within that segment's box (``slack_px`` either side): a second truck at
     another depth is another segment, and a box reaching beyond the segment shows something else.
     Fragments join the best-scored box of their segment one by one, each while the union still fits."""
-    boxes = np.asarray(boxes, dtype=float)
+    boxes = np.array(boxes, dtype=float)
     keep = np.ones(len(boxes), bool)
-    trucks = np.flatnonzero(np.asarray(is_truck, bool))
     by_segment: dict[int, list[int]] = {}
-    for i in trucks:
+    for i in np.flatnonzero(np.asarray(is_truck, bool)):
         label = core_segment(boxes[i], segments)
         if label > 0:
             by_segment.setdefault(label, []).append(int(i))
     for label, members in by_segment.items():
-        if len(members) < 2 or segments.regions[label - 1] is None:
+        if len(members) < 2:
             continue
-        rows, cols = segments.regions[label - 1]
-        extent = np.array([cols.start - 0.5 - slack_px, rows.start + segments.y_lo - 0.5 - slack_px,
-                           cols.stop - 0.5 + slack_px, rows.stop + segments.y_lo - 0.5 + slack_px])
+        extent = segments.boxes([label])[0] + np.array([-slack_px, -slack_px, slack_px, slack_px])
         members.sort(key=lambda i: -float(scores[i]))
-        union = boxes[members[0]].copy()
+        union = boxes[members[0]]
         for j in members[1:]:
             b = boxes[j]
             if min(union[2], b[2]) <= max(union[0], b[0]):
@@ -1693,5 +1683,4 @@ def join_truck_fragments(boxes: np.ndarray, scores: np.ndarray, is_truck: np.nda
             if np.all(joined[:2] >= extent[:2]) and np.all(joined[2:] <= extent[2:]):
                 union, keep[j] = joined, False
         boxes[members[0]] = union
-    return keep
-
+    return boxes, keep

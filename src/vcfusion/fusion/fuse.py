@@ -345,8 +345,7 @@ def depth_step(frame: CameraFrame, detections: Detections, refine: BoxRefinePara
         boxes = join_fragments(boxes, scores >= refine.proposals.score, segments, cam.K, refine, view.noise, outline)
         # only on noiseless depth, as merge_same_segment: a noisy segment can join the next vehicle
         if refine.proposals.join_truck_fragments and view.noise.exact and segments is not None and len(boxes) > 1:
-            boxes = boxes.copy()
-            kept = join_truck_fragments(boxes, scores, classes == category_id("truck"), segments)
+            boxes, kept = join_truck_fragments(boxes, scores, classes == category_id("truck"), segments)
             count_depth_step(stats, "truck_fragments_joined", int((~kept).sum()))
             boxes, scores, classes = boxes[kept], scores[kept], classes[kept]
     return Detections.of(boxes, scores, classes)

@@ -183,11 +183,13 @@ def trip_metrics(tables: dict[str, pd.DataFrame], ego_lane: int, dt: float, cut_
             "min_ttc_s": float(ttc[defined].min()) if defined.any() else math.nan,
             "ttc_samples": int(defined.sum()),
             "tet_s": tet, "tit_s2": tit,
-            "min_gap_stay_m": float(np.nanmin(series["gap_m"])) if series["gap_m"].notna().any() else math.nan,
         })
+        gap = series["gap_m"].to_numpy(dtype=float)
         after = series["time"].to_numpy() - float(target["mid_time"])
-        gap = np.where(after <= cut_in_window_s + 1e-9, series["gap_m"].to_numpy(dtype=float), np.nan)
         if np.isfinite(gap).any():
-            k = int(np.nanargmin(gap))
-            out.update({"min_gap_to_target_m": float(gap[k]), "min_gap_after_cut_in_s": float(after[k])})
+            out["min_gap_stay_m"] = float(np.nanmin(gap))
+        in_window = np.where(after <= cut_in_window_s + 1e-9, gap, np.nan)
+        if np.isfinite(in_window).any():
+            k = int(np.nanargmin(in_window))
+            out.update({"min_gap_to_target_m": float(in_window[k]), "min_gap_after_cut_in_s": float(after[k])})
     return out
