@@ -135,7 +135,7 @@ class ProposalParams:
     # cores show one segment, their union within that segment's extent, are one truck's fragments:
     # the best-scored takes the union, the others go (join_truck_fragments; curved seed 5020 at 57.7 s:
     # the CNN's two boxes on one truck at IoU 0.40 / 0.69 with it, their union 0.90). Curve seen seeds
-    # 5000-5030 and 5123 (tuned-on, study fusion arm): wrong highlight episodes 24 -> 17, missed 7 ->
+    # 5000-5020, 5030 and 5123 (tuned-on, study fusion arm): wrong highlight episodes 24 -> 17, missed 7 ->
     # 11; development identification, exact depth, 98.4 % with and without it
 
 
